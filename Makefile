@@ -1,0 +1,35 @@
+# citystream: `make run` and `make test` set everything up on a fresh
+# Debian 12 machine (as root), then build and run. Both are idempotent.
+
+CARGO ?= cargo
+OUT ?= out/run
+export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
+
+.PHONY: all setup build run test check fmt clippy bench clean-out
+
+all: build
+
+setup:
+	@mkdir -p "$(XDG_RUNTIME_DIR)" && chmod 700 "$(XDG_RUNTIME_DIR)"
+	@bash scripts/setup.sh
+
+build: setup
+	$(CARGO) build --release --workspace --bins
+
+run: build
+	./target/release/flythrough --out $(OUT)
+	@echo "frames and report in $(OUT)"
+
+test: setup
+	$(CARGO) test --workspace
+
+fmt:
+	$(CARGO) fmt --all -- --check
+
+clippy: setup
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
+
+check: fmt clippy
+
+bench: setup
+	$(CARGO) bench --workspace

@@ -1,0 +1,88 @@
+//! Compiles every GLSL shader in `shaders/` to SPIR-V (Vulkan 1.2 target)
+//! with `glslangValidator` and checks the result with `spirv-val`. A compile
+//! error fails the build with glslang's message and the file name.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const STAGES: &[&str] = &["vert", "frag", "comp"];
+
+fn main() {
+    let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
+    let shader_dir = manifest.join("../shaders");
+    let include_dir = shader_dir.join("include");
+    let out_dir = PathBuf::from(std::env::var_os("OUT_DIR").expect("cargo sets OUT_DIR"));
+    println!("cargo:rerun-if-changed={}", shader_dir.display());
+    println!("cargo:rerun-if-changed={}", include_dir.display());
+
+    let mut sources: Vec<PathBuf> = std::fs::read_dir(&shader_dir)
+        .unwrap_or_else(|e| panic!("cannot read shader directory {}: {e}", shader_dir.display()))
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| STAGES.contains(&e)))
+        .collect();
+    sources.sort();
+    for entry in std::fs::read_dir(&include_dir).into_iter().flatten().flatten() {
+        println!("cargo:rerun-if-changed={}", entry.path().display());
+    }
+
+    let mut failures = Vec::new();
+    for source in &sources {
+        println!("cargo:rerun-if-changed={}", source.display());
+        if let Err(message) = compile(source, &include_dir, &out_dir) {
+            failures.push(message);
+        }
+    }
+    if !failures.is_empty() {
+        for failure in &failures {
+            eprintln!("{failure}");
+        }
+        panic!("{} shader(s) failed to compile:\n{}", failures.len(), failures.join("\n"));
+    }
+}
+
+fn spv_name(source: &Path) -> String {
+    let file = source.file_name().and_then(|n| n.to_str()).expect("shader names are UTF-8");
+    format!("{}.spv", file.replace('.', "_"))
+}
+
+fn compile(source: &Path, include_dir: &Path, out_dir: &Path) -> Result<(), String> {
+    let output_path = out_dir.join(spv_name(source));
+    let output = Command::new("glslangValidator")
+        .arg("--target-env")
+        .arg("vulkan1.2")
+        .arg(format!("-I{}", include_dir.display()))
+        .arg("-o")
+        .arg(&output_path)
+        .arg(source)
+        .output()
+        .map_err(|e| {
+            format!(
+                "cannot run glslangValidator for {} ({e}); install it with `make setup` (Debian package glslang-tools)",
+                source.display()
+            )
+        })?;
+    if !output.status.success() {
+        return Err(format!(
+            "glslangValidator failed on {}:\n{}{}",
+            source.display(),
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        ));
+    }
+    let validation = Command::new("spirv-val")
+        .arg("--target-env")
+        .arg("vulkan1.2")
+        .arg(&output_path)
+        .output()
+        .map_err(|e| format!("cannot run spirv-val for {} ({e}); install Debian package spirv-tools", source.display()))?;
+    if !validation.status.success() {
+        return Err(format!(
+            "spirv-val rejected {} (from {}):\n{}{}",
+            output_path.display(),
+            source.display(),
+            String::from_utf8_lossy(&validation.stdout),
+            String::from_utf8_lossy(&validation.stderr)
+        ));
+    }
+    Ok(())
+}

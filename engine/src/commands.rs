@@ -1,0 +1,245 @@
+//! Command recording and submission: one-shot command contexts, fences and
+//! semaphores that own their handles.
+
+use std::sync::Arc;
+
+use ash::vk;
+
+use crate::device::Device;
+use crate::error::{Result, VkResultExt};
+
+/// A binary semaphore owned by Rust.
+pub struct Semaphore {
+    device: Arc<Device>,
+    raw: vk::Semaphore,
+}
+
+impl std::fmt::Debug for Semaphore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("Semaphore").field(&self.raw).finish()
+    }
+}
+
+impl Semaphore {
+    /// Creates a binary semaphore.
+    pub fn new(device: &Arc<Device>, name: &str) -> Result<Self> {
+        let info = vk::SemaphoreCreateInfo::default();
+        // SAFETY: valid create info on a live device.
+        let raw = unsafe { device.raw.create_semaphore(&info, None) }.vk("vkCreateSemaphore")?;
+        device.set_name(raw, name);
+        Ok(Self {
+            device: Arc::clone(device),
+            raw,
+        })
+    }
+
+    /// The raw handle.
+    pub fn raw(&self) -> vk::Semaphore {
+        self.raw
+    }
+}
+
+impl Drop for Semaphore {
+    fn drop(&mut self) {
+        // SAFETY: the owner drops only after every wait on it completed.
+        unsafe { self.device.raw.destroy_semaphore(self.raw, None) };
+    }
+}
+
+/// A fence owned by Rust.
+pub struct Fence {
+    device: Arc<Device>,
+    raw: vk::Fence,
+}
+
+impl std::fmt::Debug for Fence {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("Fence").field(&self.raw).finish()
+    }
+}
+
+impl Fence {
+    /// Creates a fence, signalled or not.
+    pub fn new(device: &Arc<Device>, signalled: bool, name: &str) -> Result<Self> {
+        let flags = if signalled {
+            vk::FenceCreateFlags::SIGNALED
+        } else {
+            vk::FenceCreateFlags::empty()
+        };
+        let info = vk::FenceCreateInfo::default().flags(flags);
+        // SAFETY: valid create info on a live device.
+        let raw = unsafe { device.raw.create_fence(&info, None) }.vk("vkCreateFence")?;
+        device.set_name(raw, name);
+        Ok(Self {
+            device: Arc::clone(device),
+            raw,
+        })
+    }
+
+    /// The raw handle.
+    pub fn raw(&self) -> vk::Fence {
+        self.raw
+    }
+
+    /// Waits for the fence without a time limit.
+    pub fn wait(&self) -> Result<()> {
+        // SAFETY: the fence belongs to this device.
+        unsafe { self.device.raw.wait_for_fences(&[self.raw], true, u64::MAX) }.vk("vkWaitForFences")
+    }
+
+    /// Whether the fence is signalled.
+    pub fn is_signalled(&self) -> Result<bool> {
+        // SAFETY: the fence belongs to this device.
+        unsafe { self.device.raw.get_fence_status(self.raw) }.vk("vkGetFenceStatus")
+    }
+
+    /// Resets the fence to unsignalled.
+    pub fn reset(&self) -> Result<()> {
+        // SAFETY: the fence belongs to this device and is not in a pending submission.
+        unsafe { self.device.raw.reset_fences(&[self.raw]) }.vk("vkResetFences")
+    }
+}
+
+impl Drop for Fence {
+    fn drop(&mut self) {
+        // SAFETY: the owner drops only after the fence's submission completed.
+        unsafe { self.device.raw.destroy_fence(self.raw, None) };
+    }
+}
+
+/// A semaphore the submission waits on, with the stages that wait.
+#[derive(Clone, Copy, Debug)]
+pub struct SemaphoreWait {
+    /// The semaphore.
+    pub semaphore: vk::Semaphore,
+    /// Stages that wait for it.
+    pub stages: vk::PipelineStageFlags2,
+}
+
+/// A command pool with one primary command buffer and a fence: record,
+/// submit, wait, reuse.
+///
+/// Threading: owned by one thread at a time.
+pub struct CommandContext {
+    device: Arc<Device>,
+    pool: vk::CommandPool,
+    cmd: vk::CommandBuffer,
+    fence: Fence,
+    pending: bool,
+}
+
+impl std::fmt::Debug for CommandContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CommandContext").field("pending", &self.pending).finish()
+    }
+}
+
+impl CommandContext {
+    /// Creates the pool, the command buffer and the fence.
+    pub fn new(device: &Arc<Device>, name: &str) -> Result<Self> {
+        let fence = Fence::new(device, false, &format!("{name} fence"))?;
+        let info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(device.queue_family())
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        // SAFETY: valid create info on a live device.
+        let pool = unsafe { device.raw.create_command_pool(&info, None) }.vk("vkCreateCommandPool")?;
+        let alloc = vk::CommandBufferAllocateInfo::default()
+            .command_pool(pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        // SAFETY: the pool was just created on this device.
+        let cmd = match unsafe { device.raw.allocate_command_buffers(&alloc) } {
+            Ok(buffers) => buffers[0],
+            Err(result) => {
+                // SAFETY: the pool has no buffers in use.
+                unsafe { device.raw.destroy_command_pool(pool, None) };
+                return Err(crate::EngineError::Vulkan {
+                    call: "vkAllocateCommandBuffers",
+                    result,
+                });
+            }
+        };
+        device.set_name(pool, &format!("{name} pool"));
+        device.set_name(cmd, name);
+        Ok(Self {
+            device: Arc::clone(device),
+            pool,
+            cmd,
+            fence,
+            pending: false,
+        })
+    }
+
+    /// Waits for any previous submission, then begins recording.
+    pub fn begin(&mut self) -> Result<vk::CommandBuffer> {
+        self.wait()?;
+        let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        // SAFETY: the buffer is not pending (waited above) and its pool allows reset.
+        unsafe {
+            self.device
+                .raw
+                .reset_command_buffer(self.cmd, vk::CommandBufferResetFlags::empty())
+                .vk("vkResetCommandBuffer")?;
+            self.device.raw.begin_command_buffer(self.cmd, &info).vk("vkBeginCommandBuffer")?;
+        }
+        Ok(self.cmd)
+    }
+
+    /// Ends recording and submits, waiting on `waits` and signalling `signal`.
+    pub fn submit(&mut self, waits: &[SemaphoreWait], signal: &[vk::Semaphore]) -> Result<()> {
+        // SAFETY: the buffer is in the recording state (begin was called).
+        unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
+        let wait_infos: Vec<_> = waits
+            .iter()
+            .map(|w| vk::SemaphoreSubmitInfo::default().semaphore(w.semaphore).stage_mask(w.stages))
+            .collect();
+        let signal_infos: Vec<_> = signal
+            .iter()
+            .map(|&s| {
+                vk::SemaphoreSubmitInfo::default()
+                    .semaphore(s)
+                    .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            })
+            .collect();
+        let cmd_infos = [vk::CommandBufferSubmitInfo::default().command_buffer(self.cmd)];
+        let submit = vk::SubmitInfo2::default()
+            .wait_semaphore_infos(&wait_infos)
+            .command_buffer_infos(&cmd_infos)
+            .signal_semaphore_infos(&signal_infos);
+        self.fence.reset()?;
+        let queue = self.device.queue();
+        // SAFETY: queue access is serialised by the lock; every handle is live.
+        unsafe { self.device.raw.queue_submit2(*queue, &[submit], self.fence.raw()) }.vk("vkQueueSubmit2")?;
+        self.pending = true;
+        Ok(())
+    }
+
+    /// Waits for the last submission to finish.
+    pub fn wait(&mut self) -> Result<()> {
+        if self.pending {
+            self.fence.wait()?;
+            self.pending = false;
+        }
+        Ok(())
+    }
+
+    /// Submits and waits.
+    pub fn submit_and_wait(&mut self, waits: &[SemaphoreWait]) -> Result<()> {
+        self.submit(waits, &[])?;
+        self.wait()
+    }
+
+    /// The device.
+    pub fn device(&self) -> &Arc<Device> {
+        &self.device
+    }
+}
+
+impl Drop for CommandContext {
+    fn drop(&mut self) {
+        // Errors here mean device loss; destruction must still happen.
+        let _ = self.wait();
+        // SAFETY: the buffer is no longer pending; destroying the pool frees it.
+        unsafe { self.device.raw.destroy_command_pool(self.pool, None) };
+    }
+}

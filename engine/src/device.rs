@@ -1,0 +1,434 @@
+//! Physical-device choice, the logical device, its queue and allocator.
+//!
+//! citystream needs sparse binding and sparse residency for 2D images, a
+//! queue family that does graphics, compute and sparse binding (so the bind
+//! and the copy that waits on it share one queue), fragment stores and
+//! atomics for the feedback pass, BC texture compression and Vulkan 1.3
+//! (dynamic rendering, synchronization2).
+
+use std::ffi::CStr;
+use std::sync::{Mutex, MutexGuard};
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+
+use crate::error::{EngineError, Result, VkResultExt};
+use crate::instance::{Instance, InstanceOptions, ValidationLog};
+
+/// Environment variable that picks a device by (part of) its name.
+pub const DEVICE_ENV: &str = "CITYSTREAM_DEVICE";
+
+/// Options for [`Device::new`].
+#[derive(Clone, Debug, Default)]
+pub struct DeviceOptions {
+    /// Instance options (validation on or off).
+    pub instance: InstanceOptions,
+    /// Case-insensitive substring of the wanted device's name. When `None`,
+    /// `CITYSTREAM_DEVICE` is consulted, then the best device is chosen.
+    pub device_name: Option<String>,
+}
+
+/// What the chosen device reports about sparse residency.
+#[derive(Clone, Copy, Debug)]
+pub struct SparseSupport {
+    /// `residencyNonResidentStrict`: non-resident reads return zero.
+    pub non_resident_strict: bool,
+    /// `shaderResourceMinLod` (`sparseTextureClampARB`).
+    pub shader_min_lod: bool,
+    /// `sparseAddressSpaceSize`: the engine enforces it, drivers may not.
+    pub address_space_size: u64,
+}
+
+/// A physical device that was looked at, with what it lacks.
+#[derive(Clone, Debug)]
+pub struct DeviceCandidate {
+    /// Device name.
+    pub name: String,
+    /// Device type.
+    pub device_type: vk::PhysicalDeviceType,
+    /// Missing requirements; empty when usable.
+    pub missing: Vec<String>,
+    physical: vk::PhysicalDevice,
+    queue_family: Option<u32>,
+}
+
+/// The logical device with its one queue and allocator.
+///
+/// Threading: `Device` is `Send + Sync`; the queue is behind a mutex
+/// ([`Device::queue`]) because Vulkan requires external synchronisation of
+/// queue submissions; the allocator is behind another.
+pub struct Device {
+    pub(crate) raw: ash::Device,
+    pub(crate) physical: vk::PhysicalDevice,
+    queue: Mutex<vk::Queue>,
+    queue_family: u32,
+    allocator: Mutex<Option<Allocator>>,
+    debug_utils: Option<ash::ext::debug_utils::Device>,
+    properties: vk::PhysicalDeviceProperties,
+    name: String,
+    sparse: SparseSupport,
+    // Dropped last: destroyed after the logical device in `Drop`.
+    instance: Instance,
+}
+
+impl std::fmt::Debug for Device {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Device")
+            .field("name", &self.name)
+            .field("queue_family", &self.queue_family)
+            .finish()
+    }
+}
+
+fn rank(device_type: vk::PhysicalDeviceType) -> u32 {
+    match device_type {
+        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
+        vk::PhysicalDeviceType::CPU => 3,
+        _ => 4,
+    }
+}
+
+/// Lists every physical device with what it lacks for citystream.
+pub fn list_devices(instance: &Instance) -> Result<Vec<DeviceCandidate>> {
+    // SAFETY: plain enumeration on a live instance.
+    let physicals = unsafe { instance.raw.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
+    Ok(physicals.into_iter().map(|p| examine(instance, p)).collect())
+}
+
+fn examine(instance: &Instance, physical: vk::PhysicalDevice) -> DeviceCandidate {
+    let raw = &instance.raw;
+    // SAFETY: `physical` came from this instance.
+    let properties = unsafe { raw.get_physical_device_properties(physical) };
+    let name = properties
+        .device_name_as_c_str()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|_| "<unnamed device>".to_owned());
+    let mut vk13 = vk::PhysicalDeviceVulkan13Features::default();
+    let mut vk12 = vk::PhysicalDeviceVulkan12Features::default();
+    let mut features2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut vk12).push_next(&mut vk13);
+    // SAFETY: `physical` came from this instance; the chain is well formed.
+    unsafe { raw.get_physical_device_features2(physical, &mut features2) };
+    let features = features2.features;
+
+    let mut missing = Vec::new();
+    if properties.api_version < vk::API_VERSION_1_3 {
+        missing.push(format!(
+            "Vulkan 1.3 (it reports {}.{})",
+            vk::api_version_major(properties.api_version),
+            vk::api_version_minor(properties.api_version)
+        ));
+    }
+    let required: [(&str, u32); 6] = [
+        ("feature sparseBinding", features.sparse_binding),
+        ("feature sparseResidencyImage2D", features.sparse_residency_image2_d),
+        ("feature shaderResourceResidency", features.shader_resource_residency),
+        ("feature fragmentStoresAndAtomics", features.fragment_stores_and_atomics),
+        ("feature textureCompressionBC", features.texture_compression_bc),
+        ("feature samplerAnisotropy", features.sampler_anisotropy),
+    ];
+    missing.extend(required.iter().filter(|(_, v)| *v == vk::FALSE).map(|(n, _)| (*n).to_owned()));
+    if vk12.timeline_semaphore == vk::FALSE {
+        missing.push("feature timelineSemaphore".to_owned());
+    }
+    if vk13.dynamic_rendering == vk::FALSE {
+        missing.push("feature dynamicRendering".to_owned());
+    }
+    if vk13.synchronization2 == vk::FALSE {
+        missing.push("feature synchronization2".to_owned());
+    }
+
+    // SAFETY: `physical` came from this instance.
+    let families = unsafe { raw.get_physical_device_queue_family_properties(physical) };
+    let wanted = vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE | vk::QueueFlags::SPARSE_BINDING;
+    let queue_family = families
+        .iter()
+        .position(|f| f.queue_flags.contains(wanted) && f.queue_count > 0)
+        .map(|i| i as u32);
+    if queue_family.is_none() {
+        missing.push("a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned());
+    }
+    DeviceCandidate {
+        name,
+        device_type: properties.device_type,
+        missing,
+        physical,
+        queue_family,
+    }
+}
+
+/// Chooses a device: by name when asked, otherwise the best usable one
+/// (discrete before integrated before CPU).
+pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Result<DeviceCandidate> {
+    let describe = || {
+        if candidates.is_empty() {
+            "none".to_owned()
+        } else {
+            candidates.iter().map(|c| format!("{:?}", c.name)).collect::<Vec<_>>().join(", ")
+        }
+    };
+    let chosen = match wanted {
+        Some(wanted) => {
+            let needle = wanted.to_lowercase();
+            candidates
+                .iter()
+                .find(|c| c.name.to_lowercase().contains(&needle))
+                .ok_or_else(|| EngineError::NoSuchDevice {
+                    wanted: wanted.to_owned(),
+                    available: describe(),
+                })?
+        }
+        None => {
+            let usable = candidates.iter().filter(|c| c.missing.is_empty()).min_by_key(|c| rank(c.device_type));
+            match usable {
+                Some(c) => c,
+                None => {
+                    let why = if candidates.is_empty() {
+                        "the Vulkan loader found no device (is mesa-vulkan-drivers installed? run `make setup`)".to_owned()
+                    } else {
+                        candidates
+                            .iter()
+                            .map(|c| format!("{:?} lacks {}", c.name, c.missing.join(", ")))
+                            .collect::<Vec<_>>()
+                            .join("; ")
+                    };
+                    return Err(EngineError::NoUsableDevice(why));
+                }
+            }
+        }
+    };
+    if let Some(first) = chosen.missing.first() {
+        return Err(EngineError::MissingFeature {
+            device: chosen.name.clone(),
+            feature: first.clone(),
+        });
+    }
+    Ok(chosen.clone())
+}
+
+impl Device {
+    /// Creates the instance and the device.
+    pub fn new(options: &DeviceOptions) -> Result<Self> {
+        let instance = Instance::new(&options.instance)?;
+        let candidates = list_devices(&instance)?;
+        let env_name = std::env::var(DEVICE_ENV).ok().filter(|s| !s.is_empty());
+        let wanted = options.device_name.clone().or(env_name);
+        let chosen = choose_device(&candidates, wanted.as_deref())?;
+        let queue_family = chosen.queue_family.ok_or_else(|| EngineError::MissingFeature {
+            device: chosen.name.clone(),
+            feature: "a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned(),
+        })?;
+        let physical = chosen.physical;
+
+        let priorities = [1.0f32];
+        let queue_infos = [vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(queue_family)
+            .queue_priorities(&priorities)];
+        let features = vk::PhysicalDeviceFeatures::default()
+            .sparse_binding(true)
+            .sparse_residency_image2_d(true)
+            .shader_resource_residency(true)
+            .fragment_stores_and_atomics(true)
+            .texture_compression_bc(true)
+            .sampler_anisotropy(true);
+        let mut vk12 = vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true);
+        let mut vk13 = vk::PhysicalDeviceVulkan13Features::default()
+            .dynamic_rendering(true)
+            .synchronization2(true);
+        let create_info = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queue_infos)
+            .enabled_features(&features)
+            .push_next(&mut vk12)
+            .push_next(&mut vk13);
+        // SAFETY: physical came from this instance; create_info points at live data.
+        let raw = unsafe { instance.raw.create_device(physical, &create_info, None) }.vk("vkCreateDevice")?;
+        // SAFETY: the queue family and index were requested in create_info.
+        let queue = unsafe { raw.get_device_queue(queue_family, 0) };
+        // SAFETY: `physical` came from this instance.
+        let properties = unsafe { instance.raw.get_physical_device_properties(physical) };
+
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.raw.clone(),
+            device: raw.clone(),
+            physical_device: physical,
+            debug_settings: Default::default(),
+            buffer_device_address: false,
+            allocation_sizes: Default::default(),
+        });
+        let allocator = match allocator {
+            Ok(a) => a,
+            Err(source) => {
+                // SAFETY: nothing was created from the device yet.
+                unsafe { raw.destroy_device(None) };
+                return Err(EngineError::Allocation {
+                    name: "allocator".to_owned(),
+                    source,
+                });
+            }
+        };
+        let debug_utils = instance
+            .has_debug_utils()
+            .then(|| ash::ext::debug_utils::Device::new(&instance.raw, &raw));
+        let sparse = SparseSupport {
+            non_resident_strict: properties.sparse_properties.residency_non_resident_strict == vk::TRUE,
+            shader_min_lod: chosen_feature_min_lod(&instance, physical),
+            address_space_size: properties.limits.sparse_address_space_size,
+        };
+        Ok(Self {
+            raw,
+            physical,
+            queue: Mutex::new(queue),
+            queue_family,
+            allocator: Mutex::new(Some(allocator)),
+            debug_utils,
+            properties,
+            name: chosen.name,
+            sparse,
+            instance,
+        })
+    }
+
+    /// The raw `ash` device.
+    pub fn raw(&self) -> &ash::Device {
+        &self.raw
+    }
+
+    /// The instance this device was created from.
+    pub fn instance(&self) -> &Instance {
+        &self.instance
+    }
+
+    /// The chosen physical device.
+    pub fn physical(&self) -> vk::PhysicalDevice {
+        self.physical
+    }
+
+    /// The device's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Device properties and limits.
+    pub fn properties(&self) -> &vk::PhysicalDeviceProperties {
+        &self.properties
+    }
+
+    /// Sparse-residency properties of the device.
+    pub fn sparse_support(&self) -> SparseSupport {
+        self.sparse
+    }
+
+    /// The family of the one queue the engine uses.
+    pub fn queue_family(&self) -> u32 {
+        self.queue_family
+    }
+
+    /// Locks the queue for a submission.
+    pub fn queue(&self) -> MutexGuard<'_, vk::Queue> {
+        self.queue.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Locks the allocator.
+    pub(crate) fn allocator(&self) -> MutexGuard<'_, Option<Allocator>> {
+        self.allocator.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The validation messages collected so far.
+    pub fn validation_log(&self) -> &std::sync::Arc<ValidationLog> {
+        self.instance.validation_log()
+    }
+
+    /// Waits until the device is idle.
+    pub fn wait_idle(&self) -> Result<()> {
+        let _queue = self.queue();
+        // SAFETY: holding the queue lock, so no submission races this call.
+        unsafe { self.raw.device_wait_idle() }.vk("vkDeviceWaitIdle")
+    }
+
+    /// Gives a Vulkan object a debug name, so validation messages and
+    /// captures say what it is. Does nothing without debug utils.
+    pub fn set_name<H: vk::Handle>(&self, handle: H, name: &str) {
+        let Some(debug) = &self.debug_utils else { return };
+        let Ok(name) = std::ffi::CString::new(name.replace('\0', " ")) else {
+            return;
+        };
+        let info = vk::DebugUtilsObjectNameInfoEXT::default()
+            .object_handle(handle)
+            .object_name(&name);
+        // SAFETY: the handle belongs to this device; naming failures are harmless.
+        let _ = unsafe { debug.set_debug_utils_object_name(&info) };
+    }
+
+    /// Memory type bits helper: first type index allowed by `bits` with `flags`.
+    pub fn memory_type_index(&self, bits: u32, flags: vk::MemoryPropertyFlags) -> Option<u32> {
+        // SAFETY: physical belongs to the instance.
+        let props = unsafe { self.instance.raw.get_physical_device_memory_properties(self.physical) };
+        (0..props.memory_type_count).find(|&i| {
+            bits & (1 << i) != 0 && props.memory_types[i as usize].property_flags.contains(flags)
+        })
+    }
+
+    /// Format properties of `format` on this device.
+    pub fn format_properties(&self, format: vk::Format) -> vk::FormatProperties {
+        // SAFETY: physical belongs to the instance.
+        unsafe { self.instance.raw.get_physical_device_format_properties(self.physical, format) }
+    }
+}
+
+impl Device {
+    /// Makes one deliberately invalid Vulkan call (a sampler whose
+    /// anisotropy exceeds the device limit), so tests can prove that the
+    /// validation layer is active and its errors reach [`ValidationLog`].
+    /// Returns whether the call itself succeeded (drivers may accept it).
+    #[doc(hidden)]
+    pub fn provoke_validation_error(&self) -> bool {
+        let limit = self.properties.limits.max_sampler_anisotropy;
+        let info = vk::SamplerCreateInfo::default()
+            .anisotropy_enable(true)
+            .max_anisotropy(limit * 4.0 + 1.0);
+        // SAFETY: the sampler is destroyed right away; an invalid parameter is
+        // the point of the call and lavapipe tolerates it.
+        unsafe {
+            match self.raw.create_sampler(&info, None) {
+                Ok(sampler) => {
+                    self.raw.destroy_sampler(sampler, None);
+                    true
+                }
+                Err(_) => false,
+            }
+        }
+    }
+}
+
+fn chosen_feature_min_lod(instance: &Instance, physical: vk::PhysicalDevice) -> bool {
+    // SAFETY: physical belongs to the instance.
+    let features = unsafe { instance.raw.get_physical_device_features(physical) };
+    features.shader_resource_min_lod == vk::TRUE
+}
+
+impl Drop for Device {
+    fn drop(&mut self) {
+        // SAFETY: waiting for idle before destruction; errors (device lost)
+        // leave nothing better to do than destroy anyway.
+        let _ = unsafe { self.raw.device_wait_idle() };
+        // The allocator frees its memory blocks, so it must go before the device.
+        self.allocator().take();
+        // SAFETY: every resource holds an Arc<Device>, so none is left alive.
+        unsafe { self.raw.destroy_device(None) };
+    }
+}
+
+/// The driver name string for reports (e.g. "llvmpipe").
+pub fn describe(device: &Device) -> String {
+    let p = device.properties();
+    let api = p.api_version;
+    let name: &CStr = p.device_name_as_c_str().unwrap_or(c"?");
+    format!(
+        "{} (Vulkan {}.{}.{})",
+        name.to_string_lossy(),
+        vk::api_version_major(api),
+        vk::api_version_minor(api),
+        vk::api_version_patch(api)
+    )
+}

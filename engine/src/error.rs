@@ -1,0 +1,52 @@
+//! The engine's error type and the one place `vk::Result`s become errors.
+
+use ash::vk;
+
+/// Errors the engine reports to its callers.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// The Vulkan loader library (libvulkan.so.1) could not be loaded.
+    #[error("cannot load the Vulkan loader (is libvulkan1 installed? run `make setup`): {0}")]
+    Loader(String),
+    /// A Vulkan call returned an error code.
+    #[error("{call} failed: {result}")]
+    Vulkan { call: &'static str, result: vk::Result },
+    /// A layer the caller asked for is not installed.
+    #[error("Vulkan layer {0} is not installed (Debian package vulkan-validationlayers; run `make setup`)")]
+    LayerMissing(String),
+    /// The user asked for a device by name and none matched.
+    #[error("no Vulkan device matches {wanted:?}; devices present: {available}")]
+    NoSuchDevice { wanted: String, available: String },
+    /// The chosen device lacks something citystream needs.
+    #[error("Vulkan device {device:?} lacks {feature}, which citystream needs")]
+    MissingFeature { device: String, feature: String },
+    /// No device at all is usable.
+    #[error("no usable Vulkan device: {0}")]
+    NoUsableDevice(String),
+    /// gpu-allocator could not satisfy an allocation.
+    #[error("GPU memory allocation for {name:?} failed: {source}")]
+    Allocation { name: String, source: gpu_allocator::AllocationError },
+    /// A request the engine cannot carry out as asked (bad size, range, format).
+    #[error("{0}")]
+    InvalidRequest(String),
+    /// Writing an image file failed.
+    #[error("cannot write {path}: {source}")]
+    ImageWrite { path: String, source: image::ImageError },
+    /// A shader module could not be read.
+    #[error("shader {name}: {source}")]
+    Shader { name: &'static str, source: std::io::Error },
+}
+
+/// The engine's result type.
+pub type Result<T> = std::result::Result<T, EngineError>;
+
+/// Turns a `VkResult` into an [`EngineError`] that names the call.
+pub(crate) trait VkResultExt<T> {
+    fn vk(self, call: &'static str) -> Result<T>;
+}
+
+impl<T> VkResultExt<T> for std::result::Result<T, vk::Result> {
+    fn vk(self, call: &'static str) -> Result<T> {
+        self.map_err(|result| EngineError::Vulkan { call, result })
+    }
+}

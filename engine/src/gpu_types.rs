@@ -1,0 +1,268 @@
+//! Rust mirrors of the GPU-visible structs in `shaders/include/citystream.glsl`.
+//!
+//! Each struct is `#[repr(C)]` + `Pod` with the std430 layout glslang gives
+//! its GLSL twin; `tests::layouts_match_spirv` reads the member offsets and
+//! array strides glslang wrote into the SPIR-V and compares them.
+
+use bytemuck::{Pod, Zeroable};
+
+/// Binding of the mesh pipeline's texture array (`BINDING_MESH_TEXTURES`).
+pub const BINDING_MESH_TEXTURES: u32 = 0;
+/// Binding of the probe's sparse image (`BINDING_PROBE_TEXTURE`).
+pub const BINDING_PROBE_TEXTURE: u32 = 0;
+/// Binding of the probe's points (`BINDING_PROBE_POINTS`).
+pub const BINDING_PROBE_POINTS: u32 = 1;
+/// Binding of the probe's results (`BINDING_PROBE_RESULTS`).
+pub const BINDING_PROBE_RESULTS: u32 = 2;
+
+/// One vertex of a mesh (vertex input, not a GLSL struct).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct Vertex {
+    /// Position in scene units, relative to the scene origin.
+    pub position: [f32; 3],
+    /// Unit normal.
+    pub normal: [f32; 3],
+    /// Texture coordinate; values outside [0, 1] repeat.
+    pub uv: [f32; 2],
+}
+
+impl Vertex {
+    /// Vertex attributes: (location, format, offset).
+    pub fn attributes() -> Vec<(u32, ash::vk::Format, u32)> {
+        use ash::vk::Format;
+        vec![
+            (0, Format::R32G32B32_SFLOAT, std::mem::offset_of!(Vertex, position) as u32),
+            (1, Format::R32G32B32_SFLOAT, std::mem::offset_of!(Vertex, normal) as u32),
+            (2, Format::R32G32_SFLOAT, std::mem::offset_of!(Vertex, uv) as u32),
+        ]
+    }
+}
+
+/// `DrawPush`: push constants of one mesh draw.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct DrawPush {
+    /// Column-major view-projection matrix.
+    pub view_proj: [[f32; 4]; 4],
+    /// xyz: direction towards the light; w: lighting weight (0 = unlit).
+    pub light_dir_weight: [f32; 4],
+    /// Texture-array layer of the mesh.
+    pub layer: u32,
+    /// Padding to 16 bytes.
+    pub pad0: u32,
+    /// Padding.
+    pub pad1: u32,
+    /// Padding.
+    pub pad2: u32,
+}
+
+/// `ProbePoint`: one sampling request of the residency probe.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct ProbePoint {
+    /// Normalised texture coordinate.
+    pub uv: [f32; 2],
+    /// Array layer.
+    pub layer: f32,
+    /// Explicit level of detail.
+    pub lod: f32,
+}
+
+/// `ProbeResult`: what the probe read.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct ProbeResult {
+    /// The sampled value.
+    pub value: [f32; 4],
+    /// 1 where the texels were resident.
+    pub resident: u32,
+    /// The residency code as returned by the driver.
+    pub raw_code: i32,
+    /// Padding.
+    pub pad0: u32,
+    /// Padding.
+    pub pad1: u32,
+}
+
+/// Struct layouts read back from SPIR-V decorations.
+pub mod spirv_layout {
+    use std::collections::HashMap;
+
+    /// Layout of one struct type as glslang decorated it.
+    #[derive(Clone, Debug, Default, PartialEq, Eq)]
+    pub struct StructLayout {
+        /// (member name, byte offset), in member order.
+        pub members: Vec<(String, u32)>,
+        /// Array strides of arrays whose element is this struct.
+        pub array_strides: Vec<u32>,
+    }
+
+    fn string_at(words: &[u32]) -> String {
+        let bytes: Vec<u8> = words
+            .iter()
+            .flat_map(|w| w.to_le_bytes())
+            .take_while(|&b| b != 0)
+            .collect();
+        String::from_utf8_lossy(&bytes).into_owned()
+    }
+
+    /// Reads every named struct's member offsets and array strides. Returns
+    /// one entry per struct name (glslang may emit several types of one name,
+    /// all of which are listed).
+    pub fn reflect(spirv: &[u32]) -> HashMap<String, Vec<StructLayout>> {
+        const OP_NAME: u32 = 5;
+        const OP_MEMBER_NAME: u32 = 6;
+        const OP_TYPE_STRUCT: u32 = 30;
+        const OP_TYPE_ARRAY: u32 = 28;
+        const OP_TYPE_RUNTIME_ARRAY: u32 = 29;
+        const OP_DECORATE: u32 = 71;
+        const OP_MEMBER_DECORATE: u32 = 72;
+        const DECORATION_ARRAY_STRIDE: u32 = 6;
+        const DECORATION_OFFSET: u32 = 35;
+
+        let mut names: HashMap<u32, String> = HashMap::new();
+        let mut member_names: HashMap<(u32, u32), String> = HashMap::new();
+        let mut offsets: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut structs: Vec<(u32, u32)> = Vec::new(); // (id, member count)
+        let mut array_elements: HashMap<u32, u32> = HashMap::new(); // array id -> element type
+        let mut strides: HashMap<u32, u32> = HashMap::new(); // array id -> stride
+
+        let mut i = 5; // skip the header
+        while i < spirv.len() {
+            let count = (spirv[i] >> 16) as usize;
+            let opcode = spirv[i] & 0xffff;
+            if count == 0 || i + count > spirv.len() {
+                break;
+            }
+            let ops = &spirv[i + 1..i + count];
+            match opcode {
+                OP_NAME if !ops.is_empty() => {
+                    names.insert(ops[0], string_at(&ops[1..]));
+                }
+                OP_MEMBER_NAME if ops.len() >= 2 => {
+                    member_names.insert((ops[0], ops[1]), string_at(&ops[2..]));
+                }
+                OP_TYPE_STRUCT if !ops.is_empty() => structs.push((ops[0], (ops.len() - 1) as u32)),
+                OP_TYPE_ARRAY | OP_TYPE_RUNTIME_ARRAY if ops.len() >= 2 => {
+                    array_elements.insert(ops[0], ops[1]);
+                }
+                OP_DECORATE if ops.len() >= 3 && ops[1] == DECORATION_ARRAY_STRIDE => {
+                    strides.insert(ops[0], ops[2]);
+                }
+                OP_MEMBER_DECORATE if ops.len() >= 4 && ops[2] == DECORATION_OFFSET => {
+                    offsets.insert((ops[0], ops[1]), ops[3]);
+                }
+                _ => {}
+            }
+            i += count;
+        }
+
+        let mut result: HashMap<String, Vec<StructLayout>> = HashMap::new();
+        for (id, member_count) in structs {
+            let Some(name) = names.get(&id) else { continue };
+            let members: Option<Vec<_>> = (0..member_count)
+                .map(|m| Some((member_names.get(&(id, m))?.clone(), *offsets.get(&(id, m))?)))
+                .collect();
+            let Some(members) = members else { continue };
+            let array_strides = array_elements
+                .iter()
+                .filter(|(_, &element)| element == id)
+                .filter_map(|(array, _)| strides.get(array).copied())
+                .collect();
+            result.entry(name.clone()).or_default().push(StructLayout {
+                members,
+                array_strides,
+            });
+        }
+        result
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::spirv_layout::reflect;
+    use super::*;
+    use std::mem::{offset_of, size_of};
+
+    fn spirv_words(bytes: &[u8]) -> Vec<u32> {
+        bytes
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
+    }
+
+    fn all_layouts() -> std::collections::HashMap<String, Vec<spirv_layout::StructLayout>> {
+        let mut all = std::collections::HashMap::new();
+        for shader in crate::shaders::ALL {
+            for (name, layouts) in reflect(&spirv_words(shader.spirv)) {
+                all.entry(name).or_insert_with(Vec::new).extend(layouts);
+            }
+        }
+        all
+    }
+
+    fn check(name: &str, rust: &[(&str, usize)], rust_size: usize) {
+        let all = all_layouts();
+        let layouts = all
+            .get(name)
+            .unwrap_or_else(|| panic!("struct {name} not found in any shader's SPIR-V"));
+        for layout in layouts {
+            let gpu: Vec<(&str, usize)> = layout.members.iter().map(|(n, o)| (n.as_str(), *o as usize)).collect();
+            assert_eq!(gpu, rust, "member offsets of {name} differ between GLSL and Rust");
+            for &stride in &layout.array_strides {
+                assert_eq!(stride as usize, rust_size, "array stride of {name} differs from size_of");
+            }
+        }
+        // The struct's size is its last member's end when no array stride says otherwise.
+        let (last_name, last_offset) = *rust.last().expect("structs have members");
+        assert!(last_offset < rust_size, "{name}.{last_name} lies past the struct size");
+    }
+
+    #[test]
+    fn layouts_match_spirv() {
+        check(
+            "DrawPush",
+            &[
+                ("view_proj", offset_of!(DrawPush, view_proj)),
+                ("light_dir_weight", offset_of!(DrawPush, light_dir_weight)),
+                ("layer", offset_of!(DrawPush, layer)),
+                ("pad0", offset_of!(DrawPush, pad0)),
+                ("pad1", offset_of!(DrawPush, pad1)),
+                ("pad2", offset_of!(DrawPush, pad2)),
+            ],
+            size_of::<DrawPush>(),
+        );
+        assert_eq!(size_of::<DrawPush>(), 96);
+        check(
+            "ProbePoint",
+            &[
+                ("uv", offset_of!(ProbePoint, uv)),
+                ("layer", offset_of!(ProbePoint, layer)),
+                ("lod", offset_of!(ProbePoint, lod)),
+            ],
+            size_of::<ProbePoint>(),
+        );
+        check(
+            "ProbeResult",
+            &[
+                ("value", offset_of!(ProbeResult, value)),
+                ("resident", offset_of!(ProbeResult, resident)),
+                ("raw_code", offset_of!(ProbeResult, raw_code)),
+                ("pad0", offset_of!(ProbeResult, pad0)),
+                ("pad1", offset_of!(ProbeResult, pad1)),
+            ],
+            size_of::<ProbeResult>(),
+        );
+    }
+
+    #[test]
+    fn reflection_sees_array_strides() {
+        let all = all_layouts();
+        let probe = &all["ProbeResult"];
+        assert!(
+            probe.iter().any(|l| !l.array_strides.is_empty()),
+            "the runtime array of ProbeResult must carry an ArrayStride"
+        );
+    }
+}

@@ -1,0 +1,226 @@
+//! Ordinary (fully resident) images with one view, owning their memory.
+
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::MemoryLocation;
+
+use crate::device::Device;
+use crate::error::{EngineError, Result, VkResultExt};
+
+/// How to create an [`Image`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ImageDesc {
+    /// Width in texels.
+    pub width: u32,
+    /// Height in texels.
+    pub height: u32,
+    /// Array layers (>= 1).
+    pub layers: u32,
+    /// Mip levels (>= 1).
+    pub mips: u32,
+    /// Texel format.
+    pub format: vk::Format,
+    /// Usage flags.
+    pub usage: vk::ImageUsageFlags,
+    /// View type: `TYPE_2D` or `TYPE_2D_ARRAY`.
+    pub view_type: vk::ImageViewType,
+}
+
+impl ImageDesc {
+    /// The aspect of this image's format.
+    pub fn aspect(&self) -> vk::ImageAspectFlags {
+        aspect_of(self.format)
+    }
+
+    /// The whole subresource range.
+    pub fn full_range(&self) -> vk::ImageSubresourceRange {
+        vk::ImageSubresourceRange {
+            aspect_mask: self.aspect(),
+            base_mip_level: 0,
+            level_count: self.mips,
+            base_array_layer: 0,
+            layer_count: self.layers,
+        }
+    }
+}
+
+/// The aspect flags of a format.
+pub fn aspect_of(format: vk::Format) -> vk::ImageAspectFlags {
+    match format {
+        vk::Format::D16_UNORM | vk::Format::D32_SFLOAT | vk::Format::X8_D24_UNORM_PACK32 => {
+            vk::ImageAspectFlags::DEPTH
+        }
+        vk::Format::D24_UNORM_S8_UINT | vk::Format::D32_SFLOAT_S8_UINT | vk::Format::D16_UNORM_S8_UINT => {
+            vk::ImageAspectFlags::DEPTH | vk::ImageAspectFlags::STENCIL
+        }
+        _ => vk::ImageAspectFlags::COLOR,
+    }
+}
+
+/// A `VkImage` with its memory and a view of the whole image.
+pub struct Image {
+    device: Arc<Device>,
+    raw: vk::Image,
+    view: vk::ImageView,
+    allocation: Option<Allocation>,
+    desc: ImageDesc,
+    name: String,
+}
+
+impl std::fmt::Debug for Image {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Image").field("name", &self.name).field("desc", &self.desc).finish()
+    }
+}
+
+impl Image {
+    /// Creates the image, binds device memory and creates its view.
+    pub fn new(device: &Arc<Device>, desc: ImageDesc, name: &str) -> Result<Self> {
+        if desc.width == 0 || desc.height == 0 || desc.layers == 0 || desc.mips == 0 {
+            return Err(EngineError::InvalidRequest(format!("image {name:?} has a zero dimension: {desc:?}")));
+        }
+        let info = vk::ImageCreateInfo::default()
+            .image_type(vk::ImageType::TYPE_2D)
+            .format(desc.format)
+            .extent(vk::Extent3D {
+                width: desc.width,
+                height: desc.height,
+                depth: 1,
+            })
+            .mip_levels(desc.mips)
+            .array_layers(desc.layers)
+            .samples(vk::SampleCountFlags::TYPE_1)
+            .tiling(vk::ImageTiling::OPTIMAL)
+            .usage(desc.usage)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE)
+            .initial_layout(vk::ImageLayout::UNDEFINED);
+        // SAFETY: valid create info on a live device.
+        let raw = unsafe { device.raw.create_image(&info, None) }.vk("vkCreateImage")?;
+        let mut image = Self {
+            device: Arc::clone(device),
+            raw,
+            view: vk::ImageView::null(),
+            allocation: None,
+            desc,
+            name: name.to_owned(),
+        };
+        // SAFETY: raw is a live image of this device.
+        let requirements = unsafe { device.raw.get_image_memory_requirements(raw) };
+        let allocation = {
+            let mut guard = device.allocator();
+            let allocator = guard.as_mut().ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
+            allocator
+                .allocate(&AllocationCreateDesc {
+                    name,
+                    requirements,
+                    location: MemoryLocation::GpuOnly,
+                    linear: false,
+                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+                })
+                .map_err(|source| EngineError::Allocation {
+                    name: name.to_owned(),
+                    source,
+                })?
+        };
+        // SAFETY: the allocation satisfies the image's requirements.
+        let bound = unsafe { device.raw.bind_image_memory(raw, allocation.memory(), allocation.offset()) };
+        image.allocation = Some(allocation);
+        bound.vk("vkBindImageMemory")?;
+        image.view = create_view(device, raw, &desc)?;
+        device.set_name(raw, name);
+        device.set_name(image.view, &format!("{name} view"));
+        Ok(image)
+    }
+
+    /// The raw image.
+    pub fn raw(&self) -> vk::Image {
+        self.raw
+    }
+
+    /// The view of the whole image.
+    pub fn view(&self) -> vk::ImageView {
+        self.view
+    }
+
+    /// The description it was created from.
+    pub fn desc(&self) -> &ImageDesc {
+        &self.desc
+    }
+}
+
+/// Creates a view of every layer and level of `image`.
+pub(crate) fn create_view(device: &Device, image: vk::Image, desc: &ImageDesc) -> Result<vk::ImageView> {
+    let info = vk::ImageViewCreateInfo::default()
+        .image(image)
+        .view_type(desc.view_type)
+        .format(desc.format)
+        .subresource_range(desc.full_range());
+    // SAFETY: image is live and the range lies within it.
+    unsafe { device.raw.create_image_view(&info, None) }.vk("vkCreateImageView")
+}
+
+impl Drop for Image {
+    fn drop(&mut self) {
+        // SAFETY: the owner guarantees the GPU no longer uses the image.
+        unsafe {
+            if self.view != vk::ImageView::null() {
+                self.device.raw.destroy_image_view(self.view, None);
+            }
+            self.device.raw.destroy_image(self.raw, None);
+        }
+        if let Some(allocation) = self.allocation.take() {
+            if let Some(allocator) = self.device.allocator().as_mut() {
+                let _ = allocator.free(allocation);
+            }
+        }
+    }
+}
+
+/// Records a whole-image layout transition with synchronization2.
+#[allow(clippy::too_many_arguments, reason = "a barrier is exactly these eight facts")]
+pub fn transition(
+    device: &Device,
+    cmd: vk::CommandBuffer,
+    image: vk::Image,
+    range: vk::ImageSubresourceRange,
+    from: vk::ImageLayout,
+    to: vk::ImageLayout,
+    src: (vk::PipelineStageFlags2, vk::AccessFlags2),
+    dst: (vk::PipelineStageFlags2, vk::AccessFlags2),
+) {
+    let barrier = vk::ImageMemoryBarrier2::default()
+        .src_stage_mask(src.0)
+        .src_access_mask(src.1)
+        .dst_stage_mask(dst.0)
+        .dst_access_mask(dst.1)
+        .old_layout(from)
+        .new_layout(to)
+        .src_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+        .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+        .image(image)
+        .subresource_range(range);
+    let barriers = [barrier];
+    let dependency = vk::DependencyInfo::default().image_memory_barriers(&barriers);
+    // SAFETY: cmd is in the recording state; the barrier refers to a live image.
+    unsafe { device.raw.cmd_pipeline_barrier2(cmd, &dependency) };
+}
+
+/// Records a global memory barrier with synchronization2.
+pub fn memory_barrier(
+    device: &Device,
+    cmd: vk::CommandBuffer,
+    src: (vk::PipelineStageFlags2, vk::AccessFlags2),
+    dst: (vk::PipelineStageFlags2, vk::AccessFlags2),
+) {
+    let barrier = vk::MemoryBarrier2::default()
+        .src_stage_mask(src.0)
+        .src_access_mask(src.1)
+        .dst_stage_mask(dst.0)
+        .dst_access_mask(dst.1);
+    let barriers = [barrier];
+    let dependency = vk::DependencyInfo::default().memory_barriers(&barriers);
+    // SAFETY: cmd is in the recording state.
+    unsafe { device.raw.cmd_pipeline_barrier2(cmd, &dependency) };
+}

@@ -1,0 +1,44 @@
+//! citystream's Vulkan engine.
+//!
+//! One module per Vulkan concept: [`instance`] (loader, layers, debug
+//! messenger), [`device`] (physical-device choice, logical device, queue,
+//! allocator), [`buffer`] and [`image`] (resources that own their memory),
+//! [`sparse`] (partially resident images and `vkQueueBindSparse`),
+//! [`commands`] (one-shot submissions), [`pipeline`] (shaders, pipelines,
+//! descriptors), [`target`] (off-screen colour + depth and read-back),
+//! [`staging`] (host-visible upload ring) and [`timing`] (CPU and GPU frame
+//! timing).
+//!
+//! Ownership contract: every Vulkan handle has exactly one owner, a Rust value
+//! whose `Drop` destroys it. Resources hold an `Arc<Device>`, so the device
+//! outlives them. Dropping a resource the GPU may still use is the owner's
+//! bug: owners drop only after the fence of the last submission that used it
+//! has signalled (the frame loop keeps per-frame release lists for that).
+//!
+//! All `unsafe` code of citystream lives in this crate, each block with a
+//! `// SAFETY:` line.
+#![warn(unsafe_op_in_unsafe_fn)]
+
+pub mod buffer;
+pub mod commands;
+pub mod device;
+pub mod error;
+pub mod gpu_types;
+pub mod image;
+pub mod instance;
+pub mod pipeline;
+pub mod placeholder;
+pub mod probe;
+pub mod scene;
+pub mod shaders;
+pub mod sparse;
+pub mod staging;
+pub mod target;
+pub mod timing;
+
+pub use ash::vk;
+pub use error::{EngineError, Result};
+pub use gpu_allocator;
+
+pub use device::{Device, DeviceOptions};
+pub use instance::{ValidationLog, ValidationMessage};

@@ -1,0 +1,128 @@
+//! Residency probe: samples a sparse 2D-array image at given points and
+//! levels with `sparseTextureLodARB` and returns values and residency codes.
+//! Used by tests and diagnostics to see what the GPU actually reads.
+
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::MemoryLocation;
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::commands::{CommandContext, SemaphoreWait};
+use crate::device::Device;
+use crate::error::{EngineError, Result};
+use crate::gpu_types::{ProbePoint, ProbeResult, BINDING_PROBE_POINTS, BINDING_PROBE_RESULTS, BINDING_PROBE_TEXTURE};
+use crate::image::memory_barrier;
+use crate::pipeline::{DescriptorPool, DescriptorResource, Filtering, Pipeline, Sampler};
+use crate::shaders;
+
+const WORKGROUP: u32 = 64;
+
+/// A compute pipeline that samples a sparse image and reports residency.
+#[derive(Debug)]
+pub struct SparseProbe {
+    device: Arc<Device>,
+    pipeline: Pipeline,
+    sampler: Sampler,
+    capacity: usize,
+}
+
+impl SparseProbe {
+    /// Creates the probe pipeline for up to `capacity` points per run.
+    pub fn new(device: &Arc<Device>, capacity: usize) -> Result<Self> {
+        let pipeline = Pipeline::compute(
+            device,
+            &shaders::SPARSE_PROBE_COMP,
+            &[
+                (
+                    BINDING_PROBE_TEXTURE,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    1,
+                    vk::ShaderStageFlags::COMPUTE,
+                ),
+                (BINDING_PROBE_POINTS, vk::DescriptorType::STORAGE_BUFFER, 1, vk::ShaderStageFlags::COMPUTE),
+                (BINDING_PROBE_RESULTS, vk::DescriptorType::STORAGE_BUFFER, 1, vk::ShaderStageFlags::COMPUTE),
+            ],
+            0,
+            "sparse probe",
+        )?;
+        let sampler = Sampler::new(device, Filtering::Nearest, "sparse probe sampler")?;
+        Ok(Self {
+            device: Arc::clone(device),
+            pipeline,
+            sampler,
+            capacity: capacity.max(1),
+        })
+    }
+
+    /// Samples `view` (in SHADER_READ_ONLY_OPTIMAL) at `points`, after
+    /// waiting on `waits`, and returns one result per point.
+    pub fn run(
+        &self,
+        commands: &mut CommandContext,
+        view: vk::ImageView,
+        points: &[ProbePoint],
+        waits: &[SemaphoreWait],
+    ) -> Result<Vec<ProbeResult>> {
+        if points.is_empty() || points.len() > self.capacity {
+            return Err(EngineError::InvalidRequest(format!(
+                "probe run with {} points; allowed 1..={}",
+                points.len(),
+                self.capacity
+            )));
+        }
+        let mut point_buffer = Buffer::new(
+            &self.device,
+            BufferDesc {
+                size: std::mem::size_of_val(points) as u64,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                location: MemoryLocation::CpuToGpu,
+            },
+            "probe points",
+        )?;
+        point_buffer.write(0, points)?;
+        let result_buffer = Buffer::new(
+            &self.device,
+            BufferDesc {
+                size: (points.len() * std::mem::size_of::<ProbeResult>()) as u64,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                location: MemoryLocation::GpuToCpu,
+            },
+            "probe results",
+        )?;
+        let pool = DescriptorPool::new(&self.device, &self.pipeline, 1, "probe descriptors")?;
+        let set = pool.allocate(
+            &self.pipeline,
+            &[
+                (BINDING_PROBE_TEXTURE, DescriptorResource::SampledImage(view, self.sampler.raw())),
+                (BINDING_PROBE_POINTS, DescriptorResource::StorageBuffer(point_buffer.raw())),
+                (BINDING_PROBE_RESULTS, DescriptorResource::StorageBuffer(result_buffer.raw())),
+            ],
+        )?;
+        let cmd = commands.begin()?;
+        self.record(cmd, set, points.len() as u32);
+        commands.submit_and_wait(waits)?;
+        let results = result_buffer.read::<ProbeResult>(0, points.len())?;
+        // The buffers and pool drop here, after the wait above.
+        Ok(results)
+    }
+
+    /// Records the dispatch and the barrier that makes results host-visible.
+    fn record(&self, cmd: vk::CommandBuffer, set: vk::DescriptorSet, count: u32) {
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::ALL_COMMANDS, vk::AccessFlags2::MEMORY_WRITE),
+            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_READ),
+        );
+        self.pipeline.bind(cmd, set);
+        // SAFETY: cmd is recording; the pipeline and set are bound.
+        unsafe { self.device.raw().cmd_dispatch(cmd, count.div_ceil(WORKGROUP), 1, 1) };
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
+            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+        );
+    }
+}

@@ -1,0 +1,27 @@
+//! SPIR-V compiled from `shaders/` at build time (see `build.rs`).
+
+/// One embedded shader.
+#[derive(Clone, Copy, Debug)]
+pub struct ShaderSource {
+    /// The GLSL file it was compiled from.
+    pub name: &'static str,
+    /// SPIR-V bytes.
+    pub spirv: &'static [u8],
+}
+
+macro_rules! shader {
+    ($ident:ident, $file:literal, $spv:literal) => {
+        #[doc = concat!("`shaders/", $file, "`.")]
+        pub const $ident: ShaderSource = ShaderSource {
+            name: $file,
+            spirv: include_bytes!(concat!(env!("OUT_DIR"), "/", $spv)),
+        };
+    };
+}
+
+shader!(MESH_VERT, "mesh.vert", "mesh_vert.spv");
+shader!(MESH_FRAG, "mesh.frag", "mesh_frag.spv");
+shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
+
+/// Every embedded shader, for tests that inspect them all.
+pub const ALL: &[ShaderSource] = &[MESH_VERT, MESH_FRAG, SPARSE_PROBE_COMP];

@@ -1,0 +1,545 @@
+//! Sparse partially resident 2D-array images and `vkQueueBindSparse`.
+//!
+//! The image owns only its handle and view; its memory is bound block by
+//! block from [`SparseMemoryChunk`]s the caller owns. Block size and
+//! granularity come from the device (`vkGetImageSparseMemoryRequirements`),
+//! never from constants: lavapipe reports 64 KiB blocks and, for BC formats,
+//! a granularity in compressed blocks, which [`SparseImage::granularity`]
+//! converts to texels. Lavapipe has no mip tail: every level down to 1×1 is
+//! bound as ordinary blocks; where a device does report a tail, the levels
+//! from `mip_tail_first_lod` on are bound as one opaque range per layer.
+
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::MemoryLocation;
+
+use crate::device::Device;
+use crate::error::{EngineError, Result, VkResultExt};
+use crate::image::{create_view, ImageDesc};
+
+/// How to create a [`SparseImage`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct SparseImageDesc {
+    /// Width of level 0 in texels.
+    pub width: u32,
+    /// Height of level 0 in texels.
+    pub height: u32,
+    /// Array layers.
+    pub layers: u32,
+    /// Mip levels (a full chain is `log2(max(w, h)) + 1`).
+    pub mips: u32,
+    /// Texel format.
+    pub format: vk::Format,
+}
+
+/// Texel-block dimensions of a format: 4×4 for BC, 1×1 otherwise.
+pub fn texel_block(format: vk::Format) -> (u32, u32) {
+    match format {
+        vk::Format::BC1_RGB_UNORM_BLOCK
+        | vk::Format::BC1_RGB_SRGB_BLOCK
+        | vk::Format::BC1_RGBA_UNORM_BLOCK
+        | vk::Format::BC1_RGBA_SRGB_BLOCK
+        | vk::Format::BC3_UNORM_BLOCK
+        | vk::Format::BC3_SRGB_BLOCK
+        | vk::Format::BC7_UNORM_BLOCK
+        | vk::Format::BC7_SRGB_BLOCK => (4, 4),
+        _ => (1, 1),
+    }
+}
+
+/// One block to bind (`memory: Some`) or unbind (`memory: None`), in block
+/// coordinates of a level of a layer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SparseBlockBind {
+    /// Array layer.
+    pub layer: u32,
+    /// Mip level.
+    pub mip: u32,
+    /// Block column.
+    pub x: u32,
+    /// Block row.
+    pub y: u32,
+    /// Backing memory and byte offset, or `None` to make it non-resident.
+    pub memory: Option<(vk::DeviceMemory, u64)>,
+}
+
+/// A sparse, partially resident 2D-array image with a view of all layers and levels.
+pub struct SparseImage {
+    device: Arc<Device>,
+    raw: vk::Image,
+    view: vk::ImageView,
+    desc: SparseImageDesc,
+    block_size: u64,
+    granularity: (u32, u32),
+    mip_tail_first_lod: u32,
+    memory_type_bits: u32,
+}
+
+impl std::fmt::Debug for SparseImage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SparseImage")
+            .field("desc", &self.desc)
+            .field("block_size", &self.block_size)
+            .field("granularity", &self.granularity)
+            .finish()
+    }
+}
+
+const USAGE: vk::ImageUsageFlags = vk::ImageUsageFlags::from_raw(
+    vk::ImageUsageFlags::SAMPLED.as_raw() | vk::ImageUsageFlags::TRANSFER_DST.as_raw(),
+);
+
+impl SparseImage {
+    /// Creates the image (no memory bound) and its view.
+    pub fn new(device: &Arc<Device>, desc: SparseImageDesc, name: &str) -> Result<Self> {
+        let limits = device.properties().limits;
+        if desc.width == 0 || desc.height == 0 || desc.layers == 0 || desc.mips == 0 {
+            return Err(EngineError::InvalidRequest(format!("sparse image {name:?} has a zero dimension: {desc:?}")));
+        }
+        if desc.width.max(desc.height) > limits.max_image_dimension2_d || desc.layers > limits.max_image_array_layers {
+            return Err(EngineError::InvalidRequest(format!(
+                "sparse image {name:?} ({}x{}, {} layers) exceeds the device limits ({} per side, {} layers)",
+                desc.width, desc.height, desc.layers, limits.max_image_dimension2_d, limits.max_image_array_layers
+            )));
+        }
+        let full_chain = 32 - desc.width.max(desc.height).leading_zeros();
+        if desc.mips > full_chain {
+            return Err(EngineError::InvalidRequest(format!(
+                "sparse image {name:?} asks for {} mips; a {}x{} image has at most {full_chain}",
+                desc.mips, desc.width, desc.height
+            )));
+        }
+        // SAFETY: physical belongs to the instance.
+        let format_props = unsafe {
+            device.instance().raw().get_physical_device_sparse_image_format_properties(
+                device.physical(),
+                desc.format,
+                vk::ImageType::TYPE_2D,
+                vk::SampleCountFlags::TYPE_1,
+                USAGE,
+                vk::ImageTiling::OPTIMAL,
+            )
+        };
+        if format_props.is_empty() {
+            return Err(EngineError::MissingFeature {
+                device: device.name().to_owned(),
+                feature: format!("sparse residency for format {:?}", desc.format),
+            });
+        }
+        let info = vk::ImageCreateInfo::default()
+            .flags(vk::ImageCreateFlags::SPARSE_BINDING | vk::ImageCreateFlags::SPARSE_RESIDENCY)
+            .image_type(vk::ImageType::TYPE_2D)
+            .format(desc.format)
+            .extent(vk::Extent3D {
+                width: desc.width,
+                height: desc.height,
+                depth: 1,
+            })
+            .mip_levels(desc.mips)
+            .array_layers(desc.layers)
+            .samples(vk::SampleCountFlags::TYPE_1)
+            .tiling(vk::ImageTiling::OPTIMAL)
+            .usage(USAGE)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE)
+            .initial_layout(vk::ImageLayout::UNDEFINED);
+        // SAFETY: valid create info; the device enabled sparse binding and residency.
+        let raw = unsafe { device.raw.create_image(&info, None) }.vk("vkCreateImage (sparse)")?;
+        let mut image = Self {
+            device: Arc::clone(device),
+            raw,
+            view: vk::ImageView::null(),
+            desc,
+            block_size: 0,
+            granularity: (0, 0),
+            mip_tail_first_lod: desc.mips,
+            memory_type_bits: 0,
+        };
+        // SAFETY: raw is a live sparse image.
+        let requirements = unsafe { device.raw.get_image_memory_requirements(raw) };
+        // SAFETY: raw is a live sparse image.
+        let sparse = unsafe { device.raw.get_image_sparse_memory_requirements(raw) };
+        let color = sparse
+            .iter()
+            .find(|r| r.format_properties.aspect_mask.contains(vk::ImageAspectFlags::COLOR))
+            .ok_or_else(|| EngineError::MissingFeature {
+                device: device.name().to_owned(),
+                feature: format!("sparse memory requirements for the colour aspect of {:?}", desc.format),
+            })?;
+        let (block_w, block_h) = texel_block(desc.format);
+        let reported = color.format_properties.image_granularity;
+        // Some drivers (lavapipe) report BC granularity in compressed blocks:
+        // a granularity whose texel footprint would exceed one memory block
+        // is taken to be in blocks and converted to texels.
+        let bytes_per_block = bytes_per_texel_block(desc.format);
+        let texel_footprint = u64::from(reported.width) * u64::from(reported.height) * bytes_per_block
+            / u64::from(block_w * block_h);
+        let in_blocks = block_w > 1 && texel_footprint > requirements.alignment;
+        image.granularity = if in_blocks {
+            (reported.width * block_w, reported.height * block_h)
+        } else {
+            (reported.width, reported.height)
+        };
+        image.block_size = requirements.alignment;
+        image.mip_tail_first_lod = color.image_mip_tail_first_lod.min(desc.mips);
+        image.memory_type_bits = requirements.memory_type_bits;
+        image.view = create_view(
+            device,
+            raw,
+            &ImageDesc {
+                width: desc.width,
+                height: desc.height,
+                layers: desc.layers,
+                mips: desc.mips,
+                format: desc.format,
+                usage: USAGE,
+                view_type: vk::ImageViewType::TYPE_2D_ARRAY,
+            },
+        )?;
+        device.set_name(raw, name);
+        device.set_name(image.view, &format!("{name} view"));
+        Ok(image)
+    }
+
+    /// The raw image.
+    pub fn raw(&self) -> vk::Image {
+        self.raw
+    }
+
+    /// A 2D-array view of every layer and level.
+    pub fn view(&self) -> vk::ImageView {
+        self.view
+    }
+
+    /// The description it was created from.
+    pub fn desc(&self) -> &SparseImageDesc {
+        &self.desc
+    }
+
+    /// Bytes of one sparse block (the memory alignment).
+    pub fn block_size(&self) -> u64 {
+        self.block_size
+    }
+
+    /// Sparse granularity in texels (converted from compressed blocks where
+    /// the driver reports those).
+    pub fn granularity(&self) -> (u32, u32) {
+        self.granularity
+    }
+
+    /// First level of the mip tail; equals the mip count when there is none.
+    pub fn mip_tail_first_lod(&self) -> u32 {
+        self.mip_tail_first_lod
+    }
+
+    /// Memory types the blocks may come from.
+    pub fn memory_type_bits(&self) -> u32 {
+        self.memory_type_bits
+    }
+
+    /// Extent of `mip` in texels.
+    pub fn level_extent(&self, mip: u32) -> (u32, u32) {
+        ((self.desc.width >> mip).max(1), (self.desc.height >> mip).max(1))
+    }
+
+    /// Number of blocks across and down `mip`.
+    pub fn level_blocks(&self, mip: u32) -> (u32, u32) {
+        let (w, h) = self.level_extent(mip);
+        (w.div_ceil(self.granularity.0), h.div_ceil(self.granularity.1))
+    }
+
+    /// Texel offset and extent of a block, clipped to its level.
+    pub fn block_region(&self, mip: u32, x: u32, y: u32) -> Result<(vk::Offset3D, vk::Extent3D)> {
+        let (bw, bh) = self.level_blocks(mip);
+        if mip >= self.desc.mips || x >= bw || y >= bh {
+            return Err(EngineError::InvalidRequest(format!(
+                "block ({x}, {y}) of level {mip} lies outside the image ({bw}x{bh} blocks, {} levels)",
+                self.desc.mips
+            )));
+        }
+        let (w, h) = self.level_extent(mip);
+        let (gw, gh) = self.granularity;
+        let offset = vk::Offset3D {
+            x: (x * gw) as i32,
+            y: (y * gh) as i32,
+            z: 0,
+        };
+        let extent = vk::Extent3D {
+            width: gw.min(w - x * gw),
+            height: gh.min(h - y * gh),
+            depth: 1,
+        };
+        Ok((offset, extent))
+    }
+
+    /// Binds and unbinds `blocks` in one `vkQueueBindSparse`, signalling
+    /// `signal` (the copy submission waits on it) and `fence` (may be null).
+    /// Runs of blocks adjacent in a row whose memory is contiguous (or which
+    /// are all unbound) are merged into one bind entry. Returns the number of
+    /// entries submitted.
+    pub fn bind(&self, blocks: &[SparseBlockBind], signal: &[vk::Semaphore], fence: vk::Fence) -> Result<usize> {
+        if self.mip_tail_first_lod < self.desc.mips && blocks.iter().any(|b| b.mip >= self.mip_tail_first_lod) {
+            return Err(EngineError::InvalidRequest(format!(
+                "levels from {} on are in the mip tail and are bound as a whole, not per block",
+                self.mip_tail_first_lod
+            )));
+        }
+        let mut sorted = blocks.to_vec();
+        sorted.sort_by_key(|b| (b.layer, b.mip, b.y, b.x));
+        let mut entries: Vec<vk::SparseImageMemoryBind> = Vec::with_capacity(sorted.len());
+        let mut last: Option<SparseBlockBind> = None;
+        for block in sorted {
+            let (offset, extent) = self.block_region(block.mip, block.x, block.y)?;
+            if block.layer >= self.desc.layers {
+                return Err(EngineError::InvalidRequest(format!(
+                    "layer {} lies outside the image's {} layers",
+                    block.layer, self.desc.layers
+                )));
+            }
+            let extends_previous = match (last, entries.last()) {
+                (Some(prev), Some(entry)) => {
+                    let same_row = prev.layer == block.layer && prev.mip == block.mip && prev.y == block.y;
+                    let next_column = prev.x + 1 == block.x;
+                    // Only full-width blocks can be extended by the next one.
+                    let full_width = entry.extent.width % self.granularity.0 == 0;
+                    let memory_follows = match (prev.memory, block.memory) {
+                        (Some((m0, o0)), Some((m1, o1))) => m0 == m1 && o0 + self.block_size == o1,
+                        (None, None) => true,
+                        _ => false,
+                    };
+                    same_row && next_column && full_width && memory_follows
+                }
+                _ => false,
+            };
+            if extends_previous {
+                if let Some(entry) = entries.last_mut() {
+                    entry.extent.width += extent.width;
+                }
+            } else {
+                let (memory, memory_offset) = block.memory.unwrap_or((vk::DeviceMemory::null(), 0));
+                entries.push(vk::SparseImageMemoryBind {
+                    subresource: vk::ImageSubresource {
+                        aspect_mask: vk::ImageAspectFlags::COLOR,
+                        mip_level: block.mip,
+                        array_layer: block.layer,
+                    },
+                    offset,
+                    extent,
+                    memory,
+                    memory_offset,
+                    flags: vk::SparseMemoryBindFlags::empty(),
+                });
+            }
+            last = Some(block);
+        }
+        let image_binds = [vk::SparseImageMemoryBindInfo::default().image(self.raw).binds(&entries)];
+        let mut info = vk::BindSparseInfo::default().signal_semaphores(signal);
+        if !entries.is_empty() {
+            info = info.image_binds(&image_binds);
+        }
+        let queue = self.device.queue();
+        // SAFETY: the queue supports sparse binding and is locked; memory
+        // offsets are block aligned and from allowed memory types (caller's
+        // contract via SparseMemoryChunk).
+        unsafe { self.device.raw.queue_bind_sparse(*queue, &[info], fence) }.vk("vkQueueBindSparse")?;
+        Ok(entries.len())
+    }
+}
+
+/// One rectangle of texels to copy from a buffer into a level of a layer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TexelUpload {
+    /// Array layer.
+    pub layer: u32,
+    /// Mip level.
+    pub mip: u32,
+    /// Left edge in texels (a multiple of the format's texel block).
+    pub x: u32,
+    /// Top edge in texels.
+    pub y: u32,
+    /// Width in texels.
+    pub width: u32,
+    /// Height in texels.
+    pub height: u32,
+    /// Byte offset of the tightly packed source texels in the buffer.
+    pub buffer_offset: u64,
+}
+
+impl SparseImage {
+    /// Records copies from `source` into the image, which must be in
+    /// TRANSFER_DST_OPTIMAL, and whose destination blocks must be bound.
+    pub fn record_copies(&self, cmd: vk::CommandBuffer, source: vk::Buffer, uploads: &[TexelUpload]) -> Result<()> {
+        let (bw, bh) = texel_block(self.desc.format);
+        let mut regions = Vec::with_capacity(uploads.len());
+        for u in uploads {
+            let (lw, lh) = self.level_extent(u.mip);
+            let fits = u.layer < self.desc.layers
+                && u.mip < self.desc.mips
+                && u.x.checked_add(u.width).is_some_and(|r| r <= lw.max(bw))
+                && u.y.checked_add(u.height).is_some_and(|b| b <= lh.max(bh));
+            if !fits || u.x % bw != 0 || u.y % bh != 0 || u.width == 0 || u.height == 0 {
+                return Err(EngineError::InvalidRequest(format!(
+                    "upload {u:?} does not fit level {} ({lw}x{lh}) of layer {} in a {}-layer image, or is not block aligned",
+                    u.mip, u.layer, self.desc.layers
+                )));
+            }
+            regions.push(vk::BufferImageCopy {
+                buffer_offset: u.buffer_offset,
+                buffer_row_length: 0,
+                buffer_image_height: 0,
+                image_subresource: vk::ImageSubresourceLayers {
+                    aspect_mask: vk::ImageAspectFlags::COLOR,
+                    mip_level: u.mip,
+                    base_array_layer: u.layer,
+                    layer_count: 1,
+                },
+                image_offset: vk::Offset3D {
+                    x: u.x as i32,
+                    y: u.y as i32,
+                    z: 0,
+                },
+                image_extent: vk::Extent3D {
+                    width: u.width,
+                    height: u.height,
+                    depth: 1,
+                },
+            });
+        }
+        if regions.is_empty() {
+            return Ok(());
+        }
+        // SAFETY: cmd is recording; regions were checked against the image;
+        // the caller keeps `source` alive until the submission completes.
+        unsafe {
+            self.device.raw.cmd_copy_buffer_to_image(
+                cmd,
+                source,
+                self.raw,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                &regions,
+            )
+        };
+        Ok(())
+    }
+
+    /// Records a whole-image transition between UNDEFINED, TRANSFER_DST_OPTIMAL
+    /// and SHADER_READ_ONLY_OPTIMAL with matching stages.
+    pub fn record_layout(&self, cmd: vk::CommandBuffer, from: vk::ImageLayout, to: vk::ImageLayout) {
+        let stage_of = |layout: vk::ImageLayout| match layout {
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL => (
+                vk::PipelineStageFlags2::FRAGMENT_SHADER | vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_SAMPLED_READ,
+            ),
+            _ => (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
+        };
+        let range = vk::ImageSubresourceRange {
+            aspect_mask: vk::ImageAspectFlags::COLOR,
+            base_mip_level: 0,
+            level_count: self.desc.mips,
+            base_array_layer: 0,
+            layer_count: self.desc.layers,
+        };
+        crate::image::transition(&self.device, cmd, self.raw, range, from, to, stage_of(from), stage_of(to));
+    }
+}
+
+/// Bytes per texel block (one texel for uncompressed formats).
+pub fn bytes_per_texel_block(format: vk::Format) -> u64 {
+    match format {
+        vk::Format::BC1_RGB_UNORM_BLOCK
+        | vk::Format::BC1_RGB_SRGB_BLOCK
+        | vk::Format::BC1_RGBA_UNORM_BLOCK
+        | vk::Format::BC1_RGBA_SRGB_BLOCK => 8,
+        vk::Format::BC3_UNORM_BLOCK | vk::Format::BC3_SRGB_BLOCK | vk::Format::BC7_UNORM_BLOCK | vk::Format::BC7_SRGB_BLOCK => 16,
+        vk::Format::R8G8B8A8_UNORM | vk::Format::R8G8B8A8_SRGB | vk::Format::B8G8R8A8_UNORM => 4,
+        _ => 4,
+    }
+}
+
+impl Drop for SparseImage {
+    fn drop(&mut self) {
+        // SAFETY: the owner drops only after the GPU finished with the image;
+        // memory bound to it is owned by chunks that outlive nothing here.
+        unsafe {
+            if self.view != vk::ImageView::null() {
+                self.device.raw.destroy_image_view(self.view, None);
+            }
+            self.device.raw.destroy_image(self.raw, None);
+        }
+    }
+}
+
+/// A chunk of device memory from which sparse blocks are bound.
+pub struct SparseMemoryChunk {
+    device: Arc<Device>,
+    allocation: Option<Allocation>,
+    size: u64,
+}
+
+impl std::fmt::Debug for SparseMemoryChunk {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SparseMemoryChunk").field("size", &self.size).finish()
+    }
+}
+
+impl SparseMemoryChunk {
+    /// Allocates `blocks` blocks usable by `image`.
+    pub fn new(device: &Arc<Device>, image: &SparseImage, blocks: u64, name: &str) -> Result<Self> {
+        let size = blocks
+            .checked_mul(image.block_size())
+            .filter(|&s| s > 0)
+            .ok_or_else(|| EngineError::InvalidRequest(format!("chunk {name:?} of {blocks} blocks has no valid size")))?;
+        let requirements = vk::MemoryRequirements {
+            size,
+            alignment: image.block_size(),
+            memory_type_bits: image.memory_type_bits(),
+        };
+        let allocation = {
+            let mut guard = device.allocator();
+            let allocator = guard.as_mut().ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
+            allocator
+                .allocate(&AllocationCreateDesc {
+                    name,
+                    requirements,
+                    location: MemoryLocation::GpuOnly,
+                    linear: false,
+                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+                })
+                .map_err(|source| EngineError::Allocation {
+                    name: name.to_owned(),
+                    source,
+                })?
+        };
+        Ok(Self {
+            device: Arc::clone(device),
+            allocation: Some(allocation),
+            size,
+        })
+    }
+
+    /// The device memory and byte offset of block `index` of this chunk.
+    pub fn block(&self, index: u64, block_size: u64) -> Option<(vk::DeviceMemory, u64)> {
+        let allocation = self.allocation.as_ref()?;
+        let offset = index.checked_mul(block_size)?;
+        // SAFETY: the memory handle stays valid while this chunk owns the allocation.
+        let memory = unsafe { allocation.memory() };
+        (offset + block_size <= self.size).then(|| (memory, allocation.offset() + offset))
+    }
+
+    /// Size in bytes.
+    pub fn size(&self) -> u64 {
+        self.size
+    }
+}
+
+impl Drop for SparseMemoryChunk {
+    fn drop(&mut self) {
+        if let Some(allocation) = self.allocation.take() {
+            if let Some(allocator) = self.device.allocator().as_mut() {
+                let _ = allocator.free(allocation);
+            }
+        }
+    }
+}

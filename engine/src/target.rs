@@ -1,0 +1,240 @@
+//! Headless off-screen colour + depth target and read-back to PNG.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::MemoryLocation;
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::device::Device;
+use crate::error::{EngineError, Result};
+use crate::image::{transition, Image, ImageDesc};
+
+/// Colour format of the off-screen target (8-bit UNORM, written to PNG as is).
+pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
+/// Depth format of the off-screen target.
+pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;
+
+/// An off-screen colour and depth target with a host-visible read-back buffer.
+#[derive(Debug)]
+pub struct RenderTarget {
+    color: Image,
+    depth: Image,
+    readback: Buffer,
+    width: u32,
+    height: u32,
+}
+
+impl RenderTarget {
+    /// Creates a `width` × `height` target.
+    pub fn new(device: &Arc<Device>, width: u32, height: u32) -> Result<Self> {
+        let max = device.properties().limits.max_image_dimension2_d;
+        if width == 0 || height == 0 || width > max || height > max {
+            return Err(EngineError::InvalidRequest(format!(
+                "render target {width}x{height} is outside 1..={max} per side"
+            )));
+        }
+        let color = Image::new(
+            device,
+            ImageDesc {
+                width,
+                height,
+                layers: 1,
+                mips: 1,
+                format: COLOR_FORMAT,
+                usage: vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
+                view_type: vk::ImageViewType::TYPE_2D,
+            },
+            "render target colour",
+        )?;
+        let depth = Image::new(
+            device,
+            ImageDesc {
+                width,
+                height,
+                layers: 1,
+                mips: 1,
+                format: DEPTH_FORMAT,
+                usage: vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT,
+                view_type: vk::ImageViewType::TYPE_2D,
+            },
+            "render target depth",
+        )?;
+        let readback = Buffer::new(
+            device,
+            BufferDesc {
+                size: u64::from(width) * u64::from(height) * 4,
+                usage: vk::BufferUsageFlags::TRANSFER_DST,
+                location: MemoryLocation::GpuToCpu,
+            },
+            "render target read-back",
+        )?;
+        Ok(Self {
+            color,
+            depth,
+            readback,
+            width,
+            height,
+        })
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Records the transitions and `vkCmdBeginRendering` that clear colour to
+    /// `clear` and depth to 1.
+    pub fn begin(&self, device: &Device, cmd: vk::CommandBuffer, clear: [f32; 4]) {
+        transition(
+            device,
+            cmd,
+            self.color.raw(),
+            self.color.desc().full_range(),
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
+            (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
+        );
+        transition(
+            device,
+            cmd,
+            self.depth.raw(),
+            self.depth.desc().full_range(),
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+            (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
+            (
+                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
+            ),
+        );
+        let color_attachments = [vk::RenderingAttachmentInfo::default()
+            .image_view(self.color.view())
+            .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .store_op(vk::AttachmentStoreOp::STORE)
+            .clear_value(vk::ClearValue {
+                color: vk::ClearColorValue { float32: clear },
+            })];
+        let depth_attachment = vk::RenderingAttachmentInfo::default()
+            .image_view(self.depth.view())
+            .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .store_op(vk::AttachmentStoreOp::DONT_CARE)
+            .clear_value(vk::ClearValue {
+                depth_stencil: vk::ClearDepthStencilValue { depth: 1.0, stencil: 0 },
+            });
+        let area = vk::Rect2D {
+            offset: vk::Offset2D { x: 0, y: 0 },
+            extent: vk::Extent2D {
+                width: self.width,
+                height: self.height,
+            },
+        };
+        let info = vk::RenderingInfo::default()
+            .render_area(area)
+            .layer_count(1)
+            .color_attachments(&color_attachments)
+            .depth_attachment(&depth_attachment);
+        let viewport = vk::Viewport {
+            x: 0.0,
+            y: 0.0,
+            width: self.width as f32,
+            height: self.height as f32,
+            min_depth: 0.0,
+            max_depth: 1.0,
+        };
+        // SAFETY: cmd is recording; attachments are in the layouts just set.
+        unsafe {
+            device.raw.cmd_begin_rendering(cmd, &info);
+            device.raw.cmd_set_viewport(cmd, 0, &[viewport]);
+            device.raw.cmd_set_scissor(cmd, 0, &[area]);
+        }
+    }
+
+    /// Ends rendering and records the copy of the colour image into the
+    /// read-back buffer. Read it with [`RenderTarget::read_pixels`] after the
+    /// submission's fence.
+    pub fn end_and_copy(&self, device: &Device, cmd: vk::CommandBuffer) {
+        // SAFETY: cmd is recording inside the rendering begun by `begin`.
+        unsafe { device.raw.cmd_end_rendering(cmd) };
+        transition(
+            device,
+            cmd,
+            self.color.raw(),
+            self.color.desc().full_range(),
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+            (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+        );
+        let region = vk::BufferImageCopy {
+            buffer_offset: 0,
+            buffer_row_length: 0,
+            buffer_image_height: 0,
+            image_subresource: vk::ImageSubresourceLayers {
+                aspect_mask: vk::ImageAspectFlags::COLOR,
+                mip_level: 0,
+                base_array_layer: 0,
+                layer_count: 1,
+            },
+            image_offset: vk::Offset3D::default(),
+            image_extent: vk::Extent3D {
+                width: self.width,
+                height: self.height,
+                depth: 1,
+            },
+        };
+        // SAFETY: image in TRANSFER_SRC_OPTIMAL, buffer large enough for the region.
+        unsafe {
+            device.raw.cmd_copy_image_to_buffer(
+                cmd,
+                self.color.raw(),
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                self.readback.raw(),
+                &[region],
+            )
+        };
+        crate::image::memory_barrier(
+            device,
+            cmd,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+        );
+    }
+
+    /// The pixels copied by the last [`RenderTarget::end_and_copy`], once its
+    /// submission has completed.
+    pub fn read_pixels(&self) -> Result<image::RgbaImage> {
+        let bytes = self.readback.read::<u8>(0, (self.width * self.height * 4) as usize)?;
+        image::RgbaImage::from_raw(self.width, self.height, bytes)
+            .ok_or_else(|| EngineError::InvalidRequest("read-back buffer smaller than the target".into()))
+    }
+}
+
+/// Writes `pixels` as a PNG, creating parent directories.
+pub fn write_png(pixels: &image::RgbaImage, path: &Path) -> Result<()> {
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent).map_err(|e| EngineError::ImageWrite {
+            path: path.display().to_string(),
+            source: image::ImageError::IoError(e),
+        })?;
+    }
+    pixels.save(path).map_err(|source| EngineError::ImageWrite {
+        path: path.display().to_string(),
+        source,
+    })
+}

@@ -1,0 +1,41 @@
+// Every GPU-visible struct and binding number of citystream, in one place.
+// The Rust side mirrors these structs in engine/src/gpu_types.rs; a test
+// reads the offsets glslang emits into SPIR-V and compares them.
+#ifndef CITYSTREAM_GLSL
+#define CITYSTREAM_GLSL
+
+// ---- Descriptor set 0: mesh rendering -------------------------------------
+#define BINDING_MESH_TEXTURES 0      // sampler2DArray: ordinary texture array
+
+// ---- Descriptor set 0: sparse residency probe ----------------------------
+#define BINDING_PROBE_TEXTURE 0      // sampler2DArray: sparse image
+#define BINDING_PROBE_POINTS 1       // ProbePoint[]
+#define BINDING_PROBE_RESULTS 2      // ProbeResult[]
+
+// Push constants of the mesh pipeline (one draw per mesh).
+struct DrawPush {
+    mat4 view_proj;
+    vec4 light_dir_weight;  // xyz: direction towards the light; w: 0 = unlit, 1 = fully lit
+    uint layer;             // texture-array layer of this mesh
+    uint pad0;
+    uint pad1;
+    uint pad2;
+};
+
+// One sampling request of the residency probe.
+struct ProbePoint {
+    vec2 uv;
+    float layer;
+    float lod;
+};
+
+// What the probe read at one ProbePoint.
+struct ProbeResult {
+    vec4 value;
+    uint resident;   // 1 where sparseTexelsResidentARB said so
+    int raw_code;    // the residency code as the driver returned it
+    uint pad0;
+    uint pad1;
+};
+
+#endif
