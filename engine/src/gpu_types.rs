@@ -257,6 +257,31 @@ mod tests {
     }
 
     #[test]
+    fn binding_numbers_match_the_glsl_header() {
+        let header = include_str!("../../shaders/include/citystream.glsl");
+        let defines: std::collections::HashMap<&str, u32> = header
+            .lines()
+            .filter_map(|line| {
+                let mut words = line.split_whitespace();
+                (words.next()? == "#define").then_some(())?;
+                let name = words.next()?;
+                let value = words.next()?.parse().ok()?;
+                name.starts_with("BINDING_").then_some((name, value))
+            })
+            .collect();
+        let rust = [
+            ("BINDING_MESH_TEXTURES", BINDING_MESH_TEXTURES),
+            ("BINDING_PROBE_TEXTURE", BINDING_PROBE_TEXTURE),
+            ("BINDING_PROBE_POINTS", BINDING_PROBE_POINTS),
+            ("BINDING_PROBE_RESULTS", BINDING_PROBE_RESULTS),
+        ];
+        assert_eq!(defines.len(), rust.len(), "every GLSL binding needs a Rust twin: {defines:?}");
+        for (name, value) in rust {
+            assert_eq!(defines.get(name), Some(&value), "{name} differs between GLSL and Rust");
+        }
+    }
+
+    #[test]
     fn reflection_sees_array_strides() {
         let all = all_layouts();
         let probe = &all["ProbeResult"];
