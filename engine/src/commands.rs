@@ -114,6 +114,78 @@ pub struct SemaphoreWait {
     pub semaphore: vk::Semaphore,
     /// Stages that wait for it.
     pub stages: vk::PipelineStageFlags2,
+    /// The value to wait for on a timeline semaphore; ignored for binary ones.
+    pub value: u64,
+}
+
+impl SemaphoreWait {
+    /// A wait on a binary semaphore.
+    pub fn binary(semaphore: vk::Semaphore, stages: vk::PipelineStageFlags2) -> Self {
+        Self {
+            semaphore,
+            stages,
+            value: 0,
+        }
+    }
+}
+
+/// A timeline semaphore owned by Rust: bind batches signal increasing
+/// values, and copy submissions wait for the value of the batch they need.
+pub struct TimelineSemaphore {
+    device: Arc<Device>,
+    raw: vk::Semaphore,
+}
+
+impl std::fmt::Debug for TimelineSemaphore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("TimelineSemaphore").field(&self.raw).finish()
+    }
+}
+
+impl TimelineSemaphore {
+    /// Creates a timeline semaphore starting at `initial`.
+    pub fn new(device: &Arc<Device>, initial: u64, name: &str) -> Result<Self> {
+        let mut type_info = vk::SemaphoreTypeCreateInfo::default()
+            .semaphore_type(vk::SemaphoreType::TIMELINE)
+            .initial_value(initial);
+        let info = vk::SemaphoreCreateInfo::default().push_next(&mut type_info);
+        // SAFETY: valid create info; timeline semaphores are enabled on the device.
+        let raw = unsafe { device.raw.create_semaphore(&info, None) }.vk("vkCreateSemaphore (timeline)")?;
+        device.set_name(raw, name);
+        Ok(Self {
+            device: Arc::clone(device),
+            raw,
+        })
+    }
+
+    /// The raw handle.
+    pub fn raw(&self) -> vk::Semaphore {
+        self.raw
+    }
+
+    /// The current counter value.
+    pub fn value(&self) -> Result<u64> {
+        // SAFETY: the semaphore belongs to this device.
+        unsafe { self.device.raw.get_semaphore_counter_value(self.raw) }.vk("vkGetSemaphoreCounterValue")
+    }
+
+    /// Waits until the counter reaches `value`.
+    pub fn wait(&self, value: u64) -> Result<()> {
+        let semaphores = [self.raw];
+        let values = [value];
+        let info = vk::SemaphoreWaitInfo::default().semaphores(&semaphores).values(&values);
+        // SAFETY: the semaphore belongs to this device.
+        unsafe { self.device.raw.wait_semaphores(&info, u64::MAX) }.vk("vkWaitSemaphores")
+    }
+}
+
+impl Drop for TimelineSemaphore {
+    fn drop(&mut self) {
+        // The GPU may still be about to signal it; wait for the device first.
+        let _ = self.device.wait_idle();
+        // SAFETY: nothing pending references the semaphore after the idle wait.
+        unsafe { self.device.raw.destroy_semaphore(self.raw, None) };
+    }
 }
 
 /// A command pool with one primary command buffer and a fence: record,
@@ -191,7 +263,12 @@ impl CommandContext {
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
         let wait_infos: Vec<_> = waits
             .iter()
-            .map(|w| vk::SemaphoreSubmitInfo::default().semaphore(w.semaphore).stage_mask(w.stages))
+            .map(|w| {
+                vk::SemaphoreSubmitInfo::default()
+                    .semaphore(w.semaphore)
+                    .stage_mask(w.stages)
+                    .value(w.value)
+            })
             .collect();
         let signal_infos: Vec<_> = signal
             .iter()

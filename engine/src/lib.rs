@@ -19,6 +19,7 @@
 //! `// SAFETY:` line.
 #![warn(unsafe_op_in_unsafe_fn)]
 
+pub mod binder;
 pub mod buffer;
 pub mod commands;
 pub mod device;

@@ -275,10 +275,16 @@ impl SparseImage {
 
     /// Binds and unbinds `blocks` in one `vkQueueBindSparse`, signalling
     /// `signal` (the copy submission waits on it) and `fence` (may be null).
-    /// Runs of blocks adjacent in a row whose memory is contiguous (or which
-    /// are all unbound) are merged into one bind entry. Returns the number of
-    /// entries submitted.
+    /// Returns the number of bind entries submitted after merging.
     pub fn bind(&self, blocks: &[SparseBlockBind], signal: &[vk::Semaphore], fence: vk::Fence) -> Result<usize> {
+        let entries = self.bind_entries(blocks)?;
+        submit_bind_sparse(&self.device, &[(self.raw, entries.as_slice())], signal, None, fence)?;
+        Ok(entries.len())
+    }
+
+    /// Turns blocks into bind entries: runs of blocks adjacent in a row whose
+    /// memory is contiguous (or which are all unbound) become one entry.
+    pub fn bind_entries(&self, blocks: &[SparseBlockBind]) -> Result<Vec<vk::SparseImageMemoryBind>> {
         if self.mip_tail_first_lod < self.desc.mips && blocks.iter().any(|b| b.mip >= self.mip_tail_first_lod) {
             return Err(EngineError::InvalidRequest(format!(
                 "levels from {} on are in the mip tail and are bound as a whole, not per block",
@@ -290,13 +296,13 @@ impl SparseImage {
         let mut entries: Vec<vk::SparseImageMemoryBind> = Vec::with_capacity(sorted.len());
         let mut last: Option<SparseBlockBind> = None;
         for block in sorted {
-            let (offset, extent) = self.block_region(block.mip, block.x, block.y)?;
             if block.layer >= self.desc.layers {
                 return Err(EngineError::InvalidRequest(format!(
                     "layer {} lies outside the image's {} layers",
                     block.layer, self.desc.layers
                 )));
             }
+            let (offset, extent) = self.block_region(block.mip, block.x, block.y)?;
             let extends_previous = match (last, entries.last()) {
                 (Some(prev), Some(entry)) => {
                     let same_row = prev.layer == block.layer && prev.mip == block.mip && prev.y == block.y;
@@ -333,18 +339,43 @@ impl SparseImage {
             }
             last = Some(block);
         }
-        let image_binds = [vk::SparseImageMemoryBindInfo::default().image(self.raw).binds(&entries)];
-        let mut info = vk::BindSparseInfo::default().signal_semaphores(signal);
-        if !entries.is_empty() {
-            info = info.image_binds(&image_binds);
-        }
-        let queue = self.device.queue();
-        // SAFETY: the queue supports sparse binding and is locked; memory
-        // offsets are block aligned and from allowed memory types (caller's
-        // contract via SparseMemoryChunk).
-        unsafe { self.device.raw.queue_bind_sparse(*queue, &[info], fence) }.vk("vkQueueBindSparse")?;
-        Ok(entries.len())
+        Ok(entries)
     }
+}
+
+/// One `vkQueueBindSparse` for the entries of several images, signalling the
+/// binary semaphores `signal`, optionally a timeline semaphore value, and
+/// `fence` (may be null).
+pub fn submit_bind_sparse(
+    device: &Device,
+    images: &[(vk::Image, &[vk::SparseImageMemoryBind])],
+    signal: &[vk::Semaphore],
+    timeline: Option<(vk::Semaphore, u64)>,
+    fence: vk::Fence,
+) -> Result<()> {
+    let image_binds: Vec<_> = images
+        .iter()
+        .filter(|(_, entries)| !entries.is_empty())
+        .map(|&(image, entries)| vk::SparseImageMemoryBindInfo::default().image(image).binds(entries))
+        .collect();
+    let mut semaphores = signal.to_vec();
+    let mut values = vec![0u64; signal.len()];
+    if let Some((semaphore, value)) = timeline {
+        semaphores.push(semaphore);
+        values.push(value);
+    }
+    let mut timeline_info = vk::TimelineSemaphoreSubmitInfo::default().signal_semaphore_values(&values);
+    let mut info = vk::BindSparseInfo::default()
+        .signal_semaphores(&semaphores)
+        .image_binds(&image_binds);
+    if timeline.is_some() {
+        info = info.push_next(&mut timeline_info);
+    }
+    let queue = device.queue();
+    // SAFETY: the queue supports sparse binding and is locked; entries were
+    // built from checked block coordinates; memory offsets are block aligned
+    // and come from allowed memory types (SparseMemoryChunk's contract).
+    unsafe { device.raw.queue_bind_sparse(*queue, &[info], fence) }.vk("vkQueueBindSparse")
 }
 
 /// One rectangle of texels to copy from a buffer into a level of a layer.
@@ -526,6 +557,15 @@ impl SparseMemoryChunk {
         // SAFETY: the memory handle stays valid while this chunk owns the allocation.
         let memory = unsafe { allocation.memory() };
         (offset + block_size <= self.size).then(|| (memory, allocation.offset() + offset))
+    }
+
+    /// The device memory and offset of the block at byte `offset` of this
+    /// chunk, when `offset` is block aligned and the block fits.
+    pub fn at(&self, offset: u64, block_size: u64) -> Option<(vk::DeviceMemory, u64)> {
+        if block_size == 0 || offset % block_size != 0 {
+            return None;
+        }
+        self.block(offset / block_size, block_size)
     }
 
     /// Size in bytes.

@@ -138,10 +138,7 @@ fn bind_copy_sample_unbind() -> Result<()> {
     )?;
     image.record_layout(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL);
     // The copy must wait for the sparse bind on the same queue.
-    commands.submit_and_wait(&[SemaphoreWait {
-        semaphore: bound.raw(),
-        stages: vk::PipelineStageFlags2::COPY,
-    }])?;
+    commands.submit_and_wait(&[SemaphoreWait::binary(bound.raw(), vk::PipelineStageFlags2::COPY)])?;
 
     let first_resident_x = gw; // first texel of block 1 on level 0
     let last_x = SIDE - 1;
@@ -199,10 +196,7 @@ fn bind_copy_sample_unbind() -> Result<()> {
             &mut commands,
             image.view(),
             &points,
-            &[SemaphoreWait {
-                semaphore: unbound.raw(),
-                stages: vk::PipelineStageFlags2::COMPUTE_SHADER,
-            }],
+            &[SemaphoreWait::binary(unbound.raw(), vk::PipelineStageFlags2::COMPUTE_SHADER)],
         )
         .context("probing after the unbind")?;
     for (i, result) in after.iter().enumerate() {

@@ -1,0 +1,151 @@
+//! The Vulkan implementation of the cache's [`SparseBinder`]: one
+//! `vkQueueBindSparse` per batch, adjacent blocks merged, a timeline
+//! semaphore value signalled that the copy submission waits on.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use ash::vk;
+use citystream_cache::{BindError, BindOp, BindReport, SparseBinder};
+
+use crate::commands::{SemaphoreWait, TimelineSemaphore};
+use crate::device::Device;
+use crate::error::Result;
+use crate::sparse::{submit_bind_sparse, SparseBlockBind, SparseImage, SparseMemoryChunk};
+
+/// Binds cache blocks into sparse images from pooled memory chunks.
+///
+/// `BindOp::block.image` indexes the images given at creation;
+/// `MemorySlot::chunk` indexes the chunks added with [`VulkanBinder::add_chunk`].
+/// Threading: owned by one thread at a time (the streaming task).
+pub struct VulkanBinder {
+    device: Arc<Device>,
+    images: Vec<Arc<SparseImage>>,
+    chunks: Vec<SparseMemoryChunk>,
+    timeline: TimelineSemaphore,
+    signalled: u64,
+}
+
+impl std::fmt::Debug for VulkanBinder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VulkanBinder")
+            .field("images", &self.images.len())
+            .field("chunks", &self.chunks.len())
+            .field("signalled", &self.signalled)
+            .finish()
+    }
+}
+
+impl VulkanBinder {
+    /// A binder for `images` with no memory chunks yet.
+    pub fn new(device: &Arc<Device>, images: Vec<Arc<SparseImage>>) -> Result<Self> {
+        Ok(Self {
+            device: Arc::clone(device),
+            images,
+            chunks: Vec::new(),
+            timeline: TimelineSemaphore::new(device, 0, "sparse binds")?,
+            signalled: 0,
+        })
+    }
+
+    /// Adds a memory chunk; returns its index for `MemorySlot::chunk`.
+    pub fn add_chunk(&mut self, chunk: SparseMemoryChunk) -> u32 {
+        self.chunks.push(chunk);
+        (self.chunks.len() - 1) as u32
+    }
+
+    /// What a submission that reads the bound blocks must wait on: the
+    /// timeline value of the last batch.
+    pub fn wait_for_last_batch(&self, stages: vk::PipelineStageFlags2) -> SemaphoreWait {
+        SemaphoreWait {
+            semaphore: self.timeline.raw(),
+            stages,
+            value: self.signalled,
+        }
+    }
+
+    /// The timeline value signalled by the last batch (0 before any).
+    pub fn last_signalled(&self) -> u64 {
+        self.signalled
+    }
+
+    fn resolve(&self, op: &BindOp) -> std::result::Result<(usize, SparseBlockBind), BindError> {
+        let block = op.block();
+        let image = self
+            .images
+            .get(block.image as usize)
+            .ok_or(BindError::UnknownBlock { block })?;
+        let memory = match op {
+            BindOp::Unbind { .. } => None,
+            BindOp::Bind { memory, .. } => {
+                let chunk = self.chunks.get(memory.chunk as usize).ok_or_else(|| BindError::Rejected {
+                    blocks: 1,
+                    reason: format!("memory chunk {} does not exist ({} chunks)", memory.chunk, self.chunks.len()),
+                })?;
+                Some(chunk.at(memory.offset, image.block_size()).ok_or_else(|| BindError::Rejected {
+                    blocks: 1,
+                    reason: format!(
+                        "offset {} is not a block-aligned offset inside chunk {} of {} bytes",
+                        memory.offset,
+                        memory.chunk,
+                        chunk.size()
+                    ),
+                })?)
+            }
+        };
+        Ok((
+            block.image as usize,
+            SparseBlockBind {
+                layer: block.layer,
+                mip: block.mip,
+                x: block.x,
+                y: block.y,
+                memory,
+            },
+        ))
+    }
+}
+
+impl SparseBinder for VulkanBinder {
+    fn submit(&mut self, batch: &[BindOp]) -> std::result::Result<BindReport, BindError> {
+        if batch.is_empty() {
+            return Ok(BindReport::default());
+        }
+        let mut per_image: Vec<Vec<SparseBlockBind>> = vec![Vec::new(); self.images.len()];
+        for op in batch {
+            let (image, bind) = self.resolve(op)?;
+            per_image[image].push(bind);
+        }
+        let mut entries = Vec::with_capacity(self.images.len());
+        for (image, binds) in self.images.iter().zip(&per_image) {
+            let image_entries = image.bind_entries(binds).map_err(|e| BindError::Rejected {
+                blocks: binds.len() as u32,
+                reason: e.to_string(),
+            })?;
+            entries.push((image.raw(), image_entries));
+        }
+        let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
+            entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
+        let started = Instant::now();
+        let value = self.signalled + 1;
+        submit_bind_sparse(&self.device, &slices, &[], Some((self.timeline.raw(), value)), vk::Fence::null())
+            .map_err(|e| BindError::Rejected {
+                blocks: batch.len() as u32,
+                reason: e.to_string(),
+            })?;
+        self.signalled = value;
+        Ok(BindReport {
+            blocks: batch.len() as u32,
+            entries: entries.iter().map(|(_, e)| e.len() as u32).sum(),
+            seconds: started.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+impl Drop for VulkanBinder {
+    fn drop(&mut self) {
+        // Chunks must outlive every bind that references them; the device
+        // idles before the memory is returned.
+        let _ = self.device.wait_idle();
+    }
+}
