@@ -15,6 +15,61 @@ pub const BINDING_PROBE_POINTS: u32 = 1;
 /// Binding of the probe's results (`BINDING_PROBE_RESULTS`).
 pub const BINDING_PROBE_RESULTS: u32 = 2;
 
+/// Binding of the per-mesh feedback array in the compaction pass.
+pub const BINDING_COMPACT_SPARSE: u32 = 0;
+/// Binding of the dense compacted entries.
+pub const BINDING_COMPACT_DENSE: u32 = 1;
+/// Binding of the compaction counter.
+pub const BINDING_COMPACT_COUNTER: u32 = 2;
+/// `FEEDBACK_UNSEEN`: `MeshFeedback::min_mip` of a mesh no fragment wrote.
+pub const FEEDBACK_UNSEEN: u32 = u32::MAX;
+
+/// `MeshFeedback`: per-mesh minimum mip level and summed weight (fixed point).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct MeshFeedback {
+    /// Finest needed mip level, or [`FEEDBACK_UNSEEN`].
+    pub min_mip: u32,
+    /// Summed weight.
+    pub weight: u32,
+}
+
+/// `FeedbackEntry`: one compacted record (mip level, weight, mesh id).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Pod, Zeroable)]
+pub struct FeedbackEntry {
+    /// Finest needed mip level.
+    pub mip: u32,
+    /// Summed weight.
+    pub weight: u32,
+    /// Mesh index.
+    pub mesh_id: u32,
+}
+
+/// `FeedbackCounter`: entries appended and entries that did not fit.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct FeedbackCounter {
+    /// Entries that passed τ (may exceed the capacity).
+    pub count: u32,
+    /// Entries that passed τ but found no room.
+    pub dropped: u32,
+}
+
+/// `CompactPush`: push constants of the compaction pass.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct CompactPush {
+    /// Meshes in the sparse array.
+    pub mesh_count: u32,
+    /// Minimum weight kept.
+    pub tau: u32,
+    /// Entries the dense array holds.
+    pub capacity: u32,
+    /// Padding.
+    pub pad0: u32,
+}
+
 /// One vertex of a mesh (vertex input, not a GLSL struct).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -274,11 +329,49 @@ mod tests {
             ("BINDING_PROBE_TEXTURE", BINDING_PROBE_TEXTURE),
             ("BINDING_PROBE_POINTS", BINDING_PROBE_POINTS),
             ("BINDING_PROBE_RESULTS", BINDING_PROBE_RESULTS),
+            ("BINDING_COMPACT_SPARSE", BINDING_COMPACT_SPARSE),
+            ("BINDING_COMPACT_DENSE", BINDING_COMPACT_DENSE),
+            ("BINDING_COMPACT_COUNTER", BINDING_COMPACT_COUNTER),
         ];
         assert_eq!(defines.len(), rust.len(), "every GLSL binding needs a Rust twin: {defines:?}");
         for (name, value) in rust {
             assert_eq!(defines.get(name), Some(&value), "{name} differs between GLSL and Rust");
         }
+    }
+
+    #[test]
+    fn feedback_layouts_match_spirv() {
+        check(
+            "MeshFeedback",
+            &[("min_mip", offset_of!(MeshFeedback, min_mip)), ("weight", offset_of!(MeshFeedback, weight))],
+            size_of::<MeshFeedback>(),
+        );
+        check(
+            "FeedbackEntry",
+            &[
+                ("mip", offset_of!(FeedbackEntry, mip)),
+                ("weight", offset_of!(FeedbackEntry, weight)),
+                ("mesh_id", offset_of!(FeedbackEntry, mesh_id)),
+            ],
+            size_of::<FeedbackEntry>(),
+        );
+        check(
+            "FeedbackCounter",
+            &[("count", offset_of!(FeedbackCounter, count)), ("dropped", offset_of!(FeedbackCounter, dropped))],
+            size_of::<FeedbackCounter>(),
+        );
+        check(
+            "CompactPush",
+            &[
+                ("mesh_count", offset_of!(CompactPush, mesh_count)),
+                ("tau", offset_of!(CompactPush, tau)),
+                ("capacity", offset_of!(CompactPush, capacity)),
+                ("pad0", offset_of!(CompactPush, pad0)),
+            ],
+            size_of::<CompactPush>(),
+        );
+        let header = include_str!("../../shaders/include/citystream.glsl");
+        assert!(header.contains("#define FEEDBACK_UNSEEN 0xFFFFFFFFu") && FEEDBACK_UNSEEN == 0xFFFF_FFFF);
     }
 
     #[test]

@@ -24,6 +24,7 @@ pub mod buffer;
 pub mod commands;
 pub mod device;
 pub mod error;
+pub mod feedback;
 pub mod gpu_types;
 pub mod image;
 pub mod instance;

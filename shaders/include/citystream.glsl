@@ -12,6 +12,42 @@
 #define BINDING_PROBE_POINTS 1       // ProbePoint[]
 #define BINDING_PROBE_RESULTS 2      // ProbeResult[]
 
+// ---- Descriptor set 0: feedback compaction (paper §3.3) -----------------
+#define BINDING_COMPACT_SPARSE 0     // MeshFeedback[], one per mesh, reset after reading
+#define BINDING_COMPACT_DENSE 1      // FeedbackEntry[], appended
+#define BINDING_COMPACT_COUNTER 2    // FeedbackCounter
+
+// A mesh no fragment wrote this frame.
+#define FEEDBACK_UNSEEN 0xFFFFFFFFu
+
+// Per-mesh feedback, combined atomically by the fragment stage: the lowest
+// (finest) needed mip level and the summed perceptual weight, both fixed point.
+struct MeshFeedback {
+    uint min_mip;   // FEEDBACK_UNSEEN when no fragment of the mesh was rasterised
+    uint weight;
+};
+
+// One compacted entry: (mip level, weight, mesh id), as the paper's records.
+struct FeedbackEntry {
+    uint mip;
+    uint weight;
+    uint mesh_id;
+};
+
+// Number of entries appended, and how many did not fit the dense array.
+struct FeedbackCounter {
+    uint count;
+    uint dropped;
+};
+
+// Push constants of the compaction pass.
+struct CompactPush {
+    uint mesh_count;
+    uint tau;        // minimum weight kept, in the weight's fixed-point units
+    uint capacity;   // entries the dense array holds
+    uint pad0;
+};
+
 // Push constants of the mesh pipeline (one draw per mesh).
 struct DrawPush {
     mat4 view_proj;
