@@ -3,6 +3,7 @@
 
 CARGO ?= cargo
 OUT ?= out/run
+CITY ?= data/small
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
 .PHONY: all setup build run test check fmt clippy bench clean-out
@@ -17,7 +18,11 @@ build: setup
 	$(CARGO) build --release --workspace --bins
 
 run: build
-	./target/release/flythrough --out $(OUT)
+	@if [ ! -f "$(CITY)/scene.bin" ]; then \
+		echo "generating the default city into $(CITY)"; \
+		./target/release/citystream gen --preset small --seed 1 --out "$(CITY)"; \
+	fi
+	./target/release/flythrough --dataset "$(CITY)" --out $(OUT)
 	@echo "frames and report in $(OUT)"
 
 test: setup

@@ -13,5 +13,5 @@ void main() {
     vec4 texel = texture(textures, vec3(in_uv, float(push.layer)));
     float lambert = 0.35 + 0.65 * max(dot(normalize(in_normal), normalize(push.light_dir_weight.xyz)), 0.0);
     float shade = mix(1.0, lambert, push.light_dir_weight.w);
-    out_color = vec4(texel.rgb * shade, 1.0);
+    out_color = vec4(texel.rgb * push.tint.rgb * shade, 1.0);
 }

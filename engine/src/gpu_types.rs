@@ -102,6 +102,8 @@ pub struct DrawPush {
     pub view_proj: [[f32; 4]; 4],
     /// xyz: direction towards the light; w: lighting weight (0 = unlit).
     pub light_dir_weight: [f32; 4],
+    /// Multiplies the sampled colour.
+    pub tint: [f32; 4],
     /// Texture-array layer of the mesh.
     pub layer: u32,
     /// Padding to 16 bytes.
@@ -281,6 +283,7 @@ mod tests {
             &[
                 ("view_proj", offset_of!(DrawPush, view_proj)),
                 ("light_dir_weight", offset_of!(DrawPush, light_dir_weight)),
+                ("tint", offset_of!(DrawPush, tint)),
                 ("layer", offset_of!(DrawPush, layer)),
                 ("pad0", offset_of!(DrawPush, pad0)),
                 ("pad1", offset_of!(DrawPush, pad1)),
@@ -288,7 +291,7 @@ mod tests {
             ],
             size_of::<DrawPush>(),
         );
-        assert_eq!(size_of::<DrawPush>(), 96);
+        assert_eq!(size_of::<DrawPush>(), 112);
         check(
             "ProbePoint",
             &[

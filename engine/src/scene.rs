@@ -19,14 +19,18 @@ use crate::shaders;
 use crate::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 
 /// One mesh: a range of the index buffer drawn with one texture layer.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MeshRange {
     /// First index in the index buffer.
     pub first_index: u32,
-    /// Number of indices (a multiple of 3).
+    /// Number of indices (a multiple of 3), relative to `vertex_offset`.
     pub index_count: u32,
+    /// Added to every index of the mesh.
+    pub vertex_offset: u32,
     /// Texture-array layer.
     pub layer: u32,
+    /// Multiplies the sampled colour (white leaves it unchanged).
+    pub tint: [f32; 4],
 }
 
 /// Geometry of a scene on the CPU.
@@ -43,30 +47,21 @@ pub struct SceneGeometry {
 impl SceneGeometry {
     /// Appends a mesh given its own vertices and indices (relative to them).
     pub fn push_mesh(&mut self, vertices: &[Vertex], indices: &[u32], layer: u32) {
-        let base = self.vertices.len() as u32;
+        let vertex_offset = self.vertices.len() as u32;
         let first_index = self.indices.len() as u32;
         self.vertices.extend_from_slice(vertices);
-        self.indices.extend(indices.iter().map(|i| i + base));
+        self.indices.extend_from_slice(indices);
         self.meshes.push(MeshRange {
             first_index,
             index_count: indices.len() as u32,
+            vertex_offset,
             layer,
+            tint: [1.0; 4],
         });
     }
 
     /// Checks indices and ranges, so a bad scene is an error, not a GPU fault.
     pub fn validate(&self) -> Result<()> {
-        if let Some((i, &index)) = self
-            .indices
-            .iter()
-            .enumerate()
-            .find(|(_, &v)| v as usize >= self.vertices.len())
-        {
-            return Err(EngineError::InvalidRequest(format!(
-                "index {i} refers to vertex {index}, but the scene has {} vertices",
-                self.vertices.len()
-            )));
-        }
         for (m, mesh) in self.meshes.iter().enumerate() {
             let end = u64::from(mesh.first_index) + u64::from(mesh.index_count);
             if end > self.indices.len() as u64 || mesh.index_count % 3 != 0 {
@@ -74,6 +69,18 @@ impl SceneGeometry {
                     "mesh {m} covers indices {}..{end} of {} (or is not whole triangles)",
                     mesh.first_index,
                     self.indices.len()
+                )));
+            }
+            let range = mesh.first_index as usize..end as usize;
+            if let Some((i, &index)) = self.indices[range]
+                .iter()
+                .enumerate()
+                .find(|(_, &v)| u64::from(v) + u64::from(mesh.vertex_offset) >= self.vertices.len() as u64)
+            {
+                return Err(EngineError::InvalidRequest(format!(
+                    "mesh {m} index {i} refers to vertex {} + {index}, but the scene has {} vertices",
+                    mesh.vertex_offset,
+                    self.vertices.len()
                 )));
             }
         }
@@ -87,6 +94,45 @@ impl SceneGeometry {
         }
         Ok(())
     }
+}
+
+/// Geometry of a dataset's scene with every mesh tinted by its City
+/// Colormap colour (paper §3.7) and drawn with texture layer 0, which the
+/// caller fills with white: what the streaming renderer shows before any mip
+/// is resident.
+pub fn colormap_geometry(dataset: &citystream_streaming::dataset::Dataset) -> Result<SceneGeometry> {
+    let scene = &dataset.scene;
+    let vertices: Vec<Vertex> = scene
+        .positions
+        .iter()
+        .zip(&scene.normals)
+        .zip(&scene.uvs)
+        .map(|((p, n), uv)| Vertex {
+            position: *p,
+            normal: *n,
+            uv: *uv,
+        })
+        .collect();
+    let mut meshes = Vec::with_capacity(scene.meshes.len());
+    for (m, mesh) in scene.meshes.iter().enumerate() {
+        let colour = dataset.colormap.get(mesh.texture).ok_or_else(|| {
+            EngineError::InvalidRequest(format!("mesh {m} uses texture {} with no colormap entry", mesh.texture))
+        })?;
+        meshes.push(MeshRange {
+            first_index: mesh.first_index,
+            index_count: mesh.index_count,
+            vertex_offset: mesh.first_vertex,
+            layer: 0,
+            tint: colour.map(|c| f32::from(c) / 255.0),
+        });
+    }
+    let geometry = SceneGeometry {
+        vertices,
+        indices: scene.indices.clone(),
+        meshes,
+    };
+    geometry.validate()?;
+    Ok(geometry)
 }
 
 /// Square RGBA8 textures of one size, each with a full mip chain.
@@ -254,6 +300,7 @@ impl MeshRenderer {
             let push = DrawPush {
                 view_proj: view_proj.to_cols_array_2d(),
                 light_dir_weight: light,
+                tint: mesh.tint,
                 layer: mesh.layer,
                 ..Default::default()
             };
@@ -262,7 +309,7 @@ impl MeshRenderer {
             unsafe {
                 self.device
                     .raw
-                    .cmd_draw_indexed(cmd, mesh.index_count, 1, mesh.first_index, 0, 0)
+                    .cmd_draw_indexed(cmd, mesh.index_count, 1, mesh.first_index, mesh.vertex_offset as i32, 0)
             };
         }
     }

@@ -52,6 +52,7 @@ struct CompactPush {
 struct DrawPush {
     mat4 view_proj;
     vec4 light_dir_weight;  // xyz: direction towards the light; w: 0 = unlit, 1 = fully lit
+    vec4 tint;              // multiplies the sampled colour (the City Colormap colour for untextured draws)
     uint layer;             // texture-array layer of this mesh
     uint pad0;
     uint pad1;

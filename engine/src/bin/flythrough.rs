@@ -14,7 +14,8 @@ use citystream_engine::device::describe;
 use citystream_engine::instance::{default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder;
-use citystream_engine::scene::MeshRenderer;
+use citystream_engine::scene::{colormap_geometry, MeshRenderer, TextureArrayData};
+use citystream_streaming::dataset::Dataset;
 use citystream_engine::target::{write_png, RenderTarget};
 use citystream_engine::timing::{CpuFrameClock, GpuTimer};
 use citystream_engine::{Device, DeviceOptions};
@@ -26,9 +27,15 @@ use citystream_engine::{Device, DeviceOptions};
     about = "Render a textured city headless along a camera path and report frame timings",
     long_about = "Renders a textured city off-screen (no window) along a camera path, writes every \
                   N-th frame as PNG and a report.json with CPU and GPU frame times.\n\n\
-                  Without --dataset it renders a small procedural city of textured boxes."
+                  With --dataset, every mesh is drawn in its City Colormap colour (what the \
+                  streaming renderer shows before any mip is resident). Without --dataset it \
+                  renders a small procedural city of textured boxes."
 )]
 struct Args {
+    /// City dataset directory (written by `citystream gen` or `citystream import`).
+    /// Without it, a small procedural placeholder city is rendered.
+    #[arg(long)]
+    dataset: Option<PathBuf>,
     /// Output directory for frames/ and report.json.
     #[arg(long, default_value = "out/flythrough")]
     out: PathBuf,
@@ -118,8 +125,35 @@ fn main() -> Result<()> {
     );
     eprintln!("device: {}", describe(&device));
 
-    let geometry = placeholder::city(args.seed, args.blocks);
-    let textures = placeholder::textures(args.seed)?;
+    let (geometry, textures, scene_name, centre, extent) = match &args.dataset {
+        Some(dir) => {
+            let dataset = Dataset::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?;
+            let geometry = colormap_geometry(&dataset)?;
+            let white = TextureArrayData::from_base_levels(1, vec![vec![255; 4]])?;
+            let bounds = dataset.scene.bounds;
+            let centre = Vec3::from(bounds.center());
+            let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
+            let name = format!(
+                "dataset {} ({} meshes, {} textures, City Colormap colours)",
+                dir.display(),
+                dataset.scene.meshes.len(),
+                dataset.textures.len()
+            );
+            (geometry, white, name, centre, size.x.max(size.z).max(1.0))
+        }
+        None => {
+            let name = format!("placeholder city (seed {}, {}x{} blocks)", args.seed, args.blocks, args.blocks);
+            let extent = args.blocks as f32 * 30.0;
+            (
+                placeholder::city(args.seed, args.blocks),
+                placeholder::textures(args.seed)?,
+                name,
+                Vec3::new(0.0, 15.0, 0.0),
+                extent,
+            )
+        }
+    };
+    eprintln!("scene: {scene_name}");
     let mut commands = CommandContext::new(&device, "flythrough frame")?;
     let renderer = MeshRenderer::new(
         &device,
@@ -133,7 +167,7 @@ fn main() -> Result<()> {
     let frames_dir = args.out.join("frames");
     std::fs::create_dir_all(&frames_dir).with_context(|| format!("creating {}", frames_dir.display()))?;
 
-    let radius = args.blocks as f32 * 30.0 * 0.7;
+    let radius = extent * 0.7;
     let aspect = args.width as f32 / args.height as f32;
     let mut clock = CpuFrameClock::new();
     let started = std::time::Instant::now();
@@ -143,8 +177,9 @@ fn main() -> Result<()> {
     for frame in 0..args.frames {
         let t = frame as f32 / args.frames as f32;
         let angle = t * std::f32::consts::TAU;
-        let eye = Vec3::new(angle.cos() * radius, 60.0 + 40.0 * (angle * 2.0).sin().abs(), angle.sin() * radius);
-        let view_proj = placeholder::view_projection(eye, Vec3::new(0.0, 15.0, 0.0), aspect, 1.0, radius * 4.0);
+        let height = radius * (0.3 + 0.2 * (angle * 2.0).sin().abs());
+        let eye = centre + Vec3::new(angle.cos() * radius, height, angle.sin() * radius);
+        let view_proj = placeholder::view_projection(eye, centre, aspect, 1.0, radius * 4.0);
 
         let cmd = commands.begin()?;
         timer.begin(cmd, 0);
@@ -172,7 +207,7 @@ fn main() -> Result<()> {
     let validation_errors = device.validation_log().error_count();
     let report = Report {
         device: describe(&device),
-        scene: format!("placeholder city (seed {}, {}x{} blocks)", args.seed, args.blocks, args.blocks),
+        scene: scene_name,
         frames: args.frames,
         width: args.width,
         height: args.height,
