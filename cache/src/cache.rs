@@ -1,0 +1,851 @@
+//! The concurrent sparse-image texture cache (paper §3.6).
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::{Mutex, MutexGuard};
+
+use crate::binder::{BindOp, BlockKey, MemorySlot};
+use crate::config::{CacheConfig, ImageDesc};
+use crate::error::{CacheError, ConfigError};
+use crate::format::TexelFormat;
+use crate::geometry::{cacheable_mip_count, region_origin, TexelRect, UvTransform};
+use crate::pool::{BlockPool, ChunkInfo};
+
+/// Index of a sparse image of the cache (one per format).
+pub type ImageId = u32;
+
+/// Where a texture lives in the cache. Returned by
+/// [`TextureCache::insert`]; valid until its layer is evicted (then it is
+/// listed in [`CycleBatch::invalidated`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    /// The caller's key for the texture, reported back on invalidation.
+    pub key: u64,
+    /// Sparse image (format) index.
+    pub image: ImageId,
+    /// The image's texel format.
+    pub format: TexelFormat,
+    /// Array layer.
+    pub layer: u32,
+    /// Square region index within the layer (left to right, top to bottom).
+    pub region: u32,
+    /// Which use of the layer this is; a layer gets a new assignment number
+    /// each time it is (re)assigned, so stale placements are detectable.
+    pub assignment: u32,
+    /// Texture width in texels at mip 0.
+    pub width: u32,
+    /// Texture height in texels at mip 0.
+    pub height: u32,
+    /// The layer's designated extent, `max(width, height)`.
+    pub extent: u32,
+    /// Region origin (left) in texels of level 0.
+    pub origin_x: u32,
+    /// Region origin (top) in texels of level 0.
+    pub origin_y: u32,
+    /// Layer size in texels of level 0.
+    pub layer_size: u32,
+    /// Mips the cache can hold for this texture (see
+    /// [`crate::geometry::cacheable_mip_count`]); texture mip `m` goes to level
+    /// `m` of the layer.
+    pub mip_count: u32,
+    /// Texture UV to layer UV, valid at every cacheable mip.
+    pub uv: UvTransform,
+}
+
+impl Placement {
+    /// The texel rectangle of texture mip `mip` inside level `mip` of the
+    /// layer: the `imageOffset`/`imageExtent` of its buffer-to-image copy.
+    pub fn mip_rect(&self, mip: u32) -> Result<TexelRect, CacheError> {
+        if mip >= self.mip_count {
+            return Err(CacheError::BadMip {
+                format: self.format.name,
+                width: self.width,
+                height: self.height,
+                mip,
+                mip_count: self.mip_count,
+            });
+        }
+        Ok(TexelRect::of_mip(
+            self.origin_x,
+            self.origin_y,
+            self.width,
+            self.height,
+            mip,
+        ))
+    }
+}
+
+/// Why a layer was evicted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum EvictionReason {
+    /// Every layer was assigned; the oldest in ring order was reused.
+    RingReuse,
+    /// Binding more blocks would have exceeded the memory budget.
+    MemoryBudget,
+}
+
+/// A layer eviction, as reported in [`CycleBatch::evicted_layers`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct EvictedLayer {
+    /// Sparse image index.
+    pub image: ImageId,
+    /// Array layer.
+    pub layer: u32,
+    /// The assignment that ended.
+    pub assignment: u32,
+    /// Extent the layer was designated for.
+    pub extent: u32,
+    /// Why.
+    pub reason: EvictionReason,
+    /// Textures invalidated.
+    pub textures: u32,
+    /// Blocks the layer had bound.
+    pub blocks: u32,
+}
+
+/// What the engine must carry out after a streaming cycle.
+///
+/// Order of work for the engine: mark every texture in `invalidated` as not
+/// sampleable in the texture data the shaders read; allocate device memory
+/// for every chunk in `new_chunks`; once the GPU has finished every frame
+/// that could still sample the invalidated textures, submit `ops` through a
+/// [`crate::SparseBinder`]; then record the copies of the staged mips.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CycleBatch {
+    /// Unbinds first (blocks of evicted layers), then binds (blocks newly
+    /// needed by staged mips), each sorted by block key. Every block appears
+    /// at most once; a memory slot freed by an unbind in this batch is never
+    /// rebound in the same batch.
+    pub ops: Vec<BindOp>,
+    /// Textures whose layer was evicted since the last batch, in eviction
+    /// order; each must be inserted again before it is loaded again.
+    pub invalidated: Vec<Placement>,
+    /// The evictions themselves.
+    pub evicted_layers: Vec<EvictedLayer>,
+    /// Pool chunks created since the last batch.
+    pub new_chunks: Vec<ChunkInfo>,
+}
+
+impl CycleBatch {
+    /// Nothing to do: no op, no invalidation, no eviction, no new chunk.
+    pub fn is_empty(&self) -> bool {
+        self.ops.is_empty()
+            && self.invalidated.is_empty()
+            && self.evicted_layers.is_empty()
+            && self.new_chunks.is_empty()
+    }
+}
+
+/// What [`TextureCache::stage_mip`] tells the loader.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MipUpload {
+    /// Sparse image index.
+    pub image: ImageId,
+    /// Array layer (`imageSubresource.baseArrayLayer`).
+    pub layer: u32,
+    /// Destination texels; `rect.mip` is `imageSubresource.mipLevel`.
+    pub rect: TexelRect,
+    /// Bytes of the mip's texel data in the image's format.
+    pub bytes: u64,
+    /// Blocks this request added to its layer's bound set: new binds plus
+    /// blocks of an evicted layer reclaimed before their unbind was handed
+    /// out (those keep their memory and need no bind). Zero when every block
+    /// was already bound.
+    pub new_blocks: u32,
+    /// The mip had been staged before in this placement.
+    pub already_staged: bool,
+}
+
+/// Texture bytes against bound bytes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Utilisation {
+    /// Bytes of staged texture mips of live textures.
+    pub texture_bytes: u64,
+    /// Bytes of sparse blocks bound for live layers.
+    pub bound_bytes: u64,
+    /// Bound blocks of live layers.
+    pub bound_blocks: u64,
+    /// Textures in live layers.
+    pub live_textures: u64,
+    /// Layers holding an assignment.
+    pub live_layers: u64,
+}
+
+impl Utilisation {
+    /// `texture_bytes / bound_bytes`, 0 when nothing is bound.
+    pub fn ratio(&self) -> f64 {
+        if self.bound_bytes == 0 {
+            0.0
+        } else {
+            self.texture_bytes as f64 / self.bound_bytes as f64
+        }
+    }
+}
+
+/// Running counts since creation.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CacheStats {
+    /// Layer assignments (the paper's `nextLayer` advances, all images).
+    pub layer_assignments: u64,
+    /// Evictions for ring reuse.
+    pub ring_evictions: u64,
+    /// Evictions for the memory budget.
+    pub budget_evictions: u64,
+    /// Textures invalidated by evictions.
+    pub invalidated_textures: u64,
+    /// Chunks the block pool created.
+    pub chunks: u32,
+}
+
+/// Slot value of an extent that has no layer yet.
+const NO_ASSIGNMENT: u32 = u32::MAX;
+
+fn pack(assignment: u32, region: u32) -> u64 {
+    (u64::from(assignment) << 32) | u64::from(region)
+}
+
+fn unpack(value: u64) -> (u32, u32) {
+    ((value >> 32) as u32, value as u32)
+}
+
+/// Locks ignoring poisoning: every critical section leaves its state
+/// consistent before anything that could panic, so a poisoned lock only
+/// means some other thread panicked elsewhere.
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+#[derive(Debug)]
+struct TextureRecord {
+    key: u64,
+    width: u32,
+    height: u32,
+    /// Bit `m` set once mip `m` was staged.
+    staged_mips: u32,
+}
+
+#[derive(Debug, Default)]
+struct LayerState {
+    /// Current assignment; `None` while free.
+    assignment: Option<u32>,
+    extent: u32,
+    /// Indexed by region; regions are claimed in order, so this is dense.
+    textures: Vec<Option<TextureRecord>>,
+    texture_count: u64,
+    /// Bound blocks keyed by (mip, column, row).
+    blocks: HashMap<(u32, u32, u32), MemorySlot>,
+    texture_bytes: u64,
+}
+
+/// Keeps each hot atomic or lock on its own cache line so threads working
+/// on different extents or layers do not slow each other down.
+#[derive(Debug, Default)]
+#[repr(align(64))]
+struct Padded<T>(T);
+
+impl<T> std::ops::Deref for Padded<T> {
+    type Target = T;
+    fn deref(&self) -> &T {
+        &self.0
+    }
+}
+
+#[derive(Debug)]
+struct ImageState {
+    desc: ImageDesc,
+    /// Per `log2(extent)`: the paper's map extent → (layer, index), packed
+    /// as (assignment number, next region index) so one `fetch_add` claims a
+    /// region of the current layer.
+    slots: Vec<Padded<AtomicU64>>,
+    layers: Vec<Padded<Mutex<LayerState>>>,
+    /// The paper's `nextLayer`: the next assignment number. Layer =
+    /// assignment % layer_count, so assignments walk the layers in ring
+    /// order. Written only under the shared lock.
+    next_assignment: AtomicU32,
+    /// Assignment numbers wrap at a multiple of the layer count below
+    /// `NO_ASSIGNMENT`.
+    assignment_modulus: u32,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct LiveLayer {
+    layer: u32,
+    assignment: u32,
+    /// Global age over all images, for budget eviction.
+    age: u64,
+}
+
+#[derive(Debug)]
+struct Shared {
+    /// Per image, live layers oldest first (ring order).
+    live: Vec<VecDeque<LiveLayer>>,
+    next_age: u64,
+    pool: BlockPool,
+    budget_blocks: u64,
+    /// Blocks bound in live layers (including binds not yet submitted).
+    live_blocks: u64,
+    /// Binds not yet handed out in a batch.
+    pending_binds: HashMap<BlockKey, MemorySlot>,
+    /// Blocks of evicted layers that were submitted bound and now await an
+    /// unbind; their slots return to the pool when the batch is taken.
+    released: HashMap<BlockKey, MemorySlot>,
+    invalidated: Vec<Placement>,
+    evicted: Vec<EvictedLayer>,
+    new_chunks: Vec<ChunkInfo>,
+    stats: CacheStats,
+}
+
+/// The sparse-image texture cache: packing, block accounting, memory
+/// budget and ring eviction for every configured image.
+///
+/// # Threading contract
+/// `TextureCache` is `Sync`; share it by reference or `Arc`.
+/// - [`insert`](Self::insert) may run on any number of threads at once. Its
+///   fast path is one atomic `fetch_add` on the extent's slot and one
+///   uncontended per-layer lock; only assigning a new layer (including ring
+///   eviction) takes the shared lock.
+/// - [`stage_mip`](Self::stage_mip), [`take_batch`](Self::take_batch),
+///   [`utilisation`](Self::utilisation) and the queries may also be called
+///   from any thread; they serialise on the shared lock.
+/// - Locks are always taken shared-then-layer and at most one layer lock at
+///   a time, so there is no lock-order cycle.
+#[derive(Debug)]
+pub struct TextureCache {
+    images: Vec<ImageState>,
+    shared: Mutex<Shared>,
+}
+
+impl TextureCache {
+    /// Creates the cache after validating `config` (see
+    /// [`CacheConfig::validate`]).
+    pub fn new(config: &CacheConfig) -> Result<Self, ConfigError> {
+        let descs = config.validate()?;
+        let images: Vec<ImageState> = descs
+            .into_iter()
+            .map(|desc| {
+                let layer_count = desc.layer_count;
+                ImageState {
+                    slots: (0..desc.mip_levels)
+                        .map(|_| Padded(AtomicU64::new(pack(NO_ASSIGNMENT, 0))))
+                        .collect(),
+                    layers: (0..layer_count)
+                        .map(|_| Padded(Mutex::new(LayerState::default())))
+                        .collect(),
+                    next_assignment: AtomicU32::new(0),
+                    assignment_modulus: layer_count * ((u32::MAX - 1) / layer_count),
+                    desc,
+                }
+            })
+            .collect();
+        let budget_blocks = config.budget_blocks();
+        let shared = Shared {
+            live: images.iter().map(|_| VecDeque::new()).collect(),
+            next_age: 0,
+            pool: BlockPool::new(config.limits.sparse_block_bytes, config.blocks_per_chunk, budget_blocks),
+            budget_blocks,
+            live_blocks: 0,
+            pending_binds: HashMap::new(),
+            released: HashMap::new(),
+            invalidated: Vec::new(),
+            evicted: Vec::new(),
+            new_chunks: Vec::new(),
+            stats: CacheStats::default(),
+        };
+        Ok(TextureCache {
+            images,
+            shared: Mutex::new(shared),
+        })
+    }
+
+    /// The validated images, indexed by [`ImageId`]; the engine creates one
+    /// sparse 2D-array image from each (`layer_size`², `layer_count`
+    /// layers, `mip_levels` levels).
+    pub fn images(&self) -> Vec<ImageDesc> {
+        self.images.iter().map(|image| image.desc).collect()
+    }
+
+    /// The image that caches textures of `format`, if one is configured.
+    pub fn image_for_format(&self, format: &TexelFormat) -> Option<ImageId> {
+        self.images
+            .iter()
+            .find(|image| image.desc.format == *format)
+            .map(|image| image.desc.image)
+    }
+
+    fn image(&self, image: ImageId) -> Result<&ImageState, CacheError> {
+        self.images.get(image as usize).ok_or(CacheError::UnknownImage {
+            image,
+            images: self.images.len(),
+        })
+    }
+
+    /// Places a `width`×`height` texture (powers of two, at most the layer
+    /// size, at least one texel block) in image `image`, in a region of a
+    /// layer designated for its extent `max(width, height)`. `key` is the
+    /// caller's identity for the texture, reported back on invalidation;
+    /// the cache does not check keys for uniqueness.
+    ///
+    /// May assign a new layer; when every layer is assigned, the oldest
+    /// layer of the image in ring order is reused and its textures are
+    /// reported in the next [`CycleBatch::invalidated`]. Safe to call from
+    /// many threads at once.
+    pub fn insert(&self, image: ImageId, key: u64, width: u32, height: u32) -> Result<Placement, CacheError> {
+        let state = self.image(image)?;
+        let desc = &state.desc;
+        let bad = |reason: String| CacheError::BadExtent {
+            image,
+            format: desc.format.name,
+            width,
+            height,
+            reason,
+        };
+        if !width.is_power_of_two() || !height.is_power_of_two() {
+            return Err(bad("sides must be non-zero powers of two".into()));
+        }
+        let extent = width.max(height);
+        if extent > desc.layer_size {
+            return Err(bad(format!("larger than the layer size {}", desc.layer_size)));
+        }
+        let mip_count = cacheable_mip_count(&desc.format, width, height);
+        if mip_count == 0 {
+            return Err(bad(format!(
+                "smaller than one {}x{} texel block",
+                desc.format.block_width, desc.format.block_height
+            )));
+        }
+        let slot = &state.slots[extent.ilog2() as usize];
+        let capacity = desc.regions_per_layer(extent);
+        let texture = NewTexture {
+            key,
+            width,
+            height,
+            extent,
+        };
+        loop {
+            let (assignment, region) = unpack(slot.fetch_add(1, Ordering::AcqRel));
+            if assignment != NO_ASSIGNMENT && u64::from(region) < capacity {
+                let layer_index = assignment % desc.layer_count;
+                let mut layer = lock(&state.layers[layer_index as usize]);
+                // The extent check rules out a wrapped assignment number
+                // that a layer of another extent now carries.
+                if layer.assignment == Some(assignment) && layer.extent == extent {
+                    return Ok(record(desc, &mut layer, &texture, layer_index, assignment, region));
+                }
+            }
+            // Slow path: the layer is full or was evicted. Whoever holds the
+            // shared lock first assigns a new layer; the others retry.
+            let mut shared = lock(&self.shared);
+            if unpack(slot.load(Ordering::Acquire)).0 != assignment {
+                continue;
+            }
+            let (layer_index, new_assignment) = self.assign_layer(&mut shared, state, extent);
+            // Region 0 is ours; concurrent claims on the old value fail the
+            // liveness check above and retry.
+            slot.store(pack(new_assignment, 1), Ordering::Release);
+            let mut layer = lock(&state.layers[layer_index as usize]);
+            return Ok(record(desc, &mut layer, &texture, layer_index, new_assignment, 0));
+        }
+    }
+
+    /// Assigns the next layer in ring order to `extent`, evicting it first
+    /// if it is still live. Returns (layer index, assignment number).
+    fn assign_layer(&self, shared: &mut Shared, state: &ImageState, extent: u32) -> (u32, u32) {
+        let desc = &state.desc;
+        let assignment = state.next_assignment.load(Ordering::Acquire);
+        let next = (assignment + 1) % state.assignment_modulus;
+        state.next_assignment.store(next, Ordering::Release);
+        let layer_index = assignment % desc.layer_count;
+        let image = desc.image as usize;
+        // Live layers of an image form a contiguous run of the ring ending
+        // just before this one, so if this layer is live it is the oldest.
+        let oldest_is_this = shared.live[image].front().is_some_and(|live| live.layer == layer_index);
+        if oldest_is_this {
+            self.evict_oldest_of(shared, image, EvictionReason::RingReuse);
+        }
+        let age = shared.next_age;
+        shared.next_age += 1;
+        shared.live[image].push_back(LiveLayer {
+            layer: layer_index,
+            assignment,
+            age,
+        });
+        shared.stats.layer_assignments += 1;
+        let mut layer = lock(&state.layers[layer_index as usize]);
+        layer.assignment = Some(assignment);
+        layer.extent = extent;
+        (layer_index, assignment)
+    }
+
+    /// Evicts the oldest live layer of `image`: invalidates its textures
+    /// and releases its blocks.
+    fn evict_oldest_of(&self, shared: &mut Shared, image: usize, reason: EvictionReason) {
+        let Some(live) = shared.live[image].pop_front() else {
+            return;
+        };
+        let Some(state) = self.images.get(image) else {
+            return;
+        };
+        let mut layer = lock(&state.layers[live.layer as usize]);
+        layer.assignment = None;
+        let extent = layer.extent;
+        let textures: Vec<Placement> = std::mem::take(&mut layer.textures)
+            .into_iter()
+            .enumerate()
+            .filter_map(|(region, record)| {
+                record.map(|record| {
+                    placement_of(&state.desc, live.layer, live.assignment, region as u32, extent, &record)
+                })
+            })
+            .collect();
+        let blocks: Vec<_> = layer.blocks.drain().collect();
+        layer.texture_bytes = 0;
+        layer.texture_count = 0;
+        drop(layer);
+        for ((mip, x, y), memory) in &blocks {
+            let key = BlockKey {
+                image: image as u32,
+                layer: live.layer,
+                mip: *mip,
+                x: *x,
+                y: *y,
+            };
+            if shared.pending_binds.remove(&key).is_some() {
+                // Never submitted: nothing to unbind.
+                shared.pool.free(*memory);
+            } else {
+                shared.released.insert(key, *memory);
+            }
+        }
+        shared.live_blocks -= blocks.len() as u64;
+        match reason {
+            EvictionReason::RingReuse => shared.stats.ring_evictions += 1,
+            EvictionReason::MemoryBudget => shared.stats.budget_evictions += 1,
+        }
+        shared.stats.invalidated_textures += textures.len() as u64;
+        shared.evicted.push(EvictedLayer {
+            image: image as u32,
+            layer: live.layer,
+            assignment: live.assignment,
+            extent,
+            reason,
+            textures: textures.len() as u32,
+            blocks: blocks.len() as u32,
+        });
+        shared.invalidated.extend(textures);
+    }
+
+    /// Evicts the oldest live layer over all images. False if none is live.
+    fn evict_oldest(&self, shared: &mut Shared, reason: EvictionReason) -> bool {
+        let oldest = shared
+            .live
+            .iter()
+            .enumerate()
+            .filter_map(|(image, live)| live.front().map(|front| (front.age, image)))
+            .min();
+        match oldest {
+            Some((_, image)) => {
+                self.evict_oldest_of(shared, image, reason);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Whether `placement` is still live (its layer not evicted since).
+    pub fn is_live(&self, placement: &Placement) -> bool {
+        let Ok(state) = self.image(placement.image) else {
+            return false;
+        };
+        let Some(layer) = state.layers.get(placement.layer as usize) else {
+            return false;
+        };
+        let layer = lock(layer);
+        layer.assignment == Some(placement.assignment)
+            && layer
+                .textures
+                .get(placement.region as usize)
+                .is_some_and(Option::is_some)
+    }
+
+    /// The sparse blocks mip `mip` of a placed texture touches, in key
+    /// order. Pure geometry; does not bind anything.
+    pub fn blocks_for_mip(&self, placement: &Placement, mip: u32) -> Result<Vec<BlockKey>, CacheError> {
+        let state = self.image(placement.image)?;
+        let rect = placement.mip_rect(mip)?;
+        let (x0, y0, x1, y1) = rect.block_range(&state.desc.granularity);
+        Ok((y0..y1)
+            .flat_map(|y| {
+                (x0..x1).map(move |x| BlockKey {
+                    image: placement.image,
+                    layer: placement.layer,
+                    mip,
+                    x,
+                    y,
+                })
+            })
+            .collect())
+    }
+
+    /// Prepares texture mip `mip` of `placement` for its copy: makes sure
+    /// every block it touches is bound (queuing a bind, with a pool slot,
+    /// for each block no texture of the layer needed before), records the
+    /// mip as staged, and returns where to copy it.
+    ///
+    /// If binding would exceed the memory budget, the oldest layers (over
+    /// all images, possibly this texture's own) are evicted first. Errors:
+    /// [`CacheError::Invalidated`] if the placement's layer is gone (also
+    /// when the budget just evicted it); [`CacheError::OverBudget`] if the
+    /// mip needs more blocks than the whole budget;
+    /// [`CacheError::MemoryPending`] if the budget allows it but the freed
+    /// memory still waits for the next batch's unbinds (retry next cycle).
+    pub fn stage_mip(&self, placement: &Placement, mip: u32) -> Result<MipUpload, CacheError> {
+        let state = self.image(placement.image)?;
+        let desc = &state.desc;
+        let rect = placement.mip_rect(mip)?;
+        let layer_mutex = state
+            .layers
+            .get(placement.layer as usize)
+            .ok_or_else(|| invalidated(placement))?;
+        let (x0, y0, x1, y1) = rect.block_range(&desc.granularity);
+        let mut shared = lock(&self.shared);
+        loop {
+            let mut layer = lock(layer_mutex);
+            if layer.assignment != Some(placement.assignment)
+                || !layer
+                    .textures
+                    .get(placement.region as usize)
+                    .is_some_and(Option::is_some)
+            {
+                return Err(invalidated(placement));
+            }
+            let needed: Vec<BlockKey> = (y0..y1)
+                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                .filter(|&(x, y)| !layer.blocks.contains_key(&(mip, x, y)))
+                .map(|(x, y)| BlockKey {
+                    image: placement.image,
+                    layer: placement.layer,
+                    mip,
+                    x,
+                    y,
+                })
+                .collect();
+            let needed_count = needed.len() as u64;
+            if shared.live_blocks + needed_count <= shared.budget_blocks {
+                let reclaimed = needed.iter().filter(|key| shared.released.contains_key(key)).count() as u64;
+                let fresh = needed_count - reclaimed;
+                if fresh > shared.pool.available() {
+                    return Err(CacheError::MemoryPending {
+                        needed_blocks: fresh,
+                        free_blocks: shared.pool.available(),
+                    });
+                }
+                let shared = &mut *shared;
+                for key in &needed {
+                    // A block evicted and needed again before the batch
+                    // keeps its memory: no unbind, no bind.
+                    let memory = match shared.released.remove(key) {
+                        Some(memory) => memory,
+                        None => match shared.pool.allocate(&mut shared.new_chunks) {
+                            Some(memory) => {
+                                shared.pending_binds.insert(*key, memory);
+                                memory
+                            }
+                            // Unreachable: availability was checked above.
+                            None => {
+                                return Err(CacheError::MemoryPending {
+                                    needed_blocks: fresh,
+                                    free_blocks: 0,
+                                })
+                            }
+                        },
+                    };
+                    layer.blocks.insert((key.mip, key.x, key.y), memory);
+                    shared.live_blocks += 1;
+                }
+                shared.stats.chunks = shared.pool.chunk_count();
+                let bytes = desc.format.image_bytes(rect.width, rect.height);
+                let mut already_staged = false;
+                if let Some(Some(record)) = layer.textures.get_mut(placement.region as usize) {
+                    already_staged = record.staged_mips & (1 << mip) != 0;
+                    record.staged_mips |= 1 << mip;
+                }
+                if !already_staged {
+                    layer.texture_bytes += bytes;
+                }
+                return Ok(MipUpload {
+                    image: placement.image,
+                    layer: placement.layer,
+                    rect,
+                    bytes,
+                    new_blocks: needed.len() as u32,
+                    already_staged,
+                });
+            }
+            drop(layer);
+            if needed_count > shared.budget_blocks {
+                return Err(CacheError::OverBudget {
+                    needed_blocks: needed_count,
+                    budget_blocks: shared.budget_blocks,
+                });
+            }
+            if !self.evict_oldest(&mut shared, EvictionReason::MemoryBudget) {
+                return Err(CacheError::OverBudget {
+                    needed_blocks: needed_count,
+                    budget_blocks: shared.budget_blocks,
+                });
+            }
+        }
+    }
+
+    /// Hands out everything accumulated since the last call: the bind
+    /// batch for the binder, invalidated textures, evictions and new pool
+    /// chunks (see [`CycleBatch`] for what the engine does with them). After
+    /// this call the cache assumes the batch will be submitted; memory of
+    /// unbound blocks becomes reusable for later batches.
+    pub fn take_batch(&self) -> CycleBatch {
+        let mut shared = lock(&self.shared);
+        let shared = &mut *shared;
+        let mut unbinds: Vec<(BlockKey, MemorySlot)> = shared.released.drain().collect();
+        unbinds.sort_by_key(|(key, _)| *key);
+        let mut binds: Vec<(BlockKey, MemorySlot)> = shared.pending_binds.drain().collect();
+        binds.sort_by_key(|(key, _)| *key);
+        let mut ops = Vec::with_capacity(unbinds.len() + binds.len());
+        for (block, memory) in unbinds {
+            shared.pool.free(memory);
+            ops.push(BindOp::Unbind { block });
+        }
+        ops.extend(binds.into_iter().map(|(block, memory)| BindOp::Bind { block, memory }));
+        CycleBatch {
+            ops,
+            invalidated: std::mem::take(&mut shared.invalidated),
+            evicted_layers: std::mem::take(&mut shared.evicted),
+            new_chunks: std::mem::take(&mut shared.new_chunks),
+        }
+    }
+
+    /// The memory slot backing `block` in the cache's current accounting
+    /// (including binds not yet handed out), or `None` if the block is not
+    /// bound for a live layer.
+    pub fn block_memory(&self, block: &BlockKey) -> Option<MemorySlot> {
+        let state = self.images.get(block.image as usize)?;
+        let layer = lock(state.layers.get(block.layer as usize)?);
+        layer.blocks.get(&(block.mip, block.x, block.y)).copied()
+    }
+
+    /// Every block bound for a live layer with its memory, in key order.
+    pub fn bound_blocks(&self) -> Vec<(BlockKey, MemorySlot)> {
+        let _shared = lock(&self.shared);
+        let mut all = Vec::new();
+        for state in &self.images {
+            for (layer_index, layer) in state.layers.iter().enumerate() {
+                let layer = lock(layer);
+                all.extend(layer.blocks.iter().map(|(&(mip, x, y), &memory)| {
+                    (
+                        BlockKey {
+                            image: state.desc.image,
+                            layer: layer_index as u32,
+                            mip,
+                            x,
+                            y,
+                        },
+                        memory,
+                    )
+                }));
+            }
+        }
+        all.sort_by_key(|(key, _)| *key);
+        all
+    }
+
+    /// Texture bytes of staged mips versus bytes of bound blocks, over
+    /// live layers.
+    pub fn utilisation(&self) -> Utilisation {
+        let shared = lock(&self.shared);
+        let mut report = Utilisation::default();
+        for state in &self.images {
+            for layer in &state.layers {
+                let layer = lock(layer);
+                if layer.assignment.is_some() {
+                    report.live_layers += 1;
+                    report.live_textures += layer.texture_count;
+                    report.texture_bytes += layer.texture_bytes;
+                    report.bound_blocks += layer.blocks.len() as u64;
+                    report.bound_bytes += layer.blocks.len() as u64 * state.desc.block_bytes;
+                }
+            }
+        }
+        drop(shared);
+        report
+    }
+
+    /// Running counts since creation.
+    pub fn stats(&self) -> CacheStats {
+        lock(&self.shared).stats
+    }
+}
+
+struct NewTexture {
+    key: u64,
+    width: u32,
+    height: u32,
+    extent: u32,
+}
+
+fn record(
+    desc: &ImageDesc,
+    layer: &mut LayerState,
+    texture: &NewTexture,
+    layer_index: u32,
+    assignment: u32,
+    region: u32,
+) -> Placement {
+    let record = TextureRecord {
+        key: texture.key,
+        width: texture.width,
+        height: texture.height,
+        staged_mips: 0,
+    };
+    let placement = placement_of(desc, layer_index, assignment, region, texture.extent, &record);
+    let index = region as usize;
+    if layer.textures.len() <= index {
+        layer.textures.resize_with(index + 1, || None);
+    }
+    layer.textures[index] = Some(record);
+    layer.texture_count += 1;
+    placement
+}
+
+fn placement_of(
+    desc: &ImageDesc,
+    layer_index: u32,
+    assignment: u32,
+    region: u32,
+    extent: u32,
+    record: &TextureRecord,
+) -> Placement {
+    let (origin_x, origin_y) = region_origin(desc.layer_size, extent, region);
+    Placement {
+        key: record.key,
+        image: desc.image,
+        format: desc.format,
+        layer: layer_index,
+        region,
+        assignment,
+        width: record.width,
+        height: record.height,
+        extent,
+        origin_x,
+        origin_y,
+        layer_size: desc.layer_size,
+        mip_count: cacheable_mip_count(&desc.format, record.width, record.height),
+        uv: UvTransform::new(desc.layer_size, origin_x, origin_y, record.width, record.height),
+    }
+}
+
+fn invalidated(placement: &Placement) -> CacheError {
+    CacheError::Invalidated {
+        key: placement.key,
+        image: placement.image,
+        layer: placement.layer,
+    }
+}

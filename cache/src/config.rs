@@ -1,0 +1,207 @@
+//! Cache configuration and its validation against the device and budgets.
+
+use crate::error::ConfigError;
+use crate::format::{DeviceLimits, Granularity, TexelFormat};
+use crate::geometry::{blocks_in_level, level_size};
+
+/// Largest layer size the cache accepts. Region indices within a layer are
+/// packed into 32 bits next to the layer's assignment number, and a layer of
+/// 2^15 texels holds at most 2^30 regions (of extent 1), which leaves room
+/// for concurrent over-claims.
+pub const MAX_LAYER_SIZE: u32 = 1 << 15;
+
+/// One sparse 2D-array image of the cache (one per texture format).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageConfig {
+    /// Texel format of every texture cached in this image.
+    pub format: TexelFormat,
+    /// Sparse granularity in texels (see [`Granularity::from_device_report`]).
+    pub granularity: Granularity,
+    /// Width and height of each layer in texels (a power of two).
+    pub layer_size: u32,
+    /// Number of array layers.
+    pub layer_count: u32,
+}
+
+/// Everything the cache is configured with. Block size and limits come
+/// from the device ([`DeviceLimits`]); budgets are the engine's choice.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CacheConfig {
+    /// One entry per format; the entry's index is the image index used in
+    /// [`crate::BlockKey::image`] and [`crate::Placement::image`].
+    pub images: Vec<ImageConfig>,
+    /// Device limits and the sparse block size.
+    pub limits: DeviceLimits,
+    /// Most bytes of sparse blocks bound at once, over all images. Rounded
+    /// down to whole blocks. Reaching it evicts the oldest layer.
+    pub memory_budget_bytes: u64,
+    /// Most bytes of sparse virtual address space all images together may
+    /// span (layers × block-padded full mip chain). Checked at creation;
+    /// drivers do not always enforce their own `sparseAddressSpaceSize`.
+    pub virtual_budget_bytes: u64,
+    /// Sparse blocks per device-memory chunk of the block pool.
+    pub blocks_per_chunk: u32,
+}
+
+/// A validated image of the cache with its derived sizes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageDesc {
+    /// Image index.
+    pub image: u32,
+    /// Texel format.
+    pub format: TexelFormat,
+    /// Sparse granularity in texels.
+    pub granularity: Granularity,
+    /// Layer width and height in texels.
+    pub layer_size: u32,
+    /// Number of array layers.
+    pub layer_count: u32,
+    /// Mip levels of the sparse image: the full chain down to 1×1.
+    pub mip_levels: u32,
+    /// Sparse block size in bytes.
+    pub block_bytes: u64,
+    /// Sparse blocks covering one layer's full mip chain (no mip tail: every
+    /// level, down to 1×1, is made of ordinary blocks).
+    pub blocks_per_layer: u64,
+}
+
+impl ImageDesc {
+    /// Validates one image configuration against the device limits.
+    /// `image` is its index, used in errors.
+    pub fn new(image: usize, config: &ImageConfig, limits: &DeviceLimits) -> Result<Self, ConfigError> {
+        config.format.validate()?;
+        config.granularity.validate(&config.format)?;
+        if limits.sparse_block_bytes == 0 {
+            return Err(ConfigError::ZeroBlockSize);
+        }
+        let layer_size = config.layer_size;
+        let bad_size = |reason: String| ConfigError::BadLayerSize {
+            image,
+            format: config.format.name,
+            layer_size,
+            reason,
+        };
+        if !layer_size.is_power_of_two() {
+            return Err(bad_size("must be a power of two".into()));
+        }
+        if layer_size < config.format.block_width || layer_size < config.format.block_height {
+            return Err(bad_size(format!(
+                "smaller than one {}x{} texel block",
+                config.format.block_width, config.format.block_height
+            )));
+        }
+        if layer_size > limits.max_image_dimension_2d {
+            return Err(bad_size(format!(
+                "above the device's maxImageDimension2D {}",
+                limits.max_image_dimension_2d
+            )));
+        }
+        if layer_size > MAX_LAYER_SIZE {
+            return Err(bad_size(format!("above the cache's maximum {MAX_LAYER_SIZE}")));
+        }
+        if config.layer_count == 0 || config.layer_count > limits.max_image_array_layers {
+            return Err(ConfigError::BadLayerCount {
+                image,
+                format: config.format.name,
+                layer_count: config.layer_count,
+                max_layers: limits.max_image_array_layers,
+            });
+        }
+        let mip_levels = layer_size.trailing_zeros() + 1;
+        let blocks_per_layer = (0..mip_levels)
+            .map(|mip| {
+                let size = level_size(layer_size, mip);
+                blocks_in_level(size, &config.granularity)
+            })
+            .sum();
+        let image_index = u32::try_from(image).map_err(|_| bad_size("image index beyond u32".into()))?;
+        Ok(ImageDesc {
+            image: image_index,
+            format: config.format,
+            granularity: config.granularity,
+            layer_size,
+            layer_count: config.layer_count,
+            mip_levels,
+            block_bytes: limits.sparse_block_bytes,
+            blocks_per_layer,
+        })
+    }
+
+    /// Virtual address space the image spans: layers × blocks per layer ×
+    /// block size (saturating).
+    pub fn virtual_bytes(&self) -> u64 {
+        u64::from(self.layer_count)
+            .saturating_mul(self.blocks_per_layer)
+            .saturating_mul(self.block_bytes)
+    }
+
+    /// Square regions of `extent` texels one layer holds.
+    pub fn regions_per_layer(&self, extent: u32) -> u64 {
+        let per_row = u64::from(self.layer_size / extent.max(1));
+        per_row * per_row
+    }
+}
+
+impl CacheConfig {
+    /// Validates the whole configuration: every image, one image per
+    /// format, a memory budget of at least one block, non-empty chunks, and
+    /// the images' total virtual size within the virtual budget.
+    pub fn validate(&self) -> Result<Vec<ImageDesc>, ConfigError> {
+        if self.images.is_empty() {
+            return Err(ConfigError::NoImages);
+        }
+        if self.limits.sparse_block_bytes == 0 {
+            return Err(ConfigError::ZeroBlockSize);
+        }
+        if self.memory_budget_bytes < self.limits.sparse_block_bytes {
+            return Err(ConfigError::MemoryBudgetTooSmall {
+                budget_bytes: self.memory_budget_bytes,
+                block_bytes: self.limits.sparse_block_bytes,
+            });
+        }
+        if self.blocks_per_chunk == 0 {
+            return Err(ConfigError::ZeroChunk);
+        }
+        for (second, image) in self.images.iter().enumerate() {
+            if let Some(first) = self.images[..second]
+                .iter()
+                .position(|other| other.format == image.format)
+            {
+                return Err(ConfigError::DuplicateFormat {
+                    format: image.format.name,
+                    first,
+                    second,
+                });
+            }
+        }
+        let descs = self
+            .images
+            .iter()
+            .enumerate()
+            .map(|(index, image)| ImageDesc::new(index, image, &self.limits))
+            .collect::<Result<Vec<_>, _>>()?;
+        let needed_bytes = descs
+            .iter()
+            .fold(0u64, |sum, desc| sum.saturating_add(desc.virtual_bytes()));
+        if needed_bytes > self.virtual_budget_bytes {
+            let (largest_image, largest_bytes) = descs
+                .iter()
+                .enumerate()
+                .map(|(index, desc)| (index, desc.virtual_bytes()))
+                .max_by_key(|&(_, bytes)| bytes)
+                .unwrap_or((0, 0));
+            return Err(ConfigError::VirtualBudgetExceeded {
+                needed_bytes,
+                budget_bytes: self.virtual_budget_bytes,
+                largest_image,
+                largest_bytes,
+            });
+        }
+        Ok(descs)
+    }
+
+    /// Memory budget in whole sparse blocks.
+    pub fn budget_blocks(&self) -> u64 {
+        self.memory_budget_bytes / self.limits.sparse_block_bytes.max(1)
+    }
+}
