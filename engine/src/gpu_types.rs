@@ -70,6 +70,59 @@ pub struct CompactPush {
     pub pad0: u32,
 }
 
+/// Binding of cache image 0 (BC1) in passes that sample city textures.
+pub const BINDING_CACHE_IMAGE0: u32 = 10;
+/// Binding of cache image 1 (RGBA8).
+pub const BINDING_CACHE_IMAGE1: u32 = 11;
+/// Binding of the per-texture [`TextureData`] table.
+pub const BINDING_TEXTURE_DATA: u32 = 12;
+/// Binding of the City Colormap (RGBA8 packed in a `uint` per texture).
+pub const BINDING_COLORMAP: u32 = 13;
+/// Binding of the texture probe's points.
+pub const BINDING_TEXTURE_PROBE_POINTS: u32 = 14;
+/// Binding of the texture probe's results.
+pub const BINDING_TEXTURE_PROBE_RESULTS: u32 = 15;
+/// `TEXTURE_NOT_SAMPLEABLE`.
+pub const TEXTURE_NOT_SAMPLEABLE: u32 = 0;
+/// `TEXTURE_SAMPLEABLE`.
+pub const TEXTURE_SAMPLEABLE: u32 = 1;
+
+/// `TextureData`: where a dataset texture lives in the cache.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct TextureData {
+    /// xy: scale, zw: offset (texture UV to layer UV).
+    pub uv_transform: [f32; 4],
+    /// Cache image (0: BC1, 1: RGBA8).
+    pub image: u32,
+    /// Array layer.
+    pub layer: u32,
+    /// Finest resident level.
+    pub lowest_mip: u32,
+    /// [`TEXTURE_SAMPLEABLE`] or [`TEXTURE_NOT_SAMPLEABLE`].
+    pub state: u32,
+    /// Levels the cache holds for this texture.
+    pub mip_count: u32,
+    /// Padding.
+    pub pad0: u32,
+    /// Padding.
+    pub pad1: u32,
+    /// Padding.
+    pub pad2: u32,
+}
+
+/// `TextureProbePoint`: one sampling request of the texture probe.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct TextureProbePoint {
+    /// Texture UV.
+    pub uv: [f32; 2],
+    /// Requested level of detail.
+    pub lod: f32,
+    /// Dataset texture id.
+    pub texture: u32,
+}
+
 /// One vertex of a mesh (vertex input, not a GLSL struct).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -335,6 +388,12 @@ mod tests {
             ("BINDING_COMPACT_SPARSE", BINDING_COMPACT_SPARSE),
             ("BINDING_COMPACT_DENSE", BINDING_COMPACT_DENSE),
             ("BINDING_COMPACT_COUNTER", BINDING_COMPACT_COUNTER),
+            ("BINDING_CACHE_IMAGE0", BINDING_CACHE_IMAGE0),
+            ("BINDING_CACHE_IMAGE1", BINDING_CACHE_IMAGE1),
+            ("BINDING_TEXTURE_DATA", BINDING_TEXTURE_DATA),
+            ("BINDING_COLORMAP", BINDING_COLORMAP),
+            ("BINDING_TEXTURE_PROBE_POINTS", BINDING_TEXTURE_PROBE_POINTS),
+            ("BINDING_TEXTURE_PROBE_RESULTS", BINDING_TEXTURE_PROBE_RESULTS),
         ];
         assert_eq!(defines.len(), rust.len(), "every GLSL binding needs a Rust twin: {defines:?}");
         for (name, value) in rust {
@@ -375,6 +434,37 @@ mod tests {
         );
         let header = include_str!("../../shaders/include/citystream.glsl");
         assert!(header.contains("#define FEEDBACK_UNSEEN 0xFFFFFFFFu") && FEEDBACK_UNSEEN == 0xFFFF_FFFF);
+    }
+
+    #[test]
+    fn texture_layouts_match_spirv() {
+        check(
+            "TextureData",
+            &[
+                ("uv_transform", offset_of!(TextureData, uv_transform)),
+                ("image", offset_of!(TextureData, image)),
+                ("layer", offset_of!(TextureData, layer)),
+                ("lowest_mip", offset_of!(TextureData, lowest_mip)),
+                ("state", offset_of!(TextureData, state)),
+                ("mip_count", offset_of!(TextureData, mip_count)),
+                ("pad0", offset_of!(TextureData, pad0)),
+                ("pad1", offset_of!(TextureData, pad1)),
+                ("pad2", offset_of!(TextureData, pad2)),
+            ],
+            size_of::<TextureData>(),
+        );
+        check(
+            "TextureProbePoint",
+            &[
+                ("uv", offset_of!(TextureProbePoint, uv)),
+                ("lod", offset_of!(TextureProbePoint, lod)),
+                ("texture", offset_of!(TextureProbePoint, texture)),
+            ],
+            size_of::<TextureProbePoint>(),
+        );
+        let header = include_str!("../../shaders/include/citystream.glsl");
+        assert!(header.contains("#define TEXTURE_NOT_SAMPLEABLE 0u") && TEXTURE_NOT_SAMPLEABLE == 0);
+        assert!(header.contains("#define TEXTURE_SAMPLEABLE 1u") && TEXTURE_SAMPLEABLE == 1);
     }
 
     #[test]

@@ -36,6 +36,7 @@ pub mod shaders;
 pub mod sparse;
 pub mod staging;
 pub mod target;
+pub mod texture_cache;
 pub mod timing;
 
 pub use ash::vk;

@@ -11,7 +11,12 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::commands::{CommandContext, SemaphoreWait};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
-use crate::gpu_types::{ProbePoint, ProbeResult, BINDING_PROBE_POINTS, BINDING_PROBE_RESULTS, BINDING_PROBE_TEXTURE};
+use crate::gpu_types::{
+    ProbePoint, ProbeResult, TextureProbePoint, BINDING_CACHE_IMAGE0, BINDING_CACHE_IMAGE1, BINDING_COLORMAP,
+    BINDING_PROBE_POINTS, BINDING_PROBE_RESULTS, BINDING_PROBE_TEXTURE, BINDING_TEXTURE_DATA,
+    BINDING_TEXTURE_PROBE_POINTS, BINDING_TEXTURE_PROBE_RESULTS,
+};
+use crate::texture_cache::GpuTextureCache;
 use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorPool, DescriptorResource, Filtering, Pipeline, Sampler};
 use crate::shaders;
@@ -124,5 +129,98 @@ impl SparseProbe {
             (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
             (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
         );
+    }
+}
+
+/// Samples dataset textures through a [`GpuTextureCache`] exactly as the
+/// renderer does (table, UV transform, LOD clamp, residency, colormap
+/// fallback) at explicit points; `ProbeResult::resident` is 1 where the
+/// value came from the cache and 0 where it is the colormap colour.
+#[derive(Debug)]
+pub struct TextureProbe {
+    device: Arc<Device>,
+    pipeline: Pipeline,
+}
+
+impl TextureProbe {
+    /// Creates the probe pipeline.
+    pub fn new(device: &Arc<Device>) -> Result<Self> {
+        let compute = vk::ShaderStageFlags::COMPUTE;
+        let pipeline = Pipeline::compute(
+            device,
+            &shaders::TEXTURE_PROBE_COMP,
+            &[
+                (BINDING_CACHE_IMAGE0, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 1, compute),
+                (BINDING_CACHE_IMAGE1, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 1, compute),
+                (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
+                (BINDING_COLORMAP, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
+                (BINDING_TEXTURE_PROBE_POINTS, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
+                (BINDING_TEXTURE_PROBE_RESULTS, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
+            ],
+            0,
+            "texture probe",
+        )?;
+        Ok(Self {
+            device: Arc::clone(device),
+            pipeline,
+        })
+    }
+
+    /// Samples `points` through `cache` and returns one result per point.
+    pub fn run(
+        &self,
+        commands: &mut CommandContext,
+        cache: &GpuTextureCache,
+        points: &[TextureProbePoint],
+    ) -> Result<Vec<ProbeResult>> {
+        if points.is_empty() {
+            return Err(EngineError::InvalidRequest("texture probe run with no points".into()));
+        }
+        let mut point_buffer = Buffer::new(
+            &self.device,
+            BufferDesc {
+                size: std::mem::size_of_val(points) as u64,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                location: MemoryLocation::CpuToGpu,
+            },
+            "texture probe points",
+        )?;
+        point_buffer.write(0, points)?;
+        let result_buffer = Buffer::new(
+            &self.device,
+            BufferDesc {
+                size: (points.len() * std::mem::size_of::<ProbeResult>()) as u64,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                location: MemoryLocation::GpuToCpu,
+            },
+            "texture probe results",
+        )?;
+        let pool = DescriptorPool::new(&self.device, &self.pipeline, 1, "texture probe descriptors")?;
+        let mut resources = cache.descriptors().to_vec();
+        resources.push((BINDING_TEXTURE_PROBE_POINTS, DescriptorResource::StorageBuffer(point_buffer.raw())));
+        resources.push((BINDING_TEXTURE_PROBE_RESULTS, DescriptorResource::StorageBuffer(result_buffer.raw())));
+        let set = pool.allocate(&self.pipeline, &resources)?;
+        let cmd = commands.begin()?;
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::ALL_COMMANDS, vk::AccessFlags2::MEMORY_WRITE),
+            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_READ),
+        );
+        self.pipeline.bind(cmd, set);
+        // SAFETY: cmd is recording; the pipeline and set are bound.
+        unsafe {
+            self.device
+                .raw()
+                .cmd_dispatch(cmd, (points.len() as u32).div_ceil(WORKGROUP), 1, 1)
+        };
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
+            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+        );
+        commands.submit_and_wait(&[])?;
+        result_buffer.read::<ProbeResult>(0, points.len())
     }
 }

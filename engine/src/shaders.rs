@@ -22,7 +22,8 @@ macro_rules! shader {
 shader!(MESH_VERT, "mesh.vert", "mesh_vert.spv");
 shader!(MESH_FRAG, "mesh.frag", "mesh_frag.spv");
 shader!(FEEDBACK_COMPACT_COMP, "feedback_compact.comp", "feedback_compact_comp.spv");
+shader!(TEXTURE_PROBE_COMP, "texture_probe.comp", "texture_probe_comp.spv");
 shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
 
 /// Every embedded shader, for tests that inspect them all.
-pub const ALL: &[ShaderSource] = &[MESH_VERT, MESH_FRAG, FEEDBACK_COMPACT_COMP, SPARSE_PROBE_COMP];
+pub const ALL: &[ShaderSource] = &[MESH_VERT, MESH_FRAG, FEEDBACK_COMPACT_COMP, SPARSE_PROBE_COMP, TEXTURE_PROBE_COMP];

@@ -518,14 +518,32 @@ impl std::fmt::Debug for SparseMemoryChunk {
 impl SparseMemoryChunk {
     /// Allocates `blocks` blocks usable by `image`.
     pub fn new(device: &Arc<Device>, image: &SparseImage, blocks: u64, name: &str) -> Result<Self> {
+        Self::with_requirements(device, image.block_size(), image.memory_type_bits(), blocks, name)
+    }
+
+    /// Allocates `blocks` blocks of `block_size` bytes from a memory type in
+    /// `memory_type_bits` (for chunks shared by several images, the
+    /// intersection of their bits and the largest of their block sizes).
+    pub fn with_requirements(
+        device: &Arc<Device>,
+        block_size: u64,
+        memory_type_bits: u32,
+        blocks: u64,
+        name: &str,
+    ) -> Result<Self> {
         let size = blocks
-            .checked_mul(image.block_size())
+            .checked_mul(block_size)
             .filter(|&s| s > 0)
             .ok_or_else(|| EngineError::InvalidRequest(format!("chunk {name:?} of {blocks} blocks has no valid size")))?;
+        if memory_type_bits == 0 {
+            return Err(EngineError::InvalidRequest(format!(
+                "chunk {name:?}: the images sharing it have no memory type in common"
+            )));
+        }
         let requirements = vk::MemoryRequirements {
             size,
-            alignment: image.block_size(),
-            memory_type_bits: image.memory_type_bits(),
+            alignment: block_size,
+            memory_type_bits,
         };
         let allocation = {
             let mut guard = device.allocator();

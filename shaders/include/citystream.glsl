@@ -17,6 +17,41 @@
 #define BINDING_COMPACT_DENSE 1      // FeedbackEntry[], appended
 #define BINDING_COMPACT_COUNTER 2    // FeedbackCounter
 
+// ---- City texturing: shared by every pass that samples cached textures -----
+#define BINDING_CACHE_IMAGE0 10      // sampler2DArray: sparse cache image 0 (BC1)
+#define BINDING_CACHE_IMAGE1 11      // sampler2DArray: sparse cache image 1 (RGBA8)
+#define BINDING_TEXTURE_DATA 12      // TextureData[], one per dataset texture
+#define BINDING_COLORMAP 13          // uint[], the City Colormap, RGBA8 packed, one per texture
+
+// ---- Descriptor set 0: texture probe (samples through TextureData) -------
+#define BINDING_TEXTURE_PROBE_POINTS 14   // TextureProbePoint[]
+#define BINDING_TEXTURE_PROBE_RESULTS 15  // ProbeResult[]
+
+// TextureData::state values.
+#define TEXTURE_NOT_SAMPLEABLE 0u
+#define TEXTURE_SAMPLEABLE 1u
+
+// Where a dataset texture lives in the cache; written by the engine between
+// frames, read by every pass that samples city textures.
+struct TextureData {
+    vec4 uv_transform;   // xy: scale, zw: offset, texture UV -> layer UV, valid at every cached mip
+    uint image;          // cache image (0: BC1, 1: RGBA8)
+    uint layer;          // array layer
+    uint lowest_mip;     // finest resident level; meaningful when state == TEXTURE_SAMPLEABLE
+    uint state;          // TEXTURE_SAMPLEABLE or TEXTURE_NOT_SAMPLEABLE
+    uint mip_count;      // levels the cache holds for this texture
+    uint pad0;
+    uint pad1;
+    uint pad2;
+};
+
+// One sampling request of the texture probe.
+struct TextureProbePoint {
+    vec2 uv;        // texture UV; repeats outside [0, 1)
+    float lod;      // requested level of detail
+    uint texture;   // dataset texture id
+};
+
 // A mesh no fragment wrote this frame.
 #define FEEDBACK_UNSEEN 0xFFFFFFFFu
 

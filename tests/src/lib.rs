@@ -103,3 +103,44 @@ pub fn compare_images(
     }
     Ok(result)
 }
+
+/// Decodes one BC1 block (opaque RGB mode) into 16 RGBA8 texels, row by row,
+/// as the Vulkan spec defines it (RGB565 endpoints expanded by bit
+/// replication; 4-colour mode when colour0 > colour1, else 3-colour with black).
+pub fn decode_bc1_block(block: &[u8; 8]) -> [[u8; 4]; 16] {
+    let c0 = u16::from_le_bytes([block[0], block[1]]);
+    let c1 = u16::from_le_bytes([block[2], block[3]]);
+    let expand = |c: u16| -> [f32; 3] {
+        let r = u32::from((c >> 11) & 31);
+        let g = u32::from((c >> 5) & 63);
+        let b = u32::from(c & 31);
+        [
+            ((r << 3) | (r >> 2)) as f32,
+            ((g << 2) | (g >> 4)) as f32,
+            ((b << 3) | (b >> 2)) as f32,
+        ]
+    };
+    let (e0, e1) = (expand(c0), expand(c1));
+    let lerp = |t: f32| -> [f32; 3] { [0, 1, 2].map(|i| e0[i] + (e1[i] - e0[i]) * t) };
+    let palette: [[f32; 3]; 4] = if c0 > c1 {
+        [e0, e1, lerp(1.0 / 3.0), lerp(2.0 / 3.0)]
+    } else {
+        [e0, e1, lerp(0.5), [0.0; 3]]
+    };
+    let indices = u32::from_le_bytes([block[4], block[5], block[6], block[7]]);
+    let mut texels = [[0u8; 4]; 16];
+    for (i, texel) in texels.iter_mut().enumerate() {
+        let c = palette[((indices >> (2 * i)) & 3) as usize];
+        *texel = [c[0].round() as u8, c[1].round() as u8, c[2].round() as u8, 255];
+    }
+    texels
+}
+
+/// The RGBA8 texel at (x, y) of a BC1 level of `width` texels.
+pub fn bc1_texel(level: &[u8], width: u32, x: u32, y: u32) -> [u8; 4] {
+    let blocks_across = width.div_ceil(4);
+    let block = ((y / 4) * blocks_across + x / 4) as usize * 8;
+    let mut bytes = [0u8; 8];
+    bytes.copy_from_slice(&level[block..block + 8]);
+    decode_bc1_block(&bytes)[((y % 4) * 4 + x % 4) as usize]
+}

@@ -1,0 +1,252 @@
+//! The sparse texture cache on lavapipe (paper §3.6): a few hundred textures
+//! of mixed extents and both formats, several mips each, sampled through the
+//! engine's own sampling code at every loaded mip and compared with the
+//! source texels; LOD clamping to the finest resident level; repeated UVs;
+//! then a ring eviction after which the evicted textures fall back to the
+//! City Colormap and the others still read correctly.
+
+use std::collections::{HashMap, HashSet};
+
+use anyhow::{ensure, Result};
+use citystream_cache::geometry::cacheable_mip_count;
+use citystream_cache::TexelFormat;
+use citystream_engine::commands::CommandContext;
+use citystream_engine::gpu_types::{ProbeResult, TextureProbePoint};
+use citystream_engine::pipeline::Filtering;
+use citystream_engine::placeholder::SplitMix64;
+use citystream_engine::probe::TextureProbe;
+use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache, StageOutcome};
+use citystream_streaming::dataset::TextureFormat;
+use citystream_tests::{assert_no_validation_errors, bc1_texel, validated_device};
+
+const EXTENTS: [u32; 6] = [4, 8, 16, 32, 64, 128];
+const LAYER_SIZE: u32 = 256;
+const LAYERS: u32 = 16;
+
+struct SourceTexture {
+    format: TextureFormat,
+    width: u32,
+    height: u32,
+    /// Random bytes per level, level 0 first.
+    levels: Vec<Vec<u8>>,
+}
+
+impl SourceTexture {
+    fn random(rng: &mut SplitMix64, format: TextureFormat, width: u32, height: u32) -> Self {
+        // The levels the cache holds: both sides at least one texel block.
+        let texel_format = if format == TextureFormat::Bc1 { TexelFormat::BC1 } else { TexelFormat::RGBA8 };
+        let count = cacheable_mip_count(&texel_format, width, height);
+        let levels = (0..count)
+            .map(|m| {
+                let bytes = format.mip_bytes(width >> m, height >> m) as usize;
+                (0..bytes).map(|_| rng.next_u64() as u8).collect()
+            })
+            .collect();
+        Self {
+            format,
+            width,
+            height,
+            levels,
+        }
+    }
+
+    fn level_extent(&self, mip: u32) -> (u32, u32) {
+        ((self.width >> mip).max(1), (self.height >> mip).max(1))
+    }
+
+    fn texel(&self, mip: u32, x: u32, y: u32) -> [u8; 4] {
+        let (w, _) = self.level_extent(mip);
+        let level = &self.levels[mip as usize];
+        match self.format {
+            TextureFormat::Bc1 => bc1_texel(level, w, x, y),
+            _ => {
+                let at = ((y * w + x) * 4) as usize;
+                [level[at], level[at + 1], level[at + 2], level[at + 3]]
+            }
+        }
+    }
+}
+
+fn to_u8(result: &ProbeResult) -> [u8; 4] {
+    result.value.map(|c| (c * 255.0).round() as u8)
+}
+
+fn close(a: [u8; 4], b: [u8; 4], tolerance: u8) -> bool {
+    a.iter().zip(&b).all(|(x, y)| x.abs_diff(*y) <= tolerance)
+}
+
+/// Probe points for `texture`: a few texels of each level in `levels`,
+/// sampled at `lod`, plus a repeated-UV copy of one of them.
+fn points_for(texture: u32, source: &SourceTexture, level: u32, lod: f32, rng: &mut SplitMix64) -> Vec<(TextureProbePoint, u32, u32)> {
+    let (w, h) = source.level_extent(level);
+    let mut texels = vec![(0, 0), (w - 1, h - 1)];
+    for _ in 0..2 {
+        texels.push(((rng.next_u64() % u64::from(w)) as u32, (rng.next_u64() % u64::from(h)) as u32));
+    }
+    let mut points: Vec<(TextureProbePoint, u32, u32)> = texels
+        .iter()
+        .map(|&(x, y)| {
+            (
+                TextureProbePoint {
+                    uv: [(x as f32 + 0.5) / w as f32, (y as f32 + 0.5) / h as f32],
+                    lod,
+                    texture,
+                },
+                x,
+                y,
+            )
+        })
+        .collect();
+    let (first, x, y) = points[2];
+    points.push((
+        TextureProbePoint {
+            uv: [first.uv[0] + 1.0, first.uv[1] - 2.0],
+            ..first
+        },
+        x,
+        y,
+    ));
+    points
+}
+
+#[test]
+fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Result<()> {
+    let device = validated_device()?;
+    let mut rng = SplitMix64::new(2024);
+    let mut sources = Vec::new();
+    // 20 textures of each extent class and format; rectangular ones too.
+    for format in [TextureFormat::Bc1, TextureFormat::Rgba8] {
+        for &extent in &EXTENTS {
+            for i in 0..20u32 {
+                let other = EXTENTS[(rng.next_u64() % EXTENTS.len() as u64) as usize].min(extent);
+                let (w, h) = if i % 2 == 0 { (extent, other) } else { (other, extent) };
+                sources.push(SourceTexture::random(&mut rng, format, w, h));
+            }
+        }
+    }
+    let first_phase = sources.len() as u32;
+    // Extra 128-texel textures that overflow the ring later.
+    for _ in 0..24 {
+        sources.push(SourceTexture::random(&mut rng, TextureFormat::Rgba8, 128, 128));
+    }
+    let colormap: Vec<[u8; 4]> = (0..sources.len()).map(|_| [rng.next_u64() as u8, 90, 200, 255]).collect();
+
+    let mut commands = CommandContext::new(&device, "cache test")?;
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &GpuCacheConfig {
+            layer_size: LAYER_SIZE,
+            layer_count: LAYERS,
+            memory_budget_bytes: 256 << 20,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 64,
+            texture_count: sources.len() as u32,
+            filtering: Filtering::Nearest,
+        },
+        &colormap,
+    )?;
+
+    // Phase 1: every texture, coarsest mip first as the loader does; every
+    // fifth texture stops two levels above its base to exercise LOD clamping.
+    let mut finest_loaded = HashMap::new();
+    for (t, source) in sources.iter().enumerate().take(first_phase as usize) {
+        let levels = source.levels.len() as u32;
+        let finest = if t % 5 == 0 { 2.min(levels - 1) } else { 0 };
+        for mip in (finest..levels).rev() {
+            let outcome = cache.stage(t as u32, source.format, source.width, source.height, mip, &source.levels[mip as usize])?;
+            ensure!(matches!(outcome, StageOutcome::Staged { .. }), "texture {t} mip {mip}: {outcome:?}");
+        }
+        finest_loaded.insert(t as u32, finest);
+    }
+    for t in first_phase..sources.len() as u32 {
+        finest_loaded.insert(t, 0);
+    }
+    let report = cache.finish_cycle(&mut commands)?;
+    ensure!(report.textures_invalidated == 0 && report.blocks_unbound == 0, "no eviction expected yet: {report:?}");
+    ensure!(report.blocks_bound > 0 && report.bind_entries <= report.blocks_bound);
+
+    let probe = TextureProbe::new(&device)?;
+    let check_all = |cache: &GpuTextureCache, textures: &[u32], rng: &mut SplitMix64, commands: &mut CommandContext| -> Result<usize> {
+        let mut points = Vec::new();
+        let mut expected = Vec::new();
+        for &t in textures {
+            let source = &sources[t as usize];
+            let finest = finest_loaded[&t];
+            let entry = cache.texture_data(t).expect("texture in table");
+            ensure!(entry.lowest_mip == finest, "texture {t}: lowest mip {} != {finest}", entry.lowest_mip);
+            for level in finest..source.levels.len() as u32 {
+                for (point, x, y) in points_for(t, source, level, level as f32, rng) {
+                    points.push(point);
+                    expected.push((t, level, source.texel(level, x, y)));
+                }
+            }
+            if finest > 0 {
+                // Asking for level 0 reads the finest resident level instead.
+                for (mut point, x, y) in points_for(t, source, finest, 0.0, rng) {
+                    point.lod = 0.0;
+                    points.push(point);
+                    expected.push((t, finest, source.texel(finest, x, y)));
+                }
+            }
+        }
+        let results = probe.run(commands, cache, &points)?;
+        for (i, result) in results.iter().enumerate() {
+            let (t, level, want) = expected[i];
+            let tolerance = if sources[t as usize].format == TextureFormat::Bc1 { 3 } else { 0 };
+            ensure!(result.resident == 1, "texture {t} level {level}: fell back to the colormap at {:?}", points[i]);
+            ensure!(
+                close(to_u8(result), want, tolerance),
+                "texture {t} ({:?} {}x{}) level {level} at uv {:?}: read {:?}, expected {want:?}",
+                sources[t as usize].format,
+                sources[t as usize].width,
+                sources[t as usize].height,
+                points[i].uv,
+                to_u8(result)
+            );
+        }
+        Ok(results.len())
+    };
+    let all_first: Vec<u32> = (0..first_phase).collect();
+    let checked = check_all(&cache, &all_first, &mut rng, &mut commands)?;
+    ensure!(checked > 5 * first_phase as usize, "too few probes: {checked}");
+
+    // Phase 2: more 128-texel textures than the free layers hold: the ring
+    // reuses the oldest layer, whose textures must then fall back.
+    for t in first_phase..sources.len() as u32 {
+        let source = &sources[t as usize];
+        for mip in (0..source.levels.len() as u32).rev() {
+            cache.stage(t, source.format, source.width, source.height, mip, &source.levels[mip as usize])?;
+        }
+    }
+    let report = cache.finish_cycle(&mut commands)?;
+    ensure!(report.textures_invalidated > 0, "the ring must have evicted a layer: {report:?}");
+    let invalidated: HashSet<u32> = (0..sources.len() as u32)
+        .filter(|&t| cache.texture_data(t).is_some_and(|d| d.state == 0))
+        .collect();
+    ensure!(invalidated.len() == report.textures_invalidated as usize);
+    let evicted: Vec<u32> = invalidated.iter().copied().collect();
+    let probes: Vec<TextureProbePoint> = evicted
+        .iter()
+        .map(|&t| TextureProbePoint {
+            uv: [0.5, 0.5],
+            lod: 0.0,
+            texture: t,
+        })
+        .collect();
+    let results = probe.run(&mut commands, &cache, &probes)?;
+    for (result, &t) in results.iter().zip(&evicted) {
+        ensure!(result.resident == 0, "evicted texture {t} was still sampled from the cache");
+        ensure!(to_u8(result) == colormap[t as usize], "evicted texture {t} must show its colormap colour");
+    }
+    let survivors: Vec<u32> = (0..sources.len() as u32).filter(|t| !invalidated.contains(t)).collect();
+    check_all(&cache, &survivors, &mut rng, &mut commands)?;
+
+    let utilisation = cache.utilisation();
+    ensure!(utilisation.texture_bytes > 0 && utilisation.bound_bytes >= utilisation.texture_bytes / 2);
+    device.wait_idle()?;
+    drop(probe);
+    drop(cache);
+    drop(commands);
+    assert_no_validation_errors(&device)
+}
