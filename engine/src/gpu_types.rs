@@ -123,6 +123,48 @@ pub struct TextureProbePoint {
     pub texture: u32,
 }
 
+/// Binding of the per-mesh feedback array in the feedback pass.
+pub const BINDING_FEEDBACK_MESHES: u32 = 16;
+/// `FEEDBACK_MIP_ONE`: a mip level is stored as `round(level * 256)`.
+pub const FEEDBACK_MIP_ONE: f32 = 256.0;
+/// `FEEDBACK_WEIGHT_ONE`: a weight is stored as `round(W * 8)`.
+pub const FEEDBACK_WEIGHT_ONE: f32 = 8.0;
+/// Largest feedback target (pixels) for which the 32-bit weight sum provably
+/// cannot overflow: 4096² fragments × 17 (largest W) × 8 < 2³².
+pub const FEEDBACK_MAX_PIXELS: u64 = 4096 * 4096;
+/// `FEEDBACK_ANISOTROPY` (A_m).
+pub const FEEDBACK_ANISOTROPY: f32 = 16.0;
+/// `SAMPLE_ANISOTROPY` (A_s).
+pub const SAMPLE_ANISOTROPY: f32 = 8.0;
+
+/// `CityDrawPush`: push constants of the city passes, one draw per mesh.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct CityDrawPush {
+    /// Column-major view-projection matrix.
+    pub view_proj: [[f32; 4]; 4],
+    /// x: LOD offset, y: foreground distance, zw: feedback-to-visible NDC scale.
+    pub feedback: [f32; 4],
+    /// xy: target size in pixels, z: lighting weight.
+    pub viewport_light: [f32; 4],
+    /// Mesh index.
+    pub mesh_id: u32,
+    /// Dataset texture id.
+    pub texture_id: u32,
+    /// Texture width at level 0 (full resolution).
+    pub texture_width: u32,
+    /// Texture height at level 0.
+    pub texture_height: u32,
+    /// M_max: coarsest level at full resolution.
+    pub max_mip: u32,
+    /// Padding.
+    pub pad0: u32,
+    /// Padding.
+    pub pad1: u32,
+    /// Padding.
+    pub pad2: u32,
+}
+
 /// One vertex of a mesh (vertex input, not a GLSL struct).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
@@ -394,6 +436,7 @@ mod tests {
             ("BINDING_COLORMAP", BINDING_COLORMAP),
             ("BINDING_TEXTURE_PROBE_POINTS", BINDING_TEXTURE_PROBE_POINTS),
             ("BINDING_TEXTURE_PROBE_RESULTS", BINDING_TEXTURE_PROBE_RESULTS),
+            ("BINDING_FEEDBACK_MESHES", BINDING_FEEDBACK_MESHES),
         ];
         assert_eq!(defines.len(), rust.len(), "every GLSL binding needs a Rust twin: {defines:?}");
         for (name, value) in rust {
@@ -465,6 +508,48 @@ mod tests {
         let header = include_str!("../../shaders/include/citystream.glsl");
         assert!(header.contains("#define TEXTURE_NOT_SAMPLEABLE 0u") && TEXTURE_NOT_SAMPLEABLE == 0);
         assert!(header.contains("#define TEXTURE_SAMPLEABLE 1u") && TEXTURE_SAMPLEABLE == 1);
+    }
+
+    #[test]
+    fn city_push_layout_matches_spirv_and_fits_128_bytes() {
+        check(
+            "CityDrawPush",
+            &[
+                ("view_proj", offset_of!(CityDrawPush, view_proj)),
+                ("feedback", offset_of!(CityDrawPush, feedback)),
+                ("viewport_light", offset_of!(CityDrawPush, viewport_light)),
+                ("mesh_id", offset_of!(CityDrawPush, mesh_id)),
+                ("texture_id", offset_of!(CityDrawPush, texture_id)),
+                ("texture_width", offset_of!(CityDrawPush, texture_width)),
+                ("texture_height", offset_of!(CityDrawPush, texture_height)),
+                ("max_mip", offset_of!(CityDrawPush, max_mip)),
+                ("pad0", offset_of!(CityDrawPush, pad0)),
+                ("pad1", offset_of!(CityDrawPush, pad1)),
+                ("pad2", offset_of!(CityDrawPush, pad2)),
+            ],
+            size_of::<CityDrawPush>(),
+        );
+        // 128 bytes is the push-constant size every Vulkan device guarantees.
+        assert!(size_of::<CityDrawPush>() <= 128);
+        let header = include_str!("../../shaders/include/citystream.glsl");
+        for (name, value) in [
+            ("FEEDBACK_MIP_ONE", FEEDBACK_MIP_ONE),
+            ("FEEDBACK_WEIGHT_ONE", FEEDBACK_WEIGHT_ONE),
+            ("FEEDBACK_ANISOTROPY", FEEDBACK_ANISOTROPY),
+            ("SAMPLE_ANISOTROPY", SAMPLE_ANISOTROPY),
+        ] {
+            assert!(header.contains(&format!("#define {name} {value:.1}")), "{name} differs from the GLSL header");
+        }
+    }
+
+    #[test]
+    fn weight_sum_cannot_overflow_at_the_largest_feedback_target() {
+        // Every fragment of the largest target in one mesh, each with the
+        // largest weight 1 + 8 + 8, in fixed point.
+        let worst = FEEDBACK_MAX_PIXELS * 17 * FEEDBACK_WEIGHT_ONE as u64;
+        assert!(worst <= u64::from(u32::MAX), "{worst} overflows the 32-bit weight sum");
+        // One more doubling of the target would overflow: the bound is tight enough to mean something.
+        assert!(worst * 2 > u64::from(u32::MAX));
     }
 
     #[test]

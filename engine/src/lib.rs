@@ -21,6 +21,7 @@
 
 pub mod binder;
 pub mod buffer;
+pub mod city;
 pub mod commands;
 pub mod device;
 pub mod error;
@@ -35,6 +36,7 @@ pub mod scene;
 pub mod shaders;
 pub mod sparse;
 pub mod staging;
+pub mod streamer;
 pub mod target;
 pub mod texture_cache;
 pub mod timing;

@@ -19,6 +19,9 @@ macro_rules! shader {
     };
 }
 
+shader!(CITY_VERT, "city.vert", "city_vert.spv");
+shader!(CITY_FRAG, "city.frag", "city_frag.spv");
+shader!(FEEDBACK_FRAG, "feedback.frag", "feedback_frag.spv");
 shader!(MESH_VERT, "mesh.vert", "mesh_vert.spv");
 shader!(MESH_FRAG, "mesh.frag", "mesh_frag.spv");
 shader!(FEEDBACK_COMPACT_COMP, "feedback_compact.comp", "feedback_compact_comp.spv");
@@ -26,4 +29,8 @@ shader!(TEXTURE_PROBE_COMP, "texture_probe.comp", "texture_probe_comp.spv");
 shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
 
 /// Every embedded shader, for tests that inspect them all.
-pub const ALL: &[ShaderSource] = &[MESH_VERT, MESH_FRAG, FEEDBACK_COMPACT_COMP, SPARSE_PROBE_COMP, TEXTURE_PROBE_COMP];
+pub const ALL: &[ShaderSource] = &[
+    CITY_VERT,
+    CITY_FRAG,
+    FEEDBACK_FRAG,
+    MESH_VERT, MESH_FRAG, FEEDBACK_COMPACT_COMP, SPARSE_PROBE_COMP, TEXTURE_PROBE_COMP];

@@ -169,13 +169,14 @@ impl SparseImage {
             })?;
         let (block_w, block_h) = texel_block(desc.format);
         let reported = color.format_properties.image_granularity;
-        // Some drivers (lavapipe) report BC granularity in compressed blocks:
-        // a granularity whose texel footprint would exceed one memory block
-        // is taken to be in blocks and converted to texels.
+        // A standard sparse block shape covers exactly one memory block. Some
+        // drivers (lavapipe) report BC granularity in compressed blocks rather
+        // than texels: whichever reading spans one memory block is the right one.
         let bytes_per_block = bytes_per_texel_block(desc.format);
-        let texel_footprint = u64::from(reported.width) * u64::from(reported.height) * bytes_per_block
-            / u64::from(block_w * block_h);
-        let in_blocks = block_w > 1 && texel_footprint > requirements.alignment;
+        let area = u64::from(reported.width) * u64::from(reported.height);
+        let as_texels = area * bytes_per_block / u64::from(block_w * block_h);
+        let as_blocks = area * bytes_per_block;
+        let in_blocks = block_w > 1 && as_texels != requirements.alignment && as_blocks == requirements.alignment;
         image.granularity = if in_blocks {
             (reported.width * block_w, reported.height * block_h)
         } else {

@@ -68,7 +68,7 @@ pub struct GpuCacheConfig {
 }
 
 /// What one [`GpuTextureCache::finish_cycle`] did.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct CycleReport {
     /// Blocks bound.
     pub blocks_bound: u32,
@@ -84,6 +84,8 @@ pub struct CycleReport {
     pub bytes_uploaded: u64,
     /// Textures made unsampleable by eviction.
     pub textures_invalidated: u32,
+    /// Their ids, for the streaming states (they must be loaded again).
+    pub invalidated_textures: Vec<u32>,
 }
 
 /// Outcome of [`GpuTextureCache::stage`].
@@ -391,6 +393,7 @@ impl GpuTextureCache {
                 slot.resident = 0;
                 self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
                 report.textures_invalidated += 1;
+                report.invalidated_textures.push(texture);
             }
         }
         // Mips staged for a place that was evicted in the same cycle must not be copied.

@@ -23,6 +23,37 @@
 #define BINDING_TEXTURE_DATA 12      // TextureData[], one per dataset texture
 #define BINDING_COLORMAP 13          // uint[], the City Colormap, RGBA8 packed, one per texture
 
+// ---- Feedback pass (paper §3.2): set 0 also holds BINDING_TEXTURE_DATA --------
+#define BINDING_FEEDBACK_MESHES 16    // MeshFeedback[], written with atomics
+
+// Fixed-point scales of MeshFeedback. A mip level is stored as
+// round(level * FEEDBACK_MIP_ONE); a weight W (1..17 per fragment) as
+// round(W * FEEDBACK_WEIGHT_ONE). The weight sum cannot overflow 32 bits at
+// the largest feedback target the engine allows (FEEDBACK_MAX_PIXELS):
+// 4096 * 4096 fragments * 17 * 8 = 2 281 701 376 < 4 294 967 295, even if
+// every fragment of the target belonged to one mesh with maximal weight.
+#define FEEDBACK_MIP_ONE 256.0
+#define FEEDBACK_WEIGHT_ONE 8.0
+// Anisotropy of the feedback's mip computation (A_m) and of sampling (A_s), Table 2.
+#define FEEDBACK_ANISOTROPY 16.0
+#define SAMPLE_ANISOTROPY 8.0
+
+// Push constants of the city passes (feedback and visible), one draw per mesh.
+struct CityDrawPush {
+    mat4 view_proj;
+    vec4 feedback;          // x: LOD offset (log2 of feedback pixel over visible pixel), y: foreground distance,
+                            // zw: scale from feedback NDC to visible NDC (margin fragments lie outside [-1, 1])
+    vec4 viewport_light;    // xy: target size in pixels, z: lighting weight (0 = unlit), w: unused
+    uint mesh_id;
+    uint texture_id;
+    uint texture_width;     // full original resolution, level 0
+    uint texture_height;
+    uint max_mip;           // M_max: the texture's coarsest level at full resolution
+    uint pad0;
+    uint pad1;
+    uint pad2;
+};
+
 // ---- Descriptor set 0: texture probe (samples through TextureData) -------
 #define BINDING_TEXTURE_PROBE_POINTS 14   // TextureProbePoint[]
 #define BINDING_TEXTURE_PROBE_RESULTS 15  // ProbeResult[]

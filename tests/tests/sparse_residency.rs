@@ -260,3 +260,32 @@ fn out_of_range_blocks_are_refused() -> Result<()> {
     drop(image);
     assert_no_validation_errors(&device)
 }
+
+#[test]
+fn granularity_spans_exactly_one_memory_block_for_every_cache_format() -> Result<()> {
+    let device = validated_device()?;
+    for (format, bytes_per_block, texels_per_block) in [
+        (vk::Format::R8G8B8A8_UNORM, 4u64, 1u64),
+        (vk::Format::BC1_RGB_UNORM_BLOCK, 8, 16),
+    ] {
+        let image = SparseImage::new(
+            &device,
+            SparseImageDesc {
+                width: 1024,
+                height: 1024,
+                layers: 1,
+                mips: 11,
+                format,
+            },
+            "granularity test",
+        )?;
+        let (gw, gh) = image.granularity();
+        let bytes = u64::from(gw) * u64::from(gh) * bytes_per_block / texels_per_block;
+        ensure!(
+            bytes == image.block_size(),
+            "{format:?}: granularity {gw}x{gh} texels spans {bytes} bytes, the block is {}",
+            image.block_size()
+        );
+    }
+    assert_no_validation_errors(&device)
+}

@@ -3,6 +3,13 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+mod atlas;
+mod gen;
+mod import;
+mod info;
+mod simulate;
+mod verify;
+
 #[derive(Debug, Parser)]
 #[command(name = "citystream", version, about = "citystream dataset, simulation and benchmark tool")]
 struct Cli {
@@ -11,9 +18,29 @@ struct Cli {
 }
 
 #[derive(Debug, Subcommand)]
-enum Command {}
+enum Command {
+    /// Generate a synthetic city dataset.
+    Gen(gen::GenArgs),
+    /// Pack a dataset's textures into square atlases.
+    Atlas(atlas::AtlasArgs),
+    /// Import a glTF 2.0 scene as a dataset.
+    Import(import::ImportArgs),
+    /// Print totals of a dataset.
+    Info(info::InfoArgs),
+    /// Run the streaming policy on the simulated-clock harness.
+    Simulate(simulate::SimulateArgs),
+    /// Check every offset, length and mip of a dataset.
+    Verify(verify::VerifyArgs),
+}
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    match cli.command {}
+    match cli.command {
+        Command::Gen(args) => gen::run(&args),
+        Command::Atlas(args) => atlas::run(&args),
+        Command::Import(args) => import::run(&args),
+        Command::Info(args) => info::run(&args),
+        Command::Simulate(args) => simulate::run(&args),
+        Command::Verify(args) => verify::run(&args),
+    }
 }

@@ -1,0 +1,326 @@
+//! Rendering a city dataset with streamed textures: the feedback pass
+//! (paper §3.2) and the visible pass with City Colormap blending (§3.7).
+//!
+//! Both passes draw every mesh with its own [`CityDrawPush`]. The feedback
+//! pass renders a wider field of view than the visible one into a smaller
+//! target; fragments outside the visible frustum count with W = 1 (streaming
+//! beyond the viewport edge), and a LOD offset converts its derivatives,
+//! taken per feedback pixel, to visible pixels.
+
+use std::sync::Arc;
+
+use ash::vk;
+use glam::{Mat4, Vec3};
+
+use crate::buffer::Buffer;
+use crate::commands::CommandContext;
+use crate::device::Device;
+use crate::error::{EngineError, Result};
+use crate::feedback::FeedbackCompactor;
+use crate::gpu_types::{CityDrawPush, Vertex, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA, FEEDBACK_MAX_PIXELS};
+use crate::pipeline::{BindingSpec, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
+use crate::scene::upload_buffer;
+use crate::shaders;
+use crate::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
+use crate::texture_cache::GpuTextureCache;
+
+/// One mesh as the city passes draw it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CityMesh {
+    /// First index.
+    pub first_index: u32,
+    /// Index count (whole triangles).
+    pub index_count: u32,
+    /// Added to every index.
+    pub vertex_offset: u32,
+    /// Dataset texture id.
+    pub texture: u32,
+    /// Texture width at full resolution.
+    pub texture_width: u32,
+    /// Texture height at full resolution.
+    pub texture_height: u32,
+}
+
+impl CityMesh {
+    /// M_max: the coarsest level of the full-resolution mip chain.
+    pub fn max_mip(&self) -> u32 {
+        31 - self.texture_width.max(self.texture_height).max(1).leading_zeros()
+    }
+}
+
+/// A camera: eye, target and vertical field of view; Vulkan clip space.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Camera {
+    /// Eye position in scene units.
+    pub eye: Vec3,
+    /// Point looked at.
+    pub target: Vec3,
+    /// Vertical field of view in radians.
+    pub fov_y: f32,
+    /// Near plane distance.
+    pub near: f32,
+    /// Far plane distance.
+    pub far: f32,
+}
+
+impl Camera {
+    /// View-projection for `aspect`, with the field of view widened so that
+    /// tan(fov/2) grows by `1 + margin` (0 for the visible view).
+    pub fn view_projection(&self, aspect: f32, margin: f32) -> Mat4 {
+        let up = if (self.target - self.eye).normalize_or_zero().y.abs() > 0.999 {
+            Vec3::Z
+        } else {
+            Vec3::Y
+        };
+        let view = Mat4::look_at_rh(self.eye, self.target, up);
+        let tan = (self.fov_y * 0.5).tan() * (1.0 + margin.max(0.0));
+        let mut projection = Mat4::perspective_rh(2.0 * tan.atan(), aspect, self.near, self.far);
+        // Vulkan's clip space has y pointing down.
+        projection.y_axis.y = -projection.y_axis.y;
+        projection * view
+    }
+}
+
+/// Options of the feedback pass.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FeedbackView {
+    /// Widening of tan(fov/2) beyond the visible view (0.25 = 25 % margin).
+    pub margin: f32,
+    /// Scene distance within which fragments count as foreground: c_w =
+    /// min(depth / foreground, 1). The paper's formula assumes units in which
+    /// this is 1; city datasets are in metres, so it is a parameter.
+    pub foreground_distance: f32,
+}
+
+impl Default for FeedbackView {
+    fn default() -> Self {
+        Self {
+            margin: 0.25,
+            foreground_distance: 200.0,
+        }
+    }
+}
+
+/// The two city pipelines, the geometry and the mesh table.
+#[derive(Debug)]
+pub struct CityRenderer {
+    device: Arc<Device>,
+    feedback: Pipeline,
+    visible: Pipeline,
+    _pool: DescriptorPool,
+    feedback_set: vk::DescriptorSet,
+    visible_set: vk::DescriptorSet,
+    vertices: Buffer,
+    indices: Buffer,
+    meshes: Vec<CityMesh>,
+}
+
+fn city_pipeline(
+    device: &Arc<Device>,
+    fragment: shaders::ShaderSource,
+    bindings: Vec<BindingSpec>,
+    name: &str,
+) -> Result<Pipeline> {
+    Pipeline::graphics(
+        device,
+        &GraphicsDesc {
+            vertex: shaders::CITY_VERT,
+            fragment,
+            vertex_stride: std::mem::size_of::<Vertex>() as u32,
+            attributes: Vertex::attributes(),
+            color_format: COLOR_FORMAT,
+            depth_format: DEPTH_FORMAT,
+            cull_mode: vk::CullModeFlags::NONE,
+            bindings,
+            push_constant_size: std::mem::size_of::<CityDrawPush>() as u32,
+        },
+        name,
+    )
+}
+
+impl CityRenderer {
+    /// Uploads the geometry and builds both passes over `cache` and `compactor`.
+    pub fn new(
+        device: &Arc<Device>,
+        commands: &mut CommandContext,
+        vertices: &[Vertex],
+        indices: &[u32],
+        meshes: Vec<CityMesh>,
+        cache: &GpuTextureCache,
+        compactor: &FeedbackCompactor,
+    ) -> Result<Self> {
+        if meshes.is_empty() {
+            return Err(EngineError::InvalidRequest("a city needs at least one mesh".into()));
+        }
+        if meshes.len() as u64 > u64::from(compactor.mesh_count()) {
+            return Err(EngineError::InvalidRequest(format!(
+                "{} meshes but feedback for {}",
+                meshes.len(),
+                compactor.mesh_count()
+            )));
+        }
+        for (m, mesh) in meshes.iter().enumerate() {
+            let end = u64::from(mesh.first_index) + u64::from(mesh.index_count);
+            let in_range = end <= indices.len() as u64
+                && indices[mesh.first_index as usize..end as usize]
+                    .iter()
+                    .all(|&i| u64::from(i) + u64::from(mesh.vertex_offset) < vertices.len() as u64);
+            if !in_range || cache.texture_data(mesh.texture).is_none() {
+                return Err(EngineError::InvalidRequest(format!(
+                    "mesh {m} refers to indices, vertices or texture {} outside the city",
+                    mesh.texture
+                )));
+            }
+        }
+        let fragment = vk::ShaderStageFlags::FRAGMENT;
+        let feedback = city_pipeline(
+            device,
+            shaders::FEEDBACK_FRAG,
+            vec![
+                (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
+                (BINDING_FEEDBACK_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
+            ],
+            "city feedback pipeline",
+        )?;
+        let cache_descriptors = cache.descriptors();
+        let visible_bindings: Vec<BindingSpec> = cache_descriptors
+            .iter()
+            .map(|(binding, resource)| {
+                let ty = match resource {
+                    DescriptorResource::SampledImage(..) => vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
+                    DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
+                };
+                (*binding, ty, 1, fragment)
+            })
+            .collect();
+        let visible = city_pipeline(device, shaders::CITY_FRAG, visible_bindings, "city visible pipeline")?;
+        // One pool for both sets: sized by the visible layout, which has the most bindings.
+        let pool = DescriptorPool::new(device, &visible, 2, "city descriptors")?;
+        let table = cache_descriptors
+            .iter()
+            .find(|(b, _)| *b == BINDING_TEXTURE_DATA)
+            .map(|(_, r)| *r)
+            .ok_or_else(|| EngineError::InvalidRequest("the cache offers no texture table".into()))?;
+        let feedback_set = pool.allocate(
+            &feedback,
+            &[
+                (BINDING_TEXTURE_DATA, table),
+                (
+                    BINDING_FEEDBACK_MESHES,
+                    DescriptorResource::StorageBuffer(compactor.mesh_feedback_buffer()),
+                ),
+            ],
+        )?;
+        let visible_set = pool.allocate(&visible, &cache_descriptors)?;
+        let vertices = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(vertices),
+            vk::BufferUsageFlags::VERTEX_BUFFER,
+            "city vertices",
+        )?;
+        let indices = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(indices),
+            vk::BufferUsageFlags::INDEX_BUFFER,
+            "city indices",
+        )?;
+        Ok(Self {
+            device: Arc::clone(device),
+            feedback,
+            visible,
+            _pool: pool,
+            feedback_set,
+            visible_set,
+            vertices,
+            indices,
+            meshes,
+        })
+    }
+
+    /// The meshes drawn.
+    pub fn meshes(&self) -> &[CityMesh] {
+        &self.meshes
+    }
+
+    fn draw_all(&self, cmd: vk::CommandBuffer, pipeline: &Pipeline, set: vk::DescriptorSet, base: CityDrawPush) {
+        pipeline.bind(cmd, set);
+        // SAFETY: cmd is recording inside rendering; buffers are live.
+        unsafe {
+            self.device.raw().cmd_bind_vertex_buffers(cmd, 0, &[self.vertices.raw()], &[0]);
+            self.device
+                .raw()
+                .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
+        }
+        for (id, mesh) in self.meshes.iter().enumerate() {
+            let push = CityDrawPush {
+                mesh_id: id as u32,
+                texture_id: mesh.texture,
+                texture_width: mesh.texture_width,
+                texture_height: mesh.texture_height,
+                max_mip: mesh.max_mip(),
+                ..base
+            };
+            pipeline.push(cmd, &push);
+            // SAFETY: index ranges were checked against the buffers in `new`.
+            unsafe {
+                self.device.raw().cmd_draw_indexed(
+                    cmd,
+                    mesh.index_count,
+                    1,
+                    mesh.first_index,
+                    mesh.vertex_offset as i32,
+                    0,
+                )
+            };
+        }
+    }
+
+    /// Records the feedback pass into `feedback_target` for a visible view
+    /// of `visible_height` pixels. Follow it with the compactor's pass.
+    pub fn record_feedback(
+        &self,
+        cmd: vk::CommandBuffer,
+        feedback_target: &RenderTarget,
+        camera: &Camera,
+        view: &FeedbackView,
+        visible_height: u32,
+    ) -> Result<()> {
+        let pixels = u64::from(feedback_target.width()) * u64::from(feedback_target.height());
+        if pixels > FEEDBACK_MAX_PIXELS {
+            return Err(EngineError::InvalidRequest(format!(
+                "feedback target of {pixels} pixels exceeds {FEEDBACK_MAX_PIXELS}, beyond which weight sums could overflow"
+            )));
+        }
+        let aspect = feedback_target.width() as f32 / feedback_target.height() as f32;
+        let widen = 1.0 + view.margin.max(0.0);
+        // Feedback pixels span `widen` times the angle over fewer pixels.
+        let pixel_ratio = widen * visible_height as f32 / feedback_target.height() as f32;
+        let base = CityDrawPush {
+            view_proj: camera.view_projection(aspect, view.margin).to_cols_array_2d(),
+            feedback: [pixel_ratio.log2(), view.foreground_distance.max(1e-6), widen, widen],
+            viewport_light: [feedback_target.width() as f32, feedback_target.height() as f32, 0.0, 0.0],
+            ..CityDrawPush::default()
+        };
+        feedback_target.begin(&self.device, cmd, [1.0, 0.0, 1.0, 1.0]);
+        self.draw_all(cmd, &self.feedback, self.feedback_set, base);
+        // SAFETY: rendering was begun above in the same command buffer.
+        unsafe { self.device.raw().cmd_end_rendering(cmd) };
+        Ok(())
+    }
+
+    /// Records the visible pass into `target` (its read-back copy included).
+    pub fn record_visible(&self, cmd: vk::CommandBuffer, target: &RenderTarget, camera: &Camera, lighting: f32) {
+        let aspect = target.width() as f32 / target.height() as f32;
+        let base = CityDrawPush {
+            view_proj: camera.view_projection(aspect, 0.0).to_cols_array_2d(),
+            viewport_light: [target.width() as f32, target.height() as f32, lighting, 0.0],
+            ..CityDrawPush::default()
+        };
+        target.begin(&self.device, cmd, [0.55, 0.7, 0.9, 1.0]);
+        self.draw_all(cmd, &self.visible, self.visible_set, base);
+        target.end_and_copy(&self.device, cmd);
+    }
+}

@@ -1,0 +1,19 @@
+#version 460
+#extension GL_GOOGLE_include_directive : require
+#include "citystream.glsl"
+
+// Vertex stage of both city passes (feedback and visible).
+layout(location = 0) in vec3 in_position;
+layout(location = 1) in vec3 in_normal;
+layout(location = 2) in vec2 in_uv;
+
+layout(push_constant) uniform Push { CityDrawPush push; };
+
+layout(location = 0) out vec2 out_uv;
+layout(location = 1) out vec3 out_normal;
+
+void main() {
+    gl_Position = push.view_proj * vec4(in_position, 1.0);
+    out_uv = in_uv;
+    out_normal = in_normal;
+}

@@ -1,0 +1,930 @@
+//! Streaming workload per cycle: the adaptive controller of paper §3.4
+//! (Eq. 4–7) and the other load policies behind one trait.
+//!
+//! Every policy is fed one frame latency per rendered frame through
+//! [`LoadPolicy::update`] and answers with a [`Decision`]: the adaptive load
+//! size `s` (bytes a streaming cycle may load) and the mipmap bias `b`.
+//!
+//! # Units
+//!
+//! Options and [`Telemetry`] speak milliseconds and MB (1 MB = 2^20 bytes, so
+//! that `s_max` = 64 MB is exactly 1024 sparse blocks of 64 KiB). Inside
+//! Eq. 4–7, **latencies are in seconds**. The constants of the polynomial
+//! `P = |x| + (10|x|)² + (30|x|)³ + (50|x|)⁴` and of the `(30d)²` decay only
+//! give the behaviour the paper describes in seconds:
+//!
+//! * Fig. 4 (left) plots the change of `l` against `x` "assuming Δt = 1 ms".
+//!   In seconds, `x = −4 ms` gives `P = 0.0089` and a step of `9·10⁻⁶` per
+//!   1 ms frame: the load factor creeps up while below the threshold, and a
+//!   spike of `x = +100 ms` gives `P ≈ 620`, collapsing `l` in one frame. In
+//!   milliseconds `P(1 ms)` would be `1 + 100 + 27 000 + 6 250 000` and `l`
+//!   would saturate at 0 or 1 every frame, which no figure shows.
+//! * Table 3 (α = 16 ms) reports a median load size near 1 MB of the 64 MB
+//!   maximum and `t_w` well above the median frame latency (12 vs 4.5 ms): the
+//!   `(30d)²` decay in seconds lets `t_w` fall from 100 ms to 59 ms in one
+//!   5 ms frame and then ever more slowly, "widening the narrow spikes", while
+//!   in milliseconds `t_w` would drop to `Δt` immediately.
+//!
+//! # Choices where the paper is ambiguous
+//!
+//! * **Start state.** `l` starts at 0 (the load size starts at `s_min` and
+//!   creeps up), `t_w` starts at 0 (so the first `t_w` is the first `Δt`).
+//!   Starting at `l = 1` would submit an `s_max` batch in the first cycle,
+//!   exactly the stutter the controller exists to avoid.
+//! * **"Previous" samples.** `t_wa` (200 samples) and `t_b` (5 samples) are
+//!   means of the *previous* `t_w` values, `j = 1..N` as written, excluding
+//!   the current one. Before any history exists the current `t_w` stands in.
+//!   While fewer than N samples exist, the mean is over those that do.
+//! * **Sums of Eq. 7.** `t_bl` and `t_bu` are recursive: the sums range over
+//!   the 40 previous values of `t_bl` (respectively `t_bu`) itself, each
+//!   clamped by `min` (respectively `max`) against the current `t_w`, then
+//!   blended 0.2 : 0.8 with `t_w`. With no history both equal `t_w`.
+//!   Because of the `min`/`max`, `t_bl ≤ t_w ≤ t_bu` holds on every frame.
+//! * **sign(0) = 0.** When `t_w = t_m` exactly, `l` does not move.
+//! * **Degenerate smoothstep.** If both edges are equal (only when all
+//!   latencies so far were 0) the step is a hard step: `b = 0` when
+//!   `t_b ≤ edge`, else `β`.
+//!
+//! # Bad input
+//!
+//! A frame latency that is NaN or negative is rejected: the policy keeps its
+//! state, returns its previous decision and counts the sample in
+//! [`Telemetry::rejected_samples`]. A latency above [`MAX_FRAME_LATENCY_MS`]
+//! (including +∞) is clamped to it. With these rules every output is finite,
+//! `l ∈ [0, 1]`, `s ∈ [s_min, s_max]` and `b ∈ [0, β]`.
+//!
+//! # Threading
+//!
+//! Policies are plain single-owner state machines (`Send`, not shared): the
+//! render loop owns one and calls `update` once per frame.
+
+use std::fmt;
+use std::str::FromStr;
+
+/// Bytes per MB in options and telemetry (MiB, so 64 MB = 1024 × 64 KiB).
+pub const BYTES_PER_MB: f64 = 1_048_576.0;
+
+/// Frame latencies above this (ms) are clamped to it: one minute.
+pub const MAX_FRAME_LATENCY_MS: f64 = 60_000.0;
+
+/// Samples of `t_w` averaged into `t_wa` (Eq. 6).
+pub const TWA_SAMPLES: usize = 200;
+/// Samples of `t_bl` / `t_bu` averaged into the edges (Eq. 7).
+pub const EDGE_SAMPLES: usize = 40;
+/// Samples of `t_w` averaged into `t_b` (Eq. 7).
+pub const TB_SAMPLES: usize = 5;
+
+/// Error building a policy from options or a name.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PolicyError {
+    /// An option is out of its valid range.
+    #[error("policy option `{name}` = {value} is invalid: expected {expected}")]
+    InvalidOption {
+        /// Option name as the command line spells it.
+        name: &'static str,
+        /// The rejected value.
+        value: f64,
+        /// What would be accepted.
+        expected: &'static str,
+    },
+    /// No policy of that name.
+    #[error("unknown load policy `{0}` (expected adaptive, baseline or fixed)")]
+    UnknownPolicy(String),
+}
+
+/// What a streaming cycle may do: load at most `load_size_bytes` (the batch
+/// stops once it exceeds this, Algorithm 1) and skip refinements with
+/// `sampled mip + mip_bias >= loaded mip`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Decision {
+    /// Adaptive load size `s` in bytes.
+    pub load_size_bytes: u64,
+    /// Mipmap bias `b`, in mip levels, within `[0, β]`.
+    pub mip_bias: f64,
+}
+
+/// Every quantity of Eq. 4–7 after the latest update, in ms and MB.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Telemetry {
+    /// Frame latency Δt of the latest accepted sample (after clamping).
+    pub frame_ms: f64,
+    /// Weighted maximum frame latency `t_w` (Eq. 5).
+    pub tw_ms: f64,
+    /// Maximum frame latency threshold `t_m` (Eq. 6).
+    pub tm_ms: f64,
+    /// Mean of the previous 200 `t_w`, `t_wa` (Eq. 6).
+    pub twa_ms: f64,
+    /// Mean of the previous 5 `t_w`, `t_b` (Eq. 7).
+    pub tb_ms: f64,
+    /// Lower smoothstep edge `t_bl` before the 0.96 factor (Eq. 7).
+    pub tbl_ms: f64,
+    /// Upper smoothstep edge `t_bu` before the 1.2 factor (Eq. 7).
+    pub tbu_ms: f64,
+    /// Load factor `l` (Eq. 4), in `[0, 1]`.
+    pub load_factor: f64,
+    /// Load size `s` in MB.
+    pub load_size_mb: f64,
+    /// Mipmap bias `b`.
+    pub mip_bias: f64,
+    /// Frames accepted so far.
+    pub frames: u64,
+    /// Samples rejected as NaN or negative.
+    pub rejected_samples: u64,
+}
+
+/// A streaming workload policy, fed once per frame.
+pub trait LoadPolicy: Send + fmt::Debug {
+    /// Feed the latest frame latency in milliseconds and get the workload of
+    /// the next streaming cycle. Never panics; see the module docs for how
+    /// NaN, negative and huge values are handled.
+    fn update(&mut self, frame_latency_ms: f64) -> Decision;
+    /// The current decision without feeding a sample.
+    fn decision(&self) -> Decision;
+    /// Every quantity of Eq. 4–7 after the latest update.
+    fn telemetry(&self) -> Telemetry;
+    /// Which policy this is.
+    fn kind(&self) -> PolicyKind;
+}
+
+/// The selectable policies, by name: `adaptive`, `baseline`, `fixed`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum PolicyKind {
+    /// Paper §3.4: adaptive load size and mipmap bias.
+    Adaptive,
+    /// No adaptive algorithms: `s = s_max`, `b = 0` (the paper's baseline rows).
+    Baseline,
+    /// User-given `s` and `b`.
+    Fixed,
+}
+
+impl PolicyKind {
+    /// The name `FromStr` accepts.
+    pub fn name(self) -> &'static str {
+        match self {
+            PolicyKind::Adaptive => "adaptive",
+            PolicyKind::Baseline => "baseline",
+            PolicyKind::Fixed => "fixed",
+        }
+    }
+
+    /// Build this policy from options (validated).
+    pub fn build(self, options: &PolicyOptions) -> Result<Box<dyn LoadPolicy>, PolicyError> {
+        Ok(match self {
+            PolicyKind::Adaptive => Box::new(AdaptivePolicy::new(options)?),
+            PolicyKind::Baseline => Box::new(BaselinePolicy::new(options)?),
+            PolicyKind::Fixed => Box::new(FixedPolicy::new(options)?),
+        })
+    }
+}
+
+impl fmt::Display for PolicyKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for PolicyKind {
+    type Err = PolicyError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "adaptive" => Ok(PolicyKind::Adaptive),
+            "baseline" => Ok(PolicyKind::Baseline),
+            "fixed" => Ok(PolicyKind::Fixed),
+            _ => Err(PolicyError::UnknownPolicy(s.to_owned())),
+        }
+    }
+}
+
+/// Policy parameters; defaults are the paper's Table 2.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PolicyOptions {
+    /// Target maximum frame latency α in ms (Table 2: 16).
+    pub alpha_ms: f64,
+    /// Maximum mipmap bias β (Table 2: 8).
+    pub beta: f64,
+    /// Maximum load size `s_max` in MB (Table 2: 64).
+    pub s_max_mb: f64,
+    /// Minimum load size `s_min` in bytes: one sparse block of the device
+    /// (64 KiB on lavapipe; Table 2: 0.065 MB).
+    pub s_min_bytes: u64,
+    /// Load size of the `fixed` policy in MB.
+    pub fixed_load_size_mb: f64,
+    /// Mipmap bias of the `fixed` policy.
+    pub fixed_mip_bias: f64,
+}
+
+impl Default for PolicyOptions {
+    fn default() -> Self {
+        PolicyOptions {
+            alpha_ms: 16.0,
+            beta: 8.0,
+            s_max_mb: 64.0,
+            s_min_bytes: 65_536,
+            fixed_load_size_mb: 1.0,
+            fixed_mip_bias: 0.0,
+        }
+    }
+}
+
+impl PolicyOptions {
+    /// Check the options every policy uses (not the `fixed_*` ones); the
+    /// error names the first bad one.
+    pub fn validate(&self) -> Result<(), PolicyError> {
+        let bad = |name, value, expected| PolicyError::InvalidOption { name, value, expected };
+        if !(self.alpha_ms.is_finite() && self.alpha_ms > 0.0) {
+            return Err(bad("alpha", self.alpha_ms, "a finite latency > 0 ms"));
+        }
+        if !(self.beta.is_finite() && self.beta >= 0.0) {
+            return Err(bad("beta", self.beta, "a finite bias >= 0"));
+        }
+        if !(self.s_max_mb.is_finite() && self.s_max_mb > 0.0 && self.s_max_mb <= 1.0e6) {
+            return Err(bad("s-max-mb", self.s_max_mb, "a size in (0, 1e6] MB"));
+        }
+        let s_min = self.s_min_bytes as f64;
+        if self.s_min_bytes == 0 || s_min > self.s_max_bytes() {
+            return Err(bad("s-min-bytes", s_min, "a size in [1 byte, s_max]"));
+        }
+        Ok(())
+    }
+
+    /// Check the options of the `fixed` policy as well (its size must lie
+    /// in `[s_min, s_max]`, its bias be finite and `>= 0`).
+    pub fn validate_fixed(&self) -> Result<(), PolicyError> {
+        self.validate()?;
+        let bad = |name, value, expected| PolicyError::InvalidOption { name, value, expected };
+        let s_min = self.s_min_bytes as f64;
+        let fixed = self.fixed_load_size_mb * BYTES_PER_MB;
+        if !(fixed.is_finite() && fixed >= s_min && fixed <= self.s_max_bytes()) {
+            return Err(bad("load-size-mb", self.fixed_load_size_mb, "a size in [s_min, s_max]"));
+        }
+        if !(self.fixed_mip_bias.is_finite() && self.fixed_mip_bias >= 0.0) {
+            return Err(bad("mip-bias", self.fixed_mip_bias, "a finite bias >= 0"));
+        }
+        Ok(())
+    }
+
+    fn s_max_bytes(&self) -> f64 {
+        self.s_max_mb * BYTES_PER_MB
+    }
+}
+
+/// Fixed-capacity ring of the most recent samples.
+#[derive(Clone, Debug)]
+struct Ring<const N: usize> {
+    buf: [f64; N],
+    len: usize,
+    next: usize,
+}
+
+impl<const N: usize> Ring<N> {
+    fn new() -> Self {
+        Ring {
+            buf: [0.0; N],
+            len: 0,
+            next: 0,
+        }
+    }
+
+    fn push(&mut self, v: f64) {
+        self.buf[self.next] = v;
+        self.next = (self.next + 1) % N;
+        self.len = (self.len + 1).min(N);
+    }
+
+    /// The stored samples, in no particular order.
+    fn samples(&self) -> &[f64] {
+        &self.buf[..self.len]
+    }
+
+    /// The newest `k` samples (fewer if fewer exist).
+    fn newest(&self, k: usize) -> impl Iterator<Item = f64> + '_ {
+        let k = k.min(self.len);
+        (1..=k).map(move |j| self.buf[(self.next + N - j) % N])
+    }
+}
+
+/// Mean of an iterator, summed fresh every time so that 10⁶ frames cannot
+/// accumulate rounding drift.
+fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    (n > 0).then(|| sum / n as f64)
+}
+
+/// Eq. 5: weighted maximum frame latency, seconds in and out.
+pub fn weighted_max_latency(tw_prev: f64, dt: f64) -> f64 {
+    let d = (tw_prev - dt).max(0.0);
+    (tw_prev - (30.0 * d).powi(2) * dt).max(dt)
+}
+
+/// Eq. 6: maximum frame latency threshold from `t_wa` and α (same units).
+pub fn latency_threshold(twa: f64, alpha: f64) -> f64 {
+    if twa > alpha {
+        twa * (1.0 - 0.85) + alpha * 0.85
+    } else {
+        twa * (1.0 - 0.5) + alpha * 0.5
+    }
+}
+
+/// Eq. 4: the polynomial `P(x)`, `x` in seconds.
+pub fn load_polynomial(x: f64) -> f64 {
+    let a = x.abs();
+    a + (10.0 * a).powi(2) + (30.0 * a).powi(3) + (50.0 * a).powi(4)
+}
+
+/// Eq. 4: next load factor from the previous one, `x = t_w − t_m` and Δt
+/// (seconds), clamped to `[0, 1]`; `sign(0) = 0`.
+pub fn next_load_factor(l_prev: f64, x: f64, dt: f64) -> f64 {
+    let step = load_polynomial(x) * dt;
+    let l = if x > 0.0 {
+        l_prev - step
+    } else if x < 0.0 {
+        l_prev + step
+    } else {
+        l_prev
+    };
+    // `clamp` keeps NaN; the inputs are finite by construction, but a NaN
+    // must never escape, so map it to the safe end.
+    if l.is_nan() {
+        0.0
+    } else {
+        l.clamp(0.0, 1.0)
+    }
+}
+
+/// GLSL `smoothstep`, with a hard step when the edges coincide or cross.
+pub fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
+    if edge1 <= edge0 {
+        return if x <= edge0 { 0.0 } else { 1.0 };
+    }
+    let t = ((x - edge0) / (edge1 - edge0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// The latency measurements shared by every policy (Eq. 5, 6 and the
+/// edges of Eq. 7), in seconds.
+#[derive(Clone, Debug)]
+struct Estimator {
+    alpha_s: f64,
+    tw: f64,
+    tw_history: Ring<TWA_SAMPLES>,
+    tbl_history: Ring<EDGE_SAMPLES>,
+    tbu_history: Ring<EDGE_SAMPLES>,
+    frames: u64,
+    rejected: u64,
+}
+
+/// One frame's measurements, seconds.
+#[derive(Clone, Copy, Debug, Default)]
+struct Estimate {
+    dt: f64,
+    tw: f64,
+    twa: f64,
+    tm: f64,
+    tb: f64,
+    tbl: f64,
+    tbu: f64,
+}
+
+impl Estimator {
+    fn new(alpha_ms: f64) -> Self {
+        Estimator {
+            alpha_s: alpha_ms / 1000.0,
+            tw: 0.0,
+            tw_history: Ring::new(),
+            tbl_history: Ring::new(),
+            tbu_history: Ring::new(),
+            frames: 0,
+            rejected: 0,
+        }
+    }
+
+    /// Accept one frame latency (ms); `None` when the sample is rejected.
+    fn step(&mut self, frame_latency_ms: f64) -> Option<Estimate> {
+        if frame_latency_ms.is_nan() || frame_latency_ms < 0.0 {
+            self.rejected += 1;
+            return None;
+        }
+        let dt = frame_latency_ms.min(MAX_FRAME_LATENCY_MS) / 1000.0;
+        let tw = weighted_max_latency(self.tw, dt);
+        let twa = mean(self.tw_history.samples().iter().copied()).unwrap_or(tw);
+        let tm = latency_threshold(twa, self.alpha_s);
+        let tb = mean(self.tw_history.newest(TB_SAMPLES)).unwrap_or(tw);
+        let tbl =
+            mean(self.tbl_history.samples().iter().map(|&v| v.min(tw))).map_or(tw, |m| tw * (1.0 - 0.8) + m * 0.8);
+        let tbu =
+            mean(self.tbu_history.samples().iter().map(|&v| v.max(tw))).map_or(tw, |m| tw * (1.0 - 0.8) + m * 0.8);
+        self.tw = tw;
+        self.tw_history.push(tw);
+        self.tbl_history.push(tbl);
+        self.tbu_history.push(tbu);
+        self.frames += 1;
+        Some(Estimate {
+            dt,
+            tw,
+            twa,
+            tm,
+            tb,
+            tbl,
+            tbu,
+        })
+    }
+
+    fn telemetry(&self, e: &Estimate, load_factor: f64, d: Decision) -> Telemetry {
+        Telemetry {
+            frame_ms: e.dt * 1000.0,
+            tw_ms: e.tw * 1000.0,
+            tm_ms: e.tm * 1000.0,
+            twa_ms: e.twa * 1000.0,
+            tb_ms: e.tb * 1000.0,
+            tbl_ms: e.tbl * 1000.0,
+            tbu_ms: e.tbu * 1000.0,
+            load_factor,
+            load_size_mb: d.load_size_bytes as f64 / BYTES_PER_MB,
+            mip_bias: d.mip_bias,
+            frames: self.frames,
+            rejected_samples: self.rejected,
+        }
+    }
+}
+
+/// Paper §3.4: adaptive load size (Eq. 4–6) and mipmap bias (Eq. 7).
+#[derive(Clone, Debug)]
+pub struct AdaptivePolicy {
+    estimator: Estimator,
+    beta: f64,
+    s_max_bytes: f64,
+    s_min_bytes: f64,
+    load_factor: f64,
+    decision: Decision,
+    telemetry: Telemetry,
+}
+
+impl AdaptivePolicy {
+    /// A fresh controller (`l = 0`, `t_w = 0`, no history).
+    pub fn new(options: &PolicyOptions) -> Result<Self, PolicyError> {
+        options.validate()?;
+        let decision = Decision {
+            load_size_bytes: options.s_min_bytes,
+            mip_bias: 0.0,
+        };
+        Ok(AdaptivePolicy {
+            estimator: Estimator::new(options.alpha_ms),
+            beta: options.beta,
+            s_max_bytes: options.s_max_bytes(),
+            s_min_bytes: options.s_min_bytes as f64,
+            load_factor: 0.0,
+            decision,
+            telemetry: Telemetry {
+                load_size_mb: options.s_min_bytes as f64 / BYTES_PER_MB,
+                ..Telemetry::default()
+            },
+        })
+    }
+}
+
+impl LoadPolicy for AdaptivePolicy {
+    fn update(&mut self, frame_latency_ms: f64) -> Decision {
+        let Some(e) = self.estimator.step(frame_latency_ms) else {
+            self.telemetry.rejected_samples = self.estimator.rejected;
+            return self.decision;
+        };
+        // Eq. 4.
+        self.load_factor = next_load_factor(self.load_factor, e.tw - e.tm, e.dt);
+        let s = (self.load_factor * self.s_max_bytes)
+            .max(self.s_min_bytes)
+            .min(self.s_max_bytes);
+        // Eq. 7.
+        let b = self.beta * smoothstep(0.96 * e.tbl, 1.2 * e.tbu, e.tb);
+        self.decision = Decision {
+            load_size_bytes: s.round() as u64,
+            mip_bias: b.clamp(0.0, self.beta),
+        };
+        self.telemetry = self.estimator.telemetry(&e, self.load_factor, self.decision);
+        self.decision
+    }
+
+    fn decision(&self) -> Decision {
+        self.decision
+    }
+
+    fn telemetry(&self) -> Telemetry {
+        self.telemetry
+    }
+
+    fn kind(&self) -> PolicyKind {
+        PolicyKind::Adaptive
+    }
+}
+
+/// A policy with a constant decision; still measures `t_w` and the other
+/// latencies so that its telemetry compares with the adaptive one.
+#[derive(Clone, Debug)]
+struct ConstantPolicy {
+    estimator: Estimator,
+    load_factor: f64,
+    decision: Decision,
+    telemetry: Telemetry,
+}
+
+impl ConstantPolicy {
+    fn new(options: &PolicyOptions, decision: Decision) -> Self {
+        let load_factor = decision.load_size_bytes as f64 / options.s_max_bytes();
+        ConstantPolicy {
+            estimator: Estimator::new(options.alpha_ms),
+            load_factor,
+            decision,
+            telemetry: Telemetry {
+                load_factor,
+                load_size_mb: decision.load_size_bytes as f64 / BYTES_PER_MB,
+                mip_bias: decision.mip_bias,
+                ..Telemetry::default()
+            },
+        }
+    }
+
+    fn update(&mut self, frame_latency_ms: f64) -> Decision {
+        match self.estimator.step(frame_latency_ms) {
+            Some(e) => self.telemetry = self.estimator.telemetry(&e, self.load_factor, self.decision),
+            None => self.telemetry.rejected_samples = self.estimator.rejected,
+        }
+        self.decision
+    }
+}
+
+/// No adaptive algorithms: `s = s_max`, `b = 0`, streaming as fast as the
+/// load-time limit allows (the paper's "No adaptive algorithms" rows).
+#[derive(Clone, Debug)]
+pub struct BaselinePolicy(ConstantPolicy);
+
+impl BaselinePolicy {
+    /// Build from options (only `s_max` matters for the decision).
+    pub fn new(options: &PolicyOptions) -> Result<Self, PolicyError> {
+        options.validate()?;
+        let decision = Decision {
+            load_size_bytes: options.s_max_bytes().round() as u64,
+            mip_bias: 0.0,
+        };
+        Ok(BaselinePolicy(ConstantPolicy::new(options, decision)))
+    }
+}
+
+impl LoadPolicy for BaselinePolicy {
+    fn update(&mut self, frame_latency_ms: f64) -> Decision {
+        self.0.update(frame_latency_ms)
+    }
+    fn decision(&self) -> Decision {
+        self.0.decision
+    }
+    fn telemetry(&self) -> Telemetry {
+        self.0.telemetry
+    }
+    fn kind(&self) -> PolicyKind {
+        PolicyKind::Baseline
+    }
+}
+
+/// The user's `s` (`fixed_load_size_mb`) and `b` (`fixed_mip_bias`).
+#[derive(Clone, Debug)]
+pub struct FixedPolicy(ConstantPolicy);
+
+impl FixedPolicy {
+    /// Build from options; the fixed size must lie in `[s_min, s_max]`.
+    pub fn new(options: &PolicyOptions) -> Result<Self, PolicyError> {
+        options.validate_fixed()?;
+        let decision = Decision {
+            load_size_bytes: (options.fixed_load_size_mb * BYTES_PER_MB).round() as u64,
+            mip_bias: options.fixed_mip_bias,
+        };
+        Ok(FixedPolicy(ConstantPolicy::new(options, decision)))
+    }
+}
+
+impl LoadPolicy for FixedPolicy {
+    fn update(&mut self, frame_latency_ms: f64) -> Decision {
+        self.0.update(frame_latency_ms)
+    }
+    fn decision(&self) -> Decision {
+        self.0.decision
+    }
+    fn telemetry(&self) -> Telemetry {
+        self.0.telemetry
+    }
+    fn kind(&self) -> PolicyKind {
+        PolicyKind::Fixed
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f64, b: f64, tol: f64) -> bool {
+        (a - b).abs() <= tol
+    }
+
+    fn adaptive() -> AdaptivePolicy {
+        AdaptivePolicy::new(&PolicyOptions::default()).expect("defaults are valid")
+    }
+
+    #[test]
+    fn eq5_weighted_max_latency_by_hand() {
+        // t_w,i-1 = 50 ms, Δt = 10 ms: d = 0.04 s, (30·0.04)² = 1.44,
+        // 1.44 · 0.01 = 0.0144, t_w = max(0.05 − 0.0144, 0.01) = 0.0356 s.
+        assert!(close(weighted_max_latency(0.050, 0.010), 0.0356, 1e-12));
+        // A frame slower than t_w,i-1 is taken immediately: d = 0.
+        assert_eq!(weighted_max_latency(0.010, 0.040), 0.040);
+        // Large d: t_w = 0.1 s, Δt = 5 ms: d = 0.095, (2.85)² · 0.005
+        // = 0.0406125, t_w = 0.0593875 s ("widens the spike").
+        assert!(close(weighted_max_latency(0.1, 0.005), 0.0593875, 1e-12));
+        // Decay can never undershoot Δt.
+        assert_eq!(weighted_max_latency(10.0, 0.005), 0.005);
+    }
+
+    #[test]
+    fn eq6_threshold_both_branches_by_hand() {
+        // t_wa = 20 ms > α = 16 ms: 0.15 · 20 + 0.85 · 16 = 3 + 13.6 = 16.6 ms.
+        assert!(close(latency_threshold(0.020, 0.016), 0.0166, 1e-12));
+        // t_wa = 10 ms ≤ α: 0.5 · 10 + 0.5 · 16 = 13 ms.
+        assert!(close(latency_threshold(0.010, 0.016), 0.013, 1e-12));
+        // The boundary t_wa = α takes the second branch and returns α.
+        assert!(close(latency_threshold(0.016, 0.016), 0.016, 1e-15));
+    }
+
+    #[test]
+    fn eq4_polynomial_and_load_factor_by_hand() {
+        // x = −3 ms: 0.003 + 0.03² + 0.09³ + 0.15⁴
+        //          = 0.003 + 0.0009 + 0.000729 + 0.00050625 = 0.00513525.
+        assert!(close(load_polynomial(-0.003), 0.00513525, 1e-15));
+        // Fig. 4 left, Δt = 1 ms: x = −4 ms raises l by
+        // (0.004 + 0.0016 + 0.001728 + 0.0016) · 0.001 = 8.928e-6.
+        assert!(close(next_load_factor(0.5, -0.004, 0.001), 0.5 + 8.928e-6, 1e-15));
+        // x = +100 ms: 0.1 + 1 + 27 + 625 = 653.1; ·0.001 → l collapses to 0.
+        assert!(close(load_polynomial(0.1), 653.1, 1e-9));
+        assert_eq!(next_load_factor(0.5, 0.1, 0.001), 0.0);
+        // Why seconds: read in ms, x = −1 "ms" would give
+        // P = 1 + 100 + 27 000 + 6 250 000 = 6 277 101 and l would jump from
+        // 0 to 1 in a single 1 "ms" frame (and back to 0 on any frame above
+        // the threshold): the bang-bang behaviour Fig. 4 does not show.
+        assert_eq!(load_polynomial(1.0), 6_277_101.0);
+        assert_eq!(next_load_factor(0.0, -1.0, 1.0), 1.0);
+        // sign(0) = 0: no change.
+        assert_eq!(next_load_factor(0.25, 0.0, 0.016), 0.25);
+        // Upper clamp.
+        assert_eq!(next_load_factor(0.99, -1.0, 1.0), 1.0);
+    }
+
+    #[test]
+    fn smoothstep_matches_glsl() {
+        // t = (1 − 0)/(4 − 0) = 0.25: 0.0625 · (3 − 0.5) = 0.15625.
+        assert!(close(smoothstep(0.0, 4.0, 1.0), 0.15625, 1e-15));
+        assert_eq!(smoothstep(0.0, 4.0, -1.0), 0.0);
+        assert_eq!(smoothstep(0.0, 4.0, 5.0), 1.0);
+        // Fig. 4 right: β = 4, t_bl = 0, t_bu = 16.67 ms, t_b = 10 ms:
+        // t = 10/(1.2·16.67) = 0.49990, s = 0.24990 · 2.00020 = 0.49985, b ≈ 1.9994.
+        let b = 4.0 * smoothstep(0.0, 1.2 * 0.01667, 0.010);
+        assert!(close(b, 1.9994, 1e-3));
+        // Degenerate edges: hard step.
+        assert_eq!(smoothstep(0.0, 0.0, 0.0), 0.0);
+        assert_eq!(smoothstep(0.0, 0.0, 1e-9), 1.0);
+    }
+
+    #[test]
+    fn three_frames_by_hand() {
+        let mut p = adaptive();
+        // Frame 1, Δt = 10 ms. t_w = max(0 − 0, 0.01) = 0.01. No history:
+        // t_wa = t_w = 0.01 ≤ α → t_m = 0.5·0.01 + 0.5·0.016 = 0.013.
+        // x = −0.003, P = 0.00513525, l = 0 + P·0.01 = 5.13525e-5.
+        // s = max(5.13525e-5 · 64 MiB = 3446 B, 65536 B) = 65536 B.
+        // t_b = t_bl = t_bu = 0.01; edges 0.0096 and 0.012,
+        // t = 0.0004/0.0024 = 1/6, smoothstep = (1/36)(3 − 1/3) = 0.0740741,
+        // b = 8 · 0.0740741 = 0.5925926.
+        let d = p.update(10.0);
+        let t = p.telemetry();
+        assert!(close(t.tw_ms, 10.0, 1e-12));
+        assert!(close(t.tm_ms, 13.0, 1e-12));
+        assert!(close(t.load_factor, 5.13525e-5, 1e-15));
+        assert_eq!(d.load_size_bytes, 65_536);
+        assert!(close(d.mip_bias, 8.0 * (1.0 / 36.0) * (3.0 - 1.0 / 3.0), 1e-12));
+        assert!(close(d.mip_bias, 0.5925926, 1e-6));
+
+        // Frame 2, Δt = 40 ms. d = max(0.01 − 0.04, 0) = 0 → t_w = 0.04.
+        // t_wa = mean[0.01] = 0.01 → t_m = 0.013. x = 0.027,
+        // P = 0.027 + 0.0729 + 0.531441 + 3.32150625 = 3.95284725,
+        // l = clamp(5.135e-5 − 3.9528·0.04) = 0 → s = s_min.
+        // t_b = mean[0.01] = 0.01; t_bl = 0.2·0.04 + 0.8·min(0.01, 0.04) = 0.016,
+        // t_bu = 0.2·0.04 + 0.8·max(0.01, 0.04) = 0.04; t_b < 0.96·0.016 → b = 0.
+        let d = p.update(40.0);
+        let t = p.telemetry();
+        assert!(close(t.tw_ms, 40.0, 1e-12));
+        assert!(close(t.tm_ms, 13.0, 1e-12));
+        assert_eq!(t.load_factor, 0.0);
+        assert_eq!(d.load_size_bytes, 65_536);
+        assert!(close(t.tbl_ms, 16.0, 1e-12));
+        assert!(close(t.tbu_ms, 40.0, 1e-12));
+        assert_eq!(d.mip_bias, 0.0);
+
+        // Frame 3, Δt = 10 ms. d = 0.03, (0.9)²·0.01 = 0.0081 → t_w = 0.0319.
+        // t_wa = mean[0.01, 0.04] = 0.025 > α → t_m = 0.15·0.025 + 0.85·0.016
+        // = 0.01735. x > 0 → l stays 0.
+        // t_b = mean[0.01, 0.04] = 0.025.
+        // t_bl = 0.2·0.0319 + 0.8·mean[min(0.01, 0.0319), min(0.016, 0.0319)]
+        //      = 0.00638 + 0.8·0.013 = 0.01678.
+        // t_bu = 0.00638 + 0.8·mean[max(0.01, 0.0319), max(0.04, 0.0319)]
+        //      = 0.00638 + 0.8·0.03595 = 0.03514.
+        // edges 0.0161088 and 0.042168, t = 0.0088912/0.0260592 = 0.3411924,
+        // smoothstep = 0.1164122·2.3176153 = 0.2697988, b = 2.158390.
+        let d = p.update(10.0);
+        let t = p.telemetry();
+        assert!(close(t.tw_ms, 31.9, 1e-9));
+        assert!(close(t.twa_ms, 25.0, 1e-9));
+        assert!(close(t.tm_ms, 17.35, 1e-9));
+        assert!(close(t.tb_ms, 25.0, 1e-9));
+        assert!(close(t.tbl_ms, 16.78, 1e-9));
+        assert!(close(t.tbu_ms, 35.14, 1e-9));
+        let e0 = 0.96 * 0.01678;
+        let e1 = 1.2 * 0.03514;
+        let x = (0.025 - e0) / (e1 - e0);
+        assert!(close(d.mip_bias, 8.0 * x * x * (3.0 - 2.0 * x), 1e-9));
+        assert!(close(d.mip_bias, 2.158390, 1e-6));
+        assert_eq!(t.load_factor, 0.0);
+    }
+
+    #[test]
+    fn load_factor_creeps_up_below_threshold_and_collapses_after_spike() {
+        let mut p = adaptive();
+        for _ in 0..2000 {
+            p.update(5.0);
+        }
+        let before = p.telemetry().load_factor;
+        assert!(before > 0.0, "l must grow below the threshold");
+        assert!(p.decision().load_size_bytes > 65_536);
+        p.update(1000.0);
+        let t = p.telemetry();
+        assert_eq!(t.load_factor, 0.0);
+        assert_eq!(p.decision().load_size_bytes, 65_536);
+        // t_w took the spike immediately and decays over later frames.
+        assert!(close(t.tw_ms, 1000.0, 1e-9));
+        p.update(5.0);
+        let tw = p.telemetry().tw_ms;
+        assert!((5.0..1000.0).contains(&tw));
+    }
+
+    #[test]
+    fn rejects_nan_and_negative_clamps_infinity() {
+        let mut p = adaptive();
+        let first = p.update(8.0);
+        assert_eq!(p.update(f64::NAN), first);
+        assert_eq!(p.update(-1.0), first);
+        assert_eq!(p.update(f64::NEG_INFINITY), first);
+        assert_eq!(p.telemetry().rejected_samples, 3);
+        assert_eq!(p.telemetry().frames, 1);
+        p.update(f64::INFINITY);
+        let t = p.telemetry();
+        assert_eq!(t.frame_ms, MAX_FRAME_LATENCY_MS);
+        assert_eq!(t.tw_ms, MAX_FRAME_LATENCY_MS);
+        assert_eq!(t.load_factor, 0.0);
+        assert!(t.mip_bias.is_finite());
+    }
+
+    #[test]
+    fn baseline_and_fixed_are_constant_but_measure() {
+        let o = PolicyOptions {
+            fixed_load_size_mb: 2.0,
+            fixed_mip_bias: 1.5,
+            ..PolicyOptions::default()
+        };
+        let mut base = PolicyKind::Baseline.build(&o).expect("valid");
+        let mut fixed = PolicyKind::Fixed.build(&o).expect("valid");
+        for ms in [5.0, 400.0, 5.0] {
+            let d = base.update(ms);
+            assert_eq!(d.load_size_bytes, 64 * 1_048_576);
+            assert_eq!(d.mip_bias, 0.0);
+            let d = fixed.update(ms);
+            assert_eq!(d.load_size_bytes, 2 * 1_048_576);
+            assert_eq!(d.mip_bias, 1.5);
+        }
+        // Same Eq. 5 measurement as the adaptive policy: 400 ms then a 5 ms
+        // frame: d = 0.395, (11.85)²·0.005 = 0.7021 → t_w = max(−0.30, 0.005).
+        assert!(close(base.telemetry().tw_ms, 5.0, 1e-12));
+        assert_eq!(base.telemetry().load_factor, 1.0);
+        assert!(close(fixed.telemetry().load_factor, 2.0 / 64.0, 1e-15));
+    }
+
+    #[test]
+    fn names_parse_and_bad_options_are_named() {
+        assert_eq!("adaptive".parse::<PolicyKind>(), Ok(PolicyKind::Adaptive));
+        assert_eq!("Baseline".parse::<PolicyKind>(), Ok(PolicyKind::Baseline));
+        assert_eq!("fixed".parse::<PolicyKind>(), Ok(PolicyKind::Fixed));
+        assert!(matches!(
+            "cw2020".parse::<PolicyKind>(),
+            Err(PolicyError::UnknownPolicy(_))
+        ));
+        // Adaptive ignores the fixed policy's options.
+        let fixed_too_big = PolicyOptions {
+            fixed_load_size_mb: 65.0,
+            ..PolicyOptions::default()
+        };
+        assert!(AdaptivePolicy::new(&fixed_too_big).is_ok());
+        for (o, name) in [
+            (
+                PolicyOptions {
+                    alpha_ms: f64::NAN,
+                    ..PolicyOptions::default()
+                },
+                "alpha",
+            ),
+            (
+                PolicyOptions {
+                    beta: -1.0,
+                    ..PolicyOptions::default()
+                },
+                "beta",
+            ),
+            (
+                PolicyOptions {
+                    s_min_bytes: 0,
+                    ..PolicyOptions::default()
+                },
+                "s-min-bytes",
+            ),
+            (
+                PolicyOptions {
+                    fixed_load_size_mb: 65.0,
+                    ..PolicyOptions::default()
+                },
+                "load-size-mb",
+            ),
+        ] {
+            match FixedPolicy::new(&o) {
+                Err(PolicyError::InvalidOption { name: n, .. }) => assert_eq!(n, name),
+                other => panic!("expected error for {name}, got {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn hard_cases_stay_in_range() {
+        let o = PolicyOptions::default();
+        let s_min = o.s_min_bytes;
+        let s_max = 64 * 1_048_576;
+        let mut p = adaptive();
+        for ms in [0.0, 1e-9, 1e4, f64::NAN, f64::INFINITY, 0.0, 1000.0, 5.0] {
+            let d = p.update(ms);
+            let t = p.telemetry();
+            assert!((s_min..=s_max).contains(&d.load_size_bytes));
+            assert!((0.0..=8.0).contains(&d.mip_bias), "{ms}: {d:?}");
+            assert!((0.0..=1.0).contains(&t.load_factor));
+            for v in [t.tw_ms, t.tm_ms, t.twa_ms, t.tb_ms, t.tbl_ms, t.tbu_ms] {
+                assert!(v.is_finite() && v >= 0.0, "{ms}: {t:?}");
+            }
+        }
+        // Δt = 0 from a fresh start: every latency is 0, the edges
+        // coincide, the hard step gives b = 0, and l does not move (P·0).
+        let mut z = adaptive();
+        for _ in 0..10 {
+            let d = z.update(0.0);
+            assert_eq!(d.mip_bias, 0.0);
+            assert_eq!(d.load_size_bytes, s_min);
+        }
+        assert_eq!(z.telemetry().load_factor, 0.0);
+    }
+
+    #[test]
+    fn alpha_below_base_frame_time_pins_s_min() {
+        // α = 2 ms with 5 ms frames: t_wa = 5 > α → t_m = 0.75 + 1.7 = 2.45 ms
+        // < t_w = 5 ms, so x > 0 every frame and l stays 0.
+        let o = PolicyOptions {
+            alpha_ms: 2.0,
+            ..PolicyOptions::default()
+        };
+        let mut p = AdaptivePolicy::new(&o).expect("valid");
+        for _ in 0..1000 {
+            assert_eq!(p.update(5.0).load_size_bytes, o.s_min_bytes);
+        }
+        assert!(close(p.telemetry().tm_ms, 2.45, 1e-9));
+    }
+
+    #[test]
+    fn beta_zero_gives_zero_bias() {
+        let o = PolicyOptions {
+            beta: 0.0,
+            ..PolicyOptions::default()
+        };
+        let mut p = AdaptivePolicy::new(&o).expect("valid");
+        for i in 0..500 {
+            let ms = if i % 50 == 0 { 300.0 } else { 4.0 + (i % 7) as f64 };
+            assert_eq!(p.update(ms).mip_bias, 0.0);
+        }
+    }
+
+    #[test]
+    fn constant_latency_bias_settles_at_closed_form() {
+        // Constant t_w = Δt: t_bl = t_bu = t_b = Δt, t = (1 − 0.96)/(1.2 − 0.96)
+        // = 1/6, b = 8 · (1/36) · (8/3) = 0.5925926 whatever Δt is.
+        let mut p = adaptive();
+        for _ in 0..300 {
+            p.update(7.0);
+        }
+        assert!(close(p.decision().mip_bias, 0.5925926, 1e-6));
+    }
+}

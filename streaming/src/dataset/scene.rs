@@ -1,0 +1,467 @@
+//! `scene.bin`: meshes and their geometry.
+//!
+//! Layout (little-endian), version 1:
+//!
+//! | offset | size | field |
+//! |---|---|---|
+//! | 0 | 8 | magic `CSSCENE\0` |
+//! | 8 | 4 | version |
+//! | 12 | 4 | flags (0) |
+//! | 16 | 8 | mesh count M |
+//! | 24 | 8 | vertex count V |
+//! | 32 | 8 | index count I |
+//! | 40 | 24 | origin, 3 × f64 |
+//! | 64 | 24 | scene bounds, min then max, 6 × f32 relative to the origin |
+//! | 88 | 4 | CRC-32 of everything after the header |
+//! | 92 | 4 | reserved (0) |
+//! | 96 | 44·M | meshes: first vertex, vertex count, first index, index count, texture (5 × u32), bounds (6 × f32) |
+//! | … | 12·V | positions, 3 × f32 relative to the origin |
+//! | … | 12·V | normals, 3 × f32 |
+//! | … | 8·V | texture coordinates, 2 × f32 |
+//! | … | 4·I | indices, u32, relative to the mesh's first vertex |
+
+use std::path::Path;
+
+use super::error::DatasetError;
+use super::io_util::{check_prefix, f32_at, f64_at, header_prefix, read_all, u32_at, u64_at, write_all};
+
+const MAGIC: &[u8; 8] = b"CSSCENE\0";
+const HEADER_BYTES: usize = 96;
+const MESH_RECORD_BYTES: usize = 44;
+
+/// Axis-aligned bounding box in scene coordinates (metres, relative to [`Scene::origin`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aabb {
+    /// Smallest x, y, z.
+    pub min: [f32; 3],
+    /// Largest x, y, z.
+    pub max: [f32; 3],
+}
+
+impl Aabb {
+    /// An inverted box that any point extends.
+    pub const EMPTY: Aabb = Aabb {
+        min: [f32::INFINITY; 3],
+        max: [f32::NEG_INFINITY; 3],
+    };
+
+    /// Grows the box to contain `p`.
+    pub fn extend(&mut self, p: [f32; 3]) {
+        for ((min, max), v) in self.min.iter_mut().zip(&mut self.max).zip(p) {
+            *min = min.min(v);
+            *max = max.max(v);
+        }
+    }
+
+    /// Grows the box to contain `other`.
+    pub fn union(&mut self, other: &Aabb) {
+        self.extend(other.min);
+        self.extend(other.max);
+    }
+
+    /// Whether `min <= max` on every axis (false for [`Aabb::EMPTY`]).
+    pub fn is_valid(&self) -> bool {
+        (0..3).all(|a| self.min[a].is_finite() && self.max[a].is_finite() && self.min[a] <= self.max[a])
+    }
+
+    /// Centre point.
+    pub fn center(&self) -> [f32; 3] {
+        [0, 1, 2].map(|a| 0.5 * (self.min[a] + self.max[a]))
+    }
+
+    /// Whether `p` lies inside, allowing `tolerance` on every side.
+    pub fn contains(&self, p: [f32; 3], tolerance: f32) -> bool {
+        (0..3).all(|a| p[a] >= self.min[a] - tolerance && p[a] <= self.max[a] + tolerance)
+    }
+}
+
+/// One mesh: a set of triangles sharing one texture (a facade, a roof, a street).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Mesh {
+    /// First vertex in the scene's vertex arrays.
+    pub first_vertex: u32,
+    /// Number of vertices.
+    pub vertex_count: u32,
+    /// First index in [`Scene::indices`].
+    pub first_index: u32,
+    /// Number of indices (a multiple of 3); each is relative to `first_vertex`.
+    pub index_count: u32,
+    /// Texture id (index into the texture table and the colormap).
+    pub texture: u32,
+    /// Bounds of the mesh's vertices.
+    pub bounds: Aabb,
+}
+
+/// All geometry of a dataset. Vertex attributes are separate flat arrays (one entry per
+/// vertex); every mesh is a range of them plus a range of [`Scene::indices`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scene {
+    /// World position of the scene's local origin. Positions are f32 relative to it so that
+    /// cities far from the world origin keep centimetre precision.
+    pub origin: [f64; 3],
+    /// Union of all mesh bounds.
+    pub bounds: Aabb,
+    /// The meshes.
+    pub meshes: Vec<Mesh>,
+    /// Positions relative to `origin`, metres. +y is up.
+    pub positions: Vec<[f32; 3]>,
+    /// Unit normals.
+    pub normals: Vec<[f32; 3]>,
+    /// Texture coordinates; (0,0) is the first texel of the first row. Values outside [0,1]
+    /// repeat the texture.
+    pub uvs: Vec<[f32; 2]>,
+    /// Triangle-list indices, relative to each mesh's `first_vertex`.
+    pub indices: Vec<u32>,
+}
+
+impl Scene {
+    /// An empty scene at `origin`.
+    pub fn new(origin: [f64; 3]) -> Self {
+        Self {
+            origin,
+            bounds: Aabb::EMPTY,
+            meshes: Vec::new(),
+            positions: Vec::new(),
+            normals: Vec::new(),
+            uvs: Vec::new(),
+            indices: Vec::new(),
+        }
+    }
+
+    /// Number of triangles of all meshes.
+    pub fn triangle_count(&self) -> u64 {
+        self.meshes.iter().map(|m| u64::from(m.index_count) / 3).sum()
+    }
+
+    /// Appends a mesh from its vertices and mesh-local indices, computing its bounds and
+    /// growing the scene bounds. Returns the mesh index.
+    pub fn push_mesh(
+        &mut self,
+        texture: u32,
+        positions: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        uvs: &[[f32; 2]],
+        indices: &[u32],
+    ) -> Result<u32, DatasetError> {
+        if normals.len() != positions.len() || uvs.len() != positions.len() {
+            return Err(DatasetError::InvalidInput(format!(
+                "mesh {} has {} positions, {} normals, {} uvs",
+                self.meshes.len(),
+                positions.len(),
+                normals.len(),
+                uvs.len()
+            )));
+        }
+        let too_big = || DatasetError::InvalidInput("scene exceeds 2^32 vertices, indices or meshes".into());
+        let mesh_index = u32::try_from(self.meshes.len()).map_err(|_| too_big())?;
+        let first_vertex = u32::try_from(self.positions.len()).map_err(|_| too_big())?;
+        let first_index = u32::try_from(self.indices.len()).map_err(|_| too_big())?;
+        let vertex_count = u32::try_from(positions.len()).map_err(|_| too_big())?;
+        let index_count = u32::try_from(indices.len()).map_err(|_| too_big())?;
+        first_vertex.checked_add(vertex_count).ok_or_else(too_big)?;
+        first_index.checked_add(index_count).ok_or_else(too_big)?;
+        let mut bounds = Aabb::EMPTY;
+        for p in positions {
+            bounds.extend(*p);
+        }
+        if !positions.is_empty() {
+            self.bounds.union(&bounds);
+        }
+        self.positions.extend_from_slice(positions);
+        self.normals.extend_from_slice(normals);
+        self.uvs.extend_from_slice(uvs);
+        self.indices.extend_from_slice(indices);
+        self.meshes.push(Mesh {
+            first_vertex,
+            vertex_count,
+            first_index,
+            index_count,
+            texture,
+            bounds,
+        });
+        Ok(mesh_index)
+    }
+
+    /// Encodes the scene file. Validates first, so a written scene always reads back.
+    pub fn encode(&self, path_for_errors: &Path) -> Result<Vec<u8>, DatasetError> {
+        self.validate(path_for_errors)?;
+        let mut body = Vec::with_capacity(
+            self.meshes.len() * MESH_RECORD_BYTES + self.positions.len() * 32 + self.indices.len() * 4,
+        );
+        for m in &self.meshes {
+            for v in [m.first_vertex, m.vertex_count, m.first_index, m.index_count, m.texture] {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+            for v in m.bounds.min.iter().chain(&m.bounds.max) {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        for p in self.positions.iter().chain(&self.normals) {
+            for v in p {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        for uv in &self.uvs {
+            for v in uv {
+                body.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        for i in &self.indices {
+            body.extend_from_slice(&i.to_le_bytes());
+        }
+        let mut out = header_prefix(MAGIC);
+        for count in [self.meshes.len(), self.positions.len(), self.indices.len()] {
+            out.extend_from_slice(&(count as u64).to_le_bytes());
+        }
+        for v in self.origin {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        let bounds = if self.meshes.is_empty() {
+            Aabb {
+                min: [0.0; 3],
+                max: [0.0; 3],
+            }
+        } else {
+            self.bounds
+        };
+        for v in bounds.min.iter().chain(&bounds.max) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
+        out.extend_from_slice(&0u32.to_le_bytes());
+        debug_assert_eq!(out.len(), HEADER_BYTES);
+        out.extend_from_slice(&body);
+        Ok(out)
+    }
+
+    /// Writes the scene file to `path`.
+    pub fn write(&self, path: &Path) -> Result<(), DatasetError> {
+        let bytes = self.encode(path)?;
+        write_all(path, &bytes)
+    }
+
+    /// Reads and validates a scene file.
+    pub fn read(path: &Path) -> Result<Scene, DatasetError> {
+        let bytes = read_all(path)?;
+        Self::decode(path, &bytes)
+    }
+
+    /// Decodes and validates scene bytes; `path` is only used in error messages.
+    pub fn decode(path: &Path, bytes: &[u8]) -> Result<Scene, DatasetError> {
+        check_prefix(path, bytes, MAGIC, HEADER_BYTES)?;
+        let corrupt = |offset: u64, what: String| DatasetError::Corrupt {
+            path: path.to_path_buf(),
+            offset,
+            what,
+        };
+        let mesh_count = u64_at(bytes, 16);
+        let vertex_count = u64_at(bytes, 24);
+        let index_count = u64_at(bytes, 32);
+        for (count, offset, name) in [
+            (mesh_count, 16, "mesh"),
+            (vertex_count, 24, "vertex"),
+            (index_count, 32, "index"),
+        ] {
+            if count > u64::from(u32::MAX) {
+                return Err(corrupt(offset, format!("{name} count {count} exceeds 2^32 - 1")));
+            }
+        }
+        // Counts are below 2^32, so these products cannot overflow u64.
+        let body_len = mesh_count * MESH_RECORD_BYTES as u64 + vertex_count * 32 + index_count * 4;
+        let end = HEADER_BYTES as u64 + body_len;
+        if end != bytes.len() as u64 {
+            return Err(DatasetError::Truncated {
+                path: path.to_path_buf(),
+                what: format!("{mesh_count} meshes, {vertex_count} vertices and {index_count} indices"),
+                offset: HEADER_BYTES as u64,
+                end,
+                file_len: bytes.len() as u64,
+            });
+        }
+        let body = &bytes[HEADER_BYTES..];
+        let stored = u32_at(bytes, 88);
+        let computed = crc32fast::hash(body);
+        if stored != computed {
+            return Err(DatasetError::Checksum {
+                path: path.to_path_buf(),
+                what: "the scene body".into(),
+                offset: HEADER_BYTES as u64,
+                end,
+                stored,
+                computed,
+            });
+        }
+        let origin = [f64_at(bytes, 40), f64_at(bytes, 48), f64_at(bytes, 56)];
+        let bounds = Aabb {
+            min: [f32_at(bytes, 64), f32_at(bytes, 68), f32_at(bytes, 72)],
+            max: [f32_at(bytes, 76), f32_at(bytes, 80), f32_at(bytes, 84)],
+        };
+        let (mesh_bytes, rest) = body.split_at(mesh_count as usize * MESH_RECORD_BYTES);
+        let (position_bytes, rest) = rest.split_at(vertex_count as usize * 12);
+        let (normal_bytes, rest) = rest.split_at(vertex_count as usize * 12);
+        let (uv_bytes, index_bytes) = rest.split_at(vertex_count as usize * 8);
+        let meshes = mesh_bytes
+            .chunks_exact(MESH_RECORD_BYTES)
+            .map(|r| Mesh {
+                first_vertex: u32_at(r, 0),
+                vertex_count: u32_at(r, 4),
+                first_index: u32_at(r, 8),
+                index_count: u32_at(r, 12),
+                texture: u32_at(r, 16),
+                bounds: Aabb {
+                    min: [f32_at(r, 20), f32_at(r, 24), f32_at(r, 28)],
+                    max: [f32_at(r, 32), f32_at(r, 36), f32_at(r, 40)],
+                },
+            })
+            .collect();
+        let vec3s = |b: &[u8]| {
+            b.chunks_exact(12)
+                .map(|c| [f32_at(c, 0), f32_at(c, 4), f32_at(c, 8)])
+                .collect()
+        };
+        let scene = Scene {
+            origin,
+            bounds,
+            meshes,
+            positions: vec3s(position_bytes),
+            normals: vec3s(normal_bytes),
+            uvs: uv_bytes.chunks_exact(8).map(|c| [f32_at(c, 0), f32_at(c, 4)]).collect(),
+            indices: index_bytes.chunks_exact(4).map(|c| u32_at(c, 0)).collect(),
+        };
+        scene.validate(path)?;
+        Ok(scene)
+    }
+
+    /// Checks every invariant a renderer relies on: mesh ranges inside the arrays, indices
+    /// inside their mesh, whole triangles, finite attributes, bounds that hold their
+    /// vertices. Errors carry the byte offset the value has (or would have) in the file.
+    pub fn validate(&self, path: &Path) -> Result<(), DatasetError> {
+        let corrupt = |offset: u64, what: String| DatasetError::Corrupt {
+            path: path.to_path_buf(),
+            offset,
+            what,
+        };
+        let vertex_count = self.positions.len() as u64;
+        if self.normals.len() as u64 != vertex_count || self.uvs.len() as u64 != vertex_count {
+            return Err(DatasetError::InvalidInput(format!(
+                "{} positions, {} normals, {} uvs",
+                self.positions.len(),
+                self.normals.len(),
+                self.uvs.len()
+            )));
+        }
+        if self.origin.iter().any(|v| !v.is_finite()) {
+            return Err(corrupt(40, format!("scene origin {:?} is not finite", self.origin)));
+        }
+        let mesh_base = HEADER_BYTES as u64;
+        let positions_base = mesh_base + self.meshes.len() as u64 * MESH_RECORD_BYTES as u64;
+        let normals_base = positions_base + vertex_count * 12;
+        let uvs_base = normals_base + vertex_count * 12;
+        let indices_base = uvs_base + vertex_count * 8;
+        for (i, p) in self.positions.iter().enumerate() {
+            if p.iter().any(|v| !v.is_finite()) {
+                return Err(corrupt(
+                    positions_base + i as u64 * 12,
+                    format!("vertex {i} has non-finite position {p:?}"),
+                ));
+            }
+        }
+        for (i, n) in self.normals.iter().enumerate() {
+            if n.iter().any(|v| !v.is_finite()) {
+                return Err(corrupt(
+                    normals_base + i as u64 * 12,
+                    format!("vertex {i} has non-finite normal {n:?}"),
+                ));
+            }
+        }
+        for (i, uv) in self.uvs.iter().enumerate() {
+            if uv.iter().any(|v| !v.is_finite()) {
+                return Err(corrupt(
+                    uvs_base + i as u64 * 8,
+                    format!("vertex {i} has non-finite uv {uv:?}"),
+                ));
+            }
+        }
+        let mut all = Aabb::EMPTY;
+        for (m, mesh) in self.meshes.iter().enumerate() {
+            let record = mesh_base + m as u64 * MESH_RECORD_BYTES as u64;
+            let vertex_end = u64::from(mesh.first_vertex) + u64::from(mesh.vertex_count);
+            if vertex_end > vertex_count {
+                return Err(corrupt(
+                    record,
+                    format!(
+                        "mesh {m}: vertices {}..{vertex_end} exceed the {vertex_count} vertices",
+                        mesh.first_vertex
+                    ),
+                ));
+            }
+            let index_end = u64::from(mesh.first_index) + u64::from(mesh.index_count);
+            if index_end > self.indices.len() as u64 {
+                return Err(corrupt(
+                    record + 8,
+                    format!(
+                        "mesh {m}: indices {}..{index_end} exceed the {} indices",
+                        mesh.first_index,
+                        self.indices.len()
+                    ),
+                ));
+            }
+            if mesh.index_count % 3 != 0 {
+                return Err(corrupt(
+                    record + 12,
+                    format!("mesh {m}: index count {} is not a multiple of 3", mesh.index_count),
+                ));
+            }
+            let first = mesh.first_index as usize;
+            for (k, &index) in self.indices[first..first + mesh.index_count as usize]
+                .iter()
+                .enumerate()
+            {
+                if index >= mesh.vertex_count {
+                    let at = first + k;
+                    return Err(corrupt(
+                        indices_base + at as u64 * 4,
+                        format!(
+                            "mesh {m}: index {at} is {index}, out of range (the mesh has {} vertices)",
+                            mesh.vertex_count
+                        ),
+                    ));
+                }
+            }
+            if mesh.vertex_count == 0 {
+                continue;
+            }
+            if !mesh.bounds.is_valid() {
+                return Err(corrupt(
+                    record + 20,
+                    format!("mesh {m}: bounds {:?} are not finite and ordered", mesh.bounds),
+                ));
+            }
+            let fv = mesh.first_vertex as usize;
+            for (k, p) in self.positions[fv..fv + mesh.vertex_count as usize].iter().enumerate() {
+                let tolerance = 1e-4 * (1.0 + p.iter().fold(0.0f32, |a, v| a.max(v.abs())));
+                if !mesh.bounds.contains(*p, tolerance) {
+                    return Err(corrupt(
+                        record + 20,
+                        format!(
+                            "mesh {m}: vertex {} at {p:?} lies outside the mesh bounds {:?}",
+                            fv + k,
+                            mesh.bounds
+                        ),
+                    ));
+                }
+            }
+            all.union(&mesh.bounds);
+        }
+        if all.is_valid() {
+            let tolerance = 1e-4 * (1.0 + all.min.iter().chain(&all.max).fold(0.0f32, |a, v| a.max(v.abs())));
+            if !self.bounds.contains(all.min, tolerance) || !self.bounds.contains(all.max, tolerance) {
+                return Err(corrupt(
+                    64,
+                    format!("scene bounds {:?} do not contain the mesh bounds {all:?}", self.bounds),
+                ));
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,563 @@
+//! The streaming task: `UnloadTextures` + `LoadTextures` of Algorithm 1.
+//!
+//! A cycle runs in three steps:
+//!
+//! 1. **Unload**: textures the cache invalidated since the last cycle are
+//!    handed to [`MipSink::unload`] (made unsampleable) and reset to Initial.
+//! 2. **Plan** ([`plan_cycle`]): the sorted records are walked in chunks;
+//!    within a chunk, the per-record work (state lookup, header read of new
+//!    textures, mip length) runs in parallel on the rayon pool, and the
+//!    chunk's results are then taken in priority order: one mip per texture
+//!    per cycle, stopping once the planned batch *exceeds* `s` (Algorithm 1
+//!    checks `loadedBatchSize > s` before each load, so a batch overshoots
+//!    `s` by at most one mip and always holds at least one). Taking results
+//!    in priority order makes the batch the same on every run, whatever the
+//!    thread timing.
+//! 3. **Load**: the planned mips are read in parallel, each with exactly its
+//!    own bytes ([`MipSource::read_mip`]). A worker first claims the texture
+//!    with a compare-and-swap from the planned state; a mip whose claim is
+//!    lost (the cache invalidated the texture meanwhile) or whose turn comes
+//!    after the load-time limit is skipped and left for a later cycle. Read
+//!    mips go to [`MipSink::stage`]; then [`MipSink::end_cycle`].
+//!
+//! A read or header error marks that texture Failed, counts it and keeps its
+//! reason in a bounded log ([`Loader::failures`]); the cycle goes on. A sink
+//! error flagged `invalidated` (the cache reused the region meanwhile)
+//! invalidates the texture instead, so the next cycle unloads it.
+//!
+//! Threading: one cycle at a time, guarded by an atomic flag (Algorithm 1's
+//! `isStreaming`). [`Loader::try_spawn`] runs the cycle on the rayon pool
+//! and returns at once; [`Loader::run_cycle`] runs it on the caller's thread.
+//! All methods take `&self` and the loader is `Sync`.
+
+use std::collections::{HashSet, VecDeque};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use rayon::prelude::*;
+
+use crate::controller::Decision;
+use crate::records::MeshMetaData;
+use crate::source::{MipSink, MipSource, SourceError, StagedMip};
+use crate::states::{next_load, TextureStates, TextureStatus};
+
+/// Table 2: maximum load time of one cycle.
+pub const DEFAULT_LOAD_TIME: Duration = Duration::from_millis(16);
+
+/// Failures kept in the log; older ones are dropped (and still counted).
+pub const FAILURE_LOG_CAPACITY: usize = 1024;
+
+/// Loader parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LoaderOptions {
+    /// Stop starting new reads once the cycle has run this long.
+    pub load_time: Duration,
+    /// Records planned per parallel chunk.
+    pub plan_chunk: usize,
+}
+
+impl Default for LoaderOptions {
+    fn default() -> Self {
+        LoaderOptions {
+            load_time: DEFAULT_LOAD_TIME,
+            plan_chunk: 4096,
+        }
+    }
+}
+
+/// Error building a loader.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum LoaderError {
+    /// The mesh → texture table names a texture that does not exist.
+    #[error("mesh {mesh} maps to texture {texture}, but there are only {textures} textures")]
+    MeshTable {
+        /// Mesh index in the table.
+        mesh: usize,
+        /// The texture it names.
+        texture: u32,
+        /// Number of textures.
+        textures: usize,
+    },
+}
+
+/// A texture that failed to load, and why.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TextureFailure {
+    /// The texture.
+    pub texture: u32,
+    /// The level being read, if the failure was on a mip.
+    pub level: Option<u32>,
+    /// The error, worded.
+    pub reason: String,
+}
+
+/// One mip the plan will load.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PlannedMip {
+    /// The texture.
+    pub texture: u32,
+    /// The level to load.
+    pub level: u32,
+    /// Its bytes.
+    pub bytes: u64,
+    /// The texture's status when planned (claimed by compare-and-swap).
+    pub from: TextureStatus,
+    /// Its status once this mip is loaded.
+    pub to: TextureStatus,
+}
+
+/// What one cycle will load, in priority order.
+#[derive(Clone, Debug, Default)]
+pub struct CyclePlan {
+    /// The mips, highest priority first.
+    pub items: Vec<PlannedMip>,
+    /// Sum of their bytes.
+    pub bytes: u64,
+    /// Records naming a mesh outside the mesh → texture table.
+    pub bad_records: u64,
+    /// Textures whose header or mip length could not be read; already
+    /// marked Failed in the state table.
+    pub failures: Vec<TextureFailure>,
+}
+
+enum Candidate {
+    Nothing,
+    BadRecord,
+    Load(PlannedMip),
+    Failed(TextureFailure),
+}
+
+fn candidate<S: MipSource + ?Sized>(
+    states: &TextureStates,
+    mesh_textures: &[u32],
+    record: &MeshMetaData,
+    mip_bias: f64,
+    source: &S,
+) -> Candidate {
+    let Some(&texture) = mesh_textures.get(record.mesh_id as usize) else {
+        return Candidate::BadRecord;
+    };
+    let Ok(from) = states.get(texture) else {
+        return Candidate::BadRecord;
+    };
+    let next = next_load(from, record.mip_level, mip_bias, || {
+        source.mip_chain(texture).map(|c| c.initial_level())
+    });
+    let fail = |level: Option<u32>, e: SourceError| {
+        Candidate::Failed(TextureFailure {
+            texture,
+            level,
+            reason: e.to_string(),
+        })
+    };
+    match next {
+        Ok(None) => Candidate::Nothing,
+        Ok(Some((level, to))) => match source.mip_len(texture, level) {
+            Ok(bytes) => Candidate::Load(PlannedMip {
+                texture,
+                level,
+                bytes,
+                from,
+                to,
+            }),
+            Err(e) => fail(Some(level), e),
+        },
+        Err(e) => fail(None, e),
+    }
+}
+
+/// Plan one cycle (step 2 of the module docs): which mip of which texture
+/// to load, for the records in priority order, within the decision's load
+/// size and mip bias. Header failures mark their textures Failed.
+pub fn plan_cycle<S: MipSource + ?Sized>(
+    states: &TextureStates,
+    mesh_textures: &[u32],
+    records: &[MeshMetaData],
+    decision: Decision,
+    source: &S,
+    plan_chunk: usize,
+) -> CyclePlan {
+    let mut plan = CyclePlan::default();
+    let mut seen: HashSet<u32> = HashSet::new();
+    for chunk in records.chunks(plan_chunk.max(1)) {
+        let candidates: Vec<Candidate> = chunk
+            .par_iter()
+            .map(|r| candidate(states, mesh_textures, r, decision.mip_bias, source))
+            .collect();
+        for c in candidates {
+            match c {
+                Candidate::Nothing => {}
+                Candidate::BadRecord => plan.bad_records += 1,
+                Candidate::Load(item) => {
+                    if seen.contains(&item.texture) {
+                        continue;
+                    }
+                    if plan.bytes > decision.load_size_bytes {
+                        return plan;
+                    }
+                    seen.insert(item.texture);
+                    plan.bytes += item.bytes;
+                    plan.items.push(item);
+                }
+                Candidate::Failed(f) => {
+                    if seen.insert(f.texture) {
+                        // The id came from the table, so it is in range.
+                        let _ = states.mark_failed(f.texture);
+                        plan.failures.push(f);
+                    }
+                }
+            }
+        }
+    }
+    plan
+}
+
+/// Why a planned mip did not reach the sink.
+enum LoadFailure {
+    /// The texture's cache region went away; it will be reloaded.
+    Invalidated,
+    /// Read or staging failed; the texture is marked failed.
+    Failed(String),
+}
+
+/// What one cycle did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CycleReport {
+    /// Invalidated textures unloaded at the start.
+    pub unloaded: u64,
+    /// Mips planned.
+    pub planned_mips: u64,
+    /// Bytes planned.
+    pub planned_bytes: u64,
+    /// Mips read and staged.
+    pub loaded_mips: u64,
+    /// Bytes read and staged.
+    pub loaded_bytes: u64,
+    /// Planned mips skipped because the load-time limit passed.
+    pub deferred_by_time: u64,
+    /// Planned mips skipped because the texture changed state meanwhile.
+    pub lost_claims: u64,
+    /// Mips the sink refused because the cache invalidated their texture
+    /// meanwhile (the texture is queued for unloading, not failed).
+    pub invalidated_while_loading: u64,
+    /// Textures marked Failed this cycle.
+    pub failed: u64,
+    /// Records naming an unknown mesh.
+    pub bad_records: u64,
+    /// Wall time of the cycle.
+    pub elapsed: Duration,
+}
+
+/// Totals over every cycle since the loader was made.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LoaderTotals {
+    /// Cycles run.
+    pub cycles: u64,
+    /// Mips staged.
+    pub loaded_mips: u64,
+    /// Bytes staged.
+    pub loaded_bytes: u64,
+    /// Textures failed.
+    pub failed: u64,
+    /// Mips deferred by the load-time limit.
+    pub deferred_by_time: u64,
+    /// Records naming an unknown mesh.
+    pub bad_records: u64,
+}
+
+#[derive(Debug, Default)]
+struct Counters {
+    cycles: AtomicU64,
+    loaded_mips: AtomicU64,
+    loaded_bytes: AtomicU64,
+    failed: AtomicU64,
+    deferred_by_time: AtomicU64,
+    bad_records: AtomicU64,
+}
+
+#[derive(Debug)]
+struct Inner<S, K> {
+    source: S,
+    sink: K,
+    states: Arc<TextureStates>,
+    mesh_textures: Vec<u32>,
+    options: LoaderOptions,
+    streaming: AtomicBool,
+    counters: Counters,
+    failures: Mutex<VecDeque<TextureFailure>>,
+    reports_tx: crossbeam::channel::Sender<CycleReport>,
+    reports_rx: crossbeam::channel::Receiver<CycleReport>,
+}
+
+/// Clears the streaming flag when the cycle ends, even by panic.
+struct StreamingGuard<'a>(&'a AtomicBool);
+
+impl Drop for StreamingGuard<'_> {
+    fn drop(&mut self) {
+        self.0.store(false, Ordering::Release);
+    }
+}
+
+/// The streaming task of Algorithm 1 over a source and a sink.
+#[derive(Debug)]
+pub struct Loader<S, K> {
+    inner: Arc<Inner<S, K>>,
+}
+
+impl<S, K> Clone for Loader<S, K> {
+    fn clone(&self) -> Self {
+        Loader {
+            inner: Arc::clone(&self.inner),
+        }
+    }
+}
+
+impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
+    /// A loader for `texture_count` textures (all Initial); `mesh_textures`
+    /// maps a record's mesh id to its texture.
+    pub fn new(
+        source: S,
+        sink: K,
+        mesh_textures: Vec<u32>,
+        texture_count: usize,
+        options: LoaderOptions,
+    ) -> Result<Self, LoaderError> {
+        let states = Arc::new(TextureStates::new(texture_count));
+        Self::with_states(source, sink, mesh_textures, states, options)
+    }
+
+    /// A loader over existing texture states (create them first when the
+    /// sink needs a handle to invalidate textures from inside a cycle).
+    pub fn with_states(
+        source: S,
+        sink: K,
+        mesh_textures: Vec<u32>,
+        states: Arc<TextureStates>,
+        options: LoaderOptions,
+    ) -> Result<Self, LoaderError> {
+        let texture_count = states.len();
+        if let Some((mesh, &texture)) = mesh_textures
+            .iter()
+            .enumerate()
+            .find(|(_, &t)| t as usize >= texture_count)
+        {
+            return Err(LoaderError::MeshTable {
+                mesh,
+                texture,
+                textures: texture_count,
+            });
+        }
+        let (reports_tx, reports_rx) = crossbeam::channel::unbounded();
+        Ok(Loader {
+            inner: Arc::new(Inner {
+                source,
+                sink,
+                states,
+                mesh_textures,
+                options,
+                streaming: AtomicBool::new(false),
+                counters: Counters::default(),
+                failures: Mutex::new(VecDeque::new()),
+                reports_tx,
+                reports_rx,
+            }),
+        })
+    }
+
+    /// The texture states (the cache calls [`TextureStates::invalidate`]).
+    pub fn states(&self) -> &TextureStates {
+        &self.inner.states
+    }
+
+    /// A shared handle to the texture states.
+    pub fn states_handle(&self) -> Arc<TextureStates> {
+        Arc::clone(&self.inner.states)
+    }
+
+    /// The sink.
+    pub fn sink(&self) -> &K {
+        &self.inner.sink
+    }
+
+    /// The source.
+    pub fn source(&self) -> &S {
+        &self.inner.source
+    }
+
+    /// Whether a cycle is running (Algorithm 1's `isStreaming`).
+    pub fn is_streaming(&self) -> bool {
+        self.inner.streaming.load(Ordering::Acquire)
+    }
+
+    fn try_acquire(&self) -> bool {
+        self.inner
+            .streaming
+            .compare_exchange(false, true, Ordering::AcqRel, Ordering::Acquire)
+            .is_ok()
+    }
+
+    /// Start a cycle on the rayon pool for `records` (already filtered and
+    /// sorted) and return at once; `false` if a cycle is still running.
+    /// The cycle's report arrives through [`Loader::try_recv_report`].
+    pub fn try_spawn(&self, records: Vec<MeshMetaData>, decision: Decision) -> bool {
+        if !self.try_acquire() {
+            return false;
+        }
+        let inner = Arc::clone(&self.inner);
+        rayon::spawn(move || {
+            let _guard = StreamingGuard(&inner.streaming);
+            let report = inner.cycle(&records, decision);
+            // The receiver lives in `inner` itself, so sending cannot fail.
+            let _ = inner.reports_tx.send(report);
+        });
+        true
+    }
+
+    /// Run a cycle on this thread; `None` if a cycle is already running.
+    pub fn run_cycle(&self, records: &[MeshMetaData], decision: Decision) -> Option<CycleReport> {
+        if !self.try_acquire() {
+            return None;
+        }
+        let _guard = StreamingGuard(&self.inner.streaming);
+        Some(self.inner.cycle(records, decision))
+    }
+
+    /// The report of a spawned cycle that finished, if any.
+    pub fn try_recv_report(&self) -> Option<CycleReport> {
+        self.inner.reports_rx.try_recv().ok()
+    }
+
+    /// Wait up to `timeout` for a spawned cycle's report.
+    pub fn recv_report_timeout(&self, timeout: Duration) -> Option<CycleReport> {
+        self.inner.reports_rx.recv_timeout(timeout).ok()
+    }
+
+    /// Totals over all cycles.
+    pub fn totals(&self) -> LoaderTotals {
+        let c = &self.inner.counters;
+        LoaderTotals {
+            cycles: c.cycles.load(Ordering::Relaxed),
+            loaded_mips: c.loaded_mips.load(Ordering::Relaxed),
+            loaded_bytes: c.loaded_bytes.load(Ordering::Relaxed),
+            failed: c.failed.load(Ordering::Relaxed),
+            deferred_by_time: c.deferred_by_time.load(Ordering::Relaxed),
+            bad_records: c.bad_records.load(Ordering::Relaxed),
+        }
+    }
+
+    /// The most recent failures (up to [`FAILURE_LOG_CAPACITY`]), oldest first.
+    pub fn failures(&self) -> Vec<TextureFailure> {
+        self.inner.failure_log().iter().cloned().collect()
+    }
+}
+
+impl<S: MipSource, K: MipSink> Inner<S, K> {
+    fn failure_log(&self) -> std::sync::MutexGuard<'_, VecDeque<TextureFailure>> {
+        self.failures.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn record_failure(&self, failure: TextureFailure) {
+        self.counters.failed.fetch_add(1, Ordering::Relaxed);
+        let mut log = self.failure_log();
+        if log.len() == FAILURE_LOG_CAPACITY {
+            log.pop_front();
+        }
+        log.push_back(failure);
+    }
+
+    fn cycle(&self, records: &[MeshMetaData], decision: Decision) -> CycleReport {
+        let start = Instant::now();
+        let unloaded = self.states.unload_invalidated(|texture| self.sink.unload(texture)) as u64;
+        let plan = plan_cycle(
+            &self.states,
+            &self.mesh_textures,
+            records,
+            decision,
+            &self.source,
+            self.options.plan_chunk,
+        );
+        let header_failures = plan.failures.len() as u64;
+        for f in plan.failures.iter().cloned() {
+            self.record_failure(f);
+        }
+        let loaded_mips = AtomicU64::new(0);
+        let loaded_bytes = AtomicU64::new(0);
+        let deferred = AtomicU64::new(0);
+        let lost = AtomicU64::new(0);
+        let read_failures = AtomicU64::new(0);
+        let invalidated = AtomicU64::new(0);
+        plan.items.par_iter().for_each(|item| {
+            if start.elapsed() > self.options.load_time {
+                deferred.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            if !matches!(self.states.try_transition(item.texture, item.from, item.to), Ok(true)) {
+                lost.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            match self.load(item) {
+                Ok(()) => {
+                    loaded_mips.fetch_add(1, Ordering::Relaxed);
+                    loaded_bytes.fetch_add(item.bytes, Ordering::Relaxed);
+                }
+                Err(LoadFailure::Invalidated) => {
+                    let _ = self.states.invalidate(item.texture);
+                    invalidated.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(LoadFailure::Failed(reason)) => {
+                    let _ = self.states.mark_failed(item.texture);
+                    read_failures.fetch_add(1, Ordering::Relaxed);
+                    self.record_failure(TextureFailure {
+                        texture: item.texture,
+                        level: Some(item.level),
+                        reason,
+                    });
+                }
+            }
+        });
+        self.sink.end_cycle();
+        let report = CycleReport {
+            unloaded,
+            planned_mips: plan.items.len() as u64,
+            planned_bytes: plan.bytes,
+            loaded_mips: loaded_mips.into_inner(),
+            loaded_bytes: loaded_bytes.into_inner(),
+            deferred_by_time: deferred.into_inner(),
+            lost_claims: lost.into_inner(),
+            invalidated_while_loading: invalidated.into_inner(),
+            failed: header_failures + read_failures.into_inner(),
+            bad_records: plan.bad_records,
+            elapsed: start.elapsed(),
+        };
+        let c = &self.counters;
+        c.cycles.fetch_add(1, Ordering::Relaxed);
+        c.loaded_mips.fetch_add(report.loaded_mips, Ordering::Relaxed);
+        c.loaded_bytes.fetch_add(report.loaded_bytes, Ordering::Relaxed);
+        c.deferred_by_time.fetch_add(report.deferred_by_time, Ordering::Relaxed);
+        c.bad_records.fetch_add(report.bad_records, Ordering::Relaxed);
+        report
+    }
+
+    fn load(&self, item: &PlannedMip) -> Result<(), LoadFailure> {
+        let len = usize::try_from(item.bytes)
+            .map_err(|_| LoadFailure::Failed(format!("mip of {} bytes does not fit in memory", item.bytes)))?;
+        let mut bytes = vec![0u8; len];
+        self.source
+            .read_mip(item.texture, item.level, &mut bytes)
+            .map_err(|e| LoadFailure::Failed(e.to_string()))?;
+        self.sink
+            .stage(StagedMip {
+                texture: item.texture,
+                level: item.level,
+                bytes,
+            })
+            .map_err(|e| {
+                if e.invalidated {
+                    LoadFailure::Invalidated
+                } else {
+                    LoadFailure::Failed(e.to_string())
+                }
+            })
+    }
+}

@@ -1,0 +1,356 @@
+//! Where mip bytes come from ([`MipSource`]) and where staged mips go
+//! ([`MipSink`]), with in-memory implementations for tests and tools.
+//!
+//! The file-backed dataset reader implements [`MipSource`] with one
+//! positioned read per mip; the engine's uploader implements [`MipSink`]
+//! (records the copy into the sparse image and the memory binding).
+
+use std::sync::Mutex;
+
+use crate::states::MipChain;
+
+/// Error reading a texture's header or a mip.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// No such texture in the source.
+    #[error("texture {texture} does not exist in the source")]
+    UnknownTexture {
+        /// The texture asked for.
+        texture: u32,
+    },
+    /// The level is beyond the texture's mip chain.
+    #[error("texture {texture} has {mip_count} mip levels; level {level} does not exist")]
+    UnknownLevel {
+        /// The texture.
+        texture: u32,
+        /// The level asked for.
+        level: u32,
+        /// Levels the texture has.
+        mip_count: u32,
+    },
+    /// The buffer does not match the mip's length.
+    #[error("texture {texture} level {level} is {expected} bytes; buffer holds {got}")]
+    LengthMismatch {
+        /// The texture.
+        texture: u32,
+        /// The level.
+        level: u32,
+        /// Bytes the mip has.
+        expected: u64,
+        /// Bytes the buffer has.
+        got: u64,
+    },
+    /// The file ended before the mip did.
+    #[error("short read of texture {texture} level {level}: {got} of {expected} bytes")]
+    ShortRead {
+        /// The texture.
+        texture: u32,
+        /// The level.
+        level: u32,
+        /// Bytes wanted.
+        expected: u64,
+        /// Bytes read.
+        got: u64,
+    },
+    /// Any other I/O failure (missing file, permissions, device error).
+    #[error("reading texture {texture} level {level}: {source}")]
+    Io {
+        /// The texture.
+        texture: u32,
+        /// The level.
+        level: u32,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Anything else the source reports, already worded.
+    #[error("texture {texture}: {reason}")]
+    Other {
+        /// The texture.
+        texture: u32,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+/// Reads texture headers and exactly one mip at a time.
+///
+/// Threading: called concurrently from loader worker threads (`Sync`);
+/// implementations use positioned reads, not a shared cursor.
+pub trait MipSource: Send + Sync {
+    /// Extent and mip count of `texture` (`LoadImageMetaDatum`).
+    fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError>;
+    /// Bytes of `level` of `texture`.
+    fn mip_len(&self, texture: u32, level: u32) -> Result<u64, SourceError>;
+    /// Read `level` of `texture` into `buf`, whose length must equal
+    /// [`MipSource::mip_len`]; a shorter file is [`SourceError::ShortRead`].
+    fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError>;
+}
+
+/// A mip read from the source, handed to the sink.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct StagedMip {
+    /// The texture.
+    pub texture: u32,
+    /// The level (0 = base).
+    pub level: u32,
+    /// The mip's bytes, exactly as stored.
+    pub bytes: Vec<u8>,
+}
+
+/// Error from a sink. With `invalidated` set (the cache reused the
+/// texture's region while the mip was being loaded) the loader invalidates
+/// the texture, so it is unloaded and later loaded again; otherwise it
+/// marks the texture failed. Either way the cycle goes on.
+#[derive(Debug, thiserror::Error)]
+#[error("sink rejected texture {texture} level {level}: {reason}")]
+pub struct SinkError {
+    /// The texture.
+    pub texture: u32,
+    /// The level.
+    pub level: u32,
+    /// Why.
+    pub reason: String,
+    /// The texture's cache region is gone; not a failure of the texture.
+    pub invalidated: bool,
+}
+
+/// Receives staged mips (`CopyToSparseImage`) and unload requests
+/// (`UnloadTextures`).
+///
+/// Threading: `stage` is called concurrently from loader workers during a
+/// cycle; `unload` and `end_cycle` from the cycle's own thread, `unload`
+/// before any `stage` of that cycle and `end_cycle` after the last one.
+pub trait MipSink: Send + Sync {
+    /// Take one loaded mip (record its copy and binding).
+    fn stage(&self, mip: StagedMip) -> Result<(), SinkError>;
+    /// Make an invalidated texture unsampleable in the shader.
+    fn unload(&self, texture: u32);
+    /// The cycle is over: submit what was recorded. Default: nothing.
+    fn end_cycle(&self) {}
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // A panic while holding the lock cannot leave these plain vectors
+    // half-updated, so the data stays usable.
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// A sink that keeps everything in memory, for tests and tools.
+#[derive(Debug, Default)]
+pub struct MemorySink {
+    staged: Mutex<Vec<StagedMip>>,
+    unloaded: Mutex<Vec<u32>>,
+    cycles: Mutex<u64>,
+}
+
+impl MemorySink {
+    /// An empty sink.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Take the mips staged so far.
+    pub fn take_staged(&self) -> Vec<StagedMip> {
+        std::mem::take(&mut *lock(&self.staged))
+    }
+
+    /// Textures unloaded so far, in call order.
+    pub fn unloaded(&self) -> Vec<u32> {
+        lock(&self.unloaded).clone()
+    }
+
+    /// Cycles ended so far.
+    pub fn cycles(&self) -> u64 {
+        *lock(&self.cycles)
+    }
+}
+
+impl MipSink for MemorySink {
+    fn stage(&self, mip: StagedMip) -> Result<(), SinkError> {
+        lock(&self.staged).push(mip);
+        Ok(())
+    }
+
+    fn unload(&self, texture: u32) {
+        lock(&self.unloaded).push(texture);
+    }
+
+    fn end_cycle(&self) {
+        *lock(&self.cycles) += 1;
+    }
+}
+
+/// Bytes of a BC1 (8 bytes per 4×4 block) mip of the given extent.
+pub fn bc1_mip_len(width: u32, height: u32) -> u64 {
+    u64::from(width.div_ceil(4)) * u64::from(height.div_ceil(4)) * 8
+}
+
+/// A source holding BC1 mip chains in memory; each byte is a function of
+/// (texture, level, offset) so tests can check what arrived. Mips can be
+/// removed or truncated to inject the failures a file source would have.
+#[derive(Debug, Default)]
+pub struct MemorySource {
+    textures: Vec<MemoryTexture>,
+}
+
+#[derive(Debug)]
+struct MemoryTexture {
+    chain: MipChain,
+    mips: Vec<Option<Vec<u8>>>,
+}
+
+/// The byte [`MemorySource`] stores at `offset` of `level` of `texture`.
+pub fn pattern_byte(texture: u32, level: u32, offset: usize) -> u8 {
+    (texture.wrapping_mul(31) ^ level.wrapping_mul(7) ^ offset as u32) as u8
+}
+
+impl MemorySource {
+    /// An empty source.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Add a full BC1 mip chain of `width`×`height`; returns its id.
+    pub fn push_bc1(&mut self, width: u32, height: u32) -> u32 {
+        let id = self.textures.len() as u32;
+        let width = width.max(1);
+        let height = height.max(1);
+        let mip_count = 32 - width.max(height).leading_zeros();
+        let chain = MipChain {
+            width,
+            height,
+            mip_count,
+        };
+        let mips = (0..mip_count)
+            .map(|level| {
+                let (w, h) = chain.level_extent(level);
+                let len = bc1_mip_len(w, h) as usize;
+                Some((0..len).map(|o| pattern_byte(id, level, o)).collect())
+            })
+            .collect();
+        self.textures.push(MemoryTexture { chain, mips });
+        id
+    }
+
+    /// Make `level` of `texture` missing (reads fail with an I/O error).
+    pub fn remove_mip(&mut self, texture: u32, level: u32) {
+        if let Some(m) = self
+            .textures
+            .get_mut(texture as usize)
+            .and_then(|t| t.mips.get_mut(level as usize))
+        {
+            *m = None;
+        }
+    }
+
+    /// Cut `level` of `texture` to `len` bytes (reads fail as short reads).
+    pub fn truncate_mip(&mut self, texture: u32, level: u32, len: usize) {
+        if let Some(Some(m)) = self
+            .textures
+            .get_mut(texture as usize)
+            .and_then(|t| t.mips.get_mut(level as usize))
+        {
+            m.truncate(len);
+        }
+    }
+
+    fn texture(&self, texture: u32) -> Result<&MemoryTexture, SourceError> {
+        self.textures
+            .get(texture as usize)
+            .ok_or(SourceError::UnknownTexture { texture })
+    }
+}
+
+impl MipSource for MemorySource {
+    fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError> {
+        Ok(self.texture(texture)?.chain)
+    }
+
+    fn mip_len(&self, texture: u32, level: u32) -> Result<u64, SourceError> {
+        let t = self.texture(texture)?;
+        if level >= t.chain.mip_count {
+            return Err(SourceError::UnknownLevel {
+                texture,
+                level,
+                mip_count: t.chain.mip_count,
+            });
+        }
+        let (w, h) = t.chain.level_extent(level);
+        Ok(bc1_mip_len(w, h))
+    }
+
+    fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {
+        let expected = self.mip_len(texture, level)?;
+        if buf.len() as u64 != expected {
+            return Err(SourceError::LengthMismatch {
+                texture,
+                level,
+                expected,
+                got: buf.len() as u64,
+            });
+        }
+        let stored = self
+            .texture(texture)?
+            .mips
+            .get(level as usize)
+            .and_then(Option::as_ref)
+            .ok_or_else(|| SourceError::Io {
+                texture,
+                level,
+                source: std::io::Error::new(std::io::ErrorKind::NotFound, "mip data missing"),
+            })?;
+        if (stored.len() as u64) < expected {
+            return Err(SourceError::ShortRead {
+                texture,
+                level,
+                expected,
+                got: stored.len() as u64,
+            });
+        }
+        buf.copy_from_slice(&stored[..buf.len()]);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bc1_sizes_by_hand() {
+        // 512² BC1: 128·128 blocks · 8 B = 131072 B; 4×4 and 1×1 are one block.
+        assert_eq!(bc1_mip_len(512, 512), 131_072);
+        assert_eq!(bc1_mip_len(4, 4), 8);
+        assert_eq!(bc1_mip_len(1, 1), 8);
+        assert_eq!(bc1_mip_len(4, 32), 64);
+    }
+
+    #[test]
+    fn memory_source_reads_and_fails_as_files_do() {
+        let mut s = MemorySource::new();
+        let t = s.push_bc1(16, 16);
+        assert_eq!(s.mip_chain(t).map(|c| c.mip_count).ok(), Some(5));
+        let mut buf = vec![0; 32];
+        assert!(s.read_mip(t, 0, &mut buf).is_err(), "wrong length");
+        let mut buf = vec![0; 128];
+        s.read_mip(t, 0, &mut buf).expect("present");
+        assert_eq!(buf[5], pattern_byte(t, 0, 5));
+        s.truncate_mip(t, 0, 100);
+        assert!(matches!(
+            s.read_mip(t, 0, &mut buf),
+            Err(SourceError::ShortRead { got: 100, .. })
+        ));
+        s.remove_mip(t, 1);
+        let mut buf = vec![0; 32];
+        assert!(matches!(s.read_mip(t, 1, &mut buf), Err(SourceError::Io { .. })));
+        assert!(matches!(
+            s.mip_len(t, 5),
+            Err(SourceError::UnknownLevel { mip_count: 5, .. })
+        ));
+        assert!(matches!(
+            s.mip_chain(9),
+            Err(SourceError::UnknownTexture { texture: 9 })
+        ));
+    }
+}

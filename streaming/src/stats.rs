@@ -1,0 +1,212 @@
+//! Summary statistics with the keys of the paper's Table 3 rows, shared by
+//! `citystream simulate` and the engine's flythrough `summary.json`.
+
+use serde::Serialize;
+
+/// Median, mean, maximum and minimum of a series.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Stats {
+    /// Middle value (mean of the two middle values for an even count).
+    pub median: f64,
+    /// Arithmetic mean.
+    pub mean: f64,
+    /// Largest value.
+    pub max: f64,
+    /// Smallest value.
+    pub min: f64,
+}
+
+impl Stats {
+    /// Statistics of the finite samples; non-finite samples are skipped and
+    /// an empty (or all non-finite) series gives all zeros.
+    pub fn from_samples(samples: &[f64]) -> Stats {
+        let mut v: Vec<f64> = samples.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            return Stats::default();
+        }
+        v.sort_unstable_by(f64::total_cmp);
+        let n = v.len();
+        let median = if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        };
+        let mean = v.iter().sum::<f64>() / n as f64;
+        Stats {
+            median,
+            mean,
+            max: v[n - 1],
+            min: v[0],
+        }
+    }
+}
+
+/// A streaming run summarised like a row group of the paper's Table 3.
+/// The JSON keys are an interface (`citystream simulate --json` and the
+/// flythrough's `summary.json`); do not rename them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Summary {
+    /// Frames rendered.
+    pub frames: u64,
+    /// Texture bytes streamed (loaded and submitted) over the run.
+    pub bytes_streamed: u64,
+    /// Frame latency in ms, per frame.
+    pub frame_ms: Stats,
+    /// Weighted maximum frame latency `t_w` in ms, per frame.
+    pub tw_ms: Stats,
+    /// Mipmaps streamed per second, per sampling window.
+    pub mips_per_s: Stats,
+    /// MB (2^20 bytes) streamed per second, per sampling window.
+    pub mb_per_s: Stats,
+    /// Load size `s` in MB, per frame.
+    pub load_size_mb: Stats,
+    /// Mipmap bias `b`, per frame.
+    pub mip_bias: Stats,
+}
+
+/// The paper's sampling interval for transfer rates (§4.2: "we capture a
+/// measurement at every 0.10423 s interval").
+pub const RATE_WINDOW_S: f64 = 0.10423;
+
+/// Collects per-frame samples and turns them into a [`Summary`].
+///
+/// Transfer rates are counted per [`RATE_WINDOW_S`] window of the run's own
+/// clock: what completed in the window divided by its length; windows in
+/// which nothing was rendered (inside a long frame) count as zero.
+#[derive(Clone, Debug, Default)]
+pub struct SummaryBuilder {
+    frame_ms: Vec<f64>,
+    tw_ms: Vec<f64>,
+    load_size_mb: Vec<f64>,
+    mip_bias: Vec<f64>,
+    window_mips: Vec<u64>,
+    window_bytes: Vec<u64>,
+    clock_s: f64,
+    bytes_streamed: u64,
+}
+
+impl SummaryBuilder {
+    /// An empty builder.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Record one frame: its latency, the policy's `t_w`, `s` and `b` for it,
+    /// and the mips and bytes whose streaming completed during it.
+    pub fn push_frame(&mut self, frame_ms: f64, tw_ms: f64, load_size_mb: f64, mip_bias: f64, mips: u64, bytes: u64) {
+        self.frame_ms.push(frame_ms);
+        self.tw_ms.push(tw_ms);
+        self.load_size_mb.push(load_size_mb);
+        self.mip_bias.push(mip_bias);
+        if frame_ms.is_finite() && frame_ms > 0.0 {
+            self.clock_s += frame_ms / 1000.0;
+        }
+        // Completions land at the end of the frame.
+        let window = (self.clock_s / RATE_WINDOW_S) as usize;
+        if self.window_mips.len() <= window {
+            self.window_mips.resize(window + 1, 0);
+            self.window_bytes.resize(window + 1, 0);
+        }
+        self.window_mips[window] += mips;
+        self.window_bytes[window] += bytes;
+        self.bytes_streamed += bytes;
+    }
+
+    /// Seconds covered by the frames pushed so far.
+    pub fn elapsed_s(&self) -> f64 {
+        self.clock_s
+    }
+
+    /// The summary. The last, partial window is left out of the rates
+    /// unless it is the only one.
+    pub fn finish(&self) -> Summary {
+        let full = (self.clock_s / RATE_WINDOW_S) as usize;
+        let n = full.clamp(1, self.window_mips.len().max(1));
+        let rate = |v: &[u64], scale: f64| -> Vec<f64> {
+            (0..n)
+                .map(|i| v.get(i).copied().unwrap_or(0) as f64 * scale / RATE_WINDOW_S)
+                .collect()
+        };
+        Summary {
+            frames: self.frame_ms.len() as u64,
+            bytes_streamed: self.bytes_streamed,
+            frame_ms: Stats::from_samples(&self.frame_ms),
+            tw_ms: Stats::from_samples(&self.tw_ms),
+            mips_per_s: Stats::from_samples(&rate(&self.window_mips, 1.0)),
+            mb_per_s: Stats::from_samples(&rate(&self.window_bytes, 1.0 / crate::controller::BYTES_PER_MB)),
+            load_size_mb: Stats::from_samples(&self.load_size_mb),
+            mip_bias: Stats::from_samples(&self.mip_bias),
+        }
+    }
+}
+
+/// The paper's Table 3 layout for several runs: one block per run with
+/// the rows frame latency, `t_w`, Mip/s, MB/s, `s` and `b`, and the columns
+/// median, average and max.
+pub fn table3(runs: &[(&str, &Summary)]) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ = writeln!(out, "{:<28}{:>12}{:>12}{:>12}", "", "Median", "Average", "Max");
+    for (name, s) in runs {
+        let _ = writeln!(
+            out,
+            "{name} ({} frames, {:.1} MB streamed)",
+            s.frames,
+            s.bytes_streamed as f64 / crate::controller::BYTES_PER_MB
+        );
+        for (label, st) in [
+            ("Frame latency (ms)", &s.frame_ms),
+            ("t_w latency (ms)", &s.tw_ms),
+            ("Transfer rate (Mip/s)", &s.mips_per_s),
+            ("Transfer rate (MB/s)", &s.mb_per_s),
+            ("Load size s (MB)", &s.load_size_mb),
+            ("Mipmap bias b", &s.mip_bias),
+        ] {
+            let _ = writeln!(out, "  {label:<26}{:>12.2}{:>12.2}{:>12.2}", st.median, st.mean, st.max);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stats_by_hand() {
+        // Sorted: 1 2 3 10 → median (2 + 3)/2 = 2.5, mean 16/4 = 4.
+        let s = Stats::from_samples(&[3.0, 1.0, 10.0, 2.0, f64::NAN]);
+        assert_eq!(
+            s,
+            Stats {
+                median: 2.5,
+                mean: 4.0,
+                max: 10.0,
+                min: 1.0
+            }
+        );
+        assert_eq!(Stats::from_samples(&[5.0, 1.0, 2.0]).median, 2.0);
+        assert_eq!(Stats::from_samples(&[]), Stats::default());
+    }
+
+    #[test]
+    fn rates_per_window() {
+        // Eleven 20 ms frames end at 0.02, 0.04, …, 0.22 s. Frames 0–4 (ending
+        // at ≤ 0.10 s, window 0) stream one 1 MiB mip each, the rest nothing.
+        // Window 1 (0.10423–0.20846 s) holds frames 5–9: zero. Frame 10 ends
+        // in the partial third window, which is left out.
+        let mut b = SummaryBuilder::new();
+        for i in 0..11 {
+            let (m, by) = if i < 5 { (1, 1 << 20) } else { (0, 0) };
+            b.push_frame(20.0, 1.0, 1.0, 0.0, m, by);
+        }
+        let s = b.finish();
+        assert_eq!(s.frames, 11);
+        assert_eq!(s.bytes_streamed, 5 << 20);
+        // 5 mips / 0.10423 s = 47.971 mip/s in window 0, 0 in window 1.
+        assert!((s.mips_per_s.max - 5.0 / 0.10423).abs() < 1e-9, "{s:?}");
+        assert_eq!(s.mips_per_s.min, 0.0);
+        assert!((s.mips_per_s.mean - 2.5 / 0.10423).abs() < 1e-9);
+        assert!((s.mb_per_s.mean - s.mips_per_s.mean).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,397 @@
+//! Every kind of damaged dataset gives a typed error naming the file and the offset or index
+//! at fault, and nothing panics.
+
+mod dataset_support;
+
+use std::path::Path;
+
+use citystream_streaming::dataset::{
+    verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, COLORMAP_FILE, META_FILE,
+    PACK_FILE, SCENE_FILE,
+};
+use dataset_support::{copy_dir, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES};
+
+/// Byte offset of texture `i`'s record in `textures.meta`.
+fn record(i: usize) -> usize {
+    32 + 10 * i
+}
+
+fn open_err(dir: &Path) -> DatasetError {
+    match Dataset::open(dir) {
+        Ok(_) => panic!("{} opened although it is damaged", dir.display()),
+        Err(e) => e,
+    }
+}
+
+fn damaged(name: &str, file: &str, edit: impl FnOnce(&mut Vec<u8>)) -> std::path::PathBuf {
+    let fixture = write_fixture(&format!("{name}-src"));
+    let dir = copy_dir(&fixture.dir, name);
+    patch(&dir.join(file), edit);
+    dir
+}
+
+fn assert_names(err: &DatasetError, file: &str, needles: &[&str]) {
+    let message = err.to_string();
+    assert!(message.contains(file), "error does not name {file}: {message}");
+    for needle in needles {
+        assert!(message.contains(needle), "error lacks {needle:?}: {message}");
+    }
+}
+
+#[test]
+fn missing_files_are_named() {
+    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE] {
+        let fixture = write_fixture(&format!("missing-{file}"));
+        std::fs::remove_file(fixture.dir.join(file)).expect("remove");
+        let err = open_err(&fixture.dir);
+        assert!(
+            matches!(err, DatasetError::Missing { ref path } if path.ends_with(file)),
+            "{err}"
+        );
+        assert_names(&err, file, &["missing"]);
+    }
+    let fixture = write_fixture("missing-crc");
+    std::fs::remove_file(fixture.dir.join("textures.crc")).expect("remove");
+    let err = verify(&fixture.dir).expect_err("verify without checksums");
+    assert!(matches!(err, DatasetError::Missing { .. }), "{err}");
+    assert_names(&err, "textures.crc", &[]);
+}
+
+#[test]
+fn wrong_magic_is_reported_for_each_file() {
+    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE] {
+        let dir = damaged(&format!("magic-{file}"), file, |b| b[0..8].copy_from_slice(b"NOTADATA"));
+        let err = open_err(&dir);
+        assert!(matches!(err, DatasetError::BadMagic { .. }), "{file}: {err}");
+        assert_names(&err, file, &["NOTADATA", "offset 0"]);
+    }
+}
+
+#[test]
+fn unsupported_version_is_reported() {
+    let dir = damaged("version", META_FILE, |b| b[8..12].copy_from_slice(&7u32.to_le_bytes()));
+    let err = open_err(&dir);
+    assert!(
+        matches!(
+            err,
+            DatasetError::UnsupportedVersion {
+                found: 7,
+                supported: 1,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    assert_names(&err, META_FILE, &["version 7"]);
+}
+
+#[test]
+fn truncated_pack_fails_at_open_and_in_verify() {
+    let dir = damaged("truncated-pack", PACK_FILE, |b| b.truncate(b.len() - 100));
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Truncated { .. }), "{err}");
+    assert_names(&err, PACK_FILE, &["truncated"]);
+    let err = verify(&dir).expect_err("verify of truncated pack");
+    assert_names(&err, PACK_FILE, &[]);
+
+    let dir = damaged("truncated-pack-header", PACK_FILE, |b| b.truncate(20));
+    let err = open_err(&dir);
+    assert!(
+        matches!(
+            err,
+            DatasetError::Truncated {
+                end: 64,
+                file_len: 20,
+                ..
+            }
+        ),
+        "{err}"
+    );
+}
+
+#[test]
+fn pack_shrinking_after_open_gives_a_truncation_error_on_read() -> Result<(), DatasetError> {
+    let fixture = write_fixture("shrink-after-open");
+    let pack = TexturePack::open(&fixture.dir)?;
+    let last = pack.len() - 1;
+    let file = std::fs::OpenOptions::new()
+        .write(true)
+        .open(fixture.dir.join(PACK_FILE))
+        .expect("open pack");
+    file.set_len(pack.pack_len() - 1).expect("truncate");
+    let mut buf = Vec::new();
+    // The last level of the last texture holds the pack's final byte.
+    let level = pack.textures()[last as usize].mip_count() - 1;
+    let location = pack.mip_location(last, level)?;
+    let err = pack.read_mip(last, level, &mut buf).expect_err("read past the end");
+    assert!(
+        matches!(err, DatasetError::Truncated { offset, .. } if offset == location.offset),
+        "{err}"
+    );
+    assert_names(&err, PACK_FILE, &[&location.offset.to_string()]);
+    // Earlier mips are still readable.
+    pack.read_mip(last, 0, &mut buf)?;
+    Ok(())
+}
+
+#[test]
+fn corrupt_table_bytes_fail_the_checksum() {
+    let dir = damaged("meta-checksum", META_FILE, |b| b[record(1)] ^= 0x40);
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Checksum { .. }), "{err}");
+    assert_names(&err, META_FILE, &["checksum"]);
+
+    let dir = damaged("scene-checksum", SCENE_FILE, |b| {
+        let n = b.len();
+        b[n - 1] ^= 1;
+    });
+    assert!(matches!(open_err(&dir), DatasetError::Checksum { .. }));
+}
+
+#[test]
+fn offset_past_the_end_names_texture_and_record() {
+    let dir = damaged("offset-past-end", META_FILE, |b| {
+        let r = record(3);
+        b[r..r + 6].copy_from_slice(&[0, 0, 0, 0, 1, 0]); // 2^32: far past the end
+        fix_table_crc(b);
+    });
+    let err = open_err(&dir);
+    assert!(
+        matches!(err, DatasetError::Corrupt { offset, .. } if offset == record(3) as u64),
+        "{err}"
+    );
+    assert_names(&err, META_FILE, &["texture 3", "4294967296", "outside"]);
+    let err = verify(&dir).expect_err("verify");
+    assert_names(&err, META_FILE, &["texture 3"]);
+}
+
+#[test]
+fn offset_inside_the_header_is_rejected() {
+    let dir = damaged("offset-in-header", META_FILE, |b| {
+        let r = record(0);
+        b[r..r + 6].copy_from_slice(&[8, 0, 0, 0, 0, 0]);
+        fix_table_crc(b);
+    });
+    assert_names(&open_err(&dir), META_FILE, &["texture 0", "outside"]);
+}
+
+#[test]
+fn overlapping_chains_are_found_by_verify() {
+    // Point texture 2 at texture 1's chain (valid on its own, but overlapping).
+    let fixture = write_fixture("overlap-src");
+    let pack = TexturePack::open(&fixture.dir).expect("open");
+    let offset_1 = pack.textures()[1].offset();
+    drop(pack);
+    let dir = copy_dir(&fixture.dir, "overlap");
+    patch(&dir.join(META_FILE), |b| {
+        let r = record(2);
+        b[r..r + 6].copy_from_slice(&offset_1.to_le_bytes()[..6]);
+        fix_table_crc(b);
+    });
+    Dataset::open(&dir).expect("each record on its own is in range");
+    let err = verify(&dir).expect_err("verify overlap");
+    assert!(matches!(err, DatasetError::Corrupt { .. }), "{err}");
+    assert_names(&err, META_FILE, &["inside texture"]);
+}
+
+#[test]
+fn flipped_mip_byte_fails_the_texture_checksum_in_verify() {
+    let fixture = write_fixture("flipped-src");
+    let pack = TexturePack::open(&fixture.dir).expect("open");
+    let location = pack.mip_location(1, 4).expect("mip");
+    drop(pack);
+    let dir = copy_dir(&fixture.dir, "flipped");
+    patch(&dir.join(PACK_FILE), |b| b[location.offset as usize + 3] ^= 0xff);
+    Dataset::open(&dir).expect("open does not read mip data");
+    let err = verify(&dir).expect_err("verify");
+    assert!(matches!(err, DatasetError::Checksum { .. }), "{err}");
+    assert_names(&err, PACK_FILE, &["texture 1"]);
+}
+
+#[test]
+fn zero_and_absurd_texture_sizes_are_rejected() {
+    let cases: [(&str, usize, u8, &str); 5] = [
+        ("zero-mips", 7, 0, "mip count 0"),
+        ("too-many-mips", 7, 11, "mip count 11"),
+        ("absurd-extent", 6, 0xff, "exceeds the maximum"),
+        ("bc1-below-block", 6, 0x11, "smaller than one 4x4 block"),
+        ("unknown-format", 8, 9, "unknown texture format code 9"),
+    ];
+    for (name, byte, value, needle) in cases {
+        let dir = damaged(name, META_FILE, |b| {
+            b[record(1) + byte] = value;
+            fix_table_crc(b);
+        });
+        let err = open_err(&dir);
+        assert!(
+            matches!(err, DatasetError::Corrupt { offset, .. } if offset == record(1) as u64),
+            "{name}: {err}"
+        );
+        assert_names(&err, META_FILE, &["texture 1", needle]);
+    }
+}
+
+#[test]
+fn count_mismatches_between_files_are_reported() {
+    let dir = damaged("pack-count", PACK_FILE, |b| {
+        b[16..24].copy_from_slice(&3u64.to_le_bytes())
+    });
+    assert_names(&open_err(&dir), PACK_FILE, &["3 textures"]);
+
+    let dir = damaged("colormap-count", COLORMAP_FILE, |b| {
+        b.truncate(b.len() - 4);
+        b[16..24].copy_from_slice(&(TEXTURES.len() as u64 - 1).to_le_bytes());
+        fix_table_crc(b);
+    });
+    assert_names(&open_err(&dir), COLORMAP_FILE, &["colours for"]);
+
+    let dir = damaged("meta-absurd-count", META_FILE, |b| {
+        b[16..24].copy_from_slice(&u64::MAX.to_le_bytes())
+    });
+    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 16, .. }));
+}
+
+/// Byte offsets of the scene sections for the fixture.
+struct SceneLayout {
+    meshes: usize,
+    positions: usize,
+    normals: usize,
+    uvs: usize,
+    indices: usize,
+}
+
+fn scene_layout(scene: &Scene) -> SceneLayout {
+    let meshes = 96;
+    let positions = meshes + 44 * scene.meshes.len();
+    let normals = positions + 12 * scene.positions.len();
+    let uvs = normals + 12 * scene.positions.len();
+    let indices = uvs + 8 * scene.positions.len();
+    SceneLayout {
+        meshes,
+        positions,
+        normals,
+        uvs,
+        indices,
+    }
+}
+
+#[test]
+fn index_out_of_range_names_mesh_index_and_offset() {
+    let scene = write_fixture("index-layout").scene;
+    let layout = scene_layout(&scene);
+    // Mesh 0 is a quad (4 vertices); make its second index 4.
+    let at = layout.indices + 4;
+    let dir = damaged("index-range", SCENE_FILE, |b| {
+        b[at..at + 4].copy_from_slice(&4u32.to_le_bytes());
+        fix_scene_crc(b);
+    });
+    let err = open_err(&dir);
+    assert!(
+        matches!(err, DatasetError::Corrupt { offset, .. } if offset == at as u64),
+        "{err}"
+    );
+    assert_names(&err, SCENE_FILE, &["mesh 0", "index 1", "out of range"]);
+}
+
+#[test]
+fn non_finite_attributes_are_rejected() {
+    let scene = write_fixture("nan-layout").scene;
+    let layout = scene_layout(&scene);
+    let cases = [
+        (
+            "nan-position",
+            layout.positions + 12 * 5 + 4,
+            f32::NAN,
+            "vertex 5 has non-finite position",
+        ),
+        (
+            "inf-normal",
+            layout.normals + 12 * 2,
+            f32::INFINITY,
+            "vertex 2 has non-finite normal",
+        ),
+        (
+            "inf-uv",
+            layout.uvs + 8 * 3 + 4,
+            f32::NEG_INFINITY,
+            "vertex 3 has non-finite uv",
+        ),
+        ("nan-bounds", layout.meshes + 44 + 20, f32::NAN, "mesh 1: bounds"),
+    ];
+    for (name, at, value, needle) in cases {
+        let dir = damaged(name, SCENE_FILE, |b| {
+            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
+            fix_scene_crc(b);
+        });
+        let err = open_err(&dir);
+        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
+        assert_names(&err, SCENE_FILE, &[needle]);
+    }
+}
+
+#[test]
+fn mesh_ranges_and_texture_ids_are_checked() {
+    let scene = write_fixture("mesh-layout").scene;
+    let layout = scene_layout(&scene);
+    let cases: [(&str, usize, u32, &str); 4] = [
+        ("vertex-range", 4, 1_000, "mesh 1: vertices"),
+        ("index-range-mesh", 12, 999, "mesh 1: indices"),
+        ("partial-triangle", 12, 5, "not a multiple of 3"),
+        ("missing-texture", 16, 500, "uses texture 500"),
+    ];
+    for (name, field, value, needle) in cases {
+        let at = layout.meshes + 44 + field;
+        let dir = damaged(name, SCENE_FILE, |b| {
+            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
+            fix_scene_crc(b);
+        });
+        let err = open_err(&dir);
+        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
+        assert_names(&err, SCENE_FILE, &[needle]);
+    }
+}
+
+#[test]
+fn scene_counts_that_disagree_with_the_file_size_are_truncation() {
+    let dir = damaged("scene-count", SCENE_FILE, |b| {
+        b[24..32].copy_from_slice(&1_000_000u64.to_le_bytes())
+    });
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Truncated { .. }), "{err}");
+    let dir = damaged("scene-absurd-count", SCENE_FILE, |b| {
+        b[32..40].copy_from_slice(&u64::MAX.to_le_bytes())
+    });
+    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 32, .. }));
+}
+
+#[test]
+fn writer_rejects_inconsistent_input() {
+    let dir = dataset_support::test_dir("writer-input");
+    let mut writer = DatasetWriter::create(&dir).expect("create");
+    let too_short = vec![0u8; 10];
+    let cases = [
+        writer.add_texture(TextureFormat::Bc1, 8, 8, 4, &too_short, [0; 4]),
+        writer.add_texture(TextureFormat::Bc1, 12, 8, 1, &too_short, [0; 4]),
+        writer.add_texture(TextureFormat::Bc1, 2, 2, 1, &[0u8; 8], [0; 4]),
+        writer.add_texture(TextureFormat::Rgba8, 4, 4, 0, &[], [0; 4]),
+        writer.add_texture(TextureFormat::Rgba8, 1 << 15, 4, 1, &[], [0; 4]),
+    ];
+    for result in cases {
+        assert!(matches!(result, Err(DatasetError::InvalidInput(_))), "{result:?}");
+    }
+    assert_eq!(writer.texture_count(), 0);
+    // A scene referring to a texture that was never written is refused.
+    let scene = dataset_support::fixture_scene(1);
+    assert!(matches!(writer.finish(&scene), Err(DatasetError::InvalidInput(_))));
+}
+
+#[test]
+fn empty_dataset_round_trips() -> Result<(), DatasetError> {
+    let dir = dataset_support::test_dir("empty");
+    DatasetWriter::create(&dir)?.finish(&Scene::new([0.0; 3]))?;
+    let dataset = Dataset::open(&dir)?;
+    assert!(dataset.textures.is_empty());
+    assert!(dataset.scene.meshes.is_empty());
+    assert_eq!(verify(&dir)?.mips, 0);
+    Ok(())
+}

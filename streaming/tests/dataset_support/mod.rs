@@ -1,0 +1,159 @@
+//! Shared fixture for the dataset tests: a small dataset with every format, square and
+//! rectangular extents, full and partial mip chains, written through the public writer.
+
+#![allow(dead_code)] // reason: each test binary uses a different subset
+
+use std::path::{Path, PathBuf};
+
+use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat, WriteSummary};
+
+/// One texture of the fixture: what was written.
+#[derive(Debug, Clone)]
+pub struct WrittenTexture {
+    pub format: TextureFormat,
+    pub width: u32,
+    pub height: u32,
+    pub mips: Vec<Vec<u8>>,
+    pub colour: [u8; 4],
+}
+
+#[derive(Debug)]
+pub struct Fixture {
+    pub dir: PathBuf,
+    pub textures: Vec<WrittenTexture>,
+    pub scene: Scene,
+    pub summary: WriteSummary,
+}
+
+/// (format, width, height, mip count)
+pub const TEXTURES: &[(TextureFormat, u32, u32, u32)] = &[
+    (TextureFormat::Bc1, 4, 32, 6),
+    (TextureFormat::Bc1, 64, 256, 9),
+    (TextureFormat::Rgba8, 16, 8, 5),
+    (TextureFormat::Bc1, 512, 512, 3),
+    (TextureFormat::Bc3, 8, 8, 4),
+    (TextureFormat::Rgba8, 1, 1, 1),
+    (TextureFormat::Bc7, 4, 4, 3),
+    (TextureFormat::Rgba8, 256, 4, 9),
+];
+
+/// A fresh empty directory for one test.
+pub fn test_dir(name: &str) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dataset-tests").join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("create test dir");
+    dir
+}
+
+/// Deterministic bytes, different for every (texture, level).
+fn bytes(seed: u64, len: usize) -> Vec<u8> {
+    let mut x = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    (0..len)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 24) as u8
+        })
+        .collect()
+}
+
+pub fn mip_extent(width: u32, height: u32, level: u32) -> (u32, u32) {
+    ((width >> level).max(1), (height >> level).max(1))
+}
+
+/// A scene of one mesh per texture (quads and a triangle), far from the world origin.
+pub fn fixture_scene(textures: u32) -> Scene {
+    let mut scene = Scene::new([391_250.5, 34.25, 5_819_500.75]);
+    for t in 0..textures {
+        let x = t as f32 * 10.0;
+        if t % 3 == 2 {
+            scene
+                .push_mesh(
+                    t,
+                    &[[x, 0.0, 0.0], [x + 4.0, 0.0, 0.0], [x + 2.0, 5.0, -1.0]],
+                    &[[0.0, 0.0, 1.0]; 3],
+                    &[[0.0, 1.0], [2.0, 1.0], [1.0, -1.0]],
+                    &[0, 1, 2],
+                )
+                .expect("push triangle");
+        } else {
+            scene
+                .push_mesh(
+                    t,
+                    &[[x, 0.0, 1.0], [x + 8.0, 0.0, 1.0], [x + 8.0, 12.0, 1.0], [x, 12.0, 1.0]],
+                    &[[0.0, 0.0, 1.0]; 4],
+                    &[[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]],
+                    &[0, 1, 2, 0, 2, 3],
+                )
+                .expect("push quad");
+        }
+    }
+    scene
+}
+
+/// Writes the fixture dataset into a fresh directory `name`.
+pub fn write_fixture(name: &str) -> Fixture {
+    let dir = test_dir(name);
+    let mut writer = DatasetWriter::create(&dir).expect("create writer");
+    let mut textures = Vec::new();
+    for (t, &(format, width, height, mip_count)) in TEXTURES.iter().enumerate() {
+        let mips: Vec<Vec<u8>> = (0..mip_count)
+            .map(|level| {
+                let (w, h) = mip_extent(width, height, level);
+                bytes((t as u64) << 8 | u64::from(level), format.mip_bytes(w, h) as usize)
+            })
+            .collect();
+        let chain: Vec<u8> = mips.concat();
+        let colour = [t as u8 * 30, 255 - t as u8, 7, 255];
+        let id = writer
+            .add_texture(format, width, height, mip_count, &chain, colour)
+            .expect("add texture");
+        assert_eq!(id as usize, t);
+        textures.push(WrittenTexture {
+            format,
+            width,
+            height,
+            mips,
+            colour,
+        });
+    }
+    let scene = fixture_scene(TEXTURES.len() as u32);
+    let summary = writer.finish(&scene).expect("finish");
+    Fixture {
+        dir,
+        textures,
+        scene,
+        summary,
+    }
+}
+
+/// Copies a dataset directory.
+pub fn copy_dir(from: &Path, name: &str) -> PathBuf {
+    let to = test_dir(name);
+    for entry in std::fs::read_dir(from).expect("read dir") {
+        let entry = entry.expect("dir entry");
+        std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy file");
+    }
+    to
+}
+
+/// Edits a file in place.
+pub fn patch(path: &Path, edit: impl FnOnce(&mut Vec<u8>)) {
+    let mut bytes = std::fs::read(path).expect("read file to patch");
+    edit(&mut bytes);
+    std::fs::write(path, bytes).expect("write patched file");
+}
+
+/// Recomputes the body checksum of a table file (meta, colormap, crc) after a patch, so the
+/// test reaches the check behind the checksum.
+pub fn fix_table_crc(bytes: &mut [u8]) {
+    let crc = crc32fast::hash(&bytes[32..]);
+    bytes[24..28].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// Same for `scene.bin`.
+pub fn fix_scene_crc(bytes: &mut [u8]) {
+    let crc = crc32fast::hash(&bytes[96..]);
+    bytes[88..92].copy_from_slice(&crc.to_le_bytes());
+}

@@ -1,0 +1,402 @@
+//! `citystream atlas`: packs a dataset's textures into square atlases (paper §3.1).
+//!
+//! Meshes are grouped by their centre into uniform grid regions, then by the closest of the
+//! six global axis directions to their mean normal. Within a region, textures of equal
+//! height are packed in rows into `A × A` atlases, walking the orientation groups in order
+//! (+x, −x, +y, −y, +z, −z) so that the empty space an orientation group leaves in an atlas
+//! is filled by the next group. Every texture sits at a multiple of its own width and
+//! height, so its mips stay aligned in the atlas mips. UVs are rewritten into the atlas.
+//!
+//! Level 0 of a BC1 atlas is a byte copy of the original blocks (rendering at full
+//! resolution is identical); coarser levels copy every block that lies inside one texture's
+//! own mip and re-encode only blocks where several textures (or empty space) meet. Textures
+//! that cannot go into an atlas (larger than it, sampled with UVs outside [0,1], of another
+//! format, or unused) are copied unchanged.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use citystream_streaming::dataset::{Dataset, DatasetWriter, TextureFormat};
+use rayon::prelude::*;
+
+use crate::gen::print_stdout;
+
+/// Options of `citystream atlas`.
+#[derive(Debug, clap::Args)]
+pub struct AtlasArgs {
+    /// Input dataset directory.
+    pub input: PathBuf,
+    /// Output dataset directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Side of the square grid regions meshes are grouped by, metres.
+    #[arg(long, default_value_t = 512.0)]
+    pub region: f64,
+    /// Atlas side in texels (a power of two, 4 to 16384).
+    #[arg(long, default_value_t = 512)]
+    pub atlas_extent: u32,
+}
+
+/// Where a texture went in an atlas.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Placement {
+    pub atlas: usize,
+    pub x: u32,
+    pub y: u32,
+}
+
+/// Index (0..6) of the global axis direction closest to `n`: +x, −x, +y, −y, +z, −z.
+pub fn closest_axis(n: [f32; 3]) -> usize {
+    let (axis, _) = n.iter().enumerate().fold(
+        (0, -1.0f32),
+        |best, (a, v)| if v.abs() > best.1 { (a, v.abs()) } else { best },
+    );
+    axis * 2 + usize::from(n[axis] < 0.0)
+}
+
+/// Row packer for textures of one height in `A × A` atlases: a texture of width `w` is
+/// placed at the first row position that is a multiple of `w` and has room.
+#[derive(Debug)]
+struct RowPacker {
+    extent: u32,
+    height: u32,
+    /// Cursor of each row of the current atlas.
+    rows: Vec<u32>,
+    atlas: Option<usize>,
+}
+
+impl RowPacker {
+    fn new(extent: u32, height: u32) -> Self {
+        Self {
+            extent,
+            height,
+            rows: Vec::new(),
+            atlas: None,
+        }
+    }
+
+    fn place(&mut self, width: u32, atlas_count: &mut usize) -> Placement {
+        let atlas = match self.atlas {
+            Some(a) => a,
+            None => self.open(atlas_count),
+        };
+        for (r, cursor) in self.rows.iter_mut().enumerate() {
+            let x = cursor.next_multiple_of(width);
+            if x + width <= self.extent {
+                *cursor = x + width;
+                return Placement {
+                    atlas,
+                    x,
+                    y: r as u32 * self.height,
+                };
+            }
+        }
+        if (self.rows.len() as u32 + 1) * self.height <= self.extent {
+            self.rows.push(width);
+            return Placement {
+                atlas,
+                x: 0,
+                y: (self.rows.len() as u32 - 1) * self.height,
+            };
+        }
+        let atlas = self.open(atlas_count);
+        self.rows.push(width);
+        Placement { atlas, x: 0, y: 0 }
+    }
+
+    fn open(&mut self, atlas_count: &mut usize) -> usize {
+        self.rows.clear();
+        self.atlas = Some(*atlas_count);
+        *atlas_count += 1;
+        *atlas_count - 1
+    }
+}
+
+fn decode(format: TextureFormat, data: &[u8], w: u32, h: u32) -> Vec<u8> {
+    match format {
+        TextureFormat::Bc1 => {
+            let mut out = vec![0u8; (w * h * 4) as usize];
+            texpresso::Format::Bc1.decompress(data, w as usize, h as usize, &mut out);
+            out
+        }
+        _ => data.to_vec(),
+    }
+}
+
+/// Runs `citystream atlas`.
+pub fn run(args: &AtlasArgs) -> Result<()> {
+    let start = Instant::now();
+    let extent = args.atlas_extent;
+    if !extent.is_power_of_two() || !(4..=16384).contains(&extent) {
+        bail!("--atlas-extent {extent} must be a power of two from 4 to 16384");
+    }
+    if !(args.region.is_finite() && args.region > 0.0) {
+        bail!("--region {} must be a positive number of metres", args.region);
+    }
+    let dataset = Dataset::open(&args.input).with_context(|| format!("opening {}", args.input.display()))?;
+    let scene = &dataset.scene;
+    let infos = dataset.textures.textures();
+    let count = infos.len();
+
+    // The atlas format is the dataset's most common of BC1 / RGBA8.
+    let bc1 = infos.iter().filter(|t| t.format() == TextureFormat::Bc1).count();
+    let rgba = infos.iter().filter(|t| t.format() == TextureFormat::Rgba8).count();
+    let format = if bc1 >= rgba {
+        TextureFormat::Bc1
+    } else {
+        TextureFormat::Rgba8
+    };
+
+    // Which textures can go into atlases, and the mesh that decides their group.
+    let mut first_mesh: Vec<Option<usize>> = vec![None; count];
+    let mut eligible: Vec<bool> = infos
+        .iter()
+        .map(|t| t.format() == format && t.width() <= extent && t.height() <= extent)
+        .collect();
+    for (m, mesh) in scene.meshes.iter().enumerate() {
+        let t = mesh.texture as usize;
+        first_mesh[t].get_or_insert(m);
+        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
+        if scene.uvs[range].iter().flatten().any(|v| !(0.0..=1.0).contains(v)) {
+            eligible[t] = false;
+        }
+    }
+
+    // Group: (region x, region z) then height then orientation, textures in id order.
+    let mut groups: BTreeMap<(i64, i64, u32), [Vec<usize>; 6]> = BTreeMap::new();
+    for t in 0..count {
+        let Some(m) = first_mesh[t].filter(|_| eligible[t]) else {
+            continue;
+        };
+        let mesh = &scene.meshes[m];
+        let c = mesh.bounds.center();
+        let region = |a: usize| ((scene.origin[a] + f64::from(c[a])) / args.region).floor() as i64;
+        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
+        let mut n = [0.0f32; 3];
+        for v in &scene.normals[range] {
+            for a in 0..3 {
+                n[a] += v[a];
+            }
+        }
+        groups.entry((region(0), region(2), infos[t].height())).or_default()[closest_axis(n)].push(t);
+    }
+    let mut placements: Vec<Option<Placement>> = vec![None; count];
+    let mut atlas_count = 0usize;
+    for ((_, _, height), orientations) in &groups {
+        let mut packer = RowPacker::new(extent, *height);
+        for mut group in orientations.iter().cloned() {
+            // Widest first inside a group keeps rows dense; groups stay in axis order.
+            group.sort_by_key(|&t| std::cmp::Reverse(infos[t].width()));
+            for t in group {
+                placements[t] = Some(packer.place(infos[t].width(), &mut atlas_count));
+            }
+        }
+    }
+    let mut members: Vec<Vec<usize>> = vec![Vec::new(); atlas_count];
+    for (t, p) in placements.iter().enumerate() {
+        if let Some(p) = p {
+            members[p.atlas].push(t);
+        }
+    }
+
+    // Build atlases in parallel.
+    let levels = extent.trailing_zeros() + 1;
+    let built: Vec<Result<(Vec<u8>, [u8; 4])>> = members
+        .par_iter()
+        .map(|textures| build_atlas(&dataset, textures, &placements, extent, levels, format))
+        .collect();
+
+    let mut writer = DatasetWriter::create(&args.out)?;
+    for atlas in built {
+        let (chain, mean) = atlas?;
+        writer.add_texture(format, extent, extent, levels, &chain, mean)?;
+    }
+    let mut new_id: Vec<u32> = vec![0; count];
+    let mut standalone = 0u32;
+    let mut buf = Vec::new();
+    for (t, info) in infos.iter().enumerate() {
+        match placements[t] {
+            Some(p) => new_id[t] = p.atlas as u32,
+            None => {
+                let mut chain = Vec::with_capacity(info.chain_len() as usize);
+                for level in 0..info.mip_count() {
+                    dataset.textures.read_mip(t as u32, level, &mut buf)?;
+                    chain.extend_from_slice(&buf);
+                }
+                let colour = dataset.colormap.get(t as u32).unwrap_or([128, 128, 128, 255]);
+                new_id[t] = writer.add_texture(
+                    info.format(),
+                    info.width(),
+                    info.height(),
+                    info.mip_count(),
+                    &chain,
+                    colour,
+                )?;
+                standalone += 1;
+            }
+        }
+    }
+
+    let mut out_scene = scene.clone();
+    let mut remapped = vec![false; scene.uvs.len()];
+    for mesh in &mut out_scene.meshes {
+        let t = mesh.texture as usize;
+        mesh.texture = new_id[t];
+        let Some(p) = placements[t] else { continue };
+        let (w, h, a) = (infos[t].width() as f32, infos[t].height() as f32, extent as f32);
+        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
+        let rewritten = out_scene.uvs[range.clone()]
+            .iter_mut()
+            .zip(&mut remapped[range.clone()]);
+        for (v, (uv, done)) in rewritten.enumerate() {
+            if std::mem::replace(done, true) {
+                bail!(
+                    "vertex {} is shared by two meshes; its texture coordinates cannot be rewritten twice",
+                    range.start + v
+                );
+            }
+            *uv = [(p.x as f32 + uv[0] * w) / a, (p.y as f32 + uv[1] * h) / a];
+        }
+    }
+    let summary = writer
+        .finish(&out_scene)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+
+    let packed: u64 = infos
+        .iter()
+        .zip(&placements)
+        .filter(|(_, p)| p.is_some())
+        .map(|(t, _)| u64::from(t.width()) * u64::from(t.height()))
+        .sum();
+    let capacity = atlas_count as u64 * u64::from(extent) * u64::from(extent);
+    let fill = if capacity > 0 {
+        packed as f64 / capacity as f64
+    } else {
+        0.0
+    };
+    print_stdout(&format!(
+        "atlas: {} textures -> {} atlases of {extent}x{extent} (fill ratio {:.1}%) + {standalone} textures kept as they are = {} textures; {:.1} MB pack, {:.2} s\n",
+        count,
+        atlas_count,
+        100.0 * fill,
+        summary.textures,
+        summary.pack_bytes as f64 / 1e6,
+        start.elapsed().as_secs_f64()
+    ))
+}
+
+/// Composes one atlas: its mip chain (full, finest first) and the area-weighted mean colour
+/// of its textures.
+fn build_atlas(
+    dataset: &Dataset,
+    textures: &[usize],
+    placements: &[Option<Placement>],
+    extent: u32,
+    levels: u32,
+    format: TextureFormat,
+) -> Result<(Vec<u8>, [u8; 4])> {
+    let infos = dataset.textures.textures();
+    let mut sum = [0u64; 4];
+    let mut area = 0u64;
+    for &t in textures {
+        let a = u64::from(infos[t].width()) * u64::from(infos[t].height());
+        let c = dataset.colormap.get(t as u32).unwrap_or([128, 128, 128, 255]);
+        for k in 0..4 {
+            sum[k] += u64::from(c[k]) * a;
+        }
+        area += a;
+    }
+    let mean = sum.map(|s| (s / area.max(1)) as u8);
+
+    let mut chain = Vec::new();
+    let mut previous: Option<Vec<u8>> = None;
+    let mut buf = Vec::new();
+    for level in 0..levels {
+        let side = (extent >> level) as usize;
+        // Empty space: the mean colour at level 0, the box filter of the level above below it.
+        let mut rgba = match &previous {
+            None => mean.repeat(side * side),
+            Some(prev) => crate::gen::downsample(prev, side * 2, side * 2).0,
+        };
+        let mut copies = Vec::new();
+        for &t in textures {
+            let info = &infos[t];
+            let p = placements[t].context("atlas member without a placement")?;
+            let (w, h) = (info.width() >> level, info.height() >> level);
+            if w == 0 || h == 0 || level >= info.mip_count() {
+                continue;
+            }
+            dataset.textures.read_mip(t as u32, level, &mut buf)?;
+            let texels = decode(info.format(), &buf, w, h);
+            let (x0, y0) = ((p.x >> level) as usize, (p.y >> level) as usize);
+            for row in 0..h as usize {
+                let dst = ((y0 + row) * side + x0) * 4;
+                let src = row * w as usize * 4;
+                rgba[dst..dst + w as usize * 4].copy_from_slice(&texels[src..src + w as usize * 4]);
+            }
+            if format == TextureFormat::Bc1 && w >= 4 && h >= 4 {
+                copies.push((x0 / 4, y0 / 4, (w / 4) as usize, (h / 4) as usize, buf.clone()));
+            }
+        }
+        match format {
+            TextureFormat::Bc1 => {
+                let start = chain.len();
+                chain.resize(start + format.mip_bytes(side as u32, side as u32) as usize, 0);
+                let level_bytes = &mut chain[start..];
+                let params = texpresso::Params {
+                    algorithm: texpresso::Algorithm::RangeFit,
+                    ..Default::default()
+                };
+                texpresso::Format::Bc1.compress(&rgba, side, side, params, level_bytes);
+                // Blocks inside one texture's own mip: the original bytes, exactly.
+                let blocks_per_row = side.div_ceil(4);
+                for (bx, by, bw, bh, bytes) in copies {
+                    for row in 0..bh {
+                        let dst = ((by + row) * blocks_per_row + bx) * 8;
+                        level_bytes[dst..dst + bw * 8].copy_from_slice(&bytes[row * bw * 8..(row + 1) * bw * 8]);
+                    }
+                }
+            }
+            _ => chain.extend_from_slice(&rgba),
+        }
+        previous = Some(rgba);
+    }
+    Ok((chain, mean))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn normals_map_to_the_closest_axis_direction() {
+        assert_eq!(closest_axis([0.9, 0.1, -0.2]), 0);
+        assert_eq!(closest_axis([-0.9, 0.1, 0.2]), 1);
+        assert_eq!(closest_axis([0.0, 1.0, 0.0]), 2);
+        assert_eq!(closest_axis([0.1, -0.7, 0.3]), 3);
+        assert_eq!(closest_axis([0.0, 0.0, 1.0]), 4);
+        assert_eq!(closest_axis([0.3, 0.2, -0.8]), 5);
+    }
+
+    #[test]
+    fn row_packer_keeps_alignment_fills_rows_then_opens_atlases() {
+        let mut atlases = 0;
+        let mut packer = RowPacker::new(16, 8);
+        let a = packer.place(8, &mut atlases);
+        let b = packer.place(4, &mut atlases);
+        let c = packer.place(8, &mut atlases); // does not fit after 8+4 at an aligned x: next row
+        let d = packer.place(4, &mut atlases); // fills the gap in row 0
+        let e = packer.place(16, &mut atlases); // both rows full: new atlas
+        assert_eq!((a.atlas, a.x, a.y), (0, 0, 0));
+        assert_eq!((b.atlas, b.x, b.y), (0, 8, 0));
+        assert_eq!((c.atlas, c.x, c.y), (0, 0, 8));
+        assert_eq!((d.atlas, d.x, d.y), (0, 12, 0));
+        assert_eq!((e.atlas, e.x, e.y), (1, 0, 0));
+        assert_eq!(atlases, 2);
+        for p in [a, b, c, d] {
+            assert_eq!(p.y % 8, 0);
+        }
+    }
+}

@@ -1,0 +1,242 @@
+//! `--textures-from DIR`: a user's own images as facade textures.
+//!
+//! PNG, JPEG, DDS (BC1–BC3) and KTX2 (RGBA8 and BC1/BC3 level 0, no supercompression) files
+//! under DIR are decoded, resized to the nearest power of two per side (clamped to 4 ..
+//! the maximum extent) and mip-mapped like generated textures. Files that cannot be read
+//! are reported on stderr and skipped; finding no usable image is an error.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use image::imageops::FilterType;
+use image::RgbaImage;
+use rayon::prelude::*;
+
+/// One decoded, power-of-two-sized user image.
+#[derive(Debug, Clone)]
+pub struct UserImage {
+    pub path: PathBuf,
+    pub width: u32,
+    pub height: u32,
+    /// RGBA8 rows, top first.
+    pub rgba: Vec<u8>,
+}
+
+const EXTENSIONS: [&str; 5] = ["png", "jpg", "jpeg", "dds", "ktx2"];
+
+fn collect_files(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+    let entries = std::fs::read_dir(dir).with_context(|| format!("reading directory {}", dir.display()))?;
+    for entry in entries {
+        let entry = entry.with_context(|| format!("reading directory {}", dir.display()))?;
+        let path = entry.path();
+        if path.is_dir() {
+            collect_files(&path, out)?;
+        } else if path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        {
+            out.push(path);
+        }
+    }
+    Ok(())
+}
+
+/// Nearest power of two (in log2 terms) of `n`, as log2, clamped to `2..=max_log2`.
+pub fn pow2_log2(n: u32, max_log2: u8) -> u8 {
+    let log = f64::from(n.max(1)).log2().round() as i64;
+    log.clamp(2, i64::from(max_log2)) as u8
+}
+
+/// Loads every usable image under `dir`, sorted by path so the result is deterministic.
+pub fn load(dir: &Path, max_extent_log2: u8) -> Result<Vec<UserImage>> {
+    let mut files = Vec::new();
+    collect_files(dir, &mut files)?;
+    files.sort();
+    let decoded: Vec<_> = files.par_iter().map(|path| (path, decode(path))).collect();
+    let mut images = Vec::new();
+    for (path, result) in decoded {
+        match result {
+            Ok(image) => images.push(fit(path, image, max_extent_log2)),
+            Err(e) => eprintln!("warning: skipping {}: {e:#}", path.display()),
+        }
+    }
+    if images.is_empty() {
+        bail!("no usable PNG, JPEG, DDS or KTX2 image found under {}", dir.display());
+    }
+    Ok(images)
+}
+
+fn fit(path: &Path, image: RgbaImage, max_extent_log2: u8) -> UserImage {
+    let w = 1u32 << pow2_log2(image.width(), max_extent_log2);
+    let h = 1u32 << pow2_log2(image.height(), max_extent_log2);
+    let resized = if (w, h) == image.dimensions() {
+        image
+    } else {
+        image::imageops::resize(&image, w, h, FilterType::Triangle)
+    };
+    UserImage {
+        path: path.to_path_buf(),
+        width: w,
+        height: h,
+        rgba: resized.into_raw(),
+    }
+}
+
+fn decode(path: &Path) -> Result<RgbaImage> {
+    let is_ktx2 = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("ktx2"));
+    if is_ktx2 {
+        let bytes = std::fs::read(path)?;
+        return decode_ktx2(&bytes);
+    }
+    let reader = image::ImageReader::open(path)?.with_guessed_format()?;
+    Ok(reader.decode()?.to_rgba8())
+}
+
+/// Level 0 of a KTX2 file as RGBA8.
+pub fn decode_ktx2(bytes: &[u8]) -> Result<RgbaImage> {
+    use ktx2::Format;
+    let reader = ktx2::Reader::new(bytes).map_err(|e| anyhow::anyhow!("invalid KTX2: {e:?}"))?;
+    let header = reader.header();
+    if header.supercompression_scheme.is_some() {
+        bail!(
+            "supercompressed KTX2 ({:?}) is not supported",
+            header.supercompression_scheme
+        );
+    }
+    let (w, h) = (header.pixel_width, header.pixel_height.max(1));
+    if w == 0 || w > 16384 || h > 16384 {
+        bail!("KTX2 extent {w}x{h} is out of range");
+    }
+    let level = reader.levels().next().context("KTX2 file has no levels")?;
+    let (wu, hu) = (w as usize, h as usize);
+    let rgba = match header.format {
+        Some(Format::R8G8B8A8_UNORM | Format::R8G8B8A8_SRGB) => {
+            let len = wu * hu * 4;
+            level
+                .data
+                .get(..len)
+                .context("KTX2 level 0 is shorter than its extent")?
+                .to_vec()
+        }
+        Some(f) => {
+            let codec = match f {
+                Format::BC1_RGB_UNORM_BLOCK
+                | Format::BC1_RGB_SRGB_BLOCK
+                | Format::BC1_RGBA_UNORM_BLOCK
+                | Format::BC1_RGBA_SRGB_BLOCK => texpresso::Format::Bc1,
+                Format::BC3_UNORM_BLOCK | Format::BC3_SRGB_BLOCK => texpresso::Format::Bc3,
+                other => bail!("KTX2 format {other:?} is not supported (RGBA8, BC1 and BC3 are)"),
+            };
+            let needed = codec.compressed_size(wu, hu);
+            let data = level
+                .data
+                .get(..needed)
+                .context("KTX2 level 0 is shorter than its extent")?;
+            let mut out = vec![0u8; wu * hu * 4];
+            codec.decompress(data, wu, hu, &mut out);
+            out
+        }
+        None => bail!("KTX2 with an undefined format (Basis Universal) is not supported"),
+    };
+    RgbaImage::from_raw(w, h, rgba).context("KTX2 level 0 has the wrong size")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_round_to_the_nearest_power_of_two_within_limits() {
+        assert_eq!(pow2_log2(100, 9), 7);
+        assert_eq!(pow2_log2(37, 9), 5);
+        assert_eq!(pow2_log2(3000, 9), 9);
+        assert_eq!(pow2_log2(1, 9), 2);
+        assert_eq!(pow2_log2(64, 9), 6);
+    }
+
+    /// A minimal KTX2 file: header, one level index entry, an empty DFD, then the data.
+    pub(crate) fn ktx2_file(vk_format: u32, w: u32, h: u32, data: &[u8]) -> Vec<u8> {
+        let mut f = Vec::new();
+        f.extend_from_slice(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A]);
+        // vkFormat, typeSize, width, height, depth, layers, faces, levels, supercompression
+        for v in [vk_format, 1, w, h, 0, 0, 1, 1, 0] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        let dfd_offset = 80 + 24;
+        for v in [dfd_offset as u32, 4, 0, 0] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        f.extend_from_slice(&0u64.to_le_bytes());
+        f.extend_from_slice(&0u64.to_le_bytes());
+        let data_offset = (dfd_offset + 4) as u64;
+        for v in [data_offset, data.len() as u64, data.len() as u64] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        f.extend_from_slice(&4u32.to_le_bytes());
+        f.extend_from_slice(data);
+        f
+    }
+
+    #[test]
+    fn dds_dxt1_files_load_through_the_library_scan() {
+        // 8x8 DXT1: four blocks of one colour, behind a minimal DDS header.
+        let mut block = [0u8; 8];
+        let solid = [[30u8, 160, 60, 255]; 16];
+        texpresso::Format::Bc1.compress_block_masked(solid, 0xffff, texpresso::Params::default(), &mut block);
+        let mut dds = b"DDS ".to_vec();
+        // size, flags (caps|height|width|pixelformat), height, width, linear size, depth, mips
+        for v in [124u32, 0x1007, 8, 8, 32, 0, 1] {
+            dds.extend_from_slice(&v.to_le_bytes());
+        }
+        dds.extend_from_slice(&[0u8; 44]);
+        for v in [32u32, 0x4] {
+            dds.extend_from_slice(&v.to_le_bytes());
+        }
+        dds.extend_from_slice(b"DXT1");
+        dds.extend_from_slice(&[0u8; 20]);
+        dds.extend_from_slice(&0x1000u32.to_le_bytes());
+        dds.extend_from_slice(&[0u8; 16]);
+        assert_eq!(dds.len(), 128);
+        for _ in 0..4 {
+            dds.extend_from_slice(&block);
+        }
+        let dir = std::env::temp_dir().join(format!("citystream-dds-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("create dir");
+        std::fs::write(dir.join("wall.DDS"), &dds).expect("write dds");
+        let images = load(&dir, 9).expect("load library");
+        std::fs::remove_dir_all(&dir).expect("clean up");
+        assert_eq!(images.len(), 1);
+        assert_eq!((images[0].width, images[0].height), (8, 8));
+        assert!(images[0]
+            .rgba
+            .chunks(4)
+            .all(|p| (i32::from(p[1]) - 160).abs() <= 8 && p[0] < 50));
+    }
+
+    #[test]
+    fn ktx2_rgba8_and_bc1_decode_and_bad_files_are_errors() {
+        let rgba: Vec<u8> = (0..4 * 2 * 4).map(|i| i as u8 * 3).collect();
+        let image = decode_ktx2(&ktx2_file(37, 4, 2, &rgba)).expect("rgba8 ktx2");
+        assert_eq!(image.dimensions(), (4, 2));
+        assert_eq!(image.into_raw(), rgba);
+
+        // One BC1 block of a single colour decodes to 16 texels of (almost) that colour.
+        let mut block = [0u8; 8];
+        let solid = [[200u8, 40, 40, 255]; 16];
+        texpresso::Format::Bc1.compress_block_masked(solid, 0xffff, texpresso::Params::default(), &mut block);
+        let image = decode_ktx2(&ktx2_file(131, 4, 4, &block)).expect("bc1 ktx2");
+        assert!(image.pixels().all(|p| (i32::from(p[0]) - 200).abs() <= 8 && p[1] < 60));
+
+        assert!(decode_ktx2(b"not a ktx2 file").is_err());
+        let truncated = ktx2_file(37, 64, 64, &rgba);
+        assert!(decode_ktx2(&truncated).is_err(), "level shorter than 64x64");
+        assert!(
+            decode_ktx2(&ktx2_file(145, 4, 4, &[0u8; 16])).is_err(),
+            "BC7 is refused"
+        );
+    }
+}

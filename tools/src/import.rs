@@ -1,0 +1,535 @@
+//! `citystream import`: a glTF 2.0 scene (`.gltf` with external or embedded resources, or
+//! `.glb`) as a dataset.
+//!
+//! Every triangle primitive becomes one mesh; its texture is the material's base-colour
+//! texture (multiplied by the base-colour factor), or a 4×4 texture of the factor when it has
+//! none. Primitives sharing image and factor share a texture. Node transforms are applied
+//! in f64 and positions stored relative to the scene centre. UVs are kept as they are, also
+//! outside [0,1] (the engine samples with repeat addressing). Images may be PNG, JPEG, DDS
+//! (`MSFT_texture_dds`) or KTX2 (`KHR_texture_basisu`, RGBA8/BC1/BC3 only); the first source
+//! that decodes is used. Sides that are not powers of two are resized up to the next power
+//! of two; sides above `--max-extent` are downscaled with a warning.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{anyhow, bail, Context, Result};
+use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
+use image::imageops::FilterType;
+use image::RgbaImage;
+use rayon::prelude::*;
+
+use crate::gen::{encode_chain, library::decode_ktx2, FormatArg};
+
+/// Options of `citystream import`.
+#[derive(Debug, clap::Args)]
+pub struct ImportArgs {
+    /// glTF 2.0 file: `.gltf` (external files, data URIs) or `.glb`.
+    pub input: PathBuf,
+    /// Output dataset directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Texture encoding.
+    #[arg(long, value_enum, default_value = "bc1")]
+    pub format: FormatArg,
+    /// Largest texture side in texels (a power of two, 4 to 16384); larger images are downscaled.
+    #[arg(long, default_value_t = 512)]
+    pub max_extent: u32,
+}
+
+/// What a mesh's texture is made of: an image (by glTF image index) tinted by a factor.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct TextureKey {
+    /// Candidate glTF image indices in order of preference (extension sources first).
+    images: [Option<usize>; 3],
+    factor: [u8; 4],
+}
+
+struct PendingMesh {
+    texture: usize,
+    positions: Vec<[f64; 3]>,
+    normals: Vec<[f32; 3]>,
+    uvs: Vec<[f32; 2]>,
+    indices: Vec<u32>,
+}
+
+type Mat4 = [[f64; 4]; 4];
+
+fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
+    // Column-major like glTF: m[column][row].
+    let mut out = [[0.0; 4]; 4];
+    for (c, column) in out.iter_mut().enumerate() {
+        for (r, value) in column.iter_mut().enumerate() {
+            *value = (0..4).map(|k| a[k][r] * b[c][k]).sum();
+        }
+    }
+    out
+}
+
+fn transform_point(m: &Mat4, p: [f32; 3]) -> [f64; 3] {
+    let p = p.map(f64::from);
+    [0, 1, 2].map(|r| m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r])
+}
+
+/// Inverse transpose of the upper 3×3 (for normals) and its determinant's sign.
+fn normal_matrix(m: &Mat4) -> ([[f64; 3]; 3], f64) {
+    let a = |r: usize, c: usize| m[c][r];
+    let cof = |r0: usize, r1: usize, c0: usize, c1: usize| a(r0, c0) * a(r1, c1) - a(r0, c1) * a(r1, c0);
+    // Cofactor matrix = det · inverse transpose; the scale does not matter for unit normals.
+    let cofactor = [
+        [cof(1, 2, 1, 2), -cof(1, 2, 0, 2), cof(1, 2, 0, 1)],
+        [-cof(0, 2, 1, 2), cof(0, 2, 0, 2), -cof(0, 2, 0, 1)],
+        [cof(0, 1, 1, 2), -cof(0, 1, 0, 2), cof(0, 1, 0, 1)],
+    ];
+    let det = a(0, 0) * cofactor[0][0] + a(0, 1) * cofactor[0][1] + a(0, 2) * cofactor[0][2];
+    (cofactor, det)
+}
+
+fn transform_normal(n3: &[[f64; 3]; 3], det: f64, n: [f32; 3]) -> [f32; 3] {
+    let n = n.map(f64::from);
+    let sign = if det < 0.0 { -1.0 } else { 1.0 };
+    let v = [0, 1, 2].map(|r| sign * (n3[r][0] * n[0] + n3[r][1] * n[1] + n3[r][2] * n[2]));
+    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    if len > 0.0 && len.is_finite() {
+        v.map(|x| (x / len) as f32)
+    } else {
+        [0.0, 1.0, 0.0]
+    }
+}
+
+/// Runs `citystream import`.
+pub fn run(args: &ImportArgs) -> Result<()> {
+    let start = Instant::now();
+    if !args.max_extent.is_power_of_two() || !(4..=16384).contains(&args.max_extent) {
+        bail!(
+            "--max-extent {} must be a power of two from 4 to 16384",
+            args.max_extent
+        );
+    }
+    let format = match args.format {
+        FormatArg::Bc1 => TextureFormat::Bc1,
+        FormatArg::Rgba8 => TextureFormat::Rgba8,
+    };
+    let input = &args.input;
+    let gltf = gltf::Gltf::open(input).map_err(|e| anyhow!("{}: not a valid glTF 2.0 file: {e}", input.display()))?;
+    let base = input.parent().unwrap_or(Path::new("."));
+    // Name a missing buffer file before the loader reports a bare "file not found".
+    for buffer in gltf.document.buffers() {
+        if let gltf::buffer::Source::Uri(uri) = buffer.source() {
+            let path = base.join(percent_decode(uri));
+            if !uri.starts_with("data:") && !path.is_file() {
+                bail!(
+                    "{}: buffer {} refers to missing file {}",
+                    input.display(),
+                    buffer.index(),
+                    path.display()
+                );
+            }
+        }
+    }
+    let buffers = gltf::import_buffers(&gltf.document, Some(base), gltf.blob.clone())
+        .map_err(|e| anyhow!("{}: loading buffers: {e}", input.display()))?;
+    let document = &gltf.document;
+
+    let mut keys: Vec<TextureKey> = Vec::new();
+    let mut key_ids: HashMap<TextureKey, usize> = HashMap::new();
+    let mut meshes = Vec::new();
+    let scene = document.default_scene().or_else(|| document.scenes().next());
+    let roots: Vec<gltf::Node> = match &scene {
+        Some(s) => s.nodes().collect(),
+        None => bail!("{}: the glTF has no scene", input.display()),
+    };
+    let identity: Mat4 = [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    let mut stack: Vec<(gltf::Node, Mat4, usize)> = roots.into_iter().map(|n| (n, identity, 0)).collect();
+    while let Some((node, parent, depth)) = stack.pop() {
+        if depth > 256 {
+            bail!("{}: node hierarchy deeper than 256 levels (a cycle?)", input.display());
+        }
+        let local = node.transform().matrix().map(|c| c.map(f64::from));
+        let world = mul(&parent, &local);
+        if let Some(mesh) = node.mesh() {
+            for primitive in mesh.primitives() {
+                let what = format!(
+                    "{}: mesh {} ({:?}) primitive {}",
+                    input.display(),
+                    mesh.index(),
+                    mesh.name().unwrap_or(""),
+                    primitive.index()
+                );
+                use gltf::mesh::Mode;
+                if !matches!(
+                    primitive.mode(),
+                    Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+                ) {
+                    eprintln!(
+                        "warning: {what}: mode {:?} skipped (only triangles are imported)",
+                        primitive.mode()
+                    );
+                    continue;
+                }
+                let key = texture_key(&primitive);
+                let texture = *key_ids.entry(key).or_insert_with(|| {
+                    keys.push(key);
+                    keys.len() - 1
+                });
+                let uv_set = primitive
+                    .material()
+                    .pbr_metallic_roughness()
+                    .base_color_texture()
+                    .map_or(0, |t| t.tex_coord());
+                meshes
+                    .push(read_primitive(&primitive, &buffers, &world, uv_set, texture).with_context(|| what.clone())?);
+            }
+        }
+        stack.extend(node.children().map(|c| (c, world, depth + 1)));
+    }
+    if meshes.is_empty() {
+        bail!("{}: no triangle meshes to import", input.display());
+    }
+
+    // Textures: decode and encode in parallel, in first-use order.
+    let max_log2 = args.max_extent.trailing_zeros();
+    let encoded: Vec<_> = keys
+        .par_iter()
+        .map(|key| -> Result<_> {
+            let image = texture_image(document, &buffers, base, key, input)?;
+            let image = fit_power_of_two(image, max_log2, input);
+            let (w, h) = image.dimensions();
+            encode_chain(image.into_raw(), w, h, format)
+        })
+        .collect();
+
+    let mut writer = DatasetWriter::create(&args.out)?;
+    for texture in encoded {
+        let t = texture?;
+        writer.add_texture(format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
+    }
+
+    // Origin at the centre of the world-space bounds keeps f32 positions precise.
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in meshes.iter().flat_map(|m| &m.positions) {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let origin = [0, 1, 2].map(|a| {
+        if lo[a].is_finite() {
+            (0.5 * (lo[a] + hi[a])).round()
+        } else {
+            0.0
+        }
+    });
+    let mut scene = Scene::new(origin);
+    for m in &meshes {
+        let positions: Vec<[f32; 3]> = m
+            .positions
+            .iter()
+            .map(|p| [0, 1, 2].map(|a| (p[a] - origin[a]) as f32))
+            .collect();
+        scene.push_mesh(m.texture as u32, &positions, &m.normals, &m.uvs, &m.indices)?;
+    }
+    let summary = writer
+        .finish(&scene)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    crate::gen::print_stdout(&format!(
+        "imported {} into {}: {} meshes, {} triangles, {} textures, {:.1} MB pack ({}), {:.2} s\n",
+        input.display(),
+        args.out.display(),
+        summary.meshes,
+        summary.triangles,
+        summary.textures,
+        summary.pack_bytes as f64 / 1e6,
+        format.name(),
+        start.elapsed().as_secs_f64()
+    ))
+}
+
+fn texture_key(primitive: &gltf::Primitive) -> TextureKey {
+    let pbr = primitive.material().pbr_metallic_roughness();
+    let factor = pbr
+        .base_color_factor()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+    let mut images = [None; 3];
+    if let Some(info) = pbr.base_color_texture() {
+        let texture = info.texture();
+        let ext_source = |name: &str| {
+            texture
+                .extension_value(name)
+                .and_then(|v| v.get("source"))
+                .and_then(|s| s.as_u64())
+                .map(|s| s as usize)
+        };
+        images = [
+            ext_source("MSFT_texture_dds"),
+            ext_source("KHR_texture_basisu"),
+            Some(texture.source().index()),
+        ];
+    }
+    TextureKey { images, factor }
+}
+
+fn read_primitive(
+    primitive: &gltf::Primitive,
+    buffers: &[gltf::buffer::Data],
+    world: &Mat4,
+    uv_set: u32,
+    texture: usize,
+) -> Result<PendingMesh> {
+    let reader = primitive.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+    let local: Vec<[f32; 3]> = reader.read_positions().context("no POSITION attribute")?.collect();
+    let count = local.len();
+    if count > u32::MAX as usize {
+        bail!("{count} vertices exceed 2^32");
+    }
+    if let Some((i, p)) = local.iter().enumerate().find(|(_, p)| p.iter().any(|v| !v.is_finite())) {
+        bail!("vertex {i} has non-finite position {p:?}");
+    }
+    let raw: Vec<u32> = match reader.read_indices() {
+        Some(indices) => indices.into_u32().collect(),
+        None => (0..count as u32).collect(),
+    };
+    let mut indices = triangle_list(primitive.mode(), raw);
+    if indices.len() % 3 != 0 {
+        bail!("{} indices do not form whole triangles", indices.len());
+    }
+    if let Some((i, &index)) = indices.iter().enumerate().find(|(_, &v)| v as usize >= count) {
+        bail!("index {i} is {index}, out of range (the primitive has {count} vertices)");
+    }
+    let (n3, det) = normal_matrix(world);
+    if det < 0.0 {
+        // A mirroring transform flips the winding; restore counter-clockwise front faces.
+        for tri in indices.chunks_exact_mut(3) {
+            tri.swap(1, 2);
+        }
+    }
+    let positions: Vec<[f64; 3]> = local.iter().map(|p| transform_point(world, *p)).collect();
+    let normals: Vec<[f32; 3]> = match reader.read_normals() {
+        Some(normals) => normals.map(|n| transform_normal(&n3, det, n)).collect(),
+        None => flat_normals(&positions, &indices),
+    };
+    let uvs: Vec<[f32; 2]> = match reader.read_tex_coords(uv_set) {
+        Some(uvs) => uvs.into_f32().collect(),
+        None => vec![[0.0, 0.0]; count],
+    };
+    if normals.len() != count || uvs.len() != count {
+        bail!(
+            "attribute counts differ: {count} positions, {} normals, {} uvs",
+            normals.len(),
+            uvs.len()
+        );
+    }
+    if let Some((i, uv)) = uvs.iter().enumerate().find(|(_, uv)| uv.iter().any(|v| !v.is_finite())) {
+        bail!("vertex {i} has non-finite uv {uv:?}");
+    }
+    Ok(PendingMesh {
+        texture,
+        positions,
+        normals,
+        uvs,
+        indices,
+    })
+}
+
+/// Converts strips and fans to a triangle list (keeping counter-clockwise winding).
+fn triangle_list(mode: gltf::mesh::Mode, raw: Vec<u32>) -> Vec<u32> {
+    use gltf::mesh::Mode;
+    let triangles = raw.len().saturating_sub(2);
+    match mode {
+        Mode::TriangleStrip => (0..triangles)
+            .flat_map(|i| {
+                if i % 2 == 0 {
+                    [raw[i], raw[i + 1], raw[i + 2]]
+                } else {
+                    [raw[i + 1], raw[i], raw[i + 2]]
+                }
+            })
+            .collect(),
+        Mode::TriangleFan => (0..triangles).flat_map(|i| [raw[0], raw[i + 1], raw[i + 2]]).collect(),
+        _ => raw,
+    }
+}
+
+/// Per-vertex normals averaged from the faces that use them (glTF says: flat shading).
+fn flat_normals(positions: &[[f64; 3]], indices: &[u32]) -> Vec<[f32; 3]> {
+    let mut sum = vec![[0.0f64; 3]; positions.len()];
+    for tri in indices.chunks_exact(3) {
+        let [a, b, c] = [tri[0], tri[1], tri[2]].map(|i| positions[i as usize]);
+        let (u, v) = (
+            [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
+            [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
+        );
+        let n = [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ];
+        for &i in tri {
+            for k in 0..3 {
+                sum[i as usize][k] += n[k];
+            }
+        }
+    }
+    sum.into_iter()
+        .map(|n| {
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            if len > 0.0 {
+                n.map(|x| (x / len) as f32)
+            } else {
+                [0.0, 1.0, 0.0]
+            }
+        })
+        .collect()
+}
+
+/// Raw bytes of a glTF image: a buffer view, an external file, or a data URI.
+fn image_bytes(
+    document: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+    base: &Path,
+    index: usize,
+) -> Result<Vec<u8>> {
+    let image = document
+        .images()
+        .nth(index)
+        .with_context(|| format!("image {index} does not exist"))?;
+    match image.source() {
+        gltf::image::Source::View { view, .. } => {
+            let buffer = buffers
+                .get(view.buffer().index())
+                .context("buffer view refers to a missing buffer")?;
+            let range = view.offset()..view.offset() + view.length();
+            Ok(buffer
+                .0
+                .get(range.clone())
+                .with_context(|| format!("image {index}: buffer view bytes {range:?} out of range"))?
+                .to_vec())
+        }
+        gltf::image::Source::Uri { uri, .. } => {
+            if let Some(data) = uri.strip_prefix("data:") {
+                let (_, payload) = data
+                    .split_once(";base64,")
+                    .with_context(|| format!("image {index}: unsupported data URI"))?;
+                base64_decode(payload).with_context(|| format!("image {index}: invalid base64 data URI"))
+            } else {
+                let path = base.join(percent_decode(uri));
+                std::fs::read(&path).with_context(|| format!("image {index}: reading {}", path.display()))
+            }
+        }
+    }
+}
+
+fn percent_decode(s: &str) -> String {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let hex = |b: u8| (b as char).to_digit(16);
+        if bytes[i] == b'%' && i + 2 < bytes.len() {
+            if let (Some(h), Some(l)) = (hex(bytes[i + 1]), hex(bytes[i + 2])) {
+                out.push((h * 16 + l) as u8);
+                i += 3;
+                continue;
+            }
+        }
+        out.push(bytes[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+fn base64_decode(s: &str) -> Result<Vec<u8>> {
+    let value = |c: u8| -> Option<u32> {
+        Some(match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' | b'-' => 62,
+            b'/' | b'_' => 63,
+            _ => return None,
+        } as u32)
+    };
+    let mut out = Vec::with_capacity(s.len() * 3 / 4);
+    let (mut acc, mut bits) = (0u32, 0u32);
+    for c in s.bytes().filter(|c| !c.is_ascii_whitespace() && *c != b'=') {
+        acc = (acc << 6) | value(c).with_context(|| format!("byte {c:#x} is not base64"))?;
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    Ok(out)
+}
+
+fn decode_image(bytes: &[u8]) -> Result<RgbaImage> {
+    if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB]) {
+        return decode_ktx2(bytes);
+    }
+    Ok(image::load_from_memory(bytes)?.to_rgba8())
+}
+
+fn texture_image(
+    document: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+    base: &Path,
+    key: &TextureKey,
+    input: &Path,
+) -> Result<RgbaImage> {
+    let factor = key.factor.map(u32::from);
+    let mut errors = Vec::new();
+    let mut image = None;
+    for index in key.images.iter().flatten() {
+        match image_bytes(document, buffers, base, *index).and_then(|b| decode_image(&b)) {
+            Ok(decoded) => {
+                image = Some(decoded);
+                break;
+            }
+            Err(e) => errors.push(format!("image {index}: {e:#}")),
+        }
+    }
+    let mut image = match image {
+        Some(image) => image,
+        None if key.images.iter().all(Option::is_none) => RgbaImage::from_pixel(4, 4, image::Rgba(key.factor)),
+        None => bail!(
+            "{}: no source of a texture could be decoded: {}",
+            input.display(),
+            errors.join("; ")
+        ),
+    };
+    if factor != [255; 4] && key.images.iter().any(Option::is_some) {
+        for p in image.pixels_mut() {
+            for c in 0..4 {
+                p[c] = ((u32::from(p[c]) * factor[c] + 127) / 255) as u8;
+            }
+        }
+    }
+    Ok(image)
+}
+
+/// Resizes up to powers of two (at least 4 per side, one BC block), and down to `max_log2`.
+fn fit_power_of_two(image: RgbaImage, max_log2: u32, input: &Path) -> RgbaImage {
+    let (w, h) = image.dimensions();
+    let up = |n: u32| n.max(4).next_power_of_two();
+    let max = 1u32 << max_log2;
+    let (tw, th) = (up(w).min(max), up(h).min(max));
+    if up(w) > max || up(h) > max {
+        eprintln!(
+            "warning: {}: a {w}x{h} texture is downscaled to {tw}x{th} (--max-extent {max})",
+            input.display()
+        );
+    }
+    if (tw, th) == (w, h) {
+        image
+    } else {
+        image::imageops::resize(&image, tw, th, FilterType::Triangle)
+    }
+}

@@ -1,0 +1,147 @@
+//! `citystream info`: totals of a dataset, as text or JSON.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use citystream_streaming::dataset::{Dataset, FORMAT_VERSION, SCENE_FILE};
+use serde::Serialize;
+
+/// Options of `citystream info`.
+#[derive(Debug, clap::Args)]
+pub struct InfoArgs {
+    /// Dataset directory.
+    pub dir: PathBuf,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Textures of one extent.
+#[derive(Debug, Serialize)]
+struct ExtentTotals {
+    width: u32,
+    height: u32,
+    textures: u64,
+    bytes: u64,
+}
+
+/// Everything `info` reports; also the JSON schema of `info --json`.
+#[derive(Debug, Serialize)]
+struct Info {
+    dir: String,
+    format_version: u32,
+    meshes: u64,
+    triangles: u64,
+    vertices: u64,
+    textures: u64,
+    mips: u64,
+    textures_by_extent: Vec<ExtentTotals>,
+    textures_by_format: BTreeMap<String, u64>,
+    bytes_by_format: BTreeMap<String, u64>,
+    pack_bytes: u64,
+    scene_bytes: u64,
+    origin: [f64; 3],
+    bounds_min: [f32; 3],
+    bounds_max: [f32; 3],
+    host_bytes_per_texture: usize,
+    open_seconds: f64,
+}
+
+/// Runs `citystream info`.
+pub fn run(args: &InfoArgs) -> Result<()> {
+    let start = Instant::now();
+    let dataset = Dataset::open(&args.dir).with_context(|| format!("opening {}", args.dir.display()))?;
+    let open_seconds = start.elapsed().as_secs_f64();
+    let info = collect(args, &dataset, open_seconds)?;
+    let mut text = Vec::new();
+    if args.json {
+        writeln!(text, "{}", serde_json::to_string_pretty(&info)?)?;
+    } else {
+        print_text(&mut text, &info)?;
+    }
+    crate::gen::print_stdout(&String::from_utf8_lossy(&text))
+}
+
+fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info> {
+    let mut by_extent: BTreeMap<(u32, u32), (u64, u64)> = BTreeMap::new();
+    let mut textures_by_format = BTreeMap::new();
+    let mut bytes_by_format = BTreeMap::new();
+    let mut mips = 0u64;
+    for t in dataset.textures.textures() {
+        let bytes = t.chain_len();
+        let e = by_extent.entry((t.width(), t.height())).or_default();
+        e.0 += 1;
+        e.1 += bytes;
+        *textures_by_format.entry(t.format().name().to_string()).or_insert(0) += 1;
+        *bytes_by_format.entry(t.format().name().to_string()).or_insert(0) += bytes;
+        mips += u64::from(t.mip_count());
+    }
+    let scene = &dataset.scene;
+    let scene_bytes = std::fs::metadata(args.dir.join(SCENE_FILE))
+        .with_context(|| format!("reading the size of {}", args.dir.join(SCENE_FILE).display()))?
+        .len();
+    Ok(Info {
+        dir: args.dir.display().to_string(),
+        format_version: FORMAT_VERSION,
+        meshes: scene.meshes.len() as u64,
+        triangles: scene.triangle_count(),
+        vertices: scene.positions.len() as u64,
+        textures: u64::from(dataset.textures.len()),
+        mips,
+        textures_by_extent: by_extent
+            .into_iter()
+            .map(|((width, height), (textures, bytes))| ExtentTotals {
+                width,
+                height,
+                textures,
+                bytes,
+            })
+            .collect(),
+        textures_by_format,
+        bytes_by_format,
+        pack_bytes: dataset.textures.pack_len(),
+        scene_bytes,
+        origin: scene.origin,
+        bounds_min: scene.bounds.min,
+        bounds_max: scene.bounds.max,
+        host_bytes_per_texture: Dataset::metadata_bytes_per_texture(),
+        open_seconds,
+    })
+}
+
+fn print_text(out: &mut impl Write, info: &Info) -> std::io::Result<()> {
+    writeln!(out, "dataset {} (format version {})", info.dir, info.format_version)?;
+    writeln!(out, "meshes     {:>12}", info.meshes)?;
+    writeln!(out, "triangles  {:>12}", info.triangles)?;
+    writeln!(out, "vertices   {:>12}", info.vertices)?;
+    writeln!(out, "textures   {:>12}  ({} mips)", info.textures, info.mips)?;
+    writeln!(out, "textures by extent:")?;
+    for e in &info.textures_by_extent {
+        writeln!(
+            out,
+            "  {:>5} x {:<5} {:>10} textures {:>14} bytes",
+            e.width, e.height, e.textures, e.bytes
+        )?;
+    }
+    writeln!(out, "bytes by format:")?;
+    for (format, bytes) in &info.bytes_by_format {
+        let count = info.textures_by_format.get(format).copied().unwrap_or(0);
+        writeln!(out, "  {format:<6} {count:>10} textures {bytes:>14} bytes")?;
+    }
+    writeln!(out, "pack       {:>12} bytes", info.pack_bytes)?;
+    writeln!(out, "scene      {:>12} bytes", info.scene_bytes)?;
+    writeln!(
+        out,
+        "origin     ({:.3}, {:.3}, {:.3}); bounds {:?} .. {:?} (relative, metres)",
+        info.origin[0], info.origin[1], info.origin[2], info.bounds_min, info.bounds_max
+    )?;
+    writeln!(
+        out,
+        "opened in {:.3} s; {} host bytes of metadata per texture",
+        info.open_seconds, info.host_bytes_per_texture
+    )?;
+    Ok(())
+}

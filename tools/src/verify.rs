@@ -1,0 +1,29 @@
+//! `citystream verify`: full consistency check of a dataset.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use citystream_streaming::dataset::verify;
+
+/// Options of `citystream verify`.
+#[derive(Debug, clap::Args)]
+pub struct VerifyArgs {
+    /// Dataset directory.
+    pub dir: PathBuf,
+}
+
+/// Runs `citystream verify`; fails (non-zero exit) with the file and offset of the first problem.
+pub fn run(args: &VerifyArgs) -> Result<()> {
+    let start = Instant::now();
+    let report = verify(&args.dir).with_context(|| format!("verify failed for {}", args.dir.display()))?;
+    crate::gen::print_stdout(&format!(
+        "ok: {}: {} meshes, {} textures, {} mips, {:.1} MB of mip data checked in {:.2} s\n",
+        args.dir.display(),
+        report.meshes,
+        report.textures,
+        report.mips,
+        report.bytes_read as f64 / 1e6,
+        start.elapsed().as_secs_f64()
+    ))
+}

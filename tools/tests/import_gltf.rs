@@ -1,0 +1,320 @@
+//! `citystream import` on real third-party glTF assets and on files written here.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use citystream_streaming::dataset::Dataset;
+use serde_json::json;
+
+fn citystream(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(args)
+        .output()
+        .expect("run citystream")
+}
+
+fn fresh_dir(name: &str) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("import-gltf").join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("create dir");
+    dir
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "import",
+        input.to_str().expect("utf-8"),
+        "--out",
+        out.to_str().expect("utf-8"),
+    ];
+    args.extend_from_slice(extra);
+    citystream(&args)
+}
+
+fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, Output) {
+    let out_dir = fresh_dir(name);
+    let out = import(input, &out_dir, extra);
+    assert!(
+        out.status.success(),
+        "import of {} failed: {}",
+        input.display(),
+        stderr(&out)
+    );
+    let verify = citystream(&["verify", out_dir.to_str().expect("utf-8")]);
+    assert!(verify.status.success(), "verify failed: {}", stderr(&verify));
+    (Dataset::open(&out_dir).expect("open imported dataset"), out)
+}
+
+fn data(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/gltf").join(path)
+}
+
+#[test]
+fn third_party_box_textured_imports_from_gltf_and_glb_identically() {
+    let (gltf, _) = import_ok(
+        &data("BoxTextured/BoxTextured.gltf"),
+        "box-gltf",
+        &["--format", "rgba8"],
+    );
+    let (glb, _) = import_ok(
+        &data("BoxTextured-Binary/BoxTextured.glb"),
+        "box-glb",
+        &["--format", "rgba8"],
+    );
+    assert_eq!(gltf.scene.meshes.len(), 1);
+    assert_eq!(gltf.scene.triangle_count(), 12);
+    assert_eq!(gltf.scene.positions.len(), 24);
+    // The 211x211 PNG is resized up to 256x256 with a full mip chain.
+    let info = gltf.textures.info(0).expect("texture 0");
+    assert_eq!((info.width(), info.height(), info.mip_count()), (256, 256, 9));
+    // The node matrix turns the box's z-up into y-up: a unit cube centred on the origin.
+    let b = gltf.scene.bounds;
+    for a in 0..3 {
+        let (lo, hi) = (
+            gltf.scene.origin[a] + f64::from(b.min[a]),
+            gltf.scene.origin[a] + f64::from(b.max[a]),
+        );
+        assert!(
+            (lo + 0.5).abs() < 1e-5 && (hi - 0.5).abs() < 1e-5,
+            "axis {a}: {lo}..{hi}"
+        );
+    }
+    assert_eq!(gltf.scene, glb.scene);
+    let (mut a, mut c) = (Vec::new(), Vec::new());
+    gltf.textures.read_mip(0, 0, &mut a).expect("gltf mip");
+    glb.textures.read_mip(0, 0, &mut c).expect("glb mip");
+    assert_eq!(a, c);
+    // The Cesium logo: blue sky, green hills, white ridge; all three must survive.
+    let has = |f: &dyn Fn([i32; 3]) -> bool| a.chunks(4).any(|p| f([0, 1, 2].map(|c| i32::from(p[c]))));
+    assert!(has(&|p| p[2] > p[0] + 60), "blue");
+    assert!(has(&|p| p[1] > p[0] + 30 && p[1] > p[2] + 30), "green");
+    assert!(has(&|p| p[0] > 240 && p[1] > 240 && p[2] > 240), "white");
+}
+
+/// Writes `<dir>/scene.gltf` + `scene.bin` + `tex.png`: one quad, parent translation and a
+/// child with rotation and scale, UVs up to 3 (repeat), indices as u16.
+fn write_quad_gltf(dir: &Path, child: serde_json::Value, indices: [u16; 6], image_size: (u32, u32)) -> PathBuf {
+    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+    let normals = [[0.0f32, 0.0, 1.0]; 4];
+    let uvs: [[f32; 2]; 4] = [[0.0, 3.0], [3.0, 3.0], [3.0, 0.0], [0.0, 0.0]];
+    let mut bin = Vec::new();
+    for v in positions.iter().chain(&normals).flatten().chain(uvs.iter().flatten()) {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    for i in indices {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(dir.join("scene.bin"), &bin).expect("write bin");
+    let (w, h) = image_size;
+    image::RgbaImage::from_fn(w, h, |x, y| {
+        image::Rgba([(x * 255 / w) as u8, (y * 255 / h) as u8, 200, 255])
+    })
+    .save(dir.join("tex.png"))
+    .expect("write png");
+    let gltf = json!({
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [
+            {"translation": [391000.0, 0.0, 5819000.0], "children": [1], "name": "parent"},
+            child
+        ],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2}, "indices": 3, "material": 0}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0, "sampler": 0}],
+        "samplers": [{"wrapS": 10497, "wrapT": 10497}],
+        "images": [{"uri": "tex.png"}],
+        "buffers": [{"uri": "scene.bin", "byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 48, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 96, "byteLength": 32},
+            {"buffer": 0, "byteOffset": 128, "byteLength": 12}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC3"},
+            {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 3, "componentType": 5123, "count": 6, "type": "SCALAR"}
+        ]
+    });
+    let path = dir.join("scene.gltf");
+    std::fs::write(&path, serde_json::to_vec_pretty(&gltf).expect("json")).expect("write gltf");
+    path
+}
+
+fn world(dataset: &Dataset, vertex: usize) -> [f64; 3] {
+    let p = dataset.scene.positions[vertex];
+    [0, 1, 2].map(|a| dataset.scene.origin[a] + f64::from(p[a]))
+}
+
+#[test]
+fn node_transforms_repeat_uvs_and_power_of_two_resizing() {
+    let dir = fresh_dir("quad-src");
+    // 90° about +y (x -> -z, z -> x), scale 2, below a translated parent.
+    let s = std::f32::consts::FRAC_1_SQRT_2;
+    let child = json!({"mesh": 0, "rotation": [0.0, s, 0.0, s], "scale": [2.0, 2.0, 2.0]});
+    let input = write_quad_gltf(&dir, child, [0, 1, 2, 0, 2, 3], (100, 60));
+    let (dataset, _) = import_ok(&input, "quad", &["--format", "rgba8"]);
+    let expected = [
+        [391000.0, 0.0, 5819000.0],
+        [391000.0, 0.0, 5818998.0],
+        [391000.0, 2.0, 5818998.0],
+        [391000.0, 2.0, 5819000.0],
+    ];
+    for (v, e) in expected.iter().enumerate() {
+        let p = world(&dataset, v);
+        assert!((0..3).all(|a| (p[a] - e[a]).abs() < 1e-3), "vertex {v}: {p:?} != {e:?}");
+    }
+    // Positions are stored relative to an origin near the model, not to (0,0,0).
+    assert!(dataset.scene.positions.iter().flatten().all(|v| v.abs() < 10.0));
+    let n = dataset.scene.normals[0];
+    assert!(
+        (n[0] - 1.0).abs() < 1e-5 && n[1].abs() < 1e-5 && n[2].abs() < 1e-5,
+        "normal {n:?}"
+    );
+    assert_eq!(dataset.scene.uvs[1], [3.0, 3.0], "repeating UVs are kept");
+    assert_eq!(dataset.scene.indices, [0, 1, 2, 0, 2, 3]);
+    let info = dataset.textures.info(0).expect("texture");
+    assert_eq!(
+        (info.width(), info.height()),
+        (128, 64),
+        "100x60 is resized up to 128x64"
+    );
+}
+
+#[test]
+fn mirroring_transform_keeps_front_faces_counter_clockwise() {
+    let dir = fresh_dir("mirror-src");
+    let child = json!({"mesh": 0, "scale": [-1.0, 1.0, 1.0]});
+    let input = write_quad_gltf(&dir, child, [0, 1, 2, 0, 2, 3], (64, 64));
+    let (dataset, _) = import_ok(&input, "mirror", &[]);
+    assert_eq!(dataset.scene.indices, [0, 2, 1, 0, 3, 2]);
+    // The normal of a mirrored plane z=0 stays +z.
+    assert!((dataset.scene.normals[0][2] - 1.0).abs() < 1e-5);
+}
+
+#[test]
+fn large_textures_are_downscaled_with_a_warning() {
+    let dir = fresh_dir("big-src");
+    let input = write_quad_gltf(&dir, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (300, 200));
+    let (dataset, out) = import_ok(&input, "big", &["--max-extent", "64"]);
+    let info = dataset.textures.info(0).expect("texture");
+    assert_eq!((info.width(), info.height()), (64, 64));
+    assert!(stderr(&out).contains("downscaled"), "{}", stderr(&out));
+}
+
+#[test]
+fn glb_with_embedded_image_and_colour_factor() {
+    // Positions, indices and a PNG in one binary chunk; material tints green by half.
+    let mut png = Vec::new();
+    image::RgbaImage::from_pixel(8, 8, image::Rgba([200, 200, 200, 255]))
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .expect("encode png");
+    let mut bin = Vec::new();
+    for v in [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]].iter().flatten() {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    let png_offset = bin.len();
+    bin.extend_from_slice(&png);
+    while bin.len() % 4 != 0 {
+        bin.push(0);
+    }
+    let gltf = json!({
+        "asset": {"version": "2.0"},
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "baseColorFactor": [1.0, 0.5, 1.0, 1.0]}}],
+        "textures": [{"source": 0}],
+        "images": [{"bufferView": 1, "mimeType": "image/png"}],
+        "buffers": [{"byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 36},
+            {"buffer": 0, "byteOffset": png_offset, "byteLength": png.len()}
+        ],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]}]
+    });
+    let mut json_bytes = serde_json::to_vec(&gltf).expect("json");
+    while json_bytes.len() % 4 != 0 {
+        json_bytes.push(b' ');
+    }
+    let mut glb = Vec::new();
+    glb.extend_from_slice(b"glTF");
+    glb.extend_from_slice(&2u32.to_le_bytes());
+    glb.extend_from_slice(&((12 + 8 + json_bytes.len() + 8 + bin.len()) as u32).to_le_bytes());
+    glb.extend_from_slice(&(json_bytes.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"JSON");
+    glb.extend_from_slice(&json_bytes);
+    glb.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"BIN\0");
+    glb.extend_from_slice(&bin);
+    let dir = fresh_dir("glb-src");
+    let input = dir.join("tri.glb");
+    std::fs::write(&input, glb).expect("write glb");
+
+    let (dataset, _) = import_ok(&input, "glb", &["--format", "rgba8"]);
+    assert_eq!(dataset.scene.triangle_count(), 1);
+    // No NORMAL attribute: flat normals are computed (+z for this triangle).
+    assert!((dataset.scene.normals[0][2] - 1.0).abs() < 1e-5);
+    let colour = dataset.colormap.get(0).expect("colour");
+    assert_eq!((colour[0], colour[1], colour[2]), (200, 100, 200));
+}
+
+#[test]
+fn broken_gltf_files_give_clear_errors() {
+    let dir = fresh_dir("broken");
+    let out_dir = fresh_dir("broken-out");
+
+    let invalid = dir.join("invalid.gltf");
+    std::fs::write(&invalid, b"{\"asset\": {\"version\": \"2.0\"}, \"scenes\": [").expect("write");
+    let out = import(&invalid, &out_dir, &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("invalid.gltf") && stderr(&out).contains("line"),
+        "{}",
+        stderr(&out)
+    );
+
+    let mut non_utf8 = b"{\"asset\": {\"version\": \"2.0\"}, \"nodes\": [{\"name\": \"".to_vec();
+    non_utf8.extend_from_slice(&[0xff, 0xfe, 0x80]);
+    non_utf8.extend_from_slice(b"\"}], \"scenes\": [{\"nodes\": [0]}]}");
+    let path = dir.join("non-utf8.gltf");
+    std::fs::write(&path, non_utf8).expect("write");
+    let out = import(&path, &out_dir, &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("non-utf8.gltf") && stderr(&out).contains("line 1"),
+        "{}",
+        stderr(&out)
+    );
+
+    let src = fresh_dir("index-src");
+    let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 9], (16, 16));
+    let out = import(&input, &out_dir, &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("primitive 0") && stderr(&out).contains("index 5 is 9"),
+        "{}",
+        stderr(&out)
+    );
+
+    let src = fresh_dir("missing-src");
+    let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
+    std::fs::remove_file(src.join("tex.png")).expect("remove png");
+    let out = import(&input, &out_dir, &[]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("tex.png"), "{}", stderr(&out));
+    std::fs::remove_file(src.join("scene.bin")).expect("remove bin");
+    let out = import(&input, &out_dir, &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("missing file") && stderr(&out).contains("scene.bin"),
+        "{}",
+        stderr(&out)
+    );
+}
