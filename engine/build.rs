@@ -18,7 +18,11 @@ fn main() {
     let mut sources: Vec<PathBuf> = std::fs::read_dir(&shader_dir)
         .unwrap_or_else(|e| panic!("cannot read shader directory {}: {e}", shader_dir.display()))
         .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|p| p.extension().and_then(|e| e.to_str()).is_some_and(|e| STAGES.contains(&e)))
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| STAGES.contains(&e))
+        })
         .collect();
     sources.sort();
     for entry in std::fs::read_dir(&include_dir).into_iter().flatten().flatten() {
@@ -36,12 +40,19 @@ fn main() {
         for failure in &failures {
             eprintln!("{failure}");
         }
-        panic!("{} shader(s) failed to compile:\n{}", failures.len(), failures.join("\n"));
+        panic!(
+            "{} shader(s) failed to compile:\n{}",
+            failures.len(),
+            failures.join("\n")
+        );
     }
 }
 
 fn spv_name(source: &Path) -> String {
-    let file = source.file_name().and_then(|n| n.to_str()).expect("shader names are UTF-8");
+    let file = source
+        .file_name()
+        .and_then(|n| n.to_str())
+        .expect("shader names are UTF-8");
     format!("{}.spv", file.replace('.', "_"))
 }
 
@@ -74,7 +85,12 @@ fn compile(source: &Path, include_dir: &Path, out_dir: &Path) -> Result<(), Stri
         .arg("vulkan1.2")
         .arg(&output_path)
         .output()
-        .map_err(|e| format!("cannot run spirv-val for {} ({e}); install Debian package spirv-tools", source.display()))?;
+        .map_err(|e| {
+            format!(
+                "cannot run spirv-val for {} ({e}); install Debian package spirv-tools",
+                source.display()
+            )
+        })?;
     if !validation.status.success() {
         return Err(format!(
             "spirv-val rejected {} (from {}):\n{}{}",

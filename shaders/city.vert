@@ -9,6 +9,9 @@ layout(location = 2) in vec2 in_uv;
 
 layout(push_constant) uniform Push { CityDrawPush push; };
 
+// Identical depth in the pre-pass and the passes that test against it.
+invariant gl_Position;
+
 layout(location = 0) out vec2 out_uv;
 layout(location = 1) out vec3 out_normal;
 

@@ -78,19 +78,30 @@ impl VulkanBinder {
         let memory = match op {
             BindOp::Unbind { .. } => None,
             BindOp::Bind { memory, .. } => {
-                let chunk = self.chunks.get(memory.chunk as usize).ok_or_else(|| BindError::Rejected {
-                    blocks: 1,
-                    reason: format!("memory chunk {} does not exist ({} chunks)", memory.chunk, self.chunks.len()),
-                })?;
-                Some(chunk.at(memory.offset, image.block_size()).ok_or_else(|| BindError::Rejected {
-                    blocks: 1,
-                    reason: format!(
-                        "offset {} is not a block-aligned offset inside chunk {} of {} bytes",
-                        memory.offset,
-                        memory.chunk,
-                        chunk.size()
-                    ),
-                })?)
+                let chunk = self
+                    .chunks
+                    .get(memory.chunk as usize)
+                    .ok_or_else(|| BindError::Rejected {
+                        blocks: 1,
+                        reason: format!(
+                            "memory chunk {} does not exist ({} chunks)",
+                            memory.chunk,
+                            self.chunks.len()
+                        ),
+                    })?;
+                Some(
+                    chunk
+                        .at(memory.offset, image.block_size())
+                        .ok_or_else(|| BindError::Rejected {
+                            blocks: 1,
+                            reason: format!(
+                                "offset {} is not a block-aligned offset inside chunk {} of {} bytes",
+                                memory.offset,
+                                memory.chunk,
+                                chunk.size()
+                            ),
+                        })?,
+                )
             }
         };
         Ok((
@@ -128,11 +139,17 @@ impl SparseBinder for VulkanBinder {
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
         let started = Instant::now();
         let value = self.signalled + 1;
-        submit_bind_sparse(&self.device, &slices, &[], Some((self.timeline.raw(), value)), vk::Fence::null())
-            .map_err(|e| BindError::Rejected {
-                blocks: batch.len() as u32,
-                reason: e.to_string(),
-            })?;
+        submit_bind_sparse(
+            &self.device,
+            &slices,
+            &[],
+            Some((self.timeline.raw(), value)),
+            vk::Fence::null(),
+        )
+        .map_err(|e| BindError::Rejected {
+            blocks: batch.len() as u32,
+            reason: e.to_string(),
+        })?;
         self.signalled = value;
         Ok(BindReport {
             blocks: batch.len() as u32,

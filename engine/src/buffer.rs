@@ -32,7 +32,10 @@ pub struct Buffer {
 
 impl std::fmt::Debug for Buffer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Buffer").field("name", &self.name).field("desc", &self.desc).finish()
+        f.debug_struct("Buffer")
+            .field("name", &self.name)
+            .field("desc", &self.desc)
+            .finish()
     }
 }
 
@@ -60,7 +63,9 @@ impl Buffer {
         let requirements = unsafe { device.raw.get_buffer_memory_requirements(raw) };
         let allocation = {
             let mut guard = device.allocator();
-            let allocator = guard.as_mut().ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
+            let allocator = guard
+                .as_mut()
+                .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
             allocator
                 .allocate(&AllocationCreateDesc {
                     name,
@@ -75,7 +80,11 @@ impl Buffer {
                 })?
         };
         // SAFETY: the allocation satisfies the buffer's requirements.
-        let bound = unsafe { device.raw.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) };
+        let bound = unsafe {
+            device
+                .raw
+                .bind_buffer_memory(raw, allocation.memory(), allocation.offset())
+        };
         buffer.allocation = Some(allocation);
         bound.vk("vkBindBufferMemory")?;
         device.set_name(raw, name);
@@ -118,13 +127,16 @@ impl Buffer {
             .mapped_mut()
             .ok_or_else(|| EngineError::InvalidRequest(format!("buffer {name:?} is not host visible")))?;
         let start = usize::try_from(offset).unwrap_or(usize::MAX);
-        let end = start.checked_add(bytes.len()).filter(|&e| e <= mapped.len()).ok_or_else(|| {
-            EngineError::InvalidRequest(format!(
-                "write of {} bytes at {offset} overruns buffer {name:?} of {} bytes",
-                bytes.len(),
-                mapped.len()
-            ))
-        })?;
+        let end = start
+            .checked_add(bytes.len())
+            .filter(|&e| e <= mapped.len())
+            .ok_or_else(|| {
+                EngineError::InvalidRequest(format!(
+                    "write of {} bytes at {offset} overruns buffer {name:?} of {} bytes",
+                    bytes.len(),
+                    mapped.len()
+                ))
+            })?;
         mapped[start..end].copy_from_slice(bytes);
         Ok(())
     }

@@ -18,7 +18,7 @@ use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::FeedbackCompactor;
 use crate::gpu_types::{CityDrawPush, Vertex, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA, FEEDBACK_MAX_PIXELS};
-use crate::pipeline::{BindingSpec, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
+use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
 use crate::scene::upload_buffer;
 use crate::shaders;
 use crate::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
@@ -105,9 +105,11 @@ impl Default for FeedbackView {
 #[derive(Debug)]
 pub struct CityRenderer {
     device: Arc<Device>,
+    depth_prepass: Pipeline,
     feedback: Pipeline,
     visible: Pipeline,
     _pool: DescriptorPool,
+    prepass_set: vk::DescriptorSet,
     feedback_set: vk::DescriptorSet,
     visible_set: vk::DescriptorSet,
     vertices: Buffer,
@@ -119,6 +121,8 @@ fn city_pipeline(
     device: &Arc<Device>,
     fragment: shaders::ShaderSource,
     bindings: Vec<BindingSpec>,
+    depth: DepthMode,
+    color_write: bool,
     name: &str,
 ) -> Result<Pipeline> {
     Pipeline::graphics(
@@ -133,6 +137,8 @@ fn city_pipeline(
             cull_mode: vk::CullModeFlags::NONE,
             bindings,
             push_constant_size: std::mem::size_of::<CityDrawPush>() as u32,
+            depth,
+            color_write,
         },
         name,
     )
@@ -180,7 +186,20 @@ impl CityRenderer {
                 (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
                 (BINDING_FEEDBACK_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
             ],
+            DepthMode::EqualAfterPrepass,
+            true,
             "city feedback pipeline",
+        )?;
+        // Feedback must count only the nearest surface whatever the draw
+        // order, so a depth-only pass runs first (early depth testing alone
+        // only rejects fragments behind what was drawn before).
+        let depth_prepass = city_pipeline(
+            device,
+            shaders::DEPTH_ONLY_FRAG,
+            Vec::new(),
+            DepthMode::TestAndWrite,
+            false,
+            "city depth pre-pass pipeline",
         )?;
         let cache_descriptors = cache.descriptors();
         let visible_bindings: Vec<BindingSpec> = cache_descriptors
@@ -194,9 +213,17 @@ impl CityRenderer {
                 (*binding, ty, 1, fragment)
             })
             .collect();
-        let visible = city_pipeline(device, shaders::CITY_FRAG, visible_bindings, "city visible pipeline")?;
-        // One pool for both sets: sized by the visible layout, which has the most bindings.
-        let pool = DescriptorPool::new(device, &visible, 2, "city descriptors")?;
+        let visible = city_pipeline(
+            device,
+            shaders::CITY_FRAG,
+            visible_bindings,
+            DepthMode::TestAndWrite,
+            true,
+            "city visible pipeline",
+        )?;
+        // One pool for all sets: sized by the visible layout, which has the most bindings.
+        let pool = DescriptorPool::new(device, &visible, 3, "city descriptors")?;
+        let prepass_set = pool.allocate(&depth_prepass, &[])?;
         let table = cache_descriptors
             .iter()
             .find(|(b, _)| *b == BINDING_TEXTURE_DATA)
@@ -229,6 +256,8 @@ impl CityRenderer {
         )?;
         Ok(Self {
             device: Arc::clone(device),
+            depth_prepass,
+            prepass_set,
             feedback,
             visible,
             _pool: pool,
@@ -249,7 +278,9 @@ impl CityRenderer {
         pipeline.bind(cmd, set);
         // SAFETY: cmd is recording inside rendering; buffers are live.
         unsafe {
-            self.device.raw().cmd_bind_vertex_buffers(cmd, 0, &[self.vertices.raw()], &[0]);
+            self.device
+                .raw()
+                .cmd_bind_vertex_buffers(cmd, 0, &[self.vertices.raw()], &[0]);
             self.device
                 .raw()
                 .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
@@ -301,10 +332,16 @@ impl CityRenderer {
         let base = CityDrawPush {
             view_proj: camera.view_projection(aspect, view.margin).to_cols_array_2d(),
             feedback: [pixel_ratio.log2(), view.foreground_distance.max(1e-6), widen, widen],
-            viewport_light: [feedback_target.width() as f32, feedback_target.height() as f32, 0.0, 0.0],
+            viewport_light: [
+                feedback_target.width() as f32,
+                feedback_target.height() as f32,
+                0.0,
+                0.0,
+            ],
             ..CityDrawPush::default()
         };
         feedback_target.begin(&self.device, cmd, [1.0, 0.0, 1.0, 1.0]);
+        self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);
         self.draw_all(cmd, &self.feedback, self.feedback_set, base);
         // SAFETY: rendering was begun above in the same command buffer.
         unsafe { self.device.raw().cmd_end_rendering(cmd) };

@@ -202,7 +202,9 @@ pub struct CommandContext {
 
 impl std::fmt::Debug for CommandContext {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("CommandContext").field("pending", &self.pending).finish()
+        f.debug_struct("CommandContext")
+            .field("pending", &self.pending)
+            .finish()
     }
 }
 
@@ -252,7 +254,10 @@ impl CommandContext {
                 .raw
                 .reset_command_buffer(self.cmd, vk::CommandBufferResetFlags::empty())
                 .vk("vkResetCommandBuffer")?;
-            self.device.raw.begin_command_buffer(self.cmd, &info).vk("vkBeginCommandBuffer")?;
+            self.device
+                .raw
+                .begin_command_buffer(self.cmd, &info)
+                .vk("vkBeginCommandBuffer")?;
         }
         Ok(self.cmd)
     }

@@ -107,7 +107,9 @@ fn examine(instance: &Instance, physical: vk::PhysicalDevice) -> DeviceCandidate
         .unwrap_or_else(|_| "<unnamed device>".to_owned());
     let mut vk13 = vk::PhysicalDeviceVulkan13Features::default();
     let mut vk12 = vk::PhysicalDeviceVulkan12Features::default();
-    let mut features2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut vk12).push_next(&mut vk13);
+    let mut features2 = vk::PhysicalDeviceFeatures2::default()
+        .push_next(&mut vk12)
+        .push_next(&mut vk13);
     // SAFETY: `physical` came from this instance; the chain is well formed.
     unsafe { raw.get_physical_device_features2(physical, &mut features2) };
     let features = features2.features;
@@ -128,7 +130,12 @@ fn examine(instance: &Instance, physical: vk::PhysicalDevice) -> DeviceCandidate
         ("feature textureCompressionBC", features.texture_compression_bc),
         ("feature samplerAnisotropy", features.sampler_anisotropy),
     ];
-    missing.extend(required.iter().filter(|(_, v)| *v == vk::FALSE).map(|(n, _)| (*n).to_owned()));
+    missing.extend(
+        required
+            .iter()
+            .filter(|(_, v)| *v == vk::FALSE)
+            .map(|(n, _)| (*n).to_owned()),
+    );
     if vk12.timeline_semaphore == vk::FALSE {
         missing.push("feature timelineSemaphore".to_owned());
     }
@@ -165,7 +172,11 @@ pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Re
         if candidates.is_empty() {
             "none".to_owned()
         } else {
-            candidates.iter().map(|c| format!("{:?}", c.name)).collect::<Vec<_>>().join(", ")
+            candidates
+                .iter()
+                .map(|c| format!("{:?}", c.name))
+                .collect::<Vec<_>>()
+                .join(", ")
         }
     };
     let chosen = match wanted {
@@ -180,12 +191,16 @@ pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Re
                 })?
         }
         None => {
-            let usable = candidates.iter().filter(|c| c.missing.is_empty()).min_by_key(|c| rank(c.device_type));
+            let usable = candidates
+                .iter()
+                .filter(|c| c.missing.is_empty())
+                .min_by_key(|c| rank(c.device_type));
             match usable {
                 Some(c) => c,
                 None => {
                     let why = if candidates.is_empty() {
-                        "the Vulkan loader found no device (is mesa-vulkan-drivers installed? run `make setup`)".to_owned()
+                        "the Vulkan loader found no device (is mesa-vulkan-drivers installed? run `make setup`)"
+                            .to_owned()
                     } else {
                         candidates
                             .iter()
@@ -364,15 +379,18 @@ impl Device {
     pub fn memory_type_index(&self, bits: u32, flags: vk::MemoryPropertyFlags) -> Option<u32> {
         // SAFETY: physical belongs to the instance.
         let props = unsafe { self.instance.raw.get_physical_device_memory_properties(self.physical) };
-        (0..props.memory_type_count).find(|&i| {
-            bits & (1 << i) != 0 && props.memory_types[i as usize].property_flags.contains(flags)
-        })
+        (0..props.memory_type_count)
+            .find(|&i| bits & (1 << i) != 0 && props.memory_types[i as usize].property_flags.contains(flags))
     }
 
     /// Format properties of `format` on this device.
     pub fn format_properties(&self, format: vk::Format) -> vk::FormatProperties {
         // SAFETY: physical belongs to the instance.
-        unsafe { self.instance.raw.get_physical_device_format_properties(self.physical, format) }
+        unsafe {
+            self.instance
+                .raw
+                .get_physical_device_format_properties(self.physical, format)
+        }
     }
 }
 

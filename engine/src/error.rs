@@ -25,7 +25,10 @@ pub enum EngineError {
     NoUsableDevice(String),
     /// gpu-allocator could not satisfy an allocation.
     #[error("GPU memory allocation for {name:?} failed: {source}")]
-    Allocation { name: String, source: gpu_allocator::AllocationError },
+    Allocation {
+        name: String,
+        source: gpu_allocator::AllocationError,
+    },
     /// A request the engine cannot carry out as asked (bad size, range, format).
     #[error("{0}")]
     InvalidRequest(String),

@@ -81,7 +81,11 @@ impl FeedbackCompactor {
             "mesh feedback",
         )?;
         let dense = storage(u64::from(capacity) * entry_size, transfer, "compacted feedback")?;
-        let counter = storage(std::mem::size_of::<FeedbackCounter>() as u64, transfer, "feedback counter")?;
+        let counter = storage(
+            std::mem::size_of::<FeedbackCounter>() as u64,
+            transfer,
+            "feedback counter",
+        )?;
         let readback = |size: u64, name: &str| {
             Buffer::new(
                 device,
@@ -93,7 +97,10 @@ impl FeedbackCompactor {
                 name,
             )
         };
-        let counter_readback = readback(std::mem::size_of::<FeedbackCounter>() as u64, "feedback counter read-back")?;
+        let counter_readback = readback(
+            std::mem::size_of::<FeedbackCounter>() as u64,
+            "feedback counter read-back",
+        )?;
         let entries_readback = readback(u64::from(capacity) * entry_size, "compacted feedback read-back")?;
         let stages = vk::ShaderStageFlags::COMPUTE;
         let pipeline = Pipeline::compute(
@@ -113,7 +120,10 @@ impl FeedbackCompactor {
             &[
                 (BINDING_COMPACT_SPARSE, DescriptorResource::StorageBuffer(sparse.raw())),
                 (BINDING_COMPACT_DENSE, DescriptorResource::StorageBuffer(dense.raw())),
-                (BINDING_COMPACT_COUNTER, DescriptorResource::StorageBuffer(counter.raw())),
+                (
+                    BINDING_COMPACT_COUNTER,
+                    DescriptorResource::StorageBuffer(counter.raw()),
+                ),
             ],
         )?;
         let compactor = Self {
@@ -163,7 +173,9 @@ impl FeedbackCompactor {
             &self.device,
             cmd,
             (
-                vk::PipelineStageFlags2::FRAGMENT_SHADER | vk::PipelineStageFlags2::CLEAR | vk::PipelineStageFlags2::COPY,
+                vk::PipelineStageFlags2::FRAGMENT_SHADER
+                    | vk::PipelineStageFlags2::CLEAR
+                    | vk::PipelineStageFlags2::COPY,
                 vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
             ),
             (
@@ -304,7 +316,10 @@ impl FeedbackCompactor {
             &self.device,
             cmd,
             (vk::PipelineStageFlags2::ALL_COMMANDS, vk::AccessFlags2::MEMORY_WRITE),
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::TRANSFER_WRITE),
+            (
+                vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::TRANSFER_WRITE,
+            ),
         );
         let region = vk::BufferCopy {
             src_offset: 0,

@@ -182,7 +182,11 @@ impl Vertex {
     pub fn attributes() -> Vec<(u32, ash::vk::Format, u32)> {
         use ash::vk::Format;
         vec![
-            (0, Format::R32G32B32_SFLOAT, std::mem::offset_of!(Vertex, position) as u32),
+            (
+                0,
+                Format::R32G32B32_SFLOAT,
+                std::mem::offset_of!(Vertex, position) as u32,
+            ),
             (1, Format::R32G32B32_SFLOAT, std::mem::offset_of!(Vertex, normal) as u32),
             (2, Format::R32G32_SFLOAT, std::mem::offset_of!(Vertex, uv) as u32),
         ]
@@ -322,10 +326,10 @@ pub mod spirv_layout {
                 .filter(|(_, &element)| element == id)
                 .filter_map(|(array, _)| strides.get(array).copied())
                 .collect();
-            result.entry(name.clone()).or_default().push(StructLayout {
-                members,
-                array_strides,
-            });
+            result
+                .entry(name.clone())
+                .or_default()
+                .push(StructLayout { members, array_strides });
         }
         result
     }
@@ -363,7 +367,10 @@ mod tests {
             let gpu: Vec<(&str, usize)> = layout.members.iter().map(|(n, o)| (n.as_str(), *o as usize)).collect();
             assert_eq!(gpu, rust, "member offsets of {name} differ between GLSL and Rust");
             for &stride in &layout.array_strides {
-                assert_eq!(stride as usize, rust_size, "array stride of {name} differs from size_of");
+                assert_eq!(
+                    stride as usize, rust_size,
+                    "array stride of {name} differs from size_of"
+                );
             }
         }
         // The struct's size is its last member's end when no array stride says otherwise.
@@ -438,7 +445,11 @@ mod tests {
             ("BINDING_TEXTURE_PROBE_RESULTS", BINDING_TEXTURE_PROBE_RESULTS),
             ("BINDING_FEEDBACK_MESHES", BINDING_FEEDBACK_MESHES),
         ];
-        assert_eq!(defines.len(), rust.len(), "every GLSL binding needs a Rust twin: {defines:?}");
+        assert_eq!(
+            defines.len(),
+            rust.len(),
+            "every GLSL binding needs a Rust twin: {defines:?}"
+        );
         for (name, value) in rust {
             assert_eq!(defines.get(name), Some(&value), "{name} differs between GLSL and Rust");
         }
@@ -448,7 +459,10 @@ mod tests {
     fn feedback_layouts_match_spirv() {
         check(
             "MeshFeedback",
-            &[("min_mip", offset_of!(MeshFeedback, min_mip)), ("weight", offset_of!(MeshFeedback, weight))],
+            &[
+                ("min_mip", offset_of!(MeshFeedback, min_mip)),
+                ("weight", offset_of!(MeshFeedback, weight)),
+            ],
             size_of::<MeshFeedback>(),
         );
         check(
@@ -462,7 +476,10 @@ mod tests {
         );
         check(
             "FeedbackCounter",
-            &[("count", offset_of!(FeedbackCounter, count)), ("dropped", offset_of!(FeedbackCounter, dropped))],
+            &[
+                ("count", offset_of!(FeedbackCounter, count)),
+                ("dropped", offset_of!(FeedbackCounter, dropped)),
+            ],
             size_of::<FeedbackCounter>(),
         );
         check(
@@ -538,7 +555,10 @@ mod tests {
             ("FEEDBACK_ANISOTROPY", FEEDBACK_ANISOTROPY),
             ("SAMPLE_ANISOTROPY", SAMPLE_ANISOTROPY),
         ] {
-            assert!(header.contains(&format!("#define {name} {value:.1}")), "{name} differs from the GLSL header");
+            assert!(
+                header.contains(&format!("#define {name} {value:.1}")),
+                "{name} differs from the GLSL header"
+            );
         }
     }
 

@@ -49,9 +49,7 @@ impl ImageDesc {
 /// The aspect flags of a format.
 pub fn aspect_of(format: vk::Format) -> vk::ImageAspectFlags {
     match format {
-        vk::Format::D16_UNORM | vk::Format::D32_SFLOAT | vk::Format::X8_D24_UNORM_PACK32 => {
-            vk::ImageAspectFlags::DEPTH
-        }
+        vk::Format::D16_UNORM | vk::Format::D32_SFLOAT | vk::Format::X8_D24_UNORM_PACK32 => vk::ImageAspectFlags::DEPTH,
         vk::Format::D24_UNORM_S8_UINT | vk::Format::D32_SFLOAT_S8_UINT | vk::Format::D16_UNORM_S8_UINT => {
             vk::ImageAspectFlags::DEPTH | vk::ImageAspectFlags::STENCIL
         }
@@ -71,7 +69,10 @@ pub struct Image {
 
 impl std::fmt::Debug for Image {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Image").field("name", &self.name).field("desc", &self.desc).finish()
+        f.debug_struct("Image")
+            .field("name", &self.name)
+            .field("desc", &self.desc)
+            .finish()
     }
 }
 
@@ -79,7 +80,9 @@ impl Image {
     /// Creates the image, binds device memory and creates its view.
     pub fn new(device: &Arc<Device>, desc: ImageDesc, name: &str) -> Result<Self> {
         if desc.width == 0 || desc.height == 0 || desc.layers == 0 || desc.mips == 0 {
-            return Err(EngineError::InvalidRequest(format!("image {name:?} has a zero dimension: {desc:?}")));
+            return Err(EngineError::InvalidRequest(format!(
+                "image {name:?} has a zero dimension: {desc:?}"
+            )));
         }
         let info = vk::ImageCreateInfo::default()
             .image_type(vk::ImageType::TYPE_2D)
@@ -110,7 +113,9 @@ impl Image {
         let requirements = unsafe { device.raw.get_image_memory_requirements(raw) };
         let allocation = {
             let mut guard = device.allocator();
-            let allocator = guard.as_mut().ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
+            let allocator = guard
+                .as_mut()
+                .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
             allocator
                 .allocate(&AllocationCreateDesc {
                     name,
@@ -125,7 +130,11 @@ impl Image {
                 })?
         };
         // SAFETY: the allocation satisfies the image's requirements.
-        let bound = unsafe { device.raw.bind_image_memory(raw, allocation.memory(), allocation.offset()) };
+        let bound = unsafe {
+            device
+                .raw
+                .bind_image_memory(raw, allocation.memory(), allocation.offset())
+        };
         image.allocation = Some(allocation);
         bound.vk("vkBindImageMemory")?;
         image.view = create_view(device, raw, &desc)?;

@@ -52,7 +52,10 @@ impl ValidationLog {
 
     /// The validation errors so far.
     pub fn errors(&self) -> Vec<ValidationMessage> {
-        self.messages().into_iter().filter(ValidationMessage::is_error).collect()
+        self.messages()
+            .into_iter()
+            .filter(ValidationMessage::is_error)
+            .collect()
     }
 
     /// Number of validation errors so far.
@@ -125,11 +128,12 @@ impl Instance {
         let mut layers: Vec<*const std::ffi::c_char> = Vec::new();
         let mut extensions: Vec<*const std::ffi::c_char> = Vec::new();
         // SAFETY: plain enumeration call on a loaded entry.
-        let available_extensions =
-            unsafe { entry.enumerate_instance_extension_properties(None) }.vk("vkEnumerateInstanceExtensionProperties")?;
-        let has_debug_utils = available_extensions
-            .iter()
-            .any(|e| e.extension_name_as_c_str().is_ok_and(|n| n == ash::ext::debug_utils::NAME));
+        let available_extensions = unsafe { entry.enumerate_instance_extension_properties(None) }
+            .vk("vkEnumerateInstanceExtensionProperties")?;
+        let has_debug_utils = available_extensions.iter().any(|e| {
+            e.extension_name_as_c_str()
+                .is_ok_and(|n| n == ash::ext::debug_utils::NAME)
+        });
         if options.validation {
             // SAFETY: plain enumeration call on a loaded entry.
             let available_layers =
@@ -138,7 +142,9 @@ impl Instance {
                 .iter()
                 .any(|l| l.layer_name_as_c_str().is_ok_and(|n| n == VALIDATION_LAYER));
             if !present {
-                return Err(EngineError::LayerMissing(VALIDATION_LAYER.to_string_lossy().into_owned()));
+                return Err(EngineError::LayerMissing(
+                    VALIDATION_LAYER.to_string_lossy().into_owned(),
+                ));
             }
             layers.push(VALIDATION_LAYER.as_ptr());
         }
@@ -245,7 +251,9 @@ unsafe extern "system" fn debug_callback(
         String::new()
     } else {
         // SAFETY: as above.
-        unsafe { CStr::from_ptr(data.p_message_id_name) }.to_string_lossy().into_owned()
+        unsafe { CStr::from_ptr(data.p_message_id_name) }
+            .to_string_lossy()
+            .into_owned()
     };
     let message = ValidationMessage { severity, id, text };
     if message.is_error() {

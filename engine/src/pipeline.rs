@@ -52,7 +52,9 @@ pub struct Pipeline {
 
 impl std::fmt::Debug for Pipeline {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Pipeline").field("bind_point", &self.bind_point).finish()
+        f.debug_struct("Pipeline")
+            .field("bind_point", &self.bind_point)
+            .finish()
     }
 }
 
@@ -77,6 +79,20 @@ pub struct GraphicsDesc {
     pub bindings: Vec<BindingSpec>,
     /// Push-constant bytes visible to vertex and fragment stages.
     pub push_constant_size: u32,
+    /// Depth test and writes.
+    pub depth: DepthMode,
+    /// Whether the colour attachment is written.
+    pub color_write: bool,
+}
+
+/// How a graphics pipeline uses the depth buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthMode {
+    /// Test with LESS and write: ordinary opaque rendering.
+    TestAndWrite,
+    /// Test with LESS_OR_EQUAL against a depth pre-pass, no writes: only the
+    /// nearest surface's fragments run.
+    EqualAfterPrepass,
 }
 
 impl Pipeline {
@@ -189,13 +205,20 @@ impl Pipeline {
             .line_width(1.0);
         let multisample =
             vk::PipelineMultisampleStateCreateInfo::default().rasterization_samples(vk::SampleCountFlags::TYPE_1);
+        let (compare, write) = match desc.depth {
+            DepthMode::TestAndWrite => (vk::CompareOp::LESS, true),
+            DepthMode::EqualAfterPrepass => (vk::CompareOp::LESS_OR_EQUAL, false),
+        };
         let depth = vk::PipelineDepthStencilStateCreateInfo::default()
             .depth_test_enable(true)
-            .depth_write_enable(true)
-            .depth_compare_op(vk::CompareOp::LESS);
-        let blend_attachments = [vk::PipelineColorBlendAttachmentState::default().color_write_mask(
-            vk::ColorComponentFlags::R | vk::ColorComponentFlags::G | vk::ColorComponentFlags::B | vk::ColorComponentFlags::A,
-        )];
+            .depth_write_enable(write)
+            .depth_compare_op(compare);
+        let write_mask = if desc.color_write {
+            vk::ColorComponentFlags::RGBA
+        } else {
+            vk::ColorComponentFlags::empty()
+        };
+        let blend_attachments = [vk::PipelineColorBlendAttachmentState::default().color_write_mask(write_mask)];
         let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_attachments);
         let dynamic_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
         let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dynamic_states);
@@ -216,7 +239,11 @@ impl Pipeline {
             .layout(layout)
             .push_next(&mut rendering);
         // SAFETY: every referenced object is live for this call.
-        let created = unsafe { device.raw.create_graphics_pipelines(vk::PipelineCache::null(), &[info], None) };
+        let created = unsafe {
+            device
+                .raw
+                .create_graphics_pipelines(vk::PipelineCache::null(), &[info], None)
+        };
         pipeline.raw = created.map_err(|(_, result)| EngineError::Vulkan {
             call: "vkCreateGraphicsPipelines",
             result,
@@ -253,7 +280,11 @@ impl Pipeline {
             .name(c"main");
         let info = vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout);
         // SAFETY: every referenced object is live for this call.
-        let created = unsafe { device.raw.create_compute_pipelines(vk::PipelineCache::null(), &[info], None) };
+        let created = unsafe {
+            device
+                .raw
+                .create_compute_pipelines(vk::PipelineCache::null(), &[info], None)
+        };
         pipeline.raw = created.map_err(|(_, result)| EngineError::Vulkan {
             call: "vkCreateComputePipelines",
             result,
@@ -360,7 +391,9 @@ impl DescriptorPool {
                 descriptor_count: count * sets,
             })
             .collect();
-        let info = vk::DescriptorPoolCreateInfo::default().max_sets(sets).pool_sizes(&sizes);
+        let info = vk::DescriptorPoolCreateInfo::default()
+            .max_sets(sets)
+            .pool_sizes(&sizes);
         // SAFETY: valid create info.
         let raw = unsafe { device.raw.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool")?;
         device.set_name(raw, name);
@@ -387,11 +420,13 @@ impl DescriptorPool {
         let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = resources
             .iter()
             .map(|(_, r)| match *r {
-                DescriptorResource::StorageBuffer(b) | DescriptorResource::UniformBuffer(b) => [vk::DescriptorBufferInfo {
-                    buffer: b,
-                    offset: 0,
-                    range: vk::WHOLE_SIZE,
-                }],
+                DescriptorResource::StorageBuffer(b) | DescriptorResource::UniformBuffer(b) => {
+                    [vk::DescriptorBufferInfo {
+                        buffer: b,
+                        offset: 0,
+                        range: vk::WHOLE_SIZE,
+                    }]
+                }
                 DescriptorResource::SampledImage(..) => [vk::DescriptorBufferInfo::default()],
             })
             .collect();

@@ -39,7 +39,12 @@ impl SplitMix64 {
 
 /// Appends an axis-aligned quad given four corners in counter-clockwise order.
 fn quad(geometry: &mut SceneGeometry, corners: [Vec3; 4], normal: Vec3, uv_scale: [f32; 2], layer: u32) {
-    let uvs = [[0.0, uv_scale[1]], [uv_scale[0], uv_scale[1]], [uv_scale[0], 0.0], [0.0, 0.0]];
+    let uvs = [
+        [0.0, uv_scale[1]],
+        [uv_scale[0], uv_scale[1]],
+        [uv_scale[0], 0.0],
+        [0.0, 0.0],
+    ];
     let vertices: Vec<Vertex> = corners
         .iter()
         .zip(uvs)
@@ -82,17 +87,64 @@ pub fn city(seed: u64, blocks: u32) -> SceneGeometry {
             let (x0, x1, z0, z1) = (cx - w / 2.0, cx + w / 2.0, cz - d / 2.0, cz + d / 2.0);
             let floors = (h / 4.0).round().max(1.0);
             let faces = [
-                ([Vec3::new(x0, 0.0, z1), Vec3::new(x1, 0.0, z1), Vec3::new(x1, h, z1), Vec3::new(x0, h, z1)], Vec3::Z, w),
-                ([Vec3::new(x1, 0.0, z0), Vec3::new(x0, 0.0, z0), Vec3::new(x0, h, z0), Vec3::new(x1, h, z0)], -Vec3::Z, w),
-                ([Vec3::new(x1, 0.0, z1), Vec3::new(x1, 0.0, z0), Vec3::new(x1, h, z0), Vec3::new(x1, h, z1)], Vec3::X, d),
-                ([Vec3::new(x0, 0.0, z0), Vec3::new(x0, 0.0, z1), Vec3::new(x0, h, z1), Vec3::new(x0, h, z0)], -Vec3::X, d),
+                (
+                    [
+                        Vec3::new(x0, 0.0, z1),
+                        Vec3::new(x1, 0.0, z1),
+                        Vec3::new(x1, h, z1),
+                        Vec3::new(x0, h, z1),
+                    ],
+                    Vec3::Z,
+                    w,
+                ),
+                (
+                    [
+                        Vec3::new(x1, 0.0, z0),
+                        Vec3::new(x0, 0.0, z0),
+                        Vec3::new(x0, h, z0),
+                        Vec3::new(x1, h, z0),
+                    ],
+                    -Vec3::Z,
+                    w,
+                ),
+                (
+                    [
+                        Vec3::new(x1, 0.0, z1),
+                        Vec3::new(x1, 0.0, z0),
+                        Vec3::new(x1, h, z0),
+                        Vec3::new(x1, h, z1),
+                    ],
+                    Vec3::X,
+                    d,
+                ),
+                (
+                    [
+                        Vec3::new(x0, 0.0, z0),
+                        Vec3::new(x0, 0.0, z1),
+                        Vec3::new(x0, h, z1),
+                        Vec3::new(x0, h, z0),
+                    ],
+                    -Vec3::X,
+                    d,
+                ),
             ];
             for (corners, normal, width) in faces {
-                quad(&mut geometry, corners, normal, [(width / 4.0).round().max(1.0), floors], layer);
+                quad(
+                    &mut geometry,
+                    corners,
+                    normal,
+                    [(width / 4.0).round().max(1.0), floors],
+                    layer,
+                );
             }
             quad(
                 &mut geometry,
-                [Vec3::new(x0, h, z1), Vec3::new(x1, h, z1), Vec3::new(x1, h, z0), Vec3::new(x0, h, z0)],
+                [
+                    Vec3::new(x0, h, z1),
+                    Vec3::new(x1, h, z1),
+                    Vec3::new(x1, h, z0),
+                    Vec3::new(x0, h, z0),
+                ],
                 Vec3::Y,
                 [1.0, 1.0],
                 0,
@@ -124,7 +176,11 @@ pub fn textures(seed: u64) -> crate::Result<TextureArrayData> {
             80 + (rng.next_f32() * 130.0) as u8,
             70 + (rng.next_f32() * 120.0) as u8,
         ];
-        let glass = [30 + (rng.next_f32() * 60.0) as u8, 60 + (rng.next_f32() * 80.0) as u8, 110 + (rng.next_f32() * 100.0) as u8];
+        let glass = [
+            30 + (rng.next_f32() * 60.0) as u8,
+            60 + (rng.next_f32() * 80.0) as u8,
+            110 + (rng.next_f32() * 100.0) as u8,
+        ];
         let mut texels = Vec::with_capacity((size * size * 4) as usize);
         for y in 0..size {
             for x in 0..size {

@@ -16,10 +16,10 @@ use crate::gpu_types::{
     BINDING_PROBE_POINTS, BINDING_PROBE_RESULTS, BINDING_PROBE_TEXTURE, BINDING_TEXTURE_DATA,
     BINDING_TEXTURE_PROBE_POINTS, BINDING_TEXTURE_PROBE_RESULTS,
 };
-use crate::texture_cache::GpuTextureCache;
 use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorPool, DescriptorResource, Filtering, Pipeline, Sampler};
 use crate::shaders;
+use crate::texture_cache::GpuTextureCache;
 
 const WORKGROUP: u32 = 64;
 
@@ -45,8 +45,18 @@ impl SparseProbe {
                     1,
                     vk::ShaderStageFlags::COMPUTE,
                 ),
-                (BINDING_PROBE_POINTS, vk::DescriptorType::STORAGE_BUFFER, 1, vk::ShaderStageFlags::COMPUTE),
-                (BINDING_PROBE_RESULTS, vk::DescriptorType::STORAGE_BUFFER, 1, vk::ShaderStageFlags::COMPUTE),
+                (
+                    BINDING_PROBE_POINTS,
+                    vk::DescriptorType::STORAGE_BUFFER,
+                    1,
+                    vk::ShaderStageFlags::COMPUTE,
+                ),
+                (
+                    BINDING_PROBE_RESULTS,
+                    vk::DescriptorType::STORAGE_BUFFER,
+                    1,
+                    vk::ShaderStageFlags::COMPUTE,
+                ),
             ],
             0,
             "sparse probe",
@@ -99,9 +109,18 @@ impl SparseProbe {
         let set = pool.allocate(
             &self.pipeline,
             &[
-                (BINDING_PROBE_TEXTURE, DescriptorResource::SampledImage(view, self.sampler.raw())),
-                (BINDING_PROBE_POINTS, DescriptorResource::StorageBuffer(point_buffer.raw())),
-                (BINDING_PROBE_RESULTS, DescriptorResource::StorageBuffer(result_buffer.raw())),
+                (
+                    BINDING_PROBE_TEXTURE,
+                    DescriptorResource::SampledImage(view, self.sampler.raw()),
+                ),
+                (
+                    BINDING_PROBE_POINTS,
+                    DescriptorResource::StorageBuffer(point_buffer.raw()),
+                ),
+                (
+                    BINDING_PROBE_RESULTS,
+                    DescriptorResource::StorageBuffer(result_buffer.raw()),
+                ),
             ],
         )?;
         let cmd = commands.begin()?;
@@ -150,12 +169,32 @@ impl TextureProbe {
             device,
             &shaders::TEXTURE_PROBE_COMP,
             &[
-                (BINDING_CACHE_IMAGE0, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 1, compute),
-                (BINDING_CACHE_IMAGE1, vk::DescriptorType::COMBINED_IMAGE_SAMPLER, 1, compute),
+                (
+                    BINDING_CACHE_IMAGE0,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    1,
+                    compute,
+                ),
+                (
+                    BINDING_CACHE_IMAGE1,
+                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    1,
+                    compute,
+                ),
                 (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
                 (BINDING_COLORMAP, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
-                (BINDING_TEXTURE_PROBE_POINTS, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
-                (BINDING_TEXTURE_PROBE_RESULTS, vk::DescriptorType::STORAGE_BUFFER, 1, compute),
+                (
+                    BINDING_TEXTURE_PROBE_POINTS,
+                    vk::DescriptorType::STORAGE_BUFFER,
+                    1,
+                    compute,
+                ),
+                (
+                    BINDING_TEXTURE_PROBE_RESULTS,
+                    vk::DescriptorType::STORAGE_BUFFER,
+                    1,
+                    compute,
+                ),
             ],
             0,
             "texture probe",
@@ -197,8 +236,14 @@ impl TextureProbe {
         )?;
         let pool = DescriptorPool::new(&self.device, &self.pipeline, 1, "texture probe descriptors")?;
         let mut resources = cache.descriptors().to_vec();
-        resources.push((BINDING_TEXTURE_PROBE_POINTS, DescriptorResource::StorageBuffer(point_buffer.raw())));
-        resources.push((BINDING_TEXTURE_PROBE_RESULTS, DescriptorResource::StorageBuffer(result_buffer.raw())));
+        resources.push((
+            BINDING_TEXTURE_PROBE_POINTS,
+            DescriptorResource::StorageBuffer(point_buffer.raw()),
+        ));
+        resources.push((
+            BINDING_TEXTURE_PROBE_RESULTS,
+            DescriptorResource::StorageBuffer(result_buffer.raw()),
+        ));
         let set = pool.allocate(&self.pipeline, &resources)?;
         let cmd = commands.begin()?;
         memory_barrier(

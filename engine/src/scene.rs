@@ -14,7 +14,7 @@ use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{DrawPush, Vertex, BINDING_MESH_TEXTURES};
 use crate::image::{transition, Image, ImageDesc};
-use crate::pipeline::{DescriptorPool, DescriptorResource, Filtering, GraphicsDesc, Pipeline, Sampler};
+use crate::pipeline::{DepthMode, DescriptorPool, DescriptorResource, Filtering, GraphicsDesc, Pipeline, Sampler};
 use crate::shaders;
 use crate::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 
@@ -90,7 +90,9 @@ impl SceneGeometry {
             .enumerate()
             .find(|(_, v)| v.position.iter().chain(&v.uv).any(|c| !c.is_finite()))
         {
-            return Err(EngineError::InvalidRequest(format!("vertex {v} has a NaN or infinite coordinate")));
+            return Err(EngineError::InvalidRequest(format!(
+                "vertex {v} has a NaN or infinite coordinate"
+            )));
         }
         Ok(())
     }
@@ -148,7 +150,9 @@ impl TextureArrayData {
     /// Builds layers from level-0 RGBA8 images by 2×2 box filtering.
     pub fn from_base_levels(size: u32, bases: Vec<Vec<u8>>) -> Result<Self> {
         if !size.is_power_of_two() {
-            return Err(EngineError::InvalidRequest(format!("texture size {size} is not a power of two")));
+            return Err(EngineError::InvalidRequest(format!(
+                "texture size {size} is not a power of two"
+            )));
         }
         let mut layers = Vec::with_capacity(bases.len());
         for (i, base) in bases.into_iter().enumerate() {
@@ -220,9 +224,15 @@ impl MeshRenderer {
     ) -> Result<Self> {
         geometry.validate()?;
         if geometry.meshes.is_empty() || textures.layers.is_empty() {
-            return Err(EngineError::InvalidRequest("a scene needs at least one mesh and one texture".into()));
+            return Err(EngineError::InvalidRequest(
+                "a scene needs at least one mesh and one texture".into(),
+            ));
         }
-        if let Some(mesh) = geometry.meshes.iter().find(|m| m.layer as usize >= textures.layers.len()) {
+        if let Some(mesh) = geometry
+            .meshes
+            .iter()
+            .find(|m| m.layer as usize >= textures.layers.len())
+        {
             return Err(EngineError::InvalidRequest(format!(
                 "a mesh uses texture layer {}, but there are {} layers",
                 mesh.layer,
@@ -246,6 +256,8 @@ impl MeshRenderer {
                     vk::ShaderStageFlags::FRAGMENT,
                 )],
                 push_constant_size: std::mem::size_of::<DrawPush>() as u32,
+                depth: DepthMode::TestAndWrite,
+                color_write: true,
             },
             "mesh pipeline",
         )?;
@@ -291,7 +303,9 @@ impl MeshRenderer {
         self.pipeline.bind(cmd, self.set);
         // SAFETY: cmd is recording inside dynamic rendering; buffers are live.
         unsafe {
-            self.device.raw.cmd_bind_vertex_buffers(cmd, 0, &[self.vertices.raw()], &[0]);
+            self.device
+                .raw
+                .cmd_bind_vertex_buffers(cmd, 0, &[self.vertices.raw()], &[0]);
             self.device
                 .raw
                 .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
@@ -307,9 +321,14 @@ impl MeshRenderer {
             self.pipeline.push(cmd, &push);
             // SAFETY: the index range was validated against the buffers.
             unsafe {
-                self.device
-                    .raw
-                    .cmd_draw_indexed(cmd, mesh.index_count, 1, mesh.first_index, mesh.vertex_offset as i32, 0)
+                self.device.raw.cmd_draw_indexed(
+                    cmd,
+                    mesh.index_count,
+                    1,
+                    mesh.first_index,
+                    mesh.vertex_offset as i32,
+                    0,
+                )
             };
         }
     }
@@ -477,7 +496,10 @@ pub fn upload_texture_array(
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
         vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-        (vk::PipelineStageFlags2::FRAGMENT_SHADER, vk::AccessFlags2::SHADER_SAMPLED_READ),
+        (
+            vk::PipelineStageFlags2::FRAGMENT_SHADER,
+            vk::AccessFlags2::SHADER_SAMPLED_READ,
+        ),
     );
     commands.submit_and_wait(&[])?;
     Ok(image)

@@ -21,10 +21,15 @@ macro_rules! shader {
 
 shader!(CITY_VERT, "city.vert", "city_vert.spv");
 shader!(CITY_FRAG, "city.frag", "city_frag.spv");
+shader!(DEPTH_ONLY_FRAG, "depth_only.frag", "depth_only_frag.spv");
 shader!(FEEDBACK_FRAG, "feedback.frag", "feedback_frag.spv");
 shader!(MESH_VERT, "mesh.vert", "mesh_vert.spv");
 shader!(MESH_FRAG, "mesh.frag", "mesh_frag.spv");
-shader!(FEEDBACK_COMPACT_COMP, "feedback_compact.comp", "feedback_compact_comp.spv");
+shader!(
+    FEEDBACK_COMPACT_COMP,
+    "feedback_compact.comp",
+    "feedback_compact_comp.spv"
+);
 shader!(TEXTURE_PROBE_COMP, "texture_probe.comp", "texture_probe_comp.spv");
 shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
 
@@ -32,5 +37,11 @@ shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
 pub const ALL: &[ShaderSource] = &[
     CITY_VERT,
     CITY_FRAG,
+    DEPTH_ONLY_FRAG,
     FEEDBACK_FRAG,
-    MESH_VERT, MESH_FRAG, FEEDBACK_COMPACT_COMP, SPARSE_PROBE_COMP, TEXTURE_PROBE_COMP];
+    MESH_VERT,
+    MESH_FRAG,
+    FEEDBACK_COMPACT_COMP,
+    SPARSE_PROBE_COMP,
+    TEXTURE_PROBE_COMP,
+];

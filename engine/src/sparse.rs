@@ -87,16 +87,17 @@ impl std::fmt::Debug for SparseImage {
     }
 }
 
-const USAGE: vk::ImageUsageFlags = vk::ImageUsageFlags::from_raw(
-    vk::ImageUsageFlags::SAMPLED.as_raw() | vk::ImageUsageFlags::TRANSFER_DST.as_raw(),
-);
+const USAGE: vk::ImageUsageFlags =
+    vk::ImageUsageFlags::from_raw(vk::ImageUsageFlags::SAMPLED.as_raw() | vk::ImageUsageFlags::TRANSFER_DST.as_raw());
 
 impl SparseImage {
     /// Creates the image (no memory bound) and its view.
     pub fn new(device: &Arc<Device>, desc: SparseImageDesc, name: &str) -> Result<Self> {
         let limits = device.properties().limits;
         if desc.width == 0 || desc.height == 0 || desc.layers == 0 || desc.mips == 0 {
-            return Err(EngineError::InvalidRequest(format!("sparse image {name:?} has a zero dimension: {desc:?}")));
+            return Err(EngineError::InvalidRequest(format!(
+                "sparse image {name:?} has a zero dimension: {desc:?}"
+            )));
         }
         if desc.width.max(desc.height) > limits.max_image_dimension2_d || desc.layers > limits.max_image_array_layers {
             return Err(EngineError::InvalidRequest(format!(
@@ -113,14 +114,17 @@ impl SparseImage {
         }
         // SAFETY: physical belongs to the instance.
         let format_props = unsafe {
-            device.instance().raw().get_physical_device_sparse_image_format_properties(
-                device.physical(),
-                desc.format,
-                vk::ImageType::TYPE_2D,
-                vk::SampleCountFlags::TYPE_1,
-                USAGE,
-                vk::ImageTiling::OPTIMAL,
-            )
+            device
+                .instance()
+                .raw()
+                .get_physical_device_sparse_image_format_properties(
+                    device.physical(),
+                    desc.format,
+                    vk::ImageType::TYPE_2D,
+                    vk::SampleCountFlags::TYPE_1,
+                    USAGE,
+                    vk::ImageTiling::OPTIMAL,
+                )
         };
         if format_props.is_empty() {
             return Err(EngineError::MissingFeature {
@@ -473,7 +477,16 @@ impl SparseImage {
             base_array_layer: 0,
             layer_count: self.desc.layers,
         };
-        crate::image::transition(&self.device, cmd, self.raw, range, from, to, stage_of(from), stage_of(to));
+        crate::image::transition(
+            &self.device,
+            cmd,
+            self.raw,
+            range,
+            from,
+            to,
+            stage_of(from),
+            stage_of(to),
+        );
     }
 }
 
@@ -484,7 +497,10 @@ pub fn bytes_per_texel_block(format: vk::Format) -> u64 {
         | vk::Format::BC1_RGB_SRGB_BLOCK
         | vk::Format::BC1_RGBA_UNORM_BLOCK
         | vk::Format::BC1_RGBA_SRGB_BLOCK => 8,
-        vk::Format::BC3_UNORM_BLOCK | vk::Format::BC3_SRGB_BLOCK | vk::Format::BC7_UNORM_BLOCK | vk::Format::BC7_SRGB_BLOCK => 16,
+        vk::Format::BC3_UNORM_BLOCK
+        | vk::Format::BC3_SRGB_BLOCK
+        | vk::Format::BC7_UNORM_BLOCK
+        | vk::Format::BC7_SRGB_BLOCK => 16,
         vk::Format::R8G8B8A8_UNORM | vk::Format::R8G8B8A8_SRGB | vk::Format::B8G8R8A8_UNORM => 4,
         _ => 4,
     }
@@ -532,10 +548,9 @@ impl SparseMemoryChunk {
         blocks: u64,
         name: &str,
     ) -> Result<Self> {
-        let size = blocks
-            .checked_mul(block_size)
-            .filter(|&s| s > 0)
-            .ok_or_else(|| EngineError::InvalidRequest(format!("chunk {name:?} of {blocks} blocks has no valid size")))?;
+        let size = blocks.checked_mul(block_size).filter(|&s| s > 0).ok_or_else(|| {
+            EngineError::InvalidRequest(format!("chunk {name:?} of {blocks} blocks has no valid size"))
+        })?;
         if memory_type_bits == 0 {
             return Err(EngineError::InvalidRequest(format!(
                 "chunk {name:?}: the images sharing it have no memory type in common"
@@ -548,7 +563,9 @@ impl SparseMemoryChunk {
         };
         let allocation = {
             let mut guard = device.allocator();
-            let allocator = guard.as_mut().ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
+            let allocator = guard
+                .as_mut()
+                .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
             allocator
                 .allocate(&AllocationCreateDesc {
                     name,

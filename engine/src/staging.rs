@@ -170,14 +170,20 @@ mod tests {
             assert_eq!(x.offset % 16, 0);
             assert!(x.offset + x.size <= 1024);
             for y in &ranges[i + 1..] {
-                assert!(x.offset + x.size <= y.offset || y.offset + y.size <= x.offset, "{x:?} overlaps {y:?}");
+                assert!(
+                    x.offset + x.size <= y.offset || y.offset + y.size <= x.offset,
+                    "{x:?} overlaps {y:?}"
+                );
             }
         }
         assert!(ring.alloc(300, 16, 3).is_none(), "ring is full until ticket 1 retires");
         ring.retire(1);
         let d = ring.alloc(300, 16, 3).expect("space of ticket 1 came back");
         assert_eq!(d.offset, 0, "wraps to the start");
-        assert!(ring.alloc(400, 16, 4).is_none(), "only 308 bytes before ticket 2's range");
+        assert!(
+            ring.alloc(400, 16, 4).is_none(),
+            "only 308 bytes before ticket 2's range"
+        );
         ring.retire(3);
         assert_eq!(ring.used(), 0);
     }

@@ -245,7 +245,14 @@ impl Streamer {
                 .textures
                 .info(mip.texture)
                 .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
-            let outcome = cache.stage(mip.texture, info.format(), info.width(), info.height(), mip.level, &mip.bytes);
+            let outcome = cache.stage(
+                mip.texture,
+                info.format(),
+                info.width(),
+                info.height(),
+                mip.level,
+                &mip.bytes,
+            );
             let accepted = matches!(outcome, Ok(StageOutcome::Staged { .. }));
             if !accepted {
                 refused += 1;
@@ -256,9 +263,6 @@ impl Streamer {
         for &texture in &report.invalidated_textures {
             let _ = self.states.invalidate(texture);
         }
-        Ok(ApplyReport {
-            cache: report,
-            refused,
-        })
+        Ok(ApplyReport { cache: report, refused })
     }
 }

@@ -236,8 +236,7 @@ impl GpuTextureCache {
                 name,
             )
         };
-        let mut table_buffer =
-            host_storage(std::mem::size_of_val(table.as_slice()) as u64, "texture data table")?;
+        let mut table_buffer = host_storage(std::mem::size_of_val(table.as_slice()) as u64, "texture data table")?;
         table_buffer.write(0, &table)?;
         let packed: Vec<u32> = colormap.iter().map(|c| u32::from_le_bytes(*c)).collect();
         let mut colormap_buffer = host_storage(std::mem::size_of_val(packed.as_slice()) as u64, "city colormap")?;
@@ -246,7 +245,11 @@ impl GpuTextureCache {
 
         let cmd = commands.begin()?;
         for image in &images {
-            image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL);
+            image.record_layout(
+                cmd,
+                vk::ImageLayout::UNDEFINED,
+                vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            );
         }
         commands.submit_and_wait(&[])?;
 
@@ -279,8 +282,14 @@ impl GpuTextureCache {
                 BINDING_CACHE_IMAGE1,
                 DescriptorResource::SampledImage(self.images[1].view(), self.sampler.raw()),
             ),
-            (BINDING_TEXTURE_DATA, DescriptorResource::StorageBuffer(self.table_buffer.raw())),
-            (BINDING_COLORMAP, DescriptorResource::StorageBuffer(self.colormap_buffer.raw())),
+            (
+                BINDING_TEXTURE_DATA,
+                DescriptorResource::StorageBuffer(self.table_buffer.raw()),
+            ),
+            (
+                BINDING_COLORMAP,
+                DescriptorResource::StorageBuffer(self.colormap_buffer.raw()),
+            ),
         ]
     }
 
@@ -320,7 +329,9 @@ impl GpuTextureCache {
             .enumerate()
             .find(|(_, (f, _, _))| *f == format)
             .map(|(i, (_, v, t))| (i as u32, *v, *t))
-            .ok_or_else(|| EngineError::InvalidRequest(format!("texture {texture}: format {format:?} is not cached")))?;
+            .ok_or_else(|| {
+                EngineError::InvalidRequest(format!("texture {texture}: format {format:?} is not cached"))
+            })?;
         let placement = match slot.placement {
             Some(p) if self.cache.is_live(&p) && p.image == image_index && p.width == width && p.height == height => p,
             _ => {
@@ -387,7 +398,9 @@ impl GpuTextureCache {
         // 1. Evicted textures stop being sampleable before their blocks go.
         for gone in &batch.invalidated {
             let Ok(texture) = u32::try_from(gone.key) else { continue };
-            let Some(slot) = self.slots.get_mut(texture as usize) else { continue };
+            let Some(slot) = self.slots.get_mut(texture as usize) else {
+                continue;
+            };
             if slot.placement.is_some_and(|p| same_place(&p, gone)) {
                 slot.placement = None;
                 slot.resident = 0;

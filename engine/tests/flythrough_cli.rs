@@ -8,7 +8,18 @@ fn flythrough_writes_frames_and_report() {
     let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_cli");
     let _ = std::fs::remove_dir_all(&out);
     let status = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args(["--frames", "4", "--frame-interval", "2", "--width", "96", "--height", "64", "--blocks", "3"])
+        .args([
+            "--frames",
+            "4",
+            "--frame-interval",
+            "2",
+            "--width",
+            "96",
+            "--height",
+            "64",
+            "--blocks",
+            "3",
+        ])
         .arg("--validation=true")
         .arg("--out")
         .arg(&out)
@@ -16,8 +27,8 @@ fn flythrough_writes_frames_and_report() {
         .expect("flythrough runs");
     assert!(status.success(), "flythrough failed: {status}");
     let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report.json written"))
-            .expect("report.json is JSON");
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json written"))
+            .expect("summary.json is JSON");
     assert_eq!(report["frames"], 4);
     assert_eq!(report["validation_errors"], 0);
     assert!(report["frame_ms"]["max"].as_f64().is_some_and(|v| v > 0.0));
@@ -40,4 +51,156 @@ fn bad_arguments_are_refused_clearly() {
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("--width"), "error does not name the option: {stderr}");
+}
+
+/// Writes a small dataset: a ground quad and a ring of facade quads, each
+/// with its own RGBA8 64x64 texture and full mip chain.
+fn write_small_dataset(dir: &std::path::Path) {
+    use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
+    let _ = std::fs::remove_dir_all(dir);
+    let mut writer = DatasetWriter::create(dir).expect("dataset directory");
+    let mut scene = Scene::new([1.0e6, 0.0, -2.0e6]);
+    let side = 64u32;
+    let mips = 7u32;
+    for t in 0..17u32 {
+        let mut chain = Vec::new();
+        for level in 0..mips {
+            let s = (side >> level).max(1);
+            for y in 0..s {
+                for x in 0..s {
+                    let on = ((x >> 2) + (y >> 2) + t) % 2 == 0;
+                    chain.extend_from_slice(&if on {
+                        [220, 200, 180, 255]
+                    } else {
+                        [40, 50, 60 + 10 * t as u8, 255]
+                    });
+                }
+            }
+        }
+        assert_eq!(
+            chain.len() as u64,
+            (0..mips)
+                .map(|l| TextureFormat::Rgba8.mip_bytes(side >> l, side >> l))
+                .sum::<u64>()
+        );
+        writer
+            .add_texture(
+                TextureFormat::Rgba8,
+                side,
+                side,
+                mips,
+                &chain,
+                [130, 125, 120 + t as u8, 255],
+            )
+            .expect("texture");
+    }
+    let quad = |scene: &mut Scene, texture: u32, corners: [[f32; 3]; 4], normal: [f32; 3]| {
+        scene
+            .push_mesh(
+                texture,
+                &corners,
+                &[normal; 4],
+                &[[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]],
+                &[0, 1, 2, 0, 2, 3],
+            )
+            .expect("mesh");
+    };
+    quad(
+        &mut scene,
+        0,
+        [
+            [-60.0, 0.0, 60.0],
+            [60.0, 0.0, 60.0],
+            [60.0, 0.0, -60.0],
+            [-60.0, 0.0, -60.0],
+        ],
+        [0.0, 1.0, 0.0],
+    );
+    for i in 0..16 {
+        let angle = i as f32 / 16.0 * std::f32::consts::TAU;
+        let (c, s) = (angle.cos() * 30.0, angle.sin() * 30.0);
+        let (tx, tz) = (-angle.sin() * 5.0, angle.cos() * 5.0);
+        quad(
+            &mut scene,
+            1 + i,
+            [
+                [c - tx, 0.0, s - tz],
+                [c + tx, 0.0, s + tz],
+                [c + tx, 20.0, s + tz],
+                [c - tx, 20.0, s - tz],
+            ],
+            [angle.cos(), 0.0, angle.sin()],
+        );
+    }
+    writer.finish(&scene).expect("dataset written");
+}
+
+#[test]
+fn flythrough_streams_a_dataset_with_the_fixed_clock() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_stream");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let mut streamed = Vec::new();
+    for policy in ["baseline", "adaptive"] {
+        let out = base.join(policy);
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args([
+                "--frames",
+                "30",
+                "--frame-interval",
+                "15",
+                "--width",
+                "320",
+                "--height",
+                "240",
+            ])
+            .args([
+                "--clock",
+                "fixed",
+                "--bind-latency",
+                "desktop",
+                "--policy",
+                policy,
+                "--validation=true",
+            ])
+            .arg("--dataset")
+            .arg(&dataset)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .expect("flythrough runs");
+        assert!(
+            output.status.success(),
+            "flythrough failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json written"))
+                .expect("summary.json is JSON");
+        for key in [
+            "frame_ms",
+            "tw_ms",
+            "mips_per_s",
+            "mb_per_s",
+            "load_size_mb",
+            "mip_bias",
+        ] {
+            for stat in ["median", "mean", "max", "min"] {
+                assert!(
+                    summary[key][stat].as_f64().is_some_and(f64::is_finite),
+                    "{policy}: {key}.{stat} missing"
+                );
+            }
+        }
+        assert_eq!(summary["frames"], 30);
+        assert_eq!(summary["validation_errors"], 0);
+        assert_eq!(summary["policy"], policy);
+        let mips = summary["mips_streamed"].as_u64().expect("mips_streamed");
+        // Only meshes whose feedback weight reaches τ are loaded: the ground
+        // and the facades facing the camera, each at least its first mip.
+        assert!(mips >= 8, "{policy}: {mips} mips streamed");
+        assert!(summary["blocks_bound"].as_u64().is_some_and(|b| b > 0));
+        streamed.push(summary["bytes_streamed"].as_u64().expect("bytes_streamed"));
+    }
+    assert!(streamed[0] > 0 && streamed[1] > 0);
 }

@@ -13,7 +13,9 @@ float anisotropic_lod(vec2 dx, vec2 dy, float max_anisotropy) {
     if (p_max <= 0.0) {
         return 0.0;
     }
-    float n = min(ceil(p_max / max(p_min, 1e-20)), max_anisotropy);
+    // The small allowance keeps rounding noise in an isotropic footprint
+    // (ratio 1.0000001) from doubling the sample count and dropping a level.
+    float n = clamp(ceil(p_max / max(p_min, 1e-20) - 1.0 / 1024.0), 1.0, max_anisotropy);
     return log2(p_max / n);
 }
 

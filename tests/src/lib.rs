@@ -19,7 +19,9 @@ pub fn validated_device() -> Result<Arc<Device>> {
         },
         device_name: None,
     };
-    Ok(Arc::new(Device::new(&options).context("creating a validated Vulkan device")?))
+    Ok(Arc::new(
+        Device::new(&options).context("creating a validated Vulkan device")?,
+    ))
 }
 
 /// Fails when the validation layer reported any error on `device`.
@@ -74,14 +76,28 @@ pub fn compare_images(
             continue;
         }
         let e = expected.get_pixel(x, y);
-        let worst = a.0.iter().zip(e.0.iter()).map(|(p, q)| p.abs_diff(*q)).max().unwrap_or(0);
+        let worst =
+            a.0.iter()
+                .zip(e.0.iter())
+                .map(|(p, q)| p.abs_diff(*q))
+                .max()
+                .unwrap_or(0);
         result.compared += 1;
         result.max_difference = result.max_difference.max(worst);
         if worst > tolerance {
             result.mismatched += 1;
             difference.put_pixel(x, y, image::Rgba([255, 0, 0, 255]));
         } else {
-            difference.put_pixel(x, y, image::Rgba([worst.saturating_mul(16), worst.saturating_mul(16), worst.saturating_mul(16), 255]));
+            difference.put_pixel(
+                x,
+                y,
+                image::Rgba([
+                    worst.saturating_mul(16),
+                    worst.saturating_mul(16),
+                    worst.saturating_mul(16),
+                    255,
+                ]),
+            );
         }
     }
     if result.mismatched > 0 {
@@ -98,7 +114,11 @@ pub fn compare_images(
             result.mismatched,
             result.compared,
             result.max_difference,
-            paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
+            paths
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         );
     }
     Ok(result)

@@ -20,7 +20,10 @@ fn unknown_device_name_lists_the_devices_present() -> Result<()> {
     };
     ensure!(wanted == "no such gpu 9000");
     let message = error.to_string();
-    ensure!(message.contains("no such gpu 9000"), "message does not name the request: {message}");
+    ensure!(
+        message.contains("no such gpu 9000"),
+        "message does not name the request: {message}"
+    );
     // The message names the devices that do exist (lavapipe here).
     let real = validated_device()?;
     ensure!(

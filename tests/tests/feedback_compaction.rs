@@ -66,7 +66,11 @@ fn run_case(count: u32, fill: f32, capacity: u32, seed: u64) -> Result<()> {
     let mut got = result.entries.clone();
     got.sort_unstable_by_key(|e| e.mesh_id);
     if expected.len() <= capacity as usize {
-        ensure!(result.dropped == 0, "{count} meshes: {} dropped with room to spare", result.dropped);
+        ensure!(
+            result.dropped == 0,
+            "{count} meshes: {} dropped with room to spare",
+            result.dropped
+        );
         ensure!(
             got == expected,
             "{count} meshes at fill {fill}: GPU kept {} entries, CPU {}",
@@ -74,10 +78,16 @@ fn run_case(count: u32, fill: f32, capacity: u32, seed: u64) -> Result<()> {
             expected.len()
         );
     } else {
-        ensure!(got.len() == capacity as usize, "a full dense array holds exactly its capacity");
+        ensure!(
+            got.len() == capacity as usize,
+            "a full dense array holds exactly its capacity"
+        );
         ensure!(result.dropped as usize == expected.len() - capacity as usize);
         let expected_set: std::collections::HashSet<_> = expected.iter().collect();
-        ensure!(got.iter().all(|e| expected_set.contains(e)), "overflowing entries must still be real ones");
+        ensure!(
+            got.iter().all(|e| expected_set.contains(e)),
+            "overflowing entries must still be real ones"
+        );
     }
     let after = compactor.download_mesh_feedback(&mut commands)?;
     ensure!(

@@ -66,25 +66,61 @@ fn textures() -> Vec<Vec<u8>> {
         }
         bytes
     };
-    layers.push(texel(&|x, y| if (x + y) % 2 == 0 { [255, 0, 0, 255] } else { [0, 0, 255, 255] }));
+    layers.push(texel(&|x, y| {
+        if (x + y) % 2 == 0 {
+            [255, 0, 0, 255]
+        } else {
+            [0, 0, 255, 255]
+        }
+    }));
     layers.push(texel(&|x, y| match (x / 2, y / 2) {
         (0, 0) => [0, 255, 0, 255],
         (1, 0) => [255, 255, 0, 255],
         (0, 1) => [255, 255, 255, 255],
         _ => [0, 0, 0, 255],
     }));
-    layers.push(texel(&|x, _| if x % 2 == 0 { [0, 128, 0, 255] } else { [240, 240, 240, 255] }));
+    layers.push(texel(&|x, _| {
+        if x % 2 == 0 {
+            [0, 128, 0, 255]
+        } else {
+            [240, 240, 240, 255]
+        }
+    }));
     layers
 }
 
 fn scene() -> Vec<Quad> {
     vec![
         // Near quad, drawn first: depth testing must keep it in front.
-        Quad { x0: -0.5, x1: 0.5, y0: -0.5, y1: 0.5, z_left: 0.3, z_right: 0.3, layer: 1 },
+        Quad {
+            x0: -0.5,
+            x1: 0.5,
+            y0: -0.5,
+            y1: 0.5,
+            z_left: 0.3,
+            z_right: 0.3,
+            layer: 1,
+        },
         // Far quad covering most of the screen; the bottom rows show the clear colour.
-        Quad { x0: -1.0, x1: 1.0, y0: -1.0, y1: 0.75, z_left: 0.8, z_right: 0.8, layer: 0 },
+        Quad {
+            x0: -1.0,
+            x1: 1.0,
+            y0: -1.0,
+            y1: 0.75,
+            z_left: 0.8,
+            z_right: 0.8,
+            layer: 0,
+        },
         // Slanted quad crossing both in depth.
-        Quad { x0: 0.25, x1: 1.0, y0: -0.75, y1: 1.0, z_left: 0.1, z_right: 0.9, layer: 2 },
+        Quad {
+            x0: 0.25,
+            x1: 1.0,
+            y0: -0.75,
+            y1: 1.0,
+            z_left: 0.1,
+            z_right: 0.9,
+            layer: 2,
+        },
     ]
 }
 
@@ -119,7 +155,8 @@ fn reference(quads: &[Quad], layers: &[Vec<u8>]) -> (image::RgbaImage, Vec<bool>
             // A depth crossing within half a pixel is ambiguous too.
             for (i, (za, qa)) in depths.iter().enumerate() {
                 for (zb, qb) in &depths[i + 1..] {
-                    let slope = ((qa.z_right - qa.z_left) / (qa.x1 - qa.x0) - (qb.z_right - qb.z_left) / (qb.x1 - qb.x0)).abs();
+                    let slope =
+                        ((qa.z_right - qa.z_left) / (qa.x1 - qa.x0) - (qb.z_right - qb.z_left) / (qb.x1 - qb.x0)).abs();
                     if (za - zb).abs() <= slope * half_pixel {
                         certain[(py * SIZE + px) as usize] = false;
                     }
@@ -132,7 +169,11 @@ fn reference(quads: &[Quad], layers: &[Vec<u8>]) -> (image::RgbaImage, Vec<bool>
                 let ty = ((v * TEXTURE as f32) as u32).min(TEXTURE - 1);
                 let at = ((ty * TEXTURE + tx) * 4) as usize;
                 let layer = &layers[quad.layer as usize];
-                expected.put_pixel(px, py, image::Rgba([layer[at], layer[at + 1], layer[at + 2], layer[at + 3]]));
+                expected.put_pixel(
+                    px,
+                    py,
+                    image::Rgba([layer[at], layer[at + 1], layer[at + 2], layer[at + 3]]),
+                );
             }
         }
     }

@@ -62,10 +62,16 @@ fn bind_copy_sample_unbind() -> Result<()> {
         "residency test image",
     )?;
     let (gw, gh) = image.granularity();
-    ensure!(gw > 0 && gh > 0 && image.block_size() > 0, "device reported no sparse granularity");
+    ensure!(
+        gw > 0 && gh > 0 && image.block_size() > 0,
+        "device reported no sparse granularity"
+    );
     // The test needs level 0 to span at least two blocks across, so one
     // block can be resident next to a non-resident one.
-    ensure!(SIDE >= 2 * gw, "granularity {gw}x{gh} too coarse for a {SIDE}-texel test image");
+    ensure!(
+        SIDE >= 2 * gw,
+        "granularity {gw}x{gh} too coarse for a {SIDE}-texel test image"
+    );
     ensure!(
         image.mip_tail_first_lod() > 2,
         "level 2 must be bindable per block (mip tail starts at {})",
@@ -96,9 +102,21 @@ fn bind_copy_sample_unbind() -> Result<()> {
     // Upload the texels of both bound regions.
     let (r0_offset, r0_extent) = image.block_region(0, 1, 0)?;
     let (r2_offset, r2_extent) = image.block_region(2, 0, 0)?;
-    let mut bytes = level_bytes(0, r0_offset.x as u32, r0_offset.y as u32, r0_extent.width, r0_extent.height);
+    let mut bytes = level_bytes(
+        0,
+        r0_offset.x as u32,
+        r0_offset.y as u32,
+        r0_extent.width,
+        r0_extent.height,
+    );
     let level2_start = bytes.len() as u64;
-    bytes.extend(level_bytes(2, r2_offset.x as u32, r2_offset.y as u32, r2_extent.width, r2_extent.height));
+    bytes.extend(level_bytes(
+        2,
+        r2_offset.x as u32,
+        r2_offset.y as u32,
+        r2_extent.width,
+        r2_extent.height,
+    ));
     let mut staging = Buffer::new(
         &device,
         BufferDesc {
@@ -136,7 +154,11 @@ fn bind_copy_sample_unbind() -> Result<()> {
             },
         ],
     )?;
-    image.record_layout(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL);
+    image.record_layout(
+        cmd,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    );
     // The copy must wait for the sparse bind on the same queue.
     commands.submit_and_wait(&[SemaphoreWait::binary(bound.raw(), vk::PipelineStageFlags2::COPY)])?;
 
@@ -196,7 +218,10 @@ fn bind_copy_sample_unbind() -> Result<()> {
             &mut commands,
             image.view(),
             &points,
-            &[SemaphoreWait::binary(unbound.raw(), vk::PipelineStageFlags2::COMPUTE_SHADER)],
+            &[SemaphoreWait::binary(
+                unbound.raw(),
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+            )],
         )
         .context("probing after the unbind")?;
     for (i, result) in after.iter().enumerate() {

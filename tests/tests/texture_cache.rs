@@ -34,7 +34,11 @@ struct SourceTexture {
 impl SourceTexture {
     fn random(rng: &mut SplitMix64, format: TextureFormat, width: u32, height: u32) -> Self {
         // The levels the cache holds: both sides at least one texel block.
-        let texel_format = if format == TextureFormat::Bc1 { TexelFormat::BC1 } else { TexelFormat::RGBA8 };
+        let texel_format = if format == TextureFormat::Bc1 {
+            TexelFormat::BC1
+        } else {
+            TexelFormat::RGBA8
+        };
         let count = cacheable_mip_count(&texel_format, width, height);
         let levels = (0..count)
             .map(|m| {
@@ -77,11 +81,20 @@ fn close(a: [u8; 4], b: [u8; 4], tolerance: u8) -> bool {
 
 /// Probe points for `texture`: a few texels of each level in `levels`,
 /// sampled at `lod`, plus a repeated-UV copy of one of them.
-fn points_for(texture: u32, source: &SourceTexture, level: u32, lod: f32, rng: &mut SplitMix64) -> Vec<(TextureProbePoint, u32, u32)> {
+fn points_for(
+    texture: u32,
+    source: &SourceTexture,
+    level: u32,
+    lod: f32,
+    rng: &mut SplitMix64,
+) -> Vec<(TextureProbePoint, u32, u32)> {
     let (w, h) = source.level_extent(level);
     let mut texels = vec![(0, 0), (w - 1, h - 1)];
     for _ in 0..2 {
-        texels.push(((rng.next_u64() % u64::from(w)) as u32, (rng.next_u64() % u64::from(h)) as u32));
+        texels.push((
+            (rng.next_u64() % u64::from(w)) as u32,
+            (rng.next_u64() % u64::from(h)) as u32,
+        ));
     }
     let mut points: Vec<(TextureProbePoint, u32, u32)> = texels
         .iter()
@@ -129,7 +142,9 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
     for _ in 0..24 {
         sources.push(SourceTexture::random(&mut rng, TextureFormat::Rgba8, 128, 128));
     }
-    let colormap: Vec<[u8; 4]> = (0..sources.len()).map(|_| [rng.next_u64() as u8, 90, 200, 255]).collect();
+    let colormap: Vec<[u8; 4]> = (0..sources.len())
+        .map(|_| [rng.next_u64() as u8, 90, 200, 255])
+        .collect();
 
     let mut commands = CommandContext::new(&device, "cache test")?;
     let mut cache = GpuTextureCache::new(
@@ -154,8 +169,18 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
         let levels = source.levels.len() as u32;
         let finest = if t % 5 == 0 { 2.min(levels - 1) } else { 0 };
         for mip in (finest..levels).rev() {
-            let outcome = cache.stage(t as u32, source.format, source.width, source.height, mip, &source.levels[mip as usize])?;
-            ensure!(matches!(outcome, StageOutcome::Staged { .. }), "texture {t} mip {mip}: {outcome:?}");
+            let outcome = cache.stage(
+                t as u32,
+                source.format,
+                source.width,
+                source.height,
+                mip,
+                &source.levels[mip as usize],
+            )?;
+            ensure!(
+                matches!(outcome, StageOutcome::Staged { .. }),
+                "texture {t} mip {mip}: {outcome:?}"
+            );
         }
         finest_loaded.insert(t as u32, finest);
     }
@@ -163,18 +188,29 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
         finest_loaded.insert(t, 0);
     }
     let report = cache.finish_cycle(&mut commands)?;
-    ensure!(report.textures_invalidated == 0 && report.blocks_unbound == 0, "no eviction expected yet: {report:?}");
+    ensure!(
+        report.textures_invalidated == 0 && report.blocks_unbound == 0,
+        "no eviction expected yet: {report:?}"
+    );
     ensure!(report.blocks_bound > 0 && report.bind_entries <= report.blocks_bound);
 
     let probe = TextureProbe::new(&device)?;
-    let check_all = |cache: &GpuTextureCache, textures: &[u32], rng: &mut SplitMix64, commands: &mut CommandContext| -> Result<usize> {
+    let check_all = |cache: &GpuTextureCache,
+                     textures: &[u32],
+                     rng: &mut SplitMix64,
+                     commands: &mut CommandContext|
+     -> Result<usize> {
         let mut points = Vec::new();
         let mut expected = Vec::new();
         for &t in textures {
             let source = &sources[t as usize];
             let finest = finest_loaded[&t];
             let entry = cache.texture_data(t).expect("texture in table");
-            ensure!(entry.lowest_mip == finest, "texture {t}: lowest mip {} != {finest}", entry.lowest_mip);
+            ensure!(
+                entry.lowest_mip == finest,
+                "texture {t}: lowest mip {} != {finest}",
+                entry.lowest_mip
+            );
             for level in finest..source.levels.len() as u32 {
                 for (point, x, y) in points_for(t, source, level, level as f32, rng) {
                     points.push(point);
@@ -193,8 +229,16 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
         let results = probe.run(commands, cache, &points)?;
         for (i, result) in results.iter().enumerate() {
             let (t, level, want) = expected[i];
-            let tolerance = if sources[t as usize].format == TextureFormat::Bc1 { 3 } else { 0 };
-            ensure!(result.resident == 1, "texture {t} level {level}: fell back to the colormap at {:?}", points[i]);
+            let tolerance = if sources[t as usize].format == TextureFormat::Bc1 {
+                3
+            } else {
+                0
+            };
+            ensure!(
+                result.resident == 1,
+                "texture {t} level {level}: fell back to the colormap at {:?}",
+                points[i]
+            );
             ensure!(
                 close(to_u8(result), want, tolerance),
                 "texture {t} ({:?} {}x{}) level {level} at uv {:?}: read {:?}, expected {want:?}",
@@ -216,11 +260,21 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
     for t in first_phase..sources.len() as u32 {
         let source = &sources[t as usize];
         for mip in (0..source.levels.len() as u32).rev() {
-            cache.stage(t, source.format, source.width, source.height, mip, &source.levels[mip as usize])?;
+            cache.stage(
+                t,
+                source.format,
+                source.width,
+                source.height,
+                mip,
+                &source.levels[mip as usize],
+            )?;
         }
     }
     let report = cache.finish_cycle(&mut commands)?;
-    ensure!(report.textures_invalidated > 0, "the ring must have evicted a layer: {report:?}");
+    ensure!(
+        report.textures_invalidated > 0,
+        "the ring must have evicted a layer: {report:?}"
+    );
     let invalidated: HashSet<u32> = (0..sources.len() as u32)
         .filter(|&t| cache.texture_data(t).is_some_and(|d| d.state == 0))
         .collect();
@@ -236,8 +290,14 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
         .collect();
     let results = probe.run(&mut commands, &cache, &probes)?;
     for (result, &t) in results.iter().zip(&evicted) {
-        ensure!(result.resident == 0, "evicted texture {t} was still sampled from the cache");
-        ensure!(to_u8(result) == colormap[t as usize], "evicted texture {t} must show its colormap colour");
+        ensure!(
+            result.resident == 0,
+            "evicted texture {t} was still sampled from the cache"
+        );
+        ensure!(
+            to_u8(result) == colormap[t as usize],
+            "evicted texture {t} must show its colormap colour"
+        );
     }
     let survivors: Vec<u32> = (0..sources.len() as u32).filter(|t| !invalidated.contains(t)).collect();
     check_all(&cache, &survivors, &mut rng, &mut commands)?;

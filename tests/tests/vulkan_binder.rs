@@ -41,7 +41,10 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
         "binder test image",
     )?;
     let (blocks_across, _) = probe_image.level_blocks(0);
-    ensure!(blocks_across >= 4, "need four blocks across level 0, got {blocks_across}");
+    ensure!(
+        blocks_across >= 4,
+        "need four blocks across level 0, got {blocks_across}"
+    );
     let (gw, gh) = probe_image.granularity();
     let block_size = probe_image.block_size();
     let image = Arc::new(probe_image);
@@ -59,7 +62,10 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
         })
         .collect();
     let report = binder.submit(&batch)?;
-    ensure!(report.blocks == 3 && report.entries == 1, "expected 3 blocks in 1 entry, got {report:?}");
+    ensure!(
+        report.blocks == 3 && report.entries == 1,
+        "expected 3 blocks in 1 entry, got {report:?}"
+    );
     ensure!(binder.last_signalled() == 1);
 
     // Fill the three blocks, waiting on the batch's timeline value.
@@ -91,7 +97,11 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
             buffer_offset: 0,
         }],
     )?;
-    image.record_layout(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL);
+    image.record_layout(
+        cmd,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    );
     commands.submit_and_wait(&[binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY)])?;
 
     let probe = SparseProbe::new(&device, 16)?;
@@ -106,7 +116,11 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
     let resident: Vec<u32> = results.iter().map(|r| r.resident).collect();
     ensure!(resident == [1, 1, 1, 0], "residency after bind: {resident:?}");
     let expected_red = ((gw + 3) % 251) as f32 / 255.0;
-    ensure!((results[1].value[0] - expected_red).abs() < 1e-3, "block 1 read {:?}", results[1].value);
+    ensure!(
+        (results[1].value[0] - expected_red).abs() < 1e-3,
+        "block 1 read {:?}",
+        results[1].value
+    );
 
     // Unbind the middle block.
     let report = binder.submit(&[BindOp::Unbind { block: key(1) }])?;

@@ -226,7 +226,15 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     )?;
     let mesh_count = meshes.len() as u32;
     let compactor = FeedbackCompactor::new(device, &mut commands, mesh_count, mesh_count)?;
-    let renderer = CityRenderer::new(device, &mut commands, &vertices, &scene.indices, meshes, &cache, &compactor)?;
+    let renderer = CityRenderer::new(
+        device,
+        &mut commands,
+        &vertices,
+        &scene.indices,
+        meshes,
+        &cache,
+        &compactor,
+    )?;
     let target = RenderTarget::new(device, args.width, args.height)?;
     let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
     let policy = args
@@ -240,8 +248,12 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             fixed_mip_bias: args.mip_bias,
         })
         .context("building the streaming policy")?;
-    let streamer = Streamer::new(Arc::clone(&dataset), policy, DEFAULT_WEIGHT_CUTOFF, LoaderOptions::default())?;
-    let mut streamer = streamer;
+    let mut streamer = Streamer::new(
+        Arc::clone(&dataset),
+        policy,
+        DEFAULT_WEIGHT_CUTOFF,
+        LoaderOptions::default(),
+    )?;
     let latency = BindLatencyModel::preset(args.bind_latency);
     let mut latency_rng = SplitMix64::new(args.seed);
 
@@ -363,12 +375,13 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         validation_errors,
         frames_written: written,
     };
-    let mut json = serde_json::to_value(&summary)?;
+    let mut json = serde_json::to_value(summary)?;
     if let (Some(object), serde_json::Value::Object(extra)) = (json.as_object_mut(), serde_json::to_value(&run)?) {
         object.extend(extra);
     }
     let path = args.out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", path.display()))?;
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", path.display()))?;
     eprintln!(
         "{} frames, {} mips streamed, wrote {} frames and {}",
         args.frames,
@@ -431,14 +444,19 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
         object.insert("device".into(), describe(device).into());
         object.insert(
             "scene".into(),
-            format!("placeholder city (seed {}, {}x{} blocks)", args.seed, args.blocks, args.blocks).into(),
+            format!(
+                "placeholder city (seed {}, {}x{} blocks)",
+                args.seed, args.blocks, args.blocks
+            )
+            .into(),
         );
         object.insert("duration_s".into(), started.elapsed().as_secs_f64().into());
         object.insert("validation_errors".into(), validation_errors.into());
         object.insert("frames_written".into(), written.into());
     }
     let path = args.out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", path.display()))?;
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", path.display()))?;
     eprintln!("wrote {}", path.display());
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");
