@@ -148,7 +148,7 @@ impl FeedbackCompactor {
                 .raw()
                 .cmd_fill_buffer(cmd, compactor.sparse.raw(), 0, vk::WHOLE_SIZE, 0)
         };
-        compactor.record_compact(cmd, u32::MAX);
+        compactor.record_compact(cmd, u32::MAX, false);
         commands.submit_and_wait(&[])?;
         Ok(compactor)
     }
@@ -163,9 +163,13 @@ impl FeedbackCompactor {
         self.mesh_count
     }
 
-    /// Records: reset the counter, compact with `tau`, copy the counter to
-    /// the host. Must follow the fragment stage that wrote the array.
-    pub fn record_compact(&self, cmd: vk::CommandBuffer, tau: u32) {
+    /// Records: reset the counter, compact with `tau` (which also resets
+    /// the per-mesh array for the next frame), and, when `read_back` is set,
+    /// copy the counter to the host for [`read_back`](Self::read_back). The
+    /// engine sets it only when no streaming task runs (Algorithm 1), so
+    /// nothing crosses to the host otherwise. Must follow the fragment stage
+    /// that wrote the array.
+    pub fn record_compact(&self, cmd: vk::CommandBuffer, tau: u32, read_back: bool) {
         let raw = self.device.raw();
         // SAFETY: cmd is recording outside rendering; buffers are live.
         unsafe { raw.cmd_fill_buffer(cmd, self.counter.raw(), 0, vk::WHOLE_SIZE, 0) };
@@ -210,6 +214,9 @@ impl FeedbackCompactor {
                 vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
             ),
         );
+        if !read_back {
+            return;
+        }
         let region = vk::BufferCopy {
             src_offset: 0,
             dst_offset: 0,

@@ -58,7 +58,7 @@ fn run_case(count: u32, fill: f32, capacity: u32, seed: u64) -> Result<()> {
     let values = random_feedback(count, fill, seed);
     compactor.upload_mesh_feedback(&mut commands, &values)?;
     let cmd = commands.begin()?;
-    compactor.record_compact(cmd, TAU);
+    compactor.record_compact(cmd, TAU, true);
     commands.submit_and_wait(&[])?;
     let result = compactor.read_back(&mut commands)?;
 

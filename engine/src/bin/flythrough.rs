@@ -283,10 +283,12 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         } / args.orbit_s.max(0.1);
         let camera = orbit_camera(centre, extent, t);
 
-        // Algorithm 1: feedback and compaction, then the frame.
+        // Algorithm 1: feedback and compaction, then the frame. The
+        // compacted records go to the host only when no loading task runs.
+        let idle = !streamer.is_streaming();
         let cmd = commands.begin()?;
         renderer.record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
-        compactor.record_compact(cmd, (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32);
+        compactor.record_compact(cmd, (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32, idle);
         renderer.record_visible(cmd, &target, &camera, 1.0);
         commands.submit_and_wait(&[])?;
         if args.frame_interval > 0 && frame % args.frame_interval == 0 {
@@ -300,7 +302,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         let mut bytes_this_frame = 0;
         let mut mips_this_frame = 0;
         let mut bind_cost_ms = 0.0;
-        if !streamer.is_streaming() {
+        if idle {
             let feedback = compactor.read_back(&mut commands)?;
             match args.clock {
                 Clock::Fixed => {
