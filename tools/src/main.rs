@@ -11,7 +11,11 @@ mod simulate;
 mod verify;
 
 #[derive(Debug, Parser)]
-#[command(name = "citystream", version, about = "citystream dataset, simulation and benchmark tool")]
+#[command(
+    name = "citystream",
+    version,
+    about = "citystream dataset, simulation and benchmark tool"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
