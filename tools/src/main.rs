@@ -4,6 +4,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 mod atlas;
+mod cache_report;
 mod gen;
 mod import;
 mod info;
@@ -27,6 +28,8 @@ enum Command {
     Gen(gen::GenArgs),
     /// Pack a dataset's textures into square atlases.
     Atlas(atlas::AtlasArgs),
+    /// Report how a dataset's textures pack into the sparse cache (utilisation).
+    CacheReport(cache_report::CacheReportArgs),
     /// Import a glTF 2.0 scene as a dataset.
     Import(import::ImportArgs),
     /// Print totals of a dataset.
@@ -42,6 +45,7 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Gen(args) => gen::run(&args),
         Command::Atlas(args) => atlas::run(&args),
+        Command::CacheReport(args) => cache_report::run(&args),
         Command::Import(args) => import::run(&args),
         Command::Info(args) => info::run(&args),
         Command::Simulate(args) => simulate::run(&args),

@@ -353,3 +353,42 @@ fn textures_from_dresses_facades_with_user_images() {
     assert!(!out.status.success());
     assert!(stderr(&out).contains("no usable"), "{}", stderr(&out));
 }
+
+#[test]
+fn cache_report_packs_every_texture_and_reports_utilisation() {
+    let dir = gen("cache-report", &[]);
+    let dir_str = dir.to_str().expect("utf-8 temp path");
+    let out = citystream(&["cache-report", dir_str, "--json", "--layer-size", "256"]);
+    assert!(
+        out.status.success(),
+        "cache-report failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let reports: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON report");
+    let dataset = Dataset::open(&dir).expect("tiny city opens");
+    let reported: u64 = reports
+        .as_array()
+        .expect("one report per cache image")
+        .iter()
+        .map(|r| r["textures"].as_u64().expect("textures"))
+        .sum();
+    assert_eq!(
+        reported,
+        u64::from(dataset.textures.len()),
+        "every texture is packed once"
+    );
+    for report in reports.as_array().expect("array") {
+        let utilisation = report["utilisation"].as_f64().expect("utilisation");
+        let texture = report["texture_bytes"].as_f64().expect("texture bytes");
+        let bound = report["bound_bytes"].as_f64().expect("bound bytes");
+        assert!(utilisation > 0.0 && utilisation <= 1.0, "utilisation {utilisation}");
+        assert!((utilisation - texture / bound).abs() < 1e-9);
+        assert_eq!(
+            report["bound_bytes"].as_u64(),
+            report["bound_blocks"].as_u64().map(|b| b * 65536)
+        );
+    }
+    let bad = citystream(&["cache-report", dir_str, "--rgba8-granularity", "0x4"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--rgba8-granularity"));
+}
