@@ -22,7 +22,7 @@ run: build
 		echo "generating the default city into $(CITY)"; \
 		./target/release/citystream gen --preset small --seed 1 --out "$(CITY)"; \
 	fi
-	./target/release/flythrough --dataset "$(CITY)" --out $(OUT)
+	./target/release/flythrough --dataset "$(CITY)" --clock fixed --bind-latency desktop --out $(OUT)
 	@echo "frames and report in $(OUT)"
 
 test: setup

@@ -20,8 +20,9 @@ layout(location = 0) out vec4 out_color;
 void main() {
     vec2 size = vec2(push.texture_width, push.texture_height);
     float max_level = float(push.max_mip);
-    // Derivatives are per feedback pixel; the offset converts to visible pixels.
-    float lod = anisotropic_lod(dFdx(in_uv) * size, dFdy(in_uv) * size, FEEDBACK_ANISOTROPY) + push.feedback.x;
+    // Derivatives are per feedback pixel, which spans 2^feedback.x visible
+    // pixels: the visible view needs that many levels finer.
+    float lod = anisotropic_lod(dFdx(in_uv) * size, dFdy(in_uv) * size, FEEDBACK_ANISOTROPY) - push.feedback.x;
     lod = clamp(lod, 0.0, max_level);
 
     vec2 ndc = gl_FragCoord.xy / push.viewport_light.xy * 2.0 - 1.0;

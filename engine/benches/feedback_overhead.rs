@@ -69,7 +69,7 @@ fn main() -> Result<()> {
             virtual_budget_bytes: None,
             blocks_per_chunk: 64,
             texture_count: count,
-            filtering: Filtering::Trilinear { max_anisotropy: 1 },
+            filtering: Filtering::BilinearNearestLevel,
         },
         &vec![[128, 128, 128, 255]; count as usize],
     )?;

@@ -143,7 +143,8 @@ pub const SAMPLE_ANISOTROPY: f32 = 8.0;
 pub struct CityDrawPush {
     /// Column-major view-projection matrix.
     pub view_proj: [[f32; 4]; 4],
-    /// x: LOD offset, y: foreground distance, zw: feedback-to-visible NDC scale.
+    /// x: log2 of visible pixels per feedback pixel (subtracted from the
+    /// feedback LOD), y: foreground distance, zw: feedback-to-visible NDC scale.
     pub feedback: [f32; 4],
     /// xy: target size in pixels, z: lighting weight.
     pub viewport_light: [f32; 4],

@@ -490,6 +490,9 @@ pub enum Filtering {
     Nearest,
     /// Trilinear with the given maximum anisotropy (1 = off).
     Trilinear { max_anisotropy: u32 },
+    /// Bilinear within a level, nearest level: the city shaders blend two
+    /// levels themselves (see `city_texture.glsl`).
+    BilinearNearestLevel,
 }
 
 impl Sampler {
@@ -505,6 +508,10 @@ impl Sampler {
             Filtering::Nearest => info
                 .mag_filter(vk::Filter::NEAREST)
                 .min_filter(vk::Filter::NEAREST)
+                .mipmap_mode(vk::SamplerMipmapMode::NEAREST),
+            Filtering::BilinearNearestLevel => info
+                .mag_filter(vk::Filter::LINEAR)
+                .min_filter(vk::Filter::LINEAR)
                 .mipmap_mode(vk::SamplerMipmapMode::NEAREST),
             Filtering::Trilinear { max_anisotropy } => {
                 let limit = device.properties().limits.max_sampler_anisotropy;

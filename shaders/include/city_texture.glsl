@@ -37,16 +37,35 @@ bool sample_city_texture_level(uint texture_id, vec2 uv, float lod, out vec4 col
     vec2 half_texel = 0.5 * exp2(ceil(level)) / max(region_texels, vec2(1.0));
     vec2 inside = clamp(fract(uv), min(half_texel, vec2(0.5)), max(1.0 - half_texel, vec2(0.5)));
     vec2 layer_uv = inside * t.uv_transform.xy + t.uv_transform.zw;
+    // The two levels are sampled separately at whole LODs and blended here
+    // (the cache sampler uses NEAREST mip selection): lavapipe (Mesa 25.0.7)
+    // reports sparse reads with LINEAR mip filtering at an integral LOD as
+    // non-resident even when both levels are bound and filled.
     vec3 coord = vec3(layer_uv, float(t.layer));
+    float fine = floor(level);
+    float coarse = min(fine + 1.0, float(t.mip_count - 1u));
+    float blend = level - fine;
     vec4 texel;
     int code;
     if (t.image == 0u) {
-        code = sparseTextureLodARB(cache_image0, coord, level, texel);
+        code = sparseTextureLodARB(cache_image0, coord, fine, texel);
     } else {
-        code = sparseTextureLodARB(cache_image1, coord, level, texel);
+        code = sparseTextureLodARB(cache_image1, coord, fine, texel);
     }
     if (!sparseTexelsResidentARB(code)) {
         return false;
+    }
+    if (blend > 0.0 && coarse > fine) {
+        vec4 coarse_texel;
+        if (t.image == 0u) {
+            code = sparseTextureLodARB(cache_image0, coord, coarse, coarse_texel);
+        } else {
+            code = sparseTextureLodARB(cache_image1, coord, coarse, coarse_texel);
+        }
+        if (!sparseTexelsResidentARB(code)) {
+            return false;
+        }
+        texel = mix(texel, coarse_texel, blend);
     }
     colour = texel;
     return true;

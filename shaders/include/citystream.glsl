@@ -41,7 +41,7 @@
 // Push constants of the city passes (feedback and visible), one draw per mesh.
 struct CityDrawPush {
     mat4 view_proj;
-    vec4 feedback;          // x: LOD offset (log2 of feedback pixel over visible pixel), y: foreground distance,
+    vec4 feedback;          // x: log2 of visible pixels per feedback pixel (subtracted from the LOD), y: foreground distance,
                             // zw: scale from feedback NDC to visible NDC (margin fragments lie outside [-1, 1])
     vec4 viewport_light;    // xy: target size in pixels, z: lighting weight (0 = unlit), w: unused
     uint mesh_id;

@@ -183,23 +183,36 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
             let colour = match quad.lowest {
                 None => c_o,
                 Some(level) => {
-                    // The needed level here is about 0.3: finer than every resident level but 0.
-                    let side = (TEXTURE >> level) as f32;
-                    let (tx, ty) = (u * side, v * side);
-                    let near_edge = |t: f32| (t - t.round()).abs() < 0.05;
-                    if near_edge(tx) || near_edge(ty) || !(0.05..=0.95).contains(&u) || !(0.05..=0.95).contains(&v) {
-                        continue;
-                    }
-                    let at = ((ty as u32 * side as u32 + tx as u32) * 4) as usize;
-                    let texel = &levels[quad.texture as usize][level as usize][at..at + 4];
                     // The displayed level is the needed LOD where that is
-                    // coarser than the finest resident level (only for level 0
-                    // here); fronto-parallel quads have one isotropic LOD.
+                    // coarser than the finest resident level (only for the
+                    // level-0 quad here); fronto-parallel quads have one
+                    // isotropic LOD. The shader samples the two levels around
+                    // it (nearest texel each, Filtering::Nearest) and blends.
                     let texels_per_pixel = TEXTURE as f32 * (2.0 * tan * DEPTH / SIZE as f32) / quad.side;
                     let displayed = texels_per_pixel.log2().max(level as f32);
+                    let fine = displayed.floor() as u32;
+                    let blend = displayed - fine as f32;
+                    let sample = |l: u32| -> Option<[f32; 4]> {
+                        let side = (TEXTURE >> l) as f32;
+                        let (tx, ty) = (u * side, v * side);
+                        let near_edge = |t: f32| (t - t.round()).abs() < 0.05;
+                        if near_edge(tx) || near_edge(ty) {
+                            return None;
+                        }
+                        let at = ((ty as u32 * side as u32 + tx as u32) * 4) as usize;
+                        let texel = &levels[quad.texture as usize][l as usize][at..at + 4];
+                        Some([0, 1, 2, 3].map(|i| f32::from(texel[i])))
+                    };
+                    if !(0.05..=0.95).contains(&u) || !(0.05..=0.95).contains(&v) {
+                        continue;
+                    }
+                    let (Some(a), Some(b)) = (sample(fine), sample((fine + 1).min(6))) else {
+                        continue;
+                    };
+                    let c_s = [0, 1, 2, 3].map(|i| (1.0 - blend) * a[i] + blend * b[i]);
                     let t = displayed / 6.0;
-                    checked_levels.insert(level);
-                    [0, 1, 2, 3].map(|i| (1.0 - t) * f32::from(texel[i]) + t * c_o[i])
+                    checked_levels.insert(fine);
+                    [0, 1, 2, 3].map(|i| (1.0 - t) * c_s[i] + t * c_o[i])
                 }
             };
             expected.put_pixel(px, py, image::Rgba(colour.map(|c| c.round() as u8)));

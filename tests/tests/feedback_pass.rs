@@ -21,6 +21,8 @@ use citystream_tests::{assert_no_validation_errors, validated_device};
 use glam::Vec3;
 
 const SIZE: u32 = 128;
+/// Height of the visible view the feedback stands for: twice the feedback's.
+const VISIBLE: u32 = 256;
 const MARGIN: f32 = 0.25;
 const FOREGROUND: f32 = 10.0;
 const FOV_Y: f32 = std::f32::consts::FRAC_PI_3;
@@ -102,7 +104,8 @@ fn reference(planes: &[Plane], extent: &[(u32, u32)]) -> Vec<Reference> {
             .filter_map(|(i, p)| p.hit(ray(x, y)).map(|(d, uv)| (i, d, uv)))
             .min_by(|a, b| a.1.total_cmp(&b.1))
     };
-    let lod_offset = (1.0 + MARGIN).log2(); // same feedback and visible height
+    // A feedback pixel spans (1 + MARGIN) * VISIBLE / SIZE visible pixels.
+    let lod_offset = ((1.0 + MARGIN) * VISIBLE as f32 / SIZE as f32).log2();
     for py in 0..SIZE {
         for px in 0..SIZE {
             let (x, y) = (px as f32 + 0.5, py as f32 + 0.5);
@@ -120,7 +123,7 @@ fn reference(planes: &[Plane], extent: &[(u32, u32)]) -> Vec<Reference> {
                 .filter_map(|&s| {
                     let dx = diff(uv_at(s, 0.0), centre, s)?;
                     let dy = diff(uv_at(0.0, s), centre, s)?;
-                    Some((anisotropic_lod(dx, dy, 16.0) + lod_offset).clamp(0.0, max_level))
+                    Some((anisotropic_lod(dx, dy, 16.0) - lod_offset).clamp(0.0, max_level))
                 })
                 .collect();
             let r = &mut out[i];
@@ -261,7 +264,7 @@ fn feedback_matches_cpu_reference() -> Result<()> {
         foreground_distance: FOREGROUND,
     };
     let cmd = commands.begin()?;
-    renderer.record_feedback(cmd, &target, &camera, &view, SIZE)?;
+    renderer.record_feedback(cmd, &target, &camera, &view, VISIBLE)?;
     commands.submit_and_wait(&[])?;
     let gpu = compactor.download_mesh_feedback(&mut commands)?;
     let cpu = reference(&planes, &extents);
@@ -294,6 +297,20 @@ fn feedback_matches_cpu_reference() -> Result<()> {
             relative * 100.0
         );
     }
+    // Independent of the reference's pixel geometry: plane 0 is fronto-parallel
+    // at depth 5, 512 texels over 1.3 units across and 1.1 units down; a
+    // visible pixel spans 2 tan(30°) 5 / VISIBLE units. The footprint ratio
+    // 1.3 / 1.1 rounds up to 2 samples, which takes one level off log2(p_max).
+    let unit_per_pixel = 2.0 * (FOV_Y * 0.5).tan() * 5.0 / VISIBLE as f32;
+    let (p_u, p_v) = (512.0 / 1.3 * unit_per_pixel, 512.0 / 1.1 * unit_per_pixel);
+    let samples = (p_v / p_u).ceil();
+    ensure!(samples == 2.0);
+    let analytic = (p_v / samples).log2();
+    let measured = gpu[0].min_mip as f32 / FEEDBACK_MIP_ONE;
+    ensure!(
+        (measured - analytic).abs() < 0.05,
+        "plane 0 needs level {analytic:.3}, feedback says {measured:.3}"
+    );
     // The plan of the scene holds: 4 is hidden, 5 lives only in the margin.
     ensure!(
         cpu[4].fragments == 0 && gpu[4].min_mip == FEEDBACK_UNSEEN,

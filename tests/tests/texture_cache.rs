@@ -310,3 +310,119 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
     drop(commands);
     assert_no_validation_errors(&device)
 }
+
+/// One BC1 block of a single opaque colour (RGB565 endpoints equal).
+fn bc1_solid(rgb565: u16) -> [u8; 8] {
+    let [lo, hi] = rgb565.to_le_bytes();
+    [lo, hi, lo, hi, 0, 0, 0, 0]
+}
+
+#[test]
+fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<()> {
+    // Two 64x64 textures side by side in one layer, every level a solid colour
+    // that differs between levels and between the textures. Bilinear sampling
+    // inside a level returns exactly that colour, so any bleed across the
+    // region edge or wrong residency shows.
+    let device = validated_device()?;
+    let mut commands = CommandContext::new(&device, "filtering test")?;
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &GpuCacheConfig {
+            layer_size: 128,
+            layer_count: 2,
+            memory_budget_bytes: 64 << 20,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 16,
+            texture_count: 4,
+            filtering: Filtering::BilinearNearestLevel,
+        },
+        &[[0, 0, 0, 255]; 4],
+    )?;
+    let rgba_colour = |t: u32, level: u32| {
+        [
+            (40 * level) as u8,
+            if t == 0 { 200 } else { 20 },
+            (10 + 30 * t) as u8,
+            255,
+        ]
+    };
+    // RGB565 colours that expand exactly to 8 bits: red channel steps of 8 per level.
+    let bc1_colour = |t: u32, level: u32| -> (u16, [u8; 4]) {
+        let r5 = (4 * level) as u16;
+        let g6 = if t == 2 { 60 } else { 4 };
+        let c = (r5 << 11) | (g6 << 5) | 8;
+        let expand = |v: u16, bits: u32| -> u8 { ((v << (8 - bits)) | (v >> (2 * bits - 8))) as u8 };
+        (c, [expand(r5, 5), expand(g6, 6), expand(8, 5), 255])
+    };
+    for t in 0..2u32 {
+        for level in (0..7u32).rev() {
+            let side = 64 >> level;
+            let bytes: Vec<u8> = (0..side * side).flat_map(|_| rgba_colour(t, level)).collect();
+            cache.stage(t, TextureFormat::Rgba8, 64, 64, level, &bytes)?;
+        }
+    }
+    for t in 2..4u32 {
+        for level in (0..5u32).rev() {
+            let blocks = ((64 >> level) / 4) * ((64 >> level) / 4);
+            let bytes: Vec<u8> = (0..blocks).flat_map(|_| bc1_solid(bc1_colour(t, level).0)).collect();
+            cache.stage(t, TextureFormat::Bc1, 64, 64, level, &bytes)?;
+        }
+    }
+    cache.finish_cycle(&mut commands)?;
+    ensure!(
+        cache.texture_data(0).map(|d| d.layer) == cache.texture_data(1).map(|d| d.layer),
+        "the two RGBA8 textures must share a layer for the bleed check"
+    );
+
+    let probe = TextureProbe::new(&device)?;
+    let mut points = Vec::new();
+    let mut expected = Vec::new();
+    for t in 0..4u32 {
+        let levels = if t < 2 { 7 } else { 5 };
+        for lod in [0.0f32, 1.0, 1.25, 2.0, 2.5, 3.75] {
+            if lod > (levels - 1) as f32 {
+                continue;
+            }
+            // Edges and corners of the region, where a bleed would show, and repeats.
+            for uv in [
+                [0.001, 0.5],
+                [0.999, 0.5],
+                [0.5, 0.001],
+                [0.5, 0.999],
+                [0.999, 0.999],
+                [1.75, -0.25],
+            ] {
+                points.push(TextureProbePoint { uv, lod, texture: t });
+                let colour = |level: u32| {
+                    if t < 2 {
+                        rgba_colour(t, level)
+                    } else {
+                        bc1_colour(t, level).1
+                    }
+                };
+                let fine = lod.floor() as u32;
+                let blend = lod - fine as f32;
+                let (a, b) = (colour(fine), colour((fine + 1).min(levels - 1)));
+                expected.push(
+                    [0, 1, 2, 3].map(|i| ((1.0 - blend) * f32::from(a[i]) + blend * f32::from(b[i])).round() as u8),
+                );
+            }
+        }
+    }
+    let results = probe.run(&mut commands, &cache, &points)?;
+    for (i, result) in results.iter().enumerate() {
+        ensure!(result.resident == 1, "{:?}: fell back to the colormap", points[i]);
+        ensure!(
+            close(to_u8(result), expected[i], 2),
+            "{:?}: read {:?}, expected {:?}",
+            points[i],
+            to_u8(result),
+            expected[i]
+        );
+    }
+    drop(probe);
+    drop(cache);
+    drop(commands);
+    assert_no_validation_errors(&device)
+}

@@ -159,16 +159,19 @@ fn main() -> Result<()> {
     }
 }
 
-fn orbit_camera(centre: Vec3, extent: f32, t: f64) -> Camera {
+/// An orbit around `centre` over a scene `extent` wide and `tall` high:
+/// close over a flat city, clear of a single tall model.
+fn orbit_camera(centre: Vec3, extent: f32, tall: f32, t: f64) -> Camera {
     let angle = (t as f32) * std::f32::consts::TAU;
-    let radius = extent * 0.55;
-    let height = extent * (0.18 + 0.12 * (angle * 2.0).sin().abs());
+    let radius = extent * 0.55 + tall * 1.5;
+    let height = extent * (0.18 + 0.12 * (angle * 2.0).sin().abs()) + tall;
     Camera {
         eye: centre + Vec3::new(angle.cos() * radius, height, angle.sin() * radius),
         target: centre,
         fov_y: 60f32.to_radians(),
-        near: 1.0,
-        far: extent * 4.0,
+        // Scaled to the scene, so a one-metre model and a city both fit the depth range.
+        near: extent * 1e-3,
+        far: (extent + tall) * 4.0,
     }
 }
 
@@ -220,7 +223,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             virtual_budget_bytes: None,
             blocks_per_chunk: 256,
             texture_count: dataset.textures.len(),
-            filtering: Filtering::Trilinear { max_anisotropy: 1 },
+            filtering: Filtering::BilinearNearestLevel,
         },
         dataset.colormap.colours(),
     )?;
@@ -281,7 +284,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             Clock::Fixed => sim_time_s,
             Clock::Real => started.elapsed().as_secs_f64(),
         } / args.orbit_s.max(0.1);
-        let camera = orbit_camera(centre, extent, t);
+        let camera = orbit_camera(centre, extent, size.y.max(0.0), t);
 
         // Algorithm 1: feedback and compaction, then the frame. The
         // compacted records go to the host only when no loading task runs.
@@ -423,7 +426,12 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
     let mut written = Vec::new();
     let started = std::time::Instant::now();
     for frame in 0..args.frames {
-        let camera = orbit_camera(Vec3::new(0.0, 15.0, 0.0), extent, frame as f64 / args.frames as f64);
+        let camera = orbit_camera(
+            Vec3::new(0.0, 15.0, 0.0),
+            extent,
+            0.0,
+            frame as f64 / args.frames as f64,
+        );
         let cmd = commands.begin()?;
         target.begin(device, cmd, [0.55, 0.7, 0.9, 1.0]);
         renderer.record(cmd, camera.view_projection(aspect, 0.0), [0.4, 0.8, 0.3, 1.0]);
