@@ -26,7 +26,8 @@ void main() {
     float displayed;
     vec3 colour = c_o.rgb;
     if (sample_city_texture_level(push.texture_id, in_uv, lod, c_s, displayed)) {
-        float t = max_level > 0.0 ? clamp(displayed / max_level, 0.0, 1.0) : 0.0;
+        // viewport_light.w = 1 turns blending off (direct sampling, for the pop-in measurement).
+        float t = max_level > 0.0 && push.viewport_light.w == 0.0 ? clamp(displayed / max_level, 0.0, 1.0) : 0.0;
         colour = mix(c_s.rgb, c_o.rgb, t);
     }
     float lambert = 0.35 + 0.65 * max(dot(normalize(in_normal), normalize(LIGHT_DIR)), 0.0);

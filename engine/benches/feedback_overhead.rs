@@ -106,7 +106,7 @@ fn main() -> Result<()> {
                 renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
                 compactor.record_compact(cmd, 1200, true);
             }
-            renderer.record_visible(cmd, &target, &camera, 1.0);
+            renderer.record_visible(cmd, &target, &camera, 1.0, true);
             timer.end(cmd, 0);
             commands.submit_and_wait(&[])?;
             if with_feedback {

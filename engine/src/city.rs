@@ -349,11 +349,21 @@ impl CityRenderer {
     }
 
     /// Records the visible pass into `target` (its read-back copy included).
-    pub fn record_visible(&self, cmd: vk::CommandBuffer, target: &RenderTarget, camera: &Camera, lighting: f32) {
+    /// `colormap_blend` applies Eq. 8; without it the sampled colour is shown
+    /// directly (the pop-in comparison of the paper's Fig. 7).
+    pub fn record_visible(
+        &self,
+        cmd: vk::CommandBuffer,
+        target: &RenderTarget,
+        camera: &Camera,
+        lighting: f32,
+        colormap_blend: bool,
+    ) {
         let aspect = target.width() as f32 / target.height() as f32;
+        let direct = if colormap_blend { 0.0 } else { 1.0 };
         let base = CityDrawPush {
             view_proj: camera.view_projection(aspect, 0.0).to_cols_array_2d(),
-            viewport_light: [target.width() as f32, target.height() as f32, lighting, 0.0],
+            viewport_light: [target.width() as f32, target.height() as f32, lighting, direct],
             ..CityDrawPush::default()
         };
         target.begin(&self.device, cmd, [0.55, 0.7, 0.9, 1.0]);

@@ -146,7 +146,8 @@ pub struct CityDrawPush {
     /// x: log2 of visible pixels per feedback pixel (subtracted from the
     /// feedback LOD), y: foreground distance, zw: feedback-to-visible NDC scale.
     pub feedback: [f32; 4],
-    /// xy: target size in pixels, z: lighting weight.
+    /// xy: target size in pixels, z: lighting weight, w: 1 = no colormap
+    /// blending (direct sampling).
     pub viewport_light: [f32; 4],
     /// Mesh index.
     pub mesh_id: u32,

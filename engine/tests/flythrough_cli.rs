@@ -200,7 +200,79 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         // and the facades facing the camera, each at least its first mip.
         assert!(mips >= 8, "{policy}: {mips} mips streamed");
         assert!(summary["blocks_bound"].as_u64().is_some_and(|b| b > 0));
+        // Error against the fully resident reference (PSNR every 15 frames) and the mip deficit.
+        for key in ["psnr_db", "mip_deficit"] {
+            assert!(
+                summary[key]["mean"].as_f64().is_some_and(f64::is_finite),
+                "{policy}: {key} missing"
+            );
+        }
+        let csv = std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv written");
+        let mut lines = csv.lines();
+        assert_eq!(
+            lines.next(),
+            Some("frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,resident_bytes,mip_deficit,psnr_db")
+        );
+        let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+        assert_eq!(rows.len(), 30);
+        assert!(rows.iter().all(|r| r.len() == 16));
+        let csv_mips: u64 = rows.iter().map(|r| r[10].parse::<u64>().expect("mips column")).sum();
+        assert_eq!(csv_mips, mips, "per-frame mips add up to the total");
+        assert!(
+            rows[0][15].parse::<f64>().is_ok() && rows[1][15].is_empty(),
+            "PSNR only on sampled frames"
+        );
         streamed.push(summary["bytes_streamed"].as_u64().expect("bytes_streamed"));
     }
     assert!(streamed[0] > 0 && streamed[1] > 0);
+}
+
+#[test]
+fn pop_in_measurement_compares_direct_and_blended_sampling() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_popin");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let out = base.join("out");
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args([
+            "--pop-in",
+            "--frame-interval",
+            "0",
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--validation=true",
+        ])
+        .arg("--dataset")
+        .arg(&dataset)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("flythrough runs");
+    assert!(
+        output.status.success(),
+        "pop-in failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let result: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("popin.json")).expect("popin.json written"))
+            .expect("popin.json is JSON");
+    let frames = result["frames"].as_u64().expect("frames");
+    assert!(frames >= 2, "refinement takes several frames, got {frames}");
+    for key in ["mse_direct", "mse_blended"] {
+        let series = result[key].as_array().expect("series");
+        assert_eq!(series.len() as u64, frames - 1);
+        assert!(series
+            .iter()
+            .all(|v| v.as_f64().is_some_and(|v| v.is_finite() && v >= 0.0)));
+    }
+    // The last frame loads nothing new: the image no longer changes.
+    assert_eq!(
+        result["mse_direct"]
+            .as_array()
+            .and_then(|s| s.last())
+            .and_then(|v| v.as_f64()),
+        Some(0.0)
+    );
 }

@@ -43,7 +43,8 @@ struct CityDrawPush {
     mat4 view_proj;
     vec4 feedback;          // x: log2 of visible pixels per feedback pixel (subtracted from the LOD), y: foreground distance,
                             // zw: scale from feedback NDC to visible NDC (margin fragments lie outside [-1, 1])
-    vec4 viewport_light;    // xy: target size in pixels, z: lighting weight (0 = unlit), w: unused
+    vec4 viewport_light;    // xy: target size in pixels, z: lighting weight (0 = unlit),
+                            // w: 1 = sample directly without colormap blending (visible pass)
     uint mesh_id;
     uint texture_id;
     uint texture_width;     // full original resolution, level 0

@@ -16,12 +16,12 @@ use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::describe;
 use citystream_engine::feedback::FeedbackCompactor;
-use citystream_engine::gpu_types::{Vertex, FEEDBACK_WEIGHT_ONE};
+use citystream_engine::gpu_types::{FeedbackEntry, Vertex, FEEDBACK_MIP_ONE, FEEDBACK_WEIGHT_ONE, TEXTURE_SAMPLEABLE};
 use citystream_engine::instance::{default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder;
 use citystream_engine::scene::MeshRenderer;
-use citystream_engine::streamer::Streamer;
+use citystream_engine::streamer::{DatasetSource, Streamer};
 use citystream_engine::target::{write_png, RenderTarget};
 use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
 use citystream_engine::timing::CpuFrameClock;
@@ -32,7 +32,8 @@ use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
-use citystream_streaming::stats::SummaryBuilder;
+use citystream_streaming::source::MipSource;
+use citystream_streaming::stats::{Stats, SummaryBuilder};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Clock {
@@ -115,6 +116,16 @@ struct Args {
     /// Enable the Vulkan validation layer (default: on in debug builds).
     #[arg(long)]
     validation: Option<bool>,
+    /// Instead of a flythrough, measure pop-in (the paper's Fig. 7): a static
+    /// view whose textures refine one level per frame from the coarsest, the
+    /// largest inter-frame MSE with direct sampling and with colormap blending.
+    /// Writes OUT/popin.json.
+    #[arg(long)]
+    pop_in: bool,
+    /// Measure image error every N frames: render a reference of the same view
+    /// with every needed mip resident and report PSNR against it (0: never).
+    #[arg(long, default_value_t = 30)]
+    psnr_interval: u32,
 }
 
 /// Fixed clock: the time step and the modelled render cost of a frame.
@@ -126,6 +137,9 @@ struct Run<'a> {
     device: String,
     scene: String,
     policy: &'a str,
+    alpha_ms: f64,
+    mip_deficit: Option<Stats>,
+    psnr_db: Option<Stats>,
     clock: &'a str,
     bind_latency: &'a str,
     width: u32,
@@ -153,9 +167,11 @@ fn main() -> Result<()> {
     eprintln!("device: {}", describe(&device));
     let frames_dir = args.out.join("frames");
     std::fs::create_dir_all(&frames_dir).with_context(|| format!("creating {}", frames_dir.display()))?;
-    match &args.dataset {
-        Some(dir) => stream_city(&args, &device, dir),
-        None => placeholder_city(&args, &device),
+    match (&args.dataset, args.pop_in) {
+        (Some(dir), true) => pop_in(&args, &device, dir),
+        (Some(dir), false) => stream_city(&args, &device, dir),
+        (None, true) => bail!("--pop-in needs --dataset"),
+        (None, false) => placeholder_city(&args, &device),
     }
 }
 
@@ -175,15 +191,162 @@ fn orbit_camera(centre: Vec3, extent: f32, tall: f32, t: f64) -> Camera {
     }
 }
 
+/// The live one-line status: rewritten in place on a terminal, a line every
+/// 30 frames otherwise (logs, CI).
 fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: f64, resident_mb: f64) {
-    eprint!(
-        "\rframe {:>6}/{frames}  dt {dt:7.2} ms  s {s_mb:7.2} MB  b {b:4.2}  {mb_s:7.2} MB/s  resident {resident_mb:8.1} MB",
+    use std::io::IsTerminal;
+    let line = format!(
+        "frame {:>6}/{frames}  dt {dt:7.2} ms  s {s_mb:7.2} MB  b {b:4.2}  {mb_s:7.2} MB/s  resident {resident_mb:8.1} MB",
         frame + 1
     );
-    let _ = std::io::stderr().flush();
+    if std::io::stderr().is_terminal() {
+        eprint!("\r{line}");
+        let _ = std::io::stderr().flush();
+    } else if frame % 30 == 0 || frame + 1 == frames {
+        eprintln!("{line}");
+    }
 }
 
-fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
+/// Everything the city passes need, built once per cache: the streamed
+/// run has one, the error reference another.
+struct CityGpu {
+    cache: GpuTextureCache,
+    renderer: CityRenderer,
+}
+
+fn city_gpu(
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Dataset,
+    meshes: &[CityMesh],
+    vertices: &[Vertex],
+    compactor: &FeedbackCompactor,
+    memory_budget_bytes: u64,
+) -> Result<CityGpu> {
+    let cache = GpuTextureCache::new(
+        device,
+        commands,
+        &GpuCacheConfig {
+            layer_size: 2048,
+            layer_count: 64,
+            memory_budget_bytes,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 256,
+            texture_count: dataset.textures.len(),
+            filtering: Filtering::BilinearNearestLevel,
+        },
+        dataset.colormap.colours(),
+    )?;
+    let renderer = CityRenderer::new(
+        device,
+        commands,
+        vertices,
+        &dataset.scene.indices,
+        meshes.to_vec(),
+        &cache,
+        compactor,
+    )?;
+    Ok(CityGpu { cache, renderer })
+}
+
+/// The mip deficit of one frame: the weighted mean, over the meshes whose
+/// feedback weight reaches `tau` (those streaming serves), of displayed minus
+/// needed level; 0 when everything needed is shown.
+fn mip_deficit(entries: &[FeedbackEntry], tau: u32, meshes: &[CityMesh], cache: &GpuTextureCache) -> Option<f64> {
+    let (mut weighted, mut total) = (0.0f64, 0.0f64);
+    for entry in entries.iter().filter(|e| e.weight >= tau) {
+        let Some(mesh) = meshes.get(entry.mesh_id as usize) else {
+            continue;
+        };
+        let needed = f64::from(entry.mip) / f64::from(FEEDBACK_MIP_ONE);
+        let displayed = match cache.texture_data(mesh.texture) {
+            Some(d) if d.state == TEXTURE_SAMPLEABLE => needed
+                .max(f64::from(d.lowest_mip))
+                .min(f64::from(d.mip_count.saturating_sub(1))),
+            _ => f64::from(mesh.max_mip()),
+        };
+        let weight = f64::from(entry.weight);
+        weighted += weight * (displayed - needed).max(0.0);
+        total += weight;
+    }
+    (total > 0.0).then(|| weighted / total)
+}
+
+/// Loads, into the reference cache, every level from the one each seen mesh
+/// needs up to its coarsest, with no budget or load size; returns how many
+/// textures the reference cache had to evict (0 for a faithful reference).
+fn load_reference(
+    reference: &mut CityGpu,
+    commands: &mut CommandContext,
+    source: &DatasetSource,
+    dataset: &Dataset,
+    entries: &[FeedbackEntry],
+    meshes: &[CityMesh],
+    finest_loaded: &mut [u32],
+) -> Result<u32> {
+    let mut needed: Vec<(u32, u32)> = entries
+        .iter()
+        .filter_map(|e| {
+            meshes
+                .get(e.mesh_id as usize)
+                .map(|m| (m.texture, e.mip / FEEDBACK_MIP_ONE as u32))
+        })
+        .collect();
+    needed.sort_unstable();
+    needed.dedup_by_key(|(t, _)| *t);
+    let mut buffer = Vec::new();
+    for (texture, level) in needed {
+        let chain = source.mip_chain(texture)?;
+        let info = dataset.textures.info(texture)?;
+        let level = level.min(chain.mip_count - 1);
+        let already = finest_loaded[texture as usize];
+        for l in (level..chain.mip_count.min(already)).rev() {
+            buffer.resize(source.mip_len(texture, l)? as usize, 0);
+            source.read_mip(texture, l, &mut buffer)?;
+            reference
+                .cache
+                .stage(texture, info.format(), info.width(), info.height(), l, &buffer)?;
+        }
+        finest_loaded[texture as usize] = already.min(level);
+    }
+    let report = reference.cache.finish_cycle(commands)?;
+    for &t in &report.invalidated_textures {
+        finest_loaded[t as usize] = u32::MAX;
+    }
+    Ok(report.textures_invalidated)
+}
+
+/// Peak signal-to-noise ratio of `a` against `b` over RGB, in dB (∞ when equal).
+fn psnr_db(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
+    let mut sum = 0.0f64;
+    let mut n = 0u64;
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        for c in 0..3 {
+            let d = f64::from(p.0[c]) - f64::from(q.0[c]);
+            sum += d * d;
+            n += 1;
+        }
+    }
+    let mse = sum / n.max(1) as f64;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        10.0 * (255.0f64 * 255.0 / mse).log10()
+    }
+}
+
+const CSV_HEADER: &str =
+    "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,resident_bytes,mip_deficit,psnr_db";
+
+fn optional(value: Option<f64>) -> String {
+    value
+        .filter(|v| v.is_finite())
+        .map(|v| format!("{v:.4}"))
+        .unwrap_or_default()
+}
+
+/// The dataset with its vertices and meshes in the engine's layout.
+fn open_city(dir: &std::path::Path) -> Result<(Arc<Dataset>, Vec<Vertex>, Vec<CityMesh>)> {
     let dataset = Arc::new(Dataset::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?);
     let scene = &dataset.scene;
     let vertices: Vec<Vertex> = scene
@@ -212,32 +375,39 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             })
         })
         .collect::<Result<Vec<_>, citystream_streaming::dataset::DatasetError>>()?;
+    Ok((dataset, vertices, meshes))
+}
+
+fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
+    let (dataset, vertices, meshes) = open_city(dir)?;
+    let scene = &dataset.scene;
     let mut commands = CommandContext::new(device, "flythrough frame")?;
-    let mut cache = GpuTextureCache::new(
-        device,
-        &mut commands,
-        &GpuCacheConfig {
-            layer_size: 2048,
-            layer_count: 64,
-            memory_budget_bytes: args.memory_budget_mb << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 256,
-            texture_count: dataset.textures.len(),
-            filtering: Filtering::BilinearNearestLevel,
-        },
-        dataset.colormap.colours(),
-    )?;
     let mesh_count = meshes.len() as u32;
     let compactor = FeedbackCompactor::new(device, &mut commands, mesh_count, mesh_count)?;
-    let renderer = CityRenderer::new(
+    let mut gpu = city_gpu(
         device,
         &mut commands,
+        &dataset,
+        &meshes,
         &vertices,
-        &scene.indices,
-        meshes,
-        &cache,
         &compactor,
+        args.memory_budget_mb << 20,
     )?;
+    let mut reference = if args.psnr_interval > 0 {
+        Some(city_gpu(
+            device,
+            &mut commands,
+            &dataset,
+            &meshes,
+            &vertices,
+            &compactor,
+            u64::MAX / 4,
+        )?)
+    } else {
+        None
+    };
+    let reference_source = DatasetSource::new(Arc::clone(&dataset));
+    let mut reference_finest = vec![u32::MAX; dataset.textures.len() as usize];
     let target = RenderTarget::new(device, args.width, args.height)?;
     let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
     let policy = args
@@ -265,6 +435,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
     let extent = size.x.max(size.z).max(1.0);
     let view = FeedbackView::default();
+    let tau = (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32;
     eprintln!(
         "scene: {} ({} meshes, {} textures)",
         dir.display(),
@@ -272,52 +443,86 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         dataset.textures.len()
     );
 
+    let csv_path = args.out.join("frames.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?,
+    );
+    writeln!(csv, "{CSV_HEADER}")?;
     let mut summary = SummaryBuilder::new();
+    let mut deficits = Vec::new();
+    let mut psnrs = Vec::new();
     let mut clock = CpuFrameClock::new();
     let started = std::time::Instant::now();
     let mut written = Vec::new();
     let mut sim_time_s = 0.0f64;
     let mut frame_ms = FIXED_STEP_MS;
     let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
+    let mut reference_incomplete = 0u32;
     for frame in 0..args.frames {
-        let t = match args.clock {
+        let time_s = match args.clock {
             Clock::Fixed => sim_time_s,
             Clock::Real => started.elapsed().as_secs_f64(),
-        } / args.orbit_s.max(0.1);
-        let camera = orbit_camera(centre, extent, size.y.max(0.0), t);
+        };
+        let camera = orbit_camera(centre, extent, size.y.max(0.0), time_s / args.orbit_s.max(0.1));
+        let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
 
-        // Algorithm 1: feedback and compaction, then the frame. The
-        // compacted records go to the host only when no loading task runs.
+        // Algorithm 1: feedback and compaction, then the frame. The compacted
+        // records go to the host only when no loading task runs (and for the
+        // error reference, which needs every seen mesh: τ = 0 then).
         let idle = !streamer.is_streaming();
         let cmd = commands.begin()?;
-        renderer.record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
-        compactor.record_compact(cmd, (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32, idle);
-        renderer.record_visible(cmd, &target, &camera, 1.0);
+        gpu.renderer
+            .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
+        compactor.record_compact(cmd, if measure_error { 0 } else { tau }, idle || measure_error);
+        gpu.renderer.record_visible(cmd, &target, &camera, 1.0, true);
         commands.submit_and_wait(&[])?;
+        let pixels = target.read_pixels()?;
         if args.frame_interval > 0 && frame % args.frame_interval == 0 {
             let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
-            write_png(&target.read_pixels()?, &path)?;
+            write_png(&pixels, &path)?;
             written.push(path.display().to_string());
+        }
+
+        let entries = if idle || measure_error {
+            Some(compactor.read_back(&mut commands)?.entries)
+        } else {
+            None
+        };
+        let deficit = entries
+            .as_deref()
+            .and_then(|e| mip_deficit(e, tau, &meshes, &gpu.cache));
+        let mut psnr = None;
+        if let (true, Some(reference), Some(entries)) = (measure_error, reference.as_mut(), entries.as_deref()) {
+            reference_incomplete += load_reference(
+                reference,
+                &mut commands,
+                &reference_source,
+                &dataset,
+                entries,
+                &meshes,
+                &mut reference_finest,
+            )?;
+            let cmd = commands.begin()?;
+            reference.renderer.record_visible(cmd, &target, &camera, 1.0, true);
+            commands.submit_and_wait(&[])?;
+            psnr = Some(psnr_db(&pixels, &target.read_pixels()?));
         }
 
         // Controller, then a loading task if none runs.
         let decision = streamer.update_policy(frame_ms);
-        let mut bytes_this_frame = 0;
-        let mut mips_this_frame = 0;
-        let mut bind_cost_ms = 0.0;
-        if idle {
-            let feedback = compactor.read_back(&mut commands)?;
+        if let (true, Some(entries)) = (idle, entries.as_deref()) {
             match args.clock {
                 Clock::Fixed => {
-                    streamer.run_cycle_now(&feedback.entries, decision);
+                    streamer.run_cycle_now(entries, decision);
                 }
                 Clock::Real => {
-                    streamer.start_cycle(&feedback.entries, decision);
+                    streamer.start_cycle(entries, decision);
                 }
             }
         }
         // Upload what the loader staged (all of it with the fixed clock).
-        let applied = streamer.apply(&mut cache, &mut commands)?;
+        let applied = streamer.apply(&mut gpu.cache, &mut commands)?;
+        let mut bind_cost_ms = 0.0;
         if applied.cache.blocks_bound + applied.cache.blocks_unbound > 0 {
             let runs = u64::from(applied.cache.bind_entries);
             let blocks = u64::from(applied.cache.blocks_bound + applied.cache.blocks_unbound);
@@ -326,11 +531,12 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                 std::thread::sleep(Duration::from_secs_f64(bind_cost_ms / 1000.0));
             }
         }
-        bytes_this_frame += applied.cache.bytes_uploaded;
-        mips_this_frame += u64::from(applied.cache.mips_uploaded);
-        mips_total += mips_this_frame;
+        let bytes = applied.cache.bytes_uploaded;
+        let mips = u64::from(applied.cache.mips_uploaded);
+        mips_total += mips;
         blocks_total += u64::from(applied.cache.blocks_bound);
-        peak_resident = peak_resident.max(cache.utilisation().bound_bytes);
+        let resident = gpu.cache.utilisation().bound_bytes;
+        peak_resident = peak_resident.max(resident);
 
         let measured = clock.tick().as_secs_f64() * 1000.0;
         frame_ms = match args.clock {
@@ -338,34 +544,52 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             Clock::Fixed => FIXED_RENDER_MS + bind_cost_ms,
         };
         sim_time_s += FIXED_STEP_MS / 1000.0;
-        let telemetry = streamer.policy().telemetry();
-        summary.push_frame(
-            frame_ms,
-            telemetry.tw_ms,
-            telemetry.load_size_mb,
-            telemetry.mip_bias,
-            mips_this_frame,
-            bytes_this_frame,
-        );
-        let mb_per_s = bytes_this_frame as f64 / 1e6 / (frame_ms / 1000.0).max(1e-6);
+        let t = streamer.policy().telemetry();
+        summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
+        deficits.extend(deficit);
+        psnrs.extend(psnr.filter(|p| p.is_finite()));
+        writeln!(
+            csv,
+            "{frame},{time_s:.4},{frame_ms:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{mips},{bytes},{},{resident},{},{}",
+            t.tw_ms,
+            t.tm_ms,
+            t.tb_ms,
+            t.tbl_ms,
+            t.tbu_ms,
+            t.load_size_mb,
+            t.mip_bias,
+            applied.cache.blocks_bound,
+            optional(deficit),
+            optional(psnr),
+        )?;
+        let mb_per_s = bytes as f64 / 1e6 / (frame_ms / 1000.0).max(1e-6);
         status(
             frame,
             args.frames,
             frame_ms,
-            telemetry.load_size_mb,
-            telemetry.mip_bias,
+            t.load_size_mb,
+            t.mip_bias,
             mb_per_s,
-            cache.utilisation().bound_bytes as f64 / 1e6,
+            resident as f64 / 1e6,
         );
     }
-    eprintln!();
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        eprintln!();
+    }
+    csv.flush()?;
     device.wait_idle()?;
+    if reference_incomplete > 0 {
+        eprintln!("warning: the error reference evicted {reference_incomplete} textures; PSNR is optimistic");
+    }
     let validation_errors = device.validation_log().error_count();
     let summary = summary.finish();
     let run = Run {
         device: describe(device),
         scene: dir.display().to_string(),
         policy: streamer.policy().kind().name(),
+        alpha_ms: args.alpha,
+        mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
+        psnr_db: (!psnrs.is_empty()).then(|| Stats::from_samples(&psnrs)),
         clock: match args.clock {
             Clock::Real => "real",
             Clock::Fixed => "fixed",
@@ -388,17 +612,172 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     std::fs::write(&path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", path.display()))?;
     eprintln!(
-        "{} frames, {} mips streamed, wrote {} frames and {}",
+        "{} frames, {} mips streamed, wrote {} frames, {} and {}",
         args.frames,
         mips_total,
         run.frames_written.len(),
+        csv_path.display(),
         path.display()
     );
-    drop(renderer);
+    drop(reference);
+    drop(gpu);
     drop(compactor);
-    drop(cache);
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");
+    }
+    Ok(())
+}
+
+/// Mean squared error over RGB between two images.
+fn mse(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
+    let mut sum = 0.0f64;
+    let mut n = 0u64;
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        for c in 0..3 {
+            let d = f64::from(p.0[c]) - f64::from(q.0[c]);
+            sum += d * d;
+            n += 1;
+        }
+    }
+    sum / n.max(1) as f64
+}
+
+#[derive(Debug, serde::Serialize)]
+struct PopIn {
+    frames: u32,
+    max_mse_direct: f64,
+    max_mse_blended: f64,
+    mse_direct: Vec<f64>,
+    mse_blended: Vec<f64>,
+    paper_max_mse_direct: f64,
+    paper_max_mse_blended: f64,
+}
+
+fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
+    let (dataset, vertices, meshes) = open_city(dir)?;
+    let scene = &dataset.scene;
+    let mut commands = CommandContext::new(device, "pop-in frame")?;
+    let mesh_count = meshes.len() as u32;
+    let compactor = FeedbackCompactor::new(device, &mut commands, mesh_count, mesh_count)?;
+    let mut gpu = city_gpu(
+        device,
+        &mut commands,
+        &dataset,
+        &meshes,
+        &vertices,
+        &compactor,
+        u64::MAX / 4,
+    )?;
+    let target = RenderTarget::new(device, args.width, args.height)?;
+    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
+    // A close view into the city, where refinement is most visible (Fig. 7
+    // is a street-level view).
+    let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
+    let centre = Vec3::from(scene.bounds.center());
+    let extent = size.x.max(size.z).max(1.0);
+    let camera = Camera {
+        eye: centre + Vec3::new(extent * 0.12, size.y.max(1.0) * 0.35, extent * 0.12),
+        target: centre + Vec3::new(0.0, size.y.max(1.0) * 0.15, 0.0),
+        fov_y: 60f32.to_radians(),
+        near: extent * 1e-3,
+        far: extent * 4.0,
+    };
+    // What the static view needs.
+    let cmd = commands.begin()?;
+    gpu.renderer
+        .record_feedback(cmd, &feedback_target, &camera, &FeedbackView::default(), args.height)?;
+    compactor.record_compact(cmd, (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32, true);
+    commands.submit_and_wait(&[])?;
+    let entries = compactor.read_back(&mut commands)?.entries;
+    let source = DatasetSource::new(Arc::clone(&dataset));
+    let mut wanted: Vec<(u32, u32, u32)> = Vec::new(); // (texture, needed level, next level to load)
+    for entry in &entries {
+        let Some(mesh) = meshes.get(entry.mesh_id as usize) else {
+            continue;
+        };
+        let chain = source.mip_chain(mesh.texture)?;
+        let needed = (entry.mip / FEEDBACK_MIP_ONE as u32).min(chain.mip_count - 1);
+        wanted.push((mesh.texture, needed, chain.mip_count - 1));
+    }
+    wanted.sort_unstable();
+    wanted.dedup_by_key(|w| w.0);
+    eprintln!("pop-in: {} textures refine from their coarsest level", wanted.len());
+
+    let render = |gpu: &CityGpu, commands: &mut CommandContext, blend: bool| -> Result<image::RgbaImage> {
+        let cmd = commands.begin()?;
+        gpu.renderer.record_visible(cmd, &target, &camera, 1.0, blend);
+        commands.submit_and_wait(&[])?;
+        Ok(target.read_pixels()?)
+    };
+    let mut previous: Option<(image::RgbaImage, image::RgbaImage)> = None;
+    let (mut mse_direct, mut mse_blended) = (Vec::new(), Vec::new());
+    let mut buffer = Vec::new();
+    let mut frames = 0;
+    loop {
+        // Load one level, the next finer one, of every texture still coarser than needed.
+        let mut loaded = 0;
+        for (texture, needed, next) in wanted.iter_mut() {
+            if *next == u32::MAX || *next < *needed {
+                continue;
+            }
+            let info = dataset.textures.info(*texture)?;
+            buffer.resize(source.mip_len(*texture, *next)? as usize, 0);
+            source.read_mip(*texture, *next, &mut buffer)?;
+            gpu.cache
+                .stage(*texture, info.format(), info.width(), info.height(), *next, &buffer)?;
+            loaded += 1;
+            *next = next.checked_sub(1).unwrap_or(u32::MAX);
+        }
+        gpu.cache.finish_cycle(&mut commands)?;
+        let direct = render(&gpu, &mut commands, false)?;
+        let blended = render(&gpu, &mut commands, true)?;
+        if args.frame_interval > 0 && frames % args.frame_interval == 0 {
+            write_png(
+                &direct,
+                &frames_dir_path(args).join(format!("popin_direct_{frames:03}.png")),
+            )?;
+            write_png(
+                &blended,
+                &frames_dir_path(args).join(format!("popin_blended_{frames:03}.png")),
+            )?;
+        }
+        if let Some((d, b)) = &previous {
+            mse_direct.push(mse(d, &direct));
+            mse_blended.push(mse(b, &blended));
+        }
+        previous = Some((direct, blended));
+        frames += 1;
+        if loaded == 0 || frames > 64 {
+            break;
+        }
+    }
+    device.wait_idle()?;
+    let max = |v: &[f64]| v.iter().copied().fold(0.0f64, f64::max);
+    let result = PopIn {
+        frames,
+        max_mse_direct: max(&mse_direct),
+        max_mse_blended: max(&mse_blended),
+        mse_direct,
+        mse_blended,
+        paper_max_mse_direct: 438.0,
+        paper_max_mse_blended: 62.0,
+    };
+    let path = args.out.join("popin.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&result)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    println!(
+        "pop-in over {} frames: max inter-frame MSE {:.1} with direct sampling, {:.1} with colormap blending \
+         (paper: 438 -> 62); wrote {}",
+        result.frames,
+        result.max_mse_direct,
+        result.max_mse_blended,
+        path.display()
+    );
+    drop(gpu);
+    drop(compactor);
+    let errors = device.validation_log().error_count();
+    if errors > 0 {
+        bail!("{errors} Vulkan validation error(s) during the run");
     }
     Ok(())
 }
@@ -446,7 +825,9 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
         summary.push_frame(dt, dt, 0.0, 0.0, 0, 0);
         status(frame, args.frames, dt, 0.0, 0.0, 0.0, 0.0);
     }
-    eprintln!();
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        eprintln!();
+    }
     device.wait_idle()?;
     let validation_errors = device.validation_log().error_count();
     let mut json = serde_json::to_value(summary.finish())?;
