@@ -92,6 +92,21 @@ pub struct FeedbackView {
     pub foreground_distance: f32,
 }
 
+impl FeedbackView {
+    /// Visible pixels spanned by one feedback pixel, per axis: the feedback
+    /// covers `1 + margin` times the angle with `feedback_height` pixels.
+    pub fn pixel_ratio(&self, visible_height: u32, feedback_height: u32) -> f32 {
+        (1.0 + self.margin.max(0.0)) * visible_height as f32 / feedback_height.max(1) as f32
+    }
+
+    /// Weight a feedback fragment stands for in visible pixels: the weight
+    /// τ is defined per visible fragment (paper Table 2), so feedback weights
+    /// are scaled by the area one feedback pixel covers, `pixel_ratio²`.
+    pub fn fragment_area(&self, visible_height: u32, feedback_height: u32) -> f32 {
+        self.pixel_ratio(visible_height, feedback_height).powi(2)
+    }
+}
+
 impl Default for FeedbackView {
     fn default() -> Self {
         Self {
@@ -327,8 +342,7 @@ impl CityRenderer {
         }
         let aspect = feedback_target.width() as f32 / feedback_target.height() as f32;
         let widen = 1.0 + view.margin.max(0.0);
-        // Feedback pixels span `widen` times the angle over fewer pixels.
-        let pixel_ratio = widen * visible_height as f32 / feedback_target.height() as f32;
+        let pixel_ratio = view.pixel_ratio(visible_height, feedback_target.height());
         let base = CityDrawPush {
             view_proj: camera.view_projection(aspect, view.margin).to_cols_array_2d(),
             feedback: [pixel_ratio.log2(), view.foreground_distance.max(1e-6), widen, widen],

@@ -137,17 +137,24 @@ impl MipSink for QueueSink {
 }
 
 /// Converts compacted feedback entries to the loader's records: the level
-/// wanted is the finest whole level covering the fractional one, the weight
-/// is back in units of W.
-pub fn records_from_feedback(entries: &[FeedbackEntry]) -> Vec<MeshMetaData> {
+/// wanted is the finest whole level covering the fractional one; the weight
+/// is back in units of W per visible fragment (`fragment_area` visible pixels
+/// per feedback fragment, see [`crate::city::FeedbackView::fragment_area`]).
+pub fn records_from_feedback(entries: &[FeedbackEntry], fragment_area: f32) -> Vec<MeshMetaData> {
     entries
         .iter()
         .map(|e| MeshMetaData {
             mip_level: (e.mip as f32 / FEEDBACK_MIP_ONE).floor() as u32,
-            weight: (e.weight as f32 / FEEDBACK_WEIGHT_ONE).round() as u32,
+            weight: (e.weight as f32 / FEEDBACK_WEIGHT_ONE * fragment_area).round() as u32,
             mesh_id: e.mesh_id,
         })
         .collect()
+}
+
+/// The compaction threshold in the feedback's fixed-point units for a τ in
+/// W per visible fragment.
+pub fn feedback_tau(tau: u32, fragment_area: f32) -> u32 {
+    (tau as f32 * FEEDBACK_WEIGHT_ONE / fragment_area.max(1e-6)).floor() as u32
 }
 
 /// What one [`Streamer::apply`] did.
@@ -167,6 +174,7 @@ pub struct Streamer {
     states: Arc<TextureStates>,
     policy: Box<dyn LoadPolicy>,
     tau: u32,
+    fragment_area: f32,
 }
 
 impl std::fmt::Debug for Streamer {
@@ -176,8 +184,16 @@ impl std::fmt::Debug for Streamer {
 }
 
 impl Streamer {
-    /// A streamer over `dataset` with `policy`; records lighter than `tau` (W units) are dropped.
-    pub fn new(dataset: Arc<Dataset>, policy: Box<dyn LoadPolicy>, tau: u32, options: LoaderOptions) -> Result<Self> {
+    /// A streamer over `dataset` with `policy`; records lighter than `tau`
+    /// (W per visible fragment) are dropped; each feedback fragment stands for
+    /// `fragment_area` visible ones.
+    pub fn new(
+        dataset: Arc<Dataset>,
+        policy: Box<dyn LoadPolicy>,
+        tau: u32,
+        fragment_area: f32,
+        options: LoaderOptions,
+    ) -> Result<Self> {
         let queue = Arc::new(UploadQueue::default());
         let mesh_textures: Vec<u32> = dataset.scene.meshes.iter().map(|m| m.texture).collect();
         let texture_count = dataset.textures.len() as usize;
@@ -197,6 +213,7 @@ impl Streamer {
             states,
             policy,
             tau,
+            fragment_area,
         })
     }
 
@@ -218,13 +235,13 @@ impl Streamer {
     /// Starts a loading task from compacted feedback, unless one runs.
     /// Returns whether it started.
     pub fn start_cycle(&self, entries: &[FeedbackEntry], decision: Decision) -> bool {
-        let records = prepare(records_from_feedback(entries), self.tau);
+        let records = prepare(records_from_feedback(entries, self.fragment_area), self.tau);
         self.loader.try_spawn(records, decision)
     }
 
     /// Runs a loading task on this thread (reproducible runs); `None` if one is running.
     pub fn run_cycle_now(&self, entries: &[FeedbackEntry], decision: Decision) -> bool {
-        let records = prepare(records_from_feedback(entries), self.tau);
+        let records = prepare(records_from_feedback(entries, self.fragment_area), self.tau);
         self.loader.run_cycle(&records, decision).is_some()
     }
 

@@ -16,12 +16,12 @@ use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::describe;
 use citystream_engine::feedback::FeedbackCompactor;
-use citystream_engine::gpu_types::{FeedbackEntry, Vertex, FEEDBACK_MIP_ONE, FEEDBACK_WEIGHT_ONE, TEXTURE_SAMPLEABLE};
+use citystream_engine::gpu_types::{FeedbackEntry, Vertex, FEEDBACK_MIP_ONE, TEXTURE_SAMPLEABLE};
 use citystream_engine::instance::{default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder;
 use citystream_engine::scene::MeshRenderer;
-use citystream_engine::streamer::{DatasetSource, Streamer};
+use citystream_engine::streamer::{feedback_tau, DatasetSource, Streamer};
 use citystream_engine::target::{write_png, RenderTarget};
 use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
 use citystream_engine::timing::CpuFrameClock;
@@ -421,10 +421,13 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             fixed_mip_bias: args.mip_bias,
         })
         .context("building the streaming policy")?;
+    let view = FeedbackView::default();
+    let fragment_area = view.fragment_area(args.height, feedback_target.height());
     let mut streamer = Streamer::new(
         Arc::clone(&dataset),
         policy,
         DEFAULT_WEIGHT_CUTOFF,
+        fragment_area,
         LoaderOptions::default(),
     )?;
     let latency = BindLatencyModel::preset(args.bind_latency);
@@ -434,8 +437,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let centre = Vec3::from(bounds.center());
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
     let extent = size.x.max(size.z).max(1.0);
-    let view = FeedbackView::default();
-    let tau = (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32;
+    // τ in the feedback's fixed point: per feedback fragment, not per visible one.
+    let tau = feedback_tau(DEFAULT_WEIGHT_CUTOFF, fragment_area);
     eprintln!(
         "scene: {} ({} meshes, {} textures)",
         dir.display(),
@@ -683,10 +686,15 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         far: extent * 4.0,
     };
     // What the static view needs.
+    let view = FeedbackView::default();
+    let tau = feedback_tau(
+        DEFAULT_WEIGHT_CUTOFF,
+        view.fragment_area(args.height, feedback_target.height()),
+    );
     let cmd = commands.begin()?;
     gpu.renderer
-        .record_feedback(cmd, &feedback_target, &camera, &FeedbackView::default(), args.height)?;
-    compactor.record_compact(cmd, (DEFAULT_WEIGHT_CUTOFF as f32 * FEEDBACK_WEIGHT_ONE) as u32, true);
+        .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
+    compactor.record_compact(cmd, tau, true);
     commands.submit_and_wait(&[])?;
     let entries = compactor.read_back(&mut commands)?.entries;
     let source = DatasetSource::new(Arc::clone(&dataset));
