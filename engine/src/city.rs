@@ -385,3 +385,36 @@ impl CityRenderer {
         target.end_and_copy(&self.device, cmd);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn feedback_pixel_ratio_accounts_for_margin_and_resolution() {
+        let view = FeedbackView {
+            margin: 0.25,
+            foreground_distance: 100.0,
+        };
+        // 360 visible rows over 90 feedback rows, 25 % wider: 1.25 * 4 = 5.
+        assert!((view.pixel_ratio(360, 90) - 5.0).abs() < 1e-6);
+        assert!((view.fragment_area(360, 90) - 25.0).abs() < 1e-5);
+        let exact = FeedbackView { margin: 0.0, ..view };
+        assert!((exact.pixel_ratio(128, 128) - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn max_mip_is_the_coarsest_full_resolution_level() {
+        let mesh = |w, h| CityMesh {
+            first_index: 0,
+            index_count: 3,
+            vertex_offset: 0,
+            texture: 0,
+            texture_width: w,
+            texture_height: h,
+        };
+        assert_eq!(mesh(512, 512).max_mip(), 9);
+        assert_eq!(mesh(4, 32).max_mip(), 5);
+        assert_eq!(mesh(1, 1).max_mip(), 0);
+    }
+}

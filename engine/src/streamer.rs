@@ -283,3 +283,34 @@ impl Streamer {
         Ok(ApplyReport { cache: report, refused })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn feedback_weights_become_visible_fragment_weights() {
+        // One feedback fragment covers a 4x4 block of visible pixels (area 16).
+        // A weight of 10 W in fixed point (80) stands for 160 W of visible fragments.
+        let entries = [FeedbackEntry {
+            mip: 3 * 256 + 200, // level 3.78: the finest whole level covering it is 3
+            weight: 80,
+            mesh_id: 7,
+        }];
+        let records = records_from_feedback(&entries, 16.0);
+        assert_eq!(
+            records,
+            vec![MeshMetaData {
+                mip_level: 3,
+                weight: 160,
+                mesh_id: 7
+            }]
+        );
+        // τ = 150 W per visible fragment is 150 * 8 / 16 = 75 in feedback fixed point:
+        // the entry above (80) passes on the GPU and its record (160) on the host.
+        assert_eq!(feedback_tau(150, 16.0), 75);
+        assert_eq!(feedback_tau(150, 1.0), 1200);
+        // A degenerate area never divides by zero.
+        assert!(feedback_tau(150, 0.0) > 0);
+    }
+}
