@@ -24,10 +24,13 @@ void main() {
     vec4 c_o = colormap_colour(push.texture_id);
     vec4 c_s;
     float displayed;
-    vec3 colour = c_o.rgb;
+    // viewport_light.w = 1: direct sampling, no City Colormap at all (the
+    // pop-in comparison of Fig. 7): unloaded texels read as zero, as a
+    // non-resident sparse texel does.
+    bool direct = push.viewport_light.w != 0.0;
+    vec3 colour = direct ? vec3(0.0) : c_o.rgb;
     if (sample_city_texture_level(push.texture_id, in_uv, lod, c_s, displayed)) {
-        // viewport_light.w = 1 turns blending off (direct sampling, for the pop-in measurement).
-        float t = max_level > 0.0 && push.viewport_light.w == 0.0 ? clamp(displayed / max_level, 0.0, 1.0) : 0.0;
+        float t = max_level > 0.0 && !direct ? clamp(displayed / max_level, 0.0, 1.0) : 0.0;
         colour = mix(c_s.rgb, c_o.rgb, t);
     }
     float lambert = 0.35 + 0.65 * max(dot(normalize(in_normal), normalize(LIGHT_DIR)), 0.0);

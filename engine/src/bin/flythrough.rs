@@ -117,9 +117,10 @@ struct Args {
     #[arg(long)]
     validation: Option<bool>,
     /// Instead of a flythrough, measure pop-in (the paper's Fig. 7): a static
-    /// view whose textures refine one level per frame from the coarsest, the
-    /// largest inter-frame MSE with direct sampling and with colormap blending.
-    /// Writes OUT/popin.json.
+    /// view that starts with nothing resident and whose textures then refine
+    /// one level per frame from the coarsest; the largest inter-frame MSE with
+    /// direct sampling (no City Colormap: unloaded reads as zero) and with
+    /// colormap blending (Eq. 8). Writes OUT/popin.json.
     #[arg(long)]
     pop_in: bool,
     /// Measure image error every N frames: render a reference of the same view
@@ -722,10 +723,11 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     let mut buffer = Vec::new();
     let mut frames = 0;
     loop {
-        // Load one level, the next finer one, of every texture still coarser than needed.
+        // Frame 0 shows nothing resident; each later frame loads one level,
+        // the next finer one, of every texture still coarser than needed.
         let mut loaded = 0;
         for (texture, needed, next) in wanted.iter_mut() {
-            if *next == u32::MAX || *next < *needed {
+            if frames == 0 || *next == u32::MAX || *next < *needed {
                 continue;
             }
             let info = dataset.textures.info(*texture)?;
@@ -755,7 +757,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         }
         previous = Some((direct, blended));
         frames += 1;
-        if loaded == 0 || frames > 64 {
+        if (frames > 1 && loaded == 0) || frames > 64 {
             break;
         }
     }
