@@ -70,6 +70,7 @@ fn main() -> Result<()> {
             blocks_per_chunk: 64,
             texture_count: count,
             filtering: Filtering::BilinearNearestLevel,
+            staging_bytes: 16 << 20,
         },
         &vec![[128, 128, 128, 255]; count as usize],
     )?;

@@ -38,6 +38,7 @@ use crate::gpu_types::{
 };
 use crate::pipeline::{DescriptorResource, Filtering, Sampler};
 use crate::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
+use crate::staging::StagingRing;
 
 /// The cache images, in binding order: image 0 is BC1 (`BINDING_CACHE_IMAGE0`),
 /// image 1 is RGBA8 (`BINDING_CACHE_IMAGE1`).
@@ -65,6 +66,9 @@ pub struct GpuCacheConfig {
     pub texture_count: u32,
     /// Filtering of the cache sampler.
     pub filtering: Filtering,
+    /// Bytes of the host-visible staging ring the uploads go through; a
+    /// cycle whose uploads do not fit uses a one-off buffer instead.
+    pub staging_bytes: u64,
 }
 
 /// What one [`GpuTextureCache::finish_cycle`] did.
@@ -133,6 +137,8 @@ pub struct GpuTextureCache {
     sampler: Sampler,
     uploads: Vec<PendingUpload>,
     upload_bytes: Vec<u8>,
+    staging: StagingRing,
+    cycles: u64,
 }
 
 impl std::fmt::Debug for GpuTextureCache {
@@ -242,6 +248,7 @@ impl GpuTextureCache {
         let mut colormap_buffer = host_storage(std::mem::size_of_val(packed.as_slice()) as u64, "city colormap")?;
         colormap_buffer.write(0, &packed)?;
         let sampler = Sampler::new(device, config.filtering, "cache sampler")?;
+        let staging = StagingRing::new(device, config.staging_bytes.max(64 * 1024))?;
 
         let cmd = commands.begin()?;
         for image in &images {
@@ -267,6 +274,8 @@ impl GpuTextureCache {
             sampler,
             uploads: Vec::new(),
             upload_bytes: Vec::new(),
+            staging,
+            cycles: 0,
         })
     }
 
@@ -447,18 +456,27 @@ impl GpuTextureCache {
             }
         }
 
-        // 4. Copies, after the bind.
+        // 4. Copies, after the bind, from the staging ring (or, for a cycle
+        // larger than the ring, a one-off buffer).
+        self.cycles += 1;
         if !self.uploads.is_empty() {
-            let mut staging = Buffer::new(
-                &self.device,
-                BufferDesc {
-                    size: self.upload_bytes.len() as u64,
-                    usage: vk::BufferUsageFlags::TRANSFER_SRC,
-                    location: MemoryLocation::CpuToGpu,
-                },
-                "cache upload staging",
-            )?;
-            staging.write(0, &self.upload_bytes)?;
+            let ticket = self.cycles;
+            let (source, base, _oversize) = match self.staging.push(&self.upload_bytes, 16, ticket)? {
+                Some(range) => (self.staging.buffer(), range.offset, None),
+                None => {
+                    let mut oversize = Buffer::new(
+                        &self.device,
+                        BufferDesc {
+                            size: self.upload_bytes.len() as u64,
+                            usage: vk::BufferUsageFlags::TRANSFER_SRC,
+                            location: MemoryLocation::CpuToGpu,
+                        },
+                        "cache upload staging (oversize cycle)",
+                    )?;
+                    oversize.write(0, &self.upload_bytes)?;
+                    (oversize.raw(), 0, Some(oversize))
+                }
+            };
             let cmd = commands.begin()?;
             for (index, image) in self.images.iter().enumerate() {
                 let uploads: Vec<TexelUpload> = self
@@ -466,7 +484,7 @@ impl GpuTextureCache {
                     .iter()
                     .filter(|u| u.image as usize == index)
                     .map(|u| TexelUpload {
-                        buffer_offset: u.bytes.start as u64,
+                        buffer_offset: base + u.bytes.start as u64,
                         ..u.upload
                     })
                     .collect();
@@ -478,7 +496,7 @@ impl GpuTextureCache {
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
                     vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                 );
-                image.record_copies(cmd, staging.raw(), &uploads)?;
+                image.record_copies(cmd, source, &uploads)?;
                 image.record_layout(
                     cmd,
                     vk::ImageLayout::TRANSFER_DST_OPTIMAL,
@@ -486,6 +504,7 @@ impl GpuTextureCache {
                 );
             }
             commands.submit_and_wait(&[self.binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY)])?;
+            self.staging.retire(ticket);
             // 5. Now the mips are there: publish them.
             for u in &self.uploads {
                 let slot = &mut self.slots[u.texture as usize];

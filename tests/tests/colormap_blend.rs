@@ -99,6 +99,7 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
             blocks_per_chunk: 16,
             texture_count: 4,
             filtering: Filtering::Nearest,
+            staging_bytes: 16 << 20,
         },
         &colormap,
     )?;

@@ -246,6 +246,7 @@ fn feedback_matches_cpu_reference() -> Result<()> {
             blocks_per_chunk: 16,
             texture_count: extents.len() as u32,
             filtering: Filtering::Nearest,
+            staging_bytes: 16 << 20,
         },
         &[[128, 128, 128, 255]; 4],
     )?;

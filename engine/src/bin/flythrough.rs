@@ -235,6 +235,7 @@ fn city_gpu(
             blocks_per_chunk: 256,
             texture_count: dataset.textures.len(),
             filtering: Filtering::BilinearNearestLevel,
+            staging_bytes: 16 << 20,
         },
         dataset.colormap.colours(),
     )?;
