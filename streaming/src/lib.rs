@@ -5,6 +5,7 @@ pub mod bind_latency;
 pub mod controller;
 pub mod dataset;
 pub mod loader;
+pub mod path;
 pub mod records;
 pub mod rng;
 pub mod sim;

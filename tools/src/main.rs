@@ -4,10 +4,13 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 mod atlas;
+mod bench;
 mod cache_report;
 mod gen;
 mod import;
 mod info;
+mod path;
+mod report;
 mod simulate;
 mod verify;
 
@@ -34,10 +37,16 @@ enum Command {
     Import(import::ImportArgs),
     /// Print totals of a dataset.
     Info(info::InfoArgs),
+    /// Write the standard benchmark camera path (paper §4.1) of a dataset.
+    Path(path::PathArgs),
     /// Run the streaming policy on the simulated-clock harness.
     Simulate(simulate::SimulateArgs),
     /// Check every offset, length and mip of a dataset.
     Verify(verify::VerifyArgs),
+    /// Compare flythrough runs: Table 3 markdown and Fig. 6 / speed-vs-error charts.
+    Report(report::ReportArgs),
+    /// Run the flythrough under each policy on one dataset and report the comparison.
+    Bench(bench::BenchArgs),
 }
 
 fn main() -> Result<()> {
@@ -48,7 +57,10 @@ fn main() -> Result<()> {
         Command::CacheReport(args) => cache_report::run(&args),
         Command::Import(args) => import::run(&args),
         Command::Info(args) => info::run(&args),
+        Command::Path(args) => path::run(&args),
         Command::Simulate(args) => simulate::run(&args),
         Command::Verify(args) => verify::run(&args),
+        Command::Report(args) => report::run(&args),
+        Command::Bench(args) => bench::run(&args),
     }
 }

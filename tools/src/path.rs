@@ -1,0 +1,65 @@
+//! `citystream path`: writes the standard benchmark camera path (paper §4.1) of a dataset.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use citystream_streaming::dataset::{Scene, SCENE_FILE};
+use citystream_streaming::path::{standard_path, DEFAULT_STANDARD_DURATION_S};
+
+use crate::gen::print_stdout;
+
+/// Options of `citystream path`.
+#[derive(Debug, clap::Args)]
+pub struct PathArgs {
+    /// Dataset directory (only its scene is read).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Camera path file to write (JSON, format in docs/PATHS.md).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Length of the path in seconds (at least 18: four 2 s pauses plus ten flight segments).
+    #[arg(long, default_value_t = DEFAULT_STANDARD_DURATION_S)]
+    pub duration: f64,
+}
+
+/// Runs `citystream path`.
+pub fn run(args: &PathArgs) -> Result<()> {
+    let scene_path = args.dataset.join(SCENE_FILE);
+    let scene =
+        Scene::read(&scene_path).with_context(|| format!("reading the scene of dataset {}", args.dataset.display()))?;
+    let path = standard_path(&scene, args.duration)
+        .with_context(|| format!("building the standard path for {}", args.dataset.display()))?;
+    path.save(&args.out)?;
+
+    let list = |times: &mut dyn Iterator<Item = f64>| times.map(|t| format!("{t:.2}")).collect::<Vec<_>>().join(", ");
+    let pauses = path.pauses();
+    let jumps = path.jumps();
+    let mut report = String::new();
+    writeln!(
+        report,
+        "wrote {}: standard path of {}",
+        args.out.display(),
+        args.dataset.display()
+    )?;
+    writeln!(
+        report,
+        "duration {:.2} s, {} keyframes",
+        path.duration_s(),
+        path.keyframes().len()
+    )?;
+    writeln!(
+        report,
+        "{} pauses of {} s at {} s",
+        pauses.len(),
+        list(&mut pauses.iter().map(|p| p.duration_s)),
+        list(&mut pauses.iter().map(|p| p.start_s))
+    )?;
+    writeln!(
+        report,
+        "{} jumps at {} s",
+        jumps.len(),
+        list(&mut jumps.iter().copied())
+    )?;
+    print_stdout(&report)
+}

@@ -1,0 +1,568 @@
+//! `citystream report` and `citystream bench` end to end: synthetic
+//! flythrough runs written here, the numbers in table.md checked against
+//! statistics computed here, the charts decoded, bad inputs rejected with
+//! the file and line, and `bench` driven through a fake flythrough script.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+type TestResult = Result<(), Box<dyn std::error::Error>>;
+
+const HEADER: &str = "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,resident_bytes,mip_deficit,psnr_db";
+
+/// Fresh, empty scratch directory for one test.
+fn scratch(name: &str) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("report_cli").join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("creating the scratch directory");
+    dir
+}
+
+fn citystream(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(args)
+        .output()
+        .expect("running citystream")
+}
+
+/// Median (mean of the middle two for an even count), mean, max, min.
+fn stats(values: &[f64]) -> [f64; 4] {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    let median = if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    };
+    let mean = v.iter().sum::<f64>() / n as f64;
+    [median, mean, v[n - 1], v[0]]
+}
+
+fn stats_json(s: [f64; 4]) -> String {
+    format!(
+        "{{\"median\": {}, \"mean\": {}, \"max\": {}, \"min\": {}}}",
+        s[0], s[1], s[2], s[3]
+    )
+}
+
+/// One synthetic frame; every value is a multiple of 1/4 so sums are exact
+/// and the expected two-decimal figures cannot differ by rounding order.
+struct Frame {
+    dt_ms: f64,
+    tw_ms: f64,
+    psnr_db: Option<f64>,
+    mip_deficit: Option<f64>,
+}
+
+fn frames(n: usize, slow: f64, psnr_every: usize, deficit_every: usize) -> Vec<Frame> {
+    (0..n)
+        .map(|i| Frame {
+            dt_ms: 4.0 + ((i * 7) % 13) as f64 * 0.25 * slow,
+            tw_ms: 9.0 + ((i * 5) % 11) as f64 * 0.5 * slow,
+            psnr_db: (psnr_every > 0 && i % psnr_every == 0).then_some(30.0 + (i % 9) as f64 * 0.75),
+            mip_deficit: (deficit_every > 0 && i % deficit_every == 0).then_some((n - i) as f64 * 0.25),
+        })
+        .collect()
+}
+
+fn csv(frames: &[Frame]) -> String {
+    let mut out = format!("{HEADER}\n");
+    let opt = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
+    for (i, f) in frames.iter().enumerate() {
+        let mips = (i % 6) as u64;
+        out.push_str(&format!(
+            "{i},{},{},{},12,{},{},{},{},{},{mips},{},{mips},{},{},{}\n",
+            i as f64 * 0.05,
+            f.dt_ms,
+            f.tw_ms,
+            f.tw_ms - 1.0,
+            f.tw_ms - 3.0,
+            f.tw_ms + 2.0,
+            0.5 + (i % 5) as f64 * 0.25,
+            (i % 4) as f64 * 0.5,
+            mips * 65_536,
+            1_000_000 + i * 1000,
+            opt(f.mip_deficit),
+            opt(f.psnr_db),
+        ));
+    }
+    out
+}
+
+/// Keys of summary.json besides the statistics.
+fn summary(frames: &[Frame], policy: &str, psnr: Option<[f64; 4]>, deficit: Option<[f64; 4]>) -> String {
+    let dt: Vec<f64> = frames.iter().map(|f| f.dt_ms).collect();
+    let tw: Vec<f64> = frames.iter().map(|f| f.tw_ms).collect();
+    let optional = |key: &str, s: Option<[f64; 4]>| match s {
+        Some(s) => format!("\"{key}\": {},", stats_json(s)),
+        None => format!("\"{key}\": null,"),
+    };
+    format!(
+        "{{\"frame_ms\": {}, \"tw_ms\": {}, \"mips_per_s\": {}, \"mb_per_s\": {},
+          \"load_size_mb\": {}, \"mip_bias\": {}, {} {}
+          \"frames\": {}, \"duration_s\": 12.5, \"policy\": \"{policy}\",
+          \"bytes_streamed\": 10485760, \"mips_streamed\": 321, \"blocks_bound\": 77,
+          \"peak_resident_bytes\": 52428800, \"device\": \"test\", \"clock\": \"fixed\"}}",
+        stats_json(stats(&dt)),
+        stats_json(stats(&tw)),
+        stats_json([8000.0, 9000.5, 20000.0, 0.0]),
+        stats_json([41.75, 42.25, 93.5, 0.0]),
+        stats_json([0.75, 0.5, 1.75, 0.25]),
+        stats_json([0.5, 1.25, 8.0, 0.0]),
+        optional("psnr_db", psnr),
+        // An absent key must work like null.
+        deficit
+            .map(|d| format!("\"mip_deficit\": {},", stats_json(d)))
+            .unwrap_or_default(),
+        frames.len(),
+    )
+}
+
+fn write_run(dir: &Path, csv_text: &str, summary_text: &str) {
+    std::fs::create_dir_all(dir).expect("creating a run directory");
+    std::fs::write(dir.join("frames.csv"), csv_text).expect("writing frames.csv");
+    std::fs::write(dir.join("summary.json"), summary_text).expect("writing summary.json");
+}
+
+/// The cells after the label of the table row starting with `label`.
+fn row(table: &str, label: &str) -> Vec<String> {
+    let line = table
+        .lines()
+        .find(|l| l.starts_with(&format!("| {label} |")))
+        .unwrap_or_else(|| panic!("table.md has no row `{label}`:\n{table}"));
+    line.trim_matches('|')
+        .split('|')
+        .skip(1)
+        .map(|c| c.trim().to_string())
+        .collect()
+}
+
+fn fmt3(s: [f64; 4]) -> Vec<String> {
+    vec![format!("{:.2}", s[0]), format!("{:.2}", s[1]), format!("{:.2}", s[2])]
+}
+
+#[test]
+fn table_has_the_statistics_of_each_run() -> TestResult {
+    let dir = scratch("table");
+    // Run A: PSNR and mip deficit in summary.json (its CSV has no deficit).
+    let a = frames(41, 1.0, 3, 0);
+    let a_psnr = [31.5, 32.25, 36.0, 30.0];
+    let a_deficit = [0.5, 1.75, 6.0, 0.0];
+    write_run(
+        &dir.join("a"),
+        &csv(&a),
+        &summary(&a, "adaptive", Some(a_psnr), Some(a_deficit)),
+    );
+    // Run B: psnr_db null and mip_deficit absent: both come from the CSV.
+    let b = frames(30, 6.0, 4, 5);
+    write_run(&dir.join("b"), &csv(&b), &summary(&b, "baseline", None, None));
+    // Run C: nothing measured anywhere: n/a.
+    let c = frames(10, 2.0, 0, 0);
+    write_run(&dir.join("c"), &csv(&c), &summary(&c, "fixed", None, None));
+
+    let out = dir.join("report");
+    let run = |d: &str| dir.join(d).display().to_string();
+    let (ra, rb, rc, ro) = (run("a"), run("b"), run("c"), out.display().to_string());
+    let result = citystream(&[
+        "report",
+        "--run",
+        &ra,
+        "--run",
+        &rb,
+        "--run",
+        &rc,
+        "--name",
+        "adaptive α=12",
+        "--name",
+        "baseline",
+        "--name",
+        "fixed",
+        "--out",
+        &ro,
+    ]);
+    assert!(
+        result.status.success(),
+        "report failed: {}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let table = std::fs::read_to_string(out.join("table.md"))?;
+
+    let header = table.lines().find(|l| l.starts_with("| |")).expect("header row");
+    assert!(header.contains("adaptive α=12 median | adaptive α=12 average | adaptive α=12 max"));
+    let position = |name: &str| header.find(name).expect("run name in the header");
+    assert!(position("adaptive α=12") < position("baseline"));
+
+    let col = |rs: &[&[Frame]], pick: fn(&Frame) -> f64| -> Vec<String> {
+        rs.iter()
+            .flat_map(|r| fmt3(stats(&r.iter().map(pick).collect::<Vec<_>>())))
+            .collect()
+    };
+    let all: [&[Frame]; 3] = [&a, &b, &c];
+    assert_eq!(row(&table, "Frame latency (ms)"), col(&all, |f| f.dt_ms));
+    assert_eq!(row(&table, "t_w latency (ms)"), col(&all, |f| f.tw_ms));
+    let repeated = |v: [&str; 3]| -> Vec<String> { (0..3).flat_map(|_| v.map(String::from)).collect() };
+    assert_eq!(
+        row(&table, "Transfer rate (Mip/s)"),
+        repeated(["8000.00", "9000.50", "20000.00"])
+    );
+    assert_eq!(
+        row(&table, "Transfer rate (MB/s)"),
+        repeated(["41.75", "42.25", "93.50"])
+    );
+    assert_eq!(row(&table, "Load size s (MB)"), repeated(["0.75", "0.50", "1.75"]));
+    assert_eq!(row(&table, "Mipmap bias b"), repeated(["0.50", "1.25", "8.00"]));
+
+    let measured = |r: &[Frame], pick: fn(&Frame) -> Option<f64>| stats(&r.iter().filter_map(pick).collect::<Vec<_>>());
+    let na = ["n/a", "n/a", "n/a"].map(String::from).to_vec();
+    let psnr = [fmt3(a_psnr), fmt3(measured(&b, |f| f.psnr_db)), na.clone()].concat();
+    assert_eq!(row(&table, "PSNR (dB)"), psnr);
+    let deficit = [fmt3(a_deficit), fmt3(measured(&b, |f| f.mip_deficit)), na].concat();
+    assert_eq!(row(&table, "Mip deficit"), deficit);
+
+    // The stacked layout of the paper: a heading row per run, then its rows.
+    let stacked: Vec<&str> = table
+        .lines()
+        .skip_while(|l| !l.starts_with("| **baseline** |"))
+        .take(3)
+        .collect();
+    let expect_row = |label: &str, s: [f64; 4]| format!("| {label} | {} |", fmt3(s).join(" | "));
+    assert_eq!(
+        stacked[1],
+        expect_row(
+            "Frame latency (ms)",
+            stats(&b.iter().map(|f| f.dt_ms).collect::<Vec<_>>())
+        )
+    );
+    assert_eq!(
+        stacked[2],
+        expect_row(
+            "t_w latency (ms)",
+            stats(&b.iter().map(|f| f.tw_ms).collect::<Vec<_>>())
+        )
+    );
+
+    // Run totals.
+    let totals = row(&table, "baseline");
+    assert_eq!(totals[..7], ["baseline", "30", "12.50", "10.00", "321", "77", "50.00"]);
+    Ok(())
+}
+
+fn decode(path: &Path) -> image::RgbImage {
+    image::open(path)
+        .unwrap_or_else(|e| panic!("decoding {}: {e}", path.display()))
+        .to_rgb8()
+}
+
+/// Pixels of exactly this colour.
+fn count_of(img: &image::RgbImage, rgb: [u8; 3]) -> usize {
+    img.pixels().filter(|p| p.0 == rgb).count()
+}
+
+#[test]
+fn charts_decode_with_their_size_and_are_drawn() -> TestResult {
+    let dir = scratch("charts");
+    let a = frames(200, 1.0, 10, 20);
+    write_run(
+        &dir.join("fast run"),
+        &csv(&a),
+        &summary(&a, "adaptive", Some([31.0, 32.0, 35.0, 30.0]), None),
+    );
+    let b = frames(200, 8.0, 10, 20);
+    write_run(
+        &dir.join("slow"),
+        &csv(&b),
+        &summary(&b, "baseline", Some([28.0, 27.5, 33.0, 20.0]), None),
+    );
+    let out = dir.join("report");
+    let result = citystream(&[
+        "report",
+        "--run",
+        &dir.join("fast run").display().to_string(),
+        "--run",
+        &dir.join("slow").display().to_string(),
+        "--out",
+        &out.display().to_string(),
+    ]);
+    assert!(
+        result.status.success(),
+        "report failed: {}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+
+    for name in ["fast_run_fig6.png", "slow_fig6.png"] {
+        let img = decode(&out.join(name));
+        assert_eq!(img.dimensions(), (1600, 1000), "{name}");
+        // The series in red (t_w, t_b, Mip/s) and blue (t_m, t_bu, s) are
+        // drawn: far more pixels than their three 40-pixel legend samples.
+        let (red, blue) = (count_of(&img, [214, 39, 40]), count_of(&img, [31, 119, 180]));
+        assert!(red > 400, "{name}: {red} red pixels");
+        assert!(blue > 400, "{name}: {blue} blue pixels");
+        let white = count_of(&img, [255, 255, 255]) as f64 / (1600.0 * 1000.0);
+        assert!(white < 0.98, "{name}: almost blank");
+    }
+    let img = decode(&out.join("speed_vs_error.png"));
+    assert_eq!(img.dimensions(), (900, 600));
+    // One filled dot (about 110 pixels) per run, in the first two palette
+    // colours.
+    assert!(count_of(&img, [214, 39, 40]) > 80);
+    assert!(count_of(&img, [31, 119, 180]) > 80);
+    Ok(())
+}
+
+fn report_error(dir: &Path) -> String {
+    let result = citystream(&[
+        "report",
+        "--run",
+        &dir.display().to_string(),
+        "--out",
+        &dir.join("report").display().to_string(),
+    ]);
+    assert!(
+        !result.status.success(),
+        "report accepted a bad run in {}",
+        dir.display()
+    );
+    String::from_utf8_lossy(&result.stderr).into_owned()
+}
+
+#[test]
+fn bad_inputs_are_named_with_file_and_line() -> TestResult {
+    let dir = scratch("errors");
+    let f = frames(5, 1.0, 0, 0);
+    let good_csv = csv(&f);
+    let good_summary = summary(&f, "adaptive", None, None);
+
+    // Truncated last row (line 6: header + 5 rows).
+    let truncated = &good_csv[..good_csv.len() - 20];
+    write_run(&dir.join("truncated"), truncated, &good_summary);
+    let err = report_error(&dir.join("truncated"));
+    assert!(err.contains("frames.csv: line 6:"), "{err}");
+    assert!(err.contains("fields"), "{err}");
+
+    // A cell that is not a number, on line 3.
+    let bad: String = good_csv
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            if i == 2 {
+                let mut cells: Vec<&str> = l.split(',').collect();
+                cells[3] = "fast";
+                cells.join(",") + "\n"
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    write_run(&dir.join("not_a_number"), &bad, &good_summary);
+    let err = report_error(&dir.join("not_a_number"));
+    assert!(err.contains("frames.csv: line 3: column `tw_ms` = \"fast\""), "{err}");
+
+    // A header without a required column.
+    write_run(
+        &dir.join("header"),
+        &good_csv.replacen("psnr_db", "psnr", 1),
+        &good_summary,
+    );
+    let err = report_error(&dir.join("header"));
+    assert!(
+        err.contains("frames.csv: line 1: header lacks the column `psnr_db`"),
+        "{err}"
+    );
+
+    // Header only.
+    write_run(&dir.join("empty"), &format!("{HEADER}\n"), &good_summary);
+    let err = report_error(&dir.join("empty"));
+    assert!(err.contains("frames.csv: no frame rows"), "{err}");
+
+    // summary.json missing a key, cut short, or missing altogether.
+    write_run(
+        &dir.join("no_key"),
+        &good_csv,
+        &good_summary.replacen("\"tw_ms\"", "\"tw\"", 1),
+    );
+    let err = report_error(&dir.join("no_key"));
+    assert!(err.contains("summary.json") && err.contains("tw_ms"), "{err}");
+    write_run(&dir.join("cut"), &good_csv, &good_summary[..good_summary.len() / 2]);
+    let err = report_error(&dir.join("cut"));
+    assert!(err.contains("summary.json") && err.contains("line"), "{err}");
+    std::fs::create_dir_all(dir.join("missing"))?;
+    let err = report_error(&dir.join("missing"));
+    assert!(err.contains("summary.json"), "{err}");
+
+    // --name count must match --run count.
+    write_run(&dir.join("ok"), &good_csv, &good_summary);
+    let ok = dir.join("ok").display().to_string();
+    let result = citystream(&["report", "--run", &ok, "--run", &ok, "--name", "x", "--out", &ok]);
+    assert!(!result.status.success());
+    assert!(String::from_utf8_lossy(&result.stderr).contains("one name per run"));
+    // Two runs whose names would share chart files.
+    let report = dir.join("dup").display().to_string();
+    let result = citystream(&["report", "--run", &ok, "--run", &ok, "--out", &report]);
+    assert!(!result.status.success());
+    assert!(String::from_utf8_lossy(&result.stderr).contains("two runs are named `ok`"));
+    Ok(())
+}
+
+/// A stand-in flythrough: logs its arguments, one line per run, and writes
+/// a summary and frames whose latency depends on the policy and α.
+#[cfg(unix)]
+fn fake_flythrough(dir: &Path, fail_policy: &str) -> (PathBuf, PathBuf) {
+    use std::os::unix::fs::PermissionsExt;
+    let log = dir.join("args.log");
+    let script = dir.join("fake-flythrough.sh");
+    let text = format!(
+        r#"#!/bin/sh
+echo "$*" >> '{log}'
+out=""; policy=""; alpha=16; frames=20
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --out) out="$2"; shift ;;
+    --policy) policy="$2"; shift ;;
+    --alpha) alpha="$2"; shift ;;
+    --frames) frames="$2"; shift ;;
+  esac
+  shift
+done
+[ "$policy" = "{fail_policy}" ] && {{ echo "simulated failure" >&2; exit 3; }}
+case "$policy" in
+  baseline) ms=40 ;;
+  adaptive) ms=$alpha ;;
+  *) ms=20 ;;
+esac
+mkdir -p "$out"
+st() {{ echo "{{\"median\": $1, \"mean\": $1, \"max\": $1, \"min\": $1}}"; }}
+cat > "$out/summary.json" <<EOF
+{{"frame_ms": $(st $ms), "tw_ms": $(st $((ms + 1))), "mips_per_s": $(st 100),
+ "mb_per_s": $(st 5), "load_size_mb": $(st 1), "mip_bias": $(st 0), "psnr_db": $(st $((60 - ms))),
+ "mip_deficit": null, "frames": $frames, "duration_s": 1, "policy": "$policy",
+ "bytes_streamed": 1048576, "mips_streamed": 10, "blocks_bound": 16, "peak_resident_bytes": 2097152}}
+EOF
+echo "{HEADER}" > "$out/frames.csv"
+i=0
+while [ $i -lt $frames ]; do
+  echo "$i,$i,$ms,$((ms + 1)),$ms,$ms,$ms,$ms,1,0,1,65536,1,1048576,,$((60 - ms))" >> "$out/frames.csv"
+  i=$((i + 1))
+done
+echo "fake flythrough $policy done"
+"#,
+        log = log.display()
+    );
+    std::fs::write(&script, text).expect("writing the fake flythrough");
+    std::fs::set_permissions(&script, std::fs::Permissions::from_mode(0o755))
+        .expect("making the fake flythrough executable");
+    (script, log)
+}
+
+#[cfg(unix)]
+#[test]
+fn bench_runs_every_policy_and_reports() -> TestResult {
+    let dir = scratch("bench");
+    let (script, log) = fake_flythrough(&dir, "none");
+    let dataset = dir.join("city");
+    std::fs::create_dir_all(&dataset)?;
+    let out = dir.join("out");
+    let (d, o, s) = (
+        dataset.display().to_string(),
+        out.display().to_string(),
+        script.display().to_string(),
+    );
+    let result = citystream(&[
+        "bench",
+        "--dataset",
+        &d,
+        "--out",
+        &o,
+        "--frames",
+        "7",
+        "--flythrough",
+        &s,
+        "--",
+        "--path",
+        "standard",
+    ]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "bench failed: {stderr}");
+    assert!(
+        stderr.contains("[1/4] baseline") && stderr.contains("[4/4] fixed s=4 MB b=0"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("7 frames, frame latency mean 12.00 / max 12.00 ms, 5.00 MB/s mean, PSNR mean 48.00 dB"),
+        "{stderr}"
+    );
+
+    let logged = std::fs::read_to_string(&log)?;
+    let lines: Vec<&str> = logged.lines().collect();
+    let tail = |name: &str| format!("--clock fixed --bind-latency desktop --frames 7 --out {o}/{name} --path standard");
+    let expected = [
+        format!("--dataset {d} --policy baseline {}", tail("baseline")),
+        format!("--dataset {d} --policy adaptive --alpha 12 {}", tail("adaptive-a12")),
+        format!("--dataset {d} --policy adaptive --alpha 16 {}", tail("adaptive-a16")),
+        format!(
+            "--dataset {d} --policy fixed --load-size-mb 4 --mip-bias 0 {}",
+            tail("fixed-s4-b0")
+        ),
+    ];
+    assert_eq!(lines, expected);
+
+    let table = std::fs::read_to_string(out.join("table.md"))?;
+    // Frame latency per run as the fake wrote it: 40, 12, 16, 20 ms.
+    let latency: Vec<String> = [40.0, 12.0, 16.0, 20.0]
+        .iter()
+        .flat_map(|&ms: &f64| fmt3([ms; 4]))
+        .collect();
+    assert_eq!(row(&table, "Frame latency (ms)"), latency);
+    let psnr: Vec<String> = [20.0, 48.0, 44.0, 40.0]
+        .iter()
+        .flat_map(|&p: &f64| fmt3([p; 4]))
+        .collect();
+    assert_eq!(row(&table, "PSNR (dB)"), psnr);
+    assert_eq!(row(&table, "fixed s=4 MB b=0")[..3], ["fixed", "7", "1.00"]);
+    for chart in [
+        "baseline_fig6.png",
+        "adaptive_12_ms_fig6.png",
+        "adaptive_16_ms_fig6.png",
+        "fixed_s_4_MB_b_0_fig6.png",
+        "speed_vs_error.png",
+    ] {
+        assert!(out.join(chart).is_file(), "missing {chart}");
+    }
+    Ok(())
+}
+
+#[cfg(unix)]
+#[test]
+fn bench_stops_at_a_failing_run() -> TestResult {
+    let dir = scratch("bench_fail");
+    let (script, log) = fake_flythrough(&dir, "adaptive");
+    let out = dir.join("out");
+    let result = citystream(&[
+        "bench",
+        "--dataset",
+        &dir.display().to_string(),
+        "--out",
+        &out.display().to_string(),
+        "--flythrough",
+        &script.display().to_string(),
+    ]);
+    assert!(!result.status.success());
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(stderr.contains("flythrough run `adaptive α=12 ms` failed"), "{stderr}");
+    // Baseline ran, the first adaptive run failed, nothing after it ran.
+    assert_eq!(std::fs::read_to_string(&log)?.lines().count(), 2);
+    assert!(!out.join("table.md").exists());
+
+    let missing = citystream(&[
+        "bench",
+        "--dataset",
+        &dir.display().to_string(),
+        "--out",
+        &out.display().to_string(),
+        "--flythrough",
+        &dir.join("no-such-binary").display().to_string(),
+    ]);
+    assert!(!missing.status.success());
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("flythrough binary not found"));
+    Ok(())
+}
