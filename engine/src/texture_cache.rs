@@ -525,8 +525,11 @@ impl GpuTextureCache {
         Ok(report)
     }
 
-    /// Writes a texture's table entry from its host state: sampleable from
-    /// the finest level such that it and every coarser level are resident.
+    /// Writes a texture's table entry from its host state. The coarsest
+    /// resident level bounds sampling (the loader starts at the 4×4 level, so
+    /// coarser levels of uncompressed textures are never loaded), and the
+    /// finest level such that it and every level up to that one are resident
+    /// is the finest sampled.
     fn publish(&mut self, texture: u32) {
         let slot = self.slots[texture as usize];
         let entry = &mut self.table[texture as usize];
@@ -534,8 +537,14 @@ impl GpuTextureCache {
             entry.state = TEXTURE_NOT_SAMPLEABLE;
             return;
         };
-        let mut lowest = placement.mip_count;
-        while lowest > 0 && slot.resident & (1 << (lowest - 1)) != 0 {
+        let resident = slot.resident & ((1u64 << placement.mip_count.min(32)) - 1) as u32;
+        if resident == 0 {
+            entry.state = TEXTURE_NOT_SAMPLEABLE;
+            return;
+        }
+        let coarsest = 31 - resident.leading_zeros();
+        let mut lowest = coarsest;
+        while lowest > 0 && resident & (1 << (lowest - 1)) != 0 {
             lowest -= 1;
         }
         *entry = TextureData {
@@ -548,12 +557,8 @@ impl GpuTextureCache {
             image: placement.image,
             layer: placement.layer,
             lowest_mip: lowest,
-            state: if lowest < placement.mip_count {
-                TEXTURE_SAMPLEABLE
-            } else {
-                TEXTURE_NOT_SAMPLEABLE
-            },
-            mip_count: placement.mip_count,
+            state: TEXTURE_SAMPLEABLE,
+            mip_count: coarsest + 1,
             ..TextureData::default()
         };
     }

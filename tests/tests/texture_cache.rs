@@ -429,3 +429,56 @@ fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<
     drop(commands);
     assert_no_validation_errors(&device)
 }
+
+#[test]
+fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
+    // The loader starts at the 4x4 level; an RGBA8 64x64 texture also has
+    // 2x2 and 1x1 levels that are never loaded. It must still be sampleable,
+    // with far views clamped to the 4x4 level.
+    let device = validated_device()?;
+    let mut commands = CommandContext::new(&device, "coarse clamp test")?;
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &GpuCacheConfig {
+            layer_size: 128,
+            layer_count: 1,
+            memory_budget_bytes: 16 << 20,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 16,
+            texture_count: 1,
+            filtering: Filtering::Nearest,
+            staging_bytes: 1 << 20,
+        },
+        &[[9, 9, 9, 255]],
+    )?;
+    let colour = |level: u32| [(50 * level) as u8, 100, 200, 255];
+    for level in (0..5u32).rev() {
+        let side = 64 >> level;
+        let bytes: Vec<u8> = (0..side * side).flat_map(|_| colour(level)).collect();
+        cache.stage(0, TextureFormat::Rgba8, 64, 64, level, &bytes)?;
+    }
+    cache.finish_cycle(&mut commands)?;
+    let entry = *cache.texture_data(0).expect("texture 0");
+    ensure!(
+        entry.state == 1 && entry.lowest_mip == 0 && entry.mip_count == 5,
+        "{entry:?}"
+    );
+    let probe = TextureProbe::new(&device)?;
+    let points: Vec<TextureProbePoint> = [0.0f32, 4.0, 6.0]
+        .iter()
+        .map(|&lod| TextureProbePoint {
+            uv: [0.3, 0.6],
+            lod,
+            texture: 0,
+        })
+        .collect();
+    let results = probe.run(&mut commands, &cache, &points)?;
+    let read: Vec<[u8; 4]> = results.iter().map(to_u8).collect();
+    ensure!(results.iter().all(|r| r.resident == 1), "{results:?}");
+    ensure!(read == vec![colour(0), colour(4), colour(4)], "{read:?}");
+    drop(probe);
+    drop(cache);
+    drop(commands);
+    assert_no_validation_errors(&device)
+}

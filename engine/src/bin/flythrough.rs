@@ -30,6 +30,7 @@ use citystream_streaming::bind_latency::{BindLatencyModel, BindLatencyPreset};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::LoaderOptions;
+use citystream_streaming::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
 use citystream_streaming::source::MipSource;
@@ -65,9 +66,17 @@ struct Args {
     /// Output directory for frames/ and summary.json.
     #[arg(long, default_value = "out/flythrough")]
     out: PathBuf,
-    /// Number of frames to render.
-    #[arg(long, default_value_t = 240, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    frames: u32,
+    /// Camera path: `standard` (the benchmark path derived from the dataset,
+    /// see docs/PATHS.md) or a path file written by `citystream path`.
+    #[arg(long, default_value = "standard")]
+    path: String,
+    /// Number of frames to render (default: as many as the path lasts; 240
+    /// without a dataset).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    frames: Option<u32>,
+    /// Stop after this many seconds of camera time (default: the path's length).
+    #[arg(long)]
+    duration_s: Option<f64>,
     /// Write every N-th frame as PNG (0 writes none).
     #[arg(long, default_value_t = 20)]
     frame_interval: u32,
@@ -101,9 +110,6 @@ struct Args {
     /// Memory budget of bound texture blocks in MB.
     #[arg(long, default_value_t = 512)]
     memory_budget_mb: u64,
-    /// Seconds the camera takes for one orbit of the city.
-    #[arg(long, default_value_t = 20.0)]
-    orbit_s: f64,
     /// Pick the Vulkan device whose name contains this text (also CITYSTREAM_DEVICE).
     #[arg(long)]
     device: Option<String>,
@@ -146,6 +152,7 @@ struct Run<'a> {
     width: u32,
     height: u32,
     duration_s: f64,
+    wall_s: f64,
     mips_streamed: u64,
     blocks_bound: u64,
     peak_resident_bytes: u64,
@@ -173,6 +180,26 @@ fn main() -> Result<()> {
         (Some(dir), false) => stream_city(&args, &device, dir),
         (None, true) => bail!("--pop-in needs --dataset"),
         (None, false) => placeholder_city(&args, &device),
+    }
+}
+
+/// The camera path the run follows: the standard path of the dataset or a file.
+fn camera_path(args: &Args, scene: &citystream_streaming::dataset::Scene) -> Result<CameraPath> {
+    if args.path == "standard" {
+        standard_path(scene, DEFAULT_STANDARD_DURATION_S).context("deriving the standard path of the dataset")
+    } else {
+        CameraPath::load(&args.path).with_context(|| format!("reading the camera path {}", args.path))
+    }
+}
+
+/// A camera at `pose`, with a depth range scaled to the scene.
+fn pose_camera(pose: &CameraPose, extent: f32) -> Camera {
+    Camera {
+        eye: Vec3::from(pose.position),
+        target: Vec3::from(pose.look_at),
+        fov_y: 60f32.to_radians(),
+        near: (extent * 1e-4).max(0.01),
+        far: extent * 4.0,
     }
 }
 
@@ -436,9 +463,28 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut latency_rng = SplitMix64::new(args.seed);
 
     let bounds = scene.bounds;
-    let centre = Vec3::from(bounds.center());
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
-    let extent = size.x.max(size.z).max(1.0);
+    let extent = size.x.max(size.y).max(size.z).max(1.0);
+    let path = camera_path(args, scene)?;
+    path.restart();
+    let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
+    // With the fixed clock the frame count follows from the duration.
+    let frames = args
+        .frames
+        .unwrap_or_else(|| ((duration_s * 1000.0 / FIXED_STEP_MS).ceil() as u32).max(1));
+    eprintln!(
+        "path: {} ({:.1} s, pauses at {:?} s, jumps at {:?} s)",
+        args.path,
+        path.duration_s(),
+        path.pauses()
+            .iter()
+            .map(|p| (p.start_s * 10.0).round() / 10.0)
+            .collect::<Vec<_>>(),
+        path.jumps()
+            .iter()
+            .map(|t| (t * 10.0).round() / 10.0)
+            .collect::<Vec<_>>()
+    );
     // τ in the feedback's fixed point: per feedback fragment, not per visible one.
     let tau = feedback_tau(DEFAULT_WEIGHT_CUTOFF, fragment_area);
     eprintln!(
@@ -463,12 +509,17 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut frame_ms = FIXED_STEP_MS;
     let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
     let mut reference_incomplete = 0u32;
-    for frame in 0..args.frames {
+    let mut frames_run = 0;
+    for frame in 0..frames {
         let time_s = match args.clock {
             Clock::Fixed => sim_time_s,
             Clock::Real => started.elapsed().as_secs_f64(),
         };
-        let camera = orbit_camera(centre, extent, size.y.max(0.0), time_s / args.orbit_s.max(0.1));
+        if args.clock == Clock::Real && args.frames.is_none() && time_s > duration_s {
+            break;
+        }
+        frames_run += 1;
+        let camera = pose_camera(&path.sample(time_s), extent);
         let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
 
         // Algorithm 1: feedback and compaction, then the frame. The compacted
@@ -570,7 +621,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         let mb_per_s = bytes as f64 / 1e6 / (frame_ms / 1000.0).max(1e-6);
         status(
             frame,
-            args.frames,
+            frames,
             frame_ms,
             t.load_size_mb,
             t.mip_bias,
@@ -602,7 +653,11 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         bind_latency: args.bind_latency.name(),
         width: args.width,
         height: args.height,
-        duration_s: started.elapsed().as_secs_f64(),
+        duration_s: match args.clock {
+            Clock::Real => started.elapsed().as_secs_f64(),
+            Clock::Fixed => sim_time_s,
+        },
+        wall_s: started.elapsed().as_secs_f64(),
         mips_streamed: mips_total,
         blocks_bound: blocks_total,
         peak_resident_bytes: peak_resident,
@@ -618,7 +673,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         .with_context(|| format!("writing {}", path.display()))?;
     eprintln!(
         "{} frames, {} mips streamed, wrote {} frames, {} and {}",
-        args.frames,
+        frames_run,
         mips_total,
         run.frames_written.len(),
         csv_path.display(),
@@ -675,18 +730,13 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     )?;
     let target = RenderTarget::new(device, args.width, args.height)?;
     let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
-    // A close view into the city, where refinement is most visible (Fig. 7
-    // is a street-level view).
+    // The view of the path's first pause: the static view a user replaying
+    // the benchmark sees longest.
     let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
-    let centre = Vec3::from(scene.bounds.center());
-    let extent = size.x.max(size.z).max(1.0);
-    let camera = Camera {
-        eye: centre + Vec3::new(extent * 0.12, size.y.max(1.0) * 0.35, extent * 0.12),
-        target: centre + Vec3::new(0.0, size.y.max(1.0) * 0.15, 0.0),
-        fov_y: 60f32.to_radians(),
-        near: extent * 1e-3,
-        far: extent * 4.0,
-    };
+    let extent = size.x.max(size.y).max(size.z).max(1.0);
+    let path = camera_path(args, scene)?;
+    let at = path.pauses().first().map_or(0.0, |p| p.start_s);
+    let camera = pose_camera(&path.sample_between(None, at), extent);
     // What the static view needs.
     let view = FeedbackView::default();
     let tau = feedback_tau(
@@ -815,13 +865,9 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
     let mut summary = SummaryBuilder::new();
     let mut written = Vec::new();
     let started = std::time::Instant::now();
-    for frame in 0..args.frames {
-        let camera = orbit_camera(
-            Vec3::new(0.0, 15.0, 0.0),
-            extent,
-            0.0,
-            frame as f64 / args.frames as f64,
-        );
+    let frames = args.frames.unwrap_or(240);
+    for frame in 0..frames {
+        let camera = orbit_camera(Vec3::new(0.0, 15.0, 0.0), extent, 0.0, frame as f64 / frames as f64);
         let cmd = commands.begin()?;
         target.begin(device, cmd, [0.55, 0.7, 0.9, 1.0]);
         renderer.record(cmd, camera.view_projection(aspect, 0.0), [0.4, 0.8, 0.3, 1.0]);
@@ -834,7 +880,7 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
         }
         let dt = clock.tick().as_secs_f64() * 1000.0;
         summary.push_frame(dt, dt, 0.0, 0.0, 0, 0);
-        status(frame, args.frames, dt, 0.0, 0.0, 0.0, 0.0);
+        status(frame, frames, dt, 0.0, 0.0, 0.0, 0.0);
     }
     if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
         eprintln!();
