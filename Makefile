@@ -23,7 +23,8 @@ run: build
 		./target/release/citystream gen --preset small --seed 1 --out "$(CITY)"; \
 	fi
 	./target/release/flythrough --dataset "$(CITY)" --clock fixed --bind-latency desktop --out $(OUT)
-	@echo "frames and report in $(OUT)"
+	./target/release/citystream report --run $(OUT) --name adaptive --out $(OUT)
+	@echo "frames, summary.json, frames.csv, table.md and charts in $(OUT)"
 
 test: setup
 	$(CARGO) test --workspace

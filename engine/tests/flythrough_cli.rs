@@ -284,3 +284,78 @@ fn pop_in_measurement_compares_direct_and_blended_sampling() {
         Some(0.0)
     );
 }
+
+#[test]
+fn streaming_converges_during_the_first_pause_of_the_standard_path() {
+    use citystream_streaming::dataset::Dataset;
+    use citystream_streaming::path::standard_path;
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_converge");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let path = standard_path(&Dataset::open(&dataset).expect("dataset opens").scene, 60.0).expect("standard path");
+    let pause = path.pauses()[0];
+    let out = base.join("out");
+    let until = pause.start_s + pause.duration_s;
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args([
+            "--frame-interval",
+            "0",
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--psnr-interval",
+            "0",
+        ])
+        .args([
+            "--clock",
+            "fixed",
+            "--bind-latency",
+            "desktop",
+            "--policy",
+            "adaptive",
+            "--validation=true",
+        ])
+        .args(["--duration-s", &format!("{until}")])
+        .arg("--dataset")
+        .arg(&dataset)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("flythrough runs");
+    assert!(
+        output.status.success(),
+        "flythrough failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let csv = std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
+    // Deficits measured while the camera holds still in the first pause.
+    let in_pause: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect::<Vec<_>>())
+        .filter(|r| {
+            let t: f64 = r[1].parse().expect("time column");
+            t >= pause.start_s && t < until
+        })
+        .filter_map(|r| r[14].parse::<f64>().ok())
+        .collect();
+    assert!(
+        in_pause.len() > 60,
+        "the 2 s pause spans about 120 frames, {} had a deficit",
+        in_pause.len()
+    );
+    // It starts from nothing resident, so there was a deficit to close.
+    let first: f64 = csv
+        .lines()
+        .nth(1)
+        .and_then(|l| l.split(',').nth(14))
+        .and_then(|d| d.parse().ok())
+        .expect("first deficit");
+    assert!(first > 1.0, "frame 0 shows no texture, deficit {first}");
+    assert_eq!(
+        *in_pause.last().expect("frames in the pause"),
+        0.0,
+        "every needed mip is shown by the end of the pause"
+    );
+}
