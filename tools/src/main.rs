@@ -3,16 +3,7 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-mod atlas;
-mod bench;
-mod cache_report;
-mod gen;
-mod import;
-mod info;
-mod path;
-mod report;
-mod simulate;
-mod verify;
+use citystream_tools::{atlas, bench, cache_report, gen, import, info, path, report, simulate, verify};
 
 #[derive(Debug, Parser)]
 #[command(
