@@ -3,11 +3,12 @@
 use std::sync::Arc;
 
 use ash::vk;
-use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::vulkan::Allocation;
 use gpu_allocator::MemoryLocation;
 
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
+use crate::memory;
 
 /// How to create a [`Buffer`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -61,24 +62,7 @@ impl Buffer {
         };
         // SAFETY: raw is a live buffer of this device.
         let requirements = unsafe { device.raw.get_buffer_memory_requirements(raw) };
-        let allocation = {
-            let mut guard = device.allocator();
-            let allocator = guard
-                .as_mut()
-                .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
-            allocator
-                .allocate(&AllocationCreateDesc {
-                    name,
-                    requirements,
-                    location: desc.location,
-                    linear: true,
-                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-                })
-                .map_err(|source| EngineError::Allocation {
-                    name: name.to_owned(),
-                    source,
-                })?
-        };
+        let allocation = memory::allocate(device, name, requirements, desc.location, true)?;
         // SAFETY: the allocation satisfies the buffer's requirements.
         let bound = unsafe {
             device
@@ -164,10 +148,7 @@ impl Drop for Buffer {
         // SAFETY: the owner guarantees the GPU no longer uses the buffer.
         unsafe { self.device.raw.destroy_buffer(self.raw, None) };
         if let Some(allocation) = self.allocation.take() {
-            if let Some(allocator) = self.device.allocator().as_mut() {
-                // Freeing can only fail on a foreign allocation, which cannot happen here.
-                let _ = allocator.free(allocation);
-            }
+            memory::free(&self.device, allocation);
         }
     }
 }

@@ -3,11 +3,12 @@
 use std::sync::Arc;
 
 use ash::vk;
-use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::vulkan::Allocation;
 use gpu_allocator::MemoryLocation;
 
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
+use crate::memory;
 
 /// How to create an [`Image`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -111,24 +112,7 @@ impl Image {
         };
         // SAFETY: raw is a live image of this device.
         let requirements = unsafe { device.raw.get_image_memory_requirements(raw) };
-        let allocation = {
-            let mut guard = device.allocator();
-            let allocator = guard
-                .as_mut()
-                .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
-            allocator
-                .allocate(&AllocationCreateDesc {
-                    name,
-                    requirements,
-                    location: MemoryLocation::GpuOnly,
-                    linear: false,
-                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-                })
-                .map_err(|source| EngineError::Allocation {
-                    name: name.to_owned(),
-                    source,
-                })?
-        };
+        let allocation = memory::allocate(device, name, requirements, MemoryLocation::GpuOnly, false)?;
         // SAFETY: the allocation satisfies the image's requirements.
         let bound = unsafe {
             device
@@ -180,9 +164,7 @@ impl Drop for Image {
             self.device.raw.destroy_image(self.raw, None);
         }
         if let Some(allocation) = self.allocation.take() {
-            if let Some(allocator) = self.device.allocator().as_mut() {
-                let _ = allocator.free(allocation);
-            }
+            memory::free(&self.device, allocation);
         }
     }
 }

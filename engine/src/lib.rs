@@ -29,6 +29,7 @@ pub mod feedback;
 pub mod gpu_types;
 pub mod image;
 pub mod instance;
+mod memory;
 pub mod pipeline;
 pub mod placeholder;
 pub mod probe;

@@ -12,12 +12,13 @@
 use std::sync::Arc;
 
 use ash::vk;
-use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::vulkan::Allocation;
 use gpu_allocator::MemoryLocation;
 
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::image::{create_view, ImageDesc};
+use crate::memory;
 
 /// How to create a [`SparseImage`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -561,24 +562,7 @@ impl SparseMemoryChunk {
             alignment: block_size,
             memory_type_bits,
         };
-        let allocation = {
-            let mut guard = device.allocator();
-            let allocator = guard
-                .as_mut()
-                .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
-            allocator
-                .allocate(&AllocationCreateDesc {
-                    name,
-                    requirements,
-                    location: MemoryLocation::GpuOnly,
-                    linear: false,
-                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-                })
-                .map_err(|source| EngineError::Allocation {
-                    name: name.to_owned(),
-                    source,
-                })?
-        };
+        let allocation = memory::allocate(device, name, requirements, MemoryLocation::GpuOnly, false)?;
         Ok(Self {
             device: Arc::clone(device),
             allocation: Some(allocation),
@@ -613,9 +597,7 @@ impl SparseMemoryChunk {
 impl Drop for SparseMemoryChunk {
     fn drop(&mut self) {
         if let Some(allocation) = self.allocation.take() {
-            if let Some(allocator) = self.device.allocator().as_mut() {
-                let _ = allocator.free(allocation);
-            }
+            memory::free(&self.device, allocation);
         }
     }
 }
