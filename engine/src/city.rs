@@ -48,6 +48,43 @@ impl CityMesh {
     }
 }
 
+/// A dataset's vertices in the engine's layout and its meshes with their
+/// textures' full-resolution extents, as the city passes draw them.
+pub fn city_geometry(dataset: &citystream_streaming::dataset::Dataset) -> Result<(Vec<Vertex>, Vec<CityMesh>)> {
+    let scene = &dataset.scene;
+    let vertices = scene
+        .positions
+        .iter()
+        .zip(&scene.normals)
+        .zip(&scene.uvs)
+        .map(|((p, n), uv)| Vertex {
+            position: *p,
+            normal: *n,
+            uv: *uv,
+        })
+        .collect();
+    let meshes = scene
+        .meshes
+        .iter()
+        .enumerate()
+        .map(|(m, mesh)| {
+            let info = dataset
+                .textures
+                .info(mesh.texture)
+                .map_err(|e| EngineError::InvalidRequest(format!("mesh {m} of {}: {e}", dataset.dir().display())))?;
+            Ok(CityMesh {
+                first_index: mesh.first_index,
+                index_count: mesh.index_count,
+                vertex_offset: mesh.first_vertex,
+                texture: mesh.texture,
+                texture_width: info.width(),
+                texture_height: info.height(),
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok((vertices, meshes))
+}
+
 /// A camera: eye, target and vertical field of view; Vulkan clip space.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {

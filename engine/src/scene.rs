@@ -98,45 +98,6 @@ impl SceneGeometry {
     }
 }
 
-/// Geometry of a dataset's scene with every mesh tinted by its City
-/// Colormap colour (paper §3.7) and drawn with texture layer 0, which the
-/// caller fills with white: what the streaming renderer shows before any mip
-/// is resident.
-pub fn colormap_geometry(dataset: &citystream_streaming::dataset::Dataset) -> Result<SceneGeometry> {
-    let scene = &dataset.scene;
-    let vertices: Vec<Vertex> = scene
-        .positions
-        .iter()
-        .zip(&scene.normals)
-        .zip(&scene.uvs)
-        .map(|((p, n), uv)| Vertex {
-            position: *p,
-            normal: *n,
-            uv: *uv,
-        })
-        .collect();
-    let mut meshes = Vec::with_capacity(scene.meshes.len());
-    for (m, mesh) in scene.meshes.iter().enumerate() {
-        let colour = dataset.colormap.get(mesh.texture).ok_or_else(|| {
-            EngineError::InvalidRequest(format!("mesh {m} uses texture {} with no colormap entry", mesh.texture))
-        })?;
-        meshes.push(MeshRange {
-            first_index: mesh.first_index,
-            index_count: mesh.index_count,
-            vertex_offset: mesh.first_vertex,
-            layer: 0,
-            tint: colour.map(|c| f32::from(c) / 255.0),
-        });
-    }
-    let geometry = SceneGeometry {
-        vertices,
-        indices: scene.indices.clone(),
-        meshes,
-    };
-    geometry.validate()?;
-    Ok(geometry)
-}
-
 /// Square RGBA8 textures of one size, each with a full mip chain.
 #[derive(Clone, Debug)]
 pub struct TextureArrayData {

@@ -7,10 +7,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{ensure, Context, Result};
-use citystream_engine::city::{Camera, CityMesh, CityRenderer};
+use citystream_engine::city::{city_geometry, Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
-use citystream_engine::gpu_types::Vertex;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
@@ -27,29 +26,7 @@ const HEIGHT: u32 = 240;
 fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<image::RgbaImage> {
     let dataset = Dataset::open(dir).with_context(|| format!("opening {}", dir.display()))?;
     let scene = &dataset.scene;
-    let vertices: Vec<Vertex> = scene
-        .positions
-        .iter()
-        .zip(&scene.normals)
-        .zip(&scene.uvs)
-        .map(|((p, n), uv)| Vertex {
-            position: *p,
-            normal: *n,
-            uv: *uv,
-        })
-        .collect();
-    let mut meshes = Vec::new();
-    for m in &scene.meshes {
-        let info = dataset.textures.info(m.texture)?;
-        meshes.push(CityMesh {
-            first_index: m.first_index,
-            index_count: m.index_count,
-            vertex_offset: m.first_vertex,
-            texture: m.texture,
-            texture_width: info.width(),
-            texture_height: info.height(),
-        });
-    }
+    let (vertices, meshes) = city_geometry(&dataset)?;
     let mut commands = CommandContext::new(device, "atlas render")?;
     let mut cache = GpuTextureCache::new(
         device,

@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, ValueEnum};
 use glam::Vec3;
 
-use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
+use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::describe;
 use citystream_engine::feedback::FeedbackCompactor;
@@ -377,33 +377,7 @@ fn optional(value: Option<f64>) -> String {
 /// The dataset with its vertices and meshes in the engine's layout.
 fn open_city(dir: &std::path::Path) -> Result<(Arc<Dataset>, Vec<Vertex>, Vec<CityMesh>)> {
     let dataset = Arc::new(Dataset::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?);
-    let scene = &dataset.scene;
-    let vertices: Vec<Vertex> = scene
-        .positions
-        .iter()
-        .zip(&scene.normals)
-        .zip(&scene.uvs)
-        .map(|((p, n), uv)| Vertex {
-            position: *p,
-            normal: *n,
-            uv: *uv,
-        })
-        .collect();
-    let meshes = scene
-        .meshes
-        .iter()
-        .map(|m| {
-            let info = dataset.textures.info(m.texture)?;
-            Ok(CityMesh {
-                first_index: m.first_index,
-                index_count: m.index_count,
-                vertex_offset: m.first_vertex,
-                texture: m.texture,
-                texture_width: info.width(),
-                texture_height: info.height(),
-            })
-        })
-        .collect::<Result<Vec<_>, citystream_streaming::dataset::DatasetError>>()?;
+    let (vertices, meshes) = city_geometry(&dataset)?;
     Ok((dataset, vertices, meshes))
 }
 
