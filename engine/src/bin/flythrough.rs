@@ -41,8 +41,8 @@ enum Clock {
     /// The camera follows wall-clock time; frame latency is measured.
     Real,
     /// A fixed time step per frame; frame latency is modelled (a fixed
-    /// render cost plus the bind-latency model's cost of each batch), so runs
-    /// are reproducible.
+    /// render cost plus the bind-latency model's cost of each batch and the
+    /// copy at 12 GB/s), so runs are reproducible.
     Fixed,
 }
 
@@ -138,6 +138,9 @@ struct Args {
 /// Fixed clock: the time step and the modelled render cost of a frame.
 const FIXED_STEP_MS: f64 = 1000.0 / 60.0;
 const FIXED_RENDER_MS: f64 = 8.0;
+/// Fixed clock: host-to-device copy bandwidth of the modelled GPU, the same
+/// as the simulator's (`streaming::sim`), so copies cost time too.
+const FIXED_COPY_BYTES_PER_S: f64 = 12e9;
 
 #[derive(Debug, serde::Serialize)]
 struct Run<'a> {
@@ -571,7 +574,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         let measured = clock.tick().as_secs_f64() * 1000.0;
         frame_ms = match args.clock {
             Clock::Real => measured,
-            Clock::Fixed => FIXED_RENDER_MS + bind_cost_ms,
+            Clock::Fixed => FIXED_RENDER_MS + bind_cost_ms + bytes as f64 / FIXED_COPY_BYTES_PER_S * 1000.0,
         };
         sim_time_s += FIXED_STEP_MS / 1000.0;
         let t = streamer.policy().telemetry();
