@@ -86,68 +86,19 @@ impl SparseProbe {
                 self.capacity
             )));
         }
-        let mut point_buffer = Buffer::new(
+        let sampled = [(
+            BINDING_PROBE_TEXTURE,
+            DescriptorResource::SampledImage(view, self.sampler.raw()),
+        )];
+        dispatch_probe(
             &self.device,
-            BufferDesc {
-                size: std::mem::size_of_val(points) as u64,
-                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
-                location: MemoryLocation::CpuToGpu,
-            },
-            "probe points",
-        )?;
-        point_buffer.write(0, points)?;
-        let result_buffer = Buffer::new(
-            &self.device,
-            BufferDesc {
-                size: (points.len() * std::mem::size_of::<ProbeResult>()) as u64,
-                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
-                location: MemoryLocation::GpuToCpu,
-            },
-            "probe results",
-        )?;
-        let pool = DescriptorPool::new(&self.device, &self.pipeline, 1, "probe descriptors")?;
-        let set = pool.allocate(
             &self.pipeline,
-            &[
-                (
-                    BINDING_PROBE_TEXTURE,
-                    DescriptorResource::SampledImage(view, self.sampler.raw()),
-                ),
-                (
-                    BINDING_PROBE_POINTS,
-                    DescriptorResource::StorageBuffer(point_buffer.raw()),
-                ),
-                (
-                    BINDING_PROBE_RESULTS,
-                    DescriptorResource::StorageBuffer(result_buffer.raw()),
-                ),
-            ],
-        )?;
-        let cmd = commands.begin()?;
-        self.record(cmd, set, points.len() as u32);
-        commands.submit_and_wait(waits)?;
-        let results = result_buffer.read::<ProbeResult>(0, points.len())?;
-        // The buffers and pool drop here, after the wait above.
-        Ok(results)
-    }
-
-    /// Records the dispatch and the barrier that makes results host-visible.
-    fn record(&self, cmd: vk::CommandBuffer, set: vk::DescriptorSet, count: u32) {
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::ALL_COMMANDS, vk::AccessFlags2::MEMORY_WRITE),
-            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_READ),
-        );
-        self.pipeline.bind(cmd, set);
-        // SAFETY: cmd is recording; the pipeline and set are bound.
-        unsafe { self.device.raw().cmd_dispatch(cmd, count.div_ceil(WORKGROUP), 1, 1) };
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
-            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
-        );
+            commands,
+            points,
+            (BINDING_PROBE_POINTS, BINDING_PROBE_RESULTS),
+            &sampled,
+            waits,
+        )
     }
 }
 
@@ -215,57 +166,74 @@ impl TextureProbe {
         if points.is_empty() {
             return Err(EngineError::InvalidRequest("texture probe run with no points".into()));
         }
-        let mut point_buffer = Buffer::new(
+        dispatch_probe(
             &self.device,
-            BufferDesc {
-                size: std::mem::size_of_val(points) as u64,
-                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
-                location: MemoryLocation::CpuToGpu,
-            },
-            "texture probe points",
-        )?;
-        point_buffer.write(0, points)?;
-        let result_buffer = Buffer::new(
-            &self.device,
-            BufferDesc {
-                size: (points.len() * std::mem::size_of::<ProbeResult>()) as u64,
-                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
-                location: MemoryLocation::GpuToCpu,
-            },
-            "texture probe results",
-        )?;
-        let pool = DescriptorPool::new(&self.device, &self.pipeline, 1, "texture probe descriptors")?;
-        let mut resources = cache.descriptors().to_vec();
-        resources.push((
-            BINDING_TEXTURE_PROBE_POINTS,
-            DescriptorResource::StorageBuffer(point_buffer.raw()),
-        ));
-        resources.push((
-            BINDING_TEXTURE_PROBE_RESULTS,
-            DescriptorResource::StorageBuffer(result_buffer.raw()),
-        ));
-        let set = pool.allocate(&self.pipeline, &resources)?;
-        let cmd = commands.begin()?;
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::ALL_COMMANDS, vk::AccessFlags2::MEMORY_WRITE),
-            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_READ),
-        );
-        self.pipeline.bind(cmd, set);
-        // SAFETY: cmd is recording; the pipeline and set are bound.
-        unsafe {
-            self.device
-                .raw()
-                .cmd_dispatch(cmd, (points.len() as u32).div_ceil(WORKGROUP), 1, 1)
-        };
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
-            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
-        );
-        commands.submit_and_wait(&[])?;
-        result_buffer.read::<ProbeResult>(0, points.len())
+            &self.pipeline,
+            commands,
+            points,
+            (BINDING_TEXTURE_PROBE_POINTS, BINDING_TEXTURE_PROBE_RESULTS),
+            &cache.descriptors(),
+            &[],
+        )
     }
+}
+
+/// Uploads `points`, binds them and `resources` to `pipeline`, dispatches one
+/// invocation per point after `waits`, and reads one [`ProbeResult`] each.
+/// The temporary buffers and pool drop after the submission's wait.
+fn dispatch_probe<P: bytemuck::Pod>(
+    device: &Arc<Device>,
+    pipeline: &Pipeline,
+    commands: &mut CommandContext,
+    points: &[P],
+    (points_binding, results_binding): (u32, u32),
+    resources: &[(u32, DescriptorResource)],
+    waits: &[SemaphoreWait],
+) -> Result<Vec<ProbeResult>> {
+    let mut point_buffer = Buffer::new(
+        device,
+        BufferDesc {
+            size: std::mem::size_of_val(points) as u64,
+            usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+            location: MemoryLocation::CpuToGpu,
+        },
+        "probe points",
+    )?;
+    point_buffer.write(0, points)?;
+    let result_buffer = Buffer::new(
+        device,
+        BufferDesc {
+            size: (points.len() * std::mem::size_of::<ProbeResult>()) as u64,
+            usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+            location: MemoryLocation::GpuToCpu,
+        },
+        "probe results",
+    )?;
+    let pool = DescriptorPool::new(device, pipeline, 1, "probe descriptors")?;
+    let mut all = resources.to_vec();
+    all.push((points_binding, DescriptorResource::StorageBuffer(point_buffer.raw())));
+    all.push((results_binding, DescriptorResource::StorageBuffer(result_buffer.raw())));
+    let set = pool.allocate(pipeline, &all)?;
+    let cmd = commands.begin()?;
+    memory_barrier(
+        device,
+        cmd,
+        (vk::PipelineStageFlags2::ALL_COMMANDS, vk::AccessFlags2::MEMORY_WRITE),
+        (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_READ),
+    );
+    pipeline.bind(cmd, set);
+    // SAFETY: cmd is recording; the pipeline and set are bound.
+    unsafe {
+        device
+            .raw()
+            .cmd_dispatch(cmd, (points.len() as u32).div_ceil(WORKGROUP), 1, 1)
+    };
+    memory_barrier(
+        device,
+        cmd,
+        (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
+        (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+    );
+    commands.submit_and_wait(waits)?;
+    result_buffer.read::<ProbeResult>(0, points.len())
 }
