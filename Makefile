@@ -6,7 +6,7 @@ OUT ?= out/run
 CITY ?= data/small
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
-.PHONY: all setup build run test check fmt clippy bench clean-out
+.PHONY: all setup build run test check fmt clippy doc bench
 
 all: build
 
@@ -35,7 +35,10 @@ fmt:
 clippy: setup
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
 
-check: fmt clippy
+doc: setup
+	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps
+
+check: fmt clippy doc
 
 bench: setup
 	$(CARGO) bench --workspace

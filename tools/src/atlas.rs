@@ -10,7 +10,7 @@
 //! Level 0 of a BC1 atlas is a byte copy of the original blocks (rendering at full
 //! resolution is identical); coarser levels copy every block that lies inside one texture's
 //! own mip and re-encode only blocks where several textures (or empty space) meet. Textures
-//! that cannot go into an atlas (larger than it, sampled with UVs outside [0,1], of another
+//! that cannot go into an atlas (larger than it, sampled with UVs outside `[0, 1]`, of another
 //! format, or unused) are copied unchanged.
 
 use std::collections::BTreeMap;

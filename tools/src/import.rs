@@ -5,7 +5,7 @@
 //! texture (multiplied by the base-colour factor), or a 4×4 texture of the factor when it has
 //! none. Primitives sharing image and factor share a texture. Node transforms are applied
 //! in f64 and positions stored relative to the scene centre. UVs are kept as they are, also
-//! outside [0,1] (the engine samples with repeat addressing). Images may be PNG, JPEG, DDS
+//! outside `[0, 1]` (the engine samples with repeat addressing). Images may be PNG, JPEG, DDS
 //! (`MSFT_texture_dds`) or KTX2 (`KHR_texture_basisu`, RGBA8/BC1/BC3 only); the first source
 //! that decodes is used. Sides that are not powers of two are resized up to the next power
 //! of two; sides above `--max-extent` are downscaled with a warning.

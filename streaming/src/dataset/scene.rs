@@ -107,7 +107,7 @@ pub struct Scene {
     pub positions: Vec<[f32; 3]>,
     /// Unit normals.
     pub normals: Vec<[f32; 3]>,
-    /// Texture coordinates; (0,0) is the first texel of the first row. Values outside [0,1]
+    /// Texture coordinates; (0,0) is the first texel of the first row. Values outside `[0, 1]`
     /// repeat the texture.
     pub uvs: Vec<[f32; 2]>,
     /// Triangle-list indices, relative to each mesh's `first_vertex`.
