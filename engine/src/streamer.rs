@@ -256,7 +256,11 @@ impl Streamer {
     /// no submitted frame still reads the cache (see [`GpuTextureCache`]).
     pub fn apply(&self, cache: &mut GpuTextureCache, commands: &mut CommandContext) -> Result<ApplyReport> {
         let mut refused = 0;
-        for mip in self.queue.take() {
+        // Loader workers stage in whatever order they finish; packing in a
+        // fixed order keeps cache placement, and so runs, reproducible.
+        let mut staged = self.queue.take();
+        staged.sort_unstable_by_key(|m| (m.texture, std::cmp::Reverse(m.level)));
+        for mip in staged {
             let info = self
                 .dataset
                 .textures

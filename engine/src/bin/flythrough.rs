@@ -434,7 +434,15 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         policy,
         DEFAULT_WEIGHT_CUTOFF,
         fragment_area,
-        LoaderOptions::default(),
+        // The fixed clock must not depend on how fast this machine reads:
+        // no wall-clock load-time limit there (the load size still bounds a cycle).
+        match args.clock {
+            Clock::Real => LoaderOptions::default(),
+            Clock::Fixed => LoaderOptions {
+                load_time: Duration::from_secs(3600),
+                ..LoaderOptions::default()
+            },
+        },
     )?;
     let latency = BindLatencyModel::preset(args.bind_latency);
     let mut latency_rng = SplitMix64::new(args.seed);
