@@ -3,7 +3,8 @@
 
 CARGO ?= cargo
 OUT ?= out/run
-CITY ?= data/small
+# Empty: the default city (data/city, created by the first run).
+CITY ?=
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
 .PHONY: all setup build run test check fmt clippy doc bench
@@ -18,11 +19,7 @@ build: setup
 	$(CARGO) build --release --workspace --bins
 
 run: build
-	@if [ ! -f "$(CITY)/scene.bin" ]; then \
-		echo "generating the default city into $(CITY)"; \
-		./target/release/citystream gen --preset small --seed 1 --out "$(CITY)"; \
-	fi
-	./target/release/flythrough --dataset "$(CITY)" --clock fixed --bind-latency desktop --out $(OUT)
+	./target/release/flythrough $(if $(CITY),--dataset "$(CITY)") --clock fixed --bind-latency desktop --out $(OUT)
 	./target/release/citystream report --run $(OUT) --name adaptive --out $(OUT)
 	@echo "frames, summary.json, frames.csv, table.md and charts in $(OUT)"
 

@@ -21,14 +21,16 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 
+use crate::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 use crate::report::{self, RunInput};
 
 /// Options of `citystream bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
-    /// Dataset directory every run opens.
+    /// Dataset directory every run opens (default: the default city in
+    /// data/city, created on first use).
     #[arg(long)]
-    dataset: PathBuf,
+    dataset: Option<PathBuf>,
     /// Output directory: one subdirectory per run, plus table.md and the
     /// charts of the comparison.
     #[arg(long)]
@@ -96,16 +98,22 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             flythrough.display()
         );
     }
-    if !args.dataset.exists() {
-        bail!("dataset directory {} does not exist", args.dataset.display());
-    }
+    let dataset = match &args.dataset {
+        Some(dir) if !dir.exists() => bail!("dataset directory {} does not exist", dir.display()),
+        Some(dir) => dir.clone(),
+        None => {
+            let dir = PathBuf::from(DEFAULT_CITY_DIR);
+            ensure_default_city(&dir, false)?;
+            dir
+        }
+    };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
 
     let total = POLICY_RUNS.len();
     let mut inputs = Vec::with_capacity(total);
     for (i, policy) in POLICY_RUNS.iter().enumerate() {
         let run_dir = args.out.join(policy.dir);
-        let run_args = flythrough_args(args, policy, &run_dir);
+        let run_args = flythrough_args(args, &dataset, policy, &run_dir);
         eprintln!(
             "[{}/{total}] {}: {} {}",
             i + 1,
@@ -146,8 +154,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
 }
 
 /// The flythrough command line of one policy run.
-fn flythrough_args(args: &BenchArgs, policy: &PolicyRun, run_dir: &Path) -> Vec<String> {
-    let mut out: Vec<String> = vec!["--dataset".into(), args.dataset.display().to_string()];
+fn flythrough_args(args: &BenchArgs, dataset: &Path, policy: &PolicyRun, run_dir: &Path) -> Vec<String> {
+    let mut out: Vec<String> = vec!["--dataset".into(), dataset.display().to_string()];
     out.extend(policy.args.iter().map(|a| a.to_string()));
     out.extend(
         ["--clock", "fixed", "--bind-latency", "desktop"]

@@ -5,6 +5,7 @@
 pub mod atlas;
 pub mod bench;
 pub mod cache_report;
+pub mod default_city;
 pub mod gen;
 pub mod import;
 pub mod info;

@@ -35,6 +35,7 @@ use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
 use citystream_streaming::source::MipSource;
 use citystream_streaming::stats::{Stats, SummaryBuilder};
+use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Clock {
@@ -57,12 +58,19 @@ enum Clock {
                   which mip each visible mesh needs, a loading task reads exactly those mips, \
                   the sparse texture cache binds memory and copies them, and the frame blends \
                   sampled colour with the City Colormap by mip level. Without --dataset it \
-                  renders a small procedural placeholder city, fully resident."
+                  streams the default city (data/city, created on first run); with \
+                  --placeholder it renders a small procedural city, fully resident."
 )]
 struct Args {
-    /// City dataset directory (written by `citystream gen` or `citystream import`).
+    /// City dataset directory (written by `citystream gen`, `import` or `atlas`).
+    /// Default: the default city in data/city, created on first run (the
+    /// `small` generated city in 2048x2048 atlases, see docs/DATASET.md).
     #[arg(long)]
     dataset: Option<PathBuf>,
+    /// Render a procedural placeholder city, fully resident, instead of
+    /// streaming a dataset (no feedback, no streaming).
+    #[arg(long, conflicts_with_all = ["dataset", "pop_in"])]
+    placeholder: bool,
     /// Output directory for frames/ and summary.json.
     #[arg(long, default_value = "out/flythrough")]
     out: PathBuf,
@@ -116,7 +124,7 @@ struct Args {
     /// Seed of the placeholder city and of the bind-latency model's spikes.
     #[arg(long, default_value_t = 7)]
     seed: u64,
-    /// Blocks per side of the placeholder city (without --dataset).
+    /// Blocks per side of the placeholder city (with --placeholder).
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=200))]
     blocks: u32,
     /// Enable the Vulkan validation layer (default: on in debug builds).
@@ -178,11 +186,21 @@ fn main() -> Result<()> {
     eprintln!("device: {}", describe(&device));
     let frames_dir = args.out.join("frames");
     std::fs::create_dir_all(&frames_dir).with_context(|| format!("creating {}", frames_dir.display()))?;
-    match (&args.dataset, args.pop_in) {
-        (Some(dir), true) => pop_in(&args, &device, dir),
-        (Some(dir), false) => stream_city(&args, &device, dir),
-        (None, true) => bail!("--pop-in needs --dataset"),
-        (None, false) => placeholder_city(&args, &device),
+    if args.placeholder {
+        return placeholder_city(&args, &device);
+    }
+    let dir = match &args.dataset {
+        Some(dir) => dir.clone(),
+        None => {
+            let dir = PathBuf::from(DEFAULT_CITY_DIR);
+            ensure_default_city(&dir, false)?;
+            dir
+        }
+    };
+    if args.pop_in {
+        pop_in(&args, &device, &dir)
+    } else {
+        stream_city(&args, &device, &dir)
     }
 }
 
@@ -231,7 +249,11 @@ fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: f64, reside
         frame + 1
     );
     if std::io::stderr().is_terminal() {
-        eprint!("\r{line}");
+        // The path's length is known, so a bar shows how far the run is.
+        const BAR: usize = 20;
+        let done = (f64::from(frame + 1) / f64::from(frames.max(1)) * BAR as f64).round() as usize;
+        let bar = format!("{}{}", "#".repeat(done.min(BAR)), "-".repeat(BAR - done.min(BAR)));
+        eprint!("\r[{bar}] {line}");
         let _ = std::io::stderr().flush();
     } else if frame % 30 == 0 || frame + 1 == frames {
         eprintln!("{line}");
