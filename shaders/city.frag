@@ -10,18 +10,21 @@
 // displayed level (paper Eq. 8): c = (1 - M/M_max) c_s + (M/M_max) c_o.
 // Unloaded or non-resident textures show the colormap colour.
 layout(push_constant) uniform Push { CityDrawPush push; };
+layout(std430, set = 0, binding = BINDING_CITY_MESHES) readonly buffer CityMeshes { CityMeshInfo city_meshes[]; };
 
 layout(location = 0) in vec2 in_uv;
 layout(location = 1) in vec3 in_normal;
+layout(location = 2) flat in uint in_mesh_id;
 layout(location = 0) out vec4 out_color;
 
 const vec3 LIGHT_DIR = vec3(0.36, 0.80, 0.48);
 
 void main() {
-    vec2 size = vec2(push.texture_width, push.texture_height);
-    float max_level = float(push.max_mip);
+    CityMeshInfo mesh = city_meshes[in_mesh_id];
+    vec2 size = vec2(mesh.texture_width, mesh.texture_height);
+    float max_level = float(mesh.max_mip);
     float lod = clamp(anisotropic_lod(dFdx(in_uv) * size, dFdy(in_uv) * size, SAMPLE_ANISOTROPY), 0.0, max_level);
-    vec4 c_o = colormap_colour(push.texture_id);
+    vec4 c_o = colormap_colour(mesh.texture_id);
     vec4 c_s;
     float displayed;
     // viewport_light.w = 1: direct sampling, no City Colormap at all (the
@@ -29,7 +32,7 @@ void main() {
     // non-resident sparse texel does.
     bool direct = push.viewport_light.w != 0.0;
     vec3 colour = direct ? vec3(0.0) : c_o.rgb;
-    if (sample_city_texture_level(push.texture_id, in_uv, lod, c_s, displayed)) {
+    if (sample_city_texture_level(mesh.texture_id, in_uv, lod, c_s, displayed)) {
         float t = max_level > 0.0 && !direct ? clamp(displayed / max_level, 0.0, 1.0) : 0.0;
         colour = mix(c_s.rgb, c_o.rgb, t);
     }

@@ -14,9 +14,12 @@ invariant gl_Position;
 
 layout(location = 0) out vec2 out_uv;
 layout(location = 1) out vec3 out_normal;
+layout(location = 2) flat out uint out_mesh_id;
 
 void main() {
     gl_Position = push.view_proj * vec4(in_position, 1.0);
     out_uv = in_uv;
     out_normal = in_normal;
+    // firstInstance of mesh i's indirect draw is i.
+    out_mesh_id = uint(gl_InstanceIndex);
 }

@@ -11,15 +11,18 @@
 layout(early_fragment_tests) in;
 
 layout(push_constant) uniform Push { CityDrawPush push; };
+layout(std430, set = 0, binding = BINDING_CITY_MESHES) readonly buffer CityMeshes { CityMeshInfo city_meshes[]; };
 layout(std430, set = 0, binding = BINDING_FEEDBACK_MESHES) buffer Meshes { MeshFeedback meshes[]; };
 
 layout(location = 0) in vec2 in_uv;
 layout(location = 1) in vec3 in_normal;
+layout(location = 2) flat in uint in_mesh_id;
 layout(location = 0) out vec4 out_color;
 
 void main() {
-    vec2 size = vec2(push.texture_width, push.texture_height);
-    float max_level = float(push.max_mip);
+    CityMeshInfo mesh = city_meshes[in_mesh_id];
+    vec2 size = vec2(mesh.texture_width, mesh.texture_height);
+    float max_level = float(mesh.max_mip);
     // Derivatives are per feedback pixel, which spans 2^feedback.x visible
     // pixels: the visible view needs that many levels finer.
     float lod = anisotropic_lod(dFdx(in_uv) * size, dFdy(in_uv) * size, FEEDBACK_ANISOTROPY) - push.feedback.x;
@@ -32,13 +35,13 @@ void main() {
         // c_w: view depth over the foreground distance (1/gl_FragCoord.w is clip w, the view depth).
         float c_w = min((1.0 / gl_FragCoord.w) / push.feedback.y, 1.0);
         float w_d = pow(1.0 - c_w, 4.0);
-        TextureData t = texture_data[push.texture_id];
+        TextureData t = texture_data[mesh.texture_id];
         float displayed = t.state == TEXTURE_SAMPLEABLE ? max(lod, float(t.lowest_mip)) : max_level;
         float w_m = max_level > 0.0 ? min(displayed / max_level, 1.0) : 0.0;
         weight = 1.0 + 8.0 * w_d + 8.0 * w_m;
     }
-    atomicMin(meshes[push.mesh_id].min_mip, uint(round(lod * FEEDBACK_MIP_ONE)));
-    atomicAdd(meshes[push.mesh_id].weight, uint(round(weight * FEEDBACK_WEIGHT_ONE)));
+    atomicMin(meshes[in_mesh_id].min_mip, uint(round(lod * FEEDBACK_MIP_ONE)));
+    atomicAdd(meshes[in_mesh_id].weight, uint(round(weight * FEEDBACK_WEIGHT_ONE)));
     // A view of the requested levels, for debugging: brighter is finer.
     out_color = vec4(vec3(1.0 - lod / 12.0), 1.0);
 }

@@ -1,7 +1,10 @@
 //! Rendering a city dataset with streamed textures: the feedback pass
 //! (paper §3.2) and the visible pass with City Colormap blending (§3.7).
 //!
-//! Both passes draw every mesh with its own [`CityDrawPush`]. The feedback
+//! Every pass draws all meshes with one multi-draw indirect call: mesh i's
+//! draw has `firstInstance = i`, which the shaders read as the mesh id and
+//! use to look up its [`CityMeshInfo`] (per-draw push constants would cost
+//! a state change per mesh, which dominates on a CPU rasteriser). The feedback
 //! pass renders a wider field of view than the visible one into a smaller
 //! target; fragments outside the visible frustum count with W = 1 (streaming
 //! beyond the viewport edge), and a LOD offset converts its derivatives,
@@ -17,7 +20,10 @@ use crate::commands::CommandContext;
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::FeedbackCompactor;
-use crate::gpu_types::{CityDrawPush, Vertex, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA, FEEDBACK_MAX_PIXELS};
+use crate::gpu_types::{
+    CityDrawPush, CityMeshInfo, Vertex, BINDING_CITY_MESHES, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA,
+    FEEDBACK_MAX_PIXELS,
+};
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
 use crate::scene::upload_buffer;
 use crate::shaders;
@@ -166,6 +172,12 @@ pub struct CityRenderer {
     visible_set: vk::DescriptorSet,
     vertices: Buffer,
     indices: Buffer,
+    /// One `VkDrawIndexedIndirectCommand` per mesh.
+    draws: Buffer,
+    /// Read by the shaders through the descriptor sets.
+    _mesh_info: Buffer,
+    /// Draws one `vkCmdDrawIndexedIndirect` may hold (`maxDrawIndirectCount`).
+    max_draws_per_call: u32,
     meshes: Vec<CityMesh>,
 }
 
@@ -220,6 +232,7 @@ impl CityRenderer {
         for (m, mesh) in meshes.iter().enumerate() {
             let end = u64::from(mesh.first_index) + u64::from(mesh.index_count);
             let in_range = end <= indices.len() as u64
+                && i32::try_from(mesh.vertex_offset).is_ok()
                 && indices[mesh.first_index as usize..end as usize]
                     .iter()
                     .all(|&i| u64::from(i) + u64::from(mesh.vertex_offset) < vertices.len() as u64);
@@ -237,6 +250,7 @@ impl CityRenderer {
             vec![
                 (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
                 (BINDING_FEEDBACK_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
+                (BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
             ],
             DepthMode::EqualAfterPrepass,
             true,
@@ -253,7 +267,46 @@ impl CityRenderer {
             false,
             "city depth pre-pass pipeline",
         )?;
-        let cache_descriptors = cache.descriptors();
+        let mesh_info: Vec<CityMeshInfo> = meshes
+            .iter()
+            .map(|mesh| CityMeshInfo {
+                texture_id: mesh.texture,
+                texture_width: mesh.texture_width,
+                texture_height: mesh.texture_height,
+                max_mip: mesh.max_mip(),
+            })
+            .collect();
+        let mesh_info = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(&mesh_info),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "city mesh info",
+        )?;
+        // VkDrawIndexedIndirectCommand: five 32-bit fields, tightly packed.
+        let draw_bytes: Vec<u8> = meshes
+            .iter()
+            .enumerate()
+            .flat_map(|(id, mesh)| {
+                [
+                    mesh.index_count,
+                    1, // instanceCount
+                    mesh.first_index,
+                    mesh.vertex_offset, // vertexOffset (i32; checked in range above)
+                    id as u32,          // firstInstance: the mesh id
+                ]
+            })
+            .flat_map(u32::to_ne_bytes)
+            .collect();
+        let draws = upload_buffer(
+            device,
+            commands,
+            &draw_bytes,
+            vk::BufferUsageFlags::INDIRECT_BUFFER,
+            "city indirect draws",
+        )?;
+        let mut cache_descriptors = cache.descriptors().to_vec();
+        cache_descriptors.push((BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())));
         let visible_bindings: Vec<BindingSpec> = cache_descriptors
             .iter()
             .map(|(binding, resource)| {
@@ -289,6 +342,7 @@ impl CityRenderer {
                     BINDING_FEEDBACK_MESHES,
                     DescriptorResource::StorageBuffer(compactor.mesh_feedback_buffer()),
                 ),
+                (BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())),
             ],
         )?;
         let visible_set = pool.allocate(&visible, &cache_descriptors)?;
@@ -317,6 +371,9 @@ impl CityRenderer {
             visible_set,
             vertices,
             indices,
+            draws,
+            _mesh_info: mesh_info,
+            max_draws_per_call: device.properties().limits.max_draw_indirect_count.max(1),
             meshes,
         })
     }
@@ -337,27 +394,24 @@ impl CityRenderer {
                 .raw()
                 .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
         }
-        for (id, mesh) in self.meshes.iter().enumerate() {
-            let push = CityDrawPush {
-                mesh_id: id as u32,
-                texture_id: mesh.texture,
-                texture_width: mesh.texture_width,
-                texture_height: mesh.texture_height,
-                max_mip: mesh.max_mip(),
-                ..base
-            };
-            pipeline.push(cmd, &push);
-            // SAFETY: index ranges were checked against the buffers in `new`.
+        pipeline.push(cmd, &base);
+        let stride = std::mem::size_of::<vk::DrawIndexedIndirectCommand>() as u32;
+        let mut first = 0u32;
+        let count = self.meshes.len() as u32;
+        while first < count {
+            let draws = (count - first).min(self.max_draws_per_call);
+            // SAFETY: the indirect buffer holds one command per mesh, whose
+            // ranges were checked against the index and vertex buffers in `new`.
             unsafe {
-                self.device.raw().cmd_draw_indexed(
+                self.device.raw().cmd_draw_indexed_indirect(
                     cmd,
-                    mesh.index_count,
-                    1,
-                    mesh.first_index,
-                    mesh.vertex_offset as i32,
-                    0,
+                    self.draws.raw(),
+                    u64::from(first) * u64::from(stride),
+                    draws,
+                    stride,
                 )
             };
+            first += draws;
         }
     }
 
@@ -389,7 +443,6 @@ impl CityRenderer {
                 0.0,
                 0.0,
             ],
-            ..CityDrawPush::default()
         };
         feedback_target.begin(&self.device, cmd, [1.0, 0.0, 1.0, 1.0]);
         self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);

@@ -125,6 +125,8 @@ pub struct TextureProbePoint {
 
 /// Binding of the per-mesh feedback array in the feedback pass.
 pub const BINDING_FEEDBACK_MESHES: u32 = 16;
+/// Binding of the per-mesh `CityMeshInfo` array in the feedback and visible passes.
+pub const BINDING_CITY_MESHES: u32 = 17;
 /// `FEEDBACK_MIP_ONE`: a mip level is stored as `round(level * 256)`.
 pub const FEEDBACK_MIP_ONE: f32 = 256.0;
 /// `FEEDBACK_WEIGHT_ONE`: a weight is stored as `round(W * 8)`.
@@ -137,7 +139,8 @@ pub const FEEDBACK_ANISOTROPY: f32 = 16.0;
 /// `SAMPLE_ANISOTROPY` (A_s).
 pub const SAMPLE_ANISOTROPY: f32 = 8.0;
 
-/// `CityDrawPush`: push constants of the city passes, one draw per mesh.
+/// `CityDrawPush`: push constants of a city pass, set once per pass (one
+/// indirect draw covers every mesh).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct CityDrawPush {
@@ -149,8 +152,13 @@ pub struct CityDrawPush {
     /// xy: target size in pixels, z: lighting weight, w: 1 = no colormap
     /// blending (direct sampling).
     pub viewport_light: [f32; 4],
-    /// Mesh index.
-    pub mesh_id: u32,
+}
+
+/// `CityMeshInfo`: what the city passes know of one mesh, indexed by mesh
+/// id (the draw's `firstInstance`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct CityMeshInfo {
     /// Dataset texture id.
     pub texture_id: u32,
     /// Texture width at level 0 (full resolution).
@@ -159,12 +167,6 @@ pub struct CityDrawPush {
     pub texture_height: u32,
     /// M_max: coarsest level at full resolution.
     pub max_mip: u32,
-    /// Padding.
-    pub pad0: u32,
-    /// Padding.
-    pub pad1: u32,
-    /// Padding.
-    pub pad2: u32,
 }
 
 /// One vertex of a mesh (vertex input, not a GLSL struct).
@@ -446,6 +448,7 @@ mod tests {
             ("BINDING_TEXTURE_PROBE_POINTS", BINDING_TEXTURE_PROBE_POINTS),
             ("BINDING_TEXTURE_PROBE_RESULTS", BINDING_TEXTURE_PROBE_RESULTS),
             ("BINDING_FEEDBACK_MESHES", BINDING_FEEDBACK_MESHES),
+            ("BINDING_CITY_MESHES", BINDING_CITY_MESHES),
         ];
         assert_eq!(
             defines.len(),
@@ -537,16 +540,18 @@ mod tests {
                 ("view_proj", offset_of!(CityDrawPush, view_proj)),
                 ("feedback", offset_of!(CityDrawPush, feedback)),
                 ("viewport_light", offset_of!(CityDrawPush, viewport_light)),
-                ("mesh_id", offset_of!(CityDrawPush, mesh_id)),
-                ("texture_id", offset_of!(CityDrawPush, texture_id)),
-                ("texture_width", offset_of!(CityDrawPush, texture_width)),
-                ("texture_height", offset_of!(CityDrawPush, texture_height)),
-                ("max_mip", offset_of!(CityDrawPush, max_mip)),
-                ("pad0", offset_of!(CityDrawPush, pad0)),
-                ("pad1", offset_of!(CityDrawPush, pad1)),
-                ("pad2", offset_of!(CityDrawPush, pad2)),
             ],
             size_of::<CityDrawPush>(),
+        );
+        check(
+            "CityMeshInfo",
+            &[
+                ("texture_id", offset_of!(CityMeshInfo, texture_id)),
+                ("texture_width", offset_of!(CityMeshInfo, texture_width)),
+                ("texture_height", offset_of!(CityMeshInfo, texture_height)),
+                ("max_mip", offset_of!(CityMeshInfo, max_mip)),
+            ],
+            size_of::<CityMeshInfo>(),
         );
         // 128 bytes is the push-constant size every Vulkan device guarantees.
         assert!(size_of::<CityDrawPush>() <= 128);

@@ -25,6 +25,7 @@
 
 // ---- Feedback pass (paper §3.2): set 0 also holds BINDING_TEXTURE_DATA --------
 #define BINDING_FEEDBACK_MESHES 16    // MeshFeedback[], written with atomics
+#define BINDING_CITY_MESHES 17        // CityMeshInfo[], one per mesh (feedback and visible passes)
 
 // Fixed-point scales of MeshFeedback. A mip level is stored as
 // round(level * FEEDBACK_MIP_ONE); a weight W (1..17 per fragment) as
@@ -38,21 +39,24 @@
 #define FEEDBACK_ANISOTROPY 16.0
 #define SAMPLE_ANISOTROPY 8.0
 
-// Push constants of the city passes (feedback and visible), one draw per mesh.
+// Push constants of the city passes (depth pre-pass, feedback and visible):
+// one set per pass, which draws every mesh with one indirect draw.
 struct CityDrawPush {
     mat4 view_proj;
     vec4 feedback;          // x: log2 of visible pixels per feedback pixel (subtracted from the LOD), y: foreground distance,
                             // zw: scale from feedback NDC to visible NDC (margin fragments lie outside [-1, 1])
     vec4 viewport_light;    // xy: target size in pixels, z: lighting weight (0 = unlit),
                             // w: 1 = sample directly without colormap blending (visible pass)
-    uint mesh_id;
+};
+
+// What the city passes know of mesh i, at index i of BINDING_CITY_MESHES.
+// The indirect draw of mesh i has firstInstance = i, so gl_InstanceIndex is
+// the mesh id (passed flat to the fragment stage).
+struct CityMeshInfo {
     uint texture_id;
     uint texture_width;     // full original resolution, level 0
     uint texture_height;
     uint max_mip;           // M_max: the texture's coarsest level at full resolution
-    uint pad0;
-    uint pad1;
-    uint pad2;
 };
 
 // ---- Descriptor set 0: texture probe (samples through TextureData) -------
