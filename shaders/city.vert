@@ -6,6 +6,7 @@
 layout(location = 0) in vec3 in_position;
 layout(location = 1) in vec3 in_normal;
 layout(location = 2) in vec2 in_uv;
+layout(location = 3) in uint in_mesh_id;
 
 layout(push_constant) uniform Push { CityDrawPush push; };
 
@@ -20,6 +21,5 @@ void main() {
     gl_Position = push.view_proj * vec4(in_position, 1.0);
     out_uv = in_uv;
     out_normal = in_normal;
-    // firstInstance of mesh i's indirect draw is i.
-    out_mesh_id = uint(gl_InstanceIndex);
+    out_mesh_id = in_mesh_id;
 }

@@ -1,10 +1,12 @@
 //! Rendering a city dataset with streamed textures: the feedback pass
 //! (paper §3.2) and the visible pass with City Colormap blending (§3.7).
 //!
-//! Every pass draws all meshes with one multi-draw indirect call: mesh i's
-//! draw has `firstInstance = i`, which the shaders read as the mesh id and
-//! use to look up its [`CityMeshInfo`] (per-draw push constants would cost
-//! a state change per mesh, which dominates on a CPU rasteriser). The feedback
+//! Every pass draws all meshes with one draw call: each mesh gets its own
+//! copy of the vertices it uses, tagged with its id ([`CityVertex`]), and
+//! the shaders look its texture up in a [`CityMeshInfo`] table. A draw per
+//! mesh would cost a state change and draw setup each, which dominates the
+//! feedback pass on a CPU rasteriser (multi-draw indirect still pays the
+//! per-draw setup there). The feedback
 //! pass renders a wider field of view than the visible one into a smaller
 //! target; fragments outside the visible frustum count with W = 1 (streaming
 //! beyond the viewport edge), and a LOD offset converts its derivatives,
@@ -21,7 +23,7 @@ use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::FeedbackCompactor;
 use crate::gpu_types::{
-    CityDrawPush, CityMeshInfo, Vertex, BINDING_CITY_MESHES, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA,
+    CityDrawPush, CityMeshInfo, CityVertex, Vertex, BINDING_CITY_MESHES, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA,
     FEEDBACK_MAX_PIXELS,
 };
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
@@ -170,14 +172,13 @@ pub struct CityRenderer {
     prepass_set: vk::DescriptorSet,
     feedback_set: vk::DescriptorSet,
     visible_set: vk::DescriptorSet,
+    /// Every mesh's vertices, tagged with its id.
     vertices: Buffer,
+    /// Every mesh's triangles, in mesh order, indexing `vertices` directly.
     indices: Buffer,
-    /// One `VkDrawIndexedIndirectCommand` per mesh.
-    draws: Buffer,
+    index_count: u32,
     /// Read by the shaders through the descriptor sets.
     _mesh_info: Buffer,
-    /// Draws one `vkCmdDrawIndexedIndirect` may hold (`maxDrawIndirectCount`).
-    max_draws_per_call: u32,
     meshes: Vec<CityMesh>,
 }
 
@@ -194,8 +195,8 @@ fn city_pipeline(
         &GraphicsDesc {
             vertex: shaders::CITY_VERT,
             fragment,
-            vertex_stride: std::mem::size_of::<Vertex>() as u32,
-            attributes: Vertex::attributes(),
+            vertex_stride: std::mem::size_of::<CityVertex>() as u32,
+            attributes: CityVertex::attributes(),
             color_format: COLOR_FORMAT,
             depth_format: DEPTH_FORMAT,
             cull_mode: vk::CullModeFlags::NONE,
@@ -206,6 +207,41 @@ fn city_pipeline(
         },
         name,
     )
+}
+
+/// The geometry of one draw for every mesh: each mesh's vertices (the range
+/// its indices use) copied and tagged with its id, and its indices made
+/// absolute, in mesh order so triangles rasterise in the same order as one
+/// draw per mesh would. Meshes sharing vertices get their own copies.
+fn single_draw_geometry(
+    vertices: &[Vertex],
+    indices: &[u32],
+    meshes: &[CityMesh],
+) -> Result<(Vec<CityVertex>, Vec<u32>)> {
+    let mut city_vertices = Vec::with_capacity(vertices.len());
+    let mut city_indices = Vec::with_capacity(indices.len());
+    for (id, mesh) in meshes.iter().enumerate() {
+        let first = mesh.first_index as usize;
+        let range = &indices[first..first + mesh.index_count as usize];
+        let (Some(&low), Some(&high)) = (range.iter().min(), range.iter().max()) else {
+            continue;
+        };
+        let base = u32::try_from(city_vertices.len())
+            .ok()
+            .filter(|b| b.checked_add(high - low).is_some())
+            .ok_or_else(|| EngineError::InvalidRequest("a city of more than 2^32 vertices".into()))?;
+        // In range: `new` checked every index plus offset against the vertex count.
+        let start = mesh.vertex_offset as usize + low as usize;
+        let end = mesh.vertex_offset as usize + high as usize;
+        city_vertices.extend(vertices[start..=end].iter().map(|v| CityVertex {
+            position: v.position,
+            normal: v.normal,
+            uv: v.uv,
+            mesh_id: id as u32,
+        }));
+        city_indices.extend(range.iter().map(|&i| base + (i - low)));
+    }
+    Ok((city_vertices, city_indices))
 }
 
 impl CityRenderer {
@@ -232,7 +268,6 @@ impl CityRenderer {
         for (m, mesh) in meshes.iter().enumerate() {
             let end = u64::from(mesh.first_index) + u64::from(mesh.index_count);
             let in_range = end <= indices.len() as u64
-                && i32::try_from(mesh.vertex_offset).is_ok()
                 && indices[mesh.first_index as usize..end as usize]
                     .iter()
                     .all(|&i| u64::from(i) + u64::from(mesh.vertex_offset) < vertices.len() as u64);
@@ -283,28 +318,6 @@ impl CityRenderer {
             vk::BufferUsageFlags::STORAGE_BUFFER,
             "city mesh info",
         )?;
-        // VkDrawIndexedIndirectCommand: five 32-bit fields, tightly packed.
-        let draw_bytes: Vec<u8> = meshes
-            .iter()
-            .enumerate()
-            .flat_map(|(id, mesh)| {
-                [
-                    mesh.index_count,
-                    1, // instanceCount
-                    mesh.first_index,
-                    mesh.vertex_offset, // vertexOffset (i32; checked in range above)
-                    id as u32,          // firstInstance: the mesh id
-                ]
-            })
-            .flat_map(u32::to_ne_bytes)
-            .collect();
-        let draws = upload_buffer(
-            device,
-            commands,
-            &draw_bytes,
-            vk::BufferUsageFlags::INDIRECT_BUFFER,
-            "city indirect draws",
-        )?;
         let mut cache_descriptors = cache.descriptors().to_vec();
         cache_descriptors.push((BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())));
         let visible_bindings: Vec<BindingSpec> = cache_descriptors
@@ -346,17 +359,20 @@ impl CityRenderer {
             ],
         )?;
         let visible_set = pool.allocate(&visible, &cache_descriptors)?;
+        let (city_vertices, city_indices) = single_draw_geometry(vertices, indices, &meshes)?;
+        let index_count = u32::try_from(city_indices.len())
+            .map_err(|_| EngineError::InvalidRequest("a city of more than 2^32 indices".into()))?;
         let vertices = upload_buffer(
             device,
             commands,
-            bytemuck::cast_slice(vertices),
+            bytemuck::cast_slice(&city_vertices),
             vk::BufferUsageFlags::VERTEX_BUFFER,
             "city vertices",
         )?;
         let indices = upload_buffer(
             device,
             commands,
-            bytemuck::cast_slice(indices),
+            bytemuck::cast_slice(&city_indices),
             vk::BufferUsageFlags::INDEX_BUFFER,
             "city indices",
         )?;
@@ -371,9 +387,8 @@ impl CityRenderer {
             visible_set,
             vertices,
             indices,
-            draws,
+            index_count,
             _mesh_info: mesh_info,
-            max_draws_per_call: device.properties().limits.max_draw_indirect_count.max(1),
             meshes,
         })
     }
@@ -395,24 +410,9 @@ impl CityRenderer {
                 .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
         }
         pipeline.push(cmd, &base);
-        let stride = std::mem::size_of::<vk::DrawIndexedIndirectCommand>() as u32;
-        let mut first = 0u32;
-        let count = self.meshes.len() as u32;
-        while first < count {
-            let draws = (count - first).min(self.max_draws_per_call);
-            // SAFETY: the indirect buffer holds one command per mesh, whose
-            // ranges were checked against the index and vertex buffers in `new`.
-            unsafe {
-                self.device.raw().cmd_draw_indexed_indirect(
-                    cmd,
-                    self.draws.raw(),
-                    u64::from(first) * u64::from(stride),
-                    draws,
-                    stride,
-                )
-            };
-            first += draws;
-        }
+        // SAFETY: the index buffer holds `index_count` indices, each below the
+        // vertex count (built by `single_draw_geometry`).
+        unsafe { self.device.raw().cmd_draw_indexed(cmd, self.index_count, 1, 0, 0, 0) };
     }
 
     /// Records the feedback pass into `feedback_target` for a visible view
@@ -491,6 +491,35 @@ mod tests {
         assert!((view.fragment_area(360, 90) - 25.0).abs() < 1e-5);
         let exact = FeedbackView { margin: 0.0, ..view };
         assert!((exact.pixel_ratio(128, 128) - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn single_draw_geometry_tags_vertices_and_copies_shared_ones() {
+        let vertex = |x: f32| Vertex {
+            position: [x, 0.0, 0.0],
+            ..Vertex::default()
+        };
+        let vertices: Vec<Vertex> = (0..6).map(|i| vertex(i as f32)).collect();
+        let mesh = |first_index, index_count, vertex_offset| CityMesh {
+            first_index,
+            index_count,
+            vertex_offset,
+            texture: 0,
+            texture_width: 4,
+            texture_height: 4,
+        };
+        // Mesh 1 shares vertices 2..=4 with mesh 0; mesh 2 is empty.
+        let indices = [0, 1, 2, 2, 3, 4, 0, 1, 2];
+        let meshes = [mesh(0, 6, 0), mesh(6, 3, 2), mesh(9, 0, 0)];
+        let (city, drawn) = single_draw_geometry(&vertices, &indices, &meshes).expect("geometry");
+        assert_eq!(city.len(), 5 + 3, "mesh 1 gets its own copies");
+        assert_eq!(drawn, vec![0, 1, 2, 2, 3, 4, 5, 6, 7]);
+        let ids: Vec<u32> = city.iter().map(|v| v.mesh_id).collect();
+        assert_eq!(ids, vec![0, 0, 0, 0, 0, 1, 1, 1]);
+        // Every drawn triangle has the positions of the original one.
+        let original: Vec<f32> = [0, 1, 2, 2, 3, 4, 2, 3, 4].iter().map(|&i| i as f32).collect();
+        let rebuilt: Vec<f32> = drawn.iter().map(|&i| city[i as usize].position[0]).collect();
+        assert_eq!(rebuilt, original);
     }
 
     #[test]

@@ -122,18 +122,13 @@ fn examine(instance: &Instance, physical: vk::PhysicalDevice) -> DeviceCandidate
             vk::api_version_minor(properties.api_version)
         ));
     }
-    let required: [(&str, u32); 8] = [
+    let required: [(&str, u32); 6] = [
         ("feature sparseBinding", features.sparse_binding),
         ("feature sparseResidencyImage2D", features.sparse_residency_image2_d),
         ("feature shaderResourceResidency", features.shader_resource_residency),
         ("feature fragmentStoresAndAtomics", features.fragment_stores_and_atomics),
         ("feature textureCompressionBC", features.texture_compression_bc),
         ("feature samplerAnisotropy", features.sampler_anisotropy),
-        ("feature multiDrawIndirect", features.multi_draw_indirect),
-        (
-            "feature drawIndirectFirstInstance",
-            features.draw_indirect_first_instance,
-        ),
     ];
     missing.extend(
         required
@@ -251,9 +246,7 @@ impl Device {
             .shader_resource_residency(true)
             .fragment_stores_and_atomics(true)
             .texture_compression_bc(true)
-            .sampler_anisotropy(true)
-            .multi_draw_indirect(true)
-            .draw_indirect_first_instance(true);
+            .sampler_anisotropy(true);
         let mut vk12 = vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true);
         let mut vk13 = vk::PhysicalDeviceVulkan13Features::default()
             .dynamic_rendering(true)

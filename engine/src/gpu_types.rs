@@ -140,7 +140,7 @@ pub const FEEDBACK_ANISOTROPY: f32 = 16.0;
 pub const SAMPLE_ANISOTROPY: f32 = 8.0;
 
 /// `CityDrawPush`: push constants of a city pass, set once per pass (one
-/// indirect draw covers every mesh).
+/// draw covers every mesh).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct CityDrawPush {
@@ -154,8 +154,8 @@ pub struct CityDrawPush {
     pub viewport_light: [f32; 4],
 }
 
-/// `CityMeshInfo`: what the city passes know of one mesh, indexed by mesh
-/// id (the draw's `firstInstance`).
+/// `CityMeshInfo`: what the city passes know of one mesh, indexed by the
+/// mesh id of its vertices ([`CityVertex::mesh_id`]).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
 pub struct CityMeshInfo {
@@ -193,6 +193,42 @@ impl Vertex {
             ),
             (1, Format::R32G32B32_SFLOAT, std::mem::offset_of!(Vertex, normal) as u32),
             (2, Format::R32G32_SFLOAT, std::mem::offset_of!(Vertex, uv) as u32),
+        ]
+    }
+}
+
+/// One vertex of the city passes: a [`Vertex`] tagged with the id of its
+/// mesh, so a single draw covers every mesh (vertex input, not a GLSL struct).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct CityVertex {
+    /// Position in scene units, relative to the scene origin.
+    pub position: [f32; 3],
+    /// Unit normal.
+    pub normal: [f32; 3],
+    /// Texture coordinate; values outside [0, 1] repeat.
+    pub uv: [f32; 2],
+    /// Index of the mesh in the city's mesh table.
+    pub mesh_id: u32,
+}
+
+impl CityVertex {
+    /// Vertex attributes: (location, format, offset).
+    pub fn attributes() -> Vec<(u32, ash::vk::Format, u32)> {
+        use ash::vk::Format;
+        vec![
+            (
+                0,
+                Format::R32G32B32_SFLOAT,
+                std::mem::offset_of!(CityVertex, position) as u32,
+            ),
+            (
+                1,
+                Format::R32G32B32_SFLOAT,
+                std::mem::offset_of!(CityVertex, normal) as u32,
+            ),
+            (2, Format::R32G32_SFLOAT, std::mem::offset_of!(CityVertex, uv) as u32),
+            (3, Format::R32_UINT, std::mem::offset_of!(CityVertex, mesh_id) as u32),
         ]
     }
 }

@@ -40,7 +40,7 @@
 #define SAMPLE_ANISOTROPY 8.0
 
 // Push constants of the city passes (depth pre-pass, feedback and visible):
-// one set per pass, which draws every mesh with one indirect draw.
+// one set per pass, which draws every mesh with one draw.
 struct CityDrawPush {
     mat4 view_proj;
     vec4 feedback;          // x: log2 of visible pixels per feedback pixel (subtracted from the LOD), y: foreground distance,
@@ -50,8 +50,8 @@ struct CityDrawPush {
 };
 
 // What the city passes know of mesh i, at index i of BINDING_CITY_MESHES.
-// The indirect draw of mesh i has firstInstance = i, so gl_InstanceIndex is
-// the mesh id (passed flat to the fragment stage).
+// Every city vertex carries its mesh id (vertex input location 3), passed
+// flat to the fragment stage.
 struct CityMeshInfo {
     uint texture_id;
     uint texture_width;     // full original resolution, level 0
