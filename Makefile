@@ -7,7 +7,7 @@ OUT ?= out/run
 CITY ?=
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
-.PHONY: all setup build run test check fmt clippy doc bench
+.PHONY: all setup build run test check fmt clippy doc embed bench
 
 all: build
 
@@ -35,7 +35,11 @@ clippy: setup
 doc: setup
 	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps
 
-check: fmt clippy doc
+# The engine library alone, as an embedder builds it (no flythrough binary).
+embed:
+	$(CARGO) check -p citystream-engine --no-default-features --lib
+
+check: fmt clippy doc embed
 
 bench: setup
 	$(CARGO) bench --workspace

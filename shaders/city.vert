@@ -2,7 +2,7 @@
 #extension GL_GOOGLE_include_directive : require
 #include "citystream.glsl"
 
-// Vertex stage of both city passes (feedback and visible).
+// Vertex stage of every city pass (depth pre-pass, feedback and visible).
 layout(location = 0) in vec3 in_position;
 layout(location = 1) in vec3 in_normal;
 layout(location = 2) in vec2 in_uv;

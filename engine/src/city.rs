@@ -161,7 +161,8 @@ impl Default for FeedbackView {
     }
 }
 
-/// The two city pipelines, the geometry and the mesh table.
+/// The three city pipelines (depth pre-pass, feedback, visible), the
+/// geometry and the mesh table.
 #[derive(Debug)]
 pub struct CityRenderer {
     device: Arc<Device>,
@@ -221,8 +222,12 @@ fn single_draw_geometry(
     let mut city_vertices = Vec::with_capacity(vertices.len());
     let mut city_indices = Vec::with_capacity(indices.len());
     for (id, mesh) in meshes.iter().enumerate() {
+        let outside =
+            || EngineError::InvalidRequest(format!("mesh {id} refers to indices or vertices outside the city"));
         let first = mesh.first_index as usize;
-        let range = &indices[first..first + mesh.index_count as usize];
+        let range = indices
+            .get(first..first + mesh.index_count as usize)
+            .ok_or_else(outside)?;
         let (Some(&low), Some(&high)) = (range.iter().min(), range.iter().max()) else {
             continue;
         };
@@ -230,10 +235,10 @@ fn single_draw_geometry(
             .ok()
             .filter(|b| b.checked_add(high - low).is_some())
             .ok_or_else(|| EngineError::InvalidRequest("a city of more than 2^32 vertices".into()))?;
-        // In range: `new` checked every index plus offset against the vertex count.
         let start = mesh.vertex_offset as usize + low as usize;
         let end = mesh.vertex_offset as usize + high as usize;
-        city_vertices.extend(vertices[start..=end].iter().map(|v| CityVertex {
+        let used = vertices.get(start..=end).ok_or_else(outside)?;
+        city_vertices.extend(used.iter().map(|v| CityVertex {
             position: v.position,
             normal: v.normal,
             uv: v.uv,
@@ -245,7 +250,7 @@ fn single_draw_geometry(
 }
 
 impl CityRenderer {
-    /// Uploads the geometry and builds both passes over `cache` and `compactor`.
+    /// Uploads the geometry and builds the passes over `cache` and `compactor`.
     pub fn new(
         device: &Arc<Device>,
         commands: &mut CommandContext,
@@ -267,13 +272,16 @@ impl CityRenderer {
         }
         for (m, mesh) in meshes.iter().enumerate() {
             let end = u64::from(mesh.first_index) + u64::from(mesh.index_count);
+            // Whole triangles only: in the single draw a stray index would
+            // shift every later mesh's triangles.
             let in_range = end <= indices.len() as u64
+                && mesh.index_count % 3 == 0
                 && indices[mesh.first_index as usize..end as usize]
                     .iter()
                     .all(|&i| u64::from(i) + u64::from(mesh.vertex_offset) < vertices.len() as u64);
             if !in_range || cache.texture_data(mesh.texture).is_none() {
                 return Err(EngineError::InvalidRequest(format!(
-                    "mesh {m} refers to indices, vertices or texture {} outside the city",
+                    "mesh {m} has a partial triangle or refers to indices, vertices or texture {} outside the city",
                     mesh.texture
                 )));
             }

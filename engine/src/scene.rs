@@ -1,6 +1,6 @@
 //! Fully resident textured-mesh rendering: vertex/index buffers, one RGBA8
-//! texture array, one draw per mesh. The streaming renderer builds on the
-//! same pipeline layout; this path also renders references and tests.
+//! texture array, one draw per mesh: the procedural placeholder city and
+//! tests. The streaming city passes are in [`crate::city`].
 
 use std::sync::Arc;
 

@@ -88,6 +88,7 @@ fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
         out: atlased.clone(),
         region: 512.0,
         atlas_extent: 512,
+        quiet: true,
     })?;
     let before = Dataset::open(&original)?;
     let after = Dataset::open(&atlased)?;

@@ -37,6 +37,9 @@ pub struct AtlasArgs {
     /// Atlas side in texels (a power of two, 4 to 16384).
     #[arg(long, default_value_t = 512)]
     pub atlas_extent: u32,
+    /// Do not print the summary.
+    #[arg(long)]
+    pub quiet: bool,
 }
 
 /// Where a texture went in an atlas.
@@ -276,6 +279,9 @@ pub fn run(args: &AtlasArgs) -> Result<()> {
     } else {
         0.0
     };
+    if args.quiet {
+        return Ok(());
+    }
     print_stdout(&format!(
         "atlas: {} textures -> {} atlases of {extent}x{extent} (fill ratio {:.1}%) + {standalone} textures kept as they are = {} textures; {:.1} MB pack, {:.2} s\n",
         count,

@@ -38,10 +38,15 @@ pub fn source_dir(dir: &Path) -> PathBuf {
 
 /// Creates the default city in `dir` unless a dataset is already there.
 /// Returns whether it generated one. Progress goes to stderr unless `quiet`.
+///
+/// Each dataset is built in a private directory next to its destination and
+/// renamed into place when complete, so runs started at the same time never
+/// write into one directory or read a half-written city.
 pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
     if is_dataset(dir) {
         return Ok(false);
     }
+    let started = std::time::Instant::now();
     let source = source_dir(dir);
     if !quiet {
         eprintln!(
@@ -52,23 +57,145 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
         );
     }
     if !is_dataset(&source) {
-        crate::gen::run(&GenArgs {
-            preset: Preset::Small,
-            seed: 1,
-            out: source.clone(),
-            format: FormatArg::Bc1,
-            max_extent: 512,
-            textures_from: None,
-            quiet,
-        })
-        .with_context(|| format!("generating the default city's textures into {}", source.display()))?;
+        build_then_move(&source, |partial| {
+            crate::gen::run(&GenArgs {
+                preset: Preset::Small,
+                seed: 1,
+                out: partial.to_path_buf(),
+                format: FormatArg::Bc1,
+                max_extent: 512,
+                textures_from: None,
+                // The summaries would name the private build directories.
+                quiet: true,
+            })
+            .with_context(|| format!("generating the default city's textures for {}", source.display()))
+        })?;
     }
-    crate::atlas::run(&AtlasArgs {
-        input: source,
-        out: dir.to_path_buf(),
-        region: 512.0,
-        atlas_extent: DEFAULT_CITY_ATLAS_EXTENT,
-    })
-    .with_context(|| format!("packing the default city's atlases into {}", dir.display()))?;
+    build_then_move(dir, |partial| {
+        crate::atlas::run(&AtlasArgs {
+            input: source.clone(),
+            out: partial.to_path_buf(),
+            region: 512.0,
+            atlas_extent: DEFAULT_CITY_ATLAS_EXTENT,
+            quiet: true,
+        })
+        .with_context(|| format!("packing the default city's atlases for {}", dir.display()))
+    })?;
+    if !quiet {
+        eprintln!(
+            "default city ready in {:.1} s: {} (`citystream info {}` describes it)",
+            started.elapsed().as_secs_f64(),
+            dir.display(),
+            dir.display()
+        );
+    }
     Ok(true)
+}
+
+/// Runs `build` into a private directory next to `dir`, then renames the
+/// result to `dir`. A dataset another run completed meanwhile is kept; a
+/// `dir` that holds files but no dataset is an error, never overwritten.
+fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    let name = dir
+        .file_name()
+        .with_context(|| format!("{} does not name a directory", dir.display()))?
+        .to_string_lossy()
+        .into_owned();
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+    }
+    let partial = dir.with_file_name(format!(".{name}.partial-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&partial);
+    if let Err(e) = build(&partial) {
+        let _ = std::fs::remove_dir_all(&partial);
+        return Err(e);
+    }
+    if is_dataset(dir) {
+        // Another run finished first; its dataset is the same, byte for byte.
+        let _ = std::fs::remove_dir_all(&partial);
+        return Ok(());
+    }
+    // An empty directory (for example one a user created) may be replaced.
+    if dir.is_dir() && std::fs::read_dir(dir).is_ok_and(|mut entries| entries.next().is_none()) {
+        let _ = std::fs::remove_dir(dir);
+    }
+    match std::fs::rename(&partial, dir) {
+        Ok(()) => Ok(()),
+        Err(_) if is_dataset(dir) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            Ok(())
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            Err(e).with_context(|| {
+                format!(
+                    "moving the new dataset to {}: it exists but holds no complete dataset; \
+                     remove it or name another dataset with --dataset",
+                    dir.display()
+                )
+            })
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("citystream-default-city-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    #[test]
+    fn a_finished_build_is_moved_into_place_and_a_failed_one_leaves_nothing() {
+        let root = scratch("move");
+        let dir = root.join("city");
+        let fail = build_then_move(&dir, |partial| {
+            std::fs::create_dir_all(partial)?;
+            std::fs::write(partial.join(SCENE_FILE), b"half")?;
+            anyhow::bail!("interrupted")
+        });
+        assert!(fail.is_err());
+        assert!(!dir.exists());
+        assert_eq!(
+            std::fs::read_dir(&root).expect("root").count(),
+            0,
+            "no partial directory left"
+        );
+
+        build_then_move(&dir, |partial| {
+            std::fs::create_dir_all(partial)?;
+            std::fs::write(partial.join(SCENE_FILE), b"scene")?;
+            std::fs::write(partial.join(CHECKSUM_FILE), b"crc")?;
+            Ok(())
+        })
+        .expect("moved");
+        assert!(is_dataset(&dir));
+        let _ = std::fs::remove_dir_all(&root);
+    }
+
+    #[test]
+    fn files_that_are_not_a_dataset_are_never_replaced() {
+        let root = scratch("keep");
+        let dir = root.join("city");
+        std::fs::create_dir_all(&dir).expect("dir");
+        std::fs::write(dir.join("notes.txt"), b"mine").expect("file");
+        let err = build_then_move(&dir, |partial| {
+            std::fs::create_dir_all(partial)?;
+            std::fs::write(partial.join(SCENE_FILE), b"scene")?;
+            std::fs::write(partial.join(CHECKSUM_FILE), b"crc")?;
+            Ok(())
+        })
+        .expect_err("refused");
+        assert!(format!("{err:#}").contains("holds no complete dataset"), "{err:#}");
+        assert_eq!(std::fs::read(dir.join("notes.txt")).expect("kept"), b"mine");
+        assert_eq!(
+            std::fs::read_dir(&root).expect("root").count(),
+            1,
+            "no partial directory left"
+        );
+        let _ = std::fs::remove_dir_all(&root);
+    }
 }

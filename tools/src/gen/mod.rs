@@ -85,7 +85,7 @@ pub struct GenArgs {
     /// recursively), resized to powers of two. Each facade picks one image; meshes share them.
     #[arg(long)]
     pub textures_from: Option<PathBuf>,
-    /// Do not print progress.
+    /// Do not print progress or the summary.
     #[arg(long)]
     pub quiet: bool,
 }
@@ -106,6 +106,9 @@ pub fn run(args: &GenArgs) -> Result<()> {
     let mut params = args.preset.params();
     params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);
     let summary = generate(args, params, format)?;
+    if args.quiet {
+        return Ok(());
+    }
     let seconds = start.elapsed().as_secs_f64();
     let texture_bytes = summary.pack_bytes as f64;
     let report = format!(
