@@ -54,7 +54,7 @@ enum Clock {
     about = "Stream and render a textured city headless along a camera path",
     long_about = "Renders a city off-screen (no window) along a camera path and writes every N-th \
                   frame as PNG plus summary.json.\n\n\
-                  With --dataset it runs the adaptive streaming pipeline: a feedback pass tells \
+                  It runs the adaptive streaming pipeline on a city dataset: a feedback pass tells \
                   which mip each visible mesh needs, a loading task reads exactly those mips, \
                   the sparse texture cache binds memory and copies them, and the frame blends \
                   sampled colour with the City Colormap by mip level. Without --dataset it \
@@ -79,7 +79,7 @@ struct Args {
     #[arg(long, default_value = "standard")]
     path: String,
     /// Number of frames to render (default: as many as the path lasts; 240
-    /// without a dataset).
+    /// with --placeholder).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     frames: Option<u32>,
     /// Stop after this many seconds of camera time (default: the path's length).
