@@ -35,9 +35,9 @@ clippy: setup
 doc: setup
 	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps
 
-# The engine library alone, as an embedder builds it (no flythrough binary).
+# The engine library alone, as an embedder builds it (the flythrough lives in tools/).
 embed:
-	$(CARGO) check -p citystream-engine --no-default-features --lib
+	$(CARGO) check -p citystream-engine --lib
 
 check: fmt clippy doc embed
 

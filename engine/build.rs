@@ -1,6 +1,8 @@
 //! Compiles every GLSL shader in `shaders/` to SPIR-V (Vulkan 1.2 target)
-//! with `glslangValidator` and checks the result with `spirv-val`. A compile
-//! error fails the build with glslang's message and the file name.
+//! with `glslangValidator` and checks the result with `spirv-val`, and the
+//! example host's own shaders (`examples/embed_host/shaders/`, prefixed
+//! `embed_host_`), which include citystream's GLSL as any host's would. A
+//! compile error fails the build with glslang's message and the file name.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -29,10 +31,28 @@ fn main() {
         println!("cargo:rerun-if-changed={}", entry.path().display());
     }
 
+    let example_dir = manifest.join("examples/embed_host/shaders");
+    println!("cargo:rerun-if-changed={}", example_dir.display());
+    let mut example_sources: Vec<PathBuf> = std::fs::read_dir(&example_dir)
+        .into_iter()
+        .flatten()
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| STAGES.contains(&e))
+        })
+        .collect();
+    example_sources.sort();
+
     let mut failures = Vec::new();
-    for source in &sources {
+    let all = sources
+        .iter()
+        .map(|s| (s, ""))
+        .chain(example_sources.iter().map(|s| (s, "embed_host_")));
+    for (source, prefix) in all {
         println!("cargo:rerun-if-changed={}", source.display());
-        if let Err(message) = compile(source, &include_dir, &out_dir) {
+        if let Err(message) = compile(source, &include_dir, &out_dir, prefix) {
             failures.push(message);
         }
     }
@@ -48,16 +68,16 @@ fn main() {
     }
 }
 
-fn spv_name(source: &Path) -> String {
+fn spv_name(source: &Path, prefix: &str) -> String {
     let file = source
         .file_name()
         .and_then(|n| n.to_str())
         .expect("shader names are UTF-8");
-    format!("{}.spv", file.replace('.', "_"))
+    format!("{prefix}{}.spv", file.replace('.', "_"))
 }
 
-fn compile(source: &Path, include_dir: &Path, out_dir: &Path) -> Result<(), String> {
-    let output_path = out_dir.join(spv_name(source));
+fn compile(source: &Path, include_dir: &Path, out_dir: &Path, prefix: &str) -> Result<(), String> {
+    let output_path = out_dir.join(spv_name(source, prefix));
     let output = Command::new("glslangValidator")
         .arg("--target-env")
         .arg("vulkan1.2")

@@ -36,6 +36,7 @@ fn main() -> Result<()> {
     let device = Arc::new(Device::new(&DeviceOptions {
         instance: InstanceOptions {
             validation: false,
+            synchronization: false,
             app_name: "feedback overhead bench".into(),
         },
         device_name: None,
@@ -100,14 +101,14 @@ fn main() -> Result<()> {
             renderer.record_feedback(cmd, &feedback_target, camera, &view, HEIGHT)?;
             timer.end(cmd, 1);
             timer.begin(cmd, 2);
-            compactor.record_compact(cmd, 1200, true);
+            compactor.record_compact(cmd, 1200, 0)?;
             timer.end(cmd, 2);
         }
         renderer.record_visible(cmd, &target, camera, 1.0, true);
         timer.end(cmd, 0);
         commands.submit_and_wait(&[])?;
         if with_feedback {
-            compactor.read_back(&mut commands)?;
+            compactor.read_back(0)?;
         }
         let cpu = start.elapsed().as_secs_f64() * 1000.0;
         let gpu = timer.read_ms(0)?.unwrap_or(f64::NAN);
@@ -188,12 +189,12 @@ fn main() -> Result<()> {
         compactor.upload_mesh_feedback(&mut commands, &values)?;
         let cmd = commands.begin()?;
         timer.begin(cmd, 0);
-        compactor.record_compact(cmd, 1200, true);
+        compactor.record_compact(cmd, 1200, 0)?;
         timer.end(cmd, 0);
         commands.submit_and_wait(&[])?;
         gpu.push(timer.read_ms(0)?.unwrap_or(f64::NAN));
         let start = Instant::now();
-        let entries = compactor.read_back(&mut commands)?;
+        let entries = compactor.read_back(0)?;
         readback.push(start.elapsed().as_secs_f64() * 1000.0);
         std::hint::black_box(entries);
     }

@@ -10,8 +10,9 @@ use citystream_cache::{BindError, BindOp, BindReport, SparseBinder};
 
 use crate::commands::{SemaphoreWait, TimelineSemaphore};
 use crate::device::Device;
+use crate::error::EngineError;
 use crate::error::Result;
-use crate::sparse::{submit_bind_sparse, SparseBlockBind, SparseImage, SparseMemoryChunk};
+use crate::sparse::{submit_bind_sparse_after, SparseBlockBind, SparseImage, SparseMemoryChunk};
 
 /// Binds cache blocks into sparse images from pooled memory chunks.
 ///
@@ -117,8 +118,23 @@ impl VulkanBinder {
     }
 }
 
-impl SparseBinder for VulkanBinder {
-    fn submit(&mut self, batch: &[BindOp]) -> std::result::Result<BindReport, BindError> {
+impl VulkanBinder {
+    /// Submits `batch` as one `vkQueueBindSparse` that starts on the GPU
+    /// only after the previous batch (so memory an earlier unbind freed is
+    /// never bound twice at once) and after `frames` (a frame timeline
+    /// value) when given: unbinds must not race frames still sampling.
+    pub fn submit_after(&mut self, batch: &[BindOp], frames: Option<SemaphoreWait>) -> Result<BindReport> {
+        self.submit_ops(batch, frames).map_err(|e| match e {
+            BindError::Rejected { reason, .. } => EngineError::InvalidRequest(format!("sparse bind failed: {reason}")),
+            other => EngineError::InvalidRequest(format!("sparse bind failed: {other}")),
+        })
+    }
+
+    fn submit_ops(
+        &mut self,
+        batch: &[BindOp],
+        frames: Option<SemaphoreWait>,
+    ) -> std::result::Result<BindReport, BindError> {
         if batch.is_empty() {
             return Ok(BindReport::default());
         }
@@ -137,11 +153,19 @@ impl SparseBinder for VulkanBinder {
         }
         let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
+        let mut waits: Vec<(vk::Semaphore, u64)> = Vec::with_capacity(2);
+        if self.signalled > 0 {
+            waits.push((self.timeline.raw(), self.signalled));
+        }
+        if let Some(frames) = frames.filter(|f| f.value > 0) {
+            waits.push((frames.semaphore, frames.value));
+        }
         let started = Instant::now();
         let value = self.signalled + 1;
-        submit_bind_sparse(
+        submit_bind_sparse_after(
             &self.device,
             &slices,
+            &waits,
             &[],
             Some((self.timeline.raw(), value)),
             vk::Fence::null(),
@@ -156,6 +180,12 @@ impl SparseBinder for VulkanBinder {
             entries: entries.iter().map(|(_, e)| e.len() as u32).sum(),
             seconds: started.elapsed().as_secs_f64(),
         })
+    }
+}
+
+impl SparseBinder for VulkanBinder {
+    fn submit(&mut self, batch: &[BindOp]) -> std::result::Result<BindReport, BindError> {
+        self.submit_ops(batch, None)
     }
 }
 

@@ -129,6 +129,16 @@ impl SemaphoreWait {
     }
 }
 
+/// A semaphore a submission signals: a binary one, or a timeline one with
+/// the value it is set to.
+#[derive(Clone, Copy, Debug)]
+pub struct SemaphoreSignal {
+    /// The semaphore.
+    pub semaphore: vk::Semaphore,
+    /// The value for a timeline semaphore; ignored for binary ones.
+    pub value: u64,
+}
+
 /// A timeline semaphore owned by Rust: bind batches signal increasing
 /// values, and copy submissions wait for the value of the batch they need.
 pub struct TimelineSemaphore {
@@ -186,6 +196,13 @@ impl Drop for TimelineSemaphore {
         // SAFETY: nothing pending references the semaphore after the idle wait.
         unsafe { self.device.raw.destroy_semaphore(self.raw, None) };
     }
+}
+
+/// Records `vkCmdFillBuffer` of the whole `buffer` with `value` (outside
+/// rendering; the buffer needs `TRANSFER_DST`).
+pub fn record_fill(device: &Device, cmd: vk::CommandBuffer, buffer: vk::Buffer, value: u32) {
+    // SAFETY: the caller passes a recording command buffer and a live buffer of this device.
+    unsafe { device.raw.cmd_fill_buffer(cmd, buffer, 0, vk::WHOLE_SIZE, value) };
 }
 
 /// A command pool with one primary command buffer and a fence: record,
@@ -263,7 +280,7 @@ impl CommandContext {
     }
 
     /// Ends recording and submits, waiting on `waits` and signalling `signal`.
-    pub fn submit(&mut self, waits: &[SemaphoreWait], signal: &[vk::Semaphore]) -> Result<()> {
+    pub fn submit(&mut self, waits: &[SemaphoreWait], signal: &[SemaphoreSignal]) -> Result<()> {
         // SAFETY: the buffer is in the recording state (begin was called).
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
         let wait_infos: Vec<_> = waits
@@ -277,9 +294,10 @@ impl CommandContext {
             .collect();
         let signal_infos: Vec<_> = signal
             .iter()
-            .map(|&s| {
+            .map(|s| {
                 vk::SemaphoreSubmitInfo::default()
-                    .semaphore(s)
+                    .semaphore(s.semaphore)
+                    .value(s.value)
                     .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
             })
             .collect();

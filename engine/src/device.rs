@@ -7,7 +7,7 @@
 //! (dynamic rendering, synchronization2).
 
 use std::ffi::CStr;
-use std::sync::{Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
@@ -62,13 +62,145 @@ pub struct Device {
     pub(crate) physical: vk::PhysicalDevice,
     queue: Mutex<vk::Queue>,
     queue_family: u32,
-    allocator: Mutex<Option<Allocator>>,
+    allocator: AllocatorSlot,
     debug_utils: Option<ash::ext::debug_utils::Device>,
     properties: vk::PhysicalDeviceProperties,
     name: String,
     sparse: SparseSupport,
-    // Dropped last: destroyed after the logical device in `Drop`.
-    instance: Instance,
+    instance_fns: ash::Instance,
+    log: Arc<ValidationLog>,
+    /// Whether `Drop` destroys the logical device (false for a host's device).
+    owns_device: bool,
+    // Dropped last: destroyed after the logical device in `Drop`; `None`
+    // for a host's instance.
+    instance: Option<Instance>,
+}
+
+/// The allocator the engine's resources come from.
+enum AllocatorSlot {
+    /// The engine's own, taken out before the device is destroyed.
+    Own(Box<Mutex<Option<Allocator>>>),
+    /// A host's allocator, shared with the host.
+    Shared(Arc<Mutex<Allocator>>),
+}
+
+/// Which allocator a device built from a host's handles uses.
+pub enum HostAllocator {
+    /// The engine creates its own gpu-allocator on the host's device.
+    Create,
+    /// The engine allocates from the host's gpu-allocator.
+    Shared(Arc<Mutex<Allocator>>),
+}
+
+impl std::fmt::Debug for HostAllocator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            HostAllocator::Create => "HostAllocator::Create",
+            HostAllocator::Shared(_) => "HostAllocator::Shared",
+        })
+    }
+}
+
+/// A host renderer's own Vulkan objects, for [`Device::from_host`].
+pub struct HostDevice {
+    /// The loader entry the host uses.
+    pub entry: ash::Entry,
+    /// The host's instance (Vulkan 1.3).
+    pub instance: vk::Instance,
+    /// The physical device the host chose.
+    pub physical_device: vk::PhysicalDevice,
+    /// The host's logical device, created with at least [`required_features`].
+    pub device: vk::Device,
+    /// A queue of `queue_family` the engine submits to (binds, uploads).
+    pub queue: vk::Queue,
+    /// Its family: GRAPHICS, COMPUTE and SPARSE_BINDING (see [`DeviceRequirements`]).
+    pub queue_family: u32,
+    /// Where the engine's memory comes from.
+    pub allocator: HostAllocator,
+    /// Whether the instance has `VK_EXT_debug_utils` enabled (the engine
+    /// then names its objects).
+    pub debug_utils: bool,
+}
+
+impl std::fmt::Debug for HostDevice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("HostDevice")
+            .field("instance", &self.instance)
+            .field("physical_device", &self.physical_device)
+            .field("device", &self.device)
+            .field("queue_family", &self.queue_family)
+            .field("allocator", &self.allocator)
+            .finish()
+    }
+}
+
+/// What a host must enable on its device for the engine.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DeviceRequirements {
+    /// Minimum Vulkan API version of instance and device.
+    pub api_version: u32,
+    /// Features, by their Vulkan names (core 1.0, 1.2 and 1.3 structs).
+    pub features: Vec<&'static str>,
+    /// Device extensions beyond Vulkan 1.3 core (none today).
+    pub extensions: Vec<&'static CStr>,
+    /// Flags the engine's queue family must have.
+    pub queue_flags: vk::QueueFlags,
+}
+
+/// The features, extensions and queue capabilities a host's device needs.
+pub fn device_requirements() -> DeviceRequirements {
+    DeviceRequirements {
+        api_version: vk::API_VERSION_1_3,
+        features: vec![
+            "sparseBinding",
+            "sparseResidencyImage2D",
+            "shaderResourceResidency",
+            "fragmentStoresAndAtomics",
+            "textureCompressionBC",
+            "samplerAnisotropy",
+            "timelineSemaphore",
+            "dynamicRendering",
+            "synchronization2",
+        ],
+        extensions: Vec::new(),
+        queue_flags: vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE | vk::QueueFlags::SPARSE_BINDING,
+    }
+}
+
+/// The feature structs of [`device_requirements`], ready to merge into a
+/// host's own and chain into `VkDeviceCreateInfo`.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RequiredFeatures {
+    /// Core 1.0 features.
+    pub core: vk::PhysicalDeviceFeatures,
+    /// Vulkan 1.2 features (its `p_next` is null).
+    pub vulkan12: vk::PhysicalDeviceVulkan12Features<'static>,
+    /// Vulkan 1.3 features (its `p_next` is null).
+    pub vulkan13: vk::PhysicalDeviceVulkan13Features<'static>,
+}
+
+/// The features the engine needs, as Vulkan structs.
+pub fn required_features() -> RequiredFeatures {
+    RequiredFeatures {
+        core: vk::PhysicalDeviceFeatures::default()
+            .sparse_binding(true)
+            .sparse_residency_image2_d(true)
+            .shader_resource_residency(true)
+            .fragment_stores_and_atomics(true)
+            .texture_compression_bc(true)
+            .sampler_anisotropy(true),
+        vulkan12: vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true),
+        vulkan13: vk::PhysicalDeviceVulkan13Features::default()
+            .dynamic_rendering(true)
+            .synchronization2(true),
+    }
+}
+
+/// What `physical` lacks for the engine (empty when usable), and the first
+/// queue family with the flags it needs.
+pub fn check_physical_device(instance: &ash::Instance, physical: vk::PhysicalDevice) -> (Vec<String>, Option<u32>) {
+    let candidate = examine_raw(instance, physical);
+    (candidate.missing, candidate.queue_family)
 }
 
 impl std::fmt::Debug for Device {
@@ -98,7 +230,10 @@ pub fn list_devices(instance: &Instance) -> Result<Vec<DeviceCandidate>> {
 }
 
 fn examine(instance: &Instance, physical: vk::PhysicalDevice) -> DeviceCandidate {
-    let raw = &instance.raw;
+    examine_raw(&instance.raw, physical)
+}
+
+fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice) -> DeviceCandidate {
     // SAFETY: `physical` came from this instance.
     let properties = unsafe { raw.get_physical_device_properties(physical) };
     let name = properties
@@ -240,20 +375,12 @@ impl Device {
         let queue_infos = [vk::DeviceQueueCreateInfo::default()
             .queue_family_index(queue_family)
             .queue_priorities(&priorities)];
-        let features = vk::PhysicalDeviceFeatures::default()
-            .sparse_binding(true)
-            .sparse_residency_image2_d(true)
-            .shader_resource_residency(true)
-            .fragment_stores_and_atomics(true)
-            .texture_compression_bc(true)
-            .sampler_anisotropy(true);
-        let mut vk12 = vk::PhysicalDeviceVulkan12Features::default().timeline_semaphore(true);
-        let mut vk13 = vk::PhysicalDeviceVulkan13Features::default()
-            .dynamic_rendering(true)
-            .synchronization2(true);
+        let required = required_features();
+        let mut vk12 = required.vulkan12;
+        let mut vk13 = required.vulkan13;
         let create_info = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_infos)
-            .enabled_features(&features)
+            .enabled_features(&required.core)
             .push_next(&mut vk12)
             .push_next(&mut vk13);
         // SAFETY: physical came from this instance; create_info points at live data.
@@ -263,23 +390,12 @@ impl Device {
         // SAFETY: `physical` came from this instance.
         let properties = unsafe { instance.raw.get_physical_device_properties(physical) };
 
-        let allocator = Allocator::new(&AllocatorCreateDesc {
-            instance: instance.raw.clone(),
-            device: raw.clone(),
-            physical_device: physical,
-            debug_settings: Default::default(),
-            buffer_device_address: false,
-            allocation_sizes: Default::default(),
-        });
-        let allocator = match allocator {
+        let allocator = match create_allocator(&instance.raw, &raw, physical) {
             Ok(a) => a,
-            Err(source) => {
+            Err(e) => {
                 // SAFETY: nothing was created from the device yet.
                 unsafe { raw.destroy_device(None) };
-                return Err(EngineError::Allocation {
-                    name: "allocator".to_owned(),
-                    source,
-                });
+                return Err(e);
             }
         };
         let debug_utils = instance
@@ -287,7 +403,7 @@ impl Device {
             .then(|| ash::ext::debug_utils::Device::new(&instance.raw, &raw));
         let sparse = SparseSupport {
             non_resident_strict: properties.sparse_properties.residency_non_resident_strict == vk::TRUE,
-            shader_min_lod: chosen_feature_min_lod(&instance, physical),
+            shader_min_lod: chosen_feature_min_lod(&instance.raw, physical),
             address_space_size: properties.limits.sparse_address_space_size,
         };
         Ok(Self {
@@ -295,12 +411,97 @@ impl Device {
             physical,
             queue: Mutex::new(queue),
             queue_family,
-            allocator: Mutex::new(Some(allocator)),
+            allocator: AllocatorSlot::Own(Box::new(Mutex::new(Some(allocator)))),
             debug_utils,
             properties,
             name: chosen.name,
             sparse,
-            instance,
+            instance_fns: instance.raw.clone(),
+            log: Arc::clone(instance.validation_log()),
+            owns_device: true,
+            instance: Some(instance),
+        })
+    }
+
+    /// A device over a host renderer's own instance, device and queue: the
+    /// seam for embedding the engine. The engine checks that the physical
+    /// device has what it needs ([`device_requirements`]) and that
+    /// `queue_family` has the queue flags, and never destroys the host's
+    /// objects; the host destroys its device only after dropping this
+    /// `Device` and everything built on it. Validation messages go to the
+    /// host's own messenger; [`Device::validation_log`] stays empty.
+    ///
+    /// # Safety
+    /// Every handle must be valid and come from `entry` and `instance`;
+    /// `device` must have been created on `physical_device` with every
+    /// feature of [`required_features`] enabled and with a queue of
+    /// `queue_family`, and `queue` must be that queue. The host must not
+    /// submit to `queue` concurrently with the engine except while holding
+    /// [`Device::queue`].
+    pub unsafe fn from_host(host: HostDevice) -> Result<Self> {
+        // SAFETY: the caller guarantees the handles are valid and belong together.
+        let instance_fns = unsafe { ash::Instance::load(host.entry.static_fn(), host.instance) };
+        // SAFETY: as above.
+        let raw = unsafe { ash::Device::load(instance_fns.fp_v1_0(), host.device) };
+        let physical = host.physical_device;
+        // SAFETY: `physical` came from this instance (the caller's guarantee).
+        let properties = unsafe { instance_fns.get_physical_device_properties(physical) };
+        let name = properties
+            .device_name_as_c_str()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|_| "<unnamed device>".to_owned());
+        let candidate = examine_raw(&instance_fns, physical);
+        if let Some(first) = candidate.missing.first() {
+            return Err(EngineError::MissingFeature {
+                device: name,
+                feature: first.clone(),
+            });
+        }
+        // SAFETY: `physical` came from this instance.
+        let families = unsafe { instance_fns.get_physical_device_queue_family_properties(physical) };
+        let wanted = device_requirements().queue_flags;
+        if !families
+            .get(host.queue_family as usize)
+            .is_some_and(|f| f.queue_flags.contains(wanted))
+        {
+            return Err(EngineError::MissingFeature {
+                device: name,
+                feature: format!(
+                    "queue family {} with GRAPHICS, COMPUTE and SPARSE_BINDING (the host's queue)",
+                    host.queue_family
+                ),
+            });
+        }
+        let allocator = match host.allocator {
+            HostAllocator::Create => AllocatorSlot::Own(Box::new(Mutex::new(Some(create_allocator(
+                &instance_fns,
+                &raw,
+                physical,
+            )?)))),
+            HostAllocator::Shared(shared) => AllocatorSlot::Shared(shared),
+        };
+        let debug_utils = host
+            .debug_utils
+            .then(|| ash::ext::debug_utils::Device::new(&instance_fns, &raw));
+        let sparse = SparseSupport {
+            non_resident_strict: properties.sparse_properties.residency_non_resident_strict == vk::TRUE,
+            shader_min_lod: chosen_feature_min_lod(&instance_fns, physical),
+            address_space_size: properties.limits.sparse_address_space_size,
+        };
+        Ok(Self {
+            raw,
+            physical,
+            queue: Mutex::new(host.queue),
+            queue_family: host.queue_family,
+            allocator,
+            debug_utils,
+            properties,
+            name,
+            sparse,
+            instance_fns,
+            log: Arc::new(ValidationLog::default()),
+            owns_device: false,
+            instance: None,
         })
     }
 
@@ -309,9 +510,19 @@ impl Device {
         &self.raw
     }
 
-    /// The instance this device was created from.
-    pub fn instance(&self) -> &Instance {
-        &self.instance
+    /// The instance the engine created, or `None` for a host's device.
+    pub fn instance(&self) -> Option<&Instance> {
+        self.instance.as_ref()
+    }
+
+    /// The instance's functions (the engine's or the host's instance).
+    pub fn instance_fns(&self) -> &ash::Instance {
+        &self.instance_fns
+    }
+
+    /// Whether the engine created (and destroys) this logical device.
+    pub fn owns_device(&self) -> bool {
+        self.owns_device
     }
 
     /// The chosen physical device.
@@ -344,14 +555,18 @@ impl Device {
         self.queue.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Locks the allocator.
-    pub(crate) fn allocator(&self) -> MutexGuard<'_, Option<Allocator>> {
-        self.allocator.lock().unwrap_or_else(|e| e.into_inner())
+    /// Runs `f` with the allocator; `None` once the device is shutting down.
+    pub(crate) fn with_allocator<R>(&self, f: impl FnOnce(&mut Allocator) -> R) -> Option<R> {
+        match &self.allocator {
+            AllocatorSlot::Own(own) => own.lock().unwrap_or_else(|e| e.into_inner()).as_mut().map(f),
+            AllocatorSlot::Shared(shared) => Some(f(&mut shared.lock().unwrap_or_else(|e| e.into_inner()))),
+        }
     }
 
-    /// The validation messages collected so far.
-    pub fn validation_log(&self) -> &std::sync::Arc<ValidationLog> {
-        self.instance.validation_log()
+    /// The validation messages collected so far (always empty for a host's
+    /// device: its messages go to the host's messenger).
+    pub fn validation_log(&self) -> &Arc<ValidationLog> {
+        &self.log
     }
 
     /// Waits until the device is idle.
@@ -378,7 +593,7 @@ impl Device {
     /// Memory type bits helper: first type index allowed by `bits` with `flags`.
     pub fn memory_type_index(&self, bits: u32, flags: vk::MemoryPropertyFlags) -> Option<u32> {
         // SAFETY: physical belongs to the instance.
-        let props = unsafe { self.instance.raw.get_physical_device_memory_properties(self.physical) };
+        let props = unsafe { self.instance_fns.get_physical_device_memory_properties(self.physical) };
         (0..props.memory_type_count)
             .find(|&i| bits & (1 << i) != 0 && props.memory_types[i as usize].property_flags.contains(flags))
     }
@@ -387,8 +602,7 @@ impl Device {
     pub fn format_properties(&self, format: vk::Format) -> vk::FormatProperties {
         // SAFETY: physical belongs to the instance.
         unsafe {
-            self.instance
-                .raw
+            self.instance_fns
                 .get_physical_device_format_properties(self.physical, format)
         }
     }
@@ -419,21 +633,44 @@ impl Device {
     }
 }
 
-fn chosen_feature_min_lod(instance: &Instance, physical: vk::PhysicalDevice) -> bool {
+fn chosen_feature_min_lod(instance: &ash::Instance, physical: vk::PhysicalDevice) -> bool {
     // SAFETY: physical belongs to the instance.
-    let features = unsafe { instance.raw.get_physical_device_features(physical) };
+    let features = unsafe { instance.get_physical_device_features(physical) };
     features.shader_resource_min_lod == vk::TRUE
+}
+
+fn create_allocator(instance: &ash::Instance, device: &ash::Device, physical: vk::PhysicalDevice) -> Result<Allocator> {
+    Allocator::new(&AllocatorCreateDesc {
+        instance: instance.clone(),
+        device: device.clone(),
+        physical_device: physical,
+        debug_settings: Default::default(),
+        buffer_device_address: false,
+        allocation_sizes: Default::default(),
+    })
+    .map_err(|source| EngineError::Allocation {
+        name: "allocator".to_owned(),
+        source,
+    })
 }
 
 impl Drop for Device {
     fn drop(&mut self) {
         // SAFETY: waiting for idle before destruction; errors (device lost)
-        // leave nothing better to do than destroy anyway.
-        let _ = unsafe { self.raw.device_wait_idle() };
+        // leave nothing better to do than destroy anyway. The queue lock
+        // keeps a host's submissions out meanwhile.
+        let _ = {
+            let _queue = self.queue();
+            unsafe { self.raw.device_wait_idle() }
+        };
         // The allocator frees its memory blocks, so it must go before the device.
-        self.allocator().take();
-        // SAFETY: every resource holds an Arc<Device>, so none is left alive.
-        unsafe { self.raw.destroy_device(None) };
+        if let AllocatorSlot::Own(own) = &self.allocator {
+            own.lock().unwrap_or_else(|e| e.into_inner()).take();
+        }
+        if self.owns_device {
+            // SAFETY: every resource holds an Arc<Device>, so none is left alive.
+            unsafe { self.raw.destroy_device(None) };
+        }
     }
 }
 

@@ -29,6 +29,19 @@ pub enum EngineError {
         name: String,
         source: gpu_allocator::AllocationError,
     },
+    /// The device was lost (driver reset, GPU fault): nothing on it can be used again.
+    #[error("the Vulkan device was lost during {call}")]
+    DeviceLost { call: &'static str },
+    /// Device (or host) memory ran out.
+    #[error("out of {} memory for {what}", if *host { "host" } else { "device" })]
+    OutOfMemory { what: String, host: bool },
+    /// A texture format the device or the cache cannot store.
+    #[error("texture {texture}: format {format} is not supported: {reason}")]
+    UnsupportedFormat {
+        texture: u32,
+        format: String,
+        reason: String,
+    },
     /// A request the engine cannot carry out as asked (bad size, range, format).
     #[error("{0}")]
     InvalidRequest(String),
@@ -50,6 +63,17 @@ pub(crate) trait VkResultExt<T> {
 
 impl<T> VkResultExt<T> for std::result::Result<T, vk::Result> {
     fn vk(self, call: &'static str) -> Result<T> {
-        self.map_err(|result| EngineError::Vulkan { call, result })
+        self.map_err(|result| match result {
+            vk::Result::ERROR_DEVICE_LOST => EngineError::DeviceLost { call },
+            vk::Result::ERROR_OUT_OF_DEVICE_MEMORY => EngineError::OutOfMemory {
+                what: call.to_owned(),
+                host: false,
+            },
+            vk::Result::ERROR_OUT_OF_HOST_MEMORY => EngineError::OutOfMemory {
+                what: call.to_owned(),
+                host: true,
+            },
+            result => EngineError::Vulkan { call, result },
+        })
     }
 }

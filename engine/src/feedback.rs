@@ -4,9 +4,12 @@
 //! summed weight into a sparse array with one [`MeshFeedback`] per mesh. The
 //! compaction pass appends every mesh whose weight reaches τ to a dense array
 //! through an atomic counter and resets the sparse array for the next frame.
-//! Read-back is two small copies: first the counter, then only as many dense
-//! entries as it says, so host traffic scales with the visible meshes, not
-//! with the scene.
+//!
+//! The dense array and its counter live in host-readable memory, one pair
+//! per *read-back slot*: with frames in flight each frame compacts into its
+//! own slot, and the host reads a slot once the frame that wrote it has
+//! completed, with no copy and no wait. Host traffic scales with the visible
+//! meshes, not with the scene.
 
 use std::sync::Arc;
 
@@ -28,18 +31,23 @@ use crate::shaders;
 const WORKGROUP: u32 = 256;
 const MAX_GROUPS_X: u32 = 65_535;
 
-/// The per-mesh feedback array, the dense output, and the compaction pipeline.
+/// One frame's compaction output: the dense entries and their counter, in
+/// host-readable memory.
+#[derive(Debug)]
+struct ReadbackSlot {
+    dense: Buffer,
+    counter: Buffer,
+    set: vk::DescriptorSet,
+}
+
+/// The per-mesh feedback array, the read-back slots, and the compaction pipeline.
 #[derive(Debug)]
 pub struct FeedbackCompactor {
     device: Arc<Device>,
     pipeline: Pipeline,
     _pool: DescriptorPool,
-    set: vk::DescriptorSet,
     sparse: Buffer,
-    dense: Buffer,
-    counter: Buffer,
-    counter_readback: Buffer,
-    entries_readback: Buffer,
+    slots: Vec<ReadbackSlot>,
     mesh_count: u32,
     capacity: u32,
 }
@@ -55,53 +63,45 @@ pub struct CompactedFeedback {
 
 impl FeedbackCompactor {
     /// Buffers for `mesh_count` meshes and at most `capacity` compacted
-    /// entries per frame; the sparse array starts reset.
+    /// entries per frame, with one read-back slot; the sparse array starts reset.
     pub fn new(device: &Arc<Device>, commands: &mut CommandContext, mesh_count: u32, capacity: u32) -> Result<Self> {
-        if mesh_count == 0 || capacity == 0 {
+        Self::with_slots(device, commands, mesh_count, capacity, 1)
+    }
+
+    /// As [`new`](Self::new) with `slots` read-back slots (one per frame in flight).
+    pub fn with_slots(
+        device: &Arc<Device>,
+        commands: &mut CommandContext,
+        mesh_count: u32,
+        capacity: u32,
+        slots: u32,
+    ) -> Result<Self> {
+        if mesh_count == 0 || capacity == 0 || slots == 0 {
             return Err(EngineError::InvalidRequest(format!(
-                "feedback for {mesh_count} meshes with room for {capacity} entries: both must be positive"
+                "feedback for {mesh_count} meshes with room for {capacity} entries in {slots} slots: all must be positive"
             )));
         }
-        let storage = |size: u64, extra: vk::BufferUsageFlags, name: &str| {
-            Buffer::new(
-                device,
-                BufferDesc {
-                    size,
-                    usage: vk::BufferUsageFlags::STORAGE_BUFFER | extra,
-                    location: MemoryLocation::GpuOnly,
-                },
-                name,
-            )
-        };
         let transfer = vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
-        let entry_size = std::mem::size_of::<FeedbackEntry>() as u64;
-        let sparse = storage(
-            u64::from(mesh_count) * std::mem::size_of::<MeshFeedback>() as u64,
-            transfer,
+        let sparse = Buffer::new(
+            device,
+            BufferDesc {
+                size: u64::from(mesh_count) * std::mem::size_of::<MeshFeedback>() as u64,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER | transfer,
+                location: MemoryLocation::GpuOnly,
+            },
             "mesh feedback",
         )?;
-        let dense = storage(u64::from(capacity) * entry_size, transfer, "compacted feedback")?;
-        let counter = storage(
-            std::mem::size_of::<FeedbackCounter>() as u64,
-            transfer,
-            "feedback counter",
-        )?;
-        let readback = |size: u64, name: &str| {
+        let host_readable = |size: u64, name: &str| {
             Buffer::new(
                 device,
                 BufferDesc {
                     size,
-                    usage: vk::BufferUsageFlags::TRANSFER_DST,
+                    usage: vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
                     location: MemoryLocation::GpuToCpu,
                 },
                 name,
             )
         };
-        let counter_readback = readback(
-            std::mem::size_of::<FeedbackCounter>() as u64,
-            "feedback counter read-back",
-        )?;
-        let entries_readback = readback(u64::from(capacity) * entry_size, "compacted feedback read-back")?;
         let stages = vk::ShaderStageFlags::COMPUTE;
         let pipeline = Pipeline::compute(
             device,
@@ -114,28 +114,37 @@ impl FeedbackCompactor {
             std::mem::size_of::<CompactPush>() as u32,
             "feedback compaction",
         )?;
-        let pool = DescriptorPool::new(device, &pipeline, 1, "feedback compaction descriptors")?;
-        let set = pool.allocate(
-            &pipeline,
-            &[
-                (BINDING_COMPACT_SPARSE, DescriptorResource::StorageBuffer(sparse.raw())),
-                (BINDING_COMPACT_DENSE, DescriptorResource::StorageBuffer(dense.raw())),
-                (
-                    BINDING_COMPACT_COUNTER,
-                    DescriptorResource::StorageBuffer(counter.raw()),
-                ),
-            ],
-        )?;
+        let pool = DescriptorPool::new(device, &pipeline, slots, "feedback compaction descriptors")?;
+        let entry_size = std::mem::size_of::<FeedbackEntry>() as u64;
+        let mut readback_slots = Vec::with_capacity(slots as usize);
+        for slot in 0..slots {
+            let dense = host_readable(
+                u64::from(capacity) * entry_size,
+                &format!("compacted feedback (slot {slot})"),
+            )?;
+            let counter = host_readable(
+                std::mem::size_of::<FeedbackCounter>() as u64,
+                &format!("feedback counter (slot {slot})"),
+            )?;
+            let set = pool.allocate(
+                &pipeline,
+                &[
+                    (BINDING_COMPACT_SPARSE, DescriptorResource::StorageBuffer(sparse.raw())),
+                    (BINDING_COMPACT_DENSE, DescriptorResource::StorageBuffer(dense.raw())),
+                    (
+                        BINDING_COMPACT_COUNTER,
+                        DescriptorResource::StorageBuffer(counter.raw()),
+                    ),
+                ],
+            )?;
+            readback_slots.push(ReadbackSlot { dense, counter, set });
+        }
         let compactor = Self {
             device: Arc::clone(device),
             pipeline,
             _pool: pool,
-            set,
             sparse,
-            dense,
-            counter,
-            counter_readback,
-            entries_readback,
+            slots: readback_slots,
             mesh_count,
             capacity,
         };
@@ -148,7 +157,7 @@ impl FeedbackCompactor {
                 .raw()
                 .cmd_fill_buffer(cmd, compactor.sparse.raw(), 0, vk::WHOLE_SIZE, 0)
         };
-        compactor.record_compact(cmd, u32::MAX, false);
+        compactor.record_compact(cmd, u32::MAX, 0)?;
         commands.submit_and_wait(&[])?;
         Ok(compactor)
     }
@@ -163,16 +172,27 @@ impl FeedbackCompactor {
         self.mesh_count
     }
 
-    /// Records: reset the counter, compact with `tau` (which also resets
-    /// the per-mesh array for the next frame), and, when `read_back` is set,
-    /// copy the counter to the host for [`read_back`](Self::read_back). The
-    /// engine sets it only when no streaming task runs (Algorithm 1), so
-    /// nothing crosses to the host otherwise. Must follow the fragment stage
-    /// that wrote the array.
-    pub fn record_compact(&self, cmd: vk::CommandBuffer, tau: u32, read_back: bool) {
+    /// Read-back slots.
+    pub fn slot_count(&self) -> u32 {
+        self.slots.len() as u32
+    }
+
+    fn slot(&self, slot: u32) -> Result<&ReadbackSlot> {
+        self.slots.get(slot as usize).ok_or_else(|| {
+            EngineError::InvalidRequest(format!("feedback read-back slot {slot} of {} slots", self.slots.len()))
+        })
+    }
+
+    /// Records: reset `slot`'s counter, compact with `tau` into `slot`
+    /// (which also resets the per-mesh array for the next frame), and make
+    /// the slot visible to the host. Must follow the fragment stage that
+    /// wrote the array; the slot must not be read until this submission
+    /// completed, nor recorded again while an earlier use is unread.
+    pub fn record_compact(&self, cmd: vk::CommandBuffer, tau: u32, slot: u32) -> Result<()> {
+        let target = self.slot(slot)?;
         let raw = self.device.raw();
         // SAFETY: cmd is recording outside rendering; buffers are live.
-        unsafe { raw.cmd_fill_buffer(cmd, self.counter.raw(), 0, vk::WHOLE_SIZE, 0) };
+        unsafe { raw.cmd_fill_buffer(cmd, target.counter.raw(), 0, vk::WHOLE_SIZE, 0) };
         memory_barrier(
             &self.device,
             cmd,
@@ -187,7 +207,7 @@ impl FeedbackCompactor {
                 vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
             ),
         );
-        self.pipeline.bind(cmd, self.set);
+        self.pipeline.bind(cmd, target.set);
         self.pipeline.push(
             cmd,
             &CompactPush {
@@ -210,66 +230,30 @@ impl FeedbackCompactor {
             cmd,
             (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
             (
-                vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::FRAGMENT_SHADER,
-                vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+                vk::PipelineStageFlags2::COPY
+                    | vk::PipelineStageFlags2::FRAGMENT_SHADER
+                    | vk::PipelineStageFlags2::HOST,
+                vk::AccessFlags2::TRANSFER_READ
+                    | vk::AccessFlags2::SHADER_READ
+                    | vk::AccessFlags2::SHADER_WRITE
+                    | vk::AccessFlags2::HOST_READ,
             ),
         );
-        if !read_back {
-            return;
-        }
-        let region = vk::BufferCopy {
-            src_offset: 0,
-            dst_offset: 0,
-            size: std::mem::size_of::<FeedbackCounter>() as u64,
-        };
-        // SAFETY: both buffers hold a FeedbackCounter.
-        unsafe { raw.cmd_copy_buffer(cmd, self.counter.raw(), self.counter_readback.raw(), &[region]) };
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
-        );
+        Ok(())
     }
 
-    /// After the submission with [`record_compact`](Self::record_compact)
-    /// completed: reads the counter, copies only that many entries, returns them.
-    pub fn read_back(&self, commands: &mut CommandContext) -> Result<CompactedFeedback> {
-        let counter = self
-            .counter_readback
+    /// After the submission that compacted into `slot` completed: the entries.
+    pub fn read_back(&self, slot: u32) -> Result<CompactedFeedback> {
+        let target = self.slot(slot)?;
+        let counter = target
+            .counter
             .read::<FeedbackCounter>(0, 1)?
             .first()
             .copied()
             .unwrap_or_default();
         let kept = counter.count.min(self.capacity);
-        if kept == 0 {
-            return Ok(CompactedFeedback {
-                entries: Vec::new(),
-                dropped: counter.dropped,
-            });
-        }
-        let bytes = u64::from(kept) * std::mem::size_of::<FeedbackEntry>() as u64;
-        let cmd = commands.begin()?;
-        let region = vk::BufferCopy {
-            src_offset: 0,
-            dst_offset: 0,
-            size: bytes,
-        };
-        // SAFETY: `kept` entries fit both buffers.
-        unsafe {
-            self.device
-                .raw()
-                .cmd_copy_buffer(cmd, self.dense.raw(), self.entries_readback.raw(), &[region])
-        };
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
-        );
-        commands.submit_and_wait(&[])?;
         Ok(CompactedFeedback {
-            entries: self.entries_readback.read::<FeedbackEntry>(0, kept as usize)?,
+            entries: target.dense.read::<FeedbackEntry>(0, kept as usize)?,
             dropped: counter.dropped,
         })
     }

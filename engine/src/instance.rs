@@ -69,6 +69,9 @@ impl ValidationLog {
 pub struct InstanceOptions {
     /// Enable `VK_LAYER_KHRONOS_validation` and fail if it is missing.
     pub validation: bool,
+    /// Also enable the layer's synchronization validation (hazards between
+    /// commands, submissions and frames in flight). Implies `validation`.
+    pub synchronization: bool,
     /// Application name reported to the driver.
     pub app_name: String,
 }
@@ -77,19 +80,29 @@ impl Default for InstanceOptions {
     fn default() -> Self {
         Self {
             validation: default_validation(),
+            synchronization: default_synchronization_validation(),
             app_name: "citystream".to_owned(),
         }
     }
 }
 
-/// Validation is on in debug builds and whenever `CITYSTREAM_VALIDATION=1`;
-/// `CITYSTREAM_VALIDATION=0` turns it off.
+/// The environment variable that turns validation on (`1`), on with
+/// synchronization validation (`sync`) or off (`0`).
+pub const VALIDATION_ENV: &str = "CITYSTREAM_VALIDATION";
+
+/// Validation is on in debug builds and whenever `CITYSTREAM_VALIDATION` is
+/// `1` or `sync`; `CITYSTREAM_VALIDATION=0` turns it off.
 pub fn default_validation() -> bool {
-    match std::env::var("CITYSTREAM_VALIDATION").as_deref() {
-        Ok("1") => true,
+    match std::env::var(VALIDATION_ENV).as_deref() {
+        Ok("1") | Ok("sync") => true,
         Ok("0") => false,
         _ => cfg!(debug_assertions),
     }
+}
+
+/// Synchronization validation is on when `CITYSTREAM_VALIDATION=sync`.
+pub fn default_synchronization_validation() -> bool {
+    std::env::var(VALIDATION_ENV).as_deref() == Ok("sync")
 }
 
 /// Owns the `VkInstance` and its debug messenger.
@@ -134,7 +147,9 @@ impl Instance {
             e.extension_name_as_c_str()
                 .is_ok_and(|n| n == ash::ext::debug_utils::NAME)
         });
-        if options.validation {
+        let validation = options.validation || options.synchronization;
+        let mut validation_features = false;
+        if validation {
             // SAFETY: plain enumeration call on a loaded entry.
             let available_layers =
                 unsafe { entry.enumerate_instance_layer_properties() }.vk("vkEnumerateInstanceLayerProperties")?;
@@ -147,6 +162,23 @@ impl Instance {
                 ));
             }
             layers.push(VALIDATION_LAYER.as_ptr());
+            if options.synchronization {
+                // SAFETY: plain enumeration call on a loaded entry for an installed layer.
+                let layer_extensions = unsafe { entry.enumerate_instance_extension_properties(Some(VALIDATION_LAYER)) }
+                    .vk("vkEnumerateInstanceExtensionProperties (validation layer)")?;
+                validation_features = layer_extensions.iter().any(|e| {
+                    e.extension_name_as_c_str()
+                        .is_ok_and(|n| n == ash::ext::validation_features::NAME)
+                });
+                if !validation_features {
+                    return Err(EngineError::LayerMissing(format!(
+                        "{} with {} (needed for synchronization validation)",
+                        VALIDATION_LAYER.to_string_lossy(),
+                        ash::ext::validation_features::NAME.to_string_lossy()
+                    )));
+                }
+                extensions.push(ash::ext::validation_features::NAME.as_ptr());
+            }
         }
         if has_debug_utils {
             extensions.push(ash::ext::debug_utils::NAME.as_ptr());
@@ -157,10 +189,15 @@ impl Instance {
             .application_name(&app_name)
             .engine_name(c"citystream")
             .api_version(vk::API_VERSION_1_3);
-        let create_info = vk::InstanceCreateInfo::default()
+        let enabled_features = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
+        let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enabled_features);
+        let mut create_info = vk::InstanceCreateInfo::default()
             .application_info(&app_info)
             .enabled_layer_names(&layers)
             .enabled_extension_names(&extensions);
+        if validation_features {
+            create_info = create_info.push_next(&mut features);
+        }
         // SAFETY: every pointer in create_info refers to data alive for this call.
         let raw = unsafe { entry.create_instance(&create_info, None) }.vk("vkCreateInstance")?;
 
@@ -172,7 +209,7 @@ impl Instance {
             debug: None,
             log,
             log_for_callback,
-            validation: options.validation,
+            validation,
         };
         if has_debug_utils {
             let loader = ash::ext::debug_utils::Instance::new(&instance.entry, &instance.raw);

@@ -37,7 +37,7 @@ pub mod scene;
 pub mod shaders;
 pub mod sparse;
 pub mod staging;
-pub mod streamer;
+pub mod stream;
 pub mod target;
 pub mod texture_cache;
 pub mod timing;

@@ -17,28 +17,31 @@ pub(crate) fn allocate(
     location: MemoryLocation,
     linear: bool,
 ) -> Result<Allocation> {
-    let mut guard = device.allocator();
-    let allocator = guard
-        .as_mut()
-        .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?;
-    allocator
-        .allocate(&AllocationCreateDesc {
-            name,
-            requirements,
-            location,
-            linear,
-            allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+    device
+        .with_allocator(|allocator| {
+            allocator.allocate(&AllocationCreateDesc {
+                name,
+                requirements,
+                location,
+                linear,
+                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+            })
         })
-        .map_err(|source| EngineError::Allocation {
-            name: name.to_owned(),
-            source,
+        .ok_or_else(|| EngineError::InvalidRequest("device is shutting down".into()))?
+        .map_err(|source| match source {
+            gpu_allocator::AllocationError::OutOfMemory => EngineError::OutOfMemory {
+                what: name.to_owned(),
+                host: false,
+            },
+            source => EngineError::Allocation {
+                name: name.to_owned(),
+                source,
+            },
         })
 }
 
 /// Returns an allocation; the caller guarantees the GPU no longer uses it.
 pub(crate) fn free(device: &Device, allocation: Allocation) {
-    if let Some(allocator) = device.allocator().as_mut() {
-        // Freeing fails only for a foreign allocation, which cannot happen here.
-        let _ = allocator.free(allocation);
-    }
+    // Freeing fails only for a foreign allocation, which cannot happen here.
+    let _ = device.with_allocator(|allocator| allocator.free(allocation));
 }

@@ -1,5 +1,9 @@
 //! SPIR-V compiled from `shaders/` at build time (see `build.rs`).
 
+/// citystream's GLSL include directory, for hosts that compile their own
+/// shaders against `citystream_host.glsl` (`glslangValidator -I`).
+pub const INCLUDE_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shaders/include");
+
 /// One embedded shader.
 #[derive(Clone, Copy, Debug)]
 pub struct ShaderSource {

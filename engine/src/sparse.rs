@@ -116,8 +116,7 @@ impl SparseImage {
         // SAFETY: physical belongs to the instance.
         let format_props = unsafe {
             device
-                .instance()
-                .raw()
+                .instance_fns()
                 .get_physical_device_sparse_image_format_properties(
                     device.physical(),
                     desc.format,
@@ -359,6 +358,20 @@ pub fn submit_bind_sparse(
     timeline: Option<(vk::Semaphore, u64)>,
     fence: vk::Fence,
 ) -> Result<()> {
+    submit_bind_sparse_after(device, images, &[], signal, timeline, fence)
+}
+
+/// As [`submit_bind_sparse`], but the binds start only once every timeline
+/// semaphore in `waits` reached its value (GPU-side waits: the host does
+/// not block).
+pub fn submit_bind_sparse_after(
+    device: &Device,
+    images: &[(vk::Image, &[vk::SparseImageMemoryBind])],
+    waits: &[(vk::Semaphore, u64)],
+    signal: &[vk::Semaphore],
+    timeline: Option<(vk::Semaphore, u64)>,
+    fence: vk::Fence,
+) -> Result<()> {
     let image_binds: Vec<_> = images
         .iter()
         .filter(|(_, entries)| !entries.is_empty())
@@ -370,11 +383,16 @@ pub fn submit_bind_sparse(
         semaphores.push(semaphore);
         values.push(value);
     }
-    let mut timeline_info = vk::TimelineSemaphoreSubmitInfo::default().signal_semaphore_values(&values);
+    let wait_semaphores: Vec<vk::Semaphore> = waits.iter().map(|w| w.0).collect();
+    let wait_values: Vec<u64> = waits.iter().map(|w| w.1).collect();
+    let mut timeline_info = vk::TimelineSemaphoreSubmitInfo::default()
+        .wait_semaphore_values(&wait_values)
+        .signal_semaphore_values(&values);
     let mut info = vk::BindSparseInfo::default()
+        .wait_semaphores(&wait_semaphores)
         .signal_semaphores(&semaphores)
         .image_binds(&image_binds);
-    if timeline.is_some() {
+    if timeline.is_some() || !waits.is_empty() {
         info = info.push_next(&mut timeline_info);
     }
     let queue = device.queue();

@@ -99,7 +99,12 @@ impl RenderTarget {
             self.color.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
+            // An earlier frame still in flight may be drawing into or
+            // copying out of this image: wait for those before discarding it.
+            (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT | vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
             (
                 vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
                 vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -112,7 +117,10 @@ impl RenderTarget {
             self.depth.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
             vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-            (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
+            (
+                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
+            ),
             (
                 vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
                 vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
@@ -198,6 +206,13 @@ impl RenderTarget {
                 depth: 1,
             },
         };
+        // An earlier frame's copy into the read-back buffer finishes first.
+        crate::image::memory_barrier(
+            device,
+            cmd,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+        );
         // SAFETY: image in TRANSFER_SRC_OPTIMAL, buffer large enough for the region.
         unsafe {
             device.raw.cmd_copy_image_to_buffer(

@@ -6,37 +6,47 @@
 //! [`citystream_cache::TextureCache`]; this type carries its decisions out.
 //!
 //! One streaming cycle: [`GpuTextureCache::stage`] any number of mips (each
-//! is packed, its blocks accounted, its bytes queued), then
-//! [`GpuTextureCache::finish_cycle`]: textures the cache invalidated are
-//! marked not sampleable first, new memory chunks are allocated, all binds
-//! and unbinds go out in one `vkQueueBindSparse`, and the copies wait on its
-//! timeline value. Only then does the table say the new mips are sampleable.
+//! is packed, its blocks accounted, its bytes queued), then either
+//! - [`GpuTextureCache::prepare_cycle`] and [`GpuTextureCache::record_cycle`]
+//!   (frames in flight): evicted textures are marked not sampleable, new
+//!   memory chunks are allocated, all binds and unbinds go out in one
+//!   `vkQueueBindSparse` that waits on the GPU for the frames that could
+//!   still sample evicted blocks, and the copies plus the table update are
+//!   recorded into the caller's command buffer, whose submission waits on
+//!   [`GpuTextureCache::bind_wait`]; or
+//! - [`GpuTextureCache::finish_cycle`], which does the same in a one-shot
+//!   submission and waits for it (tools, tests, reference renders).
 //!
-//! Threading and GPU safety: owned by one thread. The caller calls
-//! `finish_cycle` only when no submitted frame can still read the table or
-//! the images (the frame loop waits for the fences of frames in flight), so
-//! unbinding an evicted texture's blocks can never race a frame sampling it.
+//! GPU safety: the table lives in device-local memory and changes only by
+//! copies recorded in queue order after barriers, so frames in flight keep
+//! reading the entries they were submitted with. Unbinds wait (on the GPU)
+//! for the last frame submitted before the cycle, the one that could still
+//! sample an evicted texture; each bind batch also waits for the previous
+//! one, so memory freed by an unbind is rebound only after it. Staging space
+//! and one-off buffers are released when [`GpuTextureCache::retire`] reports
+//! the ticket of the submission that read them complete.
 
 use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::{
-    CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, Placement, SparseBinder, TexelFormat,
-    TextureCache, Utilisation,
+    CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, Placement, TexelFormat, TextureCache, Utilisation,
 };
 use citystream_streaming::dataset::TextureFormat;
 use gpu_allocator::MemoryLocation;
 
 use crate::binder::VulkanBinder;
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, SemaphoreWait};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
     TextureData, BINDING_CACHE_IMAGE0, BINDING_CACHE_IMAGE1, BINDING_COLORMAP, BINDING_TEXTURE_DATA,
     TEXTURE_NOT_SAMPLEABLE, TEXTURE_SAMPLEABLE,
 };
+use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorResource, Filtering, Sampler};
+use crate::scene::upload_buffer;
 use crate::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
 use crate::staging::StagingRing;
 
@@ -138,7 +148,24 @@ pub struct GpuTextureCache {
     uploads: Vec<PendingUpload>,
     upload_bytes: Vec<u8>,
     staging: StagingRing,
-    cycles: u64,
+    /// Textures whose table entry changed since the last table copy.
+    dirty: Vec<u32>,
+    dirty_flags: Vec<bool>,
+    /// The cycle prepared by `prepare_cycle`, waiting for `record_cycle`.
+    prepared: Option<PreparedCycle>,
+    /// One-off staging buffers, each with the ticket after which it is free.
+    retiring: std::collections::VecDeque<(u64, Buffer)>,
+    /// The highest ticket handed to `prepare_cycle`.
+    last_ticket: u64,
+}
+
+/// Where a prepared cycle's upload bytes wait and what it did so far.
+#[derive(Debug)]
+struct PreparedCycle {
+    ticket: u64,
+    /// Buffer and offset of the first upload byte, when there are uploads.
+    source: Option<(vk::Buffer, u64)>,
+    report: CycleReport,
 }
 
 impl std::fmt::Debug for GpuTextureCache {
@@ -231,22 +258,23 @@ impl GpuTextureCache {
         let binder = VulkanBinder::new(device, images.clone())?;
 
         let table = vec![TextureData::default(); config.texture_count as usize];
-        let host_storage = |size: u64, name: &str| {
-            Buffer::new(
-                device,
-                BufferDesc {
-                    size,
-                    usage: vk::BufferUsageFlags::STORAGE_BUFFER,
-                    location: MemoryLocation::CpuToGpu,
-                },
-                name,
-            )
-        };
-        let mut table_buffer = host_storage(std::mem::size_of_val(table.as_slice()) as u64, "texture data table")?;
-        table_buffer.write(0, &table)?;
+        // Device-local and changed only by recorded copies, so frames in
+        // flight never see an entry rewritten under them.
+        let table_buffer = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(&table),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "texture data table",
+        )?;
         let packed: Vec<u32> = colormap.iter().map(|c| u32::from_le_bytes(*c)).collect();
-        let mut colormap_buffer = host_storage(std::mem::size_of_val(packed.as_slice()) as u64, "city colormap")?;
-        colormap_buffer.write(0, &packed)?;
+        let colormap_buffer = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(&packed),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "city colormap",
+        )?;
         let sampler = Sampler::new(device, config.filtering, "cache sampler")?;
         let staging = StagingRing::new(device, config.staging_bytes.max(64 * 1024))?;
 
@@ -275,7 +303,11 @@ impl GpuTextureCache {
             uploads: Vec::new(),
             upload_bytes: Vec::new(),
             staging,
-            cycles: 0,
+            dirty: Vec::new(),
+            dirty_flags: vec![false; config.texture_count as usize],
+            prepared: None,
+            retiring: std::collections::VecDeque::new(),
+            last_ticket: 0,
         })
     }
 
@@ -300,6 +332,12 @@ impl GpuTextureCache {
                 DescriptorResource::StorageBuffer(self.colormap_buffer.raw()),
             ),
         ]
+    }
+
+    /// Bit m set: mip m of `texture` is resident in its current place
+    /// (copied, or recorded to be copied, and not evicted).
+    pub fn resident_levels(&self, texture: u32) -> u32 {
+        self.slots.get(texture as usize).map_or(0, |s| s.resident)
     }
 
     /// The table entry the shaders see for `texture`.
@@ -338,8 +376,10 @@ impl GpuTextureCache {
             .enumerate()
             .find(|(_, (f, _, _))| *f == format)
             .map(|(i, (_, v, t))| (i as u32, *v, *t))
-            .ok_or_else(|| {
-                EngineError::InvalidRequest(format!("texture {texture}: format {format:?} is not cached"))
+            .ok_or_else(|| EngineError::UnsupportedFormat {
+                texture,
+                format: format!("{format:?}"),
+                reason: "the cache has no sparse image of that format".into(),
             })?;
         let placement = match slot.placement {
             Some(p) if self.cache.is_live(&p) && p.image == image_index && p.width == width && p.height == height => p,
@@ -354,6 +394,7 @@ impl GpuTextureCache {
                 slot.placement = Some(fresh);
                 slot.resident = 0;
                 self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
+                self.mark_dirty(texture);
                 fresh
             }
         };
@@ -397,14 +438,42 @@ impl GpuTextureCache {
         })
     }
 
-    /// Carries out the cycle: invalidations, new memory, one sparse bind,
-    /// the copies (waiting on the bind), then the table update. See the
-    /// module docs for the caller's GPU-safety contract.
+    /// Carries out a cycle in one submission and waits for it: for tools,
+    /// tests and reference renders. Must not be interleaved with a
+    /// [`prepare_cycle`](Self::prepare_cycle) whose commands are not yet
+    /// submitted.
     pub fn finish_cycle(&mut self, commands: &mut CommandContext) -> Result<CycleReport> {
+        let ticket = self.prepare_cycle(None)?;
+        let cmd = commands.begin()?;
+        let report = self.record_cycle(cmd)?;
+        let waits: Vec<SemaphoreWait> = self.bind_wait().into_iter().collect();
+        commands.submit_and_wait(&waits)?;
+        // The fence covers every earlier submission on the queue too.
+        self.retire(ticket);
+        Ok(report)
+    }
+
+    /// First half of a cycle, before the caller records its frame: marks
+    /// evicted textures not sampleable, allocates new memory chunks,
+    /// submits all binds and unbinds in one `vkQueueBindSparse` and moves
+    /// the staged bytes to host-visible staging. Returns the cycle's ticket,
+    /// which names the submission that will carry its commands (see
+    /// [`retire`](Self::retire)); `frames_before` is the GPU progress
+    /// (semaphore and value) of the last submission that could still
+    /// sample an evicted texture, which the unbinds wait for.
+    pub fn prepare_cycle(&mut self, frames_before: Option<SemaphoreWait>) -> Result<u64> {
+        if self.prepared.is_some() {
+            return Err(EngineError::InvalidRequest(
+                "a cache cycle was prepared twice without recording it".into(),
+            ));
+        }
+        self.last_ticket += 1;
+        let ticket = self.last_ticket;
         let batch = self.cache.take_batch();
         let mut report = CycleReport::default();
 
-        // 1. Evicted textures stop being sampleable before their blocks go.
+        // 1. Evicted textures stop being sampleable; the table copy that
+        // says so is recorded before this frame's passes.
         for gone in &batch.invalidated {
             let Ok(texture) = u32::try_from(gone.key) else { continue };
             let Some(slot) = self.slots.get_mut(texture as usize) else {
@@ -414,6 +483,7 @@ impl GpuTextureCache {
                 slot.placement = None;
                 slot.resident = 0;
                 self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
+                self.mark_dirty(texture);
                 report.textures_invalidated += 1;
                 report.invalidated_textures.push(texture);
             }
@@ -421,7 +491,6 @@ impl GpuTextureCache {
         // Mips staged for a place that was evicted in the same cycle must not be copied.
         self.uploads
             .retain(|u| !batch.invalidated.iter().any(|gone| same_place(&u.placement, gone)));
-        self.table_buffer.write(0, &self.table)?;
 
         // 2. Memory for new pool chunks.
         for chunk in &batch.new_chunks {
@@ -442,11 +511,13 @@ impl GpuTextureCache {
             }
         }
 
-        // 3. One bind submission.
-        let bind = self
-            .binder
-            .submit(&batch.ops)
-            .map_err(|e| EngineError::InvalidRequest(format!("sparse bind failed: {e}")))?;
+        // 3. One bind submission; unbinds wait for the frames that may still sample.
+        let unbinds = batch
+            .ops
+            .iter()
+            .any(|op| matches!(op, citystream_cache::BindOp::Unbind { .. }));
+        let frame_wait = if unbinds { frames_before } else { None };
+        let bind = self.binder.submit_after(&batch.ops, frame_wait)?;
         report.bind_entries = bind.entries;
         report.bind_seconds = bind.seconds;
         for op in &batch.ops {
@@ -456,13 +527,13 @@ impl GpuTextureCache {
             }
         }
 
-        // 4. Copies, after the bind, from the staging ring (or, for a cycle
-        // larger than the ring, a one-off buffer).
-        self.cycles += 1;
-        if !self.uploads.is_empty() {
-            let ticket = self.cycles;
-            let (source, base, _oversize) = match self.staging.push(&self.upload_bytes, 16, ticket)? {
-                Some(range) => (self.staging.buffer(), range.offset, None),
+        // 4. The bytes go to the staging ring (or, for a cycle larger than
+        // the ring, a one-off buffer released with the ticket).
+        let source = if self.uploads.is_empty() {
+            None
+        } else {
+            match self.staging.push(&self.upload_bytes, 16, ticket)? {
+                Some(range) => Some((self.staging.buffer(), range.offset)),
                 None => {
                     let mut oversize = Buffer::new(
                         &self.device,
@@ -474,10 +545,30 @@ impl GpuTextureCache {
                         "cache upload staging (oversize cycle)",
                     )?;
                     oversize.write(0, &self.upload_bytes)?;
-                    (oversize.raw(), 0, Some(oversize))
+                    let raw = oversize.raw();
+                    self.retiring.push_back((ticket, oversize));
+                    Some((raw, 0))
                 }
-            };
-            let cmd = commands.begin()?;
+            }
+        };
+        self.prepared = Some(PreparedCycle { ticket, source, report });
+        Ok(ticket)
+    }
+
+    /// Second half of a cycle: records into `cmd` the copies of the staged
+    /// mips (after the layout change the copies need) and then the table
+    /// update that publishes them and the evictions, with the barriers that
+    /// order them against earlier and later frames. The submission carrying
+    /// `cmd` must wait on [`bind_wait`](Self::bind_wait). Without a
+    /// prepared cycle, records only pending table changes.
+    pub fn record_cycle(&mut self, cmd: vk::CommandBuffer) -> Result<CycleReport> {
+        let Some(prepared) = self.prepared.take() else {
+            let ticket = self.last_ticket;
+            self.record_table_update(cmd, ticket)?;
+            return Ok(CycleReport::default());
+        };
+        let mut report = prepared.report;
+        if let Some((source, base)) = prepared.source {
             for (index, image) in self.images.iter().enumerate() {
                 let uploads: Vec<TexelUpload> = self
                     .uploads
@@ -503,9 +594,8 @@ impl GpuTextureCache {
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
                 );
             }
-            commands.submit_and_wait(&[self.binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY)])?;
-            self.staging.retire(ticket);
-            // 5. Now the mips are there: publish them.
+            // The copies precede the table update in this command buffer,
+            // so no frame sees a level as resident before its texels.
             for u in &self.uploads {
                 let slot = &mut self.slots[u.texture as usize];
                 if slot.placement.is_some_and(|p| same_place(&p, &u.placement)) {
@@ -518,11 +608,118 @@ impl GpuTextureCache {
             for texture in touched {
                 self.publish(texture);
             }
-            self.table_buffer.write(0, &self.table)?;
         }
         self.uploads.clear();
         self.upload_bytes.clear();
+        self.record_table_update(cmd, prepared.ticket)?;
         Ok(report)
+    }
+
+    /// What the submission carrying [`record_cycle`](Self::record_cycle)'s
+    /// commands must wait on: the last sparse bind batch, at the copy stage.
+    pub fn bind_wait(&self) -> Option<SemaphoreWait> {
+        (self.binder.last_signalled() > 0).then(|| self.binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY))
+    }
+
+    /// Releases staging space and one-off buffers of every cycle whose
+    /// ticket is at most `completed` (their submissions have finished).
+    pub fn retire(&mut self, completed: u64) {
+        self.staging.retire(completed);
+        while self.retiring.front().is_some_and(|(ticket, _)| *ticket <= completed) {
+            self.retiring.pop_front();
+        }
+    }
+
+    fn mark_dirty(&mut self, texture: u32) {
+        if let Some(flag) = self.dirty_flags.get_mut(texture as usize) {
+            if !*flag {
+                *flag = true;
+                self.dirty.push(texture);
+            }
+        }
+    }
+
+    /// Records the copy of every changed table entry (runs of adjacent
+    /// textures merged) from staging into the device-local table.
+    fn record_table_update(&mut self, cmd: vk::CommandBuffer, ticket: u64) -> Result<()> {
+        if self.dirty.is_empty() {
+            return Ok(());
+        }
+        let mut dirty = std::mem::take(&mut self.dirty);
+        dirty.sort_unstable();
+        for &texture in &dirty {
+            self.dirty_flags[texture as usize] = false;
+        }
+        let entry = std::mem::size_of::<TextureData>() as u64;
+        // Runs of consecutive texture ids: (first id, count).
+        let mut runs: Vec<(u32, u32)> = Vec::new();
+        for &texture in &dirty {
+            match runs.last_mut() {
+                Some((first, count)) if *first + *count == texture => *count += 1,
+                _ => runs.push((texture, 1)),
+            }
+        }
+        let mut bytes: Vec<u8> = Vec::with_capacity(dirty.len() * entry as usize);
+        for &(first, count) in &runs {
+            bytes.extend_from_slice(bytemuck::cast_slice(
+                &self.table[first as usize..(first + count) as usize],
+            ));
+        }
+        let (source, base) = match self.staging.push(&bytes, 16, ticket)? {
+            Some(range) => (self.staging.buffer(), range.offset),
+            None => {
+                let mut oversize = Buffer::new(
+                    &self.device,
+                    BufferDesc {
+                        size: bytes.len() as u64,
+                        usage: vk::BufferUsageFlags::TRANSFER_SRC,
+                        location: MemoryLocation::CpuToGpu,
+                    },
+                    "texture table staging (oversize update)",
+                )?;
+                oversize.write(0, &bytes)?;
+                let raw = oversize.raw();
+                self.retiring.push_back((ticket, oversize));
+                (raw, 0)
+            }
+        };
+        let mut offset = base;
+        let regions: Vec<vk::BufferCopy> = runs
+            .iter()
+            .map(|&(first, count)| {
+                let region = vk::BufferCopy {
+                    src_offset: offset,
+                    dst_offset: u64::from(first) * entry,
+                    size: u64::from(count) * entry,
+                };
+                offset += region.size;
+                region
+            })
+            .collect();
+        let shader_stages = vk::PipelineStageFlags2::VERTEX_SHADER
+            | vk::PipelineStageFlags2::FRAGMENT_SHADER
+            | vk::PipelineStageFlags2::COMPUTE_SHADER;
+        // Earlier frames' reads of the table finish before it changes.
+        memory_barrier(
+            &self.device,
+            cmd,
+            (shader_stages, vk::AccessFlags2::SHADER_STORAGE_READ),
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+        );
+        // SAFETY: cmd is recording outside rendering; the regions lie inside
+        // the staging source and the table (ids come from the table's range).
+        unsafe {
+            self.device
+                .raw()
+                .cmd_copy_buffer(cmd, source, self.table_buffer.raw(), &regions)
+        };
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (shader_stages, vk::AccessFlags2::SHADER_STORAGE_READ),
+        );
+        Ok(())
     }
 
     /// Writes a texture's table entry from its host state. The coarsest
@@ -531,6 +728,7 @@ impl GpuTextureCache {
     /// finest level such that it and every level up to that one are resident
     /// is the finest sampled.
     fn publish(&mut self, texture: u32) {
+        self.mark_dirty(texture);
         let slot = self.slots[texture as usize];
         let entry = &mut self.table[texture as usize];
         let Some(placement) = slot.placement else {

@@ -65,8 +65,7 @@ impl GpuTimer {
         // SAFETY: physical belongs to the instance.
         let families = unsafe {
             device
-                .instance()
-                .raw()
+                .instance_fns()
                 .get_physical_device_queue_family_properties(device.physical())
         };
         let valid_bits = families

@@ -1,14 +1,14 @@
 // Sampling a dataset texture from the sparse cache (paper §3.6-3.7).
 // Requires citystream.glsl and GL_ARB_sparse_texture2; declares the cache
-// images, the texture data and the colormap at their fixed bindings in set 0.
+// images, the texture data and the colormap at their fixed bindings in set CITYSTREAM_SET.
 #ifndef CITY_TEXTURE_GLSL
 #define CITY_TEXTURE_GLSL
 
 #include "texture_table.glsl"
 
-layout(set = 0, binding = BINDING_CACHE_IMAGE0) uniform sampler2DArray cache_image0;
-layout(set = 0, binding = BINDING_CACHE_IMAGE1) uniform sampler2DArray cache_image1;
-layout(std430, set = 0, binding = BINDING_COLORMAP) readonly buffer Colormap { uint colormap[]; };
+layout(set = CITYSTREAM_SET, binding = BINDING_CACHE_IMAGE0) uniform sampler2DArray cache_image0;
+layout(set = CITYSTREAM_SET, binding = BINDING_CACHE_IMAGE1) uniform sampler2DArray cache_image1;
+layout(std430, set = CITYSTREAM_SET, binding = BINDING_COLORMAP) readonly buffer Colormap { uint colormap[]; };
 
 vec4 colormap_colour(uint texture_id) {
     return unpackUnorm4x8(colormap[texture_id]);

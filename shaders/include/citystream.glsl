@@ -4,6 +4,13 @@
 #ifndef CITYSTREAM_GLSL
 #define CITYSTREAM_GLSL
 
+// The descriptor set of the streamed-texture bindings (cache images,
+// texture table, colormap, mesh feedback). A host defines it before the
+// first include to place them in a set of its choosing.
+#ifndef CITYSTREAM_SET
+#define CITYSTREAM_SET 0
+#endif
+
 // ---- Descriptor set 0: mesh rendering -------------------------------------
 #define BINDING_MESH_TEXTURES 0      // sampler2DArray: ordinary texture array
 

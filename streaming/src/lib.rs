@@ -1,14 +1,12 @@
 //! Streaming policy (paper §3.4–3.5). Vulkan-free.
 #![forbid(unsafe_code)]
 
+pub mod bench;
 pub mod bind_latency;
 pub mod controller;
 pub mod dataset;
 pub mod loader;
-pub mod path;
 pub mod records;
 pub mod rng;
-pub mod sim;
 pub mod source;
 pub mod states;
-pub mod stats;

@@ -7,6 +7,7 @@
 
 use std::sync::Mutex;
 
+use crate::dataset::TextureFormat;
 use crate::states::MipChain;
 
 /// Error reading a texture's header or a mip.
@@ -78,6 +79,11 @@ pub enum SourceError {
 /// Threading: called concurrently from loader worker threads (`Sync`);
 /// implementations use positioned reads, not a shared cursor.
 pub trait MipSource: Send + Sync {
+    /// How many textures the source holds; ids run `0..texture_count()`.
+    fn texture_count(&self) -> u32;
+    /// The format `texture`'s mips are stored in, as [`MipSource::read_mip`]
+    /// returns them (the GPU cache stores them unchanged).
+    fn texture_format(&self, texture: u32) -> Result<TextureFormat, SourceError>;
     /// Extent and mip count of `texture` (`LoadImageMetaDatum`).
     fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError>;
     /// Bytes of `level` of `texture`.
@@ -263,6 +269,14 @@ impl MemorySource {
 }
 
 impl MipSource for MemorySource {
+    fn texture_count(&self) -> u32 {
+        self.textures.len() as u32
+    }
+
+    fn texture_format(&self, texture: u32) -> Result<TextureFormat, SourceError> {
+        self.texture(texture).map(|_| TextureFormat::Bc1)
+    }
+
     fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError> {
         Ok(self.texture(texture)?.chain)
     }

@@ -1,10 +1,10 @@
 //! The must-show comparison on the deterministic simulated run:
 //! `desktop` bind latency, adaptive against baseline with the same seed.
 
+use citystream_streaming::bench::sim::{self, SimConfig, SimError, SimReport};
+use citystream_streaming::bench::stats::table3;
 use citystream_streaming::bind_latency::BindLatencyPreset;
 use citystream_streaming::controller::PolicyKind;
-use citystream_streaming::sim::{self, SimConfig, SimError, SimReport};
-use citystream_streaming::stats::table3;
 
 /// The paper's 68.6 s benchmark at about 5 ms per frame.
 const FRAMES: u64 = 13_000;

@@ -12,9 +12,20 @@ use citystream_engine::{Device, DeviceOptions};
 
 /// Creates a device with `VK_LAYER_KHRONOS_validation` on, whatever the build.
 pub fn validated_device() -> Result<Arc<Device>> {
+    device_with_validation(false)
+}
+
+/// As [`validated_device`], with synchronization validation on too: for
+/// code that overlaps frames.
+pub fn sync_validated_device() -> Result<Arc<Device>> {
+    device_with_validation(true)
+}
+
+fn device_with_validation(synchronization: bool) -> Result<Arc<Device>> {
     let options = DeviceOptions {
         instance: InstanceOptions {
             validation: true,
+            synchronization,
             app_name: "citystream tests".to_owned(),
         },
         device_name: None,

@@ -10,6 +10,7 @@ fn unknown_device_name_lists_the_devices_present() -> Result<()> {
     let options = DeviceOptions {
         instance: InstanceOptions {
             validation: true,
+            synchronization: false,
             app_name: "device name test".into(),
         },
         device_name: Some("no such gpu 9000".into()),
@@ -41,6 +42,7 @@ fn device_is_picked_by_part_of_its_name() -> Result<()> {
     let options = DeviceOptions {
         instance: InstanceOptions {
             validation: true,
+            synchronization: false,
             app_name: "device name test".into(),
         },
         device_name: Some(fragment.clone()),

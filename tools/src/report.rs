@@ -34,8 +34,8 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use anyhow::{anyhow, bail, Context, Result};
+use citystream_streaming::bench::stats::{Stats, RATE_WINDOW_S};
 use citystream_streaming::controller::BYTES_PER_MB;
-use citystream_streaming::stats::{Stats, RATE_WINDOW_S};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use serde::Deserialize;

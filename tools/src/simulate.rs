@@ -5,10 +5,10 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
+use citystream_streaming::bench::sim::{self, FrameSample, SimConfig};
+use citystream_streaming::bench::stats::{table3, Summary};
 use citystream_streaming::bind_latency::BindLatencyPreset;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
-use citystream_streaming::sim::{self, FrameSample, SimConfig};
-use citystream_streaming::stats::{table3, Summary};
 
 /// Options of `citystream simulate`.
 #[derive(Debug, clap::Args)]

@@ -3,8 +3,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use citystream_streaming::bench::path::{standard_path, CameraPath, STANDARD_JUMPS, STANDARD_PAUSES};
 use citystream_streaming::dataset::Dataset;
-use citystream_streaming::path::{standard_path, CameraPath, STANDARD_JUMPS, STANDARD_PAUSES};
 
 fn citystream(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_citystream"))

@@ -71,6 +71,7 @@ use rayon::slice::ParallelSliceMut;
 
 use citystream_cache::{BindOp, BlockKey, MemorySlot, SparseBinder};
 
+use crate::bench::stats::{Summary, SummaryBuilder};
 use crate::bind_latency::{
     BindLatencyModel, BindLatencyPreset, LatencyBinder, LatencyMode, NullBinder, SPARSE_BLOCK_BYTES,
 };
@@ -80,7 +81,6 @@ use crate::records::{MeshMetaData, DEFAULT_WEIGHT_CUTOFF};
 use crate::rng::hash_unit;
 use crate::source::{bc1_mip_len, MipSource, SourceError};
 use crate::states::{MipChain, TextureState, TextureStates};
-use crate::stats::{Summary, SummaryBuilder};
 
 /// Extent of every simulated texture.
 pub const SIM_TEXTURE_EXTENT: u32 = 512;
@@ -337,6 +337,14 @@ impl SimCity {
 }
 
 impl MipSource for SimCity {
+    fn texture_count(&self) -> u32 {
+        self.textures
+    }
+
+    fn texture_format(&self, texture: u32) -> Result<crate::dataset::TextureFormat, SourceError> {
+        self.check(texture, 0).map(|()| crate::dataset::TextureFormat::Bc1)
+    }
+
     fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError> {
         self.check(texture, 0)?;
         Ok(MipChain {

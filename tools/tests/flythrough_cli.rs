@@ -195,6 +195,12 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         }
         assert_eq!(summary["frames"], 30);
         assert_eq!(summary["validation_errors"], 0);
+        // Two frames in flight by default; frames 0 and 15 (PNG, PSNR) are
+        // read back, the only waits outside the frames-in-flight throttle.
+        assert_eq!(summary["frames_in_flight"], 2);
+        assert_eq!(summary["readback_wait_frames"], 2);
+        let throttled = summary["cpu_wait_frames"].as_u64().expect("cpu_wait_frames");
+        assert!(throttled <= 30, "{throttled} throttled frames of 30");
         assert_eq!(summary["policy"], policy);
         let mips = summary["mips_streamed"].as_u64().expect("mips_streamed");
         // Only meshes whose feedback weight reaches τ are loaded: the ground
@@ -288,8 +294,8 @@ fn pop_in_measurement_compares_direct_and_blended_sampling() {
 
 #[test]
 fn streaming_converges_during_the_first_pause_of_the_standard_path() {
+    use citystream_streaming::bench::path::standard_path;
     use citystream_streaming::dataset::Dataset;
-    use citystream_streaming::path::standard_path;
     let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_converge");
     let dataset = base.join("city");
     write_small_dataset(&dataset);
@@ -346,13 +352,16 @@ fn streaming_converges_during_the_first_pause_of_the_standard_path() {
         "the 2 s pause spans about 120 frames, {} had a deficit",
         in_pause.len()
     );
-    // It starts from nothing resident, so there was a deficit to close.
-    let first: f64 = csv
+    // It starts from nothing resident, so there was a deficit to close: the
+    // first deficit is of frame 0's feedback, consumed two frames later
+    // (two frames in flight).
+    let (first_frame, first): (usize, f64) = csv
         .lines()
-        .nth(1)
-        .and_then(|l| l.split(',').nth(14))
-        .and_then(|d| d.parse().ok())
+        .skip(1)
+        .enumerate()
+        .find_map(|(i, l)| l.split(',').nth(14).and_then(|d| d.parse().ok()).map(|d| (i, d)))
         .expect("first deficit");
+    assert_eq!(first_frame, 2, "frame 0's feedback is consumed at frame 2");
     assert!(first > 1.0, "frame 0 shows no texture, deficit {first}");
     assert_eq!(
         *in_pause.last().expect("frames in the pause"),

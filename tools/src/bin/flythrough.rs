@@ -15,26 +15,25 @@ use glam::Vec3;
 use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::describe;
-use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::{FeedbackEntry, Vertex, FEEDBACK_MIP_ONE, TEXTURE_SAMPLEABLE};
-use citystream_engine::instance::{default_validation, InstanceOptions};
+use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder;
 use citystream_engine::scene::MeshRenderer;
-use citystream_engine::streamer::{feedback_tau, DatasetSource, Streamer};
+use citystream_engine::stream::{DatasetSource, StreamConfig, TextureStreamer};
 use citystream_engine::target::{write_png, RenderTarget};
-use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::{Device, DeviceOptions};
+use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
+use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::bind_latency::{BindLatencyModel, BindLatencyPreset};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::LoaderOptions;
-use citystream_streaming::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
 use citystream_streaming::source::MipSource;
-use citystream_streaming::stats::{Stats, SummaryBuilder};
 use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -137,6 +136,9 @@ struct Args {
     /// colormap blending (Eq. 8). Writes OUT/popin.json.
     #[arg(long)]
     pop_in: bool,
+    /// Frames the CPU may record ahead of the GPU (1 waits for every frame).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
+    frames_in_flight: u32,
     /// Measure image error every N frames: render a reference of the same view
     /// with every needed mip resident and report PSNR against it (0: never).
     #[arg(long, default_value_t = 30)]
@@ -164,6 +166,14 @@ struct Run<'a> {
     height: u32,
     duration_s: f64,
     wall_s: f64,
+    /// Wall time per frame (ms): compare runs with 1 and 2 frames in flight.
+    wall_ms_per_frame: f64,
+    frames_in_flight: u32,
+    /// Frames whose render thread blocked on the GPU to reuse a frame slot.
+    cpu_wait_frames: u32,
+    cpu_wait_ms: f64,
+    /// Frames whose image was read back (PNG, PSNR): waits outside the steady state.
+    readback_wait_frames: u32,
     mips_streamed: u64,
     blocks_bound: u64,
     peak_resident_bytes: u64,
@@ -177,6 +187,7 @@ fn main() -> Result<()> {
         Device::new(&DeviceOptions {
             instance: InstanceOptions {
                 validation: args.validation.unwrap_or_else(default_validation),
+                synchronization: default_synchronization_validation(),
                 app_name: "citystream flythrough".into(),
             },
             device_name: args.device.clone(),
@@ -260,36 +271,55 @@ fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: f64, reside
     }
 }
 
-/// Everything the city passes need, built once per cache: the streamed
-/// run has one, the error reference another.
+/// A streamer over the dataset and the city passes that draw with it.
 struct CityGpu {
-    cache: GpuTextureCache,
+    streamer: TextureStreamer<DatasetSource>,
     renderer: CityRenderer,
+}
+
+/// The streamer's cache and feedback settings shared by the streamed run,
+/// the error reference and the pop-in measurement.
+fn stream_config(memory_budget_bytes: u64, frames_in_flight: u32, fragment_area: f32, clock: Clock) -> StreamConfig {
+    StreamConfig {
+        frames_in_flight,
+        layer_size: 2048,
+        layer_count: 64,
+        memory_budget_bytes,
+        blocks_per_chunk: 256,
+        staging_bytes: 16 << 20,
+        filtering: Filtering::BilinearNearestLevel,
+        feedback_capacity: None,
+        weight_cutoff: DEFAULT_WEIGHT_CUTOFF,
+        fragment_area,
+        // The fixed clock must not depend on how fast this machine reads:
+        // no wall-clock load-time limit there (the load size still bounds a cycle).
+        loader: match clock {
+            Clock::Real => LoaderOptions::default(),
+            Clock::Fixed => LoaderOptions {
+                load_time: Duration::from_secs(3600),
+                ..LoaderOptions::default()
+            },
+        },
+        deterministic: clock == Clock::Fixed,
+    }
 }
 
 fn city_gpu(
     device: &Arc<Device>,
     commands: &mut CommandContext,
-    dataset: &Dataset,
-    meshes: &[CityMesh],
-    vertices: &[Vertex],
-    compactor: &FeedbackCompactor,
-    memory_budget_bytes: u64,
+    dataset: &Arc<Dataset>,
+    city: &CityGeometry,
+    policy: Box<dyn citystream_streaming::controller::LoadPolicy>,
+    config: &StreamConfig,
 ) -> Result<CityGpu> {
-    let cache = GpuTextureCache::new(
+    let (vertices, meshes) = city;
+    let streamer = TextureStreamer::new(
         device,
-        commands,
-        &GpuCacheConfig {
-            layer_size: 2048,
-            layer_count: 64,
-            memory_budget_bytes,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 256,
-            texture_count: dataset.textures.len(),
-            filtering: Filtering::BilinearNearestLevel,
-            staging_bytes: 16 << 20,
-        },
+        DatasetSource::new(Arc::clone(dataset)),
+        dataset.scene.meshes.iter().map(|m| m.texture).collect(),
         dataset.colormap.colours(),
+        policy,
+        config,
     )?;
     let renderer = CityRenderer::new(
         device,
@@ -297,10 +327,10 @@ fn city_gpu(
         vertices,
         &dataset.scene.indices,
         meshes.to_vec(),
-        &cache,
-        compactor,
+        streamer.cache(),
+        streamer.compactor(),
     )?;
-    Ok(CityGpu { cache, renderer })
+    Ok(CityGpu { streamer, renderer })
 }
 
 /// The mip deficit of one frame: the weighted mean, over the meshes whose
@@ -326,17 +356,14 @@ fn mip_deficit(entries: &[FeedbackEntry], tau: u32, meshes: &[CityMesh], cache: 
     (total > 0.0).then(|| weighted / total)
 }
 
-/// Loads, into the reference cache, every level from the one each seen mesh
-/// needs up to its coarsest, with no budget or load size; returns how many
-/// textures the reference cache had to evict (0 for a faithful reference).
+/// Loads, into the reference streamer, every level from the one each seen
+/// mesh needs up to its coarsest, with no budget or load size; returns how
+/// many textures the reference cache had to evict (0 for a faithful reference).
 fn load_reference(
     reference: &mut CityGpu,
     commands: &mut CommandContext,
-    source: &DatasetSource,
-    dataset: &Dataset,
     entries: &[FeedbackEntry],
     meshes: &[CityMesh],
-    finest_loaded: &mut [u32],
 ) -> Result<u32> {
     let mut needed: Vec<(u32, u32)> = entries
         .iter()
@@ -348,26 +375,8 @@ fn load_reference(
         .collect();
     needed.sort_unstable();
     needed.dedup_by_key(|(t, _)| *t);
-    let mut buffer = Vec::new();
-    for (texture, level) in needed {
-        let chain = source.mip_chain(texture)?;
-        let info = dataset.textures.info(texture)?;
-        let level = level.min(chain.mip_count - 1);
-        let already = finest_loaded[texture as usize];
-        for l in (level..chain.mip_count.min(already)).rev() {
-            buffer.resize(source.mip_len(texture, l)? as usize, 0);
-            source.read_mip(texture, l, &mut buffer)?;
-            reference
-                .cache
-                .stage(texture, info.format(), info.width(), info.height(), l, &buffer)?;
-        }
-        finest_loaded[texture as usize] = already.min(level);
-    }
-    let report = reference.cache.finish_cycle(commands)?;
-    for &t in &report.invalidated_textures {
-        finest_loaded[t as usize] = u32::MAX;
-    }
-    Ok(report.textures_invalidated)
+    let evicted = reference.streamer.load_now(&needed, commands)?;
+    Ok(evicted.len() as u32)
 }
 
 /// Peak signal-to-noise ratio of `a` against `b` over RGB, in dB (∞ when equal).
@@ -399,45 +408,25 @@ fn optional(value: Option<f64>) -> String {
         .unwrap_or_default()
 }
 
+/// A dataset's vertices and meshes in the engine's layout.
+type CityGeometry = (Vec<Vertex>, Vec<CityMesh>);
+
 /// The dataset with its vertices and meshes in the engine's layout.
-fn open_city(dir: &std::path::Path) -> Result<(Arc<Dataset>, Vec<Vertex>, Vec<CityMesh>)> {
+fn open_city(dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGeometry)> {
     let dataset = Arc::new(Dataset::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?);
-    let (vertices, meshes) = city_geometry(&dataset)?;
-    Ok((dataset, vertices, meshes))
+    let city = city_geometry(&dataset)?;
+    Ok((dataset, city))
 }
 
 fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
-    let (dataset, vertices, meshes) = open_city(dir)?;
+    let (dataset, city) = open_city(dir)?;
+    let meshes = &city.1;
     let scene = &dataset.scene;
-    let mut commands = CommandContext::new(device, "flythrough frame")?;
-    let mesh_count = meshes.len() as u32;
-    let compactor = FeedbackCompactor::new(device, &mut commands, mesh_count, mesh_count)?;
-    let mut gpu = city_gpu(
-        device,
-        &mut commands,
-        &dataset,
-        &meshes,
-        &vertices,
-        &compactor,
-        args.memory_budget_mb << 20,
-    )?;
-    let mut reference = if args.psnr_interval > 0 {
-        Some(city_gpu(
-            device,
-            &mut commands,
-            &dataset,
-            &meshes,
-            &vertices,
-            &compactor,
-            u64::MAX / 4,
-        )?)
-    } else {
-        None
-    };
-    let reference_source = DatasetSource::new(Arc::clone(&dataset));
-    let mut reference_finest = vec![u32::MAX; dataset.textures.len() as usize];
+    let mut commands = CommandContext::new(device, "flythrough setup and measurements")?;
     let target = RenderTarget::new(device, args.width, args.height)?;
     let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
+    let view = FeedbackView::default();
+    let fragment_area = view.fragment_area(args.height, feedback_target.height());
     let policy = args
         .policy
         .build(&PolicyOptions {
@@ -449,23 +438,34 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             fixed_mip_bias: args.mip_bias,
         })
         .context("building the streaming policy")?;
-    let view = FeedbackView::default();
-    let fragment_area = view.fragment_area(args.height, feedback_target.height());
-    let mut streamer = Streamer::new(
-        Arc::clone(&dataset),
+    let frames_in_flight = args.frames_in_flight;
+    let mut gpu = city_gpu(
+        device,
+        &mut commands,
+        &dataset,
+        &city,
         policy,
-        DEFAULT_WEIGHT_CUTOFF,
-        fragment_area,
-        // The fixed clock must not depend on how fast this machine reads:
-        // no wall-clock load-time limit there (the load size still bounds a cycle).
-        match args.clock {
-            Clock::Real => LoaderOptions::default(),
-            Clock::Fixed => LoaderOptions {
-                load_time: Duration::from_secs(3600),
-                ..LoaderOptions::default()
-            },
-        },
+        &stream_config(args.memory_budget_mb << 20, frames_in_flight, fragment_area, args.clock),
     )?;
+    // The error reference: every needed level resident, no budget, loaded
+    // synchronously between frames (its policy never runs).
+    let mut reference = if args.psnr_interval > 0 {
+        Some(city_gpu(
+            device,
+            &mut commands,
+            &dataset,
+            &city,
+            PolicyKind::Baseline.build(&PolicyOptions::default())?,
+            &stream_config(u64::MAX / 4, 1, fragment_area, Clock::Fixed),
+        )?)
+    } else {
+        None
+    };
+    // One command buffer per frame in flight: a frame's is reused only after
+    // the streamer's throttle saw that frame complete.
+    let mut frame_commands = (0..frames_in_flight)
+        .map(|i| CommandContext::new(device, &format!("flythrough frame (slot {i})")))
+        .collect::<std::result::Result<Vec<_>, _>>()?;
     let latency = BindLatencyModel::preset(args.bind_latency);
     let mut latency_rng = SplitMix64::new(args.seed);
 
@@ -493,12 +493,13 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             .collect::<Vec<_>>()
     );
     // τ in the feedback's fixed point: per feedback fragment, not per visible one.
-    let tau = feedback_tau(DEFAULT_WEIGHT_CUTOFF, fragment_area);
+    let tau = gpu.streamer.gpu_tau();
     eprintln!(
-        "scene: {} ({} meshes, {} textures)",
+        "scene: {} ({} meshes, {} textures), {} frame(s) in flight",
         dir.display(),
         scene.meshes.len(),
-        dataset.textures.len()
+        dataset.textures.len(),
+        frames_in_flight
     );
 
     let csv_path = args.out.join("frames.csv");
@@ -517,6 +518,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
     let mut reference_incomplete = 0u32;
     let mut frames_run = 0;
+    let mut waits = WaitCounts::default();
+    let mut last_feedback_frame = None;
     for frame in 0..frames {
         let time_s = match args.clock {
             Clock::Fixed => sim_time_s,
@@ -528,77 +531,72 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         frames_run += 1;
         let camera = pose_camera(&path.sample(time_s), extent);
         let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
+        let write_frame = args.frame_interval > 0 && frame % args.frame_interval == 0;
 
-        // Algorithm 1: feedback and compaction, then the frame. The compacted
-        // records go to the host only when no loading task runs (and for the
-        // error reference, which needs every seen mesh: τ = 0 then).
-        let idle = !streamer.is_streaming();
-        let cmd = commands.begin()?;
+        // Algorithm 1 through the streamer: retire finished frames, hand
+        // completed feedback to the loader, pack and bind what it loaded.
+        let begun = gpu.streamer.begin_frame()?;
+        // The deficit of the feedback just consumed, against the table the
+        // frames since were drawn with.
+        let deficit = match gpu.streamer.latest_feedback() {
+            Some((from, entries)) if last_feedback_frame != Some(from) => {
+                last_feedback_frame = Some(from);
+                mip_deficit(entries, tau, meshes, gpu.streamer.cache())
+            }
+            _ => None,
+        };
+        let commands_of_frame = &mut frame_commands[begun.slot as usize];
+        let cmd = commands_of_frame.begin()?;
+        let applied = gpu.streamer.record_uploads(cmd)?;
         gpu.renderer
             .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
-        compactor.record_compact(cmd, if measure_error { 0 } else { tau }, idle || measure_error);
+        // The error reference needs every seen mesh: τ = 0 then.
+        gpu.streamer
+            .record_feedback_resolve_with_tau(cmd, if measure_error { 0 } else { tau })?;
         gpu.renderer.record_visible(cmd, &target, &camera, 1.0, true);
-        commands.submit_and_wait(&[])?;
-        let pixels = target.read_pixels()?;
-        if args.frame_interval > 0 && frame % args.frame_interval == 0 {
-            let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
-            write_png(&pixels, &path)?;
-            written.push(path.display().to_string());
-        }
+        // The controller step with the previous frame's latency.
+        let submit = gpu.streamer.end_frame(frame_ms)?;
+        commands_of_frame.submit(&submit.waits, &[submit.signal])?;
+        waits.count(begun.cpu_wait, false);
 
-        let entries = if idle || measure_error {
-            Some(compactor.read_back(&mut commands)?.entries)
-        } else {
-            None
-        };
-        let deficit = entries
-            .as_deref()
-            .and_then(|e| mip_deficit(e, tau, &meshes, &gpu.cache));
         let mut psnr = None;
-        if let (true, Some(reference), Some(entries)) = (measure_error, reference.as_mut(), entries.as_deref()) {
-            reference_incomplete += load_reference(
-                reference,
-                &mut commands,
-                &reference_source,
-                &dataset,
-                entries,
-                &meshes,
-                &mut reference_finest,
-            )?;
-            let cmd = commands.begin()?;
-            reference.renderer.record_visible(cmd, &target, &camera, 1.0, true);
-            commands.submit_and_wait(&[])?;
-            psnr = Some(psnr_db(&pixels, &target.read_pixels()?));
-        }
-
-        // Controller, then a loading task if none runs.
-        let decision = streamer.update_policy(frame_ms);
-        if let (true, Some(entries)) = (idle, entries.as_deref()) {
-            match args.clock {
-                Clock::Fixed => {
-                    streamer.run_cycle_now(entries, decision);
-                }
-                Clock::Real => {
-                    streamer.start_cycle(entries, decision);
-                }
+        if write_frame || measure_error {
+            // Reading this frame's image back is a wait outside the steady state.
+            waits.count(gpu.streamer.wait_for_frame(begun.index)?, true);
+            let pixels = target.read_pixels()?;
+            if write_frame {
+                let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
+                write_png(&pixels, &path)?;
+                written.push(path.display().to_string());
+            }
+            if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
+                let entries = gpu
+                    .streamer
+                    .feedback_of(begun.index)?
+                    .map(|f| f.entries)
+                    .unwrap_or_default();
+                reference_incomplete += load_reference(reference, &mut commands, &entries, meshes)?;
+                let cmd = commands.begin()?;
+                reference.renderer.record_visible(cmd, &target, &camera, 1.0, true);
+                commands.submit_and_wait(&[])?;
+                psnr = Some(psnr_db(&pixels, &target.read_pixels()?));
             }
         }
-        // Upload what the loader staged (all of it with the fixed clock).
-        let applied = streamer.apply(&mut gpu.cache, &mut commands)?;
+
         let mut bind_cost_ms = 0.0;
-        if applied.cache.blocks_bound + applied.cache.blocks_unbound > 0 {
-            let runs = u64::from(applied.cache.bind_entries);
-            let blocks = u64::from(applied.cache.blocks_bound + applied.cache.blocks_unbound);
+        if applied.blocks_bound + applied.blocks_unbound > 0 {
+            let runs = u64::from(applied.bind_entries);
+            let blocks = u64::from(applied.blocks_bound + applied.blocks_unbound);
             bind_cost_ms = latency.cost_s(blocks, runs, &mut latency_rng) * 1000.0;
             if args.clock == Clock::Real && bind_cost_ms > 0.0 {
                 std::thread::sleep(Duration::from_secs_f64(bind_cost_ms / 1000.0));
             }
         }
-        let bytes = applied.cache.bytes_uploaded;
-        let mips = u64::from(applied.cache.mips_uploaded);
+        let bytes = applied.bytes_uploaded;
+        let mips = u64::from(applied.mips_uploaded);
         mips_total += mips;
-        blocks_total += u64::from(applied.cache.blocks_bound);
-        let resident = gpu.cache.utilisation().bound_bytes;
+        blocks_total += u64::from(applied.blocks_bound);
+        let resident = gpu.streamer.cache().utilisation().bound_bytes;
         peak_resident = peak_resident.max(resident);
 
         let measured = clock.tick().as_secs_f64() * 1000.0;
@@ -607,7 +605,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             Clock::Fixed => FIXED_RENDER_MS + bind_cost_ms + bytes as f64 / FIXED_COPY_BYTES_PER_S * 1000.0,
         };
         sim_time_s += FIXED_STEP_MS / 1000.0;
-        let t = streamer.policy().telemetry();
+        let t = gpu.streamer.policy().telemetry();
         summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
         psnrs.extend(psnr.filter(|p| p.is_finite()));
@@ -621,7 +619,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             t.tbu_ms,
             t.load_size_mb,
             t.mip_bias,
-            applied.cache.blocks_bound,
+            applied.blocks_bound,
             optional(deficit),
             optional(psnr),
         )?;
@@ -649,7 +647,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let run = Run {
         device: describe(device),
         scene: dir.display().to_string(),
-        policy: streamer.policy().kind().name(),
+        policy: gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         psnr_db: (!psnrs.is_empty()).then(|| Stats::from_samples(&psnrs)),
@@ -665,6 +663,11 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             Clock::Fixed => sim_time_s,
         },
         wall_s: started.elapsed().as_secs_f64(),
+        wall_ms_per_frame: started.elapsed().as_secs_f64() * 1000.0 / f64::from(frames_run.max(1)),
+        frames_in_flight,
+        cpu_wait_frames: waits.throttle_frames,
+        cpu_wait_ms: waits.throttle_ms,
+        readback_wait_frames: waits.readback_frames,
         mips_streamed: mips_total,
         blocks_bound: blocks_total,
         peak_resident_bytes: peak_resident,
@@ -679,20 +682,44 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     std::fs::write(&path, serde_json::to_string_pretty(&json)?)
         .with_context(|| format!("writing {}", path.display()))?;
     eprintln!(
-        "{} frames, {} mips streamed, wrote {} frames, {} and {}",
+        "{} frames, {} mips streamed, wrote {} frames, {} and {}; the CPU waited for the GPU in {} frame(s) \
+         ({:.1} ms) plus {} image read-back(s)",
         frames_run,
         mips_total,
         run.frames_written.len(),
         csv_path.display(),
-        path.display()
+        path.display(),
+        waits.throttle_frames,
+        waits.throttle_ms,
+        waits.readback_frames,
     );
     drop(reference);
     drop(gpu);
-    drop(compactor);
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");
     }
     Ok(())
+}
+
+/// Frames in which the render thread blocked on the GPU.
+#[derive(Debug, Default)]
+struct WaitCounts {
+    /// Frames whose slot was still in use by the GPU (the throttle blocked).
+    throttle_frames: u32,
+    throttle_ms: f64,
+    /// Frames whose image was read back (PNG frames, PSNR), which waits.
+    readback_frames: u32,
+}
+
+impl WaitCounts {
+    fn count(&mut self, waited: Duration, readback: bool) {
+        if readback {
+            self.readback_frames += 1;
+        } else if !waited.is_zero() {
+            self.throttle_frames += 1;
+            self.throttle_ms += waited.as_secs_f64() * 1000.0;
+        }
+    }
 }
 
 /// Mean squared error over RGB between two images.
@@ -721,22 +748,23 @@ struct PopIn {
 }
 
 fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
-    let (dataset, vertices, meshes) = open_city(dir)?;
+    let (dataset, city) = open_city(dir)?;
+    let meshes = &city.1;
     let scene = &dataset.scene;
     let mut commands = CommandContext::new(device, "pop-in frame")?;
-    let mesh_count = meshes.len() as u32;
-    let compactor = FeedbackCompactor::new(device, &mut commands, mesh_count, mesh_count)?;
+    let target = RenderTarget::new(device, args.width, args.height)?;
+    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
+    let view = FeedbackView::default();
+    let fragment_area = view.fragment_area(args.height, feedback_target.height());
+    // Levels are loaded explicitly, one per frame: the policy never runs.
     let mut gpu = city_gpu(
         device,
         &mut commands,
         &dataset,
-        &meshes,
-        &vertices,
-        &compactor,
-        u64::MAX / 4,
+        &city,
+        PolicyKind::Baseline.build(&PolicyOptions::default())?,
+        &stream_config(u64::MAX / 4, 1, fragment_area, Clock::Fixed),
     )?;
-    let target = RenderTarget::new(device, args.width, args.height)?;
-    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
     // The view of the path's first pause: the static view a user replaying
     // the benchmark sees longest.
     let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
@@ -744,19 +772,25 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     let path = camera_path(args, scene)?;
     let at = path.pauses().first().map_or(0.0, |p| p.start_s);
     let camera = pose_camera(&path.sample_between(None, at), extent);
-    // What the static view needs.
-    let view = FeedbackView::default();
-    let tau = feedback_tau(
-        DEFAULT_WEIGHT_CUTOFF,
-        view.fragment_area(args.height, feedback_target.height()),
-    );
+    // What the static view needs: one streamer frame of feedback.
+    gpu.streamer.begin_frame()?;
     let cmd = commands.begin()?;
+    gpu.streamer.record_uploads(cmd)?;
     gpu.renderer
         .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
-    compactor.record_compact(cmd, tau, true);
-    commands.submit_and_wait(&[])?;
-    let entries = compactor.read_back(&mut commands)?.entries;
-    let source = DatasetSource::new(Arc::clone(&dataset));
+    gpu.streamer.record_feedback_resolve(cmd)?;
+    let submit = gpu.streamer.end_frame(FIXED_STEP_MS)?;
+    commands.submit(&submit.waits, &[submit.signal])?;
+    // The frame timeline says when the feedback is readable (a fence may
+    // signal before the timeline value is visible).
+    gpu.streamer.wait_for_frame(0)?;
+    commands.wait()?;
+    let entries = gpu
+        .streamer
+        .feedback_of(0)?
+        .context("the pop-in view's feedback frame did not complete")?
+        .entries;
+    let source = gpu.streamer.source().clone();
     let mut wanted: Vec<(u32, u32, u32)> = Vec::new(); // (texture, needed level, next level to load)
     for entry in &entries {
         let Some(mesh) = meshes.get(entry.mesh_id as usize) else {
@@ -778,25 +812,20 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     };
     let mut previous: Option<(image::RgbaImage, image::RgbaImage)> = None;
     let (mut mse_direct, mut mse_blended) = (Vec::new(), Vec::new());
-    let mut buffer = Vec::new();
     let mut frames = 0;
     loop {
         // Frame 0 shows nothing resident; each later frame loads one level,
         // the next finer one, of every texture still coarser than needed.
-        let mut loaded = 0;
+        let mut levels = Vec::new();
         for (texture, needed, next) in wanted.iter_mut() {
             if frames == 0 || *next == u32::MAX || *next < *needed {
                 continue;
             }
-            let info = dataset.textures.info(*texture)?;
-            buffer.resize(source.mip_len(*texture, *next)? as usize, 0);
-            source.read_mip(*texture, *next, &mut buffer)?;
-            gpu.cache
-                .stage(*texture, info.format(), info.width(), info.height(), *next, &buffer)?;
-            loaded += 1;
+            levels.push((*texture, *next));
             *next = next.checked_sub(1).unwrap_or(u32::MAX);
         }
-        gpu.cache.finish_cycle(&mut commands)?;
+        let loaded = levels.len();
+        gpu.streamer.load_levels_now(&levels, &mut commands)?;
         let direct = render(&gpu, &mut commands, false)?;
         let blended = render(&gpu, &mut commands, true)?;
         if args.frame_interval > 0 && frames % args.frame_interval == 0 {
@@ -842,7 +871,6 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         path.display()
     );
     drop(gpu);
-    drop(compactor);
     let errors = device.validation_log().error_count();
     if errors > 0 {
         bail!("{errors} Vulkan validation error(s) during the run");

@@ -1,0 +1,787 @@
+//! The embeddable streaming module: Algorithm 1 of the paper, one frame at
+//! a time, with frames in flight.
+//!
+//! A host renderer owns its frame loop, its passes and its submissions;
+//! [`TextureStreamer`] owns the rest: the sparse texture cache, the feedback
+//! buffers, the loader over any [`MipSource`], the load policy and a frame
+//! timeline semaphore. Per frame the host calls, in order:
+//!
+//! 1. [`TextureStreamer::begin_frame`]: waits only if the frame that used
+//!    this frame's slot `frames_in_flight` frames ago is still running (the
+//!    usual frames-in-flight throttle; counted in [`FrameBegin::cpu_wait`]),
+//!    retires what the GPU finished (read-back slots, staging space,
+//!    one-off buffers), hands the newest completed feedback to the loader
+//!    when no loading task runs, packs what the loader staged into the
+//!    cache and submits the sparse binds (which wait on the GPU, not the
+//!    host, for frames that may still sample evicted blocks).
+//! 2. [`TextureStreamer::record_uploads`] into the frame's command buffer,
+//!    before any pass that samples streamed textures: the copies of new mips
+//!    and the table update.
+//! 3. The host's feedback pass (writing [`TextureStreamer::compactor`]'s
+//!    per-mesh array), then [`TextureStreamer::record_feedback_resolve`]:
+//!    compaction into this frame's read-back slot.
+//! 4. The host's visible passes.
+//! 5. [`TextureStreamer::end_frame`] with the latency the host measured for
+//!    its previous frame: the controller step (Eq. 4–7). It returns the
+//!    [`FrameSubmit`] waits and signal the host's submission of this frame
+//!    must carry.
+//!
+//! Read-backs are consumed one or more frames after they were recorded:
+//! as soon as their frame completed, or, with
+//! [`StreamConfig::deterministic`], exactly `frames_in_flight` frames later
+//! with the loading cycle run on the calling thread, so that fixed-clock
+//! runs repeat exactly.
+//!
+//! Threading: the streamer is used from one thread (the render thread); its
+//! loader runs on rayon workers and touches no Vulkan object.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use ash::vk;
+use citystream_cache::geometry::cacheable_mip_count;
+use citystream_cache::TexelFormat;
+use citystream_streaming::controller::{Decision, LoadPolicy};
+use citystream_streaming::dataset::{Dataset, DatasetError, TextureFormat};
+use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals};
+use citystream_streaming::records::{prepare, MeshMetaData};
+use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
+use citystream_streaming::states::{MipChain, TextureStates};
+
+use crate::commands::{CommandContext, SemaphoreSignal, SemaphoreWait, TimelineSemaphore};
+use crate::device::Device;
+use crate::error::{EngineError, Result};
+use crate::feedback::{CompactedFeedback, FeedbackCompactor};
+use crate::gpu_types::{FeedbackEntry, BINDING_FEEDBACK_MESHES, FEEDBACK_MIP_ONE, FEEDBACK_WEIGHT_ONE};
+use crate::pipeline::{DescriptorResource, Filtering};
+use crate::texture_cache::{CycleReport, GpuCacheConfig, GpuTextureCache, StageOutcome};
+
+/// The cache's texel format for a dataset format.
+pub fn texel_format(format: TextureFormat) -> TexelFormat {
+    match format {
+        TextureFormat::Bc1 => TexelFormat::BC1,
+        _ => TexelFormat::RGBA8,
+    }
+}
+
+/// The dataset's texture pack as a [`MipSource`]. The chain it reports
+/// stops at the levels the cache can hold (both sides at least one texel
+/// block), so the loader never asks for a level the cache would refuse.
+#[derive(Debug, Clone)]
+pub struct DatasetSource {
+    dataset: Arc<Dataset>,
+}
+
+impl DatasetSource {
+    /// Reads from `dataset`.
+    pub fn new(dataset: Arc<Dataset>) -> Self {
+        Self { dataset }
+    }
+
+    /// The dataset read from.
+    pub fn dataset(&self) -> &Arc<Dataset> {
+        &self.dataset
+    }
+
+    fn chain(&self, texture: u32) -> std::result::Result<MipChain, SourceError> {
+        let info = self
+            .dataset
+            .textures
+            .info(texture)
+            .map_err(|_| SourceError::UnknownTexture { texture })?;
+        let cacheable = cacheable_mip_count(&texel_format(info.format()), info.width(), info.height());
+        Ok(MipChain {
+            width: info.width(),
+            height: info.height(),
+            mip_count: info.mip_count().min(cacheable).max(1),
+        })
+    }
+}
+
+fn source_error(texture: u32, level: u32, error: DatasetError) -> SourceError {
+    match error {
+        DatasetError::Io { source, .. } => SourceError::Io { texture, level, source },
+        other => SourceError::Other {
+            texture,
+            reason: other.to_string(),
+        },
+    }
+}
+
+impl MipSource for DatasetSource {
+    fn texture_count(&self) -> u32 {
+        self.dataset.textures.len()
+    }
+
+    fn texture_format(&self, texture: u32) -> std::result::Result<TextureFormat, SourceError> {
+        self.dataset
+            .textures
+            .info(texture)
+            .map(|info| info.format())
+            .map_err(|_| SourceError::UnknownTexture { texture })
+    }
+
+    fn mip_chain(&self, texture: u32) -> std::result::Result<MipChain, SourceError> {
+        self.chain(texture)
+    }
+
+    fn mip_len(&self, texture: u32, level: u32) -> std::result::Result<u64, SourceError> {
+        let chain = self.chain(texture)?;
+        if level >= chain.mip_count {
+            return Err(SourceError::UnknownLevel {
+                texture,
+                level,
+                mip_count: chain.mip_count,
+            });
+        }
+        let info = self
+            .dataset
+            .textures
+            .info(texture)
+            .map_err(|_| SourceError::UnknownTexture { texture })?;
+        Ok(info.mip_len(level))
+    }
+
+    fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> std::result::Result<(), SourceError> {
+        let expected = self.mip_len(texture, level)?;
+        if buf.len() as u64 != expected {
+            return Err(SourceError::LengthMismatch {
+                texture,
+                level,
+                expected,
+                got: buf.len() as u64,
+            });
+        }
+        self.dataset
+            .textures
+            .read_mip_into(texture, level, buf)
+            .map(|_| ())
+            .map_err(|e| source_error(texture, level, e))
+    }
+}
+
+/// Loaded mips waiting for the render thread.
+#[derive(Debug, Default)]
+struct UploadQueue {
+    staged: Mutex<Vec<StagedMip>>,
+}
+
+impl UploadQueue {
+    fn take(&self) -> Vec<StagedMip> {
+        std::mem::take(&mut *self.staged.lock().unwrap_or_else(|e| e.into_inner()))
+    }
+}
+
+/// The loader's sink: a shared handle on the upload queue.
+#[derive(Debug, Clone, Default)]
+struct QueueSink(Arc<UploadQueue>);
+
+impl MipSink for QueueSink {
+    fn stage(&self, mip: StagedMip) -> std::result::Result<(), SinkError> {
+        self.0.staged.lock().unwrap_or_else(|e| e.into_inner()).push(mip);
+        Ok(())
+    }
+
+    fn unload(&self, _texture: u32) {
+        // The cache already made the texture unsampleable when it evicted
+        // it (before unbinding); nothing is left to do here.
+    }
+}
+
+/// Converts compacted feedback entries to the loader's records: the level
+/// wanted is the finest whole level covering the fractional one; the weight
+/// is back in units of W per visible fragment (`fragment_area` visible pixels
+/// per feedback fragment, see [`crate::city::FeedbackView::fragment_area`]).
+pub fn records_from_feedback(entries: &[FeedbackEntry], fragment_area: f32) -> Vec<MeshMetaData> {
+    entries
+        .iter()
+        .map(|e| MeshMetaData {
+            mip_level: (e.mip as f32 / FEEDBACK_MIP_ONE).floor() as u32,
+            weight: (e.weight as f32 / FEEDBACK_WEIGHT_ONE * fragment_area).round() as u32,
+            mesh_id: e.mesh_id,
+        })
+        .collect()
+}
+
+/// The compaction threshold in the feedback's fixed-point units for a τ in
+/// W per visible fragment.
+pub fn feedback_tau(tau: u32, fragment_area: f32) -> u32 {
+    (tau as f32 * FEEDBACK_WEIGHT_ONE / fragment_area.max(1e-6)).floor() as u32
+}
+
+/// How a [`TextureStreamer`] is built.
+#[derive(Clone, Debug)]
+pub struct StreamConfig {
+    /// Frames the host may have submitted and not yet completed (at least 1).
+    pub frames_in_flight: u32,
+    /// Side of every cache array layer in texels (a power of two).
+    pub layer_size: u32,
+    /// Layers per cache image.
+    pub layer_count: u32,
+    /// Bytes of bound texture blocks allowed.
+    pub memory_budget_bytes: u64,
+    /// Blocks per device-memory chunk of the block pool.
+    pub blocks_per_chunk: u32,
+    /// Bytes of the host-visible staging ring uploads go through.
+    pub staging_bytes: u64,
+    /// Filtering of the cache sampler.
+    pub filtering: Filtering,
+    /// Compacted feedback entries per frame; `None`: one per mesh.
+    pub feedback_capacity: Option<u32>,
+    /// τ: records lighter than this (W per visible fragment) are not loaded.
+    pub weight_cutoff: u32,
+    /// Visible pixels one feedback fragment stands for
+    /// ([`crate::city::FeedbackView::fragment_area`]).
+    pub fragment_area: f32,
+    /// Options of the loader.
+    pub loader: LoaderOptions,
+    /// Reproducible runs: each frame's feedback is consumed exactly
+    /// `frames_in_flight` frames later and the loading cycle runs on the
+    /// calling thread, so results do not depend on GPU or disk timing.
+    pub deterministic: bool,
+}
+
+impl Default for StreamConfig {
+    fn default() -> Self {
+        Self {
+            frames_in_flight: 2,
+            layer_size: 2048,
+            layer_count: 64,
+            memory_budget_bytes: 512 << 20,
+            blocks_per_chunk: 256,
+            staging_bytes: 16 << 20,
+            filtering: Filtering::BilinearNearestLevel,
+            feedback_capacity: None,
+            weight_cutoff: citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF,
+            fragment_area: 1.0,
+            loader: LoaderOptions::default(),
+            deterministic: false,
+        }
+    }
+}
+
+/// What [`TextureStreamer::begin_frame`] did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameBegin {
+    /// The frame's number, from 0.
+    pub index: u64,
+    /// Its read-back slot.
+    pub slot: u32,
+    /// Time the CPU blocked waiting for the GPU to finish the frame that
+    /// used this slot before; zero when it had already finished.
+    pub cpu_wait: Duration,
+    /// Feedback of a completed frame was handed to the loader.
+    pub loading_started: bool,
+    /// Mips the cache could not take this frame (loaded again later).
+    pub refused: u32,
+}
+
+/// What the host's submission of a frame must carry.
+#[derive(Clone, Debug)]
+pub struct FrameSubmit {
+    /// Semaphores to wait on (the sparse binds the copies need).
+    pub waits: Vec<SemaphoreWait>,
+    /// The frame timeline value to signal when the frame completes.
+    pub signal: SemaphoreSignal,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct FrameSlot {
+    /// Timeline value of the frame that last used the slot (0: none).
+    value: u64,
+    /// The cache cycle that frame carried.
+    ticket: u64,
+    /// Its compaction is meant for the loader and not consumed yet.
+    unread: bool,
+}
+
+/// Algorithm 1 for a host renderer; see the module docs for the per-frame calls.
+pub struct TextureStreamer<S: MipSource + 'static> {
+    device: Arc<Device>,
+    cache: GpuTextureCache,
+    compactor: FeedbackCompactor,
+    loader: Loader<S, QueueSink>,
+    queue: Arc<UploadQueue>,
+    states: Arc<TextureStates>,
+    policy: Box<dyn LoadPolicy>,
+    decision: Decision,
+    frames: TimelineSemaphore,
+    slots: Vec<FrameSlot>,
+    /// Frames begun so far; the frame being recorded has value `begun`.
+    begun: u64,
+    in_frame: bool,
+    resolved_this_frame: bool,
+    tau: u32,
+    gpu_tau: u32,
+    fragment_area: f32,
+    deterministic: bool,
+    latest_feedback: Option<(u64, Vec<FeedbackEntry>)>,
+}
+
+impl<S: MipSource> std::fmt::Debug for TextureStreamer<S> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TextureStreamer")
+            .field("frames_in_flight", &self.slots.len())
+            .field("begun", &self.begun)
+            .field("tau", &self.tau)
+            .finish()
+    }
+}
+
+impl<S: MipSource + 'static> TextureStreamer<S> {
+    /// A streamer over `source`, whose meshes use `mesh_textures[mesh]`;
+    /// `colormap` holds one RGBA8 colour per texture (Eq. 8).
+    pub fn new(
+        device: &Arc<Device>,
+        source: S,
+        mesh_textures: Vec<u32>,
+        colormap: &[[u8; 4]],
+        policy: Box<dyn LoadPolicy>,
+        config: &StreamConfig,
+    ) -> Result<Self> {
+        if config.frames_in_flight == 0 {
+            return Err(EngineError::InvalidRequest(
+                "frames in flight must be at least 1".into(),
+            ));
+        }
+        let texture_count = source.texture_count();
+        let mesh_count = u32::try_from(mesh_textures.len())
+            .ok()
+            .filter(|&n| n > 0)
+            .ok_or_else(|| {
+                EngineError::InvalidRequest(format!(
+                    "{} meshes: the streamer needs between 1 and 2^32 - 1",
+                    mesh_textures.len()
+                ))
+            })?;
+        let mut commands = CommandContext::new(device, "texture streamer setup")?;
+        let cache = GpuTextureCache::new(
+            device,
+            &mut commands,
+            &GpuCacheConfig {
+                layer_size: config.layer_size,
+                layer_count: config.layer_count,
+                memory_budget_bytes: config.memory_budget_bytes,
+                virtual_budget_bytes: None,
+                blocks_per_chunk: config.blocks_per_chunk,
+                texture_count,
+                filtering: config.filtering,
+                staging_bytes: config.staging_bytes,
+            },
+            colormap,
+        )?;
+        let compactor = FeedbackCompactor::with_slots(
+            device,
+            &mut commands,
+            mesh_count,
+            config.feedback_capacity.unwrap_or(mesh_count),
+            config.frames_in_flight,
+        )?;
+        let queue = Arc::new(UploadQueue::default());
+        let states = Arc::new(TextureStates::new(texture_count as usize));
+        let loader = Loader::with_states(
+            source,
+            QueueSink(Arc::clone(&queue)),
+            mesh_textures,
+            Arc::clone(&states),
+            config.loader,
+        )
+        .map_err(|e| EngineError::InvalidRequest(format!("building the loader: {e}")))?;
+        Ok(Self {
+            device: Arc::clone(device),
+            cache,
+            compactor,
+            loader,
+            queue,
+            states,
+            policy,
+            decision: Decision {
+                load_size_bytes: 0,
+                mip_bias: 0.0,
+            },
+            frames: TimelineSemaphore::new(device, 0, "streamed frames")?,
+            slots: vec![FrameSlot::default(); config.frames_in_flight as usize],
+            begun: 0,
+            in_frame: false,
+            resolved_this_frame: false,
+            tau: config.weight_cutoff,
+            gpu_tau: feedback_tau(config.weight_cutoff, config.fragment_area),
+            fragment_area: config.fragment_area,
+            deterministic: config.deterministic,
+            latest_feedback: None,
+        })
+    }
+
+    /// Frames in flight.
+    pub fn frames_in_flight(&self) -> u32 {
+        self.slots.len() as u32
+    }
+
+    /// The texture cache (descriptors for the host's pipelines, the table's
+    /// host copy, utilisation).
+    pub fn cache(&self) -> &GpuTextureCache {
+        &self.cache
+    }
+
+    /// The feedback buffers; the host's feedback pass writes
+    /// [`FeedbackCompactor::mesh_feedback_buffer`].
+    pub fn compactor(&self) -> &FeedbackCompactor {
+        &self.compactor
+    }
+
+    /// Everything a host's shaders reach through `citystream_host.glsl`, for
+    /// the host's own descriptor set (at the set index it gives
+    /// `CITYSTREAM_SET`): binding number, descriptor type and resource. The
+    /// resources live as long as the streamer.
+    pub fn descriptor_bindings(&self) -> Vec<(u32, vk::DescriptorType, DescriptorResource)> {
+        let mut bindings: Vec<(u32, DescriptorResource)> = self.cache.descriptors().to_vec();
+        bindings.push((
+            BINDING_FEEDBACK_MESHES,
+            DescriptorResource::StorageBuffer(self.compactor.mesh_feedback_buffer()),
+        ));
+        bindings
+            .into_iter()
+            .map(|(binding, resource)| {
+                let ty = match resource {
+                    DescriptorResource::SampledImage(..) => vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+                    DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
+                    DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
+                };
+                (binding, ty, resource)
+            })
+            .collect()
+    }
+
+    /// The load policy, for telemetry.
+    pub fn policy(&self) -> &dyn LoadPolicy {
+        self.policy.as_ref()
+    }
+
+    /// The mip source.
+    pub fn source(&self) -> &S {
+        self.loader.source()
+    }
+
+    /// Loader totals so far.
+    pub fn totals(&self) -> LoaderTotals {
+        self.loader.totals()
+    }
+
+    /// Whether a loading task is running.
+    pub fn is_streaming(&self) -> bool {
+        self.loader.is_streaming()
+    }
+
+    /// τ in the feedback's fixed point, as the compaction applies it.
+    pub fn gpu_tau(&self) -> u32 {
+        self.gpu_tau
+    }
+
+    /// Frame timeline value the GPU has completed (frames are numbered from
+    /// 1 on the timeline: frame `i` signals `i + 1`).
+    pub fn completed_value(&self) -> Result<u64> {
+        self.frames.value()
+    }
+
+    /// Blocks until frame `index` has completed on the GPU. Not part of the
+    /// steady state: hosts call it to read back that frame's image.
+    pub fn wait_for_frame(&self, index: u64) -> Result<Duration> {
+        let ended = self.begun - u64::from(self.in_frame);
+        if index >= ended {
+            return Err(EngineError::InvalidRequest(format!(
+                "frame {index} has not been ended and submitted ({ended} frames so far)"
+            )));
+        }
+        let started = Instant::now();
+        self.frames.wait(index + 1)?;
+        Ok(started.elapsed())
+    }
+
+    /// The compacted feedback of frame `index` if it has completed and its
+    /// slot was not reused since; does not consume it.
+    pub fn feedback_of(&self, index: u64) -> Result<Option<CompactedFeedback>> {
+        let slot = (index % self.slots.len() as u64) as usize;
+        if self.slots[slot].value != index + 1 || self.frames.value()? < index + 1 {
+            return Ok(None);
+        }
+        self.compactor.read_back(slot as u32).map(Some)
+    }
+
+    /// The feedback most recently handed to the loader, with its frame.
+    pub fn latest_feedback(&self) -> Option<(u64, &[FeedbackEntry])> {
+        self.latest_feedback.as_ref().map(|(f, e)| (*f, e.as_slice()))
+    }
+
+    /// Step 1 of a frame; see the module docs.
+    pub fn begin_frame(&mut self) -> Result<FrameBegin> {
+        if self.in_frame {
+            return Err(EngineError::InvalidRequest(
+                "begin_frame called twice without end_frame".into(),
+            ));
+        }
+        let index = self.begun;
+        let value = index + 1;
+        let n = self.slots.len() as u64;
+        let slot = (index % n) as usize;
+        // The frames-in-flight throttle: the slot's previous frame must be done.
+        let reuse = self.slots[slot].value;
+        let mut completed = self.frames.value()?;
+        let mut cpu_wait = Duration::ZERO;
+        if completed < reuse {
+            let started = Instant::now();
+            self.frames.wait(reuse)?;
+            cpu_wait = started.elapsed();
+            completed = self.frames.value()?.max(reuse);
+        }
+        if let Some(ticket) = self
+            .slots
+            .iter()
+            .filter(|s| s.value > 0 && s.value <= completed)
+            .map(|s| s.ticket)
+            .max()
+        {
+            self.cache.retire(ticket);
+        }
+
+        // Feedback for the loader: deterministic runs take exactly the
+        // reused slot's; otherwise the newest completed one.
+        let mut newest: Option<(u64, usize)> = None;
+        for (i, s) in self.slots.iter().enumerate() {
+            let eligible = s.unread
+                && s.value <= completed
+                && (!self.deterministic || i == slot)
+                && newest.is_none_or(|(v, _)| s.value > v);
+            if eligible {
+                newest = Some((s.value, i));
+            }
+        }
+        let mut loading_started = false;
+        if let Some((feedback_value, i)) = newest {
+            for s in self.slots.iter_mut().filter(|s| s.unread && s.value <= feedback_value) {
+                s.unread = false;
+            }
+            let entries = self.compactor.read_back(i as u32)?.entries;
+            if !self.loader.is_streaming() {
+                let records = prepare(records_from_feedback(&entries, self.fragment_area), self.tau);
+                loading_started = if self.deterministic {
+                    self.loader.run_cycle(&records, self.decision).is_some()
+                } else {
+                    self.loader.try_spawn(records, self.decision)
+                };
+            }
+            self.latest_feedback = Some((feedback_value - 1, entries));
+        }
+        // Pack what the loader staged, then bind.
+        let refused = self.stage_loaded()?;
+        let ticket = self.cache.prepare_cycle(Some(SemaphoreWait {
+            semaphore: self.frames.raw(),
+            stages: vk::PipelineStageFlags2::ALL_COMMANDS,
+            value: index,
+        }))?;
+        self.slots[slot] = FrameSlot {
+            value,
+            ticket,
+            unread: false,
+        };
+        self.begun += 1;
+        self.in_frame = true;
+        self.resolved_this_frame = false;
+        Ok(FrameBegin {
+            index,
+            slot: slot as u32,
+            cpu_wait,
+            loading_started,
+            refused,
+        })
+    }
+
+    /// Moves every loaded mip into the cache. Mips the cache cannot take
+    /// now, and textures it evicted, are invalidated in the streaming
+    /// states so Algorithm 1 loads them again later.
+    fn stage_loaded(&mut self) -> Result<u32> {
+        let mut refused = 0;
+        // Loader workers stage in whatever order they finish; packing in a
+        // fixed order keeps cache placement, and so runs, reproducible.
+        let mut staged = self.queue.take();
+        staged.sort_unstable_by_key(|m| (m.texture, std::cmp::Reverse(m.level)));
+        for mip in staged {
+            let source = self.loader.source();
+            let chain = source.mip_chain(mip.texture).map_err(source_failure)?;
+            let format = source.texture_format(mip.texture).map_err(source_failure)?;
+            let outcome = self
+                .cache
+                .stage(mip.texture, format, chain.width, chain.height, mip.level, &mip.bytes);
+            if !matches!(outcome, Ok(StageOutcome::Staged { .. })) {
+                refused += 1;
+                let _ = self.states.invalidate(mip.texture);
+            }
+        }
+        Ok(refused)
+    }
+
+    /// Step 2: records the copies of this frame's new mips and the table
+    /// update into `cmd`, outside any render pass and before every pass
+    /// that samples streamed textures.
+    pub fn record_uploads(&mut self, cmd: vk::CommandBuffer) -> Result<CycleReport> {
+        self.check_in_frame("record_uploads")?;
+        let report = self.cache.record_cycle(cmd)?;
+        for &texture in &report.invalidated_textures {
+            let _ = self.states.invalidate(texture);
+        }
+        Ok(report)
+    }
+
+    /// Step 3: records the compaction of the per-mesh feedback the host's
+    /// feedback pass wrote into this frame's read-back slot (resetting the
+    /// array for the next frame). Must follow that pass; call once per frame.
+    pub fn record_feedback_resolve(&mut self, cmd: vk::CommandBuffer) -> Result<()> {
+        self.record_feedback_resolve_with_tau(cmd, self.gpu_tau)
+    }
+
+    /// As [`record_feedback_resolve`](Self::record_feedback_resolve) with
+    /// another compaction threshold (0 keeps every seen mesh, e.g. for an
+    /// error reference); the loader still applies the streamer's τ.
+    pub fn record_feedback_resolve_with_tau(&mut self, cmd: vk::CommandBuffer, gpu_tau: u32) -> Result<()> {
+        self.check_in_frame("record_feedback_resolve")?;
+        if self.resolved_this_frame {
+            return Err(EngineError::InvalidRequest(
+                "record_feedback_resolve called twice in one frame".into(),
+            ));
+        }
+        let slot = ((self.begun - 1) % self.slots.len() as u64) as usize;
+        self.compactor.record_compact(cmd, gpu_tau, slot as u32)?;
+        // Algorithm 1's gate: feedback goes to the host only when no loading
+        // task runs (deterministic runs load on this thread, so always).
+        self.slots[slot].unread = self.deterministic || !self.loader.is_streaming();
+        self.resolved_this_frame = true;
+        Ok(())
+    }
+
+    /// Step 5: the controller step with the latency (ms) the host measured
+    /// for its previous frame; returns what this frame's submission carries.
+    pub fn end_frame(&mut self, frame_latency_ms: f64) -> Result<FrameSubmit> {
+        self.check_in_frame("end_frame")?;
+        self.decision = self.policy.update(frame_latency_ms);
+        self.in_frame = false;
+        Ok(FrameSubmit {
+            waits: self.cache.bind_wait().into_iter().collect(),
+            signal: SemaphoreSignal {
+                semaphore: self.frames.raw(),
+                value: self.begun,
+            },
+        })
+    }
+
+    fn check_in_frame(&self, call: &str) -> Result<()> {
+        if self.in_frame {
+            Ok(())
+        } else {
+            Err(EngineError::InvalidRequest(format!(
+                "{call} called outside begin_frame/end_frame"
+            )))
+        }
+    }
+
+    /// Loads now, bypassing the policy, every level of each `(texture,
+    /// finest level)` from that level up to the coarsest not yet resident,
+    /// and waits for the copies: for reference renders and measurements,
+    /// not for the steady state. Call between frames. Returns the textures
+    /// the cache had to evict meanwhile.
+    pub fn load_now(&mut self, requests: &[(u32, u32)], commands: &mut CommandContext) -> Result<Vec<u32>> {
+        if self.in_frame {
+            return Err(EngineError::InvalidRequest("load_now called inside a frame".into()));
+        }
+        let mut buffer = Vec::new();
+        for &(texture, level) in requests {
+            let source = self.loader.source();
+            let chain = source.mip_chain(texture).map_err(source_failure)?;
+            let format = source.texture_format(texture).map_err(source_failure)?;
+            let level = level.min(chain.mip_count - 1);
+            let resident = self.cache.resident_levels(texture);
+            for l in (level..chain.mip_count).rev() {
+                if resident & (1 << l) != 0 {
+                    continue;
+                }
+                buffer.resize(source.mip_len(texture, l).map_err(source_failure)? as usize, 0);
+                source.read_mip(texture, l, &mut buffer).map_err(source_failure)?;
+                self.cache
+                    .stage(texture, format, chain.width, chain.height, l, &buffer)?;
+            }
+        }
+        let report = self.cache.finish_cycle(commands)?;
+        for &texture in &report.invalidated_textures {
+            let _ = self.states.invalidate(texture);
+        }
+        Ok(report.invalidated_textures)
+    }
+
+    /// Loads exactly the given `(texture, level)` mips now and waits for the
+    /// copies (pop-in measurements). Call between frames.
+    pub fn load_levels_now(&mut self, mips: &[(u32, u32)], commands: &mut CommandContext) -> Result<CycleReport> {
+        if self.in_frame {
+            return Err(EngineError::InvalidRequest(
+                "load_levels_now called inside a frame".into(),
+            ));
+        }
+        let mut buffer = Vec::new();
+        for &(texture, level) in mips {
+            let source = self.loader.source();
+            let chain = source.mip_chain(texture).map_err(source_failure)?;
+            let format = source.texture_format(texture).map_err(source_failure)?;
+            buffer.resize(source.mip_len(texture, level).map_err(source_failure)? as usize, 0);
+            source.read_mip(texture, level, &mut buffer).map_err(source_failure)?;
+            self.cache
+                .stage(texture, format, chain.width, chain.height, level, &buffer)?;
+        }
+        self.cache.finish_cycle(commands)
+    }
+
+    /// The device.
+    pub fn device(&self) -> &Arc<Device> {
+        &self.device
+    }
+}
+
+impl<S: MipSource + 'static> Drop for TextureStreamer<S> {
+    fn drop(&mut self) {
+        // Nothing of the streamer may be destroyed while a submitted frame
+        // still uses it: wait for the last one (device loss leaves nothing
+        // better to do than destroy anyway).
+        let _ = self.device.wait_idle();
+    }
+}
+
+fn source_failure(error: SourceError) -> EngineError {
+    EngineError::InvalidRequest(format!("reading a texture: {error}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn feedback_weights_become_visible_fragment_weights() {
+        // One feedback fragment covers a 4x4 block of visible pixels (area 16).
+        // A weight of 10 W in fixed point (80) stands for 160 W of visible fragments.
+        let entries = [FeedbackEntry {
+            mip: 3 * 256 + 200, // level 3.78: the finest whole level covering it is 3
+            weight: 80,
+            mesh_id: 7,
+        }];
+        let records = records_from_feedback(&entries, 16.0);
+        assert_eq!(
+            records,
+            vec![MeshMetaData {
+                mip_level: 3,
+                weight: 160,
+                mesh_id: 7
+            }]
+        );
+        // τ = 150 W per visible fragment is 150 * 8 / 16 = 75 in feedback fixed point:
+        // the entry above (80) passes on the GPU and its record (160) on the host.
+        assert_eq!(feedback_tau(150, 16.0), 75);
+        assert_eq!(feedback_tau(150, 1.0), 1200);
+        // A degenerate area never divides by zero.
+        assert!(feedback_tau(150, 0.0) > 0);
+    }
+}
