@@ -123,33 +123,22 @@ impl VulkanBinder {
     /// only after the previous batch (so memory an earlier unbind freed is
     /// never bound twice at once) and after `frames` (a frame timeline
     /// value) when given: unbinds must not race frames still sampling.
+    /// Errors: the driver's (device lost, out of memory, named as such), or
+    /// `InvalidRequest` for a batch naming unknown images, chunks or offsets.
     pub fn submit_after(&mut self, batch: &[BindOp], frames: Option<SemaphoreWait>) -> Result<BindReport> {
-        self.submit_ops(batch, frames).map_err(|e| match e {
-            BindError::Rejected { reason, .. } => EngineError::InvalidRequest(format!("sparse bind failed: {reason}")),
-            other => EngineError::InvalidRequest(format!("sparse bind failed: {other}")),
-        })
-    }
-
-    fn submit_ops(
-        &mut self,
-        batch: &[BindOp],
-        frames: Option<SemaphoreWait>,
-    ) -> std::result::Result<BindReport, BindError> {
         if batch.is_empty() {
             return Ok(BindReport::default());
         }
         let mut per_image: Vec<Vec<SparseBlockBind>> = vec![Vec::new(); self.images.len()];
         for op in batch {
-            let (image, bind) = self.resolve(op)?;
+            let (image, bind) = self
+                .resolve(op)
+                .map_err(|e| EngineError::InvalidRequest(format!("sparse bind: {e}")))?;
             per_image[image].push(bind);
         }
         let mut entries = Vec::with_capacity(self.images.len());
         for (image, binds) in self.images.iter().zip(&per_image) {
-            let image_entries = image.bind_entries(binds).map_err(|e| BindError::Rejected {
-                blocks: binds.len() as u32,
-                reason: e.to_string(),
-            })?;
-            entries.push((image.raw(), image_entries));
+            entries.push((image.raw(), image.bind_entries(binds)?));
         }
         let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
@@ -169,11 +158,7 @@ impl VulkanBinder {
             &[],
             Some((self.timeline.raw(), value)),
             vk::Fence::null(),
-        )
-        .map_err(|e| BindError::Rejected {
-            blocks: batch.len() as u32,
-            reason: e.to_string(),
-        })?;
+        )?;
         self.signalled = value;
         Ok(BindReport {
             blocks: batch.len() as u32,
@@ -185,7 +170,10 @@ impl VulkanBinder {
 
 impl SparseBinder for VulkanBinder {
     fn submit(&mut self, batch: &[BindOp]) -> std::result::Result<BindReport, BindError> {
-        self.submit_ops(batch, None)
+        self.submit_after(batch, None).map_err(|e| BindError::Rejected {
+            blocks: batch.len() as u32,
+            reason: e.to_string(),
+        })
     }
 }
 

@@ -215,6 +215,9 @@ pub struct CommandContext {
     cmd: vk::CommandBuffer,
     fence: Fence,
     pending: bool,
+    /// A submission without the fence may still run (its completion is
+    /// tracked by the caller's timeline semaphore).
+    untracked: bool,
 }
 
 impl std::fmt::Debug for CommandContext {
@@ -258,12 +261,18 @@ impl CommandContext {
             cmd,
             fence,
             pending: false,
+            untracked: false,
         })
     }
 
     /// Waits for any previous submission, then begins recording.
     pub fn begin(&mut self) -> Result<vk::CommandBuffer> {
         self.wait()?;
+        if self.untracked {
+            // The last submission had no fence: wait for the whole queue.
+            self.device.wait_idle()?;
+            self.untracked = false;
+        }
         let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: the buffer is not pending (waited above) and its pool allows reset.
         unsafe {
@@ -279,8 +288,44 @@ impl CommandContext {
         Ok(self.cmd)
     }
 
+    /// Begins recording without waiting on the fence: for a frame's command
+    /// buffer whose last submission ([`submit_frame`](Self::submit_frame))
+    /// the caller saw complete on its timeline semaphore.
+    pub fn begin_completed(&mut self) -> Result<vk::CommandBuffer> {
+        if self.pending {
+            self.wait()?;
+        }
+        self.untracked = false;
+        let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        // SAFETY: the caller guarantees the last submission completed; the pool allows reset.
+        unsafe {
+            self.device
+                .raw
+                .reset_command_buffer(self.cmd, vk::CommandBufferResetFlags::empty())
+                .vk("vkResetCommandBuffer")?;
+            self.device
+                .raw
+                .begin_command_buffer(self.cmd, &info)
+                .vk("vkBeginCommandBuffer")?;
+        }
+        Ok(self.cmd)
+    }
+
+    /// Ends recording and submits without the fence; completion is tracked
+    /// by a timeline semaphore in `signal`. Reuse the context with
+    /// [`begin_completed`](Self::begin_completed) once that value is reached.
+    pub fn submit_frame(&mut self, waits: &[SemaphoreWait], signal: &[SemaphoreSignal]) -> Result<()> {
+        self.submit_with(waits, signal, false)?;
+        self.untracked = true;
+        Ok(())
+    }
+
     /// Ends recording and submits, waiting on `waits` and signalling `signal`.
     pub fn submit(&mut self, waits: &[SemaphoreWait], signal: &[SemaphoreSignal]) -> Result<()> {
+        self.submit_with(waits, signal, true)
+    }
+
+    fn submit_with(&mut self, waits: &[SemaphoreWait], signal: &[SemaphoreSignal], fenced: bool) -> Result<()> {
         // SAFETY: the buffer is in the recording state (begin was called).
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
         let wait_infos: Vec<_> = waits
@@ -306,11 +351,16 @@ impl CommandContext {
             .wait_semaphore_infos(&wait_infos)
             .command_buffer_infos(&cmd_infos)
             .signal_semaphore_infos(&signal_infos);
-        self.fence.reset()?;
+        let fence = if fenced {
+            self.fence.reset()?;
+            self.fence.raw()
+        } else {
+            vk::Fence::null()
+        };
         let queue = self.device.queue();
         // SAFETY: queue access is serialised by the lock; every handle is live.
-        unsafe { self.device.raw.queue_submit2(*queue, &[submit], self.fence.raw()) }.vk("vkQueueSubmit2")?;
-        self.pending = true;
+        unsafe { self.device.raw.queue_submit2(*queue, &[submit], fence) }.vk("vkQueueSubmit2")?;
+        self.pending = fenced;
         Ok(())
     }
 
@@ -339,6 +389,9 @@ impl Drop for CommandContext {
     fn drop(&mut self) {
         // Errors here mean device loss; destruction must still happen.
         let _ = self.wait();
+        if self.untracked {
+            let _ = self.device.wait_idle();
+        }
         // SAFETY: the buffer is no longer pending; destroying the pool frees it.
         unsafe { self.device.raw.destroy_command_pool(self.pool, None) };
     }

@@ -104,7 +104,8 @@ pub struct Decision {
 }
 
 /// Every quantity of Eq. 4–7 after the latest update, in ms and MB.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "bench", derive(serde::Serialize))]
 pub struct Telemetry {
     /// Frame latency Δt of the latest accepted sample (after clamping).
     pub frame_ms: f64,

@@ -112,13 +112,13 @@ fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
         };
         let begun = streamer.begin_frame()?;
         let commands = &mut frame_commands[begun.slot as usize];
-        let cmd = commands.begin()?;
+        let cmd = commands.begin_completed()?;
         let cycle = streamer.record_uploads(cmd)?;
         renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
         streamer.record_feedback_resolve(cmd)?;
         renderer.record_visible(cmd, &target, &camera, 1.0, true);
         let submit = streamer.end_frame(16.0)?;
-        commands.submit(&submit.waits, &[submit.signal])?;
+        commands.submit_frame(&submit.waits, &[submit.signal])?;
         unbound += cycle.blocks_unbound;
         uploaded += cycle.mips_uploaded;
         invalidated += cycle.textures_invalidated;

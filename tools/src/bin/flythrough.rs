@@ -545,8 +545,9 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             }
             _ => None,
         };
+        // The streamer's throttle saw this slot's last frame complete.
         let commands_of_frame = &mut frame_commands[begun.slot as usize];
-        let cmd = commands_of_frame.begin()?;
+        let cmd = commands_of_frame.begin_completed()?;
         let applied = gpu.streamer.record_uploads(cmd)?;
         gpu.renderer
             .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
@@ -556,7 +557,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         gpu.renderer.record_visible(cmd, &target, &camera, 1.0, true);
         // The controller step with the previous frame's latency.
         let submit = gpu.streamer.end_frame(frame_ms)?;
-        commands_of_frame.submit(&submit.waits, &[submit.signal])?;
+        commands_of_frame.submit_frame(&submit.waits, &[submit.signal])?;
         waits.count(begun.cpu_wait, false);
 
         let mut psnr = None;
