@@ -126,19 +126,34 @@ impl VulkanBinder {
     /// Errors: the driver's (device lost, out of memory, named as such), or
     /// `InvalidRequest` for a batch naming unknown images, chunks or offsets.
     pub fn submit_after(&mut self, batch: &[BindOp], frames: Option<SemaphoreWait>) -> Result<BindReport> {
+        self.submit_ops(batch, frames).map_err(|e| match e {
+            SubmitError::Batch(e) => EngineError::InvalidRequest(format!("sparse bind: {e}")),
+            SubmitError::Device(e) => e,
+        })
+    }
+
+    fn submit_ops(
+        &mut self,
+        batch: &[BindOp],
+        frames: Option<SemaphoreWait>,
+    ) -> std::result::Result<BindReport, SubmitError> {
         if batch.is_empty() {
             return Ok(BindReport::default());
         }
         let mut per_image: Vec<Vec<SparseBlockBind>> = vec![Vec::new(); self.images.len()];
         for op in batch {
-            let (image, bind) = self
-                .resolve(op)
-                .map_err(|e| EngineError::InvalidRequest(format!("sparse bind: {e}")))?;
+            let (image, bind) = self.resolve(op).map_err(SubmitError::Batch)?;
             per_image[image].push(bind);
         }
         let mut entries = Vec::with_capacity(self.images.len());
         for (image, binds) in self.images.iter().zip(&per_image) {
-            entries.push((image.raw(), image.bind_entries(binds)?));
+            let image_entries = image.bind_entries(binds).map_err(|e| {
+                SubmitError::Batch(BindError::Rejected {
+                    blocks: binds.len() as u32,
+                    reason: e.to_string(),
+                })
+            })?;
+            entries.push((image.raw(), image_entries));
         }
         let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
@@ -158,7 +173,8 @@ impl VulkanBinder {
             &[],
             Some((self.timeline.raw(), value)),
             vk::Fence::null(),
-        )?;
+        )
+        .map_err(SubmitError::Device)?;
         self.signalled = value;
         Ok(BindReport {
             blocks: batch.len() as u32,
@@ -170,11 +186,20 @@ impl VulkanBinder {
 
 impl SparseBinder for VulkanBinder {
     fn submit(&mut self, batch: &[BindOp]) -> std::result::Result<BindReport, BindError> {
-        self.submit_after(batch, None).map_err(|e| BindError::Rejected {
-            blocks: batch.len() as u32,
-            reason: e.to_string(),
+        self.submit_ops(batch, None).map_err(|e| match e {
+            SubmitError::Batch(e) => e,
+            SubmitError::Device(e) => BindError::Rejected {
+                blocks: batch.len() as u32,
+                reason: e.to_string(),
+            },
         })
     }
+}
+
+/// Why a batch was not submitted: the batch itself, or the device.
+enum SubmitError {
+    Batch(BindError),
+    Device(EngineError),
 }
 
 impl Drop for VulkanBinder {

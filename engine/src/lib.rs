@@ -1,19 +1,23 @@
 //! citystream's Vulkan engine.
 //!
-//! One module per Vulkan concept: [`instance`] (loader, layers, debug
-//! messenger), [`device`] (physical-device choice, logical device, queue,
-//! allocator), [`buffer`] and [`image`] (resources that own their memory),
-//! [`sparse`] (partially resident images and `vkQueueBindSparse`),
-//! [`commands`] (one-shot submissions), [`pipeline`] (shaders, pipelines,
-//! descriptors), [`target`] (off-screen colour + depth and read-back),
-//! [`staging`] (host-visible upload ring) and [`timing`] (CPU and GPU frame
-//! timing).
+//! [`stream`] is the embeddable streaming module: [`stream::TextureStreamer`]
+//! runs the paper's Algorithm 1 inside a host's frame loop with frames in
+//! flight (see `docs/EMBEDDING.md`). Around it, one module per Vulkan
+//! concept: [`instance`] (loader, layers, debug messenger), [`device`]
+//! (physical-device choice, logical device, queue, allocator; or a host's
+//! own through [`Device::from_host`]), [`buffer`] and [`image`] (resources
+//! that own their memory), [`sparse`] (partially resident images and
+//! `vkQueueBindSparse`), [`commands`] (submissions), [`pipeline`] (shaders,
+//! pipelines, descriptors), [`target`] (off-screen colour + depth and
+//! read-back), [`staging`] (host-visible upload ring), [`timing`] (CPU and
+//! GPU frame timing), [`texture_cache`] and [`feedback`] (the GPU halves of
+//! the cache and of the feedback), [`city`] (the engine's own city passes).
 //!
 //! Ownership contract: every Vulkan handle has exactly one owner, a Rust value
 //! whose `Drop` destroys it. Resources hold an `Arc<Device>`, so the device
 //! outlives them. Dropping a resource the GPU may still use is the owner's
-//! bug: owners drop only after the fence of the last submission that used it
-//! has signalled (the frame loop keeps per-frame release lists for that).
+//! bug: owners drop only after the last submission that used it completed
+//! (the streamer releases staging space and buffers by frame timeline value).
 //!
 //! All `unsafe` code of citystream lives in this crate, each block with a
 //! `// SAFETY:` line.

@@ -311,6 +311,7 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     begun: u64,
     in_frame: bool,
     resolved_this_frame: bool,
+    uploads_recorded: bool,
     tau: u32,
     gpu_tau: u32,
     fragment_area: f32,
@@ -404,6 +405,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             begun: 0,
             in_frame: false,
             resolved_this_frame: false,
+            uploads_recorded: false,
             tau: config.weight_cutoff,
             gpu_tau: feedback_tau(config.weight_cutoff, config.fragment_area),
             fragment_area: config.fragment_area,
@@ -484,7 +486,8 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     }
 
     /// Blocks until frame `index` has completed on the GPU. Not part of the
-    /// steady state: hosts call it to read back that frame's image.
+    /// steady state: hosts call it to read back that frame's image. The
+    /// frame must have been submitted (with its [`FrameSubmit::signal`]).
     pub fn wait_for_frame(&self, index: u64) -> Result<Duration> {
         let ended = self.begun - u64::from(self.in_frame);
         if index >= ended {
@@ -586,6 +589,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.begun += 1;
         self.in_frame = true;
         self.resolved_this_frame = false;
+        self.uploads_recorded = false;
         Ok(FrameBegin {
             index,
             slot: slot as u32,
@@ -624,7 +628,13 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// that samples streamed textures.
     pub fn record_uploads(&mut self, cmd: vk::CommandBuffer) -> Result<CycleReport> {
         self.check_in_frame("record_uploads")?;
+        if self.uploads_recorded {
+            return Err(EngineError::InvalidRequest(
+                "record_uploads called twice in one frame".into(),
+            ));
+        }
         let report = self.cache.record_cycle(cmd)?;
+        self.uploads_recorded = true;
         for &texture in &report.invalidated_textures {
             let _ = self.states.invalidate(texture);
         }
@@ -661,6 +671,12 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// for its previous frame; returns what this frame's submission carries.
     pub fn end_frame(&mut self, frame_latency_ms: f64) -> Result<FrameSubmit> {
         self.check_in_frame("end_frame")?;
+        if !self.uploads_recorded {
+            // The cycle begin_frame bound would never be copied or retired.
+            return Err(EngineError::InvalidRequest(
+                "end_frame without record_uploads: every frame records its uploads".into(),
+            ));
+        }
         self.decision = self.policy.update(frame_latency_ms);
         self.in_frame = false;
         Ok(FrameSubmit {

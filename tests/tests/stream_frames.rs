@@ -204,3 +204,48 @@ fn synchronization_validation_reports_a_missing_barrier() -> Result<()> {
     // the barriers each frame records, which it does check (docs/EMBEDDING.md).
     Ok(())
 }
+
+/// Calls out of order are refused with an error naming the call.
+#[test]
+fn calls_out_of_order_are_refused() -> Result<()> {
+    let device = sync_validated_device()?;
+    let mut source = MemorySource::new();
+    source.push_bc1(64, 64);
+    let mut streamer = TextureStreamer::new(
+        &device,
+        source,
+        vec![0],
+        &[[255, 0, 0, 255]],
+        PolicyKind::Baseline.build(&PolicyOptions::default())?,
+        &StreamConfig {
+            layer_size: 256,
+            layer_count: 2,
+            memory_budget_bytes: 1 << 20,
+            staging_bytes: 1 << 16,
+            ..StreamConfig::default()
+        },
+    )?;
+    let mut commands = CommandContext::new(&device, "order test")?;
+    let cmd = commands.begin()?;
+    let refused = |result: citystream_engine::Result<()>, call: &str| -> Result<()> {
+        match result {
+            Err(citystream_engine::EngineError::InvalidRequest(message)) if message.contains(call) => Ok(()),
+            other => anyhow::bail!("{call} out of order gave {other:?}"),
+        }
+    };
+    refused(streamer.record_uploads(cmd).map(|_| ()), "record_uploads")?;
+    refused(streamer.record_feedback_resolve(cmd), "record_feedback_resolve")?;
+    refused(streamer.end_frame(16.0).map(|_| ()), "end_frame")?;
+    streamer.begin_frame()?;
+    refused(streamer.begin_frame().map(|_| ()), "begin_frame")?;
+    refused(streamer.end_frame(16.0).map(|_| ()), "record_uploads")?;
+    streamer.record_uploads(cmd)?;
+    refused(streamer.record_uploads(cmd).map(|_| ()), "record_uploads")?;
+    let submit = streamer.end_frame(16.0)?;
+    commands.submit(&submit.waits, &[submit.signal])?;
+    streamer.wait_for_frame(0)?;
+    refused(streamer.wait_for_frame(1).map(|_| ()), "frame 1")?;
+    commands.wait()?;
+    drop(streamer);
+    assert_no_validation_errors(&device)
+}

@@ -170,6 +170,10 @@ struct Scene {
     colormap: Vec<[u8; 4]>,
     /// Camera at the start and at the end of the run.
     path: (Camera, Camera),
+    /// Distance of the thickest fog.
+    fog_distance: f32,
+    /// Distance within which streaming weighs fragments more (w_d).
+    foreground_distance: f32,
 }
 
 /// A street of façades, both sides, one texture each.
@@ -215,6 +219,8 @@ fn street(textures: u32) -> Scene {
         meshes,
         colormap,
         path: (camera(20.0), camera(-10.0)),
+        fog_distance: 400.0,
+        foreground_distance: 60.0,
     }
 }
 
@@ -264,6 +270,8 @@ fn dataset_scene(dataset: &Dataset) -> Result<Scene> {
         meshes,
         colormap: dataset.colormap.colours().to_vec(),
         path: (camera(0.0), camera(1.0)),
+        fog_distance: extent * 4.0,
+        foreground_distance: 200.0,
     })
 }
 
@@ -856,14 +864,24 @@ fn render<S: MipSource + 'static>(
         let cmd = commands.begin(begun.slot)?;
         streamer.record_uploads(cmd)?;
         // The host's feedback pass, a quarter of the resolution per axis.
-        let feedback_push = push(camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0), 2.0, 60.0);
+        let feedback_push = push(
+            camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
+            2.0,
+            scene.foreground_distance,
+            scene.fog_distance,
+        );
         feedback_target.begin(device, cmd, [0.0; 4]);
         pipelines.draw(cmd, pipelines.feedback, &feedback_push, &vertices, vertex_count);
         // SAFETY: rendering was begun by `feedback_target.begin` in this buffer.
         unsafe { raw.cmd_end_rendering(cmd) };
         streamer.record_feedback_resolve(cmd)?;
         // The host's visible pass.
-        let visible_push = push(camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0), 0.0, 60.0);
+        let visible_push = push(
+            camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
+            0.0,
+            scene.foreground_distance,
+            scene.fog_distance,
+        );
         target.begin(device, cmd, [0.55, 0.7, 0.9, 1.0]);
         pipelines.draw(cmd, pipelines.visible, &visible_push, &vertices, vertex_count);
         target.end_and_copy(device, cmd);
@@ -909,12 +927,13 @@ fn render<S: MipSource + 'static>(
 }
 
 /// The host's push constants: view-projection, then (log2 visible pixels
-/// per pixel of the pass, foreground distance, 0, 0).
-fn push(view_proj: Mat4, lod_offset: f32, foreground: f32) -> [f32; 20] {
+/// per pixel of the pass, foreground distance, fog distance, 0).
+fn push(view_proj: Mat4, lod_offset: f32, foreground: f32, fog: f32) -> [f32; 20] {
     let mut values = [0.0; 20];
     values[..16].copy_from_slice(&view_proj.to_cols_array());
     values[16] = lod_offset;
     values[17] = foreground;
+    values[18] = fog;
     values
 }
 

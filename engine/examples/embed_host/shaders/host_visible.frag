@@ -26,6 +26,7 @@ layout(location = 0) out vec4 out_color;
 void main() {
     HostMesh mesh = host_meshes[in_mesh];
     vec3 colour = citystream_shade(mesh.texture, in_uv, uvec2(mesh.width, mesh.height), false);
-    float fog = clamp((1.0 / gl_FragCoord.w) / 400.0, 0.0, 0.6);
+    // params.z: the distance at which the host's fog is strongest.
+    float fog = clamp((1.0 / gl_FragCoord.w) / push.params.z, 0.0, 0.6);
     out_color = vec4(mix(colour, vec3(0.55, 0.7, 0.9), fog), 1.0);
 }
