@@ -145,6 +145,8 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
     for policy in ["baseline", "adaptive"] {
         let out = base.join(policy);
         let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            // Two frames in flight: synchronization validation too.
+            .env("CITYSTREAM_VALIDATION", "sync")
             .args([
                 "--frames",
                 "30",
