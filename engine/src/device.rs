@@ -76,6 +76,20 @@ pub struct Device {
     instance: Option<Instance>,
 }
 
+/// What [`Device::assemble`] builds a device from.
+struct DeviceParts {
+    instance_fns: ash::Instance,
+    raw: ash::Device,
+    physical: vk::PhysicalDevice,
+    queue: vk::Queue,
+    queue_family: u32,
+    allocator: AllocatorSlot,
+    debug_utils: bool,
+    log: Arc<ValidationLog>,
+    owns_device: bool,
+    instance: Option<Instance>,
+}
+
 /// The allocator the engine's resources come from.
 enum AllocatorSlot {
     /// The engine's own, taken out before the device is destroyed.
@@ -387,9 +401,6 @@ impl Device {
         let raw = unsafe { instance.raw.create_device(physical, &create_info, None) }.vk("vkCreateDevice")?;
         // SAFETY: the queue family and index were requested in create_info.
         let queue = unsafe { raw.get_device_queue(queue_family, 0) };
-        // SAFETY: `physical` came from this instance.
-        let properties = unsafe { instance.raw.get_physical_device_properties(physical) };
-
         let allocator = match create_allocator(&instance.raw, &raw, physical) {
             Ok(a) => a,
             Err(e) => {
@@ -398,29 +409,53 @@ impl Device {
                 return Err(e);
             }
         };
-        let debug_utils = instance
-            .has_debug_utils()
-            .then(|| ash::ext::debug_utils::Device::new(&instance.raw, &raw));
-        let sparse = SparseSupport {
-            non_resident_strict: properties.sparse_properties.residency_non_resident_strict == vk::TRUE,
-            shader_min_lod: chosen_feature_min_lod(&instance.raw, physical),
-            address_space_size: properties.limits.sparse_address_space_size,
-        };
-        Ok(Self {
+        Ok(Self::assemble(DeviceParts {
+            instance_fns: instance.raw.clone(),
             raw,
             physical,
-            queue: Mutex::new(queue),
+            queue,
             queue_family,
             allocator: AllocatorSlot::Own(Box::new(Mutex::new(Some(allocator)))),
-            debug_utils,
-            properties,
-            name: chosen.name,
-            sparse,
-            instance_fns: instance.raw.clone(),
+            debug_utils: instance.has_debug_utils(),
             log: Arc::clone(instance.validation_log()),
             owns_device: true,
             instance: Some(instance),
-        })
+        }))
+    }
+
+    /// The one place a `Device` is put together, for the engine's own
+    /// objects and for a host's alike.
+    fn assemble(parts: DeviceParts) -> Self {
+        let physical = parts.physical;
+        // SAFETY: `physical` came from this instance.
+        let properties = unsafe { parts.instance_fns.get_physical_device_properties(physical) };
+        let name = properties
+            .device_name_as_c_str()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|_| "<unnamed device>".to_owned());
+        let debug_utils = parts
+            .debug_utils
+            .then(|| ash::ext::debug_utils::Device::new(&parts.instance_fns, &parts.raw));
+        let sparse = SparseSupport {
+            non_resident_strict: properties.sparse_properties.residency_non_resident_strict == vk::TRUE,
+            shader_min_lod: chosen_feature_min_lod(&parts.instance_fns, physical),
+            address_space_size: properties.limits.sparse_address_space_size,
+        };
+        Self {
+            raw: parts.raw,
+            physical,
+            queue: Mutex::new(parts.queue),
+            queue_family: parts.queue_family,
+            allocator: parts.allocator,
+            debug_utils,
+            properties,
+            name,
+            sparse,
+            instance_fns: parts.instance_fns,
+            log: parts.log,
+            owns_device: parts.owns_device,
+            instance: parts.instance,
+        }
     }
 
     /// A device over a host renderer's own instance, device and queue: the
@@ -444,13 +479,8 @@ impl Device {
         // SAFETY: as above.
         let raw = unsafe { ash::Device::load(instance_fns.fp_v1_0(), host.device) };
         let physical = host.physical_device;
-        // SAFETY: `physical` came from this instance (the caller's guarantee).
-        let properties = unsafe { instance_fns.get_physical_device_properties(physical) };
-        let name = properties
-            .device_name_as_c_str()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|_| "<unnamed device>".to_owned());
         let candidate = examine_raw(&instance_fns, physical);
+        let name = candidate.name.clone();
         if let Some(first) = candidate.missing.first() {
             return Err(EngineError::MissingFeature {
                 device: name,
@@ -480,29 +510,18 @@ impl Device {
             )?)))),
             HostAllocator::Shared(shared) => AllocatorSlot::Shared(shared),
         };
-        let debug_utils = host
-            .debug_utils
-            .then(|| ash::ext::debug_utils::Device::new(&instance_fns, &raw));
-        let sparse = SparseSupport {
-            non_resident_strict: properties.sparse_properties.residency_non_resident_strict == vk::TRUE,
-            shader_min_lod: chosen_feature_min_lod(&instance_fns, physical),
-            address_space_size: properties.limits.sparse_address_space_size,
-        };
-        Ok(Self {
+        Ok(Self::assemble(DeviceParts {
+            instance_fns,
             raw,
             physical,
-            queue: Mutex::new(host.queue),
+            queue: host.queue,
             queue_family: host.queue_family,
             allocator,
-            debug_utils,
-            properties,
-            name,
-            sparse,
-            instance_fns,
+            debug_utils: host.debug_utils,
             log: Arc::new(ValidationLog::default()),
             owns_device: false,
             instance: None,
-        })
+        }))
     }
 
     /// The raw `ash` device.
