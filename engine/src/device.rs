@@ -472,7 +472,8 @@ impl Device {
     /// feature of [`required_features`] enabled and with a queue of
     /// `queue_family`, and `queue` must be that queue. The host must not
     /// submit to `queue` concurrently with the engine except while holding
-    /// [`Device::queue`].
+    /// [`Device::queue`]. The engine waits for idle on that queue only
+    /// (`vkQueueWaitIdle`), never for the whole device.
     pub unsafe fn from_host(host: HostDevice) -> Result<Self> {
         // SAFETY: the caller guarantees the handles are valid and belong together.
         let instance_fns = unsafe { ash::Instance::load(host.entry.static_fn(), host.instance) };
@@ -589,10 +590,20 @@ impl Device {
     }
 
     /// Waits until the device is idle.
+    ///
+    /// On a host's device ([`Device::from_host`]) this waits for the
+    /// engine's queue only: `vkDeviceWaitIdle` would need every queue of the
+    /// host's device synchronised, which the engine cannot do.
     pub fn wait_idle(&self) -> Result<()> {
-        let _queue = self.queue();
-        // SAFETY: holding the queue lock, so no submission races this call.
-        unsafe { self.raw.device_wait_idle() }.vk("vkDeviceWaitIdle")
+        let queue = self.queue();
+        if self.owns_device {
+            // SAFETY: holding the queue lock, so no submission races this call;
+            // the engine's device has no other queue.
+            unsafe { self.raw.device_wait_idle() }.vk("vkDeviceWaitIdle")
+        } else {
+            // SAFETY: holding the lock of the queue the host shares with the engine.
+            unsafe { self.raw.queue_wait_idle(*queue) }.vk("vkQueueWaitIdle")
+        }
     }
 
     /// Gives a Vulkan object a debug name, so validation messages and
@@ -675,13 +686,9 @@ fn create_allocator(instance: &ash::Instance, device: &ash::Device, physical: vk
 
 impl Drop for Device {
     fn drop(&mut self) {
-        // SAFETY: waiting for idle before destruction; errors (device lost)
-        // leave nothing better to do than destroy anyway. The queue lock
-        // keeps a host's submissions out meanwhile.
-        let _ = {
-            let _queue = self.queue();
-            unsafe { self.raw.device_wait_idle() }
-        };
+        // Wait before destruction; errors (device lost) leave nothing better
+        // to do than destroy anyway.
+        let _ = self.wait_idle();
         // The allocator frees its memory blocks, so it must go before the device.
         if let AllocatorSlot::Own(own) = &self.allocator {
             own.lock().unwrap_or_else(|e| e.into_inner()).take();

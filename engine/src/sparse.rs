@@ -483,8 +483,12 @@ impl SparseImage {
     pub fn record_layout(&self, cmd: vk::CommandBuffer, from: vk::ImageLayout, to: vk::ImageLayout) {
         let stage_of = |layout: vk::ImageLayout| match layout {
             vk::ImageLayout::TRANSFER_DST_OPTIMAL => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            // COPY too: the submission waits for the sparse binds at the copy
+            // stage, and the layout change must come after them as well.
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL => (
-                vk::PipelineStageFlags2::FRAGMENT_SHADER | vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::PipelineStageFlags2::FRAGMENT_SHADER
+                    | vk::PipelineStageFlags2::COMPUTE_SHADER
+                    | vk::PipelineStageFlags2::COPY,
                 vk::AccessFlags2::SHADER_SAMPLED_READ,
             ),
             _ => (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),

@@ -291,6 +291,8 @@ struct FrameSlot {
     value: u64,
     /// The cache cycle that frame carried.
     ticket: u64,
+    /// That frame recorded a feedback resolve into the slot.
+    resolved: bool,
     /// Its compaction is meant for the loader and not consumed yet.
     unread: bool,
 }
@@ -500,11 +502,12 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         Ok(started.elapsed())
     }
 
-    /// The compacted feedback of frame `index` if it has completed and its
-    /// slot was not reused since; does not consume it.
+    /// The compacted feedback of frame `index` if it recorded a resolve,
+    /// has completed and its slot was not reused since; does not consume it.
     pub fn feedback_of(&self, index: u64) -> Result<Option<CompactedFeedback>> {
         let slot = (index % self.slots.len() as u64) as usize;
-        if self.slots[slot].value != index + 1 || self.frames.value()? < index + 1 {
+        let of_frame = &self.slots[slot];
+        if of_frame.value != index + 1 || !of_frame.resolved || self.frames.value()? < index + 1 {
             return Ok(None);
         }
         self.compactor.read_back(slot as u32).map(Some)
@@ -584,6 +587,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.slots[slot] = FrameSlot {
             value,
             ticket,
+            resolved: false,
             unread: false,
         };
         self.begun += 1;
@@ -663,6 +667,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         // Algorithm 1's gate: feedback goes to the host only when no loading
         // task runs (deterministic runs load on this thread, so always).
         self.slots[slot].unread = self.deterministic || !self.loader.is_streaming();
+        self.slots[slot].resolved = true;
         self.resolved_this_frame = true;
         Ok(())
     }
@@ -701,44 +706,47 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// Loads now, bypassing the policy, every level of each `(texture,
     /// finest level)` from that level up to the coarsest not yet resident,
     /// and waits for the copies: for reference renders and measurements,
-    /// not for the steady state. Call between frames. Returns the textures
+    /// not for the steady state. Call between frames, after the last
+    /// ended frame was submitted (unbinds wait for it). Returns the textures
     /// the cache had to evict meanwhile.
     pub fn load_now(&mut self, requests: &[(u32, u32)], commands: &mut CommandContext) -> Result<Vec<u32>> {
-        if self.in_frame {
-            return Err(EngineError::InvalidRequest("load_now called inside a frame".into()));
-        }
-        let mut buffer = Vec::new();
+        self.check_between_frames("load_now")?;
+        let mut mips = Vec::new();
         for &(texture, level) in requests {
-            let source = self.loader.source();
-            let chain = source.mip_chain(texture).map_err(source_failure)?;
-            let format = source.texture_format(texture).map_err(source_failure)?;
-            let level = level.min(chain.mip_count - 1);
+            let chain = self.loader.source().mip_chain(texture).map_err(source_failure)?;
             let resident = self.cache.resident_levels(texture);
-            for l in (level..chain.mip_count).rev() {
-                if resident & (1 << l) != 0 {
-                    continue;
-                }
-                buffer.resize(source.mip_len(texture, l).map_err(source_failure)? as usize, 0);
-                source.read_mip(texture, l, &mut buffer).map_err(source_failure)?;
-                self.cache
-                    .stage(texture, format, chain.width, chain.height, l, &buffer)?;
-            }
+            let level = level.min(chain.mip_count - 1);
+            mips.extend(
+                (level..chain.mip_count)
+                    .rev()
+                    .filter(|l| resident & (1 << l) == 0)
+                    .map(|l| (texture, l)),
+            );
         }
-        let report = self.cache.finish_cycle(commands)?;
-        for &texture in &report.invalidated_textures {
-            let _ = self.states.invalidate(texture);
-        }
+        let report = self.load_mips_now(&mips, commands)?;
         Ok(report.invalidated_textures)
     }
 
     /// Loads exactly the given `(texture, level)` mips now and waits for the
-    /// copies (pop-in measurements). Call between frames.
+    /// copies (pop-in measurements). Call as [`load_now`](Self::load_now).
     pub fn load_levels_now(&mut self, mips: &[(u32, u32)], commands: &mut CommandContext) -> Result<CycleReport> {
+        self.check_between_frames("load_levels_now")?;
+        self.load_mips_now(mips, commands)
+    }
+
+    fn check_between_frames(&self, call: &str) -> Result<()> {
         if self.in_frame {
-            return Err(EngineError::InvalidRequest(
-                "load_levels_now called inside a frame".into(),
-            ));
+            return Err(EngineError::InvalidRequest(format!("{call} called inside a frame")));
         }
+        Ok(())
+    }
+
+    /// Stages `mips` in order and runs cache cycles until all are copied:
+    /// when the budget's freed memory waits for a cycle's unbinds
+    /// (`MemoryPending`), that cycle runs first. Evicted textures are
+    /// invalidated for the loader; the reports of all cycles are summed.
+    fn load_mips_now(&mut self, mips: &[(u32, u32)], commands: &mut CommandContext) -> Result<CycleReport> {
+        let mut total = CycleReport::default();
         let mut buffer = Vec::new();
         for &(texture, level) in mips {
             let source = self.loader.source();
@@ -746,10 +754,49 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             let format = source.texture_format(texture).map_err(source_failure)?;
             buffer.resize(source.mip_len(texture, level).map_err(source_failure)? as usize, 0);
             source.read_mip(texture, level, &mut buffer).map_err(source_failure)?;
-            self.cache
-                .stage(texture, format, chain.width, chain.height, level, &buffer)?;
+            let mut retried = false;
+            loop {
+                match self
+                    .cache
+                    .stage(texture, format, chain.width, chain.height, level, &buffer)?
+                {
+                    StageOutcome::Staged { .. } => break,
+                    StageOutcome::MemoryPending if !retried => {
+                        self.finish_cycle_now(commands, &mut total)?;
+                        retried = true;
+                    }
+                    StageOutcome::MemoryPending => {
+                        return Err(EngineError::InvalidRequest(format!(
+                            "texture {texture} level {level} does not fit the cache's memory budget even after a cycle"
+                        )))
+                    }
+                }
+            }
         }
-        self.cache.finish_cycle(commands)
+        self.finish_cycle_now(commands, &mut total)?;
+        Ok(total)
+    }
+
+    fn finish_cycle_now(&mut self, commands: &mut CommandContext, total: &mut CycleReport) -> Result<()> {
+        // Frames already submitted may still sample what this cycle evicts.
+        let frames_before = (self.begun > 0).then(|| SemaphoreWait {
+            semaphore: self.frames.raw(),
+            stages: vk::PipelineStageFlags2::ALL_COMMANDS,
+            value: self.begun,
+        });
+        let report = self.cache.finish_cycle_after(commands, frames_before)?;
+        for &texture in &report.invalidated_textures {
+            let _ = self.states.invalidate(texture);
+        }
+        total.blocks_bound += report.blocks_bound;
+        total.blocks_unbound += report.blocks_unbound;
+        total.bind_entries += report.bind_entries;
+        total.bind_seconds += report.bind_seconds;
+        total.mips_uploaded += report.mips_uploaded;
+        total.bytes_uploaded += report.bytes_uploaded;
+        total.textures_invalidated += report.textures_invalidated;
+        total.invalidated_textures.extend(report.invalidated_textures);
+        Ok(())
     }
 
     /// The device.

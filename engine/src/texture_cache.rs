@@ -443,7 +443,18 @@ impl GpuTextureCache {
     /// [`prepare_cycle`](Self::prepare_cycle) whose commands are not yet
     /// submitted.
     pub fn finish_cycle(&mut self, commands: &mut CommandContext) -> Result<CycleReport> {
-        let ticket = self.prepare_cycle(None)?;
+        self.finish_cycle_after(commands, None)
+    }
+
+    /// As [`finish_cycle`](Self::finish_cycle), with the unbinds waiting for
+    /// `frames_before` (see [`prepare_cycle`](Self::prepare_cycle)), which
+    /// must already be submitted.
+    pub fn finish_cycle_after(
+        &mut self,
+        commands: &mut CommandContext,
+        frames_before: Option<SemaphoreWait>,
+    ) -> Result<CycleReport> {
+        let ticket = self.prepare_cycle(frames_before)?;
         let cmd = commands.begin()?;
         let report = self.record_cycle(cmd)?;
         let waits: Vec<SemaphoreWait> = self.bind_wait().into_iter().collect();

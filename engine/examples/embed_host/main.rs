@@ -840,6 +840,9 @@ fn render<S: MipSource + 'static>(
     )?;
     let pipelines = HostPipelines::new(raw, meshes.raw(), &streamer.descriptor_bindings())?;
     let commands = FrameCommands::new(raw, host.queue_family, FRAMES_IN_FLIGHT)?;
+    // Dropped first, on success and on error alike: nothing above is
+    // destroyed while a submitted frame may still use it.
+    let _wait_before_teardown = WaitIdleOnDrop(Arc::clone(device));
     let vertex_count = scene.vertices.len() as u32;
 
     if options.reference {
@@ -920,10 +923,17 @@ fn render<S: MipSource + 'static>(
     streamer.wait_for_frame(last)?;
     let pixels = target.read_pixels()?;
     write_png(&pixels, &options.out)?;
-    device.wait_idle()?;
-    drop(pipelines);
-    drop(commands);
     Ok(())
+}
+
+/// Waits for the GPU when dropped.
+struct WaitIdleOnDrop(Arc<Device>);
+
+impl Drop for WaitIdleOnDrop {
+    fn drop(&mut self) {
+        // Device loss leaves nothing better to do than tear down anyway.
+        let _ = self.0.wait_idle();
+    }
 }
 
 /// The host's push constants: view-projection, then (log2 visible pixels

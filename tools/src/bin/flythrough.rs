@@ -536,8 +536,9 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         // Algorithm 1 through the streamer: retire finished frames, hand
         // completed feedback to the loader, pack and bind what it loaded.
         let begun = gpu.streamer.begin_frame()?;
-        // The deficit of the feedback just consumed, against the table the
-        // frames since were drawn with.
+        // The deficit of the feedback just consumed (from frames_in_flight
+        // frames ago with the fixed clock), against the host's table as
+        // begin_frame left it: this frame's evictions applied, its uploads not yet.
         let deficit = match gpu.streamer.latest_feedback() {
             Some((from, entries)) if last_feedback_frame != Some(from) => {
                 last_feedback_frame = Some(from);
