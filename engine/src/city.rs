@@ -330,14 +330,7 @@ impl CityRenderer {
         cache_descriptors.push((BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())));
         let visible_bindings: Vec<BindingSpec> = cache_descriptors
             .iter()
-            .map(|(binding, resource)| {
-                let ty = match resource {
-                    DescriptorResource::SampledImage(..) => vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
-                    DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
-                };
-                (*binding, ty, 1, fragment)
-            })
+            .map(|(binding, resource)| (*binding, resource.descriptor_type(), 1, fragment))
             .collect();
         let visible = city_pipeline(
             device,

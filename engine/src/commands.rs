@@ -273,31 +273,23 @@ impl CommandContext {
             self.device.wait_idle()?;
             self.untracked = false;
         }
-        let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
-        // SAFETY: the buffer is not pending (waited above) and its pool allows reset.
-        unsafe {
-            self.device
-                .raw
-                .reset_command_buffer(self.cmd, vk::CommandBufferResetFlags::empty())
-                .vk("vkResetCommandBuffer")?;
-            self.device
-                .raw
-                .begin_command_buffer(self.cmd, &info)
-                .vk("vkBeginCommandBuffer")?;
-        }
-        Ok(self.cmd)
+        self.reset_and_begin()
     }
 
     /// Begins recording without waiting on the fence: for a frame's command
     /// buffer whose last submission ([`submit_frame`](Self::submit_frame))
     /// the caller saw complete on its timeline semaphore.
     pub fn begin_completed(&mut self) -> Result<vk::CommandBuffer> {
-        if self.pending {
-            self.wait()?;
-        }
+        self.wait()?;
         self.untracked = false;
+        self.reset_and_begin()
+    }
+
+    /// Resets and begins the buffer; the callers made sure its last
+    /// submission completed (fence, queue or the caller's timeline).
+    fn reset_and_begin(&mut self) -> Result<vk::CommandBuffer> {
         let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
-        // SAFETY: the caller guarantees the last submission completed; the pool allows reset.
+        // SAFETY: the buffer is not pending (see the callers) and its pool allows reset.
         unsafe {
             self.device
                 .raw

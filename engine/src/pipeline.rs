@@ -380,6 +380,17 @@ pub enum DescriptorResource {
     SampledImage(vk::ImageView, vk::Sampler),
 }
 
+impl DescriptorResource {
+    /// The descriptor type a binding of this resource has.
+    pub fn descriptor_type(&self) -> vk::DescriptorType {
+        match self {
+            DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
+            DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
+            DescriptorResource::SampledImage(..) => vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+        }
+    }
+}
+
 impl DescriptorPool {
     /// Creates a pool for `sets` sets of `pipeline`'s set-0 layout.
     pub fn new(device: &Arc<Device>, pipeline: &Pipeline, sets: u32, name: &str) -> Result<Self> {
@@ -445,17 +456,15 @@ impl DescriptorPool {
             .iter()
             .enumerate()
             .map(|(i, (binding, r))| {
-                let write = vk::WriteDescriptorSet::default().dst_set(set).dst_binding(*binding);
+                let write = vk::WriteDescriptorSet::default()
+                    .dst_set(set)
+                    .dst_binding(*binding)
+                    .descriptor_type(r.descriptor_type());
                 match r {
-                    DescriptorResource::StorageBuffer(_) => write
-                        .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                        .buffer_info(&buffer_infos[i]),
-                    DescriptorResource::UniformBuffer(_) => write
-                        .descriptor_type(vk::DescriptorType::UNIFORM_BUFFER)
-                        .buffer_info(&buffer_infos[i]),
-                    DescriptorResource::SampledImage(..) => write
-                        .descriptor_type(vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
-                        .image_info(&image_infos[i]),
+                    DescriptorResource::StorageBuffer(_) | DescriptorResource::UniformBuffer(_) => {
+                        write.buffer_info(&buffer_infos[i])
+                    }
+                    DescriptorResource::SampledImage(..) => write.image_info(&image_infos[i]),
                 }
             })
             .collect();

@@ -143,15 +143,7 @@ impl MipSource for DatasetSource {
     }
 
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> std::result::Result<(), SourceError> {
-        let expected = self.mip_len(texture, level)?;
-        if buf.len() as u64 != expected {
-            return Err(SourceError::LengthMismatch {
-                texture,
-                level,
-                expected,
-                got: buf.len() as u64,
-            });
-        }
+        self.check_buffer_len(texture, level, buf)?;
         self.dataset
             .textures
             .read_mip_into(texture, level, buf)
@@ -445,14 +437,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         ));
         bindings
             .into_iter()
-            .map(|(binding, resource)| {
-                let ty = match resource {
-                    DescriptorResource::SampledImage(..) => vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
-                    DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
-                };
-                (binding, ty, resource)
-            })
+            .map(|(binding, resource)| (binding, resource.descriptor_type(), resource))
             .collect()
     }
 
@@ -788,14 +773,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         for &texture in &report.invalidated_textures {
             let _ = self.states.invalidate(texture);
         }
-        total.blocks_bound += report.blocks_bound;
-        total.blocks_unbound += report.blocks_unbound;
-        total.bind_entries += report.bind_entries;
-        total.bind_seconds += report.bind_seconds;
-        total.mips_uploaded += report.mips_uploaded;
-        total.bytes_uploaded += report.bytes_uploaded;
-        total.textures_invalidated += report.textures_invalidated;
-        total.invalidated_textures.extend(report.invalidated_textures);
+        total.absorb(report);
         Ok(())
     }
 

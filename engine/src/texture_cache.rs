@@ -102,6 +102,20 @@ pub struct CycleReport {
     pub invalidated_textures: Vec<u32>,
 }
 
+impl CycleReport {
+    /// Adds `other`'s counts to these (several cycles reported as one).
+    pub fn absorb(&mut self, other: CycleReport) {
+        self.blocks_bound += other.blocks_bound;
+        self.blocks_unbound += other.blocks_unbound;
+        self.bind_entries += other.bind_entries;
+        self.bind_seconds += other.bind_seconds;
+        self.mips_uploaded += other.mips_uploaded;
+        self.bytes_uploaded += other.bytes_uploaded;
+        self.textures_invalidated += other.textures_invalidated;
+        self.invalidated_textures.extend(other.invalidated_textures);
+    }
+}
+
 /// Outcome of [`GpuTextureCache::stage`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum StageOutcome {

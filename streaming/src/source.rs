@@ -91,6 +91,21 @@ pub trait MipSource: Send + Sync {
     /// Read `level` of `texture` into `buf`, whose length must equal
     /// [`MipSource::mip_len`]; a shorter file is [`SourceError::ShortRead`].
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError>;
+
+    /// [`SourceError::LengthMismatch`] unless `buf` holds exactly the
+    /// mip's bytes: the check every [`MipSource::read_mip`] starts with.
+    fn check_buffer_len(&self, texture: u32, level: u32, buf: &[u8]) -> Result<(), SourceError> {
+        let expected = self.mip_len(texture, level)?;
+        if buf.len() as u64 != expected {
+            return Err(SourceError::LengthMismatch {
+                texture,
+                level,
+                expected,
+                got: buf.len() as u64,
+            });
+        }
+        Ok(())
+    }
 }
 
 /// A mip read from the source, handed to the sink.
@@ -295,15 +310,8 @@ impl MipSource for MemorySource {
     }
 
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {
-        let expected = self.mip_len(texture, level)?;
-        if buf.len() as u64 != expected {
-            return Err(SourceError::LengthMismatch {
-                texture,
-                level,
-                expected,
-                got: buf.len() as u64,
-            });
-        }
+        self.check_buffer_len(texture, level, buf)?;
+        let expected = buf.len() as u64;
         let stored = self
             .texture(texture)?
             .mips

@@ -125,15 +125,7 @@ impl MipSource for Facades {
     }
 
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {
-        let expected = self.mip_len(texture, level)?;
-        if buf.len() as u64 != expected {
-            return Err(SourceError::LengthMismatch {
-                texture,
-                level,
-                expected,
-                got: buf.len() as u64,
-            });
-        }
+        self.check_buffer_len(texture, level, buf)?;
         let side = Self::SIDE >> level;
         for (i, texel) in buf.chunks_exact_mut(4).enumerate() {
             let (x, y) = (i as u32 % side, i as u32 / side);

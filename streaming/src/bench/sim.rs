@@ -361,15 +361,7 @@ impl MipSource for SimCity {
     }
 
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {
-        let expected = self.mip_len(texture, level)?;
-        if buf.len() as u64 != expected {
-            return Err(SourceError::LengthMismatch {
-                texture,
-                level,
-                expected,
-                got: buf.len() as u64,
-            });
-        }
+        self.check_buffer_len(texture, level, buf)?;
         // Synthetic content: the simulation never looks at the bytes.
         buf.fill((texture ^ level) as u8);
         Ok(())

@@ -408,6 +408,29 @@ fn optional(value: Option<f64>) -> String {
         .unwrap_or_default()
 }
 
+/// The visible and feedback targets of the city passes and the feedback view.
+struct CityTargets {
+    target: RenderTarget,
+    /// A quarter of the visible resolution per axis.
+    feedback_target: RenderTarget,
+    view: FeedbackView,
+    /// Visible pixels one feedback fragment stands for.
+    fragment_area: f32,
+}
+
+fn city_targets(args: &Args, device: &Arc<Device>) -> Result<CityTargets> {
+    let target = RenderTarget::new(device, args.width, args.height)?;
+    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
+    let view = FeedbackView::default();
+    let fragment_area = view.fragment_area(args.height, feedback_target.height());
+    Ok(CityTargets {
+        target,
+        feedback_target,
+        view,
+        fragment_area,
+    })
+}
+
 /// A dataset's vertices and meshes in the engine's layout.
 type CityGeometry = (Vec<Vertex>, Vec<CityMesh>);
 
@@ -423,10 +446,12 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let meshes = &city.1;
     let scene = &dataset.scene;
     let mut commands = CommandContext::new(device, "flythrough setup and measurements")?;
-    let target = RenderTarget::new(device, args.width, args.height)?;
-    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
-    let view = FeedbackView::default();
-    let fragment_area = view.fragment_area(args.height, feedback_target.height());
+    let CityTargets {
+        target,
+        feedback_target,
+        view,
+        fragment_area,
+    } = city_targets(args, device)?;
     let policy = args
         .policy
         .build(&PolicyOptions {
@@ -754,10 +779,12 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     let meshes = &city.1;
     let scene = &dataset.scene;
     let mut commands = CommandContext::new(device, "pop-in frame")?;
-    let target = RenderTarget::new(device, args.width, args.height)?;
-    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
-    let view = FeedbackView::default();
-    let fragment_area = view.fragment_area(args.height, feedback_target.height());
+    let CityTargets {
+        target,
+        feedback_target,
+        view,
+        fragment_area,
+    } = city_targets(args, device)?;
     // Levels are loaded explicitly, one per frame: the policy never runs.
     let mut gpu = city_gpu(
         device,
