@@ -82,6 +82,8 @@ pub enum EvictionReason {
     RingReuse,
     /// Binding more blocks would have exceeded the memory budget.
     MemoryBudget,
+    /// The caller chose the layer ([`TextureCache::evict_layer`]).
+    Chosen,
 }
 
 /// A layer eviction, as reported in [`CycleBatch::evicted_layers`].
@@ -191,10 +193,32 @@ pub struct CacheStats {
     pub ring_evictions: u64,
     /// Evictions for the memory budget.
     pub budget_evictions: u64,
+    /// Layers evicted by [`TextureCache::evict_layer`].
+    pub chosen_evictions: u64,
     /// Textures invalidated by evictions.
     pub invalidated_textures: u64,
     /// Chunks the block pool created.
     pub chunks: u32,
+    /// Texture mips dropped by [`TextureCache::drop_mip`].
+    pub dropped_mips: u64,
+    /// Blocks those drops released.
+    pub dropped_blocks: u64,
+}
+
+/// Bound blocks against the budget.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct BudgetUse {
+    /// Blocks bound for live layers, binds not yet handed out included.
+    pub live_blocks: u64,
+    /// The budget in blocks.
+    pub budget_blocks: u64,
+}
+
+impl BudgetUse {
+    /// Blocks that can still be bound within the budget.
+    pub fn free_blocks(&self) -> u64 {
+        self.budget_blocks.saturating_sub(self.live_blocks)
+    }
 }
 
 /// Slot value of an extent that has no layer yet.
@@ -224,6 +248,14 @@ struct TextureRecord {
     staged_mips: u32,
 }
 
+/// A bound block and how many staged texture mips lie on it, so that
+/// dropping one texture's level frees only the blocks no other mip uses.
+#[derive(Clone, Copy, Debug)]
+struct BoundBlock {
+    memory: MemorySlot,
+    users: u32,
+}
+
 #[derive(Debug, Default)]
 struct LayerState {
     /// Current assignment; `None` while free.
@@ -233,7 +265,7 @@ struct LayerState {
     textures: Vec<Option<TextureRecord>>,
     texture_count: u64,
     /// Bound blocks keyed by (mip, column, row).
-    blocks: HashMap<(u32, u32, u32), MemorySlot>,
+    blocks: HashMap<(u32, u32, u32), BoundBlock>,
     texture_bytes: u64,
 }
 
@@ -390,6 +422,26 @@ impl TextureCache {
     /// reported in the next [`CycleBatch::invalidated`]. Safe to call from
     /// many threads at once.
     pub fn insert(&self, image: ImageId, key: u64, width: u32, height: u32) -> Result<Placement, CacheError> {
+        self.insert_with(image, key, width, height, true)
+    }
+
+    /// As [`insert`](Self::insert), but never evicts: when the texture
+    /// needs a new layer and every layer of the image is live, returns
+    /// [`CacheError::NoLayer`]; the caller may free one with
+    /// [`evict_layer`](Self::evict_layer). A free layer is taken in ring
+    /// order from the paper's `nextLayer` on.
+    pub fn try_insert(&self, image: ImageId, key: u64, width: u32, height: u32) -> Result<Placement, CacheError> {
+        self.insert_with(image, key, width, height, false)
+    }
+
+    fn insert_with(
+        &self,
+        image: ImageId,
+        key: u64,
+        width: u32,
+        height: u32,
+        evict: bool,
+    ) -> Result<Placement, CacheError> {
         let state = self.image(image)?;
         let desc = &state.desc;
         let bad = |reason: String| CacheError::BadExtent {
@@ -438,7 +490,12 @@ impl TextureCache {
             if unpack(slot.load(Ordering::Acquire)).0 != assignment {
                 continue;
             }
-            let (layer_index, new_assignment) = self.assign_layer(&mut shared, state, extent);
+            let (layer_index, new_assignment) = if evict {
+                self.assign_layer(&mut shared, state, extent)
+            } else {
+                self.assign_free_layer(&mut shared, state, extent)
+                    .ok_or(CacheError::NoLayer { image, extent })?
+            };
             // Region 0 is ours; concurrent claims on the old value fail the
             // liveness check above and retry.
             slot.store(pack(new_assignment, 1), Ordering::Release);
@@ -476,6 +533,78 @@ impl TextureCache {
         (layer_index, assignment)
     }
 
+    /// Assigns the first free layer from the ring's next position on to
+    /// `extent`, evicting nothing; `None` if every layer is live.
+    fn assign_free_layer(&self, shared: &mut Shared, state: &ImageState, extent: u32) -> Option<(u32, u32)> {
+        let desc = &state.desc;
+        let count = desc.layer_count;
+        let next = state.next_assignment.load(Ordering::Acquire);
+        let start = next % count;
+        let layer_index = (0..count)
+            .map(|step| (start + step) % count)
+            .find(|&layer| lock(&state.layers[layer as usize]).assignment.is_none())?;
+        // The assignment number keeps `assignment % layer_count == layer`
+        // and stays ahead of every earlier one, so stale slots never match.
+        let mut wide = u64::from(next - start) + u64::from(layer_index);
+        if wide < u64::from(next) {
+            wide += u64::from(count);
+        }
+        let assignment = if wide >= u64::from(state.assignment_modulus) {
+            layer_index
+        } else {
+            wide as u32
+        };
+        state
+            .next_assignment
+            .store((assignment + 1) % state.assignment_modulus, Ordering::Release);
+        let age = shared.next_age;
+        shared.next_age += 1;
+        shared.live[desc.image as usize].push_back(LiveLayer {
+            layer: layer_index,
+            assignment,
+            age,
+        });
+        shared.stats.layer_assignments += 1;
+        let mut layer = lock(&state.layers[layer_index as usize]);
+        layer.assignment = Some(assignment);
+        layer.extent = extent;
+        Some((layer_index, assignment))
+    }
+
+    /// Evicts live layer `layer` of `image`, chosen by the caller: its
+    /// textures are invalidated (listed in the next batch) and its blocks
+    /// released. Errors if the image is unknown or the layer is not live.
+    pub fn evict_layer(&self, image: ImageId, layer: u32) -> Result<(), CacheError> {
+        self.image(image)?;
+        let mut shared = lock(&self.shared);
+        let live = &mut shared.live[image as usize];
+        let Some(position) = live.iter().position(|l| l.layer == layer) else {
+            return Err(CacheError::LayerNotLive { image, layer });
+        };
+        // Move it to the front so the common eviction path takes it.
+        if let Some(entry) = live.remove(position) {
+            live.push_front(entry);
+        }
+        self.evict_oldest_of(&mut shared, image as usize, EvictionReason::Chosen);
+        Ok(())
+    }
+
+    /// Live layers of `image` (their index, extent and textures), oldest
+    /// first.
+    pub fn live_layers(&self, image: ImageId) -> Vec<(u32, u32, u64)> {
+        let Ok(state) = self.image(image) else {
+            return Vec::new();
+        };
+        let shared = lock(&self.shared);
+        shared.live[image as usize]
+            .iter()
+            .map(|live| {
+                let layer = lock(&state.layers[live.layer as usize]);
+                (live.layer, layer.extent, layer.texture_count)
+            })
+            .collect()
+    }
+
     /// Evicts the oldest live layer of `image`: invalidates its textures
     /// and releases its blocks.
     fn evict_oldest_of(&self, shared: &mut Shared, image: usize, reason: EvictionReason) {
@@ -501,7 +630,7 @@ impl TextureCache {
         layer.texture_bytes = 0;
         layer.texture_count = 0;
         drop(layer);
-        for ((mip, x, y), memory) in &blocks {
+        for ((mip, x, y), bound) in &blocks {
             let key = BlockKey {
                 image: image as u32,
                 layer: live.layer,
@@ -509,17 +638,13 @@ impl TextureCache {
                 x: *x,
                 y: *y,
             };
-            if shared.pending_binds.remove(&key).is_some() {
-                // Never submitted: nothing to unbind.
-                shared.pool.free(*memory);
-            } else {
-                shared.released.insert(key, *memory);
-            }
+            release_block(shared, key, bound.memory);
         }
         shared.live_blocks -= blocks.len() as u64;
         match reason {
             EvictionReason::RingReuse => shared.stats.ring_evictions += 1,
             EvictionReason::MemoryBudget => shared.stats.budget_evictions += 1,
+            EvictionReason::Chosen => shared.stats.chosen_evictions += 1,
         }
         shared.stats.invalidated_textures += textures.len() as u64;
         shared.evicted.push(EvictedLayer {
@@ -599,6 +724,18 @@ impl TextureCache {
     /// [`CacheError::MemoryPending`] if the budget allows it but the freed
     /// memory still waits for the next batch's unbinds (retry next cycle).
     pub fn stage_mip(&self, placement: &Placement, mip: u32) -> Result<MipUpload, CacheError> {
+        self.stage_mip_with(placement, mip, true)
+    }
+
+    /// As [`stage_mip`](Self::stage_mip), but never evicts: if the budget's
+    /// free blocks cannot hold the blocks the mip needs, returns
+    /// [`CacheError::NoRoom`] and changes nothing. For callers that choose
+    /// what to give up themselves ([`drop_mip`](Self::drop_mip)).
+    pub fn try_stage_mip(&self, placement: &Placement, mip: u32) -> Result<MipUpload, CacheError> {
+        self.stage_mip_with(placement, mip, false)
+    }
+
+    fn stage_mip_with(&self, placement: &Placement, mip: u32, evict: bool) -> Result<MipUpload, CacheError> {
         let state = self.image(placement.image)?;
         let desc = &state.desc;
         let rect = placement.mip_rect(mip)?;
@@ -659,7 +796,9 @@ impl TextureCache {
                             }
                         },
                     };
-                    layer.blocks.insert((key.mip, key.x, key.y), memory);
+                    layer
+                        .blocks
+                        .insert((key.mip, key.x, key.y), BoundBlock { memory, users: 0 });
                     shared.live_blocks += 1;
                 }
                 shared.stats.chunks = shared.pool.chunk_count();
@@ -671,6 +810,13 @@ impl TextureCache {
                 }
                 if !already_staged {
                     layer.texture_bytes += bytes;
+                    for y in y0..y1 {
+                        for x in x0..x1 {
+                            if let Some(bound) = layer.blocks.get_mut(&(mip, x, y)) {
+                                bound.users += 1;
+                            }
+                        }
+                    }
                 }
                 return Ok(MipUpload {
                     image: placement.image,
@@ -682,6 +828,12 @@ impl TextureCache {
                 });
             }
             drop(layer);
+            if !evict {
+                return Err(CacheError::NoRoom {
+                    needed_blocks: needed_count,
+                    free_blocks: shared.budget_blocks.saturating_sub(shared.live_blocks),
+                });
+            }
             if needed_count > shared.budget_blocks {
                 return Err(CacheError::OverBudget {
                     needed_blocks: needed_count,
@@ -729,7 +881,10 @@ impl TextureCache {
     pub fn block_memory(&self, block: &BlockKey) -> Option<MemorySlot> {
         let state = self.images.get(block.image as usize)?;
         let layer = lock(state.layers.get(block.layer as usize)?);
-        layer.blocks.get(&(block.mip, block.x, block.y)).copied()
+        layer
+            .blocks
+            .get(&(block.mip, block.x, block.y))
+            .map(|bound| bound.memory)
     }
 
     /// Every block bound for a live layer with its memory, in key order.
@@ -739,7 +894,7 @@ impl TextureCache {
         for state in &self.images {
             for (layer_index, layer) in state.layers.iter().enumerate() {
                 let layer = lock(layer);
-                all.extend(layer.blocks.iter().map(|(&(mip, x, y), &memory)| {
+                all.extend(layer.blocks.iter().map(|(&(mip, x, y), bound)| {
                     (
                         BlockKey {
                             image: state.desc.image,
@@ -748,7 +903,7 @@ impl TextureCache {
                             x,
                             y,
                         },
-                        memory,
+                        bound.memory,
                     )
                 }));
             }
@@ -778,9 +933,122 @@ impl TextureCache {
         report
     }
 
+    /// Drops texture mip `mip` of `placement`: the mip is no longer staged,
+    /// and every block it touched that no other staged mip uses is released
+    /// (unbound by the next batch, or never bound if its bind was not handed
+    /// out yet). Returns the blocks released. The caller must first make
+    /// sure nothing samples the level any more (the engine raises the
+    /// texture's finest sampled level in the same cycle, before the unbind
+    /// batch runs). Errors: [`CacheError::Invalidated`] if the layer is
+    /// gone, [`CacheError::NotStaged`] if the mip is not staged.
+    pub fn drop_mip(&self, placement: &Placement, mip: u32) -> Result<u32, CacheError> {
+        let state = self.image(placement.image)?;
+        let rect = placement.mip_rect(mip)?;
+        let (x0, y0, x1, y1) = rect.block_range(&state.desc.granularity);
+        let layer_mutex = state
+            .layers
+            .get(placement.layer as usize)
+            .ok_or_else(|| invalidated(placement))?;
+        let mut shared = lock(&self.shared);
+        let mut layer = lock(layer_mutex);
+        if layer.assignment != Some(placement.assignment) {
+            return Err(invalidated(placement));
+        }
+        let record = layer
+            .textures
+            .get_mut(placement.region as usize)
+            .and_then(Option::as_mut)
+            .ok_or_else(|| invalidated(placement))?;
+        if record.staged_mips & (1 << mip) == 0 {
+            return Err(CacheError::NotStaged {
+                key: placement.key,
+                mip,
+            });
+        }
+        record.staged_mips &= !(1 << mip);
+        layer.texture_bytes -= state.desc.format.image_bytes(rect.width, rect.height);
+        let mut released = 0u32;
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let Some(bound) = layer.blocks.get_mut(&(mip, x, y)) else {
+                    continue;
+                };
+                bound.users = bound.users.saturating_sub(1);
+                if bound.users == 0 {
+                    let memory = bound.memory;
+                    layer.blocks.remove(&(mip, x, y));
+                    let key = BlockKey {
+                        image: placement.image,
+                        layer: placement.layer,
+                        mip,
+                        x,
+                        y,
+                    };
+                    release_block(&mut shared, key, memory);
+                    released += 1;
+                }
+            }
+        }
+        shared.live_blocks -= u64::from(released);
+        shared.stats.dropped_mips += 1;
+        shared.stats.dropped_blocks += u64::from(released);
+        Ok(released)
+    }
+
+    /// Blocks that dropping staged mip `mip` of `placement` would release
+    /// now: those it touches that no other staged mip uses. Zero when the
+    /// placement is gone or the mip is not staged.
+    pub fn exclusive_blocks(&self, placement: &Placement, mip: u32) -> u32 {
+        let Ok(state) = self.image(placement.image) else {
+            return 0;
+        };
+        let Ok(rect) = placement.mip_rect(mip) else {
+            return 0;
+        };
+        let (x0, y0, x1, y1) = rect.block_range(&state.desc.granularity);
+        let Some(layer_mutex) = state.layers.get(placement.layer as usize) else {
+            return 0;
+        };
+        let layer = lock(layer_mutex);
+        let staged = layer.assignment == Some(placement.assignment)
+            && layer
+                .textures
+                .get(placement.region as usize)
+                .and_then(Option::as_ref)
+                .is_some_and(|record| record.staged_mips & (1 << mip) != 0);
+        if !staged {
+            return 0;
+        }
+        (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+            .filter(|&(x, y)| layer.blocks.get(&(mip, x, y)).is_some_and(|bound| bound.users == 1))
+            .count() as u32
+    }
+
+    /// Blocks bound for live layers (binds not yet handed out included) and
+    /// the budget, in blocks.
+    pub fn budget_use(&self) -> BudgetUse {
+        let shared = lock(&self.shared);
+        BudgetUse {
+            live_blocks: shared.live_blocks,
+            budget_blocks: shared.budget_blocks,
+        }
+    }
+
     /// Running counts since creation.
     pub fn stats(&self) -> CacheStats {
         lock(&self.shared).stats
+    }
+}
+
+/// Returns a block's memory: to the pool at once if its bind was never
+/// handed out, else after the next batch's unbind.
+fn release_block(shared: &mut Shared, key: BlockKey, memory: MemorySlot) {
+    if shared.pending_binds.remove(&key).is_some() {
+        // Never submitted: nothing to unbind.
+        shared.pool.free(memory);
+    } else {
+        shared.released.insert(key, memory);
     }
 }
 

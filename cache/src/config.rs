@@ -205,3 +205,103 @@ impl CacheConfig {
         self.memory_budget_bytes / self.limits.sparse_block_bytes.max(1)
     }
 }
+
+/// What one cache image must place, for [`derive_layer_counts`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ImageDemand {
+    /// `(extent, textures)`: how many textures of each extent the image may
+    /// have to place.
+    pub extents: Vec<(u32, u64)>,
+    /// Virtual bytes one layer spans (its block-padded full mip chain).
+    pub layer_virtual_bytes: u64,
+}
+
+/// Layers per image derived from what the images must hold and what the
+/// budget and the device allow, instead of a fixed count:
+///
+/// - enough layers to place every texture at once (each extent packs
+///   `(layer_size / extent)²` textures per layer);
+/// - no more than `budget_blocks`: a live layer holds at least one bound
+///   block, so more layers could never be in use at once;
+/// - at most `max_layers` (the device's `maxImageArrayLayers`, or less);
+/// - all images together within `virtual_budget_bytes`, shared in
+///   proportion to their demand.
+///
+/// Every image gets at least one layer. Where a limit leaves fewer layers
+/// than textures need, the cache reuses layers as it runs.
+pub fn derive_layer_counts(
+    layer_size: u32,
+    demands: &[ImageDemand],
+    budget_blocks: u64,
+    max_layers: u32,
+    virtual_budget_bytes: u64,
+) -> Vec<u32> {
+    let wanted: Vec<u64> = demands
+        .iter()
+        .map(|demand| {
+            let needed: u64 = demand
+                .extents
+                .iter()
+                .map(|&(extent, textures)| {
+                    let per_row = u64::from(layer_size / extent.clamp(1, layer_size.max(1)));
+                    textures.div_ceil((per_row * per_row).max(1))
+                })
+                .sum();
+            needed.min(budget_blocks).min(u64::from(max_layers)).max(1)
+        })
+        .collect();
+    let total_virtual: u128 = wanted
+        .iter()
+        .zip(demands)
+        .map(|(&layers, demand)| u128::from(layers) * u128::from(demand.layer_virtual_bytes))
+        .sum();
+    if total_virtual <= u128::from(virtual_budget_bytes) {
+        return wanted.iter().map(|&layers| layers as u32).collect();
+    }
+    // Scale every image down by the same factor; rounding down keeps the
+    // sum within the budget (each keeps one layer).
+    wanted
+        .iter()
+        .map(|&layers| {
+            let scaled = u128::from(layers) * u128::from(virtual_budget_bytes) / total_virtual.max(1);
+            scaled.clamp(1, u128::from(layers)) as u32
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn demand(extents: &[(u32, u64)]) -> ImageDemand {
+        ImageDemand {
+            extents: extents.to_vec(),
+            layer_virtual_bytes: 1 << 20,
+        }
+    }
+
+    #[test]
+    fn layers_follow_textures_budget_and_device() {
+        // 2048-texel layers: 64 textures of 256 per layer, one of 2048.
+        let city = [demand(&[(256, 640), (2048, 5)]), demand(&[(256, 1)])];
+        assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 2048, u64::MAX), vec![15, 1]);
+        // The budget caps it: 8 blocks can keep at most 8 layers live.
+        assert_eq!(derive_layer_counts(2048, &city, 8, 2048, u64::MAX), vec![8, 1]);
+        // A device with few layers caps it.
+        assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 4, u64::MAX), vec![4, 1]);
+        // The virtual budget is shared: 8 MiB for 16 MiB wanted.
+        assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 2048, 8 << 20), vec![7, 1]);
+    }
+
+    #[test]
+    fn degenerate_inputs_still_give_one_layer() {
+        let odd = [demand(&[(0, 3), (1 << 20, 2)]), demand(&[])];
+        let counts = derive_layer_counts(2048, &odd, 0, 0, 0);
+        assert_eq!(counts, vec![1, 1]);
+        let huge = [demand(&[(1, u64::MAX)])];
+        assert_eq!(
+            derive_layer_counts(1 << 15, &huge, u64::MAX, u32::MAX, u64::MAX),
+            vec![u32::MAX]
+        );
+    }
+}

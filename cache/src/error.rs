@@ -147,6 +147,42 @@ pub enum CacheError {
         /// Blocks the budget holds.
         budget_blocks: u64,
     },
+    /// Without evicting, the memory budget has too few free blocks for this
+    /// mip ([`crate::TextureCache::try_stage_mip`]); the caller frees room
+    /// by dropping levels it values less, or declines the mip.
+    #[error("mip needs {needed_blocks} new sparse blocks but only {free_blocks} of the budget are free")]
+    NoRoom {
+        /// Blocks the request needs newly bound.
+        needed_blocks: u64,
+        /// Blocks of the budget not bound now.
+        free_blocks: u64,
+    },
+    /// [`crate::TextureCache::try_insert`]: the texture needs a new layer
+    /// and every layer of the image is live.
+    #[error("image {image} has no free layer for a texture of extent {extent}")]
+    NoLayer {
+        /// Image index.
+        image: u32,
+        /// The texture's extent.
+        extent: u32,
+    },
+    /// [`crate::TextureCache::evict_layer`] named a layer that holds no
+    /// assignment.
+    #[error("layer {layer} of image {image} is not live")]
+    LayerNotLive {
+        /// Image index.
+        image: u32,
+        /// Layer index.
+        layer: u32,
+    },
+    /// A level was to be dropped that the texture does not hold.
+    #[error("texture {key} holds no staged mip {mip} to drop")]
+    NotStaged {
+        /// The caller's texture key.
+        key: u64,
+        /// The level asked for.
+        mip: u32,
+    },
     /// Enough blocks are within budget but their memory still backs blocks
     /// waiting to be unbound by the next batch; retry after
     /// [`crate::TextureCache::take_batch`].

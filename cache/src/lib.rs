@@ -43,9 +43,10 @@ pub mod pool;
 
 pub use binder::{BindError, BindOp, BindReport, BlockKey, MemorySlot, SparseBinder};
 pub use cache::{
-    CacheStats, CycleBatch, EvictedLayer, EvictionReason, ImageId, MipUpload, Placement, TextureCache, Utilisation,
+    BudgetUse, CacheStats, CycleBatch, EvictedLayer, EvictionReason, ImageId, MipUpload, Placement, TextureCache,
+    Utilisation,
 };
-pub use config::{CacheConfig, ImageConfig, ImageDesc, MAX_LAYER_SIZE};
+pub use config::{derive_layer_counts, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MAX_LAYER_SIZE};
 pub use error::{CacheError, ConfigError};
 pub use estimate::{estimate_utilisation, UtilisationEstimate};
 pub use format::{DeviceLimits, Granularity, GranularityUnit, TexelFormat};

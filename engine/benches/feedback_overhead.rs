@@ -18,7 +18,7 @@ use citystream_engine::instance::InstanceOptions;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::{self, SplitMix64};
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::timing::GpuTimer;
 use citystream_engine::{Device, DeviceOptions};
 use glam::Vec3;
@@ -65,7 +65,8 @@ fn main() -> Result<()> {
         &mut commands,
         &GpuCacheConfig {
             layer_size: 512,
-            layer_count: 4,
+            layers: CacheLayers::Fixed(4),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 64 << 20,
             virtual_budget_bytes: None,
             blocks_per_chunk: 64,

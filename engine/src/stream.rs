@@ -35,6 +35,7 @@
 //! Threading: the streamer is used from one thread (the render thread); its
 //! loader runs on rayon workers and touches no Vulkan object.
 
+use std::collections::{BinaryHeap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -45,6 +46,7 @@ use citystream_streaming::controller::{Decision, LoadPolicy};
 use citystream_streaming::dataset::{Dataset, DatasetError, TextureFormat};
 use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals};
 use citystream_streaming::records::{prepare, MeshMetaData};
+use citystream_streaming::residency::{AdmissionGate, KeepValue, NeedClass, NeedTable};
 use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
 use citystream_streaming::states::{MipChain, TextureStates};
 
@@ -54,7 +56,9 @@ use crate::error::{EngineError, Result};
 use crate::feedback::{CompactedFeedback, FeedbackCompactor};
 use crate::gpu_types::{FeedbackEntry, BINDING_FEEDBACK_MESHES, FEEDBACK_MIP_ONE, FEEDBACK_WEIGHT_ONE};
 use crate::pipeline::{DescriptorResource, Filtering};
-use crate::texture_cache::{CycleReport, GpuCacheConfig, GpuTextureCache, StageOutcome};
+use crate::texture_cache::{
+    CacheLayers, CycleReport, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome, CACHE_FORMATS,
+};
 
 /// The cache's texel format for a dataset format.
 pub fn texel_format(format: TextureFormat) -> TexelFormat {
@@ -152,6 +156,21 @@ impl MipSource for DatasetSource {
     }
 }
 
+/// Per cache image, how many textures of each extent the source holds.
+fn texture_extents<S: MipSource + ?Sized>(source: &S) -> Result<Vec<Vec<(u32, u64)>>> {
+    let mut counts: Vec<std::collections::BTreeMap<u32, u64>> = vec![Default::default(); CACHE_FORMATS.len()];
+    for texture in 0..source.texture_count() {
+        let format = source.texture_format(texture).map_err(source_failure)?;
+        let Some(image) = GpuTextureCache::image_of(format) else {
+            continue; // Refused with a typed error when it is staged.
+        };
+        let chain = source.mip_chain(texture).map_err(source_failure)?;
+        let extent = chain.width.max(chain.height).max(1).next_power_of_two();
+        *counts[image as usize].entry(extent).or_default() += 1;
+    }
+    Ok(counts.into_iter().map(|c| c.into_iter().collect()).collect())
+}
+
 /// Loaded mips waiting for the render thread.
 #[derive(Debug, Default)]
 struct UploadQueue {
@@ -208,8 +227,15 @@ pub struct StreamConfig {
     pub frames_in_flight: u32,
     /// Side of every cache array layer in texels (a power of two).
     pub layer_size: u32,
-    /// Layers per cache image.
-    pub layer_count: u32,
+    /// Layers per cache image; `None` derives them from the textures each
+    /// image must place, the memory budget and the device
+    /// ([`citystream_cache::derive_layer_counts`]).
+    pub layer_count: Option<u32>,
+    /// A lower layer limit than the device's `maxImageArrayLayers` (hosts
+    /// sharing the device, tests of small devices).
+    pub max_layers: Option<u32>,
+    /// How memory is freed at the budget.
+    pub eviction: Eviction,
     /// Bytes of bound texture blocks allowed.
     pub memory_budget_bytes: u64,
     /// Blocks per device-memory chunk of the block pool.
@@ -238,7 +264,9 @@ impl Default for StreamConfig {
         Self {
             frames_in_flight: 2,
             layer_size: 2048,
-            layer_count: 64,
+            layer_count: None,
+            max_layers: None,
+            eviction: Eviction::View,
             memory_budget_bytes: 512 << 20,
             blocks_per_chunk: 256,
             staging_bytes: 16 << 20,
@@ -266,6 +294,73 @@ pub struct FrameBegin {
     pub loading_started: bool,
     /// Mips the cache could not take this frame (loaded again later).
     pub refused: u32,
+    /// The view needs more than the memory budget holds: loads were refused
+    /// or declined for room ([`Eviction::View`]).
+    pub over_budget: bool,
+}
+
+/// What the last [`TextureStreamer::begin_frame`] did to residency.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ResidencyCycle {
+    /// `(texture, level)` staged for upload.
+    pub staged: Vec<(u32, u32)>,
+    /// `(texture, level)` dropped to make room.
+    pub dropped: Vec<(u32, u32)>,
+    /// Layers evicted to place textures.
+    pub evicted_layers: u32,
+    /// Loaded mips refused because the budget had no room for them.
+    pub refused_for_room: u32,
+}
+
+/// Running residency counts of a streamer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ResidencyTotals {
+    /// Levels dropped to make room.
+    pub dropped_levels: u64,
+    /// Bytes of those levels.
+    pub dropped_bytes: u64,
+    /// Layers evicted to place textures.
+    pub evicted_layers: u64,
+    /// Loaded mips refused for room.
+    pub refused_for_room: u64,
+    /// Loads the admission gate declined.
+    pub declined_loads: u64,
+    /// Frames that were over budget.
+    pub frames_over_budget: u64,
+    /// Bytes of the distinct `(texture, level)` pairs uploaded, each once.
+    pub unique_bytes_uploaded: u64,
+}
+
+/// A resident level that may be dropped, ordered so that a max-heap pops
+/// the least worth first.
+#[derive(Clone, Copy, Debug)]
+struct Victim {
+    value: KeepValue,
+    texture: u32,
+    level: u32,
+}
+
+impl PartialEq for Victim {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == std::cmp::Ordering::Equal
+    }
+}
+
+impl Eq for Victim {}
+
+impl PartialOrd for Victim {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for Victim {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        other
+            .value
+            .cmp_total(&self.value)
+            .then_with(|| other.texture.cmp(&self.texture))
+    }
 }
 
 /// What the host's submission of a frame must carry.
@@ -311,6 +406,15 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     fragment_area: f32,
     deterministic: bool,
     latest_feedback: Option<(u64, Vec<FeedbackEntry>)>,
+    eviction: Eviction,
+    needs: NeedTable,
+    gate: Arc<AdmissionGate>,
+    /// Loaded mips whose memory waits for the next unbind batch.
+    deferred: Vec<StagedMip>,
+    totals: ResidencyTotals,
+    last_cycle: ResidencyCycle,
+    over_budget: bool,
+    last_declined: u64,
 }
 
 impl<S: MipSource> std::fmt::Debug for TextureStreamer<S> {
@@ -349,13 +453,21 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                     mesh_textures.len()
                 ))
             })?;
+        let layers = match config.layer_count {
+            Some(count) => CacheLayers::Fixed(count),
+            None => CacheLayers::Derived {
+                extents: texture_extents(&source)?,
+                max_layers: config.max_layers,
+            },
+        };
         let mut commands = CommandContext::new(device, "texture streamer setup")?;
         let cache = GpuTextureCache::new(
             device,
             &mut commands,
             &GpuCacheConfig {
                 layer_size: config.layer_size,
-                layer_count: config.layer_count,
+                layers,
+                eviction: config.eviction,
                 memory_budget_bytes: config.memory_budget_bytes,
                 virtual_budget_bytes: None,
                 blocks_per_chunk: config.blocks_per_chunk,
@@ -382,6 +494,10 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             config.loader,
         )
         .map_err(|e| EngineError::InvalidRequest(format!("building the loader: {e}")))?;
+        let gate = Arc::new(AdmissionGate::new());
+        if config.eviction == Eviction::View {
+            loader.set_admission_gate(Arc::clone(&gate));
+        }
         Ok(Self {
             device: Arc::clone(device),
             cache,
@@ -405,7 +521,35 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             fragment_area: config.fragment_area,
             deterministic: config.deterministic,
             latest_feedback: None,
+            eviction: config.eviction,
+            needs: NeedTable::new(texture_count as usize),
+            gate,
+            deferred: Vec::new(),
+            totals: ResidencyTotals::default(),
+            last_cycle: ResidencyCycle::default(),
+            over_budget: false,
+            last_declined: 0,
         })
+    }
+
+    /// Running residency counts.
+    pub fn residency_totals(&self) -> ResidencyTotals {
+        ResidencyTotals {
+            declined_loads: self.gate.declined(),
+            dropped_bytes: self.cache.dropped_bytes(),
+            unique_bytes_uploaded: self.cache.unique_bytes_uploaded(),
+            ..self.totals
+        }
+    }
+
+    /// What the last `begin_frame` staged, dropped and refused.
+    pub fn last_cycle(&self) -> &ResidencyCycle {
+        &self.last_cycle
+    }
+
+    /// The latest feedback per texture, as eviction ranks it.
+    pub fn needs(&self) -> &NeedTable {
+        &self.needs
     }
 
     /// Frames in flight.
@@ -552,8 +696,9 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                 s.unread = false;
             }
             let entries = self.compactor.read_back(i as u32)?.entries;
+            let records = prepare(records_from_feedback(&entries, self.fragment_area), self.tau);
+            self.needs.observe(&records, self.loader.mesh_textures());
             if !self.loader.is_streaming() {
-                let records = prepare(records_from_feedback(&entries, self.fragment_area), self.tau);
                 loading_started = if self.deterministic {
                     self.loader.run_cycle(&records, self.decision).is_some()
                 } else {
@@ -563,7 +708,11 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             self.latest_feedback = Some((feedback_value - 1, entries));
         }
         // Pack what the loader staged, then bind.
-        let refused = self.stage_loaded()?;
+        let refused = match self.eviction {
+            Eviction::Ring => self.stage_loaded()?,
+            Eviction::View => self.stage_by_view()?,
+        };
+        let over_budget = self.eviction == Eviction::View && self.update_pressure(loading_started);
         let ticket = self.cache.prepare_cycle(Some(SemaphoreWait {
             semaphore: self.frames.raw(),
             stages: vk::PipelineStageFlags2::ALL_COMMANDS,
@@ -585,7 +734,254 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             cpu_wait,
             loading_started,
             refused,
+            over_budget,
         })
+    }
+
+    /// Whether this frame is over budget, and the gate's threshold for the
+    /// loader: while the cache is nearly full of levels the view needs,
+    /// loads not denser than the least dense of them would only be refused.
+    fn update_pressure(&mut self, cycle_ran: bool) -> bool {
+        let used = self.cache.budget_use();
+        // Room is easy while a sixteenth of the budget is free or could be
+        // freed from levels the view does not need; only blocks no other
+        // level shares count, since dropping the others frees nothing.
+        let easy_room = used.budget_blocks / 16;
+        let mut threshold = 0.0;
+        if used.free_blocks() < easy_room {
+            let mut freeable = used.free_blocks();
+            let mut victims = self.build_victims();
+            while let Some(victim) = victims.pop() {
+                let blocks = u64::from(self.cache.exclusive_blocks(victim.texture, victim.level));
+                if blocks == 0 {
+                    continue;
+                }
+                if victim.value.class == NeedClass::Needed {
+                    threshold = victim.value.rank;
+                    break;
+                }
+                freeable += blocks;
+                if freeable >= easy_room {
+                    break;
+                }
+            }
+        }
+        self.gate.set_threshold(threshold);
+        if threshold <= 0.0 {
+            self.gate.clear_refused();
+        }
+        let declined = self.gate.declined();
+        let newly_declined = declined > self.last_declined;
+        self.last_declined = declined;
+        let over = self.last_cycle.refused_for_room > 0
+            || newly_declined
+            || (self.over_budget && threshold > 0.0 && !cycle_ran);
+        self.over_budget = over;
+        if over {
+            self.totals.frames_over_budget += 1;
+        }
+        over
+    }
+
+    /// Every resident level that may be dropped now (each texture's finest,
+    /// none with a mip staged in this cycle), least worth on top.
+    fn build_victims(&self) -> BinaryHeap<Victim> {
+        self.cache
+            .resident_textures()
+            .filter(|&texture| !self.cache.has_pending(texture))
+            .map(|texture| {
+                let level = self.cache.resident_levels(texture).trailing_zeros();
+                let bytes = self.cache.level_bytes(texture, level);
+                Victim {
+                    value: self.needs.keep_value(texture, level, bytes),
+                    texture,
+                    level,
+                }
+            })
+            .collect()
+    }
+
+    /// Drops resident levels worth less than `load`, least worth first,
+    /// until `needed_blocks` blocks of the budget are free. Each drop
+    /// first moves the texture's streaming state back to the level that
+    /// stays resident (a texture the loader is working on is skipped).
+    /// Returns whether the room was made.
+    fn make_room(
+        &mut self,
+        needed_blocks: u64,
+        load: KeepValue,
+        victims: &mut Option<BinaryHeap<Victim>>,
+        dropped_now: &mut HashSet<u32>,
+    ) -> Result<bool> {
+        let mut heap = victims.take().unwrap_or_else(|| self.build_victims());
+        let made = loop {
+            if self.cache.budget_use().free_blocks() >= needed_blocks {
+                break true;
+            }
+            let Some(least) = heap.peek().copied() else {
+                break false;
+            };
+            if !least.value.yields_to(&load) {
+                break false;
+            }
+            heap.pop();
+            let texture = least.texture;
+            let held = self.cache.held_levels(texture);
+            if held == 0 || held.trailing_zeros() != least.level || self.cache.has_pending(texture) {
+                continue;
+            }
+            let rest = held & !(1 << least.level);
+            let next = (rest != 0).then(|| rest.trailing_zeros());
+            let holding = TextureStates::resident_status(Some(least.level));
+            let after = TextureStates::resident_status(next);
+            if !self.states.try_transition(texture, holding, after).unwrap_or(false) {
+                continue;
+            }
+            if self.cache.drop_finest(texture)?.is_none() {
+                let _ = self.states.try_transition(texture, after, holding);
+                continue;
+            }
+            self.totals.dropped_levels += 1;
+            self.last_cycle.dropped.push((texture, least.level));
+            dropped_now.insert(texture);
+            if let Some(level) = next {
+                let bytes = self.cache.level_bytes(texture, level);
+                heap.push(Victim {
+                    value: self.needs.keep_value(texture, level, bytes),
+                    texture,
+                    level,
+                });
+            }
+        };
+        *victims = Some(heap);
+        Ok(made)
+    }
+
+    /// Evicts the live layer of `image` worth least, if every texture in it
+    /// (at its most valuable, coarsest resident level) is worth less than
+    /// `load` and none has a mip staged in this cycle. Its textures are
+    /// reloaded from their first level when the view asks again.
+    fn free_layer(&mut self, image: u32, load: KeepValue, dropped_now: &mut HashSet<u32>) -> Result<bool> {
+        let mut best: Option<(KeepValue, u32, Vec<u32>)> = None;
+        for (layer, textures) in self.cache.layer_textures(image) {
+            let mut worth = KeepValue {
+                class: NeedClass::OutOfView,
+                rank: f64::NEG_INFINITY,
+            };
+            let mut usable = true;
+            for &texture in &textures {
+                if self.cache.has_pending(texture) {
+                    usable = false;
+                    break;
+                }
+                let resident = self.cache.resident_levels(texture);
+                if resident == 0 {
+                    continue;
+                }
+                let coarsest = 31 - resident.leading_zeros();
+                let value = self
+                    .needs
+                    .keep_value(texture, coarsest, self.cache.level_bytes(texture, coarsest));
+                if worth.cmp_total(&value) == std::cmp::Ordering::Less {
+                    worth = value;
+                }
+            }
+            if !usable || !worth.yields_to(&load) {
+                continue;
+            }
+            if best.as_ref().is_none_or(|(b, _, _)| worth.yields_to(b)) {
+                best = Some((worth, layer, textures));
+            }
+        }
+        let Some((_, layer, textures)) = best else {
+            return Ok(false);
+        };
+        self.cache.evict_layer(image, layer)?;
+        self.totals.evicted_layers += 1;
+        self.last_cycle.evicted_layers += 1;
+        dropped_now.extend(textures);
+        Ok(true)
+    }
+
+    /// [`Eviction::View`] packing: loaded mips go in, densest first; when
+    /// the budget is full, levels worth less than the mip are dropped
+    /// ([`make_room`](Self::make_room)), and a mip that would displace
+    /// only levels worth as much or more is refused: its texture's state
+    /// returns to what is resident and the gate keeps the loader from
+    /// reading it again while the pressure lasts. Mips whose memory waits
+    /// for the next unbind batch are kept for the next frame.
+    fn stage_by_view(&mut self) -> Result<u32> {
+        self.last_cycle = ResidencyCycle::default();
+        let mut staged = std::mem::take(&mut self.deferred);
+        staged.extend(self.queue.take());
+        let mut ranked: Vec<(KeepValue, StagedMip)> = staged
+            .into_iter()
+            .map(|mip| (self.needs.load_value(mip.texture, mip.bytes.len() as u64), mip))
+            .collect();
+        // Densest first; coarser levels of one texture before finer ones.
+        ranked.sort_by(|(a, x), (b, y)| {
+            b.cmp_total(a)
+                .then_with(|| x.texture.cmp(&y.texture))
+                .then_with(|| y.level.cmp(&x.level))
+        });
+        let mut refused = 0;
+        let mut victims: Option<BinaryHeap<Victim>> = None;
+        let mut dropped_now: HashSet<u32> = HashSet::new();
+        for (value, mip) in ranked {
+            let texture = mip.texture;
+            let held = self.cache.held_levels(texture);
+            let finest = (held != 0).then(|| held.trailing_zeros());
+            if finest.is_some_and(|f| mip.level >= f) {
+                continue; // Already held.
+            }
+            let follows = finest.is_none_or(|f| mip.level + 1 == f);
+            if !follows || dropped_now.contains(&texture) {
+                refused += 1;
+                let _ = self.states.settle(texture, TextureStates::resident_status(finest));
+                continue;
+            }
+            let source = self.loader.source();
+            let chain = source.mip_chain(texture).map_err(source_failure)?;
+            let format = source.texture_format(texture).map_err(source_failure)?;
+            let mut attempts = 0;
+            loop {
+                attempts += 1;
+                let outcome = self
+                    .cache
+                    .stage(texture, format, chain.width, chain.height, mip.level, &mip.bytes);
+                let room = match outcome {
+                    Ok(StageOutcome::Staged { .. }) => {
+                        self.last_cycle.staged.push((texture, mip.level));
+                        break;
+                    }
+                    Ok(StageOutcome::MemoryPending) => {
+                        self.deferred.push(mip);
+                        break;
+                    }
+                    Ok(StageOutcome::NoRoom { needed_blocks }) if attempts < 4 => {
+                        self.make_room(needed_blocks, value, &mut victims, &mut dropped_now)?
+                    }
+                    Ok(StageOutcome::NoLayer { image, .. }) if attempts < 4 => {
+                        self.free_layer(image, value, &mut dropped_now)?
+                    }
+                    Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. }) => false,
+                    Err(_) => {
+                        refused += 1;
+                        let _ = self.states.invalidate(texture);
+                        break;
+                    }
+                };
+                if !room {
+                    refused += 1;
+                    self.last_cycle.refused_for_room += 1;
+                    self.totals.refused_for_room += 1;
+                    self.gate.refuse(texture, mip.level);
+                    let _ = self.states.settle(texture, TextureStates::resident_status(finest));
+                    break;
+                }
+            }
+        }
+        Ok(refused)
     }
 
     /// Moves every loaded mip into the cache. Mips the cache cannot take
@@ -698,11 +1094,18 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.check_between_frames("load_now")?;
         let mut mips = Vec::new();
         for &(texture, level) in requests {
-            let chain = self.loader.source().mip_chain(texture).map_err(source_failure)?;
+            let source = self.loader.source();
+            let chain = source.mip_chain(texture).map_err(source_failure)?;
+            let format = source.texture_format(texture).map_err(source_failure)?;
+            // Sources may store levels below one texel block; the cache holds none of them.
+            let levels = chain
+                .mip_count
+                .min(cacheable_mip_count(&texel_format(format), chain.width, chain.height))
+                .max(1);
             let resident = self.cache.resident_levels(texture);
-            let level = level.min(chain.mip_count - 1);
+            let level = level.min(levels - 1);
             mips.extend(
-                (level..chain.mip_count)
+                (level..levels)
                     .rev()
                     .filter(|l| resident & (1 << l) == 0)
                     .map(|l| (texture, l)),
@@ -739,21 +1142,46 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             let format = source.texture_format(texture).map_err(source_failure)?;
             buffer.resize(source.mip_len(texture, level).map_err(source_failure)? as usize, 0);
             source.read_mip(texture, level, &mut buffer).map_err(source_failure)?;
-            let mut retried = false;
+            // A cycle at most for pending memory and one after making room.
+            let mut cycles_run = 0;
             loop {
                 match self
                     .cache
                     .stage(texture, format, chain.width, chain.height, level, &buffer)?
                 {
                     StageOutcome::Staged { .. } => break,
-                    StageOutcome::MemoryPending if !retried => {
+                    StageOutcome::MemoryPending if cycles_run < 2 => {
                         self.finish_cycle_now(commands, &mut total)?;
-                        retried = true;
+                        cycles_run += 1;
                     }
                     StageOutcome::MemoryPending => {
                         return Err(EngineError::InvalidRequest(format!(
                             "texture {texture} level {level} does not fit the cache's memory budget even after a cycle"
                         )))
+                    }
+                    outcome @ (StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. }) => {
+                        // Asked for explicitly: worth more than anything resident.
+                        let load = KeepValue {
+                            class: NeedClass::Needed,
+                            rank: f64::INFINITY,
+                        };
+                        let mut victims = None;
+                        let mut dropped = HashSet::new();
+                        let room = match outcome {
+                            StageOutcome::NoRoom { needed_blocks } => {
+                                self.make_room(needed_blocks, load, &mut victims, &mut dropped)?
+                            }
+                            StageOutcome::NoLayer { image, .. } => self.free_layer(image, load, &mut dropped)?,
+                            _ => false,
+                        };
+                        if !room || cycles_run >= 2 {
+                            return Err(EngineError::InvalidRequest(format!(
+                                "texture {texture} level {level} does not fit the cache's memory budget or layers"
+                            )));
+                        }
+                        // Freed memory is reusable once the unbinds went out.
+                        self.finish_cycle_now(commands, &mut total)?;
+                        cycles_run += 1;
                     }
                 }
             }

@@ -30,7 +30,8 @@ use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::{
-    CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, Placement, TexelFormat, TextureCache, Utilisation,
+    derive_layer_counts, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, ImageDemand, Placement,
+    TexelFormat, TextureCache, Utilisation,
 };
 use citystream_streaming::dataset::TextureFormat;
 use gpu_allocator::MemoryLocation;
@@ -57,13 +58,53 @@ pub const CACHE_FORMATS: [(TextureFormat, vk::Format, TexelFormat); 2] = [
     (TextureFormat::Rgba8, vk::Format::R8G8B8A8_UNORM, TexelFormat::RGBA8),
 ];
 
+/// How the cache frees memory when the budget is reached.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Eviction {
+    /// The paper's §3.6: the oldest layer is evicted whole, in ring order,
+    /// whatever it holds.
+    Ring,
+    /// Nothing is evicted by the cache itself: [`GpuTextureCache::stage`]
+    /// reports [`StageOutcome::NoRoom`] and the caller drops the levels the
+    /// view needs least ([`GpuTextureCache::drop_finest`]).
+    #[default]
+    View,
+}
+
+impl Eviction {
+    /// The name used on command lines and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Eviction::Ring => "ring",
+            Eviction::View => "view",
+        }
+    }
+}
+
+/// How many array layers each cache image has.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CacheLayers {
+    /// The same count for every image.
+    Fixed(u32),
+    /// Derived ([`citystream_cache::derive_layer_counts`]) from the textures
+    /// each image must place, the memory budget, the device's
+    /// `maxImageArrayLayers` (or `max_layers` if lower) and the virtual
+    /// budget.
+    Derived {
+        /// Per image in [`CACHE_FORMATS`] order: `(extent, textures)`.
+        extents: Vec<Vec<(u32, u64)>>,
+        /// A lower layer limit than the device's, if any.
+        max_layers: Option<u32>,
+    },
+}
+
 /// Sizes and budgets of the cache.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct GpuCacheConfig {
     /// Side of every array layer in texels (a power of two).
     pub layer_size: u32,
     /// Layers per cache image.
-    pub layer_count: u32,
+    pub layers: CacheLayers,
     /// Bytes of bound blocks allowed; reaching it evicts the oldest layer.
     pub memory_budget_bytes: u64,
     /// Virtual address space all cache images may span; `None` uses the
@@ -79,6 +120,8 @@ pub struct GpuCacheConfig {
     /// Bytes of the host-visible staging ring the uploads go through; a
     /// cycle whose uploads do not fit uses a one-off buffer instead.
     pub staging_bytes: u64,
+    /// How memory is freed at the budget.
+    pub eviction: Eviction,
 }
 
 /// What one [`GpuTextureCache::finish_cycle`] did.
@@ -127,6 +170,20 @@ pub enum StageOutcome {
     /// The budget's freed memory is reusable only after the next
     /// `finish_cycle`; stop staging for this cycle.
     MemoryPending,
+    /// [`Eviction::View`]: the budget has too few free blocks; nothing was
+    /// staged.
+    NoRoom {
+        /// Blocks the mip needs newly bound.
+        needed_blocks: u64,
+    },
+    /// [`Eviction::View`]: the texture needs a new layer of `image` and all
+    /// are live; the caller may free one ([`GpuTextureCache::evict_layer`]).
+    NoLayer {
+        /// The cache image.
+        image: u32,
+        /// The texture's extent.
+        extent: u32,
+    },
 }
 
 #[derive(Clone, Debug)]
@@ -144,6 +201,8 @@ struct TextureSlot {
     placement: Option<Placement>,
     /// Bit m set: mip m is resident (copied and not evicted).
     resident: u32,
+    /// Bit m set: mip m is staged in this cycle, not yet recorded.
+    pending: u32,
 }
 
 /// Sparse cache images, block memory, texture table and colormap.
@@ -171,6 +230,13 @@ pub struct GpuTextureCache {
     retiring: std::collections::VecDeque<(u64, Buffer)>,
     /// The highest ticket handed to `prepare_cycle`.
     last_ticket: u64,
+    eviction: Eviction,
+    /// Mip bytes per texture level that `drop_finest` released.
+    dropped_bytes: u64,
+    /// Per texture, bit m: level m was uploaded at least once.
+    uploaded_levels: Vec<u32>,
+    /// Bytes of the distinct (texture, level) pairs uploaded.
+    unique_bytes_uploaded: u64,
 }
 
 /// Where a prepared cycle's upload bytes wait and what it did so far.
@@ -213,15 +279,45 @@ impl GpuTextureCache {
             )));
         }
         let mips = 32 - config.layer_size.max(1).leading_zeros();
+        let limits = device.properties().limits;
+        let virtual_budget_bytes = config
+            .virtual_budget_bytes
+            .unwrap_or(device.sparse_support().address_space_size);
+        let layer_counts = match &config.layers {
+            CacheLayers::Fixed(count) => vec![*count; CACHE_FORMATS.len()],
+            CacheLayers::Derived { extents, max_layers } => {
+                let max_layers =
+                    max_layers.map_or(limits.max_image_array_layers, |m| m.min(limits.max_image_array_layers));
+                let demands = CACHE_FORMATS
+                    .iter()
+                    .enumerate()
+                    .map(|(index, &(_, vk_format, texel_format))| {
+                        let layer_virtual_bytes =
+                            layer_virtual_bytes(device, config.layer_size, vk_format, texel_format)?;
+                        Ok(ImageDemand {
+                            extents: extents.get(index).cloned().unwrap_or_default(),
+                            layer_virtual_bytes,
+                        })
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                derive_layer_counts(
+                    config.layer_size,
+                    &demands,
+                    config.memory_budget_bytes / sparse_block_bytes(device, config.layer_size)?.max(1),
+                    max_layers,
+                    virtual_budget_bytes,
+                )
+            }
+        };
         let mut images = Vec::with_capacity(CACHE_FORMATS.len());
         let mut image_configs = Vec::with_capacity(CACHE_FORMATS.len());
-        for (_, vk_format, texel_format) in CACHE_FORMATS {
+        for (index, (_, vk_format, texel_format)) in CACHE_FORMATS.into_iter().enumerate() {
             let image = SparseImage::new(
                 device,
                 SparseImageDesc {
                     width: config.layer_size,
                     height: config.layer_size,
-                    layers: config.layer_count,
+                    layers: layer_counts[index],
                     mips,
                     format: vk_format,
                 },
@@ -243,7 +339,7 @@ impl GpuTextureCache {
                 format: texel_format,
                 granularity: Granularity::texels(gw, gh),
                 layer_size: config.layer_size,
-                layer_count: config.layer_count,
+                layer_count: layer_counts[index],
             });
             images.push(Arc::new(image));
         }
@@ -254,7 +350,6 @@ impl GpuTextureCache {
                 "cache images report different sparse block sizes; one block pool cannot serve them".into(),
             ));
         }
-        let limits = device.properties().limits;
         let cache_config = CacheConfig {
             images: image_configs,
             limits: DeviceLimits {
@@ -263,9 +358,7 @@ impl GpuTextureCache {
                 sparse_block_bytes: block_size,
             },
             memory_budget_bytes: config.memory_budget_bytes,
-            virtual_budget_bytes: config
-                .virtual_budget_bytes
-                .unwrap_or(device.sparse_support().address_space_size),
+            virtual_budget_bytes,
             blocks_per_chunk: config.blocks_per_chunk,
         };
         let cache = TextureCache::new(&cache_config).map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
@@ -322,6 +415,10 @@ impl GpuTextureCache {
             prepared: None,
             retiring: std::collections::VecDeque::new(),
             last_ticket: 0,
+            eviction: config.eviction,
+            dropped_bytes: 0,
+            uploaded_levels: vec![0; config.texture_count as usize],
+            unique_bytes_uploaded: 0,
         })
     }
 
@@ -352,6 +449,129 @@ impl GpuTextureCache {
     /// (copied, or recorded to be copied, and not evicted).
     pub fn resident_levels(&self, texture: u32) -> u32 {
         self.slots.get(texture as usize).map_or(0, |s| s.resident)
+    }
+
+    /// Levels of `texture` resident or staged in the current cycle.
+    pub fn held_levels(&self, texture: u32) -> u32 {
+        self.slots.get(texture as usize).map_or(0, |s| s.resident | s.pending)
+    }
+
+    /// Whether `texture` has mips staged in the current cycle.
+    pub fn has_pending(&self, texture: u32) -> bool {
+        self.slots.get(texture as usize).is_some_and(|s| s.pending != 0)
+    }
+
+    /// Textures with resident levels, in id order.
+    pub fn resident_textures(&self) -> impl Iterator<Item = u32> + '_ {
+        self.slots
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.resident != 0)
+            .map(|(texture, _)| texture as u32)
+    }
+
+    /// Bytes of level `mip` of `texture` in its place (0 if it has none).
+    pub fn level_bytes(&self, texture: u32, mip: u32) -> u64 {
+        let Some(placement) = self.slots.get(texture as usize).and_then(|s| s.placement) else {
+            return 0;
+        };
+        placement
+            .mip_rect(mip)
+            .map_or(0, |rect| placement.format.image_bytes(rect.width, rect.height))
+    }
+
+    /// Blocks that dropping resident level `mip` of `texture` would free.
+    pub fn exclusive_blocks(&self, texture: u32, mip: u32) -> u32 {
+        self.slots
+            .get(texture as usize)
+            .and_then(|s| s.placement)
+            .map_or(0, |placement| self.cache.exclusive_blocks(&placement, mip))
+    }
+
+    /// Bound blocks against the budget.
+    pub fn budget_use(&self) -> citystream_cache::BudgetUse {
+        self.cache.budget_use()
+    }
+
+    /// Bytes of the distinct `(texture, level)` pairs uploaded so far, each
+    /// counted once however often it was uploaded.
+    pub fn unique_bytes_uploaded(&self) -> u64 {
+        self.unique_bytes_uploaded
+    }
+
+    /// Texture bytes released by [`drop_finest`](Self::drop_finest) so far.
+    pub fn dropped_bytes(&self) -> u64 {
+        self.dropped_bytes
+    }
+
+    /// The cache image (index into [`CACHE_FORMATS`]) of `format`.
+    pub fn image_of(format: TextureFormat) -> Option<u32> {
+        CACHE_FORMATS
+            .iter()
+            .position(|(f, _, _)| *f == format)
+            .map(|i| i as u32)
+    }
+
+    /// Textures placed in each live layer of `image`: `(layer, textures)`,
+    /// layers oldest first.
+    pub fn layer_textures(&self, image: u32) -> Vec<(u32, Vec<u32>)> {
+        let live = self.cache.live_layers(image);
+        let mut index = std::collections::HashMap::with_capacity(live.len());
+        let mut layers: Vec<(u32, Vec<u32>)> = live
+            .iter()
+            .enumerate()
+            .map(|(position, &(layer, _, _))| {
+                index.insert(layer, position);
+                (layer, Vec::new())
+            })
+            .collect();
+        for (texture, slot) in self.slots.iter().enumerate() {
+            if let Some(p) = slot.placement.filter(|p| p.image == image && self.cache.is_live(p)) {
+                if let Some(&position) = index.get(&p.layer) {
+                    layers[position].1.push(texture as u32);
+                }
+            }
+        }
+        layers
+    }
+
+    /// Evicts live layer `layer` of `image` ([`Eviction::View`]): its
+    /// textures become unsampleable in this cycle's table update and are
+    /// reported in the cycle's `invalidated_textures`; its blocks are
+    /// unbound after the frames submitted before.
+    pub fn evict_layer(&mut self, image: u32, layer: u32) -> Result<()> {
+        self.cache
+            .evict_layer(image, layer)
+            .map_err(|e| EngineError::InvalidRequest(format!("evicting layer {layer} of image {image}: {e}")))
+    }
+
+    /// Drops the finest resident level of `texture` ([`Eviction::View`]):
+    /// the texture's table entry stops naming it in this cycle's update,
+    /// recorded before the frame's passes, and its blocks no other level
+    /// uses are unbound by the next bind batch, which waits for the frames
+    /// submitted before. Returns the level and the blocks freed; `None` if
+    /// nothing is resident or a mip of it is staged in this cycle.
+    pub fn drop_finest(&mut self, texture: u32) -> Result<Option<(u32, u32)>> {
+        let Some(slot) = self.slots.get(texture as usize).copied() else {
+            return Err(EngineError::InvalidRequest(format!(
+                "texture {texture} is outside the cache's table"
+            )));
+        };
+        let Some(placement) = slot.placement else {
+            return Ok(None);
+        };
+        if slot.resident == 0 || slot.pending != 0 {
+            return Ok(None);
+        }
+        let mip = slot.resident.trailing_zeros();
+        let freed = self
+            .cache
+            .drop_mip(&placement, mip)
+            .map_err(|e| cache_error(texture, mip, e))?;
+        self.dropped_bytes += self.level_bytes(texture, mip);
+        self.slots[texture as usize].resident &= !(1 << mip);
+        self.publish(texture);
+        Ok(Some((mip, freed)))
     }
 
     /// The table entry the shaders see for `texture`.
@@ -398,15 +618,21 @@ impl GpuTextureCache {
         let placement = match slot.placement {
             Some(p) if self.cache.is_live(&p) && p.image == image_index && p.width == width && p.height == height => p,
             _ => {
-                let fresh = self
-                    .cache
-                    .insert(image_index, u64::from(texture), width, height)
-                    .map_err(|e| cache_error(texture, mip, e))?;
+                let inserted = match self.eviction {
+                    Eviction::Ring => self.cache.insert(image_index, u64::from(texture), width, height),
+                    Eviction::View => self.cache.try_insert(image_index, u64::from(texture), width, height),
+                };
+                let fresh = match inserted {
+                    Ok(fresh) => fresh,
+                    Err(CacheError::NoLayer { image, extent }) => return Ok(StageOutcome::NoLayer { image, extent }),
+                    Err(e) => return Err(cache_error(texture, mip, e)),
+                };
                 // A new place starts empty; the old one (if any) is no longer
                 // sampled, whether or not its eviction was reported yet.
                 let slot = &mut self.slots[texture as usize];
                 slot.placement = Some(fresh);
                 slot.resident = 0;
+                slot.pending = 0;
                 self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
                 self.mark_dirty(texture);
                 fresh
@@ -423,11 +649,17 @@ impl GpuTextureCache {
                 texel_format.name
             )));
         }
-        let upload = match self.cache.stage_mip(&placement, mip) {
+        let staged = match self.eviction {
+            Eviction::Ring => self.cache.stage_mip(&placement, mip),
+            Eviction::View => self.cache.try_stage_mip(&placement, mip),
+        };
+        let upload = match staged {
             Ok(upload) => upload,
             Err(CacheError::MemoryPending { .. }) => return Ok(StageOutcome::MemoryPending),
+            Err(CacheError::NoRoom { needed_blocks, .. }) => return Ok(StageOutcome::NoRoom { needed_blocks }),
             Err(e) => return Err(cache_error(texture, mip, e)),
         };
+        self.slots[texture as usize].pending |= 1 << mip;
         let start = self.upload_bytes.len();
         self.upload_bytes.extend_from_slice(bytes);
         // Copies of block formats cover whole blocks even for levels below 4x4.
@@ -507,6 +739,7 @@ impl GpuTextureCache {
             if slot.placement.is_some_and(|p| same_place(&p, gone)) {
                 slot.placement = None;
                 slot.resident = 0;
+                slot.pending = 0;
                 self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
                 self.mark_dirty(texture);
                 report.textures_invalidated += 1;
@@ -625,6 +858,12 @@ impl GpuTextureCache {
                 let slot = &mut self.slots[u.texture as usize];
                 if slot.placement.is_some_and(|p| same_place(&p, &u.placement)) {
                     slot.resident |= 1 << u.upload.mip;
+                }
+                slot.pending = 0;
+                let uploaded = &mut self.uploaded_levels[u.texture as usize];
+                if *uploaded & (1 << u.upload.mip) == 0 {
+                    *uploaded |= 1 << u.upload.mip;
+                    self.unique_bytes_uploaded += u.bytes.len() as u64;
                 }
                 report.mips_uploaded += 1;
                 report.bytes_uploaded += u.bytes.len() as u64;
@@ -785,6 +1024,49 @@ impl GpuTextureCache {
             ..TextureData::default()
         };
     }
+}
+
+/// A one-layer sparse image of `format`, for its block size and granularity.
+fn probe_image(device: &Arc<Device>, layer_size: u32, format: vk::Format) -> Result<SparseImage> {
+    SparseImage::new(
+        device,
+        SparseImageDesc {
+            width: layer_size,
+            height: layer_size,
+            layers: 1,
+            mips: 32 - layer_size.max(1).leading_zeros(),
+            format,
+        },
+        "cache layer probe",
+    )
+}
+
+/// The sparse block size of the cache's first format.
+fn sparse_block_bytes(device: &Arc<Device>, layer_size: u32) -> Result<u64> {
+    Ok(probe_image(device, layer_size, CACHE_FORMATS[0].1)?.block_size())
+}
+
+/// Virtual bytes one layer of a cache image of `format` spans: its full mip
+/// chain in whole sparse blocks.
+fn layer_virtual_bytes(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel: TexelFormat) -> Result<u64> {
+    let probe = probe_image(device, layer_size, format)?;
+    let (gw, gh) = probe.granularity();
+    let desc = citystream_cache::ImageDesc::new(
+        0,
+        &ImageConfig {
+            format: texel,
+            granularity: Granularity::texels(gw, gh),
+            layer_size,
+            layer_count: 1,
+        },
+        &DeviceLimits {
+            max_image_array_layers: 1,
+            max_image_dimension_2d: layer_size,
+            sparse_block_bytes: probe.block_size(),
+        },
+    )
+    .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
+    Ok(desc.virtual_bytes())
 }
 
 fn same_place(a: &Placement, b: &Placement) -> bool {

@@ -8,6 +8,7 @@ pub mod controller;
 pub mod dataset;
 pub mod loader;
 pub mod records;
+pub mod residency;
 pub mod rng;
 pub mod source;
 pub mod states;

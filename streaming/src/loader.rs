@@ -39,6 +39,7 @@ use rayon::prelude::*;
 
 use crate::controller::Decision;
 use crate::records::MeshMetaData;
+use crate::residency::AdmissionGate;
 use crate::source::{MipSink, MipSource, SourceError, StagedMip};
 use crate::states::{next_load, TextureStates, TextureStatus};
 
@@ -119,6 +120,8 @@ pub struct CyclePlan {
     /// Textures whose header or mip length could not be read; already
     /// marked Failed in the state table.
     pub failures: Vec<TextureFailure>,
+    /// Loads the admission gate declined (the cache would refuse them).
+    pub declined: u64,
 }
 
 enum Candidate {
@@ -178,6 +181,21 @@ pub fn plan_cycle<S: MipSource + ?Sized>(
     source: &S,
     plan_chunk: usize,
 ) -> CyclePlan {
+    plan_cycle_gated(states, mesh_textures, records, decision, source, plan_chunk, None)
+}
+
+/// [`plan_cycle`] that also skips loads `gate` declines (a declined load
+/// does not count against the load size; the texture is not loaded this
+/// cycle).
+pub fn plan_cycle_gated<S: MipSource + ?Sized>(
+    states: &TextureStates,
+    mesh_textures: &[u32],
+    records: &[MeshMetaData],
+    decision: Decision,
+    source: &S,
+    plan_chunk: usize,
+    gate: Option<&AdmissionGate>,
+) -> CyclePlan {
     let mut plan = CyclePlan::default();
     let mut seen: HashSet<u32> = HashSet::new();
     for chunk in records.chunks(plan_chunk.max(1)) {
@@ -185,7 +203,7 @@ pub fn plan_cycle<S: MipSource + ?Sized>(
             .par_iter()
             .map(|r| candidate(states, mesh_textures, r, decision.mip_bias, source))
             .collect();
-        for c in candidates {
+        for (c, record) in candidates.into_iter().zip(chunk) {
             match c {
                 Candidate::Nothing => {}
                 Candidate::BadRecord => plan.bad_records += 1,
@@ -197,6 +215,13 @@ pub fn plan_cycle<S: MipSource + ?Sized>(
                         return plan;
                     }
                     seen.insert(item.texture);
+                    let declined = gate.is_some_and(|gate| {
+                        gate.is_refused(item.texture, item.level) || !gate.admit(record.weight, item.bytes)
+                    });
+                    if declined {
+                        plan.declined += 1;
+                        continue;
+                    }
                     plan.bytes += item.bytes;
                     plan.items.push(item);
                 }
@@ -228,6 +253,8 @@ pub struct CycleReport {
     pub unloaded: u64,
     /// Mips planned.
     pub planned_mips: u64,
+    /// Loads the admission gate declined.
+    pub declined: u64,
     /// Bytes planned.
     pub planned_bytes: u64,
     /// Mips read and staged.
@@ -288,6 +315,7 @@ struct Inner<S, K> {
     failures: Mutex<VecDeque<TextureFailure>>,
     reports_tx: crossbeam::channel::Sender<CycleReport>,
     reports_rx: crossbeam::channel::Receiver<CycleReport>,
+    gate: std::sync::OnceLock<Arc<AdmissionGate>>,
 }
 
 /// Clears the streaming flag when the cycle ends, even by panic.
@@ -361,8 +389,20 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
                 failures: Mutex::new(VecDeque::new()),
                 reports_tx,
                 reports_rx,
+                gate: std::sync::OnceLock::new(),
             }),
         })
+    }
+
+    /// Makes every later cycle skip the loads `gate` declines. A loader
+    /// has at most one gate; `false` if one was set before.
+    pub fn set_admission_gate(&self, gate: Arc<AdmissionGate>) -> bool {
+        self.inner.gate.set(gate).is_ok()
+    }
+
+    /// The mesh → texture table.
+    pub fn mesh_textures(&self) -> &[u32] {
+        &self.inner.mesh_textures
     }
 
     /// The texture states (the cache calls [`TextureStates::invalidate`]).
@@ -469,13 +509,14 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
     fn cycle(&self, records: &[MeshMetaData], decision: Decision) -> CycleReport {
         let start = Instant::now();
         let unloaded = self.states.unload_invalidated(|texture| self.sink.unload(texture)) as u64;
-        let plan = plan_cycle(
+        let plan = plan_cycle_gated(
             &self.states,
             &self.mesh_textures,
             records,
             decision,
             &self.source,
             self.options.plan_chunk,
+            self.gate.get().map(Arc::as_ref),
         );
         let header_failures = plan.failures.len() as u64;
         for f in plan.failures.iter().cloned() {
@@ -528,6 +569,7 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
             invalidated_while_loading: invalidated.into_inner(),
             failed: header_failures + read_failures.into_inner(),
             bad_records: plan.bad_records,
+            declined: plan.declined,
             elapsed: start.elapsed(),
         };
         let c = &self.counters;

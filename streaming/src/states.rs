@@ -240,6 +240,44 @@ impl TextureStates {
             .is_ok())
     }
 
+    /// Sets `texture` to `to` unless it is Failed or awaits unloading
+    /// after an invalidation; returns whether it did. The render thread uses
+    /// it when the cache holds other levels than the loader planned with (a
+    /// level was dropped, or a loaded one refused), so that the next cycle
+    /// plans from what is resident.
+    pub fn settle(&self, texture: u32, to: TextureStatus) -> Result<bool, UnknownTexture> {
+        let word = self.word(texture)?;
+        let mut current = word.load(Ordering::Acquire);
+        loop {
+            let status = TextureStatus::unpack(current);
+            if status.invalidated || status.state == TextureState::Failed {
+                return Ok(false);
+            }
+            match word.compare_exchange_weak(current, to.pack(), Ordering::AcqRel, Ordering::Acquire) {
+                Ok(_) => return Ok(true),
+                Err(actual) => current = actual,
+            }
+        }
+    }
+
+    /// The status of a texture whose finest resident level is `level`
+    /// (`None`: nothing resident).
+    pub fn resident_status(level: Option<u32>) -> TextureStatus {
+        match level {
+            None => TextureStatus::INITIAL,
+            Some(0) => TextureStatus {
+                state: TextureState::Final,
+                mip_level: 0,
+                invalidated: false,
+            },
+            Some(level) => TextureStatus {
+                state: TextureState::Active,
+                mip_level: level,
+                invalidated: false,
+            },
+        }
+    }
+
     /// Mark `texture` failed (whatever its state was).
     pub fn mark_failed(&self, texture: u32) -> Result<(), UnknownTexture> {
         let failed = TextureStatus {

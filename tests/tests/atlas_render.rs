@@ -12,7 +12,7 @@ use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
 use citystream_streaming::dataset::Dataset;
 use citystream_tests::{assert_no_validation_errors, validated_device};
@@ -33,7 +33,8 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
         &mut commands,
         &GpuCacheConfig {
             layer_size: 2048,
-            layer_count: 32,
+            layers: CacheLayers::Fixed(32),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 1 << 30,
             virtual_budget_bytes: None,
             blocks_per_chunk: 64,
@@ -88,6 +89,9 @@ fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
         out: atlased.clone(),
         region: 512.0,
         atlas_extent: 512,
+        packing: atlas::Packing::Shelves,
+        // Small enough that the atlases are composed in several batches.
+        buffer_mb: 2,
         quiet: true,
     })?;
     let before = Dataset::open(&original)?;

@@ -13,7 +13,7 @@ use citystream_engine::gpu_types::Vertex;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_streaming::dataset::TextureFormat;
 use citystream_tests::{assert_no_validation_errors, compare_images, validated_device};
 use glam::Vec3;
@@ -93,7 +93,8 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
         &mut commands,
         &GpuCacheConfig {
             layer_size: 256,
-            layer_count: 2,
+            layers: CacheLayers::Fixed(2),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 16 << 20,
             virtual_budget_bytes: None,
             blocks_per_chunk: 16,

@@ -16,7 +16,7 @@ use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::{Vertex, FEEDBACK_MIP_ONE, FEEDBACK_UNSEEN, FEEDBACK_WEIGHT_ONE};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_tests::{assert_no_validation_errors, validated_device};
 use glam::Vec3;
 
@@ -240,7 +240,8 @@ fn feedback_matches_cpu_reference() -> Result<()> {
         &mut commands,
         &GpuCacheConfig {
             layer_size: 256,
-            layer_count: 2,
+            layers: CacheLayers::Fixed(2),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 16 << 20,
             virtual_budget_bytes: None,
             blocks_per_chunk: 16,

@@ -10,6 +10,7 @@ use citystream_engine::gpu_types::{Vertex, TEXTURE_SAMPLEABLE};
 use citystream_engine::image::memory_barrier;
 use citystream_engine::stream::{StreamConfig, TextureStreamer};
 use citystream_engine::target::RenderTarget;
+use citystream_engine::texture_cache::Eviction;
 use citystream_engine::vk;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MemorySource;
@@ -50,7 +51,25 @@ fn quad_row() -> (Vec<Vertex>, Vec<u32>, Vec<CityMesh>) {
     (vertices, indices, meshes)
 }
 
-fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
+/// What one frame of [`run`] did.
+#[derive(Debug)]
+struct FrameRecord {
+    uploaded: u32,
+    staged: Vec<(u32, u32)>,
+    dropped: Vec<(u32, u32)>,
+    over_budget: bool,
+    bound_bytes: u64,
+}
+
+/// Pans the camera along the row and back over `frames` frames, or, with
+/// `pause_at`, pans until then and holds still.
+fn run(
+    frames_in_flight: u32,
+    deterministic: bool,
+    eviction: Eviction,
+    frames: u32,
+    pause_at: Option<u32>,
+) -> Result<Vec<FrameRecord>> {
     let device = sync_validated_device()?;
     let mut source = MemorySource::new();
     for _ in 0..QUADS {
@@ -74,7 +93,8 @@ fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
         &StreamConfig {
             frames_in_flight,
             layer_size: TEXTURE,
-            layer_count: QUADS,
+            layer_count: Some(QUADS),
+            eviction,
             memory_budget_bytes: budget,
             staging_bytes: 1 << 20,
             fragment_area: view.fragment_area(HEIGHT, feedback_target.height()),
@@ -97,11 +117,11 @@ fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
         .map(|i| CommandContext::new(&device, &format!("stream test frame {i}")))
         .collect::<std::result::Result<Vec<_>, _>>()?;
 
-    let frames = 160;
     let (mut unbound, mut uploaded, mut invalidated) = (0u32, 0u32, 0u32);
+    let mut records = Vec::new();
     for frame in 0..frames {
         // Pan along the row and back: textures leave the view and return.
-        let t = frame as f32 / frames as f32;
+        let t = pause_at.map_or(frame, |p| frame.min(p)) as f32 / frames as f32;
         let x = (QUADS as f32 * SPACING - 10.0) * (1.0 - (2.0 * t - 1.0).abs());
         let camera = Camera {
             eye: Vec3::new(x + 5.0, 5.0, 9.0),
@@ -122,6 +142,13 @@ fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
         unbound += cycle.blocks_unbound;
         uploaded += cycle.mips_uploaded;
         invalidated += cycle.textures_invalidated;
+        records.push(FrameRecord {
+            uploaded: cycle.mips_uploaded,
+            staged: streamer.last_cycle().staged.clone(),
+            dropped: streamer.last_cycle().dropped.clone(),
+            over_budget: begun.over_budget,
+            bound_bytes: streamer.cache().utilisation().bound_bytes,
+        });
 
         // Every level the table lets shaders sample has all its blocks bound.
         for texture in 0..QUADS {
@@ -142,9 +169,14 @@ fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
     }
     device.wait_idle()?;
     ensure!(uploaded > QUADS, "only {uploaded} mips were uploaded");
+    let dropped: usize = records.iter().map(|r| r.dropped.len()).sum();
+    let evicted = match eviction {
+        Eviction::Ring => invalidated,
+        Eviction::View => dropped as u32,
+    };
     ensure!(
-        invalidated > 0 && unbound > 0,
-        "the budget never evicted ({invalidated} textures invalidated, {unbound} blocks unbound)"
+        evicted > 0 && unbound > 0,
+        "the budget never evicted ({evicted} textures or levels, {unbound} blocks unbound)"
     );
     let totals = streamer.totals();
     ensure!(totals.loaded_mips > 0, "the loader loaded nothing");
@@ -152,17 +184,62 @@ fn run(frames_in_flight: u32, deterministic: bool) -> Result<()> {
         .with_context(|| format!("{frames_in_flight} frames in flight, deterministic {deterministic}"))?;
     drop(renderer);
     drop(streamer);
-    assert_no_validation_errors(&device)
+    assert_no_validation_errors(&device)?;
+    Ok(records)
 }
 
 #[test]
-fn two_frames_in_flight_evict_under_a_small_budget_without_hazards() -> Result<()> {
-    run(2, false)
+fn two_frames_in_flight_drop_levels_under_a_small_budget_without_hazards() -> Result<()> {
+    run(2, false, Eviction::View, 160, None).map(|_| ())
 }
 
 #[test]
-fn three_frames_in_flight_deterministic_evict_without_hazards() -> Result<()> {
-    run(3, true)
+fn three_frames_in_flight_deterministic_ring_eviction_without_hazards() -> Result<()> {
+    run(3, true, Eviction::Ring, 160, None).map(|_| ())
+}
+
+/// Under a budget smaller than the view needs, the view-serving eviction
+/// never drops a level in the cycle that loads that texture, keeps the
+/// bound memory within the budget, reports the frames as over budget, and
+/// settles once the camera stops: no uploads in the second half of the pause.
+#[test]
+fn a_view_larger_than_the_budget_settles_without_reloading() -> Result<()> {
+    let (frames, pause_at) = (200, 60);
+    let records = run(2, true, Eviction::View, frames, Some(pause_at))?;
+    for (frame, record) in records.iter().enumerate() {
+        for &(texture, level) in &record.dropped {
+            ensure!(
+                !record.staged.iter().any(|&(t, _)| t == texture),
+                "frame {frame}: texture {texture} level {level} was dropped in the cycle that loads it"
+            );
+        }
+        ensure!(
+            record.bound_bytes <= 768 << 10,
+            "frame {frame}: {} bytes bound over a {} byte budget",
+            record.bound_bytes,
+            768 << 10
+        );
+    }
+    ensure!(
+        records.iter().any(|r| r.over_budget),
+        "a view needing more than the budget was never reported over budget"
+    );
+    let paused = &records[pause_at as usize..];
+    eprintln!(
+        "pause: {} uploads, {} drops, {} frames over budget; whole run: {} drops",
+        paused.iter().map(|r| r.uploaded).sum::<u32>(),
+        paused.iter().map(|r| r.dropped.len()).sum::<usize>(),
+        paused.iter().filter(|r| r.over_budget).count(),
+        records.iter().map(|r| r.dropped.len()).sum::<usize>(),
+    );
+    let settled = &records[(pause_at + (frames - pause_at) / 2) as usize..];
+    let late_uploads: u32 = settled.iter().map(|r| r.uploaded).sum();
+    let late_drops: usize = settled.iter().map(|r| r.dropped.len()).sum();
+    ensure!(
+        late_uploads == 0 && late_drops == 0,
+        "{late_uploads} uploads and {late_drops} drops in the second half of the pause"
+    );
+    Ok(())
 }
 
 /// The check above can fail: a copy that overwrites a buffer another copy
@@ -219,7 +296,7 @@ fn calls_out_of_order_are_refused() -> Result<()> {
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
         &StreamConfig {
             layer_size: 256,
-            layer_count: 2,
+            layer_count: Some(2),
             memory_budget_bytes: 1 << 20,
             staging_bytes: 1 << 16,
             ..StreamConfig::default()

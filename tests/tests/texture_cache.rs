@@ -15,7 +15,7 @@ use citystream_engine::gpu_types::{ProbeResult, TextureProbePoint};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::probe::TextureProbe;
-use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache, StageOutcome};
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome};
 use citystream_streaming::dataset::TextureFormat;
 use citystream_tests::{assert_no_validation_errors, bc1_texel, validated_device};
 
@@ -152,7 +152,8 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
         &mut commands,
         &GpuCacheConfig {
             layer_size: LAYER_SIZE,
-            layer_count: LAYERS,
+            layers: CacheLayers::Fixed(LAYERS),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 256 << 20,
             virtual_budget_bytes: None,
             blocks_per_chunk: 64,
@@ -332,7 +333,8 @@ fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<
         &mut commands,
         &GpuCacheConfig {
             layer_size: 128,
-            layer_count: 2,
+            layers: CacheLayers::Fixed(2),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 64 << 20,
             virtual_budget_bytes: None,
             blocks_per_chunk: 16,
@@ -442,7 +444,8 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
         &mut commands,
         &GpuCacheConfig {
             layer_size: 128,
-            layer_count: 1,
+            layers: CacheLayers::Fixed(1),
+            eviction: Eviction::Ring,
             memory_budget_bytes: 16 << 20,
             virtual_budget_bytes: None,
             blocks_per_chunk: 16,

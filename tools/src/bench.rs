@@ -14,6 +14,16 @@
 //! The `flythrough` binary is the one next to this executable (both are
 //! built into the same cargo target directory) unless `--flythrough PATH`
 //! names another.
+//!
+//! `--scenario pressure` is the paper's regime, a city far larger than its
+//! cache: it generates the `large` preset (`gen --preset large --seed 1`)
+//! and packs it into 2048² atlases (`atlas --atlas-extent 2048`) under
+//! `--data-dir` unless they are there, then runs the four policies with a
+//! `--budget-mb` budget (256 MB) for 1800 frames with PSNR every 60 frames,
+//! plus adaptive α = 12 ms without a budget (`unbudgeted-a12`), the
+//! error reference of the same path. All runs share the cache and its
+//! eviction; only load size and mip bias differ. Besides the report it
+//! writes `pressure.md`: the acceptance ratios, measured.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -21,16 +31,35 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 
-use crate::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
+use crate::default_city::{build_then_move, ensure_default_city, is_dataset, DEFAULT_CITY_DIR};
 use crate::report::{self, RunInput};
+
+/// Which benchmark `citystream bench` runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Scenario {
+    /// The four policies on one dataset (default: the default city).
+    Standard,
+    /// The `large` city in 2048² atlases under a budget far below its size.
+    Pressure,
+}
 
 /// Options of `citystream bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
+    /// Which benchmark: `standard` or `pressure` (see the module docs).
+    #[arg(long, value_enum, default_value = "standard")]
+    scenario: Scenario,
     /// Dataset directory every run opens (default: the default city in
-    /// data/city, created on first use).
+    /// data/city, created on first use; with `--scenario pressure`, the
+    /// atlased `large` city under --data-dir).
     #[arg(long)]
     dataset: Option<PathBuf>,
+    /// `--scenario pressure`: where `large` and `large-atlas` are generated.
+    #[arg(long, default_value = "data")]
+    data_dir: PathBuf,
+    /// `--scenario pressure`: memory budget of the budgeted runs, MB.
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
+    budget_mb: u64,
     /// Output directory: one subdirectory per run, plus table.md and the
     /// charts of the comparison.
     #[arg(long)]
@@ -86,6 +115,94 @@ pub const POLICY_RUNS: [PolicyRun; 4] = [
     },
 ];
 
+/// One flythrough run of a benchmark.
+#[derive(Debug, Clone, PartialEq)]
+struct BenchRun {
+    dir: String,
+    name: String,
+    args: Vec<String>,
+}
+
+impl BenchRun {
+    fn of_policy(policy: &PolicyRun, extra: &[&str]) -> Self {
+        BenchRun {
+            dir: policy.dir.into(),
+            name: policy.name.into(),
+            args: policy.args.iter().chain(extra).map(|a| a.to_string()).collect(),
+        }
+    }
+}
+
+/// Frames of a pressure run: 30 s at the fixed clock's 60 frames per second.
+pub const PRESSURE_FRAMES: u64 = 1800;
+
+/// The pressure scenario's runs: the four policies under the budget, then
+/// adaptive α = 12 ms without one.
+fn pressure_runs(budget_mb: u64) -> Vec<BenchRun> {
+    let budget = budget_mb.to_string();
+    let shared = ["--psnr-interval", "60", "--frame-interval", "0"];
+    let mut runs: Vec<BenchRun> = POLICY_RUNS
+        .iter()
+        .map(|policy| {
+            let mut run = BenchRun::of_policy(policy, &shared);
+            run.args.extend(["--memory-budget-mb".to_string(), budget.clone()]);
+            run
+        })
+        .collect();
+    let mut unbudgeted = BenchRun::of_policy(&POLICY_RUNS[1], &shared);
+    unbudgeted.dir = "unbudgeted-a12".into();
+    unbudgeted.name = "unbudgeted α=12 ms".into();
+    unbudgeted
+        .args
+        .extend(["--memory-budget-mb".to_string(), "unlimited".to_string()]);
+    runs.push(unbudgeted);
+    runs
+}
+
+/// The atlased `large` city under `data_dir`, generated and packed first
+/// if missing (each step builds in a private directory and renames it into
+/// place, so an interrupted run leaves no half-written dataset).
+fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
+    let source = data_dir.join("large");
+    let atlas = data_dir.join("large-atlas");
+    if !is_dataset(&atlas) {
+        if !is_dataset(&source) {
+            eprintln!(
+                "generating the large city: `citystream gen --preset large --seed 1 --out {}`",
+                source.display()
+            );
+            build_then_move(&source, |partial| {
+                crate::gen::run(&crate::gen::GenArgs {
+                    preset: crate::gen::Preset::Large,
+                    seed: 1,
+                    out: partial.to_path_buf(),
+                    format: crate::gen::FormatArg::Bc1,
+                    max_extent: 512,
+                    textures_from: None,
+                    quiet: false,
+                })
+            })?;
+        }
+        eprintln!(
+            "packing it: `citystream atlas {} --atlas-extent 2048 --out {}`",
+            source.display(),
+            atlas.display()
+        );
+        build_then_move(&atlas, |partial| {
+            crate::atlas::run(&crate::atlas::AtlasArgs {
+                input: source.clone(),
+                out: partial.to_path_buf(),
+                region: 512.0,
+                atlas_extent: 2048,
+                packing: crate::atlas::Packing::Shelves,
+                buffer_mb: 256,
+                quiet: false,
+            })
+        })?;
+    }
+    Ok(atlas)
+}
+
 /// `citystream bench`.
 pub fn run(args: &BenchArgs) -> Result<()> {
     let flythrough = match &args.flythrough {
@@ -98,22 +215,36 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             flythrough.display()
         );
     }
-    let dataset = match &args.dataset {
-        Some(dir) if !dir.exists() => bail!("dataset directory {} does not exist", dir.display()),
-        Some(dir) => dir.clone(),
-        None => {
+    let dataset = match (&args.dataset, args.scenario) {
+        (Some(dir), _) if !dir.exists() => bail!("dataset directory {} does not exist", dir.display()),
+        (Some(dir), _) => dir.clone(),
+        (None, Scenario::Standard) => {
             let dir = PathBuf::from(DEFAULT_CITY_DIR);
             ensure_default_city(&dir, false)?;
             dir
         }
+        (None, Scenario::Pressure) => ensure_pressure_city(&args.data_dir)?,
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
 
-    let total = POLICY_RUNS.len();
+    let (runs, frames) = match args.scenario {
+        Scenario::Standard => (
+            POLICY_RUNS
+                .iter()
+                .map(|p| BenchRun::of_policy(p, &[]))
+                .collect::<Vec<_>>(),
+            args.frames,
+        ),
+        Scenario::Pressure => (
+            pressure_runs(args.budget_mb),
+            Some(args.frames.unwrap_or(PRESSURE_FRAMES)),
+        ),
+    };
+    let total = runs.len();
     let mut inputs = Vec::with_capacity(total);
-    for (i, policy) in POLICY_RUNS.iter().enumerate() {
-        let run_dir = args.out.join(policy.dir);
-        let run_args = flythrough_args(args, &dataset, policy, &run_dir);
+    for (i, policy) in runs.iter().enumerate() {
+        let run_dir = args.out.join(&policy.dir);
+        let run_args = flythrough_args(args, frames, &dataset, policy, &run_dir);
         eprintln!(
             "[{}/{total}] {}: {} {}",
             i + 1,
@@ -150,19 +281,120 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     let outputs = report::write_report(&inputs, &args.out)?;
     report::print_outputs(&outputs);
+    if args.scenario == Scenario::Pressure {
+        let path = args.out.join("pressure.md");
+        let text = pressure_checks(&args.out, args.budget_mb)?;
+        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+        eprint!("{text}");
+        eprintln!("wrote {}", path.display());
+    }
     Ok(())
 }
 
-/// The flythrough command line of one policy run.
-fn flythrough_args(args: &BenchArgs, dataset: &Path, policy: &PolicyRun, run_dir: &Path) -> Vec<String> {
+/// One run's summary.json.
+fn summary_of(dir: &Path) -> Result<serde_json::Value> {
+    let path = dir.join("summary.json");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+fn stat(summary: &serde_json::Value, key: &str, field: &str) -> Option<f64> {
+    summary.get(key)?.get(field)?.as_f64()
+}
+
+fn count(summary: &serde_json::Value, key: &str) -> Option<f64> {
+    summary.get(key)?.as_f64()
+}
+
+/// The pressure scenario's acceptance ratios, as a markdown table.
+fn pressure_checks(out: &Path, budget_mb: u64) -> Result<String> {
+    let baseline = summary_of(&out.join("baseline"))?;
+    let adaptive = summary_of(&out.join("adaptive-a12"))?;
+    let unbudgeted = summary_of(&out.join("unbudgeted-a12"))?;
+    let budget = (budget_mb << 20) as f64;
+    let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
+        (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+        _ => None,
+    };
+    type Check = (&'static str, Option<f64>, &'static str, fn(f64) -> bool);
+    let checks: [Check; 7] = [
+        (
+            "PSNR: unbudgeted − adaptive α=12, mean (dB)",
+            stat(&unbudgeted, "psnr_db", "mean")
+                .zip(stat(&adaptive, "psnr_db", "mean"))
+                .map(|(u, a)| u - a),
+            "≤ 3",
+            |v| v <= 3.0,
+        ),
+        (
+            "Mip deficit, adaptive α=12, mean (levels)",
+            stat(&adaptive, "mip_deficit", "mean"),
+            "≤ 1",
+            |v| v <= 1.0,
+        ),
+        (
+            "Peak resident / budget, adaptive α=12",
+            count(&adaptive, "peak_resident_bytes").map(|p| p / budget),
+            "≤ 1.1",
+            |v| v <= 1.1,
+        ),
+        (
+            "Bytes streamed / unique bytes, adaptive α=12",
+            ratio(
+                count(&adaptive, "bytes_streamed"),
+                count(&adaptive, "unique_bytes_streamed"),
+            ),
+            "≤ 2",
+            |v| v <= 2.0,
+        ),
+        (
+            "Max frame latency, adaptive / baseline",
+            ratio(stat(&adaptive, "frame_ms", "max"), stat(&baseline, "frame_ms", "max")),
+            "≤ 0.05",
+            |v| v <= 0.05,
+        ),
+        (
+            "Mean frame latency, adaptive / baseline",
+            ratio(stat(&adaptive, "frame_ms", "mean"), stat(&baseline, "frame_ms", "mean")),
+            "≤ 0.35",
+            |v| v <= 0.35,
+        ),
+        (
+            "MB/s mean, adaptive / baseline",
+            ratio(stat(&adaptive, "mb_per_s", "mean"), stat(&baseline, "mb_per_s", "mean")),
+            "≥ 0.5",
+            |v| v >= 0.5,
+        ),
+    ];
+    let mut text = format!(
+        "# Pressure benchmark: budget {budget_mb} MB\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n"
+    );
+    for (label, value, target, met) in checks {
+        let (shown, verdict) = match value {
+            Some(v) if v.is_finite() => (format!("{v:.3}"), if met(v) { "yes" } else { "no" }),
+            _ => ("n/a".to_string(), "n/a"),
+        };
+        text.push_str(&format!("| {label} | {shown} | {target} | {verdict} |\n"));
+    }
+    Ok(text)
+}
+
+/// The flythrough command line of one run.
+fn flythrough_args(
+    args: &BenchArgs,
+    frames: Option<u64>,
+    dataset: &Path,
+    policy: &BenchRun,
+    run_dir: &Path,
+) -> Vec<String> {
     let mut out: Vec<String> = vec!["--dataset".into(), dataset.display().to_string()];
-    out.extend(policy.args.iter().map(|a| a.to_string()));
+    out.extend(policy.args.iter().cloned());
     out.extend(
         ["--clock", "fixed", "--bind-latency", "desktop"]
             .iter()
             .map(|a| a.to_string()),
     );
-    if let Some(frames) = args.frames {
+    if let Some(frames) = frames {
         out.push("--frames".into());
         out.push(frames.to_string());
     }

@@ -77,6 +77,9 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
             out: partial.to_path_buf(),
             region: 512.0,
             atlas_extent: DEFAULT_CITY_ATLAS_EXTENT,
+            // The default city's published figures were measured on this packing.
+            packing: crate::atlas::Packing::Regions,
+            buffer_mb: 256,
             quiet: true,
         })
         .with_context(|| format!("packing the default city's atlases for {}", dir.display()))
@@ -95,7 +98,7 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
 /// Runs `build` into a private directory next to `dir`, then renames the
 /// result to `dir`. A dataset another run completed meanwhile is kept; a
 /// `dir` that holds files but no dataset is an error, never overwritten.
-fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+pub fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
     let name = dir
         .file_name()
         .with_context(|| format!("{} does not name a directory", dir.display()))?

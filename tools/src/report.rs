@@ -6,7 +6,9 @@
 //!   `mip_bias`, and optionally (absent or `null` when not measured)
 //!   `mip_deficit` and `psnr_db`; plus `frames`, `duration_s`, `policy`,
 //!   `bytes_streamed`, `mips_streamed`, `blocks_bound`,
-//!   `peak_resident_bytes`. Other keys are ignored.
+//!   `peak_resident_bytes`, and when present `unique_bytes_streamed`,
+//!   `memory_budget_bytes` (null: unlimited), `eviction` and
+//!   `frames_over_budget`. Other keys are ignored.
 //! - `DIR/frames.csv`: a header naming at least the columns
 //!   [`FRAME_COLUMNS`] (any order), then one row per frame; `mip_deficit` and
 //!   `psnr_db` cells may be empty on frames where they were not measured.
@@ -141,6 +143,17 @@ struct SummaryJson {
     mips_streamed: u64,
     blocks_bound: u64,
     peak_resident_bytes: u64,
+    /// Absent in summaries of older runs.
+    #[serde(default)]
+    unique_bytes_streamed: Option<u64>,
+    /// Absent or null: unlimited.
+    #[serde(default)]
+    memory_budget_bytes: Option<u64>,
+    #[serde(default)]
+    frames_over_budget: Option<u64>,
+    /// Written by the runs that also write the budget; absent in older ones.
+    #[serde(default)]
+    eviction: Option<String>,
 }
 
 /// One row of `frames.csv`.
@@ -453,21 +466,34 @@ fn markdown_table(runs: &[Run]) -> String {
     }
     let _ = writeln!(
         out,
-        "\n## Runs\n\n| Run | Policy | Frames | Duration (s) | MB streamed | Mips streamed | Blocks bound | Peak resident (MB) | Directory |\n|---|---|---:|---:|---:|---:|---:|---:|---|"
+        "\n## Runs\n\n| Run | Policy | Frames | Duration (s) | MB streamed | Unique MB | Streamed / unique | Mips streamed | Blocks bound | Peak resident (MB) | Budget (MB) | Peak / budget | Frames over budget | Directory |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
     );
+    let optional = |value: Option<f64>| value.map_or_else(|| "n/a".to_string(), number);
     for run in runs {
         let s = &run.summary;
+        let unique = s.unique_bytes_streamed.map(|u| u as f64);
+        let budget = s.memory_budget_bytes.map(|b| b as f64);
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             escape_cell(&run.name),
             escape_cell(&s.policy),
             s.frames,
             number(s.duration_s),
             number(s.bytes_streamed as f64 / BYTES_PER_MB),
+            optional(unique.map(|u| u / BYTES_PER_MB)),
+            optional(unique.filter(|&u| u > 0.0).map(|u| s.bytes_streamed as f64 / u)),
             s.mips_streamed,
             s.blocks_bound,
             number(s.peak_resident_bytes as f64 / BYTES_PER_MB),
+            match (&s.eviction, budget) {
+                (None, _) => "n/a".to_string(),
+                (Some(_), None) => "unlimited".to_string(),
+                (Some(_), Some(b)) => number(b / BYTES_PER_MB),
+            },
+            optional(budget.filter(|&b| b > 0.0).map(|b| s.peak_resident_bytes as f64 / b)),
+            s.frames_over_budget
+                .map_or_else(|| "n/a".to_string(), |f| f.to_string()),
             escape_cell(&run.dir.display().to_string())
         );
     }

@@ -195,3 +195,76 @@ fn bad_atlas_options_are_refused() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("missing file"));
 }
+
+/// Atlases are composed a batch at a time and written before the next, so the buffer stays
+/// within `--buffer-mb` on a city whose atlases are many times larger.
+#[test]
+fn atlas_memory_stays_within_its_buffer_on_a_larger_city() {
+    let city = fresh_dir("buffer-city");
+    run_ok(&["gen", "--preset", "small", "--out", s(&city), "--quiet"]);
+    let atlas = fresh_dir("buffer-atlas");
+    let report = run_ok(&[
+        "atlas",
+        s(&city),
+        "--out",
+        s(&atlas),
+        "--atlas-extent",
+        "256",
+        "--buffer-mb",
+        "2",
+    ]);
+    let number_after = |label: &str| -> f64 {
+        let at = report.find(label).unwrap_or_else(|| panic!("no `{label}` in {report}")) + label.len();
+        report[at..]
+            .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .next()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no number after `{label}` in {report}"))
+    };
+    let atlases = number_after("textures -> ");
+    let per_batch = number_after("atlases composed ");
+    let peak_mb = number_after("peak buffer ");
+    let pack_mb = number_after("textures; ");
+    assert!(per_batch < atlases, "{report}");
+    assert!(peak_mb <= 2.0, "peak buffer {peak_mb} MB over a 2 MB buffer: {report}");
+    assert!(
+        pack_mb > 4.0 * 2.0,
+        "the city ({pack_mb} MB) must be far larger than the buffer: {report}"
+    );
+    run_ok(&["verify", s(&atlas)]);
+    let before = Dataset::open(&city).expect("open city");
+    let after = Dataset::open(&atlas).expect("open atlas");
+    assert_eq!(before.scene.meshes.len(), after.scene.meshes.len());
+}
+
+/// The packing shares atlases between neighbouring regions: far fuller atlases than the
+/// earlier per-region packing on the same city.
+#[test]
+fn shelf_packing_fills_atlases_better_than_per_region_rows() {
+    let city = fresh_dir("fill-city");
+    run_ok(&["gen", "--preset", "tiny", "--out", s(&city)]);
+    let fill = |packing: &str| -> f64 {
+        let out = fresh_dir(&format!("fill-{packing}"));
+        let report = run_ok(&[
+            "atlas",
+            s(&city),
+            "--out",
+            s(&out),
+            "--atlas-extent",
+            "512",
+            "--packing",
+            packing,
+        ]);
+        let at = report.find("fill ratio ").expect("fill ratio") + "fill ratio ".len();
+        report[at..]
+            .split('%')
+            .next()
+            .and_then(|n| n.parse().ok())
+            .expect("a percentage")
+    };
+    let (shelves, regions) = (fill("shelves"), fill("regions"));
+    assert!(
+        shelves > 1.5 * regions,
+        "shelves {shelves} % against regions {regions} %"
+    );
+}

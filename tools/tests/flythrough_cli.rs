@@ -52,6 +52,20 @@ fn bad_arguments_are_refused_clearly() {
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("--width"), "error does not name the option: {stderr}");
+    for (option, value) in [
+        ("--memory-budget-mb", "0"),
+        ("--memory-budget-mb", "lots"),
+        ("--eviction", "lru"),
+        ("--cache-layers", "0"),
+    ] {
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args([option, value])
+            .output()
+            .expect("flythrough runs");
+        assert!(!output.status.success(), "{option} {value} was accepted");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(option), "error does not name {option}: {stderr}");
+    }
 }
 
 /// Writes a small dataset: a ground quad and a ring of facade quads, each
@@ -231,7 +245,21 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
             rows[0][15].parse::<f64>().is_ok() && rows[1][15].is_empty(),
             "PSNR only on sampled frames"
         );
-        streamed.push(summary["bytes_streamed"].as_u64().expect("bytes_streamed"));
+        // Each distinct (texture, level) once: never more than was uploaded.
+        let unique = summary["unique_bytes_streamed"]
+            .as_u64()
+            .expect("unique_bytes_streamed");
+        let bytes = summary["bytes_streamed"].as_u64().expect("bytes_streamed");
+        assert!(
+            unique > 0 && unique <= bytes,
+            "{policy}: {unique} unique of {bytes} bytes"
+        );
+        assert_eq!(summary["eviction"], "view");
+        assert!(summary["frames_over_budget"].as_u64().is_some());
+        assert!(summary["pause_uploads_second_half"]
+            .as_array()
+            .is_some_and(|pauses| pauses.iter().all(serde_json::Value::is_u64)));
+        streamed.push(bytes);
     }
     assert!(streamed[0] > 0 && streamed[1] > 0);
 }

@@ -800,7 +800,6 @@ fn render<S: MipSource + 'static>(
         &StreamConfig {
             frames_in_flight: FRAMES_IN_FLIGHT,
             layer_size: 2048,
-            layer_count: 64,
             memory_budget_bytes: 256 << 20,
             fragment_area: 16.0,
             deterministic: true,

@@ -22,7 +22,7 @@ use citystream_engine::placeholder;
 use citystream_engine::scene::MeshRenderer;
 use citystream_engine::stream::{DatasetSource, StreamConfig, TextureStreamer};
 use citystream_engine::target::{write_png, RenderTarget};
-use citystream_engine::texture_cache::GpuTextureCache;
+use citystream_engine::texture_cache::{Eviction, GpuTextureCache};
 use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::{Device, DeviceOptions};
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
@@ -114,9 +114,18 @@ struct Args {
     /// Clock: real (measured) or fixed (reproducible, modelled latency).
     #[arg(long, value_enum, default_value_t = Clock::Real)]
     clock: Clock,
-    /// Memory budget of bound texture blocks in MB.
-    #[arg(long, default_value_t = 512)]
-    memory_budget_mb: u64,
+    /// Memory budget of bound texture blocks in MB, or `unlimited`.
+    #[arg(long, default_value = "512", value_parser = parse_budget_mb)]
+    memory_budget_mb: BudgetMb,
+    /// How the cache frees memory at the budget: `view` (drop the levels the
+    /// view needs least, see ARCHITECTURE.md, "Eviction") or `ring` (the paper's
+    /// oldest-layer ring).
+    #[arg(long, default_value = "view", value_parser = parse_eviction)]
+    eviction: Eviction,
+    /// Layers per cache image (default: derived from the dataset, the
+    /// budget and the device).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65535))]
+    cache_layers: Option<u32>,
     /// Pick the Vulkan device whose name contains this text (also CITYSTREAM_DEVICE).
     #[arg(long)]
     device: Option<String>,
@@ -144,6 +153,40 @@ struct Args {
     #[arg(long, default_value_t = 30)]
     psnr_interval: u32,
 }
+
+/// `--memory-budget-mb`: whole MB, or `None` for `unlimited`.
+#[derive(Clone, Copy, Debug)]
+struct BudgetMb(Option<u64>);
+
+impl BudgetMb {
+    fn bytes(self) -> Option<u64> {
+        self.0.map(|mb| mb << 20)
+    }
+}
+
+fn parse_budget_mb(text: &str) -> std::result::Result<BudgetMb, String> {
+    if text.eq_ignore_ascii_case("unlimited") {
+        return Ok(BudgetMb(None));
+    }
+    match text.parse::<u64>() {
+        Ok(0) => Err("the budget must be at least 1 MB (or `unlimited`)".into()),
+        Ok(mb) if mb > 1 << 30 => Err(format!("{mb} MB is beyond any device; use `unlimited`")),
+        Ok(mb) => Ok(BudgetMb(Some(mb))),
+        Err(_) => Err(format!("`{text}` is neither a whole number of MB nor `unlimited`")),
+    }
+}
+
+/// `--eviction`: `view` or `ring`.
+fn parse_eviction(text: &str) -> std::result::Result<Eviction, String> {
+    match text {
+        "view" => Ok(Eviction::View),
+        "ring" => Ok(Eviction::Ring),
+        other => Err(format!("`{other}` is not an eviction (view or ring)")),
+    }
+}
+
+/// The budget the cache gets for "unlimited": more than any dataset.
+const UNLIMITED_BUDGET_BYTES: u64 = u64::MAX / 4;
 
 /// Fixed clock: the time step and the modelled render cost of a frame.
 const FIXED_STEP_MS: f64 = 1000.0 / 60.0;
@@ -175,8 +218,25 @@ struct Run<'a> {
     /// Frames whose image was read back (PNG, PSNR): waits outside the steady state.
     readback_wait_frames: u32,
     mips_streamed: u64,
+    /// Bytes of the distinct (texture, level) pairs the run uploaded, each once.
+    unique_bytes_streamed: u64,
     blocks_bound: u64,
     peak_resident_bytes: u64,
+    /// The budget in bytes; null when unlimited.
+    memory_budget_bytes: Option<u64>,
+    eviction: &'a str,
+    /// Layers of each cache image (BC1, RGBA8).
+    cache_layers: Vec<u32>,
+    /// Frames in which the view needed more than the budget holds.
+    frames_over_budget: u64,
+    /// Per pause of the path: mips uploaded in its second half (a settled
+    /// streamer uploads none while the camera holds still).
+    pause_uploads_second_half: Vec<u64>,
+    /// Levels dropped, layers evicted, loads refused and declined for room.
+    dropped_levels: u64,
+    evicted_layers: u64,
+    refused_for_room: u64,
+    declined_loads: u64,
     validation_errors: usize,
     frames_written: Vec<String>,
 }
@@ -279,11 +339,20 @@ struct CityGpu {
 
 /// The streamer's cache and feedback settings shared by the streamed run,
 /// the error reference and the pop-in measurement.
-fn stream_config(memory_budget_bytes: u64, frames_in_flight: u32, fragment_area: f32, clock: Clock) -> StreamConfig {
+fn stream_config(
+    memory_budget_bytes: u64,
+    frames_in_flight: u32,
+    fragment_area: f32,
+    clock: Clock,
+    eviction: Eviction,
+    layer_count: Option<u32>,
+) -> StreamConfig {
     StreamConfig {
         frames_in_flight,
         layer_size: 2048,
-        layer_count: 64,
+        layer_count,
+        max_layers: None,
+        eviction,
         memory_budget_bytes,
         blocks_per_chunk: 256,
         staging_bytes: 16 << 20,
@@ -470,7 +539,14 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         &dataset,
         &city,
         policy,
-        &stream_config(args.memory_budget_mb << 20, frames_in_flight, fragment_area, args.clock),
+        &stream_config(
+            args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES),
+            frames_in_flight,
+            fragment_area,
+            args.clock,
+            args.eviction,
+            args.cache_layers,
+        ),
     )?;
     // The error reference: every needed level resident, no budget, loaded
     // synchronously between frames (its policy never runs).
@@ -481,7 +557,14 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             &dataset,
             &city,
             PolicyKind::Baseline.build(&PolicyOptions::default())?,
-            &stream_config(u64::MAX / 4, 1, fragment_area, Clock::Fixed),
+            &stream_config(
+                UNLIMITED_BUDGET_BYTES,
+                1,
+                fragment_area,
+                Clock::Fixed,
+                Eviction::View,
+                None,
+            ),
         )?)
     } else {
         None
@@ -545,6 +628,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut frames_run = 0;
     let mut waits = WaitCounts::default();
     let mut last_feedback_frame = None;
+    let mut warned_over_budget = false;
+    let mut uploads_at: Vec<(f64, u64)> = Vec::new();
     for frame in 0..frames {
         let time_s = match args.clock {
             Clock::Fixed => sim_time_s,
@@ -561,6 +646,14 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         // Algorithm 1 through the streamer: retire finished frames, hand
         // completed feedback to the loader, pack and bind what it loaded.
         let begun = gpu.streamer.begin_frame()?;
+        if begun.over_budget && !warned_over_budget {
+            warned_over_budget = true;
+            eprintln!(
+                "\nwarning: from frame {frame} the view needs more texture memory than the {} MB budget holds; \
+                 showing the most important levels that fit (frames over budget are counted in summary.json)",
+                args.memory_budget_mb.0.unwrap_or(0)
+            );
+        }
         // The deficit of the feedback just consumed (from frames_in_flight
         // frames ago with the fixed clock), against the host's table as
         // begin_frame left it: this frame's evictions applied, its uploads not yet.
@@ -636,6 +729,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
         psnrs.extend(psnr.filter(|p| p.is_finite()));
+        uploads_at.push((time_s, mips));
         writeln!(
             csv,
             "{frame},{time_s:.4},{frame_ms:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{mips},{bytes},{},{resident},{},{}",
@@ -671,6 +765,20 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     }
     let validation_errors = device.validation_log().error_count();
     let summary = summary.finish();
+    let residency = gpu.streamer.residency_totals();
+    let pause_uploads_second_half = path
+        .pauses()
+        .iter()
+        .map(|pause| {
+            let from = pause.start_s + pause.duration_s / 2.0;
+            let to = pause.start_s + pause.duration_s;
+            uploads_at
+                .iter()
+                .filter(|(t, _)| *t >= from && *t < to)
+                .map(|(_, mips)| mips)
+                .sum()
+        })
+        .collect();
     let run = Run {
         device: describe(device),
         scene: dir.display().to_string(),
@@ -696,8 +804,25 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         cpu_wait_ms: waits.throttle_ms,
         readback_wait_frames: waits.readback_frames,
         mips_streamed: mips_total,
+        unique_bytes_streamed: residency.unique_bytes_uploaded,
         blocks_bound: blocks_total,
         peak_resident_bytes: peak_resident,
+        memory_budget_bytes: args.memory_budget_mb.bytes(),
+        eviction: args.eviction.name(),
+        cache_layers: gpu
+            .streamer
+            .cache()
+            .packing()
+            .images()
+            .iter()
+            .map(|i| i.layer_count)
+            .collect(),
+        frames_over_budget: residency.frames_over_budget,
+        pause_uploads_second_half,
+        dropped_levels: residency.dropped_levels,
+        evicted_layers: residency.evicted_layers,
+        refused_for_room: residency.refused_for_room,
+        declined_loads: residency.declined_loads,
         validation_errors,
         frames_written: written,
     };
@@ -792,7 +917,14 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         &dataset,
         &city,
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
-        &stream_config(u64::MAX / 4, 1, fragment_area, Clock::Fixed),
+        &stream_config(
+            UNLIMITED_BUDGET_BYTES,
+            1,
+            fragment_area,
+            Clock::Fixed,
+            Eviction::View,
+            None,
+        ),
     )?;
     // The view of the path's first pause: the static view a user replaying
     // the benchmark sees longest.

@@ -1,0 +1,93 @@
+//! The cache's layers come from the textures, the budget and the device,
+//! not from a constant: on a device that allows few layers (a configured
+//! limit) the count follows the budget up to that limit, and the streamer
+//! still serves every texture by reusing layers.
+
+use std::sync::Arc;
+
+use anyhow::{ensure, Result};
+use citystream_engine::stream::{StreamConfig, TextureStreamer};
+use citystream_engine::Device;
+use citystream_streaming::controller::{PolicyKind, PolicyOptions};
+use citystream_streaming::source::MemorySource;
+use citystream_tests::{assert_no_validation_errors, validated_device};
+
+const TEXTURES: u32 = 12;
+const LAYER: u32 = 256;
+
+fn streamer(device: &Arc<Device>, budget_bytes: u64, max_layers: Option<u32>) -> Result<TextureStreamer<MemorySource>> {
+    let mut source = MemorySource::new();
+    // One texture per layer: twelve layers place them all.
+    for _ in 0..TEXTURES {
+        source.push_bc1(LAYER, LAYER);
+    }
+    Ok(TextureStreamer::new(
+        device,
+        source,
+        (0..TEXTURES).collect(),
+        &vec![[0, 0, 0, 255]; TEXTURES as usize],
+        PolicyKind::Baseline.build(&PolicyOptions::default())?,
+        &StreamConfig {
+            layer_size: LAYER,
+            max_layers,
+            memory_budget_bytes: budget_bytes,
+            staging_bytes: 1 << 20,
+            ..StreamConfig::default()
+        },
+    )?)
+}
+
+fn bc1_layers(streamer: &TextureStreamer<MemorySource>) -> u32 {
+    streamer.cache().packing().images()[0].layer_count
+}
+
+#[test]
+fn layers_follow_the_budget_up_to_the_device_limit() -> Result<()> {
+    let device = validated_device()?;
+    let block = 64 << 10;
+    // Enough budget for every texture: one layer each.
+    let roomy = streamer(&device, 64 * block, None)?;
+    ensure!(
+        bc1_layers(&roomy) == TEXTURES,
+        "{} layers for {TEXTURES} textures",
+        bc1_layers(&roomy)
+    );
+    drop(roomy);
+    // A device limit of 4 layers caps it.
+    let few = streamer(&device, 64 * block, Some(4))?;
+    ensure!(bc1_layers(&few) == 4, "{} layers under a limit of 4", bc1_layers(&few));
+    drop(few);
+    // Three blocks of budget can keep at most three layers live.
+    let small = streamer(&device, 3 * block, Some(4))?;
+    ensure!(
+        bc1_layers(&small) == 3,
+        "{} layers for a 3-block budget",
+        bc1_layers(&small)
+    );
+    drop(small);
+    assert_no_validation_errors(&device)
+}
+
+#[test]
+fn textures_beyond_the_layers_are_served_by_evicting_layers_the_view_does_not_need() -> Result<()> {
+    let device = validated_device()?;
+    let mut streamer = streamer(&device, 64 << 20, Some(4))?;
+    let mut commands = citystream_engine::commands::CommandContext::new(&device, "capacity test")?;
+    // Load every texture's coarsest level, one after another: twelve
+    // textures through four layers.
+    for texture in 0..TEXTURES {
+        let coarsest = 6; // 4x4 of a 256² texture
+        streamer.load_now(&[(texture, coarsest)], &mut commands)?;
+        ensure!(
+            streamer.cache().resident_levels(texture) & (1 << coarsest) != 0,
+            "texture {texture} is not resident after its load"
+        );
+    }
+    let evicted = streamer.residency_totals().evicted_layers;
+    ensure!(
+        evicted == u64::from(TEXTURES - 4),
+        "{evicted} layers evicted for {TEXTURES} textures in 4 layers"
+    );
+    drop(streamer);
+    assert_no_validation_errors(&device)
+}
