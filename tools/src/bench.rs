@@ -20,10 +20,13 @@
 //! and packs it into 2048² atlases (`atlas --atlas-extent 2048`) under
 //! `--data-dir` unless they are there, then runs the four policies with a
 //! `--budget-mb` budget (256 MB) for 1800 frames with PSNR every 60 frames,
-//! plus adaptive α = 12 ms without a budget (`unbudgeted-a12`), the
-//! error reference of the same path. All runs share the cache and its
-//! eviction; only load size and mip bias differ. Besides the report it
+//! then adaptive α = 12 ms with the paper's ring eviction
+//! (`adaptive-a12-ring`, for comparison) and without a budget
+//! (`unbudgeted-a12`, the error reference of the same path). The policy runs
+//! share the cache and its eviction; only load size and mip bias differ. Besides the report it
 //! writes `pressure.md`: the acceptance ratios, measured.
+//!
+//! `--scenario loader` measures the loader alone ([`crate::loader_bench`]).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -41,12 +44,15 @@ pub enum Scenario {
     Standard,
     /// The `large` city in 2048² atlases under a budget far below its size.
     Pressure,
+    /// The loader against raw positioned reads of the same mips
+    /// ([`crate::loader_bench`]); no flythrough.
+    Loader,
 }
 
 /// Options of `citystream bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
-    /// Which benchmark: `standard` or `pressure` (see the module docs).
+    /// Which benchmark: `standard`, `pressure` or `loader` (see the module docs).
     #[arg(long, value_enum, default_value = "standard")]
     scenario: Scenario,
     /// Dataset directory every run opens (default: the default city in
@@ -137,7 +143,7 @@ impl BenchRun {
 pub const PRESSURE_FRAMES: u64 = 1800;
 
 /// The pressure scenario's runs: the four policies under the budget, then
-/// adaptive α = 12 ms without one.
+/// adaptive α = 12 ms with ring eviction, then without a budget.
 fn pressure_runs(budget_mb: u64) -> Vec<BenchRun> {
     let budget = budget_mb.to_string();
     let shared = ["--psnr-interval", "60", "--frame-interval", "0"];
@@ -149,6 +155,16 @@ fn pressure_runs(budget_mb: u64) -> Vec<BenchRun> {
             run
         })
         .collect();
+    // The paper's ring eviction on the same cache, for comparison.
+    let mut ring = BenchRun::of_policy(&POLICY_RUNS[1], &shared);
+    ring.dir = "adaptive-a12-ring".into();
+    ring.name = "adaptive α=12 ms, ring eviction".into();
+    ring.args.extend(
+        ["--memory-budget-mb", budget.as_str(), "--eviction", "ring"]
+            .iter()
+            .map(|a| a.to_string()),
+    );
+    runs.push(ring);
     let mut unbudgeted = BenchRun::of_policy(&POLICY_RUNS[1], &shared);
     unbudgeted.dir = "unbudgeted-a12".into();
     unbudgeted.name = "unbudgeted α=12 ms".into();
@@ -224,11 +240,22 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             dir
         }
         (None, Scenario::Pressure) => ensure_pressure_city(&args.data_dir)?,
+        (None, Scenario::Loader) => {
+            let dir = PathBuf::from(DEFAULT_CITY_DIR);
+            ensure_default_city(&dir, false)?;
+            dir
+        }
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    if args.scenario == Scenario::Loader {
+        let text = crate::loader_bench::run(&dataset, &args.out)?;
+        eprint!("{text}");
+        eprintln!("wrote {} and loader.json there", args.out.join("loader.md").display());
+        return Ok(());
+    }
 
     let (runs, frames) = match args.scenario {
-        Scenario::Standard => (
+        Scenario::Standard | Scenario::Loader => (
             POLICY_RUNS
                 .iter()
                 .map(|p| BenchRun::of_policy(p, &[]))

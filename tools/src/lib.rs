@@ -9,6 +9,7 @@ pub mod default_city;
 pub mod gen;
 pub mod import;
 pub mod info;
+pub mod loader_bench;
 pub mod path;
 pub mod report;
 pub mod simulate;

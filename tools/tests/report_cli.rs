@@ -570,3 +570,121 @@ fn bench_stops_at_a_failing_run() -> TestResult {
     assert!(String::from_utf8_lossy(&missing.stderr).contains("flythrough binary not found"));
     Ok(())
 }
+
+#[cfg(unix)]
+#[test]
+fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() -> TestResult {
+    let dir = scratch("bench-pressure");
+    let (script, log) = fake_flythrough(&dir, "none");
+    let dataset = dir.join("city");
+    std::fs::create_dir_all(&dataset)?;
+    let out = dir.join("out");
+    let (d, o) = (dataset.display().to_string(), out.display().to_string());
+    let result = citystream(&[
+        "bench",
+        "--scenario",
+        "pressure",
+        "--dataset",
+        &d,
+        "--out",
+        &o,
+        "--budget-mb",
+        "8",
+        "--flythrough",
+        &script.display().to_string(),
+    ]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "bench failed: {stderr}");
+    let logged = std::fs::read_to_string(&log)?;
+    let lines: Vec<&str> = logged.lines().collect();
+    let shared = "--psnr-interval 60 --frame-interval 0";
+    let tail = |name: &str| format!("--clock fixed --bind-latency desktop --frames 1800 --out {o}/{name}");
+    let expected = [
+        format!(
+            "--dataset {d} --policy baseline {shared} --memory-budget-mb 8 {}",
+            tail("baseline")
+        ),
+        format!(
+            "--dataset {d} --policy adaptive --alpha 12 {shared} --memory-budget-mb 8 {}",
+            tail("adaptive-a12")
+        ),
+        format!(
+            "--dataset {d} --policy adaptive --alpha 16 {shared} --memory-budget-mb 8 {}",
+            tail("adaptive-a16")
+        ),
+        format!(
+            "--dataset {d} --policy fixed --load-size-mb 4 --mip-bias 0 {shared} --memory-budget-mb 8 {}",
+            tail("fixed-s4-b0")
+        ),
+        format!(
+            "--dataset {d} --policy adaptive --alpha 12 {shared} --memory-budget-mb 8 --eviction ring {}",
+            tail("adaptive-a12-ring")
+        ),
+        format!(
+            "--dataset {d} --policy adaptive --alpha 12 {shared} --memory-budget-mb unlimited {}",
+            tail("unbudgeted-a12")
+        ),
+    ];
+    assert_eq!(lines, expected);
+    let checks = std::fs::read_to_string(out.join("pressure.md"))?;
+    // The fake's adaptive α=12 frame latency is 12 ms against the baseline's 40.
+    assert!(
+        checks.contains("| Max frame latency, adaptive / baseline | 0.300 | ≤ 0.05 | no |"),
+        "{checks}"
+    );
+    // Both ran at PSNR 60 − ms: 48 against 48 for the unbudgeted α=12 run.
+    assert!(
+        checks.contains("| PSNR: unbudgeted − adaptive α=12, mean (dB) | 0.000 | ≤ 3 | yes |"),
+        "{checks}"
+    );
+    // The fake writes no unique bytes: not measured, not a pass.
+    assert!(
+        checks.contains("| Bytes streamed / unique bytes, adaptive α=12 | n/a | ≤ 2 | n/a |"),
+        "{checks}"
+    );
+    Ok(())
+}
+
+#[test]
+fn loader_bench_reads_the_same_mips_as_raw_reads() -> TestResult {
+    let dir = scratch("bench-loader");
+    let city = dir.join("city");
+    let out = dir.join("out");
+    let generated = citystream(&[
+        "gen",
+        "--preset",
+        "tiny",
+        "--out",
+        &city.display().to_string(),
+        "--quiet",
+    ]);
+    assert!(
+        generated.status.success(),
+        "{}",
+        String::from_utf8_lossy(&generated.stderr)
+    );
+    let result = citystream(&[
+        "bench",
+        "--scenario",
+        "loader",
+        "--dataset",
+        &city.display().to_string(),
+        "--out",
+        &out.display().to_string(),
+    ]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "loader bench failed: {stderr}");
+    let passes: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("loader.json"))?)?;
+    let passes = passes.as_array().expect("an array of passes");
+    assert!(passes.len() >= 6, "warm passes missing: {passes:?}");
+    let first = &passes[0];
+    for pass in passes {
+        assert_eq!(pass["mips"], first["mips"], "every pass reads the same mips");
+        assert_eq!(pass["bytes"], first["bytes"], "every pass reads the same bytes");
+        assert!(pass["mb_per_s"].as_f64().is_some_and(|v| v.is_finite() && v > 0.0));
+    }
+    assert!(first["mips"].as_u64().is_some_and(|m| m > 0));
+    let md = std::fs::read_to_string(out.join("loader.md"))?;
+    assert!(md.contains("| warm | off |") && md.contains("| warm | on |"), "{md}");
+    Ok(())
+}
