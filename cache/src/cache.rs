@@ -605,6 +605,23 @@ impl TextureCache {
             .collect()
     }
 
+    /// The keys of the textures placed in each live layer of `image`:
+    /// `(layer, keys)`, oldest layer first.
+    pub fn live_layer_keys(&self, image: ImageId) -> Vec<(u32, Vec<u64>)> {
+        let Ok(state) = self.image(image) else {
+            return Vec::new();
+        };
+        let shared = lock(&self.shared);
+        shared.live[image as usize]
+            .iter()
+            .map(|live| {
+                let layer = lock(&state.layers[live.layer as usize]);
+                let keys = layer.textures.iter().flatten().map(|record| record.key).collect();
+                (live.layer, keys)
+            })
+            .collect()
+    }
+
     /// Evicts the oldest live layer of `image`: invalidates its textures
     /// and releases its blocks.
     fn evict_oldest_of(&self, shared: &mut Shared, image: usize, reason: EvictionReason) {

@@ -331,6 +331,14 @@ pub struct ResidencyTotals {
     pub unique_bytes_uploaded: u64,
 }
 
+/// A live cache layer and what evicting it would give up.
+#[derive(Clone, Debug)]
+struct LayerVictim {
+    worth: KeepValue,
+    layer: u32,
+    textures: Vec<u32>,
+}
+
 /// A resident level that may be dropped, ordered so that a max-heap pops
 /// the least worth first.
 #[derive(Clone, Copy, Debug)]
@@ -857,50 +865,72 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         Ok(made)
     }
 
+    /// The live layers of `image` ranked for eviction, least worth last (so
+    /// `pop` takes it): a layer is worth its most valuable texture at that
+    /// texture's coarsest resident level.
+    fn rank_layers(&self, image: u32) -> Vec<LayerVictim> {
+        let mut layers: Vec<LayerVictim> = self
+            .cache
+            .layer_textures(image)
+            .into_iter()
+            .map(|(layer, textures)| {
+                let mut worth = KeepValue {
+                    class: NeedClass::OutOfView,
+                    rank: f64::NEG_INFINITY,
+                };
+                for &texture in &textures {
+                    let resident = self.cache.resident_levels(texture);
+                    if resident == 0 {
+                        continue;
+                    }
+                    let coarsest = 31 - resident.leading_zeros();
+                    let value = self
+                        .needs
+                        .keep_value(texture, coarsest, self.cache.level_bytes(texture, coarsest));
+                    if worth.cmp_total(&value) == std::cmp::Ordering::Less {
+                        worth = value;
+                    }
+                }
+                LayerVictim { worth, layer, textures }
+            })
+            .collect();
+        // Oldest first among equals, as the ring would.
+        layers.reverse();
+        layers.sort_by(|a, b| b.worth.cmp_total(&a.worth));
+        layers
+    }
+
     /// Evicts the live layer of `image` worth least, if every texture in it
     /// (at its most valuable, coarsest resident level) is worth less than
     /// `load` and none has a mip staged in this cycle. Its textures are
-    /// reloaded from their first level when the view asks again.
-    fn free_layer(&mut self, image: u32, load: KeepValue, dropped_now: &mut HashSet<u32>) -> Result<bool> {
-        let mut best: Option<(KeepValue, u32, Vec<u32>)> = None;
-        for (layer, textures) in self.cache.layer_textures(image) {
-            let mut worth = KeepValue {
-                class: NeedClass::OutOfView,
-                rank: f64::NEG_INFINITY,
-            };
-            let mut usable = true;
-            for &texture in &textures {
-                if self.cache.has_pending(texture) {
-                    usable = false;
-                    break;
-                }
-                let resident = self.cache.resident_levels(texture);
-                if resident == 0 {
-                    continue;
-                }
-                let coarsest = 31 - resident.leading_zeros();
-                let value = self
-                    .needs
-                    .keep_value(texture, coarsest, self.cache.level_bytes(texture, coarsest));
-                if worth.cmp_total(&value) == std::cmp::Ordering::Less {
-                    worth = value;
-                }
+    /// reloaded from their first level when the view asks again. The
+    /// ranking is computed once per packing pass (`ranked`, per image).
+    fn free_layer(
+        &mut self,
+        image: u32,
+        load: KeepValue,
+        ranked: &mut std::collections::HashMap<u32, Vec<LayerVictim>>,
+        dropped_now: &mut HashSet<u32>,
+    ) -> Result<bool> {
+        let layers = ranked.entry(image).or_insert_with(|| self.rank_layers(image));
+        while let Some(least) = layers.last() {
+            if !least.worth.yields_to(&load) {
+                return Ok(false);
             }
-            if !usable || !worth.yields_to(&load) {
+            let Some(least) = layers.pop() else {
+                return Ok(false);
+            };
+            // Textures placed or loaded since the ranking make it stale.
+            if least.textures.iter().any(|&t| self.cache.has_pending(t)) {
                 continue;
             }
-            if best.as_ref().is_none_or(|(b, _, _)| worth.yields_to(b)) {
-                best = Some((worth, layer, textures));
-            }
+            self.cache.evict_layer(image, least.layer)?;
+            self.totals.evicted_layers += 1;
+            self.last_cycle.evicted_layers += 1;
+            dropped_now.extend(least.textures);
+            return Ok(true);
         }
-        let Some((_, layer, textures)) = best else {
-            return Ok(false);
-        };
-        self.cache.evict_layer(image, layer)?;
-        self.totals.evicted_layers += 1;
-        self.last_cycle.evicted_layers += 1;
-        dropped_now.extend(textures);
-        Ok(true)
+        Ok(false)
     }
 
     /// [`Eviction::View`] packing: loaded mips go in, densest first; when
@@ -926,6 +956,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         });
         let mut refused = 0;
         let mut victims: Option<BinaryHeap<Victim>> = None;
+        let mut layers = std::collections::HashMap::new();
         let mut dropped_now: HashSet<u32> = HashSet::new();
         for (value, mip) in ranked {
             let texture = mip.texture;
@@ -962,7 +993,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                         self.make_room(needed_blocks, value, &mut victims, &mut dropped_now)?
                     }
                     Ok(StageOutcome::NoLayer { image, .. }) if attempts < 4 => {
-                        self.free_layer(image, value, &mut dropped_now)?
+                        self.free_layer(image, value, &mut layers, &mut dropped_now)?
                     }
                     Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. }) => false,
                     Err(_) => {
@@ -1171,7 +1202,9 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                             StageOutcome::NoRoom { needed_blocks } => {
                                 self.make_room(needed_blocks, load, &mut victims, &mut dropped)?
                             }
-                            StageOutcome::NoLayer { image, .. } => self.free_layer(image, load, &mut dropped)?,
+                            StageOutcome::NoLayer { image, .. } => {
+                                self.free_layer(image, load, &mut Default::default(), &mut dropped)?
+                            }
                             _ => false,
                         };
                         if !room || cycles_run >= 2 {

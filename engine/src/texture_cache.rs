@@ -515,24 +515,11 @@ impl GpuTextureCache {
     /// Textures placed in each live layer of `image`: `(layer, textures)`,
     /// layers oldest first.
     pub fn layer_textures(&self, image: u32) -> Vec<(u32, Vec<u32>)> {
-        let live = self.cache.live_layers(image);
-        let mut index = std::collections::HashMap::with_capacity(live.len());
-        let mut layers: Vec<(u32, Vec<u32>)> = live
-            .iter()
-            .enumerate()
-            .map(|(position, &(layer, _, _))| {
-                index.insert(layer, position);
-                (layer, Vec::new())
-            })
-            .collect();
-        for (texture, slot) in self.slots.iter().enumerate() {
-            if let Some(p) = slot.placement.filter(|p| p.image == image && self.cache.is_live(p)) {
-                if let Some(&position) = index.get(&p.layer) {
-                    layers[position].1.push(texture as u32);
-                }
-            }
-        }
-        layers
+        self.cache
+            .live_layer_keys(image)
+            .into_iter()
+            .map(|(layer, keys)| (layer, keys.into_iter().filter_map(|k| u32::try_from(k).ok()).collect()))
+            .collect()
     }
 
     /// Evicts live layer `layer` of `image` ([`Eviction::View`]): its
