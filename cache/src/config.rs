@@ -258,13 +258,16 @@ pub fn derive_layer_counts(
     if total_virtual <= u128::from(virtual_budget_bytes) {
         return wanted.iter().map(|&layers| layers as u32).collect();
     }
-    // Scale every image down by the same factor; rounding down keeps the
-    // sum within the budget (each keeps one layer).
+    // Every image keeps one layer; the layers beyond it are scaled down by
+    // the same factor, rounding down, so the sum stays within the budget.
+    let first_layers: u128 = demands.iter().map(|d| u128::from(d.layer_virtual_bytes)).sum();
+    let extra_virtual = total_virtual - first_layers;
+    let room = u128::from(virtual_budget_bytes).saturating_sub(first_layers);
     wanted
         .iter()
         .map(|&layers| {
-            let scaled = u128::from(layers) * u128::from(virtual_budget_bytes) / total_virtual.max(1);
-            scaled.clamp(1, u128::from(layers)) as u32
+            let extra = u128::from(layers - 1) * room / extra_virtual.max(1);
+            (1 + extra.min(u128::from(layers - 1))) as u32
         })
         .collect()
 }
@@ -291,6 +294,23 @@ mod tests {
         assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 4, u64::MAX), vec![4, 1]);
         // The virtual budget is shared: 8 MiB for 16 MiB wanted.
         assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 2048, 8 << 20), vec![7, 1]);
+        // An image with nothing to place keeps its one layer within the
+        // budget: the others share what is left.
+        let lopsided = [
+            ImageDemand {
+                extents: vec![(2048, 5000)],
+                layer_virtual_bytes: 3 << 20,
+            },
+            ImageDemand {
+                extents: vec![],
+                layer_virtual_bytes: 22 << 20,
+            },
+        ];
+        let budget = 2u64 << 30;
+        let counts = derive_layer_counts(2048, &lopsided, 1 << 20, 2048, budget);
+        let used = u64::from(counts[0]) * (3 << 20) + u64::from(counts[1]) * (22 << 20);
+        assert!(used <= budget, "{counts:?} use {used} of {budget}");
+        assert_eq!(counts, vec![675, 1]);
     }
 
     #[test]
