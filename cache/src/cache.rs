@@ -519,17 +519,7 @@ impl TextureCache {
         if oldest_is_this {
             self.evict_oldest_of(shared, image, EvictionReason::RingReuse);
         }
-        let age = shared.next_age;
-        shared.next_age += 1;
-        shared.live[image].push_back(LiveLayer {
-            layer: layer_index,
-            assignment,
-            age,
-        });
-        shared.stats.layer_assignments += 1;
-        let mut layer = lock(&state.layers[layer_index as usize]);
-        layer.assignment = Some(assignment);
-        layer.extent = extent;
+        make_live(shared, state, layer_index, assignment, extent);
         (layer_index, assignment)
     }
 
@@ -557,17 +547,7 @@ impl TextureCache {
         state
             .next_assignment
             .store((assignment + 1) % state.assignment_modulus, Ordering::Release);
-        let age = shared.next_age;
-        shared.next_age += 1;
-        shared.live[desc.image as usize].push_back(LiveLayer {
-            layer: layer_index,
-            assignment,
-            age,
-        });
-        shared.stats.layer_assignments += 1;
-        let mut layer = lock(&state.layers[layer_index as usize]);
-        layer.assignment = Some(assignment);
-        layer.extent = extent;
+        make_live(shared, state, layer_index, assignment, extent);
         Some((layer_index, assignment))
     }
 
@@ -1056,6 +1036,22 @@ impl TextureCache {
     pub fn stats(&self) -> CacheStats {
         lock(&self.shared).stats
     }
+}
+
+/// Records a free layer as assigned to `extent` under `assignment`: newest
+/// in the image's live list, counted, and marked in the layer itself.
+fn make_live(shared: &mut Shared, state: &ImageState, layer_index: u32, assignment: u32, extent: u32) {
+    let age = shared.next_age;
+    shared.next_age += 1;
+    shared.live[state.desc.image as usize].push_back(LiveLayer {
+        layer: layer_index,
+        assignment,
+        age,
+    });
+    shared.stats.layer_assignments += 1;
+    let mut layer = lock(&state.layers[layer_index as usize]);
+    layer.assignment = Some(assignment);
+    layer.extent = extent;
 }
 
 /// Returns a block's memory: to the pool at once if its bind was never

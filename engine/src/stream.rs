@@ -972,8 +972,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                 continue;
             }
             let source = self.loader.source();
-            let chain = source.mip_chain(texture).map_err(source_failure)?;
-            let format = source.texture_format(texture).map_err(source_failure)?;
+            let (chain, format) = chain_and_format(source, texture)?;
             let mut attempts = 0;
             loop {
                 attempts += 1;
@@ -1026,8 +1025,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         staged.sort_unstable_by_key(|m| (m.texture, std::cmp::Reverse(m.level)));
         for mip in staged {
             let source = self.loader.source();
-            let chain = source.mip_chain(mip.texture).map_err(source_failure)?;
-            let format = source.texture_format(mip.texture).map_err(source_failure)?;
+            let (chain, format) = chain_and_format(source, mip.texture)?;
             let outcome = self
                 .cache
                 .stage(mip.texture, format, chain.width, chain.height, mip.level, &mip.bytes);
@@ -1126,8 +1124,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         let mut mips = Vec::new();
         for &(texture, level) in requests {
             let source = self.loader.source();
-            let chain = source.mip_chain(texture).map_err(source_failure)?;
-            let format = source.texture_format(texture).map_err(source_failure)?;
+            let (chain, format) = chain_and_format(source, texture)?;
             // Sources may store levels below one texel block; the cache holds none of them.
             let levels = chain
                 .mip_count
@@ -1169,8 +1166,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         let mut buffer = Vec::new();
         for &(texture, level) in mips {
             let source = self.loader.source();
-            let chain = source.mip_chain(texture).map_err(source_failure)?;
-            let format = source.texture_format(texture).map_err(source_failure)?;
+            let (chain, format) = chain_and_format(source, texture)?;
             buffer.resize(source.mip_len(texture, level).map_err(source_failure)? as usize, 0);
             source.read_mip(texture, level, &mut buffer).map_err(source_failure)?;
             // A cycle at most for pending memory and one after making room.
@@ -1251,6 +1247,13 @@ impl<S: MipSource + 'static> Drop for TextureStreamer<S> {
         // better to do than destroy anyway).
         let _ = self.device.wait_idle();
     }
+}
+
+/// A texture's mip chain and format, as the source reports them.
+fn chain_and_format<S: MipSource + ?Sized>(source: &S, texture: u32) -> Result<(MipChain, TextureFormat)> {
+    let chain = source.mip_chain(texture).map_err(source_failure)?;
+    let format = source.texture_format(texture).map_err(source_failure)?;
+    Ok((chain, format))
 }
 
 fn source_failure(error: SourceError) -> EngineError {

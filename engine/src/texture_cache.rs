@@ -288,22 +288,26 @@ impl GpuTextureCache {
             CacheLayers::Derived { extents, max_layers } => {
                 let max_layers =
                     max_layers.map_or(limits.max_image_array_layers, |m| m.min(limits.max_image_array_layers));
-                let demands = CACHE_FORMATS
+                let probes = CACHE_FORMATS
                     .iter()
-                    .enumerate()
-                    .map(|(index, &(_, vk_format, texel_format))| {
-                        let layer_virtual_bytes =
-                            layer_virtual_bytes(device, config.layer_size, vk_format, texel_format)?;
-                        Ok(ImageDemand {
-                            extents: extents.get(index).cloned().unwrap_or_default(),
-                            layer_virtual_bytes,
-                        })
+                    .map(|&(_, vk_format, texel_format)| {
+                        probe_layer(device, config.layer_size, vk_format, texel_format)
                     })
                     .collect::<Result<Vec<_>>>()?;
+                let demands: Vec<ImageDemand> = probes
+                    .iter()
+                    .enumerate()
+                    .map(|(index, probe)| ImageDemand {
+                        extents: extents.get(index).cloned().unwrap_or_default(),
+                        layer_virtual_bytes: probe.virtual_bytes,
+                    })
+                    .collect();
+                // The images share one block size (checked once they exist).
+                let block_bytes = probes.first().map_or(1, |probe| probe.block_bytes.max(1));
                 derive_layer_counts(
                     config.layer_size,
                     &demands,
-                    config.memory_budget_bytes / sparse_block_bytes(device, config.layer_size)?.max(1),
+                    config.memory_budget_bytes / block_bytes,
                     max_layers,
                     virtual_budget_bytes,
                 )
@@ -592,16 +596,12 @@ impl GpuTextureCache {
             .slots
             .get(texture as usize)
             .ok_or_else(|| EngineError::InvalidRequest(format!("texture {texture} is outside the cache's table")))?;
-        let (image_index, _, texel_format) = CACHE_FORMATS
-            .iter()
-            .enumerate()
-            .find(|(_, (f, _, _))| *f == format)
-            .map(|(i, (_, v, t))| (i as u32, *v, *t))
-            .ok_or_else(|| EngineError::UnsupportedFormat {
-                texture,
-                format: format!("{format:?}"),
-                reason: "the cache has no sparse image of that format".into(),
-            })?;
+        let image_index = Self::image_of(format).ok_or_else(|| EngineError::UnsupportedFormat {
+            texture,
+            format: format!("{format:?}"),
+            reason: "the cache has no sparse image of that format".into(),
+        })?;
+        let texel_format = CACHE_FORMATS[image_index as usize].2;
         let placement = match slot.placement {
             Some(p) if self.cache.is_live(&p) && p.image == image_index && p.width == width && p.height == height => p,
             _ => {
@@ -1013,9 +1013,18 @@ impl GpuTextureCache {
     }
 }
 
-/// A one-layer sparse image of `format`, for its block size and granularity.
-fn probe_image(device: &Arc<Device>, layer_size: u32, format: vk::Format) -> Result<SparseImage> {
-    SparseImage::new(
+/// What one layer of a cache image costs, from a one-layer probe image.
+struct LayerProbe {
+    /// The sparse block size.
+    block_bytes: u64,
+    /// Virtual bytes of one layer: its full mip chain in whole blocks.
+    virtual_bytes: u64,
+}
+
+/// Creates a one-layer sparse image of `format` and reads its block size
+/// and granularity.
+fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel: TexelFormat) -> Result<LayerProbe> {
+    let probe = SparseImage::new(
         device,
         SparseImageDesc {
             width: layer_size,
@@ -1025,18 +1034,7 @@ fn probe_image(device: &Arc<Device>, layer_size: u32, format: vk::Format) -> Res
             format,
         },
         "cache layer probe",
-    )
-}
-
-/// The sparse block size of the cache's first format.
-fn sparse_block_bytes(device: &Arc<Device>, layer_size: u32) -> Result<u64> {
-    Ok(probe_image(device, layer_size, CACHE_FORMATS[0].1)?.block_size())
-}
-
-/// Virtual bytes one layer of a cache image of `format` spans: its full mip
-/// chain in whole sparse blocks.
-fn layer_virtual_bytes(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel: TexelFormat) -> Result<u64> {
-    let probe = probe_image(device, layer_size, format)?;
+    )?;
     let (gw, gh) = probe.granularity();
     let desc = citystream_cache::ImageDesc::new(
         0,
@@ -1053,7 +1051,10 @@ fn layer_virtual_bytes(device: &Arc<Device>, layer_size: u32, format: vk::Format
         },
     )
     .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
-    Ok(desc.virtual_bytes())
+    Ok(LayerProbe {
+        block_bytes: probe.block_size(),
+        virtual_bytes: desc.virtual_bytes(),
+    })
 }
 
 fn same_place(a: &Placement, b: &Placement) -> bool {

@@ -36,7 +36,8 @@ use rayon::prelude::*;
 #[derive(Debug, Default)]
 struct CountingSink {
     checksum: bool,
-    loaded: Mutex<Vec<(u32, u32)>>,
+    /// Shared with the pass, which reads it once the loader is done.
+    loaded: Arc<Mutex<Vec<(u32, u32)>>>,
     crc_fold: std::sync::atomic::AtomicU32,
 }
 
@@ -98,13 +99,15 @@ struct LoaderRun {
 /// The unthrottled loader over every texture until it loads nothing more.
 fn loader_pass(dataset: &Arc<Dataset>, crc: bool) -> Result<LoaderRun> {
     let count = dataset.textures.len();
-    let sink = Arc::new(CountingSink {
+    let loaded = Arc::new(Mutex::new(Vec::new()));
+    let sink = CountingSink {
         checksum: crc,
+        loaded: Arc::clone(&loaded),
         ..CountingSink::default()
-    });
+    };
     let loader = Loader::new(
         DatasetSource::new(Arc::clone(dataset)),
-        SinkHandle(Arc::clone(&sink)),
+        sink,
         (0..count).collect(),
         count as usize,
         LoaderOptions {
@@ -136,22 +139,8 @@ fn loader_pass(dataset: &Arc<Dataset>, crc: bool) -> Result<LoaderRun> {
     }
     let elapsed = started.elapsed();
     let bytes = loader.totals().loaded_bytes;
-    let loaded = std::mem::take(&mut *sink.loaded.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
+    let loaded = std::mem::take(&mut *loaded.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
     Ok(LoaderRun { loaded, bytes, elapsed })
-}
-
-/// The loader's sink: a shared handle, so the pass can read what it kept.
-#[derive(Debug)]
-struct SinkHandle(Arc<CountingSink>);
-
-impl MipSink for SinkHandle {
-    fn stage(&self, mip: StagedMip) -> std::result::Result<(), SinkError> {
-        self.0.stage(mip)
-    }
-
-    fn unload(&self, texture: u32) {
-        self.0.unload(texture);
-    }
 }
 
 /// `pread` of each `(offset, len)` on the rayon pool into reused buffers.

@@ -337,6 +337,19 @@ struct CityGpu {
     renderer: CityRenderer,
 }
 
+/// The streamer of references and measurements that load levels
+/// explicitly: no budget, one frame in flight, the fixed clock.
+fn reference_config(fragment_area: f32) -> StreamConfig {
+    stream_config(
+        UNLIMITED_BUDGET_BYTES,
+        1,
+        fragment_area,
+        Clock::Fixed,
+        Eviction::View,
+        None,
+    )
+}
+
 /// The streamer's cache and feedback settings shared by the streamed run,
 /// the error reference and the pop-in measurement.
 fn stream_config(
@@ -557,14 +570,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             &dataset,
             &city,
             PolicyKind::Baseline.build(&PolicyOptions::default())?,
-            &stream_config(
-                UNLIMITED_BUDGET_BYTES,
-                1,
-                fragment_area,
-                Clock::Fixed,
-                Eviction::View,
-                None,
-            ),
+            &reference_config(fragment_area),
         )?)
     } else {
         None
@@ -917,14 +923,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         &dataset,
         &city,
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
-        &stream_config(
-            UNLIMITED_BUDGET_BYTES,
-            1,
-            fragment_area,
-            Clock::Fixed,
-            Eviction::View,
-            None,
-        ),
+        &reference_config(fragment_area),
     )?;
     // The view of the path's first pause: the static view a user replaying
     // the benchmark sees longest.
