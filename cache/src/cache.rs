@@ -396,12 +396,22 @@ impl TextureCache {
         self.images.iter().map(|image| image.desc).collect()
     }
 
-    /// The image that caches textures of `format`, if one is configured.
+    /// The first image that caches textures of `format`, if one is configured.
     pub fn image_for_format(&self, format: &TexelFormat) -> Option<ImageId> {
         self.images
             .iter()
             .find(|image| image.desc.format == *format)
             .map(|image| image.desc.image)
+    }
+
+    /// Every image that caches textures of `format`, in index order (more
+    /// than one where one image's layers could not hold the format's share).
+    pub fn images_for_format(&self, format: &TexelFormat) -> Vec<ImageId> {
+        self.images
+            .iter()
+            .filter(|image| image.desc.format == *format)
+            .map(|image| image.desc.image)
+            .collect()
     }
 
     fn image(&self, image: ImageId) -> Result<&ImageState, CacheError> {
@@ -432,6 +442,59 @@ impl TextureCache {
     /// order from the paper's `nextLayer` on.
     pub fn try_insert(&self, image: ImageId, key: u64, width: u32, height: u32) -> Result<Placement, CacheError> {
         self.insert_with(image, key, width, height, false)
+    }
+
+    /// As [`try_insert`](Self::try_insert) over several images of one
+    /// format, in order: the first with room (a region of a layer already
+    /// assigned to the extent, or a free layer) places the texture.
+    /// [`CacheError::NoLayer`] names the first image when none has room.
+    pub fn try_insert_in(
+        &self,
+        images: &[ImageId],
+        key: u64,
+        width: u32,
+        height: u32,
+    ) -> Result<Placement, CacheError> {
+        let mut no_layer = None;
+        for &image in images {
+            match self.try_insert(image, key, width, height) {
+                Err(error @ CacheError::NoLayer { .. }) => {
+                    no_layer.get_or_insert(error);
+                }
+                placed => return placed,
+            }
+        }
+        Err(no_layer.unwrap_or(CacheError::UnknownImage {
+            image: ImageId::MAX,
+            images: self.images.len(),
+        }))
+    }
+
+    /// As [`insert`](Self::insert) over several images of one format: the
+    /// first with room places the texture; when none has, the image whose
+    /// oldest live layer is oldest of all reuses it, so the ring runs over
+    /// the format's layers in every image.
+    pub fn insert_in(&self, images: &[ImageId], key: u64, width: u32, height: u32) -> Result<Placement, CacheError> {
+        match self.try_insert_in(images, key, width, height) {
+            Err(CacheError::NoLayer { image: first, .. }) => {
+                let oldest = {
+                    let shared = lock(&self.shared);
+                    images
+                        .iter()
+                        .copied()
+                        .min_by_key(|&image| {
+                            shared
+                                .live
+                                .get(image as usize)
+                                .and_then(|live| live.front())
+                                .map_or(u64::MAX, |live| live.age)
+                        })
+                        .unwrap_or(first)
+                };
+                self.insert(oldest, key, width, height)
+            }
+            placed => placed,
+        }
     }
 
     fn insert_with(

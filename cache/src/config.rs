@@ -143,8 +143,8 @@ impl ImageDesc {
 }
 
 impl CacheConfig {
-    /// Validates the whole configuration: every image, one image per
-    /// format, a memory budget of at least one block, non-empty chunks, and
+    /// Validates the whole configuration: every image (a format may have
+    /// several), a memory budget of at least one block, non-empty chunks, and
     /// the images' total virtual size within the virtual budget.
     pub fn validate(&self) -> Result<Vec<ImageDesc>, ConfigError> {
         if self.images.is_empty() {
@@ -161,18 +161,6 @@ impl CacheConfig {
         }
         if self.blocks_per_chunk == 0 {
             return Err(ConfigError::ZeroChunk);
-        }
-        for (second, image) in self.images.iter().enumerate() {
-            if let Some(first) = self.images[..second]
-                .iter()
-                .position(|other| other.format == image.format)
-            {
-                return Err(ConfigError::DuplicateFormat {
-                    format: image.format.name,
-                    first,
-                    second,
-                });
-            }
         }
         let descs = self
             .images
@@ -206,37 +194,43 @@ impl CacheConfig {
     }
 }
 
-/// What one cache image must place, for [`derive_layer_counts`].
+/// What the images of one format must place, for [`derive_image_layers`].
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ImageDemand {
-    /// `(extent, textures)`: how many textures of each extent the image may
-    /// have to place.
+    /// `(extent, textures)`: how many textures of each extent the format's
+    /// images may have to place.
     pub extents: Vec<(u32, u64)>,
     /// Virtual bytes one layer spans (its block-padded full mip chain).
     pub layer_virtual_bytes: u64,
 }
 
-/// Layers per image derived from what the images must hold and what the
+/// The layers of each cache image, per format (one list per demand, one
+/// count per image), derived from what each format must hold and what the
 /// budget and the device allow, instead of a fixed count:
 ///
 /// - enough layers to place every texture at once (each extent packs
 ///   `(layer_size / extent)²` textures per layer);
 /// - no more than `budget_blocks`: a live layer holds at least one bound
 ///   block, so more layers could never be in use at once;
-/// - at most `max_layers` (the device's `maxImageArrayLayers`, or less);
-/// - all images together within `virtual_budget_bytes`, shared in
-///   proportion to their demand.
+/// - at most `max_layers` per image (the device's `maxImageArrayLayers`, or
+///   less): a format that needs more gets more images, shared evenly;
+/// - at most `max_images` images in all (the shaders' slots), every format
+///   at least one;
+/// - all layers together within `virtual_budget_bytes`, shared in
+///   proportion to demand.
 ///
-/// Every image gets at least one layer. Where a limit leaves fewer layers
+/// Every format gets at least one layer. Where a limit leaves fewer layers
 /// than textures need, the cache reuses layers as it runs.
-pub fn derive_layer_counts(
+pub fn derive_image_layers(
     layer_size: u32,
     demands: &[ImageDemand],
     budget_blocks: u64,
     max_layers: u32,
+    max_images: u32,
     virtual_budget_bytes: u64,
-) -> Vec<u32> {
-    let wanted: Vec<u64> = demands
+) -> Vec<Vec<u32>> {
+    let max_layers = u64::from(max_layers.max(1));
+    let mut wanted: Vec<u64> = demands
         .iter()
         .map(|demand| {
             let needed: u64 = demand
@@ -246,28 +240,50 @@ pub fn derive_layer_counts(
                     let per_row = u64::from(layer_size / extent.clamp(1, layer_size.max(1)));
                     textures.div_ceil((per_row * per_row).max(1))
                 })
-                .sum();
-            needed.min(budget_blocks).min(u64::from(max_layers)).max(1)
+                .fold(0, u64::saturating_add);
+            needed.min(budget_blocks).max(1)
         })
         .collect();
+    // Images per format, then the slots shared out: the format with the
+    // most images gives one up until they fit.
+    let mut images: Vec<u64> = wanted.iter().map(|&layers| layers.div_ceil(max_layers)).collect();
+    let slots = u64::from(max_images).max(demands.len() as u64);
+    while images.iter().sum::<u64>() > slots {
+        let Some(most) = images
+            .iter_mut()
+            .filter(|count| **count > 1)
+            .max_by_key(|count| **count)
+        else {
+            break;
+        };
+        *most -= 1;
+    }
+    for (layers, &count) in wanted.iter_mut().zip(&images) {
+        *layers = (*layers).min(count.saturating_mul(max_layers));
+    }
     let total_virtual: u128 = wanted
         .iter()
         .zip(demands)
         .map(|(&layers, demand)| u128::from(layers) * u128::from(demand.layer_virtual_bytes))
         .sum();
-    if total_virtual <= u128::from(virtual_budget_bytes) {
-        return wanted.iter().map(|&layers| layers as u32).collect();
+    if total_virtual > u128::from(virtual_budget_bytes) {
+        // Every format keeps one layer; the layers beyond it are scaled down
+        // by the same factor, rounding down, so the sum stays within the budget.
+        let first_layers: u128 = demands.iter().map(|d| u128::from(d.layer_virtual_bytes)).sum();
+        let extra_virtual = total_virtual - first_layers;
+        let room = u128::from(virtual_budget_bytes).saturating_sub(first_layers);
+        for layers in &mut wanted {
+            let extra = u128::from(*layers - 1) * room / extra_virtual.max(1);
+            *layers = 1 + extra.min(u128::from(*layers - 1)) as u64;
+        }
     }
-    // Every image keeps one layer; the layers beyond it are scaled down by
-    // the same factor, rounding down, so the sum stays within the budget.
-    let first_layers: u128 = demands.iter().map(|d| u128::from(d.layer_virtual_bytes)).sum();
-    let extra_virtual = total_virtual - first_layers;
-    let room = u128::from(virtual_budget_bytes).saturating_sub(first_layers);
     wanted
         .iter()
         .map(|&layers| {
-            let extra = u128::from(layers - 1) * room / extra_virtual.max(1);
-            (1 + extra.min(u128::from(layers - 1))) as u32
+            let count = layers.div_ceil(max_layers);
+            (0..count)
+                .map(|image| (layers / count + u64::from(image < layers % count)) as u32)
+                .collect()
         })
         .collect()
 }
@@ -287,14 +303,23 @@ mod tests {
     fn layers_follow_textures_budget_and_device() {
         // 2048-texel layers: 64 textures of 256 per layer, one of 2048.
         let city = [demand(&[(256, 640), (2048, 5)]), demand(&[(256, 1)])];
-        assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 2048, u64::MAX), vec![15, 1]);
+        let derive = |budget_blocks, max_layers, max_images, virtual_budget| {
+            derive_image_layers(2048, &city, budget_blocks, max_layers, max_images, virtual_budget)
+        };
+        assert_eq!(derive(1 << 20, 2048, 8, u64::MAX), vec![vec![15], vec![1]]);
         // The budget caps it: 8 blocks can keep at most 8 layers live.
-        assert_eq!(derive_layer_counts(2048, &city, 8, 2048, u64::MAX), vec![8, 1]);
-        // A device with few layers caps it.
-        assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 4, u64::MAX), vec![4, 1]);
+        assert_eq!(derive(8, 2048, 8, u64::MAX), vec![vec![8], vec![1]]);
+        // A device with few layers per image: more images of the format,
+        // shared evenly, as many layers in all.
+        assert_eq!(derive(1 << 20, 4, 8, u64::MAX), vec![vec![4, 4, 4, 3], vec![1]]);
+        assert_eq!(derive(10, 4, 8, u64::MAX), vec![vec![4, 3, 3], vec![1]]);
+        // Few image slots: the format with the most images gives them up.
+        assert_eq!(derive(1 << 20, 4, 3, u64::MAX), vec![vec![4, 4], vec![1]]);
+        assert_eq!(derive(1 << 20, 4, 1, u64::MAX), vec![vec![4], vec![1]]);
         // The virtual budget is shared: 8 MiB for 16 MiB wanted.
-        assert_eq!(derive_layer_counts(2048, &city, 1 << 20, 2048, 8 << 20), vec![7, 1]);
-        // An image with nothing to place keeps its one layer within the
+        assert_eq!(derive(1 << 20, 2048, 8, 8 << 20), vec![vec![7], vec![1]]);
+        assert_eq!(derive(1 << 20, 4, 8, 8 << 20), vec![vec![4, 3], vec![1]]);
+        // A format with nothing to place keeps its one layer within the
         // budget: the others share what is left.
         let lopsided = [
             ImageDemand {
@@ -307,21 +332,21 @@ mod tests {
             },
         ];
         let budget = 2u64 << 30;
-        let counts = derive_layer_counts(2048, &lopsided, 1 << 20, 2048, budget);
-        let used = u64::from(counts[0]) * (3 << 20) + u64::from(counts[1]) * (22 << 20);
+        let counts = derive_image_layers(2048, &lopsided, 1 << 20, 2048, 8, budget);
+        let layers = |format: usize| counts[format].iter().map(|&l| u64::from(l)).sum::<u64>();
+        let used = layers(0) * (3 << 20) + layers(1) * (22 << 20);
         assert!(used <= budget, "{counts:?} use {used} of {budget}");
-        assert_eq!(counts, vec![675, 1]);
+        assert_eq!(counts, vec![vec![675], vec![1]]);
     }
 
     #[test]
     fn degenerate_inputs_still_give_one_layer() {
         let odd = [demand(&[(0, 3), (1 << 20, 2)]), demand(&[])];
-        let counts = derive_layer_counts(2048, &odd, 0, 0, 0);
-        assert_eq!(counts, vec![1, 1]);
+        assert_eq!(derive_image_layers(2048, &odd, 0, 0, 0, 0), vec![vec![1], vec![1]]);
+        // More than u32::MAX layers wanted: images of at most max_layers.
         let huge = [demand(&[(1, u64::MAX)])];
-        assert_eq!(
-            derive_layer_counts(1 << 15, &huge, u64::MAX, u32::MAX, u64::MAX),
-            vec![u32::MAX]
-        );
+        let counts = derive_image_layers(1 << 15, &huge, u64::MAX, u32::MAX, 8, u64::MAX);
+        assert_eq!(counts[0].len(), 5);
+        assert_eq!(counts[0].iter().map(|&l| u64::from(l)).sum::<u64>(), 1 << 34);
     }
 }

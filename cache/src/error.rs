@@ -22,16 +22,6 @@ pub enum ConfigError {
     /// The configuration lists no image.
     #[error("cache configuration lists no sparse image")]
     NoImages,
-    /// Two images use the same format.
-    #[error("images {first} and {second} both use format {format}; use one image per format")]
-    DuplicateFormat {
-        /// Format name.
-        format: &'static str,
-        /// Index of the first image with it.
-        first: usize,
-        /// Index of the second.
-        second: usize,
-    },
     /// A layer size is not a power of two, too small for the format or
     /// larger than the device or the cache supports.
     #[error("image {image} ({format}): layer size {layer_size}: {reason}")]

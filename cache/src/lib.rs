@@ -46,7 +46,7 @@ pub use cache::{
     BudgetUse, CacheStats, CycleBatch, EvictedLayer, EvictionReason, ImageId, MipUpload, Placement, TextureCache,
     Utilisation,
 };
-pub use config::{derive_layer_counts, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MAX_LAYER_SIZE};
+pub use config::{derive_image_layers, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MAX_LAYER_SIZE};
 pub use error::{CacheError, ConfigError};
 pub use estimate::{estimate_utilisation, UtilisationEstimate};
 pub use format::{DeviceLimits, Granularity, GranularityUnit, TexelFormat};

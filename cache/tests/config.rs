@@ -3,8 +3,8 @@
 mod common;
 
 use citystream_cache::{
-    CacheConfig, ConfigError, DeviceLimits, Granularity, GranularityUnit, ImageConfig, ImageDesc, TexelFormat,
-    TextureCache,
+    CacheConfig, CacheError, ConfigError, DeviceLimits, Granularity, GranularityUnit, ImageConfig, ImageDesc,
+    TexelFormat, TextureCache,
 };
 
 fn lavapipe_config(layer_size: u32, layer_count: u32) -> CacheConfig {
@@ -161,17 +161,6 @@ fn budgets_and_images_are_checked() {
     config.blocks_per_chunk = 0;
     assert!(matches!(config.validate(), Err(ConfigError::ZeroChunk)));
     let mut config = lavapipe_config(1024, 1);
-    config.images[1].format = TexelFormat::BC1;
-    config.images[1].granularity = Granularity::texels(512, 256);
-    assert!(matches!(
-        config.validate(),
-        Err(ConfigError::DuplicateFormat {
-            first: 0,
-            second: 1,
-            ..
-        })
-    ));
-    let mut config = lavapipe_config(1024, 1);
     config.images.clear();
     assert!(matches!(TextureCache::new(&config), Err(ConfigError::NoImages)));
 }
@@ -188,8 +177,49 @@ fn image_for_format_finds_the_right_image() -> Result<(), ConfigError> {
         bytes_per_block: 16,
     };
     assert_eq!(cache.image_for_format(&bc7), None);
+    assert_eq!(cache.images_for_format(&bc7), Vec::<u32>::new());
     let images: Vec<ImageDesc> = cache.images();
     assert_eq!(images.len(), 2);
     assert_eq!(images[0].layer_count, 2);
+    Ok(())
+}
+
+#[test]
+fn a_format_may_have_several_images() -> Result<(), ConfigError> {
+    let mut config = lavapipe_config(1024, 2);
+    config.images.push(config.images[0]);
+    let cache = TextureCache::new(&config)?;
+    assert_eq!(cache.image_for_format(&TexelFormat::BC1), Some(0));
+    assert_eq!(cache.images_for_format(&TexelFormat::BC1), vec![0, 2]);
+    assert_eq!(cache.images_for_format(&TexelFormat::RGBA8), vec![1]);
+    Ok(())
+}
+
+#[test]
+fn textures_of_a_format_fill_each_of_its_images_then_reuse_the_oldest_layer() -> Result<(), Box<dyn std::error::Error>>
+{
+    // Two BC1 images of one layer each; a 1024² texture fills a layer.
+    let mut config = lavapipe_config(1024, 1);
+    config.images.push(config.images[0]);
+    let cache = TextureCache::new(&config)?;
+    let bc1 = cache.images_for_format(&TexelFormat::BC1);
+    let first = cache.try_insert_in(&bc1, 1, 1024, 1024)?;
+    let second = cache.try_insert_in(&bc1, 2, 1024, 1024)?;
+    assert_eq!(
+        (first.image, second.image),
+        (0, 2),
+        "the second image takes what the first cannot"
+    );
+    assert!(matches!(
+        cache.try_insert_in(&bc1, 3, 1024, 1024),
+        Err(CacheError::NoLayer { image: 0, extent: 1024 })
+    ));
+    // The ring over both images reuses the oldest layer: texture 1's.
+    let third = cache.insert_in(&bc1, 3, 1024, 1024)?;
+    assert_eq!(third.image, 0);
+    assert!(!cache.is_live(&first) && cache.is_live(&second) && cache.is_live(&third));
+    let fourth = cache.insert_in(&bc1, 4, 1024, 1024)?;
+    assert_eq!(fourth.image, 2);
+    assert!(!cache.is_live(&second) && cache.is_live(&third));
     Ok(())
 }

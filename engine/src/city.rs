@@ -330,7 +330,7 @@ impl CityRenderer {
         cache_descriptors.push((BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())));
         let visible_bindings: Vec<BindingSpec> = cache_descriptors
             .iter()
-            .map(|(binding, resource)| (*binding, resource.descriptor_type(), 1, fragment))
+            .map(|(binding, resource)| (*binding, resource.descriptor_type(), resource.count(), fragment))
             .collect();
         let visible = city_pipeline(
             device,

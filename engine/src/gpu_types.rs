@@ -70,10 +70,14 @@ pub struct CompactPush {
     pub pad0: u32,
 }
 
-/// Binding of cache image 0 (BC1) in passes that sample city textures.
-pub const BINDING_CACHE_IMAGE0: u32 = 10;
-/// Binding of cache image 1 (RGBA8).
-pub const BINDING_CACHE_IMAGE1: u32 = 11;
+/// Binding of the cache images in passes that sample city textures: an
+/// array of [`CACHE_IMAGE_SLOTS`] combined image samplers, indexed by
+/// [`TextureData::image`].
+pub const BINDING_CACHE_IMAGES: u32 = 10;
+/// Elements of the [`BINDING_CACHE_IMAGES`] array: the most sparse images
+/// the cache may create over all formats. Eight leaves room under the
+/// sixteen samplers per stage every Vulkan device offers for a host's own.
+pub const CACHE_IMAGE_SLOTS: u32 = 8;
 /// Binding of the per-texture [`TextureData`] table.
 pub const BINDING_TEXTURE_DATA: u32 = 12;
 /// Binding of the City Colormap (RGBA8 packed in a `uint` per texture).
@@ -477,8 +481,7 @@ mod tests {
             ("BINDING_COMPACT_SPARSE", BINDING_COMPACT_SPARSE),
             ("BINDING_COMPACT_DENSE", BINDING_COMPACT_DENSE),
             ("BINDING_COMPACT_COUNTER", BINDING_COMPACT_COUNTER),
-            ("BINDING_CACHE_IMAGE0", BINDING_CACHE_IMAGE0),
-            ("BINDING_CACHE_IMAGE1", BINDING_CACHE_IMAGE1),
+            ("BINDING_CACHE_IMAGES", BINDING_CACHE_IMAGES),
             ("BINDING_TEXTURE_DATA", BINDING_TEXTURE_DATA),
             ("BINDING_COLORMAP", BINDING_COLORMAP),
             ("BINDING_TEXTURE_PROBE_POINTS", BINDING_TEXTURE_PROBE_POINTS),
@@ -494,6 +497,11 @@ mod tests {
         for (name, value) in rust {
             assert_eq!(defines.get(name), Some(&value), "{name} differs between GLSL and Rust");
         }
+        let slots = header
+            .lines()
+            .find_map(|line| line.strip_prefix("#define CACHE_IMAGE_SLOTS "))
+            .and_then(|rest| rest.split_whitespace().next()?.parse::<u32>().ok());
+        assert_eq!(slots, Some(CACHE_IMAGE_SLOTS));
     }
 
     #[test]

@@ -6,6 +6,7 @@ use ash::vk;
 
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
+use crate::gpu_types::CACHE_IMAGE_SLOTS;
 use crate::shaders::ShaderSource;
 
 /// Creates a shader module from embedded SPIR-V. The module is only needed
@@ -378,6 +379,9 @@ pub enum DescriptorResource {
     UniformBuffer(vk::Buffer),
     /// A combined image sampler in SHADER_READ_ONLY_OPTIMAL.
     SampledImage(vk::ImageView, vk::Sampler),
+    /// An array binding of combined image samplers in
+    /// SHADER_READ_ONLY_OPTIMAL, one view per element, one sampler for all.
+    SampledImageArray([vk::ImageView; CACHE_IMAGE_SLOTS as usize], vk::Sampler),
 }
 
 impl DescriptorResource {
@@ -386,7 +390,17 @@ impl DescriptorResource {
         match self {
             DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
             DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
-            DescriptorResource::SampledImage(..) => vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
+            DescriptorResource::SampledImage(..) | DescriptorResource::SampledImageArray(..) => {
+                vk::DescriptorType::COMBINED_IMAGE_SAMPLER
+            }
+        }
+    }
+
+    /// Descriptors in the binding (its `descriptorCount`).
+    pub fn count(&self) -> u32 {
+        match self {
+            DescriptorResource::SampledImageArray(views, _) => views.len() as u32,
+            _ => 1,
         }
     }
 }
@@ -438,18 +452,22 @@ impl DescriptorPool {
                         range: vk::WHOLE_SIZE,
                     }]
                 }
-                DescriptorResource::SampledImage(..) => [vk::DescriptorBufferInfo::default()],
+                _ => [vk::DescriptorBufferInfo::default()],
             })
             .collect();
-        let image_infos: Vec<[vk::DescriptorImageInfo; 1]> = resources
+        let sampled = |sampler, image_view| vk::DescriptorImageInfo {
+            sampler,
+            image_view,
+            image_layout: vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        };
+        let image_infos: Vec<Vec<vk::DescriptorImageInfo>> = resources
             .iter()
             .map(|(_, r)| match *r {
-                DescriptorResource::SampledImage(view, sampler) => [vk::DescriptorImageInfo {
-                    sampler,
-                    image_view: view,
-                    image_layout: vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-                }],
-                _ => [vk::DescriptorImageInfo::default()],
+                DescriptorResource::SampledImage(view, sampler) => vec![sampled(sampler, view)],
+                DescriptorResource::SampledImageArray(views, sampler) => {
+                    views.iter().map(|&view| sampled(sampler, view)).collect()
+                }
+                _ => Vec::new(),
             })
             .collect();
         let writes: Vec<_> = resources
@@ -464,7 +482,9 @@ impl DescriptorPool {
                     DescriptorResource::StorageBuffer(_) | DescriptorResource::UniformBuffer(_) => {
                         write.buffer_info(&buffer_infos[i])
                     }
-                    DescriptorResource::SampledImage(..) => write.image_info(&image_infos[i]),
+                    DescriptorResource::SampledImage(..) | DescriptorResource::SampledImageArray(..) => {
+                        write.image_info(&image_infos[i])
+                    }
                 }
             })
             .collect();

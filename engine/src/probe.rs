@@ -12,9 +12,9 @@ use crate::commands::{CommandContext, SemaphoreWait};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
-    ProbePoint, ProbeResult, TextureProbePoint, BINDING_CACHE_IMAGE0, BINDING_CACHE_IMAGE1, BINDING_COLORMAP,
-    BINDING_PROBE_POINTS, BINDING_PROBE_RESULTS, BINDING_PROBE_TEXTURE, BINDING_TEXTURE_DATA,
-    BINDING_TEXTURE_PROBE_POINTS, BINDING_TEXTURE_PROBE_RESULTS,
+    ProbePoint, ProbeResult, TextureProbePoint, BINDING_CACHE_IMAGES, BINDING_COLORMAP, BINDING_PROBE_POINTS,
+    BINDING_PROBE_RESULTS, BINDING_PROBE_TEXTURE, BINDING_TEXTURE_DATA, BINDING_TEXTURE_PROBE_POINTS,
+    BINDING_TEXTURE_PROBE_RESULTS, CACHE_IMAGE_SLOTS,
 };
 use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorPool, DescriptorResource, Filtering, Pipeline, Sampler};
@@ -121,15 +121,9 @@ impl TextureProbe {
             &shaders::TEXTURE_PROBE_COMP,
             &[
                 (
-                    BINDING_CACHE_IMAGE0,
+                    BINDING_CACHE_IMAGES,
                     vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    1,
-                    compute,
-                ),
-                (
-                    BINDING_CACHE_IMAGE1,
-                    vk::DescriptorType::COMBINED_IMAGE_SAMPLER,
-                    1,
+                    CACHE_IMAGE_SLOTS,
                     compute,
                 ),
                 (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, compute),

@@ -156,17 +156,17 @@ impl MipSource for DatasetSource {
     }
 }
 
-/// Per cache image, how many textures of each extent the source holds.
+/// Per cache format, how many textures of each extent the source holds.
 fn texture_extents<S: MipSource + ?Sized>(source: &S) -> Result<Vec<Vec<(u32, u64)>>> {
     let mut counts: Vec<std::collections::BTreeMap<u32, u64>> = vec![Default::default(); CACHE_FORMATS.len()];
     for texture in 0..source.texture_count() {
         let format = source.texture_format(texture).map_err(source_failure)?;
-        let Some(image) = GpuTextureCache::image_of(format) else {
+        let Some(format) = GpuTextureCache::format_index(format) else {
             continue; // Refused with a typed error when it is staged.
         };
         let chain = source.mip_chain(texture).map_err(source_failure)?;
         let extent = chain.width.max(chain.height).max(1).next_power_of_two();
-        *counts[image as usize].entry(extent).or_default() += 1;
+        *counts[format].entry(extent).or_default() += 1;
     }
     Ok(counts.into_iter().map(|c| c.into_iter().collect()).collect())
 }
@@ -227,12 +227,13 @@ pub struct StreamConfig {
     pub frames_in_flight: u32,
     /// Side of every cache array layer in texels (a power of two).
     pub layer_size: u32,
-    /// Layers per cache image; `None` derives them from the textures each
-    /// image must place, the memory budget and the device
-    /// ([`citystream_cache::derive_layer_counts`]).
+    /// Layers of the one cache image per format; `None` derives images and
+    /// layers from the textures each format must place, the memory budget
+    /// and the device ([`citystream_cache::derive_image_layers`]).
     pub layer_count: Option<u32>,
-    /// A lower layer limit than the device's `maxImageArrayLayers` (hosts
-    /// sharing the device, tests of small devices).
+    /// A lower layer limit per image than the device's
+    /// `maxImageArrayLayers` (hosts sharing the device, tests of small
+    /// devices); a format needing more layers gets more images.
     pub max_layers: Option<u32>,
     /// How memory is freed at the budget.
     pub eviction: Eviction,
@@ -335,6 +336,7 @@ pub struct ResidencyTotals {
 #[derive(Clone, Debug)]
 struct LayerVictim {
     worth: KeepValue,
+    image: u32,
     layer: u32,
     textures: Vec<u32>,
 }
@@ -865,15 +867,21 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         Ok(made)
     }
 
-    /// The live layers of `image` ranked for eviction, least worth last (so
-    /// `pop` takes it): a layer is worth its most valuable texture at that
-    /// texture's coarsest resident level.
+    /// The live layers of `image` and the other images of its format ranked
+    /// for eviction, least worth last (so `pop` takes it): a layer is worth
+    /// its most valuable texture at that texture's coarsest resident level.
     fn rank_layers(&self, image: u32) -> Vec<LayerVictim> {
         let mut layers: Vec<LayerVictim> = self
             .cache
-            .layer_textures(image)
-            .into_iter()
-            .map(|(layer, textures)| {
+            .images_sharing_format(image)
+            .iter()
+            .flat_map(|&image| {
+                self.cache
+                    .layer_textures(image)
+                    .into_iter()
+                    .map(move |(layer, textures)| (image, layer, textures))
+            })
+            .map(|(image, layer, textures)| {
                 let mut worth = KeepValue {
                     class: NeedClass::OutOfView,
                     rank: f64::NEG_INFINITY,
@@ -891,7 +899,12 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                         worth = value;
                     }
                 }
-                LayerVictim { worth, layer, textures }
+                LayerVictim {
+                    worth,
+                    image,
+                    layer,
+                    textures,
+                }
             })
             .collect();
         // Oldest first among equals, as the ring would.
@@ -900,7 +913,8 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         layers
     }
 
-    /// Evicts the live layer of `image` worth least, if every texture in it
+    /// Evicts the live layer worth least among the images of `image`'s
+    /// format, if every texture in it
     /// (at its most valuable, coarsest resident level) is worth less than
     /// `load` and none has a mip staged in this cycle. Its textures are
     /// reloaded from their first level when the view asks again. The
@@ -924,7 +938,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             if least.textures.iter().any(|&t| self.cache.has_pending(t)) {
                 continue;
             }
-            self.cache.evict_layer(image, least.layer)?;
+            self.cache.evict_layer(least.image, least.layer)?;
             self.totals.evicted_layers += 1;
             self.last_cycle.evicted_layers += 1;
             dropped_now.extend(least.textures);

@@ -1,5 +1,6 @@
-//! The GPU half of the sparse texture cache (paper §3.6): one sparse
-//! 2D-array image per format, pooled block memory, the per-texture
+//! The GPU half of the sparse texture cache (paper §3.6): sparse 2D-array
+//! images per format (more than one where one image's layers are too few
+//! for the format's share of the budget), pooled block memory, the per-texture
 //! [`TextureData`] table and the City Colormap that shaders read.
 //!
 //! Packing, block accounting and eviction are the Vulkan-free
@@ -30,7 +31,7 @@ use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::{
-    derive_layer_counts, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, ImageDemand, Placement,
+    derive_image_layers, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, ImageDemand, Placement,
     TexelFormat, TextureCache, Utilisation,
 };
 use citystream_streaming::dataset::TextureFormat;
@@ -42,7 +43,7 @@ use crate::commands::{CommandContext, SemaphoreWait};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
-    TextureData, BINDING_CACHE_IMAGE0, BINDING_CACHE_IMAGE1, BINDING_COLORMAP, BINDING_TEXTURE_DATA,
+    TextureData, BINDING_CACHE_IMAGES, BINDING_COLORMAP, BINDING_TEXTURE_DATA, CACHE_IMAGE_SLOTS,
     TEXTURE_NOT_SAMPLEABLE, TEXTURE_SAMPLEABLE,
 };
 use crate::image::memory_barrier;
@@ -51,8 +52,9 @@ use crate::scene::upload_buffer;
 use crate::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
 use crate::staging::StagingRing;
 
-/// The cache images, in binding order: image 0 is BC1 (`BINDING_CACHE_IMAGE0`),
-/// image 1 is RGBA8 (`BINDING_CACHE_IMAGE1`).
+/// The formats the cache holds. Each has one sparse image or more; the
+/// images of all formats fill the `BINDING_CACHE_IMAGES` array in this
+/// order, so with one image per format image 0 is BC1 and image 1 RGBA8.
 pub const CACHE_FORMATS: [(TextureFormat, vk::Format, TexelFormat); 2] = [
     (TextureFormat::Bc1, vk::Format::BC1_RGB_UNORM_BLOCK, TexelFormat::BC1),
     (TextureFormat::Rgba8, vk::Format::R8G8B8A8_UNORM, TexelFormat::RGBA8),
@@ -84,14 +86,15 @@ impl Eviction {
 /// How many array layers each cache image has.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum CacheLayers {
-    /// The same count for every image.
+    /// One image per format, each with this many layers.
     Fixed(u32),
-    /// Derived ([`citystream_cache::derive_layer_counts`]) from the textures
-    /// each image must place, the memory budget, the device's
-    /// `maxImageArrayLayers` (or `max_layers` if lower) and the virtual
-    /// budget.
+    /// Derived ([`citystream_cache::derive_image_layers`]) from the textures
+    /// each format must place, the memory budget, the device's
+    /// `maxImageArrayLayers` (or `max_layers` if lower; a format needing
+    /// more gets more images, up to `CACHE_IMAGE_SLOTS` in all) and the
+    /// virtual budget.
     Derived {
-        /// Per image in [`CACHE_FORMATS`] order: `(extent, textures)`.
+        /// Per format in [`CACHE_FORMATS`] order: `(extent, textures)`.
         extents: Vec<Vec<(u32, u64)>>,
         /// A lower layer limit than the device's, if any.
         max_layers: Option<u32>,
@@ -103,7 +106,7 @@ pub enum CacheLayers {
 pub struct GpuCacheConfig {
     /// Side of every array layer in texels (a power of two).
     pub layer_size: u32,
-    /// Layers per cache image.
+    /// Images and layers per format.
     pub layers: CacheLayers,
     /// Bytes of bound blocks allowed; reaching it evicts the oldest layer.
     pub memory_budget_bytes: u64,
@@ -176,10 +179,12 @@ pub enum StageOutcome {
         /// Blocks the mip needs newly bound.
         needed_blocks: u64,
     },
-    /// [`Eviction::View`]: the texture needs a new layer of `image` and all
-    /// are live; the caller may free one ([`GpuTextureCache::evict_layer`]).
+    /// [`Eviction::View`]: the texture needs a new layer and every layer of
+    /// every image of its format is live; the caller may free one
+    /// ([`GpuTextureCache::evict_layer`] on any of
+    /// [`GpuTextureCache::images_sharing_format`]).
     NoLayer {
-        /// The cache image.
+        /// The first cache image of the texture's format.
         image: u32,
         /// The texture's extent.
         extent: u32,
@@ -210,6 +215,10 @@ pub struct GpuTextureCache {
     device: Arc<Device>,
     cache: TextureCache,
     images: Vec<Arc<SparseImage>>,
+    /// Per image, its format's index in [`CACHE_FORMATS`].
+    image_formats: Vec<usize>,
+    /// Per format in [`CACHE_FORMATS`], its images.
+    format_images: Vec<Vec<u32>>,
     binder: VulkanBinder,
     block_size: u64,
     memory_type_bits: u32,
@@ -283,8 +292,8 @@ impl GpuTextureCache {
         let virtual_budget_bytes = config
             .virtual_budget_bytes
             .unwrap_or(device.sparse_support().address_space_size);
-        let layer_counts = match &config.layers {
-            CacheLayers::Fixed(count) => vec![*count; CACHE_FORMATS.len()],
+        let layer_counts: Vec<Vec<u32>> = match &config.layers {
+            CacheLayers::Fixed(count) => vec![vec![*count]; CACHE_FORMATS.len()],
             CacheLayers::Derived { extents, max_layers } => {
                 let max_layers =
                     max_layers.map_or(limits.max_image_array_layers, |m| m.min(limits.max_image_array_layers));
@@ -304,28 +313,45 @@ impl GpuTextureCache {
                     .collect();
                 // The images share one block size (checked once they exist).
                 let block_bytes = probes.first().map_or(1, |probe| probe.block_bytes.max(1));
-                derive_layer_counts(
+                derive_image_layers(
                     config.layer_size,
                     &demands,
                     config.memory_budget_bytes / block_bytes,
                     max_layers,
+                    CACHE_IMAGE_SLOTS,
                     virtual_budget_bytes,
                 )
             }
         };
-        let mut images = Vec::with_capacity(CACHE_FORMATS.len());
-        let mut image_configs = Vec::with_capacity(CACHE_FORMATS.len());
-        for (index, (_, vk_format, texel_format)) in CACHE_FORMATS.into_iter().enumerate() {
+        let image_count: usize = layer_counts.iter().map(Vec::len).sum();
+        if image_count > CACHE_IMAGE_SLOTS as usize || layer_counts.iter().any(Vec::is_empty) {
+            return Err(EngineError::InvalidRequest(format!(
+                "the cache needs 1 to {CACHE_IMAGE_SLOTS} images per format and {CACHE_IMAGE_SLOTS} in all; \
+                 {layer_counts:?} layers were asked for"
+            )));
+        }
+        let mut images = Vec::with_capacity(image_count);
+        let mut image_configs = Vec::with_capacity(image_count);
+        let mut image_formats = Vec::with_capacity(image_count);
+        let mut format_images = vec![Vec::new(); CACHE_FORMATS.len()];
+        let layouts = layer_counts.iter().enumerate().flat_map(|(format, counts)| {
+            counts
+                .iter()
+                .enumerate()
+                .map(move |(nth, &layers)| (format, nth, layers))
+        });
+        for (format_index, nth, layers) in layouts {
+            let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
             let image = SparseImage::new(
                 device,
                 SparseImageDesc {
                     width: config.layer_size,
                     height: config.layer_size,
-                    layers: layer_counts[index],
+                    layers,
                     mips,
                     format: vk_format,
                 },
-                &format!("cache {}", texel_format.name),
+                &format!("cache {} #{nth}", texel_format.name),
             )?;
             if image.mip_tail_first_lod() < mips {
                 return Err(EngineError::MissingFeature {
@@ -343,8 +369,10 @@ impl GpuTextureCache {
                 format: texel_format,
                 granularity: Granularity::texels(gw, gh),
                 layer_size: config.layer_size,
-                layer_count: layer_counts[index],
+                layer_count: layers,
             });
+            format_images[format_index].push(images.len() as u32);
+            image_formats.push(format_index);
             images.push(Arc::new(image));
         }
         let block_size = images.iter().map(|i| i.block_size()).max().unwrap_or(0);
@@ -403,6 +431,8 @@ impl GpuTextureCache {
             device: Arc::clone(device),
             cache,
             images,
+            image_formats,
+            format_images,
             binder,
             block_size,
             memory_type_bits,
@@ -427,16 +457,17 @@ impl GpuTextureCache {
     }
 
     /// The descriptors a pass needs to sample city textures (bindings
-    /// `BINDING_CACHE_IMAGE0/1`, `BINDING_TEXTURE_DATA`, `BINDING_COLORMAP`).
-    pub fn descriptors(&self) -> [(u32, DescriptorResource); 4] {
+    /// `BINDING_CACHE_IMAGES`, an array whose unused elements repeat image
+    /// 0, `BINDING_TEXTURE_DATA` and `BINDING_COLORMAP`).
+    pub fn descriptors(&self) -> [(u32, DescriptorResource); 3] {
+        let mut views = [self.images[0].view(); CACHE_IMAGE_SLOTS as usize];
+        for (slot, image) in views.iter_mut().zip(&self.images) {
+            *slot = image.view();
+        }
         [
             (
-                BINDING_CACHE_IMAGE0,
-                DescriptorResource::SampledImage(self.images[0].view(), self.sampler.raw()),
-            ),
-            (
-                BINDING_CACHE_IMAGE1,
-                DescriptorResource::SampledImage(self.images[1].view(), self.sampler.raw()),
+                BINDING_CACHE_IMAGES,
+                DescriptorResource::SampledImageArray(views, self.sampler.raw()),
             ),
             (
                 BINDING_TEXTURE_DATA,
@@ -508,12 +539,17 @@ impl GpuTextureCache {
         self.dropped_bytes
     }
 
-    /// The cache image (index into [`CACHE_FORMATS`]) of `format`.
-    pub fn image_of(format: TextureFormat) -> Option<u32> {
-        CACHE_FORMATS
-            .iter()
-            .position(|(f, _, _)| *f == format)
-            .map(|i| i as u32)
+    /// The index of `format` in [`CACHE_FORMATS`], if the cache holds it.
+    pub fn format_index(format: TextureFormat) -> Option<usize> {
+        CACHE_FORMATS.iter().position(|(f, _, _)| *f == format)
+    }
+
+    /// The images holding textures of the same format as `image` (itself
+    /// included), in index order.
+    pub fn images_sharing_format(&self, image: u32) -> &[u32] {
+        self.image_formats
+            .get(image as usize)
+            .map_or(&[], |&format| self.format_images[format].as_slice())
     }
 
     /// Textures placed in each live layer of `image`: `(layer, textures)`,
@@ -596,18 +632,23 @@ impl GpuTextureCache {
             .slots
             .get(texture as usize)
             .ok_or_else(|| EngineError::InvalidRequest(format!("texture {texture} is outside the cache's table")))?;
-        let image_index = Self::image_of(format).ok_or_else(|| EngineError::UnsupportedFormat {
+        let format_index = Self::format_index(format).ok_or_else(|| EngineError::UnsupportedFormat {
             texture,
             format: format!("{format:?}"),
             reason: "the cache has no sparse image of that format".into(),
         })?;
-        let texel_format = CACHE_FORMATS[image_index as usize].2;
+        let texel_format = CACHE_FORMATS[format_index].2;
+        let images = &self.format_images[format_index];
         let placement = match slot.placement {
-            Some(p) if self.cache.is_live(&p) && p.image == image_index && p.width == width && p.height == height => p,
+            Some(p)
+                if self.cache.is_live(&p) && images.contains(&p.image) && p.width == width && p.height == height =>
+            {
+                p
+            }
             _ => {
                 let inserted = match self.eviction {
-                    Eviction::Ring => self.cache.insert(image_index, u64::from(texture), width, height),
-                    Eviction::View => self.cache.try_insert(image_index, u64::from(texture), width, height),
+                    Eviction::Ring => self.cache.insert_in(images, u64::from(texture), width, height),
+                    Eviction::View => self.cache.try_insert_in(images, u64::from(texture), width, height),
                 };
                 let fresh = match inserted {
                     Ok(fresh) => fresh,
@@ -654,7 +695,7 @@ impl GpuTextureCache {
         self.uploads.push(PendingUpload {
             texture,
             placement,
-            image: image_index,
+            image: placement.image,
             upload: TexelUpload {
                 layer: upload.layer,
                 mip,

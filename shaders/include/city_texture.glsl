@@ -6,9 +6,31 @@
 
 #include "texture_table.glsl"
 
-layout(set = CITYSTREAM_SET, binding = BINDING_CACHE_IMAGE0) uniform sampler2DArray cache_image0;
-layout(set = CITYSTREAM_SET, binding = BINDING_CACHE_IMAGE1) uniform sampler2DArray cache_image1;
+layout(set = CITYSTREAM_SET, binding = BINDING_CACHE_IMAGES) uniform sampler2DArray cache_images[CACHE_IMAGE_SLOTS];
 layout(std430, set = CITYSTREAM_SET, binding = BINDING_COLORMAP) readonly buffer Colormap { uint colormap[]; };
+
+// The image a texture lives in varies between fragments of one draw, and
+// indexing a sampler array by a value that is not dynamically uniform needs
+// a device feature; a switch with constant indices needs none.
+#define CITYSTREAM_CACHE_CASE(i) case i: return sparseTextureLodARB(cache_images[i], coord, lod, texel);
+int cache_sparse_lod(uint image, vec3 coord, float lod, out vec4 texel) {
+    switch (int(image)) {
+        CITYSTREAM_CACHE_CASE(1)
+        CITYSTREAM_CACHE_CASE(2)
+        CITYSTREAM_CACHE_CASE(3)
+        CITYSTREAM_CACHE_CASE(4)
+        CITYSTREAM_CACHE_CASE(5)
+        CITYSTREAM_CACHE_CASE(6)
+        CITYSTREAM_CACHE_CASE(7)
+        default: return sparseTextureLodARB(cache_images[0], coord, lod, texel);
+    }
+}
+#undef CITYSTREAM_CACHE_CASE
+
+// Every cache image has the same layer size.
+vec2 cache_layer_texels() {
+    return vec2(textureSize(cache_images[0], 0).xy);
+}
 
 vec4 colormap_colour(uint texture_id) {
     return unpackUnorm4x8(colormap[texture_id]);
@@ -30,10 +52,7 @@ bool sample_city_texture_level(uint texture_id, vec2 uv, float lod, out vec4 col
     // Wrap inside the texture's own region: repeated UVs never reach a
     // neighbour. Clamping half a texel of the coarser level sampled inside the
     // region keeps linear filtering from bleeding across its edge.
-    vec2 region_texels = t.uv_transform.xy * vec2(textureSize(cache_image0, 0).xy);
-    if (t.image != 0u) {
-        region_texels = t.uv_transform.xy * vec2(textureSize(cache_image1, 0).xy);
-    }
+    vec2 region_texels = t.uv_transform.xy * cache_layer_texels();
     vec2 half_texel = 0.5 * exp2(ceil(level)) / max(region_texels, vec2(1.0));
     vec2 inside = clamp(fract(uv), min(half_texel, vec2(0.5)), max(1.0 - half_texel, vec2(0.5)));
     vec2 layer_uv = inside * t.uv_transform.xy + t.uv_transform.zw;
@@ -46,22 +65,13 @@ bool sample_city_texture_level(uint texture_id, vec2 uv, float lod, out vec4 col
     float coarse = min(fine + 1.0, float(t.mip_count - 1u));
     float blend = level - fine;
     vec4 texel;
-    int code;
-    if (t.image == 0u) {
-        code = sparseTextureLodARB(cache_image0, coord, fine, texel);
-    } else {
-        code = sparseTextureLodARB(cache_image1, coord, fine, texel);
-    }
+    int code = cache_sparse_lod(t.image, coord, fine, texel);
     if (!sparseTexelsResidentARB(code)) {
         return false;
     }
     if (blend > 0.0 && coarse > fine) {
         vec4 coarse_texel;
-        if (t.image == 0u) {
-            code = sparseTextureLodARB(cache_image0, coord, coarse, coarse_texel);
-        } else {
-            code = sparseTextureLodARB(cache_image1, coord, coarse, coarse_texel);
-        }
+        code = cache_sparse_lod(t.image, coord, coarse, coarse_texel);
         if (!sparseTexelsResidentARB(code)) {
             return false;
         }

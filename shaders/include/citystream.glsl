@@ -25,8 +25,8 @@
 #define BINDING_COMPACT_COUNTER 2    // FeedbackCounter
 
 // ---- City texturing: shared by every pass that samples cached textures -----
-#define BINDING_CACHE_IMAGE0 10      // sampler2DArray: sparse cache image 0 (BC1)
-#define BINDING_CACHE_IMAGE1 11      // sampler2DArray: sparse cache image 1 (RGBA8)
+#define BINDING_CACHE_IMAGES 10      // sampler2DArray[CACHE_IMAGE_SLOTS]: the sparse cache images, indexed by TextureData.image
+#define CACHE_IMAGE_SLOTS 8          // elements of BINDING_CACHE_IMAGES (unused ones repeat image 0)
 #define BINDING_TEXTURE_DATA 12      // TextureData[], one per dataset texture
 #define BINDING_COLORMAP 13          // uint[], the City Colormap, RGBA8 packed, one per texture
 

@@ -4,7 +4,7 @@
 //
 // Define CITYSTREAM_SET before including to choose the descriptor set of
 // the streamer's bindings (default 0); their binding numbers are fixed
-// (BINDING_CACHE_IMAGE0/1, BINDING_TEXTURE_DATA, BINDING_COLORMAP,
+// (BINDING_CACHE_IMAGES, BINDING_TEXTURE_DATA, BINDING_COLORMAP,
 // BINDING_FEEDBACK_MESHES in citystream.glsl). The shader needs
 // GL_ARB_sparse_texture2 for sampling. See docs/EMBEDDING.md.
 #ifndef CITYSTREAM_HOST_GLSL

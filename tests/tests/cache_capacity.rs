@@ -1,7 +1,8 @@
 //! The cache's layers come from the textures, the budget and the device,
-//! not from a constant: on a device that allows few layers (a configured
-//! limit) the count follows the budget up to that limit, and the streamer
-//! still serves every texture by reusing layers.
+//! not from a constant: on a device that allows few layers per image (a
+//! configured limit) the count still follows the budget, in more images of
+//! the format; where the images' slots run out too, the streamer still
+//! serves every texture by reusing layers.
 
 use std::sync::Arc;
 
@@ -37,44 +38,81 @@ fn streamer(device: &Arc<Device>, budget_bytes: u64, max_layers: Option<u32>) ->
     )?)
 }
 
-fn bc1_layers(streamer: &TextureStreamer<MemorySource>) -> u32 {
-    streamer.cache().packing().images()[0].layer_count
+/// Layers of each BC1 image.
+fn bc1_layers(streamer: &TextureStreamer<MemorySource>) -> Vec<u32> {
+    let images = streamer.cache().packing().images();
+    images
+        .iter()
+        .filter(|image| image.format.name == "BC1")
+        .map(|image| image.layer_count)
+        .collect()
 }
 
 #[test]
-fn layers_follow_the_budget_up_to_the_device_limit() -> Result<()> {
+fn layers_follow_the_budget_whatever_the_layer_limit() -> Result<()> {
     let device = validated_device()?;
     let block = 64 << 10;
     // Enough budget for every texture: one layer each.
     let roomy = streamer(&device, 64 * block, None)?;
-    ensure!(
-        bc1_layers(&roomy) == TEXTURES,
-        "{} layers for {TEXTURES} textures",
-        bc1_layers(&roomy)
-    );
+    ensure!(bc1_layers(&roomy) == [TEXTURES], "{:?} layers", bc1_layers(&roomy));
     drop(roomy);
-    // A device limit of 4 layers caps it.
+    // A limit of 4 layers per image: the twelve layers in three images.
     let few = streamer(&device, 64 * block, Some(4))?;
-    ensure!(bc1_layers(&few) == 4, "{} layers under a limit of 4", bc1_layers(&few));
+    ensure!(
+        bc1_layers(&few) == [4, 4, 4],
+        "{:?} layers under a limit of 4",
+        bc1_layers(&few)
+    );
     drop(few);
     // Three blocks of budget can keep at most three layers live.
     let small = streamer(&device, 3 * block, Some(4))?;
     ensure!(
-        bc1_layers(&small) == 3,
-        "{} layers for a 3-block budget",
+        bc1_layers(&small) == [3],
+        "{:?} layers for a 3-block budget",
         bc1_layers(&small)
     );
     drop(small);
+    // Nine blocks under a limit of 2: five images of two layers or fewer.
+    let nine = streamer(&device, 9 * block, Some(2))?;
+    ensure!(
+        bc1_layers(&nine) == [2, 2, 2, 2, 1],
+        "{:?} layers for a 9-block budget, 2 per image",
+        bc1_layers(&nine)
+    );
+    drop(nine);
+    assert_no_validation_errors(&device)
+}
+
+#[test]
+fn textures_in_several_images_are_all_resident_at_once() -> Result<()> {
+    let device = validated_device()?;
+    let mut streamer = streamer(&device, 64 << 20, Some(4))?;
+    let mut commands = citystream_engine::commands::CommandContext::new(&device, "capacity test")?;
+    let coarsest = 6; // 4x4 of a 256² texture
+    for texture in 0..TEXTURES {
+        streamer.load_now(&[(texture, coarsest)], &mut commands)?;
+    }
+    for texture in 0..TEXTURES {
+        ensure!(
+            streamer.cache().resident_levels(texture) & (1 << coarsest) != 0,
+            "texture {texture} is not resident"
+        );
+    }
+    let evicted = streamer.residency_totals().evicted_layers;
+    ensure!(evicted == 0, "{evicted} layers evicted with room for every texture");
+    drop(streamer);
     assert_no_validation_errors(&device)
 }
 
 #[test]
 fn textures_beyond_the_layers_are_served_by_evicting_layers_the_view_does_not_need() -> Result<()> {
     let device = validated_device()?;
-    let mut streamer = streamer(&device, 64 << 20, Some(4))?;
+    // One layer per image: BC1 gets the seven image slots RGBA8 leaves.
+    let mut streamer = streamer(&device, 64 << 20, Some(1))?;
+    ensure!(bc1_layers(&streamer) == [1; 7], "{:?} layers", bc1_layers(&streamer));
     let mut commands = citystream_engine::commands::CommandContext::new(&device, "capacity test")?;
     // Load every texture's coarsest level, one after another: twelve
-    // textures through four layers.
+    // textures through seven layers.
     for texture in 0..TEXTURES {
         let coarsest = 6; // 4x4 of a 256² texture
         streamer.load_now(&[(texture, coarsest)], &mut commands)?;
@@ -85,8 +123,8 @@ fn textures_beyond_the_layers_are_served_by_evicting_layers_the_view_does_not_ne
     }
     let evicted = streamer.residency_totals().evicted_layers;
     ensure!(
-        evicted == u64::from(TEXTURES - 4),
-        "{evicted} layers evicted for {TEXTURES} textures in 4 layers"
+        evicted == u64::from(TEXTURES - 7),
+        "{evicted} layers evicted for {TEXTURES} textures in 7 layers"
     );
     drop(streamer);
     assert_no_validation_errors(&device)

@@ -485,3 +485,103 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
     drop(commands);
     assert_no_validation_errors(&device)
 }
+
+#[test]
+fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
+    let device = validated_device()?;
+    let mut rng = SplitMix64::new(77);
+    // One texture per layer; a limit of three layers per image spreads ten
+    // BC1 textures over four images and four RGBA8 ones over two.
+    let mut sources: Vec<SourceTexture> = (0..10)
+        .map(|_| SourceTexture::random(&mut rng, TextureFormat::Bc1, LAYER_SIZE, LAYER_SIZE))
+        .collect();
+    sources.extend((0..4).map(|_| SourceTexture::random(&mut rng, TextureFormat::Rgba8, LAYER_SIZE, LAYER_SIZE)));
+    let mut commands = CommandContext::new(&device, "multi-image cache test")?;
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &GpuCacheConfig {
+            layer_size: LAYER_SIZE,
+            layers: CacheLayers::Derived {
+                extents: vec![vec![(LAYER_SIZE, 10)], vec![(LAYER_SIZE, 4)]],
+                max_layers: Some(3),
+            },
+            eviction: Eviction::View,
+            memory_budget_bytes: 256 << 20,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 64,
+            texture_count: sources.len() as u32,
+            filtering: Filtering::Nearest,
+            staging_bytes: 1 << 20,
+        },
+        &vec![[0, 0, 0, 255]; sources.len()],
+    )?;
+    let layers: Vec<(&str, u32)> = cache
+        .packing()
+        .images()
+        .iter()
+        .map(|image| (image.format.name, image.layer_count))
+        .collect();
+    ensure!(
+        layers
+            == [
+                ("BC1", 3),
+                ("BC1", 3),
+                ("BC1", 2),
+                ("BC1", 2),
+                ("RGBA8", 2),
+                ("RGBA8", 2)
+            ],
+        "images and layers: {layers:?}"
+    );
+    for (t, source) in sources.iter().enumerate() {
+        for mip in (0..source.levels.len() as u32).rev() {
+            let outcome = cache.stage(
+                t as u32,
+                source.format,
+                source.width,
+                source.height,
+                mip,
+                &source.levels[mip as usize],
+            )?;
+            ensure!(
+                matches!(outcome, StageOutcome::Staged { .. }),
+                "texture {t} mip {mip}: {outcome:?}"
+            );
+        }
+    }
+    let report = cache.finish_cycle(&mut commands)?;
+    ensure!(report.textures_invalidated == 0, "nothing evicted: {report:?}");
+    let used: HashSet<u32> = (0..sources.len() as u32)
+        .filter_map(|t| cache.texture_data(t).map(|entry| entry.image))
+        .collect();
+    ensure!(used.len() == 6, "textures placed in images {used:?}");
+
+    let probe = TextureProbe::new(&device)?;
+    let mut points = Vec::new();
+    let mut expected = Vec::new();
+    for (t, source) in sources.iter().enumerate() {
+        for level in 0..source.levels.len() as u32 {
+            for (point, x, y) in points_for(t as u32, source, level, level as f32, &mut rng) {
+                points.push(point);
+                expected.push((t, source.texel(level, x, y)));
+            }
+        }
+    }
+    let results = probe.run(&mut commands, &cache, &points)?;
+    for (i, result) in results.iter().enumerate() {
+        let (t, want) = expected[i];
+        let tolerance = if sources[t].format == TextureFormat::Bc1 { 3 } else { 0 };
+        ensure!(
+            result.resident == 1 && close(to_u8(result), want, tolerance),
+            "texture {t} in image {:?} at {:?}: read {:?} (resident {}), expected {want:?}",
+            cache.texture_data(t as u32).map(|e| e.image),
+            points[i],
+            to_u8(result),
+            result.resident
+        );
+    }
+    drop(probe);
+    drop(cache);
+    assert_no_validation_errors(&device)
+}

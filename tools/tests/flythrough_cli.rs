@@ -259,6 +259,18 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         assert!(summary["pause_uploads_second_half"]
             .as_array()
             .is_some_and(|pauses| pauses.iter().all(serde_json::Value::is_u64)));
+        // lavapipe writes timestamps: every pass of every frame took some GPU time.
+        for pass in ["uploads", "feedback", "compaction", "visible"] {
+            let times = &summary["gpu_pass_ms"][pass];
+            let (min, max) = (times["min"].as_f64(), times["max"].as_f64());
+            assert!(
+                min.is_some_and(|min| min >= 0.0) && max.is_some_and(|max| max >= min.unwrap_or(0.0)),
+                "{policy}: gpu_pass_ms.{pass} = {times}"
+            );
+        }
+        assert!(summary["gpu_pass_ms"]["visible"]["mean"]
+            .as_f64()
+            .is_some_and(|ms| ms > 0.0));
         streamed.push(bytes);
     }
     assert!(streamed[0] > 0 && streamed[1] > 0);

@@ -416,11 +416,11 @@ impl HostPipelines {
             .stage_flags(fragment)];
         let stream_bindings: Vec<_> = streamed
             .iter()
-            .map(|(binding, ty, _)| {
+            .map(|(binding, ty, resource)| {
                 vk::DescriptorSetLayoutBinding::default()
                     .binding(*binding)
                     .descriptor_type(*ty)
-                    .descriptor_count(1)
+                    .descriptor_count(resource.count())
                     .stage_flags(fragment)
             })
             .collect();
@@ -449,13 +449,18 @@ impl HostPipelines {
                 None,
             )?
         };
+        let samplers: u32 = streamed
+            .iter()
+            .filter(|(_, ty, _)| *ty == vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
+            .map(|(_, _, resource)| resource.count())
+            .sum();
         let sizes = [
             vk::DescriptorPoolSize::default()
                 .ty(vk::DescriptorType::STORAGE_BUFFER)
                 .descriptor_count(8),
             vk::DescriptorPoolSize::default()
                 .ty(vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
-                .descriptor_count(4),
+                .descriptor_count(samplers.max(1)),
         ];
         let pool = unsafe {
             device.create_descriptor_pool(
@@ -474,16 +479,24 @@ impl HostPipelines {
         let mut buffer_infos = vec![[vk::DescriptorBufferInfo::default()
             .buffer(host_meshes)
             .range(vk::WHOLE_SIZE)]];
-        let mut image_infos = Vec::new();
+        let mut image_infos: Vec<Vec<vk::DescriptorImageInfo>> = Vec::new();
+        let sampled = |view, sampler| {
+            vk::DescriptorImageInfo::default()
+                .image_view(view)
+                .sampler(sampler)
+                .image_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)
+        };
         let mut targets = vec![(sets[0], 0, vk::DescriptorType::STORAGE_BUFFER, false, 0)];
         for (binding, ty, resource) in streamed {
             match *resource {
                 DescriptorResource::SampledImage(view, sampler) => {
                     targets.push((sets[1], *binding, *ty, true, image_infos.len()));
-                    image_infos.push([vk::DescriptorImageInfo::default()
-                        .image_view(view)
-                        .sampler(sampler)
-                        .image_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)]);
+                    image_infos.push(vec![sampled(view, sampler)]);
+                }
+                // The cache images: one element per sparse image.
+                DescriptorResource::SampledImageArray(views, sampler) => {
+                    targets.push((sets[1], *binding, *ty, true, image_infos.len()));
+                    image_infos.push(views.iter().map(|&view| sampled(view, sampler)).collect());
                 }
                 DescriptorResource::StorageBuffer(buffer) | DescriptorResource::UniformBuffer(buffer) => {
                     targets.push((sets[1], *binding, *ty, false, buffer_infos.len()));

@@ -23,7 +23,7 @@ use citystream_engine::scene::MeshRenderer;
 use citystream_engine::stream::{DatasetSource, StreamConfig, TextureStreamer};
 use citystream_engine::target::{write_png, RenderTarget};
 use citystream_engine::texture_cache::{Eviction, GpuTextureCache};
-use citystream_engine::timing::CpuFrameClock;
+use citystream_engine::timing::{CpuFrameClock, GpuTimer};
 use citystream_engine::{Device, DeviceOptions};
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
@@ -225,7 +225,7 @@ struct Run<'a> {
     /// The budget in bytes; null when unlimited.
     memory_budget_bytes: Option<u64>,
     eviction: &'a str,
-    /// Layers of each cache image (BC1, RGBA8).
+    /// Layers of each cache image (BC1 images first, then RGBA8).
     cache_layers: Vec<u32>,
     /// Frames in which the view needed more than the budget holds.
     frames_over_budget: u64,
@@ -237,8 +237,88 @@ struct Run<'a> {
     evicted_layers: u64,
     refused_for_room: u64,
     declined_loads: u64,
+    /// GPU time of each pass per frame, from timestamps (null where the
+    /// queue has none).
+    gpu_pass_ms: Option<GpuPassMs>,
     validation_errors: usize,
     frames_written: Vec<String>,
+}
+
+/// The passes of a flythrough frame, in recording order, timed separately.
+const TIMED_PASSES: usize = 4;
+
+/// GPU milliseconds per frame of each timed pass.
+#[derive(Debug, serde::Serialize)]
+struct GpuPassMs {
+    /// Copies of the cycle's mips and the texture table into the cache.
+    uploads: Stats,
+    /// Depth pre-pass and feedback pass (paper §3.2).
+    feedback: Stats,
+    /// Compaction of the mesh feedback and its read-back copy (paper §3.3).
+    compaction: Stats,
+    /// The visible pass and its image copy.
+    visible: Stats,
+}
+
+/// Per-pass GPU timestamps of each frame slot, read once the slot's frame
+/// completed.
+struct PassTimes {
+    timer: GpuTimer,
+    /// Whether the slot's last frame wrote timestamps not yet read.
+    written: Vec<bool>,
+    samples: [Vec<f64>; TIMED_PASSES],
+}
+
+impl PassTimes {
+    fn new(device: &Arc<Device>, frames_in_flight: u32) -> Result<Self> {
+        Ok(Self {
+            timer: GpuTimer::new(device, frames_in_flight * TIMED_PASSES as u32)?,
+            written: vec![false; frames_in_flight as usize],
+            samples: Default::default(),
+        })
+    }
+
+    fn query(slot: u32, pass: usize) -> u32 {
+        slot * TIMED_PASSES as u32 + pass as u32
+    }
+
+    fn begin(&self, cmd: citystream_engine::vk::CommandBuffer, slot: u32, pass: usize) {
+        self.timer.begin(cmd, Self::query(slot, pass));
+    }
+
+    fn end(&mut self, cmd: citystream_engine::vk::CommandBuffer, slot: u32, pass: usize) {
+        self.timer.end(cmd, Self::query(slot, pass));
+        if pass + 1 == TIMED_PASSES {
+            self.written[slot as usize] = true;
+        }
+    }
+
+    /// Reads `slot`'s timestamps; its frame must have completed.
+    fn collect(&mut self, slot: u32) -> Result<()> {
+        if !std::mem::take(&mut self.written[slot as usize]) {
+            return Ok(());
+        }
+        for (pass, samples) in self.samples.iter_mut().enumerate() {
+            samples.extend(self.timer.read_ms(Self::query(slot, pass))?);
+        }
+        Ok(())
+    }
+
+    fn finish(mut self) -> Result<Option<GpuPassMs>> {
+        for slot in 0..self.written.len() as u32 {
+            self.collect(slot)?;
+        }
+        if !self.timer.supported() {
+            return Ok(None);
+        }
+        let [uploads, feedback, compaction, visible] = self.samples.map(|s| Stats::from_samples(&s));
+        Ok(Some(GpuPassMs {
+            uploads,
+            feedback,
+            compaction,
+            visible,
+        }))
+    }
 }
 
 fn main() -> Result<()> {
@@ -582,6 +662,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         .collect::<std::result::Result<Vec<_>, _>>()?;
     let latency = BindLatencyModel::preset(args.bind_latency);
     let mut latency_rng = SplitMix64::new(args.seed);
+    let mut pass_times = PassTimes::new(device, frames_in_flight)?;
 
     let bounds = scene.bounds;
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
@@ -671,15 +752,25 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             _ => None,
         };
         // The streamer's throttle saw this slot's last frame complete.
-        let commands_of_frame = &mut frame_commands[begun.slot as usize];
+        let slot = begun.slot;
+        pass_times.collect(slot)?;
+        let commands_of_frame = &mut frame_commands[slot as usize];
         let cmd = commands_of_frame.begin_completed()?;
+        pass_times.begin(cmd, slot, 0);
         let applied = gpu.streamer.record_uploads(cmd)?;
+        pass_times.end(cmd, slot, 0);
+        pass_times.begin(cmd, slot, 1);
         gpu.renderer
             .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
+        pass_times.end(cmd, slot, 1);
+        pass_times.begin(cmd, slot, 2);
         // The error reference needs every seen mesh: τ = 0 then.
         gpu.streamer
             .record_feedback_resolve_with_tau(cmd, if measure_error { 0 } else { tau })?;
+        pass_times.end(cmd, slot, 2);
+        pass_times.begin(cmd, slot, 3);
         gpu.renderer.record_visible(cmd, &target, &camera, 1.0, true);
+        pass_times.end(cmd, slot, 3);
         // The controller step with the previous frame's latency.
         let submit = gpu.streamer.end_frame(frame_ms)?;
         commands_of_frame.submit_frame(&submit.waits, &[submit.signal])?;
@@ -766,6 +857,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     }
     csv.flush()?;
     device.wait_idle()?;
+    let gpu_pass_ms = pass_times.finish()?;
     if reference_incomplete > 0 {
         eprintln!("warning: the error reference evicted {reference_incomplete} textures; PSNR is optimistic");
     }
@@ -829,6 +921,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         evicted_layers: residency.evicted_layers,
         refused_for_room: residency.refused_for_room,
         declined_loads: residency.declined_loads,
+        gpu_pass_ms,
         validation_errors,
         frames_written: written,
     };
