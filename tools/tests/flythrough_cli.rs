@@ -459,11 +459,12 @@ fn adaptive_streaming_keeps_the_worst_frame_below_the_baseline() {
     let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_adaptive_vs_baseline");
     let city = base.join("city");
     citystream_tools::default_city::ensure_default_city(&city, true).expect("default city created");
-    let run = |policy: &str| -> (serde_json::Value, Vec<(f64, u64)>) {
-        let out = base.join(policy);
+    let run_with = |policy: &str, clock: &[&str]| -> (serde_json::Value, Vec<(f64, u64)>) {
+        let out = base.join(format!("{policy}-{}", clock[1]));
         let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-            .args(["--frames", "24", "--frame-interval", "0", "--psnr-interval", "0"])
-            .args(["--clock", "fixed", "--bind-latency", "desktop", "--policy", policy])
+            .args(clock)
+            .args(["--frame-interval", "0", "--psnr-interval", "0"])
+            .args(["--bind-latency", "desktop", "--policy", policy])
             .args(["--alpha", "16", "--validation=true"])
             .arg("--dataset")
             .arg(&city)
@@ -494,6 +495,7 @@ fn adaptive_streaming_keeps_the_worst_frame_below_the_baseline() {
             .collect();
         (summary, frames)
     };
+    let run = |policy: &str| run_with(policy, &["--clock", "fixed", "--frames", "24"]);
     let (baseline, baseline_frames) = run("baseline");
     let (adaptive, adaptive_frames) = run("adaptive");
     let max = |s: &serde_json::Value| s["frame_ms"]["max"].as_f64().expect("frame_ms.max");
@@ -518,4 +520,35 @@ fn adaptive_streaming_keeps_the_worst_frame_below_the_baseline() {
     );
     // Both stream: the adaptive run is throttled, not stopped.
     assert!(adaptive["mips_streamed"].as_u64().is_some_and(|m| m > 0));
+
+    // The modelled clock: each frame moves the camera by its own modelled
+    // latency, at least one 60 Hz step, so the baseline's stall makes the
+    // camera jump, and the run ends where the path's 0.5 s do.
+    let (modelled, modelled_frames) = run_with("baseline", &["--clock", "modelled", "--duration-s", "0.5"]);
+    assert_eq!(modelled["clock"], "modelled");
+    let csv = std::fs::read_to_string(base.join("baseline-modelled").join("frames.csv")).expect("frames.csv");
+    let times: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|line| line.split(',').nth(1).expect("time_s").parse().expect("time_s"))
+        .collect();
+    let step_ms = 1000.0 / 60.0;
+    for (pair, &(dt, _)) in times.windows(2).zip(&modelled_frames) {
+        let moved_ms = (pair[1] - pair[0]) * 1000.0;
+        // frames.csv has time_s to 0.1 ms.
+        assert!(
+            (moved_ms - dt.max(step_ms)).abs() < 0.11,
+            "a frame of {dt} ms moved the camera {moved_ms} ms"
+        );
+    }
+    assert!(
+        modelled_frames.iter().any(|&(dt, _)| dt > 2.0 * step_ms),
+        "no stalled frame: {modelled_frames:?}"
+    );
+    let (last, (last_dt, _)) = (times[times.len() - 1], modelled_frames[modelled_frames.len() - 1]);
+    assert!(
+        last < 0.5 && last + last_dt.max(step_ms) / 1000.0 >= 0.5 - 1e-3,
+        "ends at {last} s"
+    );
+    assert!(times.len() < 30, "{} frames for 0.5 s with a stall", times.len());
 }

@@ -598,7 +598,10 @@ fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() 
     let logged = std::fs::read_to_string(&log)?;
     let lines: Vec<&str> = logged.lines().collect();
     let shared = "--psnr-interval 60 --frame-interval 0";
-    let tail = |name: &str| format!("--clock fixed --bind-latency desktop --frames 1800 --out {o}/{name}");
+    // 30 s of the path at 1080p, the camera moving with the modelled latency.
+    let tail = |name: &str| {
+        format!("--clock modelled --bind-latency desktop --duration-s 30 --width 1920 --height 1080 --out {o}/{name}")
+    };
     let expected = [
         format!(
             "--dataset {d} --policy baseline {shared} --memory-budget-mb 8 {}",

@@ -44,6 +44,28 @@ enum Clock {
     /// render cost plus the bind-latency model's cost of each batch and the
     /// copy at 12 GB/s), so runs are reproducible.
     Fixed,
+    /// Frame latency modelled as with `fixed`, and the camera advances by
+    /// each frame's modelled latency (at least the 60 Hz step), as it would
+    /// in real time on the modelled GPU: a stalled frame makes the camera
+    /// jump ahead and the next frames ask for more, as in the paper's
+    /// benchmark. Reproducible too.
+    Modelled,
+}
+
+impl Clock {
+    /// Whether frame latency comes from the model instead of being measured.
+    fn is_modelled(self) -> bool {
+        self != Clock::Real
+    }
+
+    /// The name written to summary.json.
+    fn name(self) -> &'static str {
+        match self {
+            Clock::Real => "real",
+            Clock::Fixed => "fixed",
+            Clock::Modelled => "modelled",
+        }
+    }
 }
 
 #[derive(Debug, Parser)]
@@ -111,7 +133,9 @@ struct Args {
     /// Modelled cost of binding sparse memory: none, lavapipe or desktop.
     #[arg(long, default_value = "none")]
     bind_latency: BindLatencyPreset,
-    /// Clock: real (measured) or fixed (reproducible, modelled latency).
+    /// Clock: real (measured), fixed (reproducible, modelled latency, 60
+    /// frames per camera second) or modelled (reproducible, the camera
+    /// advancing by each frame's modelled latency).
     #[arg(long, value_enum, default_value_t = Clock::Real)]
     clock: Clock,
     /// Memory budget of bound texture blocks in MB, or `unlimited`.
@@ -457,12 +481,12 @@ fn stream_config(
         // no wall-clock load-time limit there (the load size still bounds a cycle).
         loader: match clock {
             Clock::Real => LoaderOptions::default(),
-            Clock::Fixed => LoaderOptions {
+            Clock::Fixed | Clock::Modelled => LoaderOptions {
                 load_time: Duration::from_secs(3600),
                 ..LoaderOptions::default()
             },
         },
-        deterministic: clock == Clock::Fixed,
+        deterministic: clock.is_modelled(),
     }
 }
 
@@ -670,7 +694,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let path = camera_path(args, scene)?;
     path.restart();
     let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
-    // With the fixed clock the frame count follows from the duration.
+    // With the fixed clock the frame count follows from the duration; with
+    // the modelled one it is at most that.
     let frames = args
         .frames
         .unwrap_or_else(|| ((duration_s * 1000.0 / FIXED_STEP_MS).ceil() as u32).max(1));
@@ -719,10 +744,15 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut uploads_at: Vec<(f64, u64)> = Vec::new();
     for frame in 0..frames {
         let time_s = match args.clock {
-            Clock::Fixed => sim_time_s,
+            Clock::Fixed | Clock::Modelled => sim_time_s,
             Clock::Real => started.elapsed().as_secs_f64(),
         };
-        if args.clock == Clock::Real && args.frames.is_none() && time_s > duration_s {
+        let path_done = match args.clock {
+            Clock::Real => time_s > duration_s,
+            Clock::Modelled => time_s >= duration_s,
+            Clock::Fixed => false,
+        };
+        if args.frames.is_none() && path_done {
             break;
         }
         frames_run += 1;
@@ -819,9 +849,14 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         let measured = clock.tick().as_secs_f64() * 1000.0;
         frame_ms = match args.clock {
             Clock::Real => measured,
-            Clock::Fixed => FIXED_RENDER_MS + bind_cost_ms + bytes as f64 / FIXED_COPY_BYTES_PER_S * 1000.0,
+            Clock::Fixed | Clock::Modelled => {
+                FIXED_RENDER_MS + bind_cost_ms + bytes as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
+            }
         };
-        sim_time_s += FIXED_STEP_MS / 1000.0;
+        sim_time_s += match args.clock {
+            Clock::Modelled => frame_ms.max(FIXED_STEP_MS),
+            _ => FIXED_STEP_MS,
+        } / 1000.0;
         let t = gpu.streamer.policy().telemetry();
         summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
@@ -884,16 +919,13 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         alpha_ms: args.alpha,
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         psnr_db: (!psnrs.is_empty()).then(|| Stats::from_samples(&psnrs)),
-        clock: match args.clock {
-            Clock::Real => "real",
-            Clock::Fixed => "fixed",
-        },
+        clock: args.clock.name(),
         bind_latency: args.bind_latency.name(),
         width: args.width,
         height: args.height,
         duration_s: match args.clock {
             Clock::Real => started.elapsed().as_secs_f64(),
-            Clock::Fixed => sim_time_s,
+            Clock::Fixed | Clock::Modelled => sim_time_s,
         },
         wall_s: started.elapsed().as_secs_f64(),
         wall_ms_per_frame: started.elapsed().as_secs_f64() * 1000.0 / f64::from(frames_run.max(1)),
