@@ -583,6 +583,14 @@ impl Device {
         }
     }
 
+    /// Bytes of device memory the allocator holds (every buffer, image and
+    /// sparse block chunk the engine allocated, with the allocator's unused
+    /// room in its memory blocks); `None` once the device is shutting down.
+    /// With a host's shared allocator it includes the host's allocations.
+    pub fn device_memory_bytes(&self) -> Option<u64> {
+        self.with_allocator(|allocator| allocator.capacity())
+    }
+
     /// The validation messages collected so far (always empty for a host's
     /// device: its messages go to the host's messenger).
     pub fn validation_log(&self) -> &Arc<ValidationLog> {

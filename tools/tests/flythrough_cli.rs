@@ -271,6 +271,15 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         assert!(summary["gpu_pass_ms"]["visible"]["mean"]
             .as_f64()
             .is_some_and(|ms| ms > 0.0));
+        // Device memory holds at least the bound texture blocks.
+        let device_memory = summary["peak_device_memory_bytes"]
+            .as_u64()
+            .expect("peak_device_memory_bytes");
+        let resident = summary["peak_resident_bytes"].as_u64().expect("peak_resident_bytes");
+        assert!(
+            device_memory >= resident,
+            "{device_memory} bytes of device memory, {resident} bound"
+        );
         streamed.push(bytes);
     }
     assert!(streamed[0] > 0 && streamed[1] > 0);

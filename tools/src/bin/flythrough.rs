@@ -246,6 +246,9 @@ struct Run<'a> {
     unique_bytes_streamed: u64,
     blocks_bound: u64,
     peak_resident_bytes: u64,
+    /// Most device memory the allocator held (geometry, cache blocks, table,
+    /// targets, staging), sampled every 30 frames and at the end.
+    peak_device_memory_bytes: u64,
     /// The budget in bytes; null when unlimited.
     memory_budget_bytes: Option<u64>,
     eviction: &'a str,
@@ -736,6 +739,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut sim_time_s = 0.0f64;
     let mut frame_ms = FIXED_STEP_MS;
     let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
+    let mut peak_device_memory = 0u64;
     let mut reference_incomplete = 0u32;
     let mut frames_run = 0;
     let mut waits = WaitCounts::default();
@@ -845,6 +849,9 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         blocks_total += u64::from(applied.blocks_bound);
         let resident = gpu.streamer.cache().utilisation().bound_bytes;
         peak_resident = peak_resident.max(resident);
+        if frame % 30 == 0 {
+            peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
+        }
 
         let measured = clock.tick().as_secs_f64() * 1000.0;
         frame_ms = match args.clock {
@@ -893,6 +900,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     csv.flush()?;
     device.wait_idle()?;
     let gpu_pass_ms = pass_times.finish()?;
+    let peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
     if reference_incomplete > 0 {
         eprintln!("warning: the error reference evicted {reference_incomplete} textures; PSNR is optimistic");
     }
@@ -937,6 +945,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         unique_bytes_streamed: residency.unique_bytes_uploaded,
         blocks_bound: blocks_total,
         peak_resident_bytes: peak_resident,
+        peak_device_memory_bytes: peak_device_memory,
         memory_budget_bytes: args.memory_budget_mb.bytes(),
         eviction: args.eviction.name(),
         cache_layers: gpu
