@@ -45,13 +45,33 @@
 //!   latencies so far were 0) the step is a hard step: `b = 0` when
 //!   `t_b ≤ edge`, else `β`.
 //!
+//! # Stalls: where the controller departs from the paper
+//!
+//! Eq. 6 averages the previous 200 `t_w` into `t_wa`. One stalled frame
+//! (a slow first frame from pipeline creation and page faults, a window
+//! move, a breakpoint: nothing the streamer caused) would sit in that mean
+//! for 200 frames: `t_m` rises far above the `t_w` of the normal frames
+//! after it, `x = t_w − t_m` is strongly negative, `P(x)` is large and `l`
+//! saturates, so the stall opens the throttle to `s_max` and the next cycle
+//! binds a full-size batch, the stutter the controller exists to prevent.
+//! A frame latency above [`STALL_FACTOR`] × max(α, `t_wa`) is therefore a
+//! *stall*: it still drives Eq. 4–7 for its own frame (its `t_w` exceeds
+//! `t_m`, so `l` falls, and Eq. 5 decays `t_w` from it as the paper does),
+//! but it enters none of the histories (`t_wa`, `t_b`, the edges of Eq. 7),
+//! and is counted in [`Telemetry::stall_samples`]. Latencies within 4× of
+//! the target or of the running average, which is all a working controller
+//! sees, follow Eq. 4–7 exactly as the paper gives them. A render that
+//! turns slow for good is not a stall: after [`STALL_RUN_FRAMES`]
+//! consecutive stalls the slow frames enter the histories again.
+//!
 //! # Bad input
 //!
-//! A frame latency that is NaN or negative is rejected: the policy keeps its
-//! state, returns its previous decision and counts the sample in
-//! [`Telemetry::rejected_samples`]. A latency above [`MAX_FRAME_LATENCY_MS`]
-//! (including +∞) is clamped to it. With these rules every output is finite,
-//! `l ∈ [0, 1]`, `s ∈ [s_min, s_max]` and `b ∈ [0, β]`.
+//! A frame latency that is NaN, infinite or negative is rejected: the policy
+//! keeps its state, returns its previous decision and counts the sample in
+//! [`Telemetry::rejected_samples`]. A finite latency above
+//! [`MAX_FRAME_LATENCY_MS`] is clamped to it. α must lie in (0,
+//! [`MAX_ALPHA_MS`]] and β in [0, [`MAX_BETA`]]. With these rules every
+//! output is finite, `l ∈ [0, 1]`, `s ∈ [s_min, s_max]` and `b ∈ [0, β]`.
 //!
 //! # Threading
 //!
@@ -66,6 +86,21 @@ pub const BYTES_PER_MB: f64 = 1_048_576.0;
 
 /// Frame latencies above this (ms) are clamped to it: one minute.
 pub const MAX_FRAME_LATENCY_MS: f64 = 60_000.0;
+
+/// A frame latency above this multiple of max(α, `t_wa`) is a stall and
+/// stays out of the histories (see the module docs).
+pub const STALL_FACTOR: f64 = 4.0;
+
+/// Consecutive stalls kept out of the histories; from the next one on, slow
+/// frames are the new normal and enter them (a render that became slow).
+pub const STALL_RUN_FRAMES: u32 = 8;
+
+/// Largest target frame latency α accepted (ms): one second.
+pub const MAX_ALPHA_MS: f64 = 1000.0;
+
+/// Largest mipmap bias β accepted: levels beyond the finest-to-coarsest
+/// span of a 32 768² texture have no effect.
+pub const MAX_BETA: f64 = 16.0;
 
 /// Samples of `t_w` averaged into `t_wa` (Eq. 6).
 pub const TWA_SAMPLES: usize = 200;
@@ -129,8 +164,10 @@ pub struct Telemetry {
     pub mip_bias: f64,
     /// Frames accepted so far.
     pub frames: u64,
-    /// Samples rejected as NaN or negative.
+    /// Samples rejected as NaN, infinite or negative.
     pub rejected_samples: u64,
+    /// Samples taken as stalls and kept out of the histories.
+    pub stall_samples: u64,
 }
 
 /// A streaming workload policy, fed once per frame.
@@ -232,11 +269,11 @@ impl PolicyOptions {
     /// error names the first bad one.
     pub fn validate(&self) -> Result<(), PolicyError> {
         let bad = |name, value, expected| PolicyError::InvalidOption { name, value, expected };
-        if !(self.alpha_ms.is_finite() && self.alpha_ms > 0.0) {
-            return Err(bad("alpha", self.alpha_ms, "a finite latency > 0 ms"));
+        if !(self.alpha_ms.is_finite() && self.alpha_ms > 0.0 && self.alpha_ms <= MAX_ALPHA_MS) {
+            return Err(bad("alpha", self.alpha_ms, "a latency in (0, 1000] ms"));
         }
-        if !(self.beta.is_finite() && self.beta >= 0.0) {
-            return Err(bad("beta", self.beta, "a finite bias >= 0"));
+        if !(self.beta.is_finite() && (0.0..=MAX_BETA).contains(&self.beta)) {
+            return Err(bad("beta", self.beta, "a bias in [0, 16] levels"));
         }
         if !(self.s_max_mb.is_finite() && self.s_max_mb > 0.0 && self.s_max_mb <= 1.0e6) {
             return Err(bad("s-max-mb", self.s_max_mb, "a size in (0, 1e6] MB"));
@@ -372,6 +409,9 @@ struct Estimator {
     tbu_history: Ring<EDGE_SAMPLES>,
     frames: u64,
     rejected: u64,
+    stalls: u64,
+    /// Stalls in a row up to the latest sample.
+    stall_run: u32,
 }
 
 /// One frame's measurements, seconds.
@@ -396,18 +436,24 @@ impl Estimator {
             tbu_history: Ring::new(),
             frames: 0,
             rejected: 0,
+            stalls: 0,
+            stall_run: 0,
         }
     }
 
     /// Accept one frame latency (ms); `None` when the sample is rejected.
     fn step(&mut self, frame_latency_ms: f64) -> Option<Estimate> {
-        if frame_latency_ms.is_nan() || frame_latency_ms < 0.0 {
+        if !frame_latency_ms.is_finite() || frame_latency_ms < 0.0 {
             self.rejected += 1;
             return None;
         }
         let dt = frame_latency_ms.min(MAX_FRAME_LATENCY_MS) / 1000.0;
         let tw = weighted_max_latency(self.tw, dt);
-        let twa = mean(self.tw_history.samples().iter().copied()).unwrap_or(tw);
+        let history_twa = mean(self.tw_history.samples().iter().copied());
+        let far_above = dt > STALL_FACTOR * history_twa.unwrap_or(0.0).max(self.alpha_s);
+        self.stall_run = if far_above { self.stall_run.saturating_add(1) } else { 0 };
+        let stall = far_above && self.stall_run <= STALL_RUN_FRAMES;
+        let twa = history_twa.unwrap_or(tw);
         let tm = latency_threshold(twa, self.alpha_s);
         let tb = mean(self.tw_history.newest(TB_SAMPLES)).unwrap_or(tw);
         let tbl =
@@ -415,9 +461,13 @@ impl Estimator {
         let tbu =
             mean(self.tbu_history.samples().iter().map(|&v| v.max(tw))).map_or(tw, |m| tw * (1.0 - 0.8) + m * 0.8);
         self.tw = tw;
-        self.tw_history.push(tw);
-        self.tbl_history.push(tbl);
-        self.tbu_history.push(tbu);
+        if stall {
+            self.stalls += 1;
+        } else {
+            self.tw_history.push(tw);
+            self.tbl_history.push(tbl);
+            self.tbu_history.push(tbu);
+        }
         self.frames += 1;
         Some(Estimate {
             dt,
@@ -444,6 +494,7 @@ impl Estimator {
             mip_bias: d.mip_bias,
             frames: self.frames,
             rejected_samples: self.rejected,
+            stall_samples: self.stalls,
         }
     }
 }
@@ -771,20 +822,77 @@ mod tests {
     }
 
     #[test]
-    fn rejects_nan_and_negative_clamps_infinity() {
+    fn rejects_nan_infinity_and_negative_clamps_huge() {
         let mut p = adaptive();
         let first = p.update(8.0);
         assert_eq!(p.update(f64::NAN), first);
         assert_eq!(p.update(-1.0), first);
         assert_eq!(p.update(f64::NEG_INFINITY), first);
-        assert_eq!(p.telemetry().rejected_samples, 3);
+        assert_eq!(p.update(f64::INFINITY), first);
+        assert_eq!(p.telemetry().rejected_samples, 4);
         assert_eq!(p.telemetry().frames, 1);
-        p.update(f64::INFINITY);
+        p.update(1e300);
         let t = p.telemetry();
         assert_eq!(t.frame_ms, MAX_FRAME_LATENCY_MS);
         assert_eq!(t.tw_ms, MAX_FRAME_LATENCY_MS);
         assert_eq!(t.load_factor, 0.0);
+        assert_eq!(t.stall_samples, 1);
         assert!(t.mip_bias.is_finite());
+    }
+
+    /// Load sizes of `frames` frames of `ms` each, after `before`.
+    fn load_sizes(p: &mut AdaptivePolicy, ms: f64, frames: usize) -> Vec<u64> {
+        (0..frames).map(|_| p.update(ms).load_size_bytes).collect()
+    }
+
+    #[test]
+    fn a_stall_mid_run_does_not_open_the_throttle() {
+        for stall_ms in [500.0, 2_000.0, 20_000.0, 60_000.0, 1e9] {
+            let mut p = adaptive();
+            // A long steady run at half the target: l has crept up.
+            let before = *load_sizes(&mut p, 8.0, 1000).last().unwrap_or(&0);
+            assert!(before > 4 * 65_536, "{before} bytes before the stall");
+            p.update(stall_ms);
+            assert_eq!(p.telemetry().stall_samples, 1);
+            let after = load_sizes(&mut p, 8.0, 200);
+            let largest = after.iter().copied().max().unwrap_or(0);
+            assert!(
+                largest <= before,
+                "a {stall_ms} ms stall let s reach {largest} bytes, {before} before it"
+            );
+        }
+    }
+
+    #[test]
+    fn a_slow_first_frame_does_not_open_the_throttle() {
+        for first_ms in [500.0, 5_000.0, 60_000.0] {
+            let mut slow = adaptive();
+            let mut steady = adaptive();
+            slow.update(first_ms);
+            steady.update(8.0);
+            let slow_sizes = load_sizes(&mut slow, 8.0, 200);
+            let steady_sizes = load_sizes(&mut steady, 8.0, 200);
+            for (frame, (s, undisturbed)) in slow_sizes.iter().zip(&steady_sizes).enumerate() {
+                assert!(
+                    s <= undisturbed,
+                    "frame {frame} after a {first_ms} ms first frame: s = {s}, {undisturbed} without it"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_render_that_turns_slow_for_good_is_not_a_stall() {
+        // Every frame 100 ms from frame 100 on: the first eight are held
+        // back as stalls, the rest raise t_wa as Eq. 6 intends.
+        let mut p = adaptive();
+        load_sizes(&mut p, 8.0, 100);
+        load_sizes(&mut p, 100.0, 300);
+        let t = p.telemetry();
+        assert_eq!(t.stall_samples, u64::from(STALL_RUN_FRAMES));
+        assert!(t.twa_ms > 90.0, "t_wa = {} ms", t.twa_ms);
+        // Overloaded: the bias coarsens streaming as the paper's Eq. 7 does.
+        assert!(t.mip_bias > 0.0, "b = {}", t.mip_bias);
     }
 
     #[test]
@@ -837,6 +945,27 @@ mod tests {
             (
                 PolicyOptions {
                     beta: -1.0,
+                    ..PolicyOptions::default()
+                },
+                "beta",
+            ),
+            (
+                PolicyOptions {
+                    alpha_ms: 1000.5,
+                    ..PolicyOptions::default()
+                },
+                "alpha",
+            ),
+            (
+                PolicyOptions {
+                    alpha_ms: f64::INFINITY,
+                    ..PolicyOptions::default()
+                },
+                "alpha",
+            ),
+            (
+                PolicyOptions {
+                    beta: 16.5,
                     ..PolicyOptions::default()
                 },
                 "beta",

@@ -155,6 +155,9 @@ pub struct RenderConfig {
     pub hiccup_probability: f64,
     /// Largest hiccup (ms), uniform from 0.
     pub hiccup_max_ms: f64,
+    /// One stalled frame, whatever the streaming does (a slow first frame,
+    /// a window move): `(frame, extra ms)`.
+    pub stall: Option<(u64, f64)>,
 }
 
 impl Default for RenderConfig {
@@ -169,6 +172,7 @@ impl Default for RenderConfig {
             jitter_ms: 0.5,
             hiccup_probability: 0.05,
             hiccup_max_ms: 12.0,
+            stall: None,
         }
     }
 }
@@ -282,6 +286,11 @@ impl SimConfig {
         }
         if !(0.0..=1.0).contains(&r.hiccup_probability) {
             return bad("hiccup_probability", r.hiccup_probability, "in [0, 1]");
+        }
+        if let Some((_, extra_ms)) = r.stall {
+            if !nonneg(extra_ms) || extra_ms > crate::controller::MAX_FRAME_LATENCY_MS {
+                return bad("stall", extra_ms, "a stall of 0 to 60 000 ms");
+            }
         }
         if r.jitter_ms >= r.sparse_ms.min(r.dense_ms) {
             return bad("jitter_ms", r.jitter_ms, "below the base frame time");
@@ -425,7 +434,11 @@ fn base_render_ms(config: &SimConfig, i: u64, t: f64) -> f64 {
     } else {
         0.0
     };
-    level + jitter + hiccup
+    let stall = match r.stall {
+        Some((frame, extra_ms)) if frame == i => extra_ms,
+        _ => 0.0,
+    };
+    level + jitter + hiccup + stall
 }
 
 /// The sorted records the GPU would return for frame `i`, leaving out the
