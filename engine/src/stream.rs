@@ -44,7 +44,7 @@ use citystream_cache::geometry::cacheable_mip_count;
 use citystream_cache::TexelFormat;
 use citystream_streaming::controller::{Decision, LoadPolicy};
 use citystream_streaming::dataset::{Dataset, DatasetError, TextureFormat};
-use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals};
+use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, TextureFailure};
 use citystream_streaming::records::{prepare, MeshMetaData};
 use citystream_streaming::residency::{AdmissionGate, KeepValue, NeedClass, NeedTable};
 use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
@@ -104,7 +104,12 @@ impl DatasetSource {
 
 fn source_error(texture: u32, level: u32, error: DatasetError) -> SourceError {
     match error {
-        DatasetError::Io { source, .. } => SourceError::Io { texture, level, source },
+        DatasetError::Io { path, source } => SourceError::File {
+            texture,
+            level,
+            path,
+            source,
+        },
         other => SourceError::Other {
             texture,
             reason: other.to_string(),
@@ -608,6 +613,17 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// Loader totals so far.
     pub fn totals(&self) -> LoaderTotals {
         self.loader.totals()
+    }
+
+    /// The most recent load failures (a bounded log, oldest first): which
+    /// texture and level, and why.
+    pub fn load_failures(&self) -> Vec<TextureFailure> {
+        self.loader.failures()
+    }
+
+    /// Textures whose loading failed and that the loader no longer tries.
+    pub fn failed_textures(&self) -> usize {
+        self.loader.states().census()[3]
     }
 
     /// Whether a loading task is running.

@@ -64,6 +64,19 @@ pub enum SourceError {
         #[source]
         source: std::io::Error,
     },
+    /// An I/O failure reading a named file.
+    #[error("reading texture {texture} level {level} from {}: {source}", path.display())]
+    File {
+        /// The texture.
+        texture: u32,
+        /// The level.
+        level: u32,
+        /// The file read.
+        path: std::path::PathBuf,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
     /// Anything else the source reports, already worded.
     #[error("texture {texture}: {reason}")]
     Other {

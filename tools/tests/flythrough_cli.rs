@@ -561,3 +561,71 @@ fn adaptive_streaming_keeps_the_worst_frame_below_the_baseline() {
     );
     assert!(times.len() < 30, "{} frames for 0.5 s with a stall", times.len());
 }
+
+/// Runs the flythrough on a copy of the small dataset whose pack is cut to
+/// its header once the frame loop is about to start (after the open-time
+/// checks, before any mip is read), so every read fails mid-run.
+fn run_with_pack_cut_mid_run(name: &str, extra: &[&str]) -> (std::process::ExitStatus, String, serde_json::Value) {
+    use std::io::BufRead;
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let out = base.join("out");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--frames", "40", "--frame-interval", "0", "--psnr-interval", "0"])
+        .args(["--width", "160", "--height", "120", "--clock", "fixed"])
+        .args(extra)
+        .arg("--dataset")
+        .arg(&dataset)
+        .arg("--out")
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("flythrough starts");
+    let stderr = child.stderr.take().expect("stderr piped");
+    let mut lines = std::io::BufReader::new(stderr).lines();
+    let mut text = String::new();
+    for line in lines.by_ref() {
+        let line = line.expect("stderr is text");
+        text.push_str(&line);
+        text.push('\n');
+        if line.starts_with("scene:") {
+            let pack = std::fs::OpenOptions::new()
+                .write(true)
+                .open(dataset.join("textures.pack"))
+                .expect("pack opens");
+            pack.set_len(64).expect("pack cut");
+            break;
+        }
+    }
+    for line in lines {
+        text.push_str(&line.expect("stderr is text"));
+        text.push('\n');
+    }
+    let status = child.wait().expect("flythrough ends");
+    let summary = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
+        .expect("summary.json is JSON");
+    (status, text, summary)
+}
+
+#[test]
+fn textures_that_fail_to_load_are_reported_and_fail_the_run() {
+    let (status, stderr, summary) = run_with_pack_cut_mid_run("flythrough_read_failures", &[]);
+    assert!(!status.success(), "exit 0 with failed textures: {stderr}");
+    assert!(
+        stderr.contains("warning: from frame") && stderr.contains("textures.pack"),
+        "the first failure names its texture and file: {stderr}"
+    );
+    assert!(stderr.contains("texture(s) failed to load"), "{stderr}");
+    let failures = summary["load_failures"].as_u64().expect("load_failures");
+    let failed = summary["textures_failed"].as_u64().expect("textures_failed");
+    assert!(
+        failures > 0 && failed > 0 && failed <= failures,
+        "{failures} failures, {failed} textures"
+    );
+
+    let (status, stderr, summary) =
+        run_with_pack_cut_mid_run("flythrough_read_failures_allowed", &["--allow-load-failures"]);
+    assert!(status.success(), "--allow-load-failures still failed: {stderr}");
+    assert!(stderr.contains("warning:") && summary["textures_failed"].as_u64().is_some_and(|n| n > 0));
+}

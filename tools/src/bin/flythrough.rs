@@ -172,6 +172,10 @@ struct Args {
     /// Frames the CPU may record ahead of the GPU (1 waits for every frame).
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
     frames_in_flight: u32,
+    /// Exit 0 even when textures failed to load (a read error, a truncated
+    /// pack); the failures are still counted in summary.json and warned about.
+    #[arg(long)]
+    allow_load_failures: bool,
     /// Measure image error every N frames: render a reference of the same view
     /// with every needed mip resident and report PSNR against it (0: never).
     #[arg(long, default_value_t = 30)]
@@ -259,6 +263,9 @@ struct Run<'a> {
     /// Per pause of the path: mips uploaded in its second half (a settled
     /// streamer uploads none while the camera holds still).
     pause_uploads_second_half: Vec<u64>,
+    /// Failed reads and header errors, and the textures the loader gave up on.
+    load_failures: u64,
+    textures_failed: usize,
     /// Levels dropped, layers evicted, loads refused and declined for room.
     dropped_levels: u64,
     evicted_layers: u64,
@@ -745,6 +752,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut waits = WaitCounts::default();
     let mut last_feedback_frame = None;
     let mut warned_over_budget = false;
+    let mut warned_failure = false;
     let mut uploads_at: Vec<(f64, u64)> = Vec::new();
     for frame in 0..frames {
         let time_s = match args.clock {
@@ -774,6 +782,17 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                  showing the most important levels that fit (frames over budget are counted in summary.json)",
                 args.memory_budget_mb.0.unwrap_or(0)
             );
+        }
+        if !warned_failure && gpu.streamer.totals().failed > 0 {
+            warned_failure = true;
+            if let Some(first) = gpu.streamer.load_failures().first() {
+                eprintln!(
+                    "\nwarning: from frame {frame} textures fail to load; the first{}: {} \
+                     (counted in summary.json; the run will exit non-zero unless --allow-load-failures)",
+                    first.level.map(|l| format!(", at level {l}")).unwrap_or_default(),
+                    first.reason
+                );
+            }
         }
         // The deficit of the feedback just consumed (from frames_in_flight
         // frames ago with the fixed clock), against the host's table as
@@ -962,6 +981,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         evicted_layers: residency.evicted_layers,
         refused_for_room: residency.refused_for_room,
         declined_loads: residency.declined_loads,
+        load_failures: gpu.streamer.totals().failed,
+        textures_failed: gpu.streamer.failed_textures(),
         gpu_pass_ms,
         validation_errors,
         frames_written: written,
@@ -985,10 +1006,25 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         waits.throttle_ms,
         waits.readback_frames,
     );
+    let failures = gpu.streamer.load_failures();
     drop(reference);
     drop(gpu);
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");
+    }
+    if run.textures_failed > 0 {
+        let first = failures
+            .first()
+            .map(|f| format!("; the first: {}", f.reason))
+            .unwrap_or_default();
+        let message = format!(
+            "{} texture(s) failed to load ({} failure(s)){first}",
+            run.textures_failed, run.load_failures
+        );
+        if !args.allow_load_failures {
+            bail!("{message}; the frames show their colormap colour or coarser levels (--allow-load-failures exits 0)");
+        }
+        eprintln!("warning: {message}");
     }
     Ok(())
 }
