@@ -56,6 +56,11 @@ pub struct LoaderOptions {
     pub load_time: Duration,
     /// Records planned per parallel chunk.
     pub plan_chunk: usize,
+    /// Reads of a mip before its texture is marked failed (at least 1): a
+    /// failed read is retried after `retry_backoff`, doubled each time.
+    pub read_attempts: u32,
+    /// Wait before the first retry of a failed read.
+    pub retry_backoff: Duration,
 }
 
 impl Default for LoaderOptions {
@@ -63,6 +68,8 @@ impl Default for LoaderOptions {
         LoaderOptions {
             load_time: DEFAULT_LOAD_TIME,
             plan_chunk: 4096,
+            read_attempts: 3,
+            retry_backoff: Duration::from_millis(2),
         }
     }
 }
@@ -287,6 +294,8 @@ pub struct LoaderTotals {
     pub loaded_bytes: u64,
     /// Textures failed.
     pub failed: u64,
+    /// Failed reads that a retry then completed.
+    pub read_retries: u64,
     /// Mips deferred by the load-time limit.
     pub deferred_by_time: u64,
     /// Records naming an unknown mesh.
@@ -299,6 +308,7 @@ struct Counters {
     loaded_mips: AtomicU64,
     loaded_bytes: AtomicU64,
     failed: AtomicU64,
+    read_retries: AtomicU64,
     deferred_by_time: AtomicU64,
     bad_records: AtomicU64,
 }
@@ -481,6 +491,7 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
             loaded_mips: c.loaded_mips.load(Ordering::Relaxed),
             loaded_bytes: c.loaded_bytes.load(Ordering::Relaxed),
             failed: c.failed.load(Ordering::Relaxed),
+            read_retries: c.read_retries.load(Ordering::Relaxed),
             deferred_by_time: c.deferred_by_time.load(Ordering::Relaxed),
             bad_records: c.bad_records.load(Ordering::Relaxed),
         }
@@ -582,12 +593,38 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
     }
 
     fn load(&self, item: &PlannedMip) -> Result<(), LoadFailure> {
+        // A read that fails can succeed later (a file being replaced, a
+        // network share, a device hiccup); a wrong request cannot.
+        fn is_transient(error: &SourceError) -> bool {
+            !matches!(
+                error,
+                SourceError::UnknownTexture { .. }
+                    | SourceError::UnknownLevel { .. }
+                    | SourceError::LengthMismatch { .. }
+            )
+        }
         let len = usize::try_from(item.bytes)
             .map_err(|_| LoadFailure::Failed(format!("mip of {} bytes does not fit in memory", item.bytes)))?;
         let mut bytes = vec![0u8; len];
-        self.source
-            .read_mip(item.texture, item.level, &mut bytes)
-            .map_err(|e| LoadFailure::Failed(e.to_string()))?;
+        let mut backoff = self.options.retry_backoff;
+        for attempt in 1.. {
+            match self.source.read_mip(item.texture, item.level, &mut bytes) {
+                Ok(()) => break,
+                Err(e) if attempt < self.options.read_attempts && is_transient(&e) => {
+                    self.counters.read_retries.fetch_add(1, Ordering::Relaxed);
+                    std::thread::sleep(backoff);
+                    backoff = backoff.saturating_mul(2);
+                }
+                Err(e) => {
+                    let tries = if attempt > 1 {
+                        format!(" (after {attempt} attempts)")
+                    } else {
+                        String::new()
+                    };
+                    return Err(LoadFailure::Failed(format!("{e}{tries}")));
+                }
+            }
+        }
         self.sink
             .stage(StagedMip {
                 texture: item.texture,

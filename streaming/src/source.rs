@@ -348,6 +348,135 @@ impl MipSource for MemorySource {
     }
 }
 
+/// Which reads a [`FaultySource`] fails: the mips whose `(texture, level)`
+/// hash falls on one in `every`, each for its first `times` reads. The
+/// choice depends on the mip, not on read order, so runs with parallel
+/// readers fail the same mips.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FaultPlan {
+    /// One mip in this many fails (1: every mip).
+    pub every: u32,
+    /// Reads of such a mip that fail before one succeeds (`u32::MAX`:
+    /// never succeeds).
+    pub times: u32,
+    /// How the failing reads fail.
+    pub kind: FaultKind,
+}
+
+/// How an injected read failure looks to the loader.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaultKind {
+    /// An I/O error.
+    Error,
+    /// The read ends early ([`SourceError::ShortRead`]).
+    ShortRead,
+}
+
+impl FaultPlan {
+    /// Parses `EVERY:TIMES` (both at least 1), failing with I/O errors.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let (every, times) = text
+            .split_once(':')
+            .ok_or_else(|| format!("`{text}` is not EVERY:TIMES (e.g. 5:2)"))?;
+        let number = |part: &str, what: &str| match part.trim().parse::<u32>() {
+            Ok(n) if n >= 1 => Ok(n),
+            _ => Err(format!("{what} in `{text}` must be a whole number of at least 1")),
+        };
+        Ok(FaultPlan {
+            every: number(every, "EVERY")?,
+            times: number(times, "TIMES")?,
+            kind: FaultKind::Error,
+        })
+    }
+
+    fn hits(&self, texture: u32, level: u32) -> bool {
+        // SplitMix64's finaliser: neighbouring mips land far apart.
+        let mut z = (u64::from(texture) << 32 | u64::from(level)).wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        z % u64::from(self.every.max(1)) == 0
+    }
+}
+
+/// A [`MipSource`] that fails chosen reads of another, to test how the
+/// loader and the engine handle failures (and for `flythrough
+/// --inject-read-failures`). Without a plan it reads straight through.
+#[derive(Debug)]
+pub struct FaultySource<S> {
+    inner: S,
+    plan: Option<FaultPlan>,
+    /// Named in the injected errors, as a file source would name its file.
+    file: std::path::PathBuf,
+    /// Failed reads so far, per `(texture, level)`.
+    failed_reads: Mutex<std::collections::HashMap<(u32, u32), u32>>,
+}
+
+impl<S: MipSource> FaultySource<S> {
+    /// Wraps `inner`; `file` is named in injected errors.
+    pub fn new(inner: S, plan: Option<FaultPlan>, file: impl Into<std::path::PathBuf>) -> Self {
+        FaultySource {
+            inner,
+            plan,
+            file: file.into(),
+            failed_reads: Mutex::new(std::collections::HashMap::new()),
+        }
+    }
+
+    /// The wrapped source.
+    pub fn inner(&self) -> &S {
+        &self.inner
+    }
+
+    /// Reads failed on purpose so far.
+    pub fn injected_failures(&self) -> u64 {
+        lock(&self.failed_reads).values().map(|&n| u64::from(n)).sum()
+    }
+}
+
+impl<S: MipSource> MipSource for FaultySource<S> {
+    fn texture_count(&self) -> u32 {
+        self.inner.texture_count()
+    }
+
+    fn texture_format(&self, texture: u32) -> Result<TextureFormat, SourceError> {
+        self.inner.texture_format(texture)
+    }
+
+    fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError> {
+        self.inner.mip_chain(texture)
+    }
+
+    fn mip_len(&self, texture: u32, level: u32) -> Result<u64, SourceError> {
+        self.inner.mip_len(texture, level)
+    }
+
+    fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {
+        if let Some(plan) = self.plan.filter(|plan| plan.hits(texture, level)) {
+            let mut failed = lock(&self.failed_reads);
+            let count = failed.entry((texture, level)).or_insert(0);
+            if *count < plan.times {
+                *count += 1;
+                return Err(match plan.kind {
+                    FaultKind::Error => SourceError::File {
+                        texture,
+                        level,
+                        path: self.file.clone(),
+                        source: std::io::Error::other(format!("injected read failure {count} of {}", plan.times)),
+                    },
+                    FaultKind::ShortRead => SourceError::ShortRead {
+                        texture,
+                        level,
+                        expected: buf.len() as u64,
+                        got: buf.len() as u64 / 2,
+                    },
+                });
+            }
+        }
+        self.inner.read_mip(texture, level, buf)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -291,13 +291,15 @@ impl TextureStates {
 
     /// The cache reused `texture`'s region: make it Final (nothing more is
     /// loaded into the stale region) and queue it for unloading. Returns
-    /// `false` if it was already invalidated or never loaded.
+    /// `false` if it was already invalidated, never loaded or failed (a
+    /// failed texture stays failed: unloading would reset it to Initial and
+    /// read it again).
     pub fn invalidate(&self, texture: u32) -> Result<bool, UnknownTexture> {
         let word = self.word(texture)?;
         let mut current = word.load(Ordering::Acquire);
         loop {
             let status = TextureStatus::unpack(current);
-            if status.invalidated || status.state == TextureState::Initial {
+            if status.invalidated || matches!(status.state, TextureState::Initial | TextureState::Failed) {
                 return Ok(false);
             }
             let to = TextureStatus {

@@ -6,7 +6,9 @@ use std::time::Duration;
 use citystream_streaming::controller::Decision;
 use citystream_streaming::loader::{Loader, LoaderError, LoaderOptions};
 use citystream_streaming::records::{prepare, MeshMetaData};
-use citystream_streaming::source::{pattern_byte, MemorySink, MemorySource, MipSink, SinkError, StagedMip};
+use citystream_streaming::source::{
+    pattern_byte, FaultKind, FaultPlan, FaultySource, MemorySink, MemorySource, MipSink, SinkError, StagedMip,
+};
 use citystream_streaming::states::TextureState;
 
 fn rec(mesh_id: u32, weight: u32, mip_level: u32) -> MeshMetaData {
@@ -28,6 +30,8 @@ fn options() -> LoaderOptions {
     LoaderOptions {
         load_time: Duration::from_secs(60),
         plan_chunk: 2,
+        retry_backoff: Duration::from_micros(10),
+        ..LoaderOptions::default()
     }
 }
 
@@ -153,6 +157,9 @@ fn io_errors_fail_the_texture_and_streaming_continues() -> Result<(), LoaderErro
     let reasons: Vec<&str> = failures.iter().map(|f| f.reason.as_str()).collect();
     assert!(reasons.iter().any(|r| r.contains("mip data missing")), "{reasons:?}");
     assert!(reasons.iter().any(|r| r.contains("short read")), "{reasons:?}");
+    // Each was read three times before the texture was given up.
+    assert!(reasons.iter().all(|r| r.ends_with("(after 3 attempts)")), "{reasons:?}");
+    assert_eq!(loader.totals().read_retries, 4);
     // Failed textures are not retried; the good one keeps refining.
     let r = loader.run_cycle(&records, unlimited()).expect("idle");
     assert_eq!((r.loaded_mips, r.failed), (1, 0));
@@ -188,6 +195,7 @@ fn load_time_limit_defers_and_keeps_state() -> Result<(), LoaderError> {
     let opts = LoaderOptions {
         load_time: Duration::ZERO,
         plan_chunk: 16,
+        ..LoaderOptions::default()
     };
     let loader = Loader::new(src, MemorySink::new(), vec![0], 1, opts)?;
     let r = loader.run_cycle(&[rec(0, 500, 0)], unlimited()).expect("idle");
@@ -307,5 +315,74 @@ fn sink_refusals_invalidate_or_fail() -> Result<(), LoaderError> {
     let r = loader.run_cycle(&records, unlimited()).expect("idle");
     assert_eq!(r.unloaded, 1);
     assert_eq!(loader.sink().inner.unloaded(), vec![0]);
+    Ok(())
+}
+
+/// Forty 16×16 textures, one mesh each, loaded to their base level.
+fn load_all_through(plan: FaultPlan) -> Result<Loader<FaultySource<MemorySource>, MemorySink>, LoaderError> {
+    let mut src = MemorySource::new();
+    for _ in 0..40 {
+        src.push_bc1(16, 16);
+    }
+    let source = FaultySource::new(src, Some(plan), "textures.pack");
+    let loader = Loader::new(source, MemorySink::new(), (0..40).collect(), 40, options())?;
+    let records: Vec<MeshMetaData> = (0..40).map(|mesh| rec(mesh, 500, 0)).collect();
+    for _ in 0..4 {
+        loader.run_cycle(&records, unlimited());
+    }
+    Ok(loader)
+}
+
+#[test]
+fn failed_reads_are_retried_and_recover_below_the_attempt_limit() -> Result<(), LoaderError> {
+    for kind in [FaultKind::Error, FaultKind::ShortRead] {
+        // Every third mip fails twice, and the third read succeeds.
+        let loader = load_all_through(FaultPlan {
+            every: 3,
+            times: 2,
+            kind,
+        })?;
+        let injected = loader.source().injected_failures();
+        assert!(injected >= 20, "{injected} failures injected");
+        let totals = loader.totals();
+        assert_eq!((totals.failed, totals.read_retries), (0, injected));
+        assert!(loader.failures().is_empty());
+        // Every texture reached its base level with the right bytes.
+        assert_eq!(loader.states().census(), [0, 0, 40, 0]);
+        for mip in loader.sink().take_staged() {
+            assert!(mip
+                .bytes
+                .iter()
+                .enumerate()
+                .all(|(o, &b)| b == pattern_byte(mip.texture, mip.level, o)));
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn reads_failing_every_attempt_fail_their_texture_and_name_the_file() -> Result<(), LoaderError> {
+    let loader = load_all_through(FaultPlan {
+        every: 3,
+        times: 3,
+        kind: FaultKind::Error,
+    })?;
+    let totals = loader.totals();
+    let failed = loader.states().census()[3] as u64;
+    assert!(failed > 0 && totals.failed == failed, "{totals:?}, {failed} failed");
+    // Two retries per failed texture, nothing else retried.
+    assert_eq!(totals.read_retries, 2 * failed);
+    let failures = loader.failures();
+    assert!(failures
+        .iter()
+        .all(|f| f.reason.contains("textures.pack") && f.reason.ends_with("(after 3 attempts)")));
+    // A failed texture is never read again, and stays failed when its
+    // cache region is reused.
+    let first = failures[0].texture;
+    assert!(!loader.states().invalidate(first).expect("in range"));
+    assert_eq!(
+        loader.states().get(first).expect("in range").state,
+        TextureState::Failed
+    );
     Ok(())
 }

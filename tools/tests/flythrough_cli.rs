@@ -629,3 +629,69 @@ fn textures_that_fail_to_load_are_reported_and_fail_the_run() {
     assert!(status.success(), "--allow-load-failures still failed: {stderr}");
     assert!(stderr.contains("warning:") && summary["textures_failed"].as_u64().is_some_and(|n| n > 0));
 }
+
+#[test]
+fn injected_read_failures_recover_below_the_retry_limit_and_fail_the_run_above_it() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_injected_failures");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let run = |name: &str, extra: &[&str]| {
+        let out = base.join(name);
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args(["--frames", "60", "--frame-interval", "20", "--psnr-interval", "0"])
+            .args(["--width", "160", "--height", "120", "--clock", "fixed"])
+            .args(extra)
+            .arg("--dataset")
+            .arg(&dataset)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .expect("flythrough runs");
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
+                .expect("summary.json is JSON");
+        let csv = std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
+        let frames: Vec<Vec<u8>> = ["frame_00000.png", "frame_00020.png", "frame_00040.png"]
+            .iter()
+            .map(|f| std::fs::read(out.join("frames").join(f)).expect("frame written"))
+            .collect();
+        (output, summary, csv, frames)
+    };
+    let (clean, clean_summary, clean_csv, clean_frames) = run("clean", &[]);
+    assert!(clean.status.success(), "{}", String::from_utf8_lossy(&clean.stderr));
+    assert_eq!(clean_summary["read_retries"], 0);
+
+    // One mip in three fails twice: every read recovers on its third try.
+    let (recovered, summary, csv, frames) = run("recovered", &["--inject-read-failures", "3:2"]);
+    assert!(
+        recovered.status.success(),
+        "{}",
+        String::from_utf8_lossy(&recovered.stderr)
+    );
+    assert!(summary["read_retries"].as_u64().is_some_and(|n| n > 0), "{summary}");
+    assert_eq!(
+        (summary["load_failures"].as_u64(), summary["textures_failed"].as_u64()),
+        (Some(0), Some(0))
+    );
+    assert_eq!(
+        csv, clean_csv,
+        "the retried run must stream the same mips in the same frames"
+    );
+    assert!(frames == clean_frames, "the retried run must render the same frames");
+
+    // Three failures per mip: past the retry limit, the run fails.
+    let (failed, summary, _, _) = run("failed", &["--inject-read-failures", "3:3"]);
+    let stderr = String::from_utf8_lossy(&failed.stderr);
+    assert!(!failed.status.success(), "exit 0 with failed textures: {stderr}");
+    assert!(
+        stderr.contains("textures.pack") && stderr.contains("injected read failure"),
+        "{stderr}"
+    );
+    assert!(summary["textures_failed"].as_u64().is_some_and(|n| n > 0), "{summary}");
+
+    let bad = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--inject-read-failures", "0:2"])
+        .output()
+        .expect("flythrough runs");
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("EVERY"));
+}

@@ -33,7 +33,7 @@ use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
-use citystream_streaming::source::MipSource;
+use citystream_streaming::source::{FaultPlan, FaultySource, MipSource};
 use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -176,6 +176,12 @@ struct Args {
     /// pack); the failures are still counted in summary.json and warned about.
     #[arg(long)]
     allow_load_failures: bool,
+    /// Testing aid: make reads of the texture pack fail, `EVERY:TIMES`: one
+    /// mip in EVERY (chosen by its texture and level) fails its first TIMES
+    /// reads. The loader reads a mip up to 3 times, so TIMES of 2 or less
+    /// recover and 3 or more fail the texture.
+    #[arg(long, value_parser = FaultPlan::parse)]
+    inject_read_failures: Option<FaultPlan>,
     /// Measure image error every N frames: render a reference of the same view
     /// with every needed mip resident and report PSNR against it (0: never).
     #[arg(long, default_value_t = 30)]
@@ -265,6 +271,8 @@ struct Run<'a> {
     pause_uploads_second_half: Vec<u64>,
     /// Failed reads and header errors, and the textures the loader gave up on.
     load_failures: u64,
+    /// Failed reads that a retry then completed.
+    read_retries: u64,
     textures_failed: usize,
     /// Levels dropped, layers evicted, loads refused and declined for room.
     dropped_levels: u64,
@@ -447,7 +455,7 @@ fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: f64, reside
 
 /// A streamer over the dataset and the city passes that draw with it.
 struct CityGpu {
-    streamer: TextureStreamer<DatasetSource>,
+    streamer: TextureStreamer<FaultySource<DatasetSource>>,
     renderer: CityRenderer,
 }
 
@@ -500,18 +508,28 @@ fn stream_config(
     }
 }
 
+/// The streamer and renderer of a city; `faults` makes chosen reads of the
+/// dataset fail (`--inject-read-failures`).
+#[allow(clippy::too_many_arguments)]
 fn city_gpu(
     device: &Arc<Device>,
     commands: &mut CommandContext,
     dataset: &Arc<Dataset>,
+    dir: &std::path::Path,
     city: &CityGeometry,
     policy: Box<dyn citystream_streaming::controller::LoadPolicy>,
     config: &StreamConfig,
+    faults: Option<FaultPlan>,
 ) -> Result<CityGpu> {
     let (vertices, meshes) = city;
+    let source = FaultySource::new(
+        DatasetSource::new(Arc::clone(dataset)),
+        faults,
+        dir.join(citystream_streaming::dataset::PACK_FILE),
+    );
     let streamer = TextureStreamer::new(
         device,
-        DatasetSource::new(Arc::clone(dataset)),
+        source,
         dataset.scene.meshes.iter().map(|m| m.texture).collect(),
         dataset.colormap.colours(),
         policy,
@@ -664,6 +682,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         device,
         &mut commands,
         &dataset,
+        dir,
         &city,
         policy,
         &stream_config(
@@ -674,6 +693,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             args.eviction,
             args.cache_layers,
         ),
+        args.inject_read_failures,
     )?;
     // The error reference: every needed level resident, no budget, loaded
     // synchronously between frames (its policy never runs).
@@ -682,9 +702,11 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             device,
             &mut commands,
             &dataset,
+            dir,
             &city,
             PolicyKind::Baseline.build(&PolicyOptions::default())?,
             &reference_config(fragment_area),
+            None,
         )?)
     } else {
         None
@@ -982,6 +1004,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         refused_for_room: residency.refused_for_room,
         declined_loads: residency.declined_loads,
         load_failures: gpu.streamer.totals().failed,
+        read_retries: gpu.streamer.totals().read_retries,
         textures_failed: gpu.streamer.failed_textures(),
         gpu_pass_ms,
         validation_errors,
@@ -1091,9 +1114,11 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         device,
         &mut commands,
         &dataset,
+        dir,
         &city,
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
         &reference_config(fragment_area),
+        None,
     )?;
     // The view of the path's first pause: the static view a user replaying
     // the benchmark sees longest.
@@ -1120,7 +1145,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         .feedback_of(0)?
         .context("the pop-in view's feedback frame did not complete")?
         .entries;
-    let source = gpu.streamer.source().clone();
+    let source = gpu.streamer.source().inner().clone();
     let mut wanted: Vec<(u32, u32, u32)> = Vec::new(); // (texture, needed level, next level to load)
     for entry in &entries {
         let Some(mesh) = meshes.get(entry.mesh_id as usize) else {
