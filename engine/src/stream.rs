@@ -1025,9 +1025,16 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                         self.free_layer(image, value, &mut layers, &mut dropped_now)?
                     }
                     Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. }) => false,
-                    Err(_) => {
+                    // The cache cannot hold this texture at all (a format
+                    // without an image, an extent above the layer): loading
+                    // it again would fail again.
+                    Err(error) => {
                         refused += 1;
-                        let _ = self.states.invalidate(texture);
+                        self.loader.fail_texture(TextureFailure {
+                            texture,
+                            level: Some(mip.level),
+                            reason: error.to_string(),
+                        });
                         break;
                     }
                 };
@@ -1045,8 +1052,8 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     }
 
     /// Moves every loaded mip into the cache. Mips the cache cannot take
-    /// now, and textures it evicted, are invalidated in the streaming
-    /// states so Algorithm 1 loads them again later.
+    /// now are invalidated in the streaming states so Algorithm 1 loads them
+    /// again later; textures it cannot take at all are failed.
     fn stage_loaded(&mut self) -> Result<u32> {
         let mut refused = 0;
         // Loader workers stage in whatever order they finish; packing in a
@@ -1059,9 +1066,20 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             let outcome = self
                 .cache
                 .stage(mip.texture, format, chain.width, chain.height, mip.level, &mip.bytes);
-            if !matches!(outcome, Ok(StageOutcome::Staged { .. })) {
-                refused += 1;
-                let _ = self.states.invalidate(mip.texture);
+            match outcome {
+                Ok(StageOutcome::Staged { .. }) => {}
+                Ok(_) => {
+                    refused += 1;
+                    let _ = self.states.invalidate(mip.texture);
+                }
+                Err(error) => {
+                    refused += 1;
+                    self.loader.fail_texture(TextureFailure {
+                        texture: mip.texture,
+                        level: Some(mip.level),
+                        reason: error.to_string(),
+                    });
+                }
             }
         }
         Ok(refused)

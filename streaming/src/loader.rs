@@ -501,6 +501,14 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
     pub fn failures(&self) -> Vec<TextureFailure> {
         self.inner.failure_log().iter().cloned().collect()
     }
+
+    /// Gives up `failure.texture` for a reason found after loading (the
+    /// cache cannot hold it): marks it failed, so it is not read again,
+    /// and counts and logs the failure like a failed read.
+    pub fn fail_texture(&self, failure: TextureFailure) {
+        let _ = self.inner.states.mark_failed(failure.texture);
+        self.inner.record_failure(failure);
+    }
 }
 
 impl<S: MipSource, K: MipSink> Inner<S, K> {

@@ -326,3 +326,90 @@ fn calls_out_of_order_are_refused() -> Result<()> {
     drop(streamer);
     assert_no_validation_errors(&device)
 }
+
+#[test]
+fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<()> {
+    let device = sync_validated_device()?;
+    // Texture 0 is twice the layer size; the others fit.
+    let mut source = MemorySource::new();
+    source.push_bc1(2 * TEXTURE, 2 * TEXTURE);
+    for _ in 1..QUADS {
+        source.push_bc1(TEXTURE, TEXTURE);
+    }
+    let (vertices, indices, mut meshes) = quad_row();
+    meshes[0].texture_width = 2 * TEXTURE;
+    meshes[0].texture_height = 2 * TEXTURE;
+    let view = FeedbackView::default();
+    let target = RenderTarget::new(&device, WIDTH, HEIGHT)?;
+    let feedback_target = RenderTarget::new(&device, WIDTH / 4, HEIGHT / 4)?;
+    let mut streamer = TextureStreamer::new(
+        &device,
+        source,
+        meshes.iter().map(|m| m.texture).collect(),
+        &vec![[90, 90, 90, 255]; QUADS as usize],
+        PolicyKind::Baseline.build(&PolicyOptions::default())?,
+        &StreamConfig {
+            layer_size: TEXTURE,
+            memory_budget_bytes: 64 << 20,
+            staging_bytes: 1 << 20,
+            fragment_area: view.fragment_area(HEIGHT, feedback_target.height()),
+            weight_cutoff: 1,
+            deterministic: true,
+            ..StreamConfig::default()
+        },
+    )?;
+    let mut setup = CommandContext::new(&device, "oversized texture test")?;
+    let renderer = CityRenderer::new(
+        &device,
+        &mut setup,
+        &vertices,
+        &indices,
+        meshes,
+        streamer.cache(),
+        streamer.compactor(),
+    )?;
+    let mut frame_commands = (0..2)
+        .map(|i| CommandContext::new(&device, &format!("oversized texture frame {i}")))
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    // The camera looks at the first quads, texture 0 among them.
+    let camera = Camera {
+        eye: Vec3::new(15.0, 5.0, 14.0),
+        target: Vec3::new(15.0, 5.0, 0.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.1,
+        far: 100.0,
+    };
+    for _ in 0..30 {
+        let begun = streamer.begin_frame()?;
+        let commands = &mut frame_commands[begun.slot as usize];
+        let cmd = commands.begin_completed()?;
+        streamer.record_uploads(cmd)?;
+        renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
+        streamer.record_feedback_resolve(cmd)?;
+        renderer.record_visible(cmd, &target, &camera, 1.0, true);
+        let submit = streamer.end_frame(16.0)?;
+        commands.submit_frame(&submit.waits, &[submit.signal])?;
+    }
+    device.wait_idle()?;
+    let failures = streamer.load_failures();
+    ensure!(
+        streamer.failed_textures() == 1 && streamer.totals().failed == 1,
+        "{} textures failed, {} failures: {failures:?}",
+        streamer.failed_textures(),
+        streamer.totals().failed
+    );
+    ensure!(
+        failures[0].texture == 0 && failures[0].reason.contains("larger than the layer size"),
+        "{failures:?}"
+    );
+    // The others streamed as usual.
+    let resident: Vec<u32> = (0..4).map(|t| streamer.cache().resident_levels(t)).collect();
+    ensure!(
+        resident[0] == 0 && resident[1] != 0 && resident[2] != 0,
+        "the textures beside it were not streamed: resident levels {resident:?}, totals {:?}",
+        streamer.totals()
+    );
+    drop(renderer);
+    drop(streamer);
+    assert_no_validation_errors(&device)
+}
