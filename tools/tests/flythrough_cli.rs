@@ -71,6 +71,12 @@ fn bad_arguments_are_refused_clearly() {
 /// Writes a small dataset: a ground quad and a ring of facade quads, each
 /// with its own RGBA8 64x64 texture and full mip chain.
 fn write_small_dataset(dir: &std::path::Path) {
+    write_dataset(dir, None);
+}
+
+/// The small dataset; with `ground_side`, the ground's texture is a BC1
+/// texture of that side instead.
+fn write_dataset(dir: &std::path::Path, ground_side: Option<u32>) {
     use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
     let _ = std::fs::remove_dir_all(dir);
     let mut writer = DatasetWriter::create(dir).expect("dataset directory");
@@ -78,6 +84,17 @@ fn write_small_dataset(dir: &std::path::Path) {
     let side = 64u32;
     let mips = 7u32;
     for t in 0..17u32 {
+        if let (0, Some(ground)) = (t, ground_side) {
+            let levels = ground.ilog2() + 1;
+            let bytes: u64 = (0..levels)
+                .map(|l| TextureFormat::Bc1.mip_bytes(ground >> l, ground >> l))
+                .sum();
+            let chain: Vec<u8> = (0..bytes).map(|i| (i * 37 % 251) as u8).collect();
+            writer
+                .add_texture(TextureFormat::Bc1, ground, ground, levels, &chain, [90, 90, 90, 255])
+                .expect("ground texture");
+            continue;
+        }
         let mut chain = Vec::new();
         for level in 0..mips {
             let s = (side >> level).max(1);
@@ -694,4 +711,37 @@ fn injected_read_failures_recover_below_the_retry_limit_and_fail_the_run_above_i
         .output()
         .expect("flythrough runs");
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("EVERY"));
+}
+
+#[test]
+fn textures_larger_than_the_default_layer_get_larger_layers() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_large_texture");
+    let dataset = base.join("city");
+    write_dataset(&dataset, Some(4096));
+    let out = base.join("out");
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--frames", "40", "--frame-interval", "0", "--psnr-interval", "0"])
+        .args(["--width", "160", "--height", "120", "--clock", "fixed"])
+        .arg("--dataset")
+        .arg(&dataset)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("flythrough runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains("cache layers of 4096"), "{stderr}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
+            .expect("summary.json is JSON");
+    assert_eq!(summary["cache_layer_size"], 4096);
+    assert_eq!(summary["textures_failed"], 0);
+    // The ground's texture streams like the others (its coarse levels first).
+    let csv = std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
+    let mips: u64 = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(10).expect("mips").parse::<u64>().expect("mips"))
+        .sum();
+    assert!(mips > 17, "{mips} mips streamed");
 }

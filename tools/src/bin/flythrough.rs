@@ -279,6 +279,8 @@ struct Run<'a> {
     evicted_layers: u64,
     refused_for_room: u64,
     declined_loads: u64,
+    /// Side of the cache's array layers in texels.
+    cache_layer_size: u32,
     /// GPU time of each pass per frame, from timestamps (null where the
     /// queue has none).
     gpu_pass_ms: Option<GpuPassMs>,
@@ -461,7 +463,7 @@ struct CityGpu {
 
 /// The streamer of references and measurements that load levels
 /// explicitly: no budget, one frame in flight, the fixed clock.
-fn reference_config(fragment_area: f32) -> StreamConfig {
+fn reference_config(fragment_area: f32, layer_size: u32) -> StreamConfig {
     stream_config(
         UNLIMITED_BUDGET_BYTES,
         1,
@@ -469,7 +471,39 @@ fn reference_config(fragment_area: f32) -> StreamConfig {
         Clock::Fixed,
         Eviction::View,
         None,
+        layer_size,
     )
+}
+
+/// The cache layer size for `dataset`: 2048 texels, or the largest
+/// texture's extent where that is larger, up to what the device (and the
+/// cache) allow; a texture larger than that fails to load, reported.
+fn cache_layer_size(dataset: &Dataset, device: &Device) -> u32 {
+    const DEFAULT_LAYER_SIZE: u32 = 2048;
+    let largest = (0..dataset.textures.len())
+        .filter_map(|texture| dataset.textures.info(texture).ok())
+        .map(|info| info.width().max(info.height()))
+        .max()
+        .unwrap_or(1);
+    let device_limit = device
+        .properties()
+        .limits
+        .max_image_dimension2_d
+        .min(citystream_cache::MAX_LAYER_SIZE);
+    // Powers of two: the largest one the device allows.
+    let device_limit = 1u32 << device_limit.max(1).ilog2();
+    let size = largest
+        .next_power_of_two()
+        .clamp(DEFAULT_LAYER_SIZE.min(device_limit), device_limit);
+    if largest > device_limit {
+        eprintln!(
+            "warning: the dataset has textures of up to {largest} texels, beyond the device's {device_limit}; \
+             they fail to load (counted in summary.json)"
+        );
+    } else if size > DEFAULT_LAYER_SIZE {
+        eprintln!("cache layers of {size}² texels for textures of up to {largest} texels");
+    }
+    size
 }
 
 /// The streamer's cache and feedback settings shared by the streamed run,
@@ -481,10 +515,11 @@ fn stream_config(
     clock: Clock,
     eviction: Eviction,
     layer_count: Option<u32>,
+    layer_size: u32,
 ) -> StreamConfig {
     StreamConfig {
         frames_in_flight,
-        layer_size: 2048,
+        layer_size,
         layer_count,
         max_layers: None,
         eviction,
@@ -659,6 +694,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let (dataset, city) = open_city(dir)?;
     let meshes = &city.1;
     let scene = &dataset.scene;
+    let layer_size = cache_layer_size(&dataset, device);
     let mut commands = CommandContext::new(device, "flythrough setup and measurements")?;
     let CityTargets {
         target,
@@ -692,6 +728,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             args.clock,
             args.eviction,
             args.cache_layers,
+            layer_size,
         ),
         args.inject_read_failures,
     )?;
@@ -705,7 +742,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             dir,
             &city,
             PolicyKind::Baseline.build(&PolicyOptions::default())?,
-            &reference_config(fragment_area),
+            &reference_config(fragment_area, layer_size),
             None,
         )?)
     } else {
@@ -1006,6 +1043,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         load_failures: gpu.streamer.totals().failed,
         read_retries: gpu.streamer.totals().read_retries,
         textures_failed: gpu.streamer.failed_textures(),
+        cache_layer_size: layer_size,
         gpu_pass_ms,
         validation_errors,
         frames_written: written,
@@ -1102,6 +1140,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     let (dataset, city) = open_city(dir)?;
     let meshes = &city.1;
     let scene = &dataset.scene;
+    let layer_size = cache_layer_size(&dataset, device);
     let mut commands = CommandContext::new(device, "pop-in frame")?;
     let CityTargets {
         target,
@@ -1117,7 +1156,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         dir,
         &city,
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
-        &reference_config(fragment_area),
+        &reference_config(fragment_area, layer_size),
         None,
     )?;
     // The view of the path's first pause: the static view a user replaying
