@@ -26,6 +26,22 @@ impl TexelFormat {
         bytes_per_block: 8,
     };
 
+    /// BC3 (DXT5): 4×4 texel blocks of 16 bytes.
+    pub const BC3: TexelFormat = TexelFormat {
+        name: "BC3",
+        block_width: 4,
+        block_height: 4,
+        bytes_per_block: 16,
+    };
+
+    /// BC7: 4×4 texel blocks of 16 bytes.
+    pub const BC7: TexelFormat = TexelFormat {
+        name: "BC7",
+        block_width: 4,
+        block_height: 4,
+        bytes_per_block: 16,
+    };
+
     /// RGBA8 (any 8-bit four-channel format): one texel of 4 bytes.
     pub const RGBA8: TexelFormat = TexelFormat {
         name: "RGBA8",

@@ -6,6 +6,7 @@
 //! Run: `cargo bench -p citystream-engine --bench feedback_overhead`.
 //! Prints a table; nothing is asserted (speed lives in benchmarks, not tests).
 
+use citystream_streaming::dataset::TextureFormat;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -66,6 +67,7 @@ fn main() -> Result<()> {
         &GpuCacheConfig {
             layer_size: 512,
             layers: CacheLayers::Fixed(4),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 64 << 20,
             virtual_budget_bytes: None,

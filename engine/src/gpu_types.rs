@@ -97,7 +97,7 @@ pub const TEXTURE_SAMPLEABLE: u32 = 1;
 pub struct TextureData {
     /// xy: scale, zw: offset (texture UV to layer UV).
     pub uv_transform: [f32; 4],
-    /// Cache image (0: BC1, 1: RGBA8).
+    /// Cache image: the element of the `BINDING_CACHE_IMAGES` array.
     pub image: u32,
     /// Array layer.
     pub layer: u32,

@@ -64,7 +64,9 @@ use crate::texture_cache::{
 pub fn texel_format(format: TextureFormat) -> TexelFormat {
     match format {
         TextureFormat::Bc1 => TexelFormat::BC1,
-        _ => TexelFormat::RGBA8,
+        TextureFormat::Bc3 => TexelFormat::BC3,
+        TextureFormat::Bc7 => TexelFormat::BC7,
+        TextureFormat::Rgba8 => TexelFormat::RGBA8,
     }
 }
 
@@ -468,10 +470,23 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                     mesh_textures.len()
                 ))
             })?;
+        let extents = texture_extents(&source)?;
+        // An image for each format the source has textures of.
+        let formats: Vec<TextureFormat> = CACHE_FORMATS
+            .iter()
+            .zip(&extents)
+            .filter(|(_, counts)| !counts.is_empty())
+            .map(|((format, _, _), _)| *format)
+            .collect();
+        let formats = if formats.is_empty() {
+            vec![TextureFormat::Bc1]
+        } else {
+            formats
+        };
         let layers = match config.layer_count {
             Some(count) => CacheLayers::Fixed(count),
             None => CacheLayers::Derived {
-                extents: texture_extents(&source)?,
+                extents,
                 max_layers: config.max_layers,
             },
         };
@@ -482,6 +497,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             &GpuCacheConfig {
                 layer_size: config.layer_size,
                 layers,
+                formats,
                 eviction: config.eviction,
                 memory_budget_bytes: config.memory_budget_bytes,
                 virtual_budget_bytes: None,

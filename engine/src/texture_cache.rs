@@ -52,12 +52,14 @@ use crate::scene::upload_buffer;
 use crate::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
 use crate::staging::StagingRing;
 
-/// The formats the cache holds. Each has one sparse image or more; the
-/// images of all formats fill the `BINDING_CACHE_IMAGES` array in this
-/// order, so with one image per format image 0 is BC1 and image 1 RGBA8.
-pub const CACHE_FORMATS: [(TextureFormat, vk::Format, TexelFormat); 2] = [
+/// The formats the cache can hold. Each format of
+/// [`GpuCacheConfig::formats`] has one sparse image or more; the images fill
+/// the `BINDING_CACHE_IMAGES` array in this order.
+pub const CACHE_FORMATS: [(TextureFormat, vk::Format, TexelFormat); 4] = [
     (TextureFormat::Bc1, vk::Format::BC1_RGB_UNORM_BLOCK, TexelFormat::BC1),
     (TextureFormat::Rgba8, vk::Format::R8G8B8A8_UNORM, TexelFormat::RGBA8),
+    (TextureFormat::Bc3, vk::Format::BC3_UNORM_BLOCK, TexelFormat::BC3),
+    (TextureFormat::Bc7, vk::Format::BC7_UNORM_BLOCK, TexelFormat::BC7),
 ];
 
 /// How the cache frees memory when the budget is reached.
@@ -86,7 +88,8 @@ impl Eviction {
 /// How many array layers each cache image has.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum CacheLayers {
-    /// One image per format, each with this many layers.
+    /// One image per format of [`GpuCacheConfig::formats`], each with this
+    /// many layers.
     Fixed(u32),
     /// Derived ([`citystream_cache::derive_image_layers`]) from the textures
     /// each format must place, the memory budget, the device's
@@ -108,6 +111,9 @@ pub struct GpuCacheConfig {
     pub layer_size: u32,
     /// Images and layers per format.
     pub layers: CacheLayers,
+    /// The formats of the textures the cache holds (each gets its own
+    /// images); a texture of another format is refused.
+    pub formats: Vec<TextureFormat>,
     /// Bytes of bound blocks allowed; reaching it evicts the oldest layer.
     pub memory_budget_bytes: u64,
     /// Virtual address space all cache images may span; `None` uses the
@@ -292,39 +298,59 @@ impl GpuTextureCache {
         let virtual_budget_bytes = config
             .virtual_budget_bytes
             .unwrap_or(device.sparse_support().address_space_size);
-        let layer_counts: Vec<Vec<u32>> = match &config.layers {
-            CacheLayers::Fixed(count) => vec![vec![*count]; CACHE_FORMATS.len()],
+        // Indices into CACHE_FORMATS of the formats held, in that order.
+        let held: Vec<usize> = (0..CACHE_FORMATS.len())
+            .filter(|&index| config.formats.contains(&CACHE_FORMATS[index].0))
+            .collect();
+        if held.is_empty() {
+            return Err(EngineError::InvalidRequest(format!(
+                "the cache must hold at least one of {:?}; {:?} were asked for",
+                CACHE_FORMATS.map(|(format, _, _)| format),
+                config.formats
+            )));
+        }
+        let mut layer_counts: Vec<Vec<u32>> = vec![Vec::new(); CACHE_FORMATS.len()];
+        match &config.layers {
+            CacheLayers::Fixed(count) => {
+                for &index in &held {
+                    layer_counts[index] = vec![*count];
+                }
+            }
             CacheLayers::Derived { extents, max_layers } => {
                 let max_layers =
                     max_layers.map_or(limits.max_image_array_layers, |m| m.min(limits.max_image_array_layers));
-                let probes = CACHE_FORMATS
+                let probes = held
                     .iter()
-                    .map(|&(_, vk_format, texel_format)| {
+                    .map(|&index| {
+                        let (_, vk_format, texel_format) = CACHE_FORMATS[index];
                         probe_layer(device, config.layer_size, vk_format, texel_format)
                     })
                     .collect::<Result<Vec<_>>>()?;
-                let demands: Vec<ImageDemand> = probes
+                let demands: Vec<ImageDemand> = held
                     .iter()
-                    .enumerate()
-                    .map(|(index, probe)| ImageDemand {
+                    .zip(&probes)
+                    .map(|(&index, probe)| ImageDemand {
                         extents: extents.get(index).cloned().unwrap_or_default(),
                         layer_virtual_bytes: probe.virtual_bytes,
                     })
                     .collect();
                 // The images share one block size (checked once they exist).
                 let block_bytes = probes.first().map_or(1, |probe| probe.block_bytes.max(1));
-                derive_image_layers(
+                let derived = derive_image_layers(
                     config.layer_size,
                     &demands,
                     config.memory_budget_bytes / block_bytes,
                     max_layers,
                     CACHE_IMAGE_SLOTS,
                     virtual_budget_bytes,
-                )
+                );
+                for (&index, counts) in held.iter().zip(derived) {
+                    layer_counts[index] = counts;
+                }
             }
         };
         let image_count: usize = layer_counts.iter().map(Vec::len).sum();
-        if image_count > CACHE_IMAGE_SLOTS as usize || layer_counts.iter().any(Vec::is_empty) {
+        if image_count > CACHE_IMAGE_SLOTS as usize || held.iter().any(|&index| layer_counts[index].is_empty()) {
             return Err(EngineError::InvalidRequest(format!(
                 "the cache needs 1 to {CACHE_IMAGE_SLOTS} images per format and {CACHE_IMAGE_SLOTS} in all; \
                  {layer_counts:?} layers were asked for"
@@ -632,11 +658,13 @@ impl GpuTextureCache {
             .slots
             .get(texture as usize)
             .ok_or_else(|| EngineError::InvalidRequest(format!("texture {texture} is outside the cache's table")))?;
-        let format_index = Self::format_index(format).ok_or_else(|| EngineError::UnsupportedFormat {
-            texture,
-            format: format!("{format:?}"),
-            reason: "the cache has no sparse image of that format".into(),
-        })?;
+        let format_index = Self::format_index(format)
+            .filter(|&index| !self.format_images[index].is_empty())
+            .ok_or_else(|| EngineError::UnsupportedFormat {
+                texture,
+                format: format!("{format:?}"),
+                reason: "the cache has no sparse image of that format".into(),
+            })?;
         let texel_format = CACHE_FORMATS[format_index].2;
         let images = &self.format_images[format_index];
         let placement = match slot.placement {

@@ -78,7 +78,7 @@ struct CityMeshInfo {
 // frames, read by every pass that samples city textures.
 struct TextureData {
     vec4 uv_transform;   // xy: scale, zw: offset, texture UV -> layer UV, valid at every cached mip
-    uint image;          // cache image (0: BC1, 1: RGBA8)
+    uint image;          // cache image: the element of BINDING_CACHE_IMAGES
     uint layer;          // array layer
     uint lowest_mip;     // finest resident level; meaningful when state == TEXTURE_SAMPLEABLE
     uint state;          // TEXTURE_SAMPLEABLE or TEXTURE_NOT_SAMPLEABLE

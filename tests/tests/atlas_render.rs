@@ -3,6 +3,7 @@
 //! resident, so both renders sample exactly level 0 (the table's coarsest
 //! resident level bounds sampling), with nearest filtering.
 
+use citystream_streaming::dataset::TextureFormat;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -34,6 +35,7 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
         &GpuCacheConfig {
             layer_size: 2048,
             layers: CacheLayers::Fixed(32),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 1 << 30,
             virtual_budget_bytes: None,

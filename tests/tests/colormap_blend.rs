@@ -94,6 +94,7 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
         &GpuCacheConfig {
             layer_size: 256,
             layers: CacheLayers::Fixed(2),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 16 << 20,
             virtual_budget_bytes: None,

@@ -17,6 +17,7 @@ use citystream_engine::gpu_types::{Vertex, FEEDBACK_MIP_ONE, FEEDBACK_UNSEEN, FE
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
+use citystream_streaming::dataset::TextureFormat;
 use citystream_tests::{assert_no_validation_errors, validated_device};
 use glam::Vec3;
 
@@ -241,6 +242,7 @@ fn feedback_matches_cpu_reference() -> Result<()> {
         &GpuCacheConfig {
             layer_size: 256,
             layers: CacheLayers::Fixed(2),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 16 << 20,
             virtual_budget_bytes: None,

@@ -34,16 +34,24 @@ struct SourceTexture {
 impl SourceTexture {
     fn random(rng: &mut SplitMix64, format: TextureFormat, width: u32, height: u32) -> Self {
         // The levels the cache holds: both sides at least one texel block.
-        let texel_format = if format == TextureFormat::Bc1 {
-            TexelFormat::BC1
-        } else {
-            TexelFormat::RGBA8
+        let texel_format = match format {
+            TextureFormat::Bc1 => TexelFormat::BC1,
+            TextureFormat::Bc3 => TexelFormat::BC3,
+            TextureFormat::Bc7 => TexelFormat::BC7,
+            TextureFormat::Rgba8 => TexelFormat::RGBA8,
         };
         let count = cacheable_mip_count(&texel_format, width, height);
         let levels = (0..count)
             .map(|m| {
                 let bytes = format.mip_bytes(width >> m, height >> m) as usize;
-                (0..bytes).map(|_| rng.next_u64() as u8).collect()
+                let mut level: Vec<u8> = (0..bytes).map(|_| rng.next_u64() as u8).collect();
+                if format == TextureFormat::Bc7 {
+                    // A first byte of 0 is BC7's reserved mode 8.
+                    for block in level.chunks_mut(16) {
+                        block[0] |= 1 << (block[1] % 8);
+                    }
+                }
+                level
             })
             .collect();
         Self {
@@ -63,7 +71,19 @@ impl SourceTexture {
         let level = &self.levels[mip as usize];
         match self.format {
             TextureFormat::Bc1 => bc1_texel(level, w, x, y),
-            _ => {
+            TextureFormat::Bc3 | TextureFormat::Bc7 => {
+                let blocks_per_row = w.div_ceil(4) as usize;
+                let at = ((y / 4) as usize * blocks_per_row + (x / 4) as usize) * 16;
+                let mut texels = [0u8; 64];
+                if self.format == TextureFormat::Bc3 {
+                    bcdec_rs::bc3(&level[at..at + 16], &mut texels, 16);
+                } else {
+                    bcdec_rs::bc7(&level[at..at + 16], &mut texels, 16);
+                }
+                let i = (((y % 4) * 4 + x % 4) * 4) as usize;
+                [texels[i], texels[i + 1], texels[i + 2], texels[i + 3]]
+            }
+            TextureFormat::Rgba8 => {
                 let at = ((y * w + x) * 4) as usize;
                 [level[at], level[at + 1], level[at + 2], level[at + 3]]
             }
@@ -153,6 +173,7 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
         &GpuCacheConfig {
             layer_size: LAYER_SIZE,
             layers: CacheLayers::Fixed(LAYERS),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 256 << 20,
             virtual_budget_bytes: None,
@@ -334,6 +355,7 @@ fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<
         &GpuCacheConfig {
             layer_size: 128,
             layers: CacheLayers::Fixed(2),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 64 << 20,
             virtual_budget_bytes: None,
@@ -445,6 +467,7 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
         &GpuCacheConfig {
             layer_size: 128,
             layers: CacheLayers::Fixed(1),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::Ring,
             memory_budget_bytes: 16 << 20,
             virtual_budget_bytes: None,
@@ -506,6 +529,7 @@ fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
                 extents: vec![vec![(LAYER_SIZE, 10)], vec![(LAYER_SIZE, 4)]],
                 max_layers: Some(3),
             },
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::View,
             memory_budget_bytes: 256 << 20,
             virtual_budget_bytes: None,
@@ -577,6 +601,88 @@ fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
             "texture {t} in image {:?} at {:?}: read {:?} (resident {}), expected {want:?}",
             cache.texture_data(t as u32).map(|e| e.image),
             points[i],
+            to_u8(result),
+            result.resident
+        );
+    }
+    drop(probe);
+    drop(cache);
+    assert_no_validation_errors(&device)
+}
+
+#[test]
+fn bc3_and_bc7_textures_are_cached_and_sampled() -> Result<()> {
+    let device = validated_device()?;
+    let mut rng = SplitMix64::new(3_7);
+    let mut sources = Vec::new();
+    for format in [TextureFormat::Bc3, TextureFormat::Bc7] {
+        for (w, h) in [(LAYER_SIZE, LAYER_SIZE), (64, 128), (16, 16)] {
+            sources.push(SourceTexture::random(&mut rng, format, w, h));
+        }
+    }
+    let mut commands = CommandContext::new(&device, "BC3 and BC7 cache test")?;
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &GpuCacheConfig {
+            layer_size: LAYER_SIZE,
+            layers: CacheLayers::Fixed(4),
+            formats: vec![TextureFormat::Bc3, TextureFormat::Bc7],
+            eviction: Eviction::View,
+            memory_budget_bytes: 64 << 20,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 64,
+            texture_count: sources.len() as u32,
+            filtering: Filtering::Nearest,
+            staging_bytes: 1 << 20,
+        },
+        &vec![[0, 0, 0, 255]; sources.len()],
+    )?;
+    // Only the formats asked for get images.
+    let formats: Vec<&str> = cache.packing().images().iter().map(|i| i.format.name).collect();
+    ensure!(formats == ["BC3", "BC7"], "images of {formats:?}");
+    for (t, source) in sources.iter().enumerate() {
+        for mip in (0..source.levels.len() as u32).rev() {
+            let outcome = cache.stage(
+                t as u32,
+                source.format,
+                source.width,
+                source.height,
+                mip,
+                &source.levels[mip as usize],
+            )?;
+            ensure!(
+                matches!(outcome, StageOutcome::Staged { .. }),
+                "texture {t} mip {mip}: {outcome:?}"
+            );
+        }
+    }
+    cache.finish_cycle(&mut commands)?;
+    // A format the cache was not made for is refused with a typed error.
+    let refused = cache.stage(0, TextureFormat::Bc1, 16, 16, 0, &[0; 128]);
+    ensure!(refused.is_err(), "BC1 staged into a BC3/BC7 cache: {refused:?}");
+
+    let probe = TextureProbe::new(&device)?;
+    let mut points = Vec::new();
+    let mut expected = Vec::new();
+    for (t, source) in sources.iter().enumerate() {
+        for level in 0..source.levels.len() as u32 {
+            for (point, x, y) in points_for(t as u32, source, level, level as f32, &mut rng) {
+                points.push(point);
+                expected.push((t, level, source.texel(level, x, y)));
+            }
+        }
+    }
+    let results = probe.run(&mut commands, &cache, &points)?;
+    for (i, result) in results.iter().enumerate() {
+        let (t, level, want) = expected[i];
+        // BC7 decoding is exact; BC3's colour interpolation may round apart.
+        let tolerance = if sources[t].format == TextureFormat::Bc7 { 0 } else { 3 };
+        ensure!(
+            result.resident == 1 && close(to_u8(result), want, tolerance),
+            "texture {t} ({:?}) level {level} at {:?}: read {:?} (resident {}), expected {want:?}",
+            sources[t].format,
+            points[i].uv,
             to_u8(result),
             result.resident
         );

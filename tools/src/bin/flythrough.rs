@@ -262,7 +262,7 @@ struct Run<'a> {
     /// The budget in bytes; null when unlimited.
     memory_budget_bytes: Option<u64>,
     eviction: &'a str,
-    /// Layers of each cache image (BC1 images first, then RGBA8).
+    /// Layers of each cache image, by format (BC1, RGBA8, BC3, BC7) of those the dataset has.
     cache_layers: Vec<u32>,
     /// Frames in which the view needed more than the budget holds.
     frames_over_budget: u64,
