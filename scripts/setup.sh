@@ -7,10 +7,10 @@ set -euo pipefail
 say() { printf '[setup] %s\n' "$*"; }
 fail() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
 
-PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools)
+PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools g++)
 MIN_MESA_MAJOR=24
 STAMP_DIR="${CITYSTREAM_SETUP_STAMP_DIR:-/var/lib/citystream}"
-STAMP="$STAMP_DIR/setup-v1"
+STAMP="$STAMP_DIR/setup-v2"
 
 mesa_major() {
   dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | sed -E 's/^([0-9]+:)?([0-9]+).*/\2/' || true

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
+use citystream_streaming::dataset::{DatasetWriter, Scene};
 use image::imageops::FilterType;
 use image::RgbaImage;
 use rayon::prelude::*;
@@ -107,10 +107,7 @@ pub fn run(args: &ImportArgs) -> Result<()> {
             args.max_extent
         );
     }
-    let format = match args.format {
-        FormatArg::Bc1 => TextureFormat::Bc1,
-        FormatArg::Rgba8 => TextureFormat::Rgba8,
-    };
+    let format = args.format.texture_format();
     let input = &args.input;
     let gltf = gltf::Gltf::open(input).map_err(|e| anyhow!("{}: not a valid glTF 2.0 file: {e}", input.display()))?;
     let base = input.parent().unwrap_or(Path::new("."));

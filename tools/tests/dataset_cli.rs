@@ -392,3 +392,66 @@ fn cache_report_packs_every_texture_and_reports_utilisation() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--rgba8-granularity"));
 }
+
+/// Mean absolute difference per channel between a decoded block-compressed
+/// level and the RGBA8 level it was encoded from.
+fn block_error(format: citystream_streaming::dataset::TextureFormat, blocks: &[u8], rgba: &[u8], width: u32) -> f64 {
+    use citystream_streaming::dataset::TextureFormat;
+    let height = (rgba.len() / 4) as u32 / width;
+    let mut total = 0u64;
+    for by in 0..height.div_ceil(4) {
+        for bx in 0..width.div_ceil(4) {
+            let at = ((by * width.div_ceil(4) + bx) * 16) as usize;
+            let mut texels = [0u8; 64];
+            match format {
+                TextureFormat::Bc3 => bcdec_rs::bc3(&blocks[at..at + 16], &mut texels, 16),
+                _ => bcdec_rs::bc7(&blocks[at..at + 16], &mut texels, 16),
+            }
+            for y in 0..4.min(height) {
+                for x in 0..4.min(width) {
+                    let source = (((by * 4 + y) * width + bx * 4 + x) * 4) as usize;
+                    let decoded = ((y * 4 + x) * 4) as usize;
+                    for c in 0..4 {
+                        total += u64::from(rgba[source + c].abs_diff(texels[decoded + c]));
+                    }
+                }
+            }
+        }
+    }
+    total as f64 / rgba.len() as f64
+}
+
+#[test]
+fn bc3_and_bc7_cities_encode_the_same_textures_as_rgba8() {
+    use citystream_streaming::dataset::TextureFormat;
+    let rgba = Dataset::open(gen("formats-rgba8", &["--format", "rgba8"])).expect("open rgba8");
+    for (format, name, tolerance) in [(TextureFormat::Bc3, "bc3", 6.0), (TextureFormat::Bc7, "bc7", 3.0)] {
+        let dir = gen(&format!("formats-{name}"), &["--format", name]);
+        let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
+        assert!(out.status.success(), "{name}: verify failed: {}", stderr(&out));
+        let dataset = Dataset::open(&dir).expect("open");
+        assert_eq!(dataset.textures.len(), rgba.textures.len());
+        let (mut blocks, mut source) = (Vec::new(), Vec::new());
+        let (mut sum, mut levels) = (0.0f64, 0u32);
+        for (id, info) in dataset.textures.textures().iter().enumerate() {
+            let id = id as u32;
+            assert_eq!(info.format(), format);
+            // Every level of four texels or more a side, against the same level in RGBA8.
+            for level in 0..info.mip_count() {
+                let width = (info.width() >> level).max(1);
+                if width < 4 || (info.height() >> level) < 4 {
+                    break;
+                }
+                dataset.textures.read_mip(id, level, &mut blocks).expect("read");
+                rgba.textures.read_mip(id, level, &mut source).expect("read rgba8");
+                sum += block_error(format, &blocks, &source, width);
+                levels += 1;
+            }
+        }
+        let mean = sum / f64::from(levels.max(1));
+        assert!(
+            mean <= tolerance,
+            "{name}: mean error {mean} per channel over {levels} levels"
+        );
+    }
+}

@@ -61,6 +61,22 @@ pub enum FormatArg {
     Bc1,
     /// Uncompressed 8-bit RGBA.
     Rgba8,
+    /// BC3 (DXT5): BC1 colours plus an alpha block, 16 bytes per 4×4.
+    Bc3,
+    /// BC7: 16 bytes per 4×4, the best quality of the four.
+    Bc7,
+}
+
+impl FormatArg {
+    /// The dataset format it writes.
+    pub fn texture_format(self) -> TextureFormat {
+        match self {
+            FormatArg::Bc1 => TextureFormat::Bc1,
+            FormatArg::Rgba8 => TextureFormat::Rgba8,
+            FormatArg::Bc3 => TextureFormat::Bc3,
+            FormatArg::Bc7 => TextureFormat::Bc7,
+        }
+    }
 }
 
 /// Options of `citystream gen`.
@@ -99,10 +115,7 @@ pub fn run(args: &GenArgs) -> Result<()> {
             args.max_extent
         );
     }
-    let format = match args.format {
-        FormatArg::Bc1 => TextureFormat::Bc1,
-        FormatArg::Rgba8 => TextureFormat::Rgba8,
-    };
+    let format = args.format.texture_format();
     let mut params = args.preset.params();
     params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);
     let summary = generate(args, params, format)?;

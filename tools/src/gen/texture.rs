@@ -5,7 +5,7 @@
 //! (window grids and brick courses blur away), which is what makes per-level image error
 //! meaningful to the streamer.
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use citystream_streaming::dataset::TextureFormat;
 
 use super::layout::{Content, FacadeStyle, TextureSpec, WallMaterial};
@@ -246,13 +246,34 @@ pub fn mean_colour(rgba: &[u8]) -> [u8; 4] {
     sum.map(|s| ((s + n / 2) / n) as u8)
 }
 
+/// One RGBA8 level as BC7 (alpha kept). The encoder takes whole 4×4
+/// blocks, so levels below 4 texels a side are padded by repeating their
+/// last row and column, as a sampler clamping at the edge would read them.
+fn encode_bc7(rgba: &[u8], width: usize, height: usize) -> Vec<u8> {
+    let (padded_w, padded_h) = (width.next_multiple_of(4), height.next_multiple_of(4));
+    let mut padded = vec![0u8; padded_w * padded_h * 4];
+    for y in 0..padded_h {
+        for x in 0..padded_w {
+            let from = (y.min(height - 1) * width + x.min(width - 1)) * 4;
+            let to = (y * padded_w + x) * 4;
+            padded[to..to + 4].copy_from_slice(&rgba[from..from + 4]);
+        }
+    }
+    let surface = intel_tex_2::RgbaSurface {
+        data: &padded,
+        width: padded_w as u32,
+        height: padded_h as u32,
+        stride: padded_w as u32 * 4,
+    };
+    intel_tex_2::bc7::compress_blocks(&intel_tex_2::bc7::alpha_ultra_fast_settings(), &surface)
+}
+
 /// Builds the full mip chain of an RGBA8 level 0 and encodes every level in `format`.
 pub fn encode_chain(level0: Vec<u8>, width: u32, height: u32, format: TextureFormat) -> Result<EncodedTexture> {
     let encoder = match format {
-        TextureFormat::Rgba8 => None,
+        TextureFormat::Rgba8 | TextureFormat::Bc7 => None,
         TextureFormat::Bc1 => Some(texpresso::Format::Bc1),
         TextureFormat::Bc3 => Some(texpresso::Format::Bc3),
-        TextureFormat::Bc7 => bail!("encoding {} is not supported", format.name()),
     };
     let mean = mean_colour(&level0);
     let mip_count = width.trailing_zeros().max(height.trailing_zeros()) + 1;
@@ -260,6 +281,7 @@ pub fn encode_chain(level0: Vec<u8>, width: u32, height: u32, format: TextureFor
     let (mut level, mut w, mut h) = (level0, width as usize, height as usize);
     for l in 0..mip_count {
         match encoder {
+            None if format == TextureFormat::Bc7 => chain.extend_from_slice(&encode_bc7(&level, w, h)),
             None => chain.extend_from_slice(&level),
             Some(encoder) => {
                 let start = chain.len();
