@@ -509,6 +509,73 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
     assert_no_validation_errors(&device)
 }
 
+/// Stages every cacheable level of every source texture, coarsest first,
+/// and finishes the cycle; every mip must be staged.
+fn stage_every_level(
+    cache: &mut GpuTextureCache,
+    commands: &mut CommandContext,
+    sources: &[SourceTexture],
+) -> Result<citystream_engine::texture_cache::CycleReport> {
+    for (t, source) in sources.iter().enumerate() {
+        for mip in (0..source.levels.len() as u32).rev() {
+            let outcome = cache.stage(
+                t as u32,
+                source.format,
+                source.width,
+                source.height,
+                mip,
+                &source.levels[mip as usize],
+            )?;
+            ensure!(
+                matches!(outcome, StageOutcome::Staged { .. }),
+                "texture {t} mip {mip}: {outcome:?}"
+            );
+        }
+    }
+    Ok(cache.finish_cycle(commands)?)
+}
+
+/// Samples a few texels of every level of every source texture through the
+/// cache and compares them with the source (BC1 and BC3 colours may round
+/// apart by 3; RGBA8 and BC7 decode exactly).
+fn read_back_every_level(
+    device: &std::sync::Arc<citystream_engine::Device>,
+    cache: &GpuTextureCache,
+    commands: &mut CommandContext,
+    sources: &[SourceTexture],
+    rng: &mut SplitMix64,
+) -> Result<()> {
+    let probe = TextureProbe::new(device)?;
+    let mut points = Vec::new();
+    let mut expected = Vec::new();
+    for (t, source) in sources.iter().enumerate() {
+        for level in 0..source.levels.len() as u32 {
+            for (point, x, y) in points_for(t as u32, source, level, level as f32, rng) {
+                points.push(point);
+                expected.push((t, level, source.texel(level, x, y)));
+            }
+        }
+    }
+    let results = probe.run(commands, cache, &points)?;
+    for (i, result) in results.iter().enumerate() {
+        let (t, level, want) = expected[i];
+        let tolerance = match sources[t].format {
+            TextureFormat::Bc1 | TextureFormat::Bc3 => 3,
+            TextureFormat::Rgba8 | TextureFormat::Bc7 => 0,
+        };
+        ensure!(
+            result.resident == 1 && close(to_u8(result), want, tolerance),
+            "texture {t} ({:?}, image {:?}) level {level} at {:?}: read {:?} (resident {}), expected {want:?}",
+            sources[t].format,
+            cache.texture_data(t as u32).map(|e| e.image),
+            points[i].uv,
+            to_u8(result),
+            result.resident
+        );
+    }
+    Ok(())
+}
+
 #[test]
 fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
     let device = validated_device()?;
@@ -558,54 +625,13 @@ fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
             ],
         "images and layers: {layers:?}"
     );
-    for (t, source) in sources.iter().enumerate() {
-        for mip in (0..source.levels.len() as u32).rev() {
-            let outcome = cache.stage(
-                t as u32,
-                source.format,
-                source.width,
-                source.height,
-                mip,
-                &source.levels[mip as usize],
-            )?;
-            ensure!(
-                matches!(outcome, StageOutcome::Staged { .. }),
-                "texture {t} mip {mip}: {outcome:?}"
-            );
-        }
-    }
-    let report = cache.finish_cycle(&mut commands)?;
+    let report = stage_every_level(&mut cache, &mut commands, &sources)?;
     ensure!(report.textures_invalidated == 0, "nothing evicted: {report:?}");
     let used: HashSet<u32> = (0..sources.len() as u32)
         .filter_map(|t| cache.texture_data(t).map(|entry| entry.image))
         .collect();
     ensure!(used.len() == 6, "textures placed in images {used:?}");
-
-    let probe = TextureProbe::new(&device)?;
-    let mut points = Vec::new();
-    let mut expected = Vec::new();
-    for (t, source) in sources.iter().enumerate() {
-        for level in 0..source.levels.len() as u32 {
-            for (point, x, y) in points_for(t as u32, source, level, level as f32, &mut rng) {
-                points.push(point);
-                expected.push((t, source.texel(level, x, y)));
-            }
-        }
-    }
-    let results = probe.run(&mut commands, &cache, &points)?;
-    for (i, result) in results.iter().enumerate() {
-        let (t, want) = expected[i];
-        let tolerance = if sources[t].format == TextureFormat::Bc1 { 3 } else { 0 };
-        ensure!(
-            result.resident == 1 && close(to_u8(result), want, tolerance),
-            "texture {t} in image {:?} at {:?}: read {:?} (resident {}), expected {want:?}",
-            cache.texture_data(t as u32).map(|e| e.image),
-            points[i],
-            to_u8(result),
-            result.resident
-        );
-    }
-    drop(probe);
+    read_back_every_level(&device, &cache, &mut commands, &sources, &mut rng)?;
     drop(cache);
     assert_no_validation_errors(&device)
 }
@@ -641,53 +667,11 @@ fn bc3_and_bc7_textures_are_cached_and_sampled() -> Result<()> {
     // Only the formats asked for get images.
     let formats: Vec<&str> = cache.packing().images().iter().map(|i| i.format.name).collect();
     ensure!(formats == ["BC3", "BC7"], "images of {formats:?}");
-    for (t, source) in sources.iter().enumerate() {
-        for mip in (0..source.levels.len() as u32).rev() {
-            let outcome = cache.stage(
-                t as u32,
-                source.format,
-                source.width,
-                source.height,
-                mip,
-                &source.levels[mip as usize],
-            )?;
-            ensure!(
-                matches!(outcome, StageOutcome::Staged { .. }),
-                "texture {t} mip {mip}: {outcome:?}"
-            );
-        }
-    }
-    cache.finish_cycle(&mut commands)?;
+    stage_every_level(&mut cache, &mut commands, &sources)?;
     // A format the cache was not made for is refused with a typed error.
     let refused = cache.stage(0, TextureFormat::Bc1, 16, 16, 0, &[0; 128]);
     ensure!(refused.is_err(), "BC1 staged into a BC3/BC7 cache: {refused:?}");
-
-    let probe = TextureProbe::new(&device)?;
-    let mut points = Vec::new();
-    let mut expected = Vec::new();
-    for (t, source) in sources.iter().enumerate() {
-        for level in 0..source.levels.len() as u32 {
-            for (point, x, y) in points_for(t as u32, source, level, level as f32, &mut rng) {
-                points.push(point);
-                expected.push((t, level, source.texel(level, x, y)));
-            }
-        }
-    }
-    let results = probe.run(&mut commands, &cache, &points)?;
-    for (i, result) in results.iter().enumerate() {
-        let (t, level, want) = expected[i];
-        // BC7 decoding is exact; BC3's colour interpolation may round apart.
-        let tolerance = if sources[t].format == TextureFormat::Bc7 { 0 } else { 3 };
-        ensure!(
-            result.resident == 1 && close(to_u8(result), want, tolerance),
-            "texture {t} ({:?}) level {level} at {:?}: read {:?} (resident {}), expected {want:?}",
-            sources[t].format,
-            points[i].uv,
-            to_u8(result),
-            result.resident
-        );
-    }
-    drop(probe);
+    read_back_every_level(&device, &cache, &mut commands, &sources, &mut rng)?;
     drop(cache);
     assert_no_validation_errors(&device)
 }

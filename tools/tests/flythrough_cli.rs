@@ -1,7 +1,7 @@
 //! The flythrough binary end to end on lavapipe: frames and report written,
 //! no validation errors, bad arguments refused with a clear message.
 
-use std::process::Command;
+use std::process::{Command, Output};
 
 #[test]
 fn flythrough_writes_frames_and_report() {
@@ -579,6 +579,32 @@ fn adaptive_streaming_keeps_the_worst_frame_below_the_baseline() {
     assert!(times.len() < 30, "{} frames for 0.5 s with a stall", times.len());
 }
 
+/// A small fixed-clock run of `dataset` into `out` (160×120, no PSNR) with
+/// `extra` options; its output and summary.json.
+fn small_run(dataset: &std::path::Path, out: &std::path::Path, extra: &[&str]) -> (Output, serde_json::Value) {
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args([
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--clock",
+            "fixed",
+            "--psnr-interval",
+            "0",
+        ])
+        .args(extra)
+        .arg("--dataset")
+        .arg(dataset)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .expect("flythrough runs");
+    let summary = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap_or_default())
+        .unwrap_or(serde_json::Value::Null);
+    (output, summary)
+}
+
 /// Runs the flythrough on a copy of the small dataset whose pack is cut to
 /// its header once the frame loop is about to start (after the open-time
 /// checks, before any mip is read), so every read fails mid-run.
@@ -654,19 +680,11 @@ fn injected_read_failures_recover_below_the_retry_limit_and_fail_the_run_above_i
     write_small_dataset(&dataset);
     let run = |name: &str, extra: &[&str]| {
         let out = base.join(name);
-        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-            .args(["--frames", "60", "--frame-interval", "20", "--psnr-interval", "0"])
-            .args(["--width", "160", "--height", "120", "--clock", "fixed"])
-            .args(extra)
-            .arg("--dataset")
-            .arg(&dataset)
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .expect("flythrough runs");
-        let summary: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
-                .expect("summary.json is JSON");
+        let args: Vec<&str> = ["--frames", "60", "--frame-interval", "20"]
+            .into_iter()
+            .chain(extra.iter().copied())
+            .collect();
+        let (output, summary) = small_run(&dataset, &out, &args);
         let csv = std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
         let frames: Vec<Vec<u8>> = ["frame_00000.png", "frame_00020.png", "frame_00040.png"]
             .iter()
@@ -719,21 +737,10 @@ fn textures_larger_than_the_default_layer_get_larger_layers() {
     let dataset = base.join("city");
     write_dataset(&dataset, Some(4096));
     let out = base.join("out");
-    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args(["--frames", "40", "--frame-interval", "0", "--psnr-interval", "0"])
-        .args(["--width", "160", "--height", "120", "--clock", "fixed"])
-        .arg("--dataset")
-        .arg(&dataset)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("flythrough runs");
+    let (output, summary) = small_run(&dataset, &out, &["--frames", "40", "--frame-interval", "0"]);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
     assert!(stderr.contains("cache layers of 4096"), "{stderr}");
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
-            .expect("summary.json is JSON");
     assert_eq!(summary["cache_layer_size"], 4096);
     assert_eq!(summary["textures_failed"], 0);
     // The ground's texture streams like the others (its coarse levels first).
