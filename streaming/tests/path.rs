@@ -216,6 +216,15 @@ fn bad_documents_are_rejected_with_clear_errors() {
     )));
     assert!(matches!(e, PathError::NotIncreasing { index: 2, .. }), "{e}");
     assert!(e.to_string().contains("keyframe 2"), "{e}");
+    // A path that would take longer than a day to replay.
+    let e = err_of(&doc(&format!(
+        r#"{ok}, {{ "t": 1e300, "position": [0, 10, 0], "look_at": [0, 0, 5] }}"#
+    )));
+    assert!(matches!(e, PathError::TooLong { index: 1, .. }), "{e}");
+    let e = err_of(&doc(&format!(
+        r#"{ok}, {{ "t": 86000, "position": [0, 10, 0], "look_at": [0, 0, 5], "hold_s": 1000 }}"#
+    )));
+    assert!(matches!(e, PathError::TooLong { index: 1, .. }), "{e}");
     // Equal times are only allowed for a jump.
     let e = err_of(&doc(&format!(
         r#"{ok}, {{ "t": 0, "position": [0, 10, 1], "look_at": [0, 0, 5] }}"#
@@ -567,7 +576,15 @@ fn standard_path_works_far_from_the_origin() {
 #[test]
 fn standard_path_rejects_bad_requests() {
     let scene = synthetic_city([0.0; 3], [0.0; 3]);
-    for d in [MIN_STANDARD_DURATION_S - 0.1, 0.0, -60.0, f64::NAN, f64::INFINITY] {
+    for d in [
+        MIN_STANDARD_DURATION_S - 0.1,
+        0.0,
+        -60.0,
+        f64::NAN,
+        f64::INFINITY,
+        1e300,
+        86_401.0,
+    ] {
         let e = standard_path(&scene, d).expect_err("bad duration");
         assert!(matches!(e, PathError::InvalidDuration { .. }), "{d}: {e}");
     }

@@ -57,6 +57,11 @@ fn bad_arguments_are_refused_clearly() {
         ("--memory-budget-mb", "lots"),
         ("--eviction", "lru"),
         ("--cache-layers", "0"),
+        ("--memory-budget-mb", "17592186044416"),
+        ("--duration-s", "inf"),
+        ("--duration-s", "NaN"),
+        ("--duration-s", "1e300"),
+        ("--inject-read-failures", "3"),
     ] {
         let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
             .args([option, value])

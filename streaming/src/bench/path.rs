@@ -71,6 +71,9 @@ pub const STANDARD_PAUSE_S: f64 = 2.0;
 pub const STANDARD_JUMPS: usize = 4;
 /// Default length of the standard path, seconds ("about a minute").
 pub const DEFAULT_STANDARD_DURATION_S: f64 = 60.0;
+/// The longest a camera path may last: one day. A replay runs at least one
+/// frame per 60 Hz step, so longer paths are mistakes, not benchmarks.
+pub const MAX_PATH_DURATION_S: f64 = 86_400.0;
 /// Shortest standard path: the pauses plus one second for each of its ten flight segments.
 pub const MIN_STANDARD_DURATION_S: f64 = STANDARD_PAUSES as f64 * STANDARD_PAUSE_S + STANDARD_SEGMENTS as f64;
 
@@ -149,6 +152,14 @@ pub enum PathError {
         /// The key: `t`, `position`, `look_at` or `hold_s`.
         field: &'static str,
     },
+    /// A keyframe ends after [`MAX_PATH_DURATION_S`].
+    #[error("keyframe {index}: it ends at {end_s} s, after the longest path allowed ({MAX_PATH_DURATION_S} s)")]
+    TooLong {
+        /// Keyframe index, from 0.
+        index: usize,
+        /// Its `t + hold_s`.
+        end_s: f64,
+    },
     /// A time or duration is negative.
     #[error("keyframe {index}: `{field}` = {value} is negative")]
     Negative {
@@ -183,7 +194,9 @@ pub enum PathError {
         index: usize,
     },
     /// The requested standard path duration is too short or not finite.
-    #[error("path duration {duration_s} s must be finite and at least {MIN_STANDARD_DURATION_S} s")]
+    #[error(
+        "path duration {duration_s} s must be finite, at least {MIN_STANDARD_DURATION_S} s and at most {MAX_PATH_DURATION_S} s"
+    )]
     InvalidDuration {
         /// The requested duration.
         duration_s: f64,
@@ -363,6 +376,12 @@ fn validate(keyframes: &[Keyframe]) -> Result<(), PathError> {
         }
         if !k.end_s().is_finite() {
             return Err(non_finite("hold_s"));
+        }
+        if k.end_s() > MAX_PATH_DURATION_S {
+            return Err(PathError::TooLong {
+                index,
+                end_s: k.end_s(),
+            });
         }
         if distance(k.position, k.look_at) < f64::from(MIN_VIEW_DISTANCE_M) {
             return Err(PathError::DegenerateView { index });
@@ -802,10 +821,11 @@ impl DensityGrid {
 /// - Flight time (the duration less the pauses) is shared among the ten flight segments,
 ///   half evenly and half in proportion to their length.
 ///
-/// Errors: [`PathError::InvalidDuration`] below [`MIN_STANDARD_DURATION_S`] or non-finite;
+/// Errors: [`PathError::InvalidDuration`] below [`MIN_STANDARD_DURATION_S`],
+/// above [`MAX_PATH_DURATION_S`] or non-finite;
 /// [`PathError::EmptyScene`] when no mesh has vertices.
 pub fn standard_path(scene: &Scene, duration_s: f64) -> Result<CameraPath, PathError> {
-    if !duration_s.is_finite() || duration_s < MIN_STANDARD_DURATION_S {
+    if !duration_s.is_finite() || !(MIN_STANDARD_DURATION_S..=MAX_PATH_DURATION_S).contains(&duration_s) {
         return Err(PathError::InvalidDuration { duration_s });
     }
     let mut bounds = crate::dataset::Aabb::EMPTY;

@@ -103,8 +103,9 @@ struct Args {
     /// with --placeholder).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     frames: Option<u32>,
-    /// Stop after this many seconds of camera time (default: the path's length).
-    #[arg(long)]
+    /// Stop after this many seconds of camera time (default: the path's
+    /// length; at most a day).
+    #[arg(long, value_parser = parse_duration_s)]
     duration_s: Option<f64>,
     /// Write every N-th frame as PNG (0 writes none).
     #[arg(long, default_value_t = 20)]
@@ -207,6 +208,16 @@ fn parse_budget_mb(text: &str) -> std::result::Result<BudgetMb, String> {
         Ok(mb) if mb > 1 << 30 => Err(format!("{mb} MB is beyond any device; use `unlimited`")),
         Ok(mb) => Ok(BudgetMb(Some(mb))),
         Err(_) => Err(format!("`{text}` is neither a whole number of MB nor `unlimited`")),
+    }
+}
+
+/// `--duration-s`: finite seconds from 0 to a day.
+fn parse_duration_s(text: &str) -> std::result::Result<f64, String> {
+    use citystream_streaming::bench::path::MAX_PATH_DURATION_S;
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && (0.0..=MAX_PATH_DURATION_S).contains(&s) => Ok(s),
+        Ok(s) => Err(format!("{s} s is not a duration from 0 to {MAX_PATH_DURATION_S} s")),
+        Err(_) => Err(format!("`{text}` is not a number of seconds")),
     }
 }
 
