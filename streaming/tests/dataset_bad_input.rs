@@ -395,3 +395,27 @@ fn empty_dataset_round_trips() -> Result<(), DatasetError> {
     assert_eq!(verify(&dir)?.mips, 0);
     Ok(())
 }
+
+#[cfg(unix)]
+#[test]
+fn files_that_are_not_regular_files_are_refused_without_blocking() {
+    // A FIFO would block a plain read until a writer appears; a directory
+    // cannot be read at all.
+    for (file, kind) in [(META_FILE, "fifo"), (PACK_FILE, "fifo"), (SCENE_FILE, "dir")] {
+        let fixture = write_fixture(&format!("not-a-file-{kind}-src"));
+        let dir = copy_dir(&fixture.dir, &format!("not-a-file-{kind}-{file}"));
+        let path = dir.join(file);
+        std::fs::remove_file(&path).expect("remove");
+        if kind == "dir" {
+            std::fs::create_dir(&path).expect("mkdir");
+        } else {
+            let made = std::process::Command::new("mkfifo")
+                .arg(&path)
+                .status()
+                .expect("mkfifo runs");
+            assert!(made.success(), "mkfifo failed");
+        }
+        let err = open_err(&dir);
+        assert_names(&err, file, &["not a regular file"]);
+    }
+}

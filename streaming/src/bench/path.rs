@@ -582,10 +582,12 @@ impl CameraPath {
     /// Reads and validates a camera path file. Errors name the file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, PathError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|error| PathError::Io {
-            path: path.to_path_buf(),
-            error,
-        })?;
+        let text = crate::dataset::ensure_regular_file(path)
+            .and_then(|()| std::fs::read_to_string(path))
+            .map_err(|error| PathError::Io {
+                path: path.to_path_buf(),
+                error,
+            })?;
         Self::from_json(&text).map_err(|e| PathError::InFile {
             path: path.to_path_buf(),
             error: Box::new(e),

@@ -11,7 +11,22 @@ pub(crate) const TABLE_HEADER_BYTES: usize = 32;
 
 /// Reads a whole file, mapping "not found" to [`DatasetError::Missing`].
 pub(crate) fn read_all(path: &Path) -> Result<Vec<u8>, DatasetError> {
-    std::fs::read(path).map_err(|e| DatasetError::io(path, e))
+    ensure_regular_file(path)
+        .and_then(|()| std::fs::read(path))
+        .map_err(|e| DatasetError::io(path, e))
+}
+
+/// Fails unless `path` is a regular file (or a link to one): opening a FIFO
+/// for reading would block until a writer appears, and a device never ends.
+pub fn ensure_regular_file(path: &Path) -> std::io::Result<()> {
+    if std::fs::metadata(path)?.is_file() {
+        Ok(())
+    } else {
+        Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "not a regular file (a directory, FIFO or device)",
+        ))
+    }
 }
 
 /// Writes a whole file.

@@ -38,6 +38,7 @@ use std::path::{Path, PathBuf};
 pub use colormap::Colormap;
 pub use error::{DatasetError, Magic};
 pub use format::{full_mip_count, TextureFormat, TextureInfo, MAX_EXTENT_LOG2, MAX_PACK_OFFSET};
+pub use io_util::ensure_regular_file;
 pub use pack::{MipLocation, TexturePack, PACK_HEADER_BYTES};
 pub use scene::{Aabb, Mesh, Scene};
 pub use verify::{verify, VerifyReport};

@@ -56,7 +56,9 @@ impl TexturePack {
         }
 
         let pack_path = dir.join(PACK_FILE);
-        let file = File::open(&pack_path).map_err(|e| DatasetError::io(&pack_path, e))?;
+        let file = super::io_util::ensure_regular_file(&pack_path)
+            .and_then(|()| File::open(&pack_path))
+            .map_err(|e| DatasetError::io(&pack_path, e))?;
         let pack_len = file.metadata().map_err(|e| DatasetError::io(&pack_path, e))?.len();
         let mut header = [0u8; PACK_HEADER_BYTES as usize];
         if pack_len < PACK_HEADER_BYTES {
