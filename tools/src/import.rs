@@ -273,6 +273,66 @@ fn texture_key(primitive: &gltf::Primitive) -> TextureKey {
     TextureKey { images, factor }
 }
 
+/// Checks an accessor before the `gltf` crate reads it, which panics on a
+/// component type the attribute does not allow and yields nothing for
+/// data outside its buffer: its type and shape must be among `allowed`, and
+/// every element must lie inside its buffer view and the view inside its
+/// buffer. Errors name the accessor and what it is for.
+fn check_accessor(
+    accessor: &gltf::Accessor,
+    buffers: &[gltf::buffer::Data],
+    what: &str,
+    allowed: &[gltf::accessor::DataType],
+    dimensions: gltf::accessor::Dimensions,
+) -> Result<()> {
+    let name = format!("accessor {} ({what})", accessor.index());
+    if !allowed.contains(&accessor.data_type()) || accessor.dimensions() != dimensions {
+        bail!(
+            "{name} is {:?} {:?}; {what} must be {dimensions:?} of {allowed:?}",
+            accessor.dimensions(),
+            accessor.data_type()
+        );
+    }
+    if accessor.sparse().is_some() {
+        bail!("{name} is sparse, which the importer does not support");
+    }
+    let Some(view) = accessor.view() else {
+        return Ok(()); // No view: every element is zero.
+    };
+    let buffer_len = buffers
+        .get(view.buffer().index())
+        .map(|data| data.0.len())
+        .with_context(|| format!("{name}: buffer {} is missing", view.buffer().index()))?;
+    let view_end = view.offset().checked_add(view.length());
+    if view_end.is_none_or(|end| end > buffer_len) {
+        bail!(
+            "{name}: buffer view {} (bytes {}..+{}) lies outside buffer {} of {buffer_len} bytes",
+            view.index(),
+            view.offset(),
+            view.length(),
+            view.buffer().index()
+        );
+    }
+    let element = accessor.size();
+    let stride = view.stride().unwrap_or(element).max(element);
+    if accessor.count() > 0 {
+        let end = (accessor.count() - 1)
+            .checked_mul(stride)
+            .and_then(|n| n.checked_add(accessor.offset()))
+            .and_then(|n| n.checked_add(element));
+        if end.is_none_or(|end| end > view.length()) {
+            bail!(
+                "{name}: {} elements of {element} bytes from byte {} overrun buffer view {} of {} bytes",
+                accessor.count(),
+                accessor.offset(),
+                view.index(),
+                view.length()
+            );
+        }
+    }
+    Ok(())
+}
+
 fn read_primitive(
     primitive: &gltf::Primitive,
     buffers: &[gltf::buffer::Data],
@@ -280,6 +340,21 @@ fn read_primitive(
     uv_set: u32,
     texture: usize,
 ) -> Result<PendingMesh> {
+    use gltf::accessor::{DataType, Dimensions};
+    use gltf::Semantic;
+    let position = primitive.get(&Semantic::Positions).context("no POSITION attribute")?;
+    check_accessor(&position, buffers, "POSITION", &[DataType::F32], Dimensions::Vec3)?;
+    if let Some(normal) = primitive.get(&Semantic::Normals) {
+        check_accessor(&normal, buffers, "NORMAL", &[DataType::F32], Dimensions::Vec3)?;
+    }
+    if let Some(uv) = primitive.get(&Semantic::TexCoords(uv_set)) {
+        let types = [DataType::F32, DataType::U8, DataType::U16];
+        check_accessor(&uv, buffers, &format!("TEXCOORD_{uv_set}"), &types, Dimensions::Vec2)?;
+    }
+    if let Some(indices) = primitive.indices() {
+        let types = [DataType::U8, DataType::U16, DataType::U32];
+        check_accessor(&indices, buffers, "indices", &types, Dimensions::Scalar)?;
+    }
     let reader = primitive.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let local: Vec<[f32; 3]> = reader.read_positions().context("no POSITION attribute")?.collect();
     let count = local.len();

@@ -303,6 +303,40 @@ fn broken_gltf_files_give_clear_errors() {
         stderr(&out)
     );
 
+    // Accessors the gltf crate would panic on or silently skip: named.
+    for (name, accessor, edit, needle) in [
+        (
+            "float-indices",
+            3,
+            ("componentType", json!(5126)),
+            "accessor 3 (indices) is Scalar F32",
+        ),
+        (
+            "long-positions",
+            0,
+            ("count", json!(40)),
+            "accessor 0 (POSITION): 40 elements",
+        ),
+        ("uv-vec3", 2, ("type", json!("VEC3")), "accessor 2 (TEXCOORD_0) is Vec3"),
+        (
+            "far-offset",
+            1,
+            ("byteOffset", json!(1u64 << 62)),
+            "accessor 1 (NORMAL)",
+        ),
+    ] {
+        let src = fresh_dir(&format!("accessor-{name}"));
+        let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
+        let mut doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
+        doc["accessors"][accessor][edit.0] = edit.1;
+        std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
+        let out = import(&input, &out_dir, &[]);
+        assert!(!out.status.success(), "{name} imported");
+        assert!(stderr(&out).contains(needle), "{name}: {}", stderr(&out));
+        assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
+    }
+
     let src = fresh_dir("missing-src");
     let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
     std::fs::remove_file(src.join("tex.png")).expect("remove png");
