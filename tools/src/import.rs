@@ -22,6 +22,13 @@ use rayon::prelude::*;
 
 use crate::gen::{encode_chain, library::decode_ktx2, FormatArg};
 
+/// Most node instances an import places (a node reached through several
+/// shared parents counts once per path).
+pub const MAX_NODE_INSTANCES: usize = 1_000_000;
+/// Most vertices an import holds once instances are placed (about 1 GB of
+/// pending geometry).
+pub const MAX_IMPORTED_VERTICES: usize = 20_000_000;
+
 /// Options of `citystream import`.
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
@@ -144,9 +151,22 @@ pub fn run(args: &ImportArgs) -> Result<()> {
         [0.0, 0.0, 0.0, 1.0],
     ];
     let mut stack: Vec<(gltf::Node, Mat4, usize)> = roots.into_iter().map(|n| (n, identity, 0)).collect();
+    // Nodes listed as children of several parents are instanced once per
+    // path (glTF requires trees, some exporters share); the caps keep a
+    // graph with exponentially many paths from exhausting memory.
+    let (mut visits, mut vertices) = (0usize, 0usize);
     while let Some((node, parent, depth)) = stack.pop() {
         if depth > 256 {
             bail!("{}: node hierarchy deeper than 256 levels (a cycle?)", input.display());
+        }
+        visits += 1;
+        if visits > MAX_NODE_INSTANCES {
+            bail!(
+                "{}: the node graph places more than {MAX_NODE_INSTANCES} node instances (node {} is reached \
+                 again through shared children); glTF node hierarchies must be trees",
+                input.display(),
+                node.index()
+            );
         }
         let local = node.transform().matrix().map(|c| c.map(f64::from));
         let world = mul(&parent, &local);
@@ -180,8 +200,16 @@ pub fn run(args: &ImportArgs) -> Result<()> {
                     .pbr_metallic_roughness()
                     .base_color_texture()
                     .map_or(0, |t| t.tex_coord());
-                meshes
-                    .push(read_primitive(&primitive, &buffers, &world, uv_set, texture).with_context(|| what.clone())?);
+                let mesh =
+                    read_primitive(&primitive, &buffers, &world, uv_set, texture).with_context(|| what.clone())?;
+                vertices += mesh.positions.len();
+                if vertices > MAX_IMPORTED_VERTICES {
+                    bail!(
+                        "{what}: the scene has more than {MAX_IMPORTED_VERTICES} vertices once its instances are \
+                         placed; split it or share fewer nodes"
+                    );
+                }
+                meshes.push(mesh);
             }
         }
         stack.extend(node.children().map(|c| (c, world, depth + 1)));

@@ -352,3 +352,32 @@ fn broken_gltf_files_give_clear_errors() {
         stderr(&out)
     );
 }
+
+#[cfg(unix)]
+#[test]
+fn shared_children_are_capped_under_a_memory_limit() {
+    // 41 nodes, each listing the next twice as a child: 2^40 paths to the
+    // quad's mesh. The import must stop with a clear error, not exhaust
+    // memory (2 GB of address space here).
+    let src = fresh_dir("dag-src");
+    let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
+    let mut doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
+    let mut nodes: Vec<serde_json::Value> = (0..40).map(|i| json!({"children": [i + 1, i + 1]})).collect();
+    nodes.push(json!({"mesh": 0}));
+    doc["nodes"] = json!(nodes);
+    std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
+    let out_dir = fresh_dir("dag-out");
+    let output = Command::new("sh")
+        .arg("-c")
+        .arg(r#"ulimit -v 2000000 && exec "$0" import "$1" --out "$2""#)
+        .arg(env!("CARGO_BIN_EXE_citystream"))
+        .arg(&input)
+        .arg(&out_dir)
+        .output()
+        .expect("import runs");
+    let text = stderr(&output);
+    assert!(!output.status.success(), "the DAG imported");
+    assert_eq!(output.status.code(), Some(1), "killed instead of an error: {text}");
+    assert!(text.contains("node instances") && text.contains("trees"), "{text}");
+}
