@@ -635,33 +635,30 @@ impl TextureCache {
     /// Live layers of `image` (their index, extent and textures), oldest
     /// first.
     pub fn live_layers(&self, image: ImageId) -> Vec<(u32, u32, u64)> {
-        let Ok(state) = self.image(image) else {
-            return Vec::new();
-        };
-        let shared = lock(&self.shared);
-        shared.live[image as usize]
-            .iter()
-            .map(|live| {
-                let layer = lock(&state.layers[live.layer as usize]);
-                (live.layer, layer.extent, layer.texture_count)
-            })
-            .collect()
+        self.map_live_layers(image, |index, layer| (index, layer.extent, layer.texture_count))
     }
 
     /// The keys of the textures placed in each live layer of `image`:
     /// `(layer, keys)`, oldest layer first.
     pub fn live_layer_keys(&self, image: ImageId) -> Vec<(u32, Vec<u64>)> {
+        self.map_live_layers(image, |index, layer| {
+            (
+                index,
+                layer.textures.iter().flatten().map(|record| record.key).collect(),
+            )
+        })
+    }
+
+    /// `f(layer index, layer)` for each live layer of `image`, oldest first
+    /// (nothing for an unknown image).
+    fn map_live_layers<T>(&self, image: ImageId, f: impl Fn(u32, &LayerState) -> T) -> Vec<T> {
         let Ok(state) = self.image(image) else {
             return Vec::new();
         };
         let shared = lock(&self.shared);
         shared.live[image as usize]
             .iter()
-            .map(|live| {
-                let layer = lock(&state.layers[live.layer as usize]);
-                let keys = layer.textures.iter().flatten().map(|record| record.key).collect();
-                (live.layer, keys)
-            })
+            .map(|live| f(live.layer, &lock(&state.layers[live.layer as usize])))
             .collect()
     }
 
