@@ -7,7 +7,7 @@ OUT ?= out/run
 CITY ?=
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
-.PHONY: all setup build run test check fmt clippy doc embed bench
+.PHONY: all setup build run test check fmt clippy doc embed bench fuzz-long
 
 all: build
 
@@ -43,3 +43,15 @@ check: fmt clippy doc embed
 
 bench: setup
 	$(CARGO) bench --workspace
+
+# The long fuzz campaign (README, "Fuzzing"): every harness, FUZZ_INPUTS inputs each, in an
+# optimised build that keeps overflow checks and debug assertions (a wrapped subtraction
+# that would panic in a debug build counts as a finding). Scratch files go to FUZZ_OUT;
+# tmpfs makes the dataset harness several times faster.
+FUZZ_INPUTS ?= 1000000
+FUZZ_SEED ?= 1
+FUZZ_OUT ?= $(if $(wildcard /dev/shm),/dev/shm/citystream-fuzz,out/fuzz)
+fuzz-long:
+	CARGO_PROFILE_RELEASE_OVERFLOW_CHECKS=true CARGO_PROFILE_RELEASE_DEBUG_ASSERTIONS=true \
+		$(CARGO) run --release --target-dir target/fuzz -p citystream-tools --bin fuzz -- \
+		--inputs $(FUZZ_INPUTS) --seed $(FUZZ_SEED) --out $(FUZZ_OUT)

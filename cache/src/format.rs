@@ -135,8 +135,8 @@ impl Granularity {
     pub(crate) fn validate(&self, format: &TexelFormat) -> Result<(), ConfigError> {
         let ok = self.width.is_power_of_two()
             && self.height.is_power_of_two()
-            && self.width % format.block_width == 0
-            && self.height % format.block_height == 0;
+            && self.width.is_multiple_of(format.block_width)
+            && self.height.is_multiple_of(format.block_height);
         if ok {
             Ok(())
         } else {

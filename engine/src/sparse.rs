@@ -604,7 +604,7 @@ impl SparseMemoryChunk {
     /// The device memory and offset of the block at byte `offset` of this
     /// chunk, when `offset` is block aligned and the block fits.
     pub fn at(&self, offset: u64, block_size: u64) -> Option<(vk::DeviceMemory, u64)> {
-        if block_size == 0 || offset % block_size != 0 {
+        if block_size == 0 || !offset.is_multiple_of(block_size) {
             return None;
         }
         self.block(offset / block_size, block_size)

@@ -6,14 +6,16 @@ mod dataset_support;
 use std::path::Path;
 
 use citystream_streaming::dataset::{
-    verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, COLORMAP_FILE, META_FILE,
-    PACK_FILE, SCENE_FILE,
+    verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, CHECKSUM_FILE, COLORMAP_FILE,
+    MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
 };
-use dataset_support::{copy_dir, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES};
+use dataset_support::{
+    copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES,
+};
 
 /// Byte offset of texture `i`'s record in `textures.meta`.
 fn record(i: usize) -> usize {
-    32 + 10 * i
+    40 + 10 * i
 }
 
 fn open_err(dir: &Path) -> DatasetError {
@@ -26,7 +28,7 @@ fn open_err(dir: &Path) -> DatasetError {
 fn damaged(name: &str, file: &str, edit: impl FnOnce(&mut Vec<u8>)) -> std::path::PathBuf {
     let fixture = write_fixture(&format!("{name}-src"));
     let dir = copy_dir(&fixture.dir, name);
-    patch(&dir.join(file), edit);
+    patch(&data_file(&dir, file), edit);
     dir
 }
 
@@ -40,9 +42,9 @@ fn assert_names(err: &DatasetError, file: &str, needles: &[&str]) {
 
 #[test]
 fn missing_files_are_named() {
-    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE] {
+    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, CHECKSUM_FILE] {
         let fixture = write_fixture(&format!("missing-{file}"));
-        std::fs::remove_file(fixture.dir.join(file)).expect("remove");
+        std::fs::remove_file(data_file(&fixture.dir, file)).expect("remove");
         let err = open_err(&fixture.dir);
         assert!(
             matches!(err, DatasetError::Missing { ref path } if path.ends_with(file)),
@@ -50,11 +52,11 @@ fn missing_files_are_named() {
         );
         assert_names(&err, file, &["missing"]);
     }
-    let fixture = write_fixture("missing-crc");
-    std::fs::remove_file(fixture.dir.join("textures.crc")).expect("remove");
-    let err = verify(&fixture.dir).expect_err("verify without checksums");
+    let fixture = write_fixture("missing-manifest");
+    std::fs::remove_file(fixture.dir.join(MANIFEST_FILE)).expect("remove");
+    let err = open_err(&fixture.dir);
     assert!(matches!(err, DatasetError::Missing { .. }), "{err}");
-    assert_names(&err, "textures.crc", &[]);
+    assert_names(&err, MANIFEST_FILE, &["missing"]);
 }
 
 #[test]
@@ -76,7 +78,7 @@ fn unsupported_version_is_reported() {
             err,
             DatasetError::UnsupportedVersion {
                 found: 7,
-                supported: 1,
+                supported: 2,
                 ..
             }
         ),
@@ -116,7 +118,7 @@ fn pack_shrinking_after_open_gives_a_truncation_error_on_read() -> Result<(), Da
     let last = pack.len() - 1;
     let file = std::fs::OpenOptions::new()
         .write(true)
-        .open(fixture.dir.join(PACK_FILE))
+        .open(data_file(&fixture.dir, PACK_FILE))
         .expect("open pack");
     file.set_len(pack.pack_len() - 1).expect("truncate");
     let mut buf = Vec::new();
@@ -183,7 +185,7 @@ fn overlapping_chains_are_found_by_verify() {
     let offset_1 = pack.textures()[1].offset();
     drop(pack);
     let dir = copy_dir(&fixture.dir, "overlap");
-    patch(&dir.join(META_FILE), |b| {
+    patch(&data_file(&dir, META_FILE), |b| {
         let r = record(2);
         b[r..r + 6].copy_from_slice(&offset_1.to_le_bytes()[..6]);
         fix_table_crc(b);
@@ -201,11 +203,28 @@ fn flipped_mip_byte_fails_the_texture_checksum_in_verify() {
     let location = pack.mip_location(1, 4).expect("mip");
     drop(pack);
     let dir = copy_dir(&fixture.dir, "flipped");
-    patch(&dir.join(PACK_FILE), |b| b[location.offset as usize + 3] ^= 0xff);
-    Dataset::open(&dir).expect("open does not read mip data");
+    patch(&data_file(&dir, PACK_FILE), |b| b[location.offset as usize + 3] ^= 0xff);
+    let dataset = Dataset::open(&dir).expect("open does not read mip data");
+    // Every read checks the mip's own checksum, not only `verify`.
+    let mut buf = Vec::new();
+    let err = dataset
+        .textures
+        .read_mip(1, 4, &mut buf)
+        .expect_err("read of the damaged mip");
+    assert!(
+        matches!(err, DatasetError::Checksum { offset, .. } if offset == location.offset),
+        "{err}"
+    );
+    assert_names(&err, PACK_FILE, &["texture 1 level 4"]);
+    let mut exact = vec![0u8; location.len as usize];
+    assert!(dataset.textures.read_mip_into(1, 4, &mut exact).is_err());
+    dataset
+        .textures
+        .read_mip(1, 3, &mut buf)
+        .expect("the other levels are intact");
     let err = verify(&dir).expect_err("verify");
     assert!(matches!(err, DatasetError::Checksum { .. }), "{err}");
-    assert_names(&err, PACK_FILE, &["texture 1"]);
+    assert_names(&err, PACK_FILE, &["texture 1 level 4"]);
 }
 
 #[test]
@@ -234,21 +253,30 @@ fn zero_and_absurd_texture_sizes_are_rejected() {
 #[test]
 fn count_mismatches_between_files_are_reported() {
     let dir = damaged("pack-count", PACK_FILE, |b| {
-        b[16..24].copy_from_slice(&3u64.to_le_bytes())
+        b[24..32].copy_from_slice(&3u64.to_le_bytes());
+        fix_pack_header_crc(b);
     });
     assert_names(&open_err(&dir), PACK_FILE, &["3 textures"]);
 
     let dir = damaged("colormap-count", COLORMAP_FILE, |b| {
         b.truncate(b.len() - 4);
-        b[16..24].copy_from_slice(&(TEXTURES.len() as u64 - 1).to_le_bytes());
+        b[24..32].copy_from_slice(&(TEXTURES.len() as u64 - 1).to_le_bytes());
         fix_table_crc(b);
     });
     assert_names(&open_err(&dir), COLORMAP_FILE, &["colours for"]);
 
     let dir = damaged("meta-absurd-count", META_FILE, |b| {
-        b[16..24].copy_from_slice(&u64::MAX.to_le_bytes())
+        b[24..32].copy_from_slice(&u64::MAX.to_le_bytes())
     });
-    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 16, .. }));
+    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 24, .. }));
+
+    let dir = damaged("crc-count", CHECKSUM_FILE, |b| {
+        b.truncate(b.len() - 4);
+        let count = u64::from_le_bytes(b[24..32].try_into().expect("8 bytes")) - 1;
+        b[24..32].copy_from_slice(&count.to_le_bytes());
+        fix_table_crc(b);
+    });
+    assert_names(&open_err(&dir), CHECKSUM_FILE, &["mip checksums"]);
 }
 
 /// Byte offsets of the scene sections for the fixture.
@@ -261,7 +289,7 @@ struct SceneLayout {
 }
 
 fn scene_layout(scene: &Scene) -> SceneLayout {
-    let meshes = 96;
+    let meshes = 104;
     let positions = meshes + 44 * scene.meshes.len();
     let normals = positions + 12 * scene.positions.len();
     let uvs = normals + 12 * scene.positions.len();
@@ -354,14 +382,14 @@ fn mesh_ranges_and_texture_ids_are_checked() {
 #[test]
 fn scene_counts_that_disagree_with_the_file_size_are_truncation() {
     let dir = damaged("scene-count", SCENE_FILE, |b| {
-        b[24..32].copy_from_slice(&1_000_000u64.to_le_bytes())
+        b[32..40].copy_from_slice(&1_000_000u64.to_le_bytes())
     });
     let err = open_err(&dir);
     assert!(matches!(err, DatasetError::Truncated { .. }), "{err}");
     let dir = damaged("scene-absurd-count", SCENE_FILE, |b| {
-        b[32..40].copy_from_slice(&u64::MAX.to_le_bytes())
+        b[40..48].copy_from_slice(&u64::MAX.to_le_bytes())
     });
-    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 32, .. }));
+    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 40, .. }));
 }
 
 #[test]
@@ -404,7 +432,7 @@ fn files_that_are_not_regular_files_are_refused_without_blocking() {
     for (file, kind) in [(META_FILE, "fifo"), (PACK_FILE, "fifo"), (SCENE_FILE, "dir")] {
         let fixture = write_fixture(&format!("not-a-file-{kind}-src"));
         let dir = copy_dir(&fixture.dir, &format!("not-a-file-{kind}-{file}"));
-        let path = dir.join(file);
+        let path = data_file(&dir, file);
         std::fs::remove_file(&path).expect("remove");
         if kind == "dir" {
             std::fs::create_dir(&path).expect("mkdir");
@@ -417,5 +445,77 @@ fn files_that_are_not_regular_files_are_refused_without_blocking() {
         }
         let err = open_err(&dir);
         assert_names(&err, file, &["not a regular file"]);
+    }
+}
+
+#[test]
+fn any_flipped_scene_header_bit_is_refused() {
+    // The header (counts, write id, origin, bounds) is under the scene's checksum: a flipped
+    // bound once made the flythrough render only sky.
+    let fixture = write_fixture("scene-header-src");
+    let path = data_file(&fixture.dir, SCENE_FILE);
+    let original = std::fs::read(&path).expect("read scene");
+    let dir = copy_dir(&fixture.dir, "scene-header");
+    let target = data_file(&dir, SCENE_FILE);
+    for byte in 16..104 {
+        for bit in [0u8, 3, 7] {
+            let mut bytes = original.clone();
+            bytes[byte] ^= 1 << bit;
+            std::fs::write(&target, &bytes).expect("write");
+            let err = open_err(&dir);
+            assert_names(&err, SCENE_FILE, &[]);
+        }
+    }
+}
+
+#[test]
+fn bounds_that_do_not_match_the_vertices_are_refused() {
+    // With the checksum recomputed, loose or non-finite bounds still fail their own check.
+    let scene = write_fixture("bounds-layout").scene;
+    let layout = scene_layout(&scene);
+    let cases: [(&str, usize, f32, &str); 4] = [
+        ("scene-max-1e7", 84, 1e7, "scene bounds"),
+        ("scene-min-inf", 72, f32::NEG_INFINITY, "scene bounds"),
+        ("mesh-loose", layout.meshes + 44 + 32, 1e7, "do not match its vertices"),
+        ("mesh-inf", layout.meshes + 44 + 20, f32::NEG_INFINITY, "mesh 1: bounds"),
+    ];
+    for (name, at, value, needle) in cases {
+        let dir = damaged(name, SCENE_FILE, |b| {
+            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
+            fix_scene_crc(b);
+        });
+        let err = open_err(&dir);
+        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
+        assert_names(&err, SCENE_FILE, &[needle]);
+    }
+}
+
+#[test]
+fn files_of_another_write_are_refused() {
+    // Two writes of the same content differ only in their write ids: a file copied from one
+    // into the other is named as coming from another write.
+    let a = write_fixture("mixed-a");
+    let b = write_fixture("mixed-b");
+    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, CHECKSUM_FILE] {
+        let dir = copy_dir(&a.dir, &format!("mixed-{file}"));
+        std::fs::copy(data_file(&b.dir, file), data_file(&dir, file)).expect("copy");
+        let err = open_err(&dir);
+        assert!(matches!(err, DatasetError::MixedWrites { .. }), "{file}: {err}");
+        assert_names(&err, file, &["different writes"]);
+    }
+}
+
+#[test]
+fn damaged_manifests_are_refused() {
+    let fixture = write_fixture("manifest-src");
+    for (name, edit) in [
+        ("manifest-flip", (|b: &mut Vec<u8>| b[17] ^= 4) as fn(&mut Vec<u8>)),
+        ("manifest-short", |b| b.truncate(20)),
+        ("manifest-magic", |b| b[0..8].copy_from_slice(b"NOTADATA")),
+    ] {
+        let dir = copy_dir(&fixture.dir, name);
+        patch(&dir.join(MANIFEST_FILE), edit);
+        let err = open_err(&dir);
+        assert_names(&err, MANIFEST_FILE, &[]);
     }
 }

@@ -3,11 +3,20 @@
 
 mod dataset_support;
 
-use citystream_streaming::dataset::{verify, Dataset, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
-use dataset_support::{copy_dir, patch, write_fixture};
+use citystream_streaming::dataset::{
+    verify, Dataset, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
+};
+use dataset_support::{copy_dir, data_file, patch, write_fixture};
 use proptest::prelude::*;
 
-const FILES: [&str; 5] = [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, "textures.crc"];
+const FILES: [&str; 6] = [
+    SCENE_FILE,
+    META_FILE,
+    PACK_FILE,
+    COLORMAP_FILE,
+    CHECKSUM_FILE,
+    MANIFEST_FILE,
+];
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
@@ -22,7 +31,8 @@ proptest! {
         let source = write_fixture("fuzz-src");
         let dir = copy_dir(&source.dir, "fuzz");
         let name = FILES[file];
-        patch(&dir.join(name), |b| {
+        let path = if name == MANIFEST_FILE { dir.join(name) } else { data_file(&dir, name) };
+        patch(&path, |b| {
             for (index, value) in &flips {
                 if !b.is_empty() {
                     let i = index.index(b.len());
@@ -34,9 +44,11 @@ proptest! {
                 b.truncate(keep);
             }
             // Also reach the checks behind the table checksums.
-            if recompute_crc && b.len() >= 96 && name == SCENE_FILE {
+            if recompute_crc && b.len() >= 104 && name == SCENE_FILE {
                 dataset_support::fix_scene_crc(b);
-            } else if recompute_crc && b.len() >= 32 && name != PACK_FILE {
+            } else if recompute_crc && b.len() >= 44 && name == PACK_FILE {
+                dataset_support::fix_pack_header_crc(b);
+            } else if recompute_crc && b.len() >= 40 && name != MANIFEST_FILE {
                 dataset_support::fix_table_crc(b);
             }
         });

@@ -80,9 +80,15 @@ fn mip_sizes_follow_the_block_rules() {
 
 #[test]
 fn metadata_is_small_per_texture() {
-    // 12 bytes of texture record + 4 bytes of colormap per texture: a 5.7 M-texture city
-    // needs about 91 MB of host metadata.
-    assert_eq!(Dataset::metadata_bytes_per_texture(), 16);
+    // 12 bytes of texture record + 4 of checksum index + 4 of colormap per texture, and a
+    // 4-byte CRC per mip: a 5.7 M-texture city of 512² textures (10 levels) needs about
+    // 5.7 M × (20 + 40) B = 342 MB of host metadata.
+    assert_eq!(Dataset::metadata_bytes_per_texture(), 20);
+    assert_eq!(Dataset::metadata_bytes_per_mip(), 4);
+    let fixture = write_fixture("metadata-bytes");
+    let pack = TexturePack::open(&fixture.dir).expect("open");
+    let mips: usize = pack.textures().iter().map(|t| t.mip_count() as usize).sum();
+    assert_eq!(pack.metadata_bytes(), pack.textures().len() * 16 + mips * 4);
 }
 
 #[test]

@@ -12,7 +12,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{ensure, Context, Result};
-use citystream_streaming::dataset::{Dataset, DatasetWriter, Scene, TextureFormat};
+use citystream_streaming::dataset::{Dataset, DatasetWriter, Scene, TextureFormat, SCENE_FILE};
 
 const BERLIN_TEXTURES: u32 = 5_712_309;
 
@@ -55,12 +55,16 @@ fn main() -> Result<()> {
         open.as_secs_f64() * 1e3,
         textures,
         dataset.scene.meshes.len(),
-        std::fs::metadata(dir.join("scene.bin"))?.len() as f64 / 1e6
+        std::fs::metadata(dataset.files().path(SCENE_FILE))?.len() as f64 / 1e6
     );
     println!(
-        "   host metadata per texture: {} bytes (texture record + colormap entry); on disk {} bytes (textures.meta + colormap.bin)",
+        "   host metadata: {:.1} bytes per texture ({} per texture + {} per mip checksum, {:.2} mips per texture); on disk {} bytes per texture + {} per mip",
+        host_metadata_bytes(&dataset) as f64 / f64::from(textures),
         Dataset::metadata_bytes_per_texture(),
-        10 + 4
+        Dataset::metadata_bytes_per_mip(),
+        mip_count(&dataset) as f64 / f64::from(textures),
+        10 + 4,
+        4
     );
     drop(dataset);
     std::fs::remove_dir_all(&dir)?;
@@ -77,9 +81,24 @@ fn main() -> Result<()> {
         "== open a {} -texture table: {:.0} ms median of 3, {:.1} MB host metadata",
         dataset.textures.len(),
         open.as_secs_f64() * 1e3,
-        (Dataset::metadata_bytes_per_texture() as f64 * f64::from(dataset.textures.len())) / 1e6
+        host_metadata_bytes(&dataset) as f64 / 1e6
     );
     drop(dataset);
     std::fs::remove_dir_all(&berlin)?;
     Ok(())
+}
+
+fn mip_count(dataset: &Dataset) -> u64 {
+    dataset
+        .textures
+        .textures()
+        .iter()
+        .map(|t| u64::from(t.mip_count()))
+        .sum()
+}
+
+/// What the opened texture metadata holds in host memory: records, checksum indices and
+/// mip checksums (`TexturePack::metadata_bytes`) plus the colormap.
+fn host_metadata_bytes(dataset: &Dataset) -> u64 {
+    dataset.textures.metadata_bytes() as u64 + 4 * u64::from(dataset.textures.len())
 }

@@ -12,7 +12,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use citystream_streaming::dataset::{CHECKSUM_FILE, SCENE_FILE};
+use citystream_streaming::dataset::{upgrade, DatasetError, DatasetFiles};
 
 use crate::atlas::AtlasArgs;
 use crate::gen::{FormatArg, GenArgs, Preset};
@@ -23,9 +23,10 @@ pub const DEFAULT_CITY_DIR: &str = "data/city";
 /// Atlas side of the default city, in texels.
 pub const DEFAULT_CITY_ATLAS_EXTENT: u32 = 2048;
 
-/// True when `dir` holds a finished dataset (the checksum table is written last).
+/// True when `dir` holds a finished dataset (its manifest names a write: the manifest is
+/// renamed into place only once the write is complete).
 pub fn is_dataset(dir: &Path) -> bool {
-    dir.join(SCENE_FILE).is_file() && dir.join(CHECKSUM_FILE).is_file()
+    DatasetFiles::resolve(dir).is_ok()
 }
 
 /// The per-mesh-texture city the atlases of `dir` are made from.
@@ -44,6 +45,17 @@ pub fn source_dir(dir: &Path) -> PathBuf {
 /// write into one directory or read a half-written city.
 pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
     if is_dataset(dir) {
+        return Ok(false);
+    }
+    if matches!(DatasetFiles::resolve(dir), Err(DatasetError::NeedsUpgrade { .. })) {
+        // The default city of an earlier build: ours to rewrite, and cheaper than rebuilding.
+        if !quiet {
+            eprintln!(
+                "upgrading the default city in {} to the current dataset format",
+                dir.display()
+            );
+        }
+        upgrade(dir).with_context(|| format!("upgrading the default city in {}", dir.display()))?;
         return Ok(false);
     }
     let started = std::time::Instant::now();
@@ -114,7 +126,7 @@ pub fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> R
         return Err(e);
     }
     if is_dataset(dir) {
-        // Another run finished first; its dataset is the same, byte for byte.
+        // Another run finished first; its dataset has the same content.
         let _ = std::fs::remove_dir_all(&partial);
         return Ok(());
     }
@@ -144,6 +156,13 @@ pub fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
+    use citystream_streaming::dataset::MANIFEST_FILE;
+
+    fn empty_dataset(dir: &Path) -> Result<()> {
+        use citystream_streaming::dataset::{DatasetWriter, Scene};
+        DatasetWriter::create(dir)?.finish(&Scene::new([0.0; 3]))?;
+        Ok(())
+    }
 
     fn scratch(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("citystream-default-city-{name}-{}", std::process::id()));
@@ -157,7 +176,7 @@ mod tests {
         let dir = root.join("city");
         let fail = build_then_move(&dir, |partial| {
             std::fs::create_dir_all(partial)?;
-            std::fs::write(partial.join(SCENE_FILE), b"half")?;
+            std::fs::write(partial.join(MANIFEST_FILE), b"half")?;
             anyhow::bail!("interrupted")
         });
         assert!(fail.is_err());
@@ -168,13 +187,7 @@ mod tests {
             "no partial directory left"
         );
 
-        build_then_move(&dir, |partial| {
-            std::fs::create_dir_all(partial)?;
-            std::fs::write(partial.join(SCENE_FILE), b"scene")?;
-            std::fs::write(partial.join(CHECKSUM_FILE), b"crc")?;
-            Ok(())
-        })
-        .expect("moved");
+        build_then_move(&dir, empty_dataset).expect("moved");
         assert!(is_dataset(&dir));
         let _ = std::fs::remove_dir_all(&root);
     }
@@ -185,13 +198,7 @@ mod tests {
         let dir = root.join("city");
         std::fs::create_dir_all(&dir).expect("dir");
         std::fs::write(dir.join("notes.txt"), b"mine").expect("file");
-        let err = build_then_move(&dir, |partial| {
-            std::fs::create_dir_all(partial)?;
-            std::fs::write(partial.join(SCENE_FILE), b"scene")?;
-            std::fs::write(partial.join(CHECKSUM_FILE), b"crc")?;
-            Ok(())
-        })
-        .expect_err("refused");
+        let err = build_then_move(&dir, empty_dataset).expect_err("refused");
         assert!(format!("{err:#}").contains("holds no complete dataset"), "{err:#}");
         assert_eq!(std::fs::read(dir.join("notes.txt")).expect("kept"), b"mine");
         assert_eq!(

@@ -9,18 +9,28 @@
 //! (`MSFT_texture_dds`) or KTX2 (`KHR_texture_basisu`, RGBA8/BC1/BC3 only); the first source
 //! that decodes is used. Sides that are not powers of two are resized up to the next power
 //! of two; sides above `--max-extent` are downscaled with a warning.
+//!
+//! KTX2 and DDS sources stored as BC1, BC3 or BC7 blocks with power-of-two sides and no
+//! tint (base-colour factor 1) keep their blocks and stored levels as they are, whatever
+//! `--format` says (re-encoding would only lose quality, and BC3/BC7 their alpha); levels
+//! finer than `--max-extent` are dropped. Everything else is decoded and encoded in
+//! `--format`. Images decode up to 16384 texels a side; larger ones are refused by extent.
+//!
+//! Input is untrusted: references the `gltf` crate would follow unchecked (accessor indices,
+//! image sources, buffer-view strides, element counts, the GLB length) are checked first, so
+//! no file makes the import panic (`fuzz --target gltf`).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use citystream_streaming::dataset::{DatasetWriter, Scene};
+use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
 use image::imageops::FilterType;
 use image::RgbaImage;
 use rayon::prelude::*;
 
-use crate::gen::{encode_chain, library::decode_ktx2, FormatArg};
+use crate::gen::{decode_level, encode_chain, library::decode_image_bytes, mean_colour, EncodedTexture, FormatArg};
 
 /// Most node instances an import places (a node reached through several
 /// shared parents counts once per path).
@@ -116,8 +126,84 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     }
     let format = args.format.texture_format();
     let input = &args.input;
-    let gltf = gltf::Gltf::open(input).map_err(|e| anyhow!("{}: not a valid glTF 2.0 file: {e}", input.display()))?;
-    let base = input.parent().unwrap_or(Path::new("."));
+    let imported = load(input, format, args.max_extent)?;
+    let kept = imported.kept_blocks;
+    let mut writer = DatasetWriter::create(&args.out)?;
+    for t in imported.textures {
+        writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
+    }
+    let summary = writer
+        .finish(&imported.scene)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    crate::gen::print_stdout(&format!(
+        "imported {} into {}: {} meshes, {} triangles, {} textures ({kept} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\n",
+        input.display(),
+        args.out.display(),
+        summary.meshes,
+        summary.triangles,
+        summary.textures,
+        format.name(),
+        summary.pack_bytes as f64 / 1e6,
+        start.elapsed().as_secs_f64()
+    ))
+}
+
+/// A glTF scene read into memory: what `import` writes as a dataset.
+#[derive(Debug)]
+pub struct ImportedScene {
+    /// Meshes in dataset form, origin at the centre of the model.
+    pub scene: Scene,
+    /// One encoded texture per distinct (image, factor) pair, in first-use order.
+    pub textures: Vec<EncodedTexture>,
+    /// How many of them keep their source's BC1/BC3/BC7 blocks as they are.
+    pub kept_blocks: usize,
+}
+
+/// Reads the glTF or GLB file `input` (external files relative to its directory) and
+/// encodes its textures in `format`, at most `max_extent` on a side.
+pub fn load(input: &Path, format: TextureFormat, max_extent: u32) -> Result<ImportedScene> {
+    let bytes = citystream_streaming::dataset::ensure_regular_file(input)
+        .and_then(|()| std::fs::read(input))
+        .with_context(|| format!("reading {}", input.display()))?;
+    load_slice(
+        &bytes,
+        input.parent().unwrap_or(Path::new(".")),
+        input,
+        format,
+        max_extent,
+    )
+}
+
+/// [`load`] of glTF or GLB bytes; external files are looked up in `base`, errors name
+/// `input`. Every failure is an error, whatever the bytes (the fuzz harness feeds it
+/// mutated files).
+pub fn load_slice(
+    bytes: &[u8],
+    base: &Path,
+    input: &Path,
+    format: TextureFormat,
+    max_extent: u32,
+) -> Result<ImportedScene> {
+    let invalid = |e: gltf::Error| anyhow!("{}: not a valid glTF 2.0 file: {e}", input.display());
+    if bytes.starts_with(b"glTF") {
+        // The `gltf` crate subtracts the 12-byte header from the declared length unchecked.
+        let declared = bytes.get(8..12).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+        if !declared.is_some_and(|len| (12..=bytes.len() as u64).contains(&u64::from(len))) {
+            bail!(
+                "{}: GLB header declares {declared:?} bytes; a GLB is at least its 12-byte header and at most the file's {} bytes",
+                input.display(),
+                bytes.len()
+            );
+        }
+    }
+    // The `gltf` crate's own validation indexes accessors unchecked (a POSITION attribute
+    // naming a missing accessor panics inside it), so references are checked first.
+    let unchecked = gltf::Gltf::from_slice_without_validation(bytes).map_err(invalid)?;
+    check_references(unchecked.document.as_json()).with_context(|| input.display().to_string())?;
+    let gltf = gltf::Gltf {
+        document: gltf::Document::from_json(unchecked.document.into_json()).map_err(invalid)?,
+        blob: unchecked.blob,
+    };
     // Name a missing buffer file before the loader reports a bare "file not found".
     for buffer in gltf.document.buffers() {
         if let gltf::buffer::Source::Uri(uri) = buffer.source() {
@@ -219,22 +305,21 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     }
 
     // Textures: decode and encode in parallel, in first-use order.
-    let max_log2 = args.max_extent.trailing_zeros();
-    let encoded: Vec<_> = keys
+    let max_log2 = max_extent.trailing_zeros();
+    let textures = keys
         .par_iter()
         .map(|key| -> Result<_> {
+            if let Some(kept) = kept_blocks(document, &buffers, base, key, max_log2) {
+                return Ok((kept, true));
+            }
             let image = texture_image(document, &buffers, base, key, input)?;
             let image = fit_power_of_two(image, max_log2, input);
             let (w, h) = image.dimensions();
-            encode_chain(image.into_raw(), w, h, format)
+            Ok((encode_chain(image.into_raw(), w, h, format)?, false))
         })
-        .collect();
-
-    let mut writer = DatasetWriter::create(&args.out)?;
-    for texture in encoded {
-        let t = texture?;
-        writer.add_texture(format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
-    }
+        .collect::<Result<Vec<_>>>()?;
+    let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
+    let textures = textures.into_iter().map(|(texture, _)| texture).collect();
 
     // Origin at the centre of the world-space bounds keeps f32 positions precise.
     let mut lo = [f64::INFINITY; 3];
@@ -261,20 +346,46 @@ pub fn run(args: &ImportArgs) -> Result<()> {
             .collect();
         scene.push_mesh(m.texture as u32, &positions, &m.normals, &m.uvs, &m.indices)?;
     }
-    let summary = writer
-        .finish(&scene)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    crate::gen::print_stdout(&format!(
-        "imported {} into {}: {} meshes, {} triangles, {} textures, {:.1} MB pack ({}), {:.2} s\n",
-        input.display(),
-        args.out.display(),
-        summary.meshes,
-        summary.triangles,
-        summary.textures,
-        summary.pack_bytes as f64 / 1e6,
-        format.name(),
-        start.elapsed().as_secs_f64()
-    ))
+    scene
+        .validate(input)
+        .with_context(|| format!("{}: the imported scene", input.display()))?;
+    Ok(ImportedScene {
+        scene,
+        textures,
+        kept_blocks,
+    })
+}
+
+/// Fails where the `gltf` crate would panic: a mesh primitive referring to an accessor that
+/// does not exist, an image without a source or a buffer-view image without a MIME type.
+fn check_references(root: &gltf::json::Root) -> Result<()> {
+    for (i, image) in root.images.iter().enumerate() {
+        match (&image.buffer_view, &image.uri, &image.mime_type) {
+            (Some(_), _, None) => bail!("image {i} lies in a buffer view but names no mimeType"),
+            (None, None, _) => bail!("image {i} has neither a uri nor a bufferView"),
+            _ => {}
+        }
+    }
+    let count = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            let targets = primitive.targets.iter().flatten();
+            let references = primitive
+                .attributes
+                .values()
+                .chain(&primitive.indices)
+                .chain(targets.flat_map(|t| t.positions.iter().chain(&t.normals).chain(&t.tangents)));
+            for accessor in references {
+                if accessor.value() >= count {
+                    bail!(
+                        "mesh {m} primitive {p} refers to accessor {}, but the file has {count} accessors",
+                        accessor.value()
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 fn texture_key(primitive: &gltf::Primitive) -> TextureKey {
@@ -324,6 +435,10 @@ fn check_accessor(
     if accessor.sparse().is_some() {
         bail!("{name} is sparse, which the importer does not support");
     }
+    if accessor.count() == 0 {
+        // The `gltf` crate's reader computes `count - 1` unchecked.
+        bail!("{name} has count 0; glTF requires at least 1 element");
+    }
     let Some(view) = accessor.view() else {
         return Ok(()); // No view: every element is zero.
     };
@@ -342,8 +457,16 @@ fn check_accessor(
         );
     }
     let element = accessor.size();
-    let stride = view.stride().unwrap_or(element).max(element);
-    if accessor.count() > 0 {
+    // The `gltf` crate's reader steps by the view's stride and asserts each step holds an
+    // element: a smaller stride would panic there.
+    if let Some(stride) = view.stride().filter(|&s| s < element) {
+        bail!(
+            "{name}: buffer view {} has byteStride {stride}, smaller than the {element}-byte element",
+            view.index()
+        );
+    }
+    let stride = view.stride().unwrap_or(element);
+    {
         let end = (accessor.count() - 1)
             .checked_mul(stride)
             .and_then(|n| n.checked_add(accessor.offset()))
@@ -397,7 +520,7 @@ fn read_primitive(
         None => (0..count as u32).collect(),
     };
     let mut indices = triangle_list(primitive.mode(), raw);
-    if indices.len() % 3 != 0 {
+    if !indices.len().is_multiple_of(3) {
         bail!("{} indices do not form whole triangles", indices.len());
     }
     if let Some((i, &index)) = indices.iter().enumerate().find(|(_, &v)| v as usize >= count) {
@@ -520,7 +643,9 @@ fn image_bytes(
                 base64_decode(payload).with_context(|| format!("image {index}: invalid base64 data URI"))
             } else {
                 let path = base.join(percent_decode(uri));
-                std::fs::read(&path).with_context(|| format!("image {index}: reading {}", path.display()))
+                citystream_streaming::dataset::ensure_regular_file(&path)
+                    .and_then(|()| std::fs::read(&path))
+                    .with_context(|| format!("image {index}: reading {}", path.display()))
             }
         }
     }
@@ -570,11 +695,165 @@ fn base64_decode(s: &str) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-fn decode_image(bytes: &[u8]) -> Result<RgbaImage> {
-    if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB]) {
-        return decode_ktx2(bytes);
+/// A KTX2 or DDS source stored as BC1, BC3 or BC7 blocks.
+#[derive(Debug)]
+pub(crate) struct BlockSource {
+    format: TextureFormat,
+    width: u32,
+    height: u32,
+    /// The stored levels, finest first, each exactly its `mip_bytes` long.
+    levels: Vec<Vec<u8>>,
+}
+
+/// The texture of `key` with its source's blocks as they are, when its preferred source is
+/// a BC1/BC3/BC7 KTX2 or DDS file of power-of-two sides that is not tinted: re-encoding
+/// would only lose quality (and BC3/BC7 alpha). `None` sends the texture down the decoding
+/// path, which also reports sources that cannot be read.
+fn kept_blocks(
+    document: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+    base: &Path,
+    key: &TextureKey,
+    max_log2: u32,
+) -> Option<EncodedTexture> {
+    if key.factor != [255; 4] {
+        return None;
     }
-    Ok(image::load_from_memory(bytes)?.to_rgba8())
+    let bytes = key
+        .images
+        .iter()
+        .flatten()
+        .find_map(|&index| image_bytes(document, buffers, base, index).ok())?;
+    let source = block_source(&bytes).ok().flatten()?;
+    // Drop levels finer than the maximum extent; a BC level must stay at least one block.
+    let first = source
+        .width
+        .max(source.height)
+        .trailing_zeros()
+        .saturating_sub(max_log2);
+    let (width, height) = (source.width >> first, source.height >> first);
+    if first as usize >= source.levels.len() || width < 4 || height < 4 {
+        return None;
+    }
+    let levels = &source.levels[first as usize..];
+    let mean = mean_colour(&decode_level(source.format, &levels[0], width, height));
+    Some(EncodedTexture {
+        format: source.format,
+        width,
+        height,
+        mip_count: levels.len() as u32,
+        chain: levels.concat(),
+        mean,
+    })
+}
+
+/// The blocks of a KTX2 or DDS file, or `None` when it holds something else (RGBA8, BC2,
+/// a non-power-of-two extent ...). Errors for files that claim BC data but are damaged.
+pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
+    let (format, width, height, levels) = if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB]) {
+        use ktx2::Format;
+        let reader = ktx2::Reader::new(bytes).map_err(|e| anyhow!("invalid KTX2: {e:?}"))?;
+        let header = reader.header();
+        let format = match header.format {
+            Some(
+                Format::BC1_RGB_UNORM_BLOCK
+                | Format::BC1_RGB_SRGB_BLOCK
+                | Format::BC1_RGBA_UNORM_BLOCK
+                | Format::BC1_RGBA_SRGB_BLOCK,
+            ) => TextureFormat::Bc1,
+            Some(Format::BC3_UNORM_BLOCK | Format::BC3_SRGB_BLOCK) => TextureFormat::Bc3,
+            Some(Format::BC7_UNORM_BLOCK | Format::BC7_SRGB_BLOCK) => TextureFormat::Bc7,
+            _ => return Ok(None),
+        };
+        if header.supercompression_scheme.is_some() || header.layer_count > 1 || header.face_count > 1 {
+            return Ok(None);
+        }
+        let levels: Vec<Vec<u8>> = reader.levels().map(|level| level.data.to_vec()).collect();
+        (format, header.pixel_width, header.pixel_height, levels)
+    } else if bytes.starts_with(b"DDS ") {
+        match dds_blocks(bytes)? {
+            Some(found) => found,
+            None => return Ok(None),
+        }
+    } else {
+        return Ok(None);
+    };
+    let side_ok = |v: u32| v.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&v);
+    if !side_ok(width) || !side_ok(height) || levels.is_empty() {
+        return Ok(None);
+    }
+    let full_chain = width.max(height).trailing_zeros() as usize + 1;
+    let mut kept = Vec::new();
+    for (l, data) in levels.iter().take(full_chain).enumerate() {
+        let (w, h) = ((width >> l).max(1), (height >> l).max(1));
+        let len = format.mip_bytes(w, h) as usize;
+        let level = data
+            .get(..len)
+            .with_context(|| format!("level {l} ({w}x{h}) holds {} of its {len} bytes", data.len()))?;
+        kept.push(level.to_vec());
+    }
+    Ok(Some(BlockSource {
+        format,
+        width,
+        height,
+        levels: kept,
+    }))
+}
+
+type DdsLevels = (TextureFormat, u32, u32, Vec<Vec<u8>>);
+
+/// The BC1/BC3/BC7 levels of a DDS file (FourCC `DXT1`/`DXT5`, or `DX10` with a BC1, BC3 or
+/// BC7 DXGI format), or `None` for other pixel formats.
+fn dds_blocks(bytes: &[u8]) -> Result<Option<DdsLevels>> {
+    let u32_at = |at: usize| -> Result<u32> {
+        bytes
+            .get(at..at + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .with_context(|| format!("DDS header ends before byte {}", at + 4))
+    };
+    if u32_at(4)? != 124 {
+        bail!("DDS header size is {}, not 124", u32_at(4)?);
+    }
+    let (height, width) = (u32_at(12)?, u32_at(16)?);
+    const DDSD_MIPMAPCOUNT: u32 = 0x2_0000;
+    let levels = if u32_at(8)? & DDSD_MIPMAPCOUNT != 0 {
+        u32_at(28)?.max(1)
+    } else {
+        1
+    };
+    let four_cc = bytes.get(84..88).context("DDS header ends before its FourCC")?;
+    let (format, mut offset): (TextureFormat, usize) = match four_cc {
+        b"DXT1" => (TextureFormat::Bc1, 128),
+        b"DXT5" => (TextureFormat::Bc3, 128),
+        b"DX10" => {
+            let format = match u32_at(128)? {
+                71 | 72 => TextureFormat::Bc1,
+                77 | 78 => TextureFormat::Bc3,
+                98 | 99 => TextureFormat::Bc7,
+                _ => return Ok(None),
+            };
+            // A plain 2D texture: dimension TEXTURE2D (3), one array element.
+            if u32_at(132)? != 3 || u32_at(140)? > 1 {
+                return Ok(None);
+            }
+            (format, 148)
+        }
+        _ => return Ok(None),
+    };
+    let mut found = Vec::new();
+    for l in 0..levels.min(15) {
+        let (w, h) = ((width >> l).max(1), (height >> l).max(1));
+        let len = usize::try_from(format.mip_bytes(w, h)).unwrap_or(usize::MAX);
+        let Some(level) = offset.checked_add(len).and_then(|end| bytes.get(offset..end)) else {
+            bail!(
+                "DDS level {l} ({w}x{h}) needs {len} bytes from byte {offset}, past the file's {}",
+                bytes.len()
+            );
+        };
+        found.push(level.to_vec());
+        offset += len;
+    }
+    Ok(Some((format, width, height, found)))
 }
 
 fn texture_image(
@@ -588,7 +867,7 @@ fn texture_image(
     let mut errors = Vec::new();
     let mut image = None;
     for index in key.images.iter().flatten() {
-        match image_bytes(document, buffers, base, *index).and_then(|b| decode_image(&b)) {
+        match image_bytes(document, buffers, base, *index).and_then(|b| decode_image_bytes(&b)) {
             Ok(decoded) => {
                 image = Some(decoded);
                 break;

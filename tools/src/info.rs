@@ -80,8 +80,9 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         mips += u64::from(t.mip_count());
     }
     let scene = &dataset.scene;
-    let scene_bytes = std::fs::metadata(args.dir.join(SCENE_FILE))
-        .with_context(|| format!("reading the size of {}", args.dir.join(SCENE_FILE).display()))?
+    let scene_path = dataset.files().path(SCENE_FILE);
+    let scene_bytes = std::fs::metadata(&scene_path)
+        .with_context(|| format!("reading the size of {}", scene_path.display()))?
         .len();
     Ok(Info {
         dir: args.dir.display().to_string(),

@@ -176,7 +176,7 @@ fn pass(reader: &'static str, cache: &'static str, crc: bool, mips: u64, bytes: 
 /// `loader.md` to `out`; returns the markdown.
 pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
     let dataset = Arc::new(Dataset::open(dataset_dir).with_context(|| format!("opening {}", dataset_dir.display()))?);
-    let pack_path = dataset_dir.join("textures.pack");
+    let pack_path = dataset.textures.pack_path().to_path_buf();
     let pack = File::open(&pack_path).with_context(|| format!("opening {}", pack_path.display()))?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let threads = rayon::current_num_threads();

@@ -3,7 +3,7 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-use citystream_tools::{atlas, bench, cache_report, gen, import, info, path, report, simulate, verify};
+use citystream_tools::{atlas, bench, cache_report, gen, import, info, path, report, simulate, upgrade, verify};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -34,6 +34,8 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Check every offset, length and mip of a dataset.
     Verify(verify::VerifyArgs),
+    /// Rewrite a dataset of an older format version as the current one, atomically.
+    Upgrade(upgrade::UpgradeArgs),
     /// Compare flythrough runs: Table 3 markdown and Fig. 6 / speed-vs-error charts.
     Report(report::ReportArgs),
     /// Run the flythrough under each policy on one dataset and report the comparison.
@@ -51,6 +53,7 @@ fn main() -> Result<()> {
         Command::Path(args) => path::run(&args),
         Command::Simulate(args) => simulate::run(&args),
         Command::Verify(args) => verify::run(&args),
+        Command::Upgrade(args) => upgrade::run(&args),
         Command::Report(args) => report::run(&args),
         Command::Bench(args) => bench::run(&args),
     }

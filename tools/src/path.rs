@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use citystream_streaming::bench::path::{standard_path, DEFAULT_STANDARD_DURATION_S};
-use citystream_streaming::dataset::{Scene, SCENE_FILE};
+use citystream_streaming::dataset::{DatasetFiles, Scene, SCENE_FILE};
 
 use crate::gen::print_stdout;
 
@@ -25,7 +25,9 @@ pub struct PathArgs {
 
 /// Runs `citystream path`.
 pub fn run(args: &PathArgs) -> Result<()> {
-    let scene_path = args.dataset.join(SCENE_FILE);
+    let files =
+        DatasetFiles::resolve(&args.dataset).with_context(|| format!("opening dataset {}", args.dataset.display()))?;
+    let scene_path = files.path(SCENE_FILE);
     let scene =
         Scene::read(&scene_path).with_context(|| format!("reading the scene of dataset {}", args.dataset.display()))?;
     let path = standard_path(&scene, args.duration)

@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use citystream_streaming::dataset::{Dataset, META_FILE, PACK_FILE};
+use citystream_streaming::dataset::{Dataset, DatasetFiles, META_FILE, PACK_FILE};
 
 fn citystream(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_citystream"))
@@ -35,12 +35,42 @@ fn gen(name: &str, extra: &[&str]) -> PathBuf {
 
 fn copy_dir(from: &Path, name: &str) -> PathBuf {
     let to = fresh_dir(name);
-    std::fs::create_dir_all(&to).expect("create copy");
+    copy_tree(from, &to);
+    to
+}
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create copy");
     for entry in std::fs::read_dir(from).expect("read dir") {
         let entry = entry.expect("entry");
-        std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
+        if entry.file_type().expect("type").is_dir() {
+            copy_tree(&entry.path(), &to.join(entry.file_name()));
+        } else {
+            std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
+        }
     }
-    to
+}
+
+/// Path of one data file of the dataset in `dir`.
+fn data_file(dir: &Path, name: &str) -> PathBuf {
+    DatasetFiles::resolve(dir).expect("manifest").path(name)
+}
+
+/// Whether two datasets hold the same content: scene, texture table, colours, every mip and
+/// its checksum (their write ids differ).
+fn same_content(a: &Path, b: &Path) -> bool {
+    let (a, b) = (Dataset::open(a).expect("open a"), Dataset::open(b).expect("open b"));
+    if a.scene != b.scene || a.textures.textures() != b.textures.textures() || a.colormap != b.colormap {
+        return false;
+    }
+    let (mut mip_a, mut mip_b) = (Vec::new(), Vec::new());
+    a.textures.textures().iter().enumerate().all(|(id, info)| {
+        (0..info.mip_count()).all(|level| {
+            a.textures.read_mip(id as u32, level, &mut mip_a).expect("mip a");
+            b.textures.read_mip(id as u32, level, &mut mip_b).expect("mip b");
+            mip_a == mip_b
+        })
+    })
 }
 
 fn stderr(out: &Output) -> String {
@@ -102,18 +132,14 @@ fn same_seed_same_bytes_other_seed_other_city() {
     let a = gen("seed-a", &["--seed", "9"]);
     let b = gen("seed-b", &["--seed", "9"]);
     let c = gen("seed-c", &["--seed", "10"]);
-    for file in ["scene.bin", META_FILE, PACK_FILE, "colormap.bin", "textures.crc"] {
-        let bytes_a = std::fs::read(a.join(file)).expect("read a");
-        assert_eq!(
-            bytes_a,
-            std::fs::read(b.join(file)).expect("read b"),
-            "{file} differs for one seed"
-        );
-    }
-    assert_ne!(
-        std::fs::read(a.join(PACK_FILE)).expect("a"),
-        std::fs::read(c.join(PACK_FILE)).expect("c")
-    );
+    assert!(same_content(&a, &b), "one seed gave two cities");
+    assert!(!same_content(&a, &c), "two seeds gave one city");
+    // Each write has its own id, so files of the two are never mistaken for one dataset.
+    let id = |dir: &Path| DatasetFiles::resolve(dir).expect("manifest").write_id();
+    assert_ne!(id(&a), id(&b));
+    let pack_a = std::fs::read(data_file(&a, PACK_FILE)).expect("a");
+    let pack_b = std::fs::read(data_file(&b, PACK_FILE)).expect("b");
+    assert_eq!(pack_a[64..], pack_b[64..], "mip data differs for one seed");
 }
 
 #[test]
@@ -173,7 +199,7 @@ fn mips_of_generated_textures_differ_and_colormap_is_their_mean() {
 fn verify_fails_clearly_on_a_truncated_pack() {
     let good = gen("truncate-src", &[]);
     let dir = copy_dir(&good, "truncated");
-    let pack = dir.join(PACK_FILE);
+    let pack = data_file(&dir, PACK_FILE);
     let len = std::fs::metadata(&pack).expect("pack").len();
     std::fs::OpenOptions::new()
         .write(true)
@@ -198,14 +224,18 @@ fn verify_fails_clearly_on_a_truncated_pack() {
 fn verify_fails_clearly_on_a_corrupted_offset() {
     let good = gen("offset-src", &[]);
     let dir = copy_dir(&good, "bad-offset");
-    let meta = dir.join(META_FILE);
+    let meta = data_file(&dir, META_FILE);
     let mut bytes = std::fs::read(&meta).expect("meta");
-    // Texture 5's base offset (record at 32 + 10·5) now points 1 GB into a small pack; the
-    // table checksum is updated so that the offset check itself reports it.
-    let record = 32 + 10 * 5;
+    // Texture 5's base offset (record at 40 + 10·5) now points 1 GB into a small pack; the
+    // table checksum (header bytes 0..32 and records) is updated so that the offset check
+    // itself reports it.
+    let record = 40 + 10 * 5;
     bytes[record..record + 6].copy_from_slice(&(1u64 << 30).to_le_bytes()[..6]);
-    let crc = crc32fast::hash(&bytes[32..]);
-    bytes[24..28].copy_from_slice(&crc.to_le_bytes());
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(&bytes[..32]);
+    hasher.update(&bytes[40..]);
+    let crc = hasher.finalize();
+    bytes[32..36].copy_from_slice(&crc.to_le_bytes());
     std::fs::write(&meta, &bytes).expect("write meta");
     let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
     assert!(!out.status.success());
@@ -221,9 +251,10 @@ fn verify_fails_clearly_on_a_corrupted_offset() {
 
     // Without the checksum update the damage is caught by the table checksum.
     let dir = copy_dir(&good, "bad-offset-crc");
-    let mut bytes = std::fs::read(dir.join(META_FILE)).expect("meta");
+    let meta = data_file(&dir, META_FILE);
+    let mut bytes = std::fs::read(&meta).expect("meta");
     bytes[record + 2] ^= 0x10;
-    std::fs::write(dir.join(META_FILE), &bytes).expect("write");
+    std::fs::write(&meta, &bytes).expect("write");
     let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
     assert!(!out.status.success());
     assert!(stderr(&out).contains("checksum mismatch"), "{}", stderr(&out));

@@ -640,7 +640,11 @@ fn run_with_pack_cut_mid_run(name: &str, extra: &[&str]) -> (std::process::ExitS
         if line.starts_with("scene:") {
             let pack = std::fs::OpenOptions::new()
                 .write(true)
-                .open(dataset.join("textures.pack"))
+                .open(
+                    citystream_streaming::dataset::DatasetFiles::resolve(&dataset)
+                        .expect("manifest")
+                        .path("textures.pack"),
+                )
                 .expect("pack opens");
             pack.set_len(64).expect("pack cut");
             break;
@@ -756,4 +760,58 @@ fn textures_larger_than_the_default_layer_get_larger_layers() {
         .map(|l| l.split(',').nth(10).expect("mips").parse::<u64>().expect("mips"))
         .sum();
     assert!(mips > 17, "{mips} mips streamed");
+}
+
+/// Writes the small dataset under `name` and flips one bit of each byte of its `file` at
+/// `offsets`.
+fn damage_small_dataset(name: &str, file: &str, offsets: &[u64]) -> std::path::PathBuf {
+    let dataset = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .join(name)
+        .join("city");
+    write_small_dataset(&dataset);
+    let path = citystream_streaming::dataset::DatasetFiles::resolve(&dataset)
+        .expect("manifest")
+        .path(file);
+    let mut bytes = std::fs::read(&path).expect("read");
+    for &at in offsets {
+        bytes[at as usize] ^= 0x40;
+    }
+    std::fs::write(&path, bytes).expect("write");
+    dataset
+}
+
+#[test]
+fn a_dataset_whose_scene_header_was_altered_is_refused() {
+    // Byte 87 is in the scene bounds' maximum z (header bytes 72..96): once, a flipped bit
+    // there rendered only sky with exit 0.
+    let dataset = damage_small_dataset("flythrough_scene_header", "scene.bin", &[87]);
+    let out = dataset.with_file_name("out");
+    let (output, _) = small_run(&dataset, &out, &["--frames", "2"]);
+    assert!(!output.status.success(), "an altered scene header was accepted");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("scene.bin") && stderr.contains("checksum"), "{stderr}");
+}
+
+#[test]
+fn mips_that_fail_their_checksums_fail_their_textures_and_the_run() {
+    // One byte of every level of texture 3 is flipped: each read of them fails its checksum,
+    // is retried, then fails the texture; the other textures stream.
+    let scratch = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_mip_layout");
+    write_small_dataset(&scratch);
+    let pack = citystream_streaming::dataset::TexturePack::open(&scratch).expect("open");
+    let offsets: Vec<u64> = (0..pack.textures()[3].mip_count())
+        .map(|level| pack.mip_location(3, level).expect("mip").offset)
+        .collect();
+    let dataset = damage_small_dataset("flythrough_mip_checksum", "textures.pack", &offsets);
+    let out = dataset.with_file_name("out");
+    let (output, summary) = small_run(&dataset, &out, &["--frames", "30"]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "corrupt mips were accepted: {stderr}");
+    assert!(
+        stderr.contains("checksum mismatch") && stderr.contains("texture 3 level") && stderr.contains("textures.pack"),
+        "{stderr}"
+    );
+    assert_eq!(summary["textures_failed"], 1, "{stderr}");
+    assert!(summary["mips_streamed"].as_u64().is_some_and(|n| n > 10), "{summary}");
+    assert_eq!(summary["validation_errors"], 0);
 }

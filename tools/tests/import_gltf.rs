@@ -240,7 +240,7 @@ fn glb_with_embedded_image_and_colour_factor() {
         "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]}]
     });
     let mut json_bytes = serde_json::to_vec(&gltf).expect("json");
-    while json_bytes.len() % 4 != 0 {
+    while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
     let mut glb = Vec::new();
@@ -380,4 +380,175 @@ fn shared_children_are_capped_under_a_memory_limit() {
     assert!(!output.status.success(), "the DAG imported");
     assert_eq!(output.status.code(), Some(1), "killed instead of an error: {text}");
     assert!(text.contains("node instances") && text.contains("trees"), "{text}");
+}
+
+/// A KTX2 file of `levels` (finest first): header, level index, a 4-byte data format
+/// descriptor, then the levels in order.
+fn ktx2_levels(vk_format: u32, w: u32, h: u32, levels: &[Vec<u8>]) -> Vec<u8> {
+    let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
+    for v in [vk_format, 1, w, h, 0, 0, 1, levels.len() as u32, 0] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    let dfd_offset = 80 + 24 * levels.len();
+    for v in [dfd_offset as u32, 4, 0, 0] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    f.extend_from_slice(&[0u8; 16]);
+    let mut offset = (dfd_offset + 4) as u64;
+    for level in levels {
+        for v in [offset, level.len() as u64, level.len() as u64] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        offset += level.len() as u64;
+    }
+    f.extend_from_slice(&4u32.to_le_bytes());
+    for level in levels {
+        f.extend_from_slice(level);
+    }
+    f
+}
+
+/// A DDS file with FourCC `DXT5` (BC3) and `levels`.
+fn dds_dxt5(w: u32, h: u32, levels: &[Vec<u8>]) -> Vec<u8> {
+    let mut dds = b"DDS ".to_vec();
+    // size, flags (caps|height|width|pixelformat|mipmapcount), height, width, pitch, depth, mips
+    for v in [124u32, 0x2_1007, h, w, levels[0].len() as u32, 0, levels.len() as u32] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    dds.extend_from_slice(&[0u8; 44]);
+    for v in [32u32, 0x4] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    dds.extend_from_slice(b"DXT5");
+    dds.extend_from_slice(&[0u8; 20]);
+    dds.extend_from_slice(&0x40_1008u32.to_le_bytes());
+    dds.extend_from_slice(&[0u8; 16]);
+    for level in levels {
+        dds.extend_from_slice(level);
+    }
+    dds
+}
+
+/// Deterministic block bytes for a `w`×`h` level of 16-byte blocks. Mode bits are forced to
+/// BC7 mode 6 (and are harmless BC3 alpha bits), so every block decodes to real colours.
+fn blocks(w: u32, h: u32, salt: u8) -> Vec<u8> {
+    let count = (w.div_ceil(4) * h.div_ceil(4)) as usize;
+    (0..count * 16)
+        .map(|i| {
+            if i % 16 == 0 {
+                0x40
+            } else {
+                (i as u8).wrapping_mul(37).wrapping_add(salt)
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn block_compressed_ktx2_and_dds_sources_keep_their_blocks() {
+    let dir = fresh_dir("kept-blocks-src");
+    // BC7 KTX2, 16x8 with its full chain of 5 levels; BC3 DDS, 8x8 with 4 levels.
+    let bc7: Vec<Vec<u8>> = (0..5)
+        .map(|l| blocks((16 >> l).max(1), (8 >> l).max(1), l as u8))
+        .collect();
+    let bc3: Vec<Vec<u8>> = (0..4).map(|l| blocks(8 >> l, 8 >> l, 100 + l as u8)).collect();
+    std::fs::write(dir.join("facade.ktx2"), ktx2_levels(145, 16, 8, &bc7)).expect("ktx2");
+    std::fs::write(dir.join("sign.dds"), dds_dxt5(8, 8, &bc3)).expect("dds");
+    let mut bin = Vec::new();
+    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+    let uvs: [[f32; 2]; 4] = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
+    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(dir.join("quad.bin"), &bin).expect("bin");
+    let primitive =
+        |material: u32| json!({"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": material});
+    let gltf = json!({
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1, 2]}],
+        "nodes": [{"mesh": 0}, {"mesh": 1, "translation": [2.0, 0.0, 0.0]}, {"mesh": 2, "translation": [4.0, 0.0, 0.0]}],
+        "meshes": [{"primitives": [primitive(0)]}, {"primitives": [primitive(1)]}, {"primitives": [primitive(2)]}],
+        "materials": [
+            {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}},
+            {"pbrMetallicRoughness": {"baseColorTexture": {"index": 1}}},
+            // Tinted: the blocks must be decoded to apply the factor.
+            {"pbrMetallicRoughness": {"baseColorTexture": {"index": 1}, "baseColorFactor": [0.5, 0.5, 0.5, 1.0]}}
+        ],
+        "textures": [{"source": 0}, {"source": 1}],
+        "images": [{"uri": "facade.ktx2"}, {"uri": "sign.dds"}],
+        "buffers": [{"uri": "quad.bin", "byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
+        ]
+    });
+    let input = dir.join("scene.gltf");
+    std::fs::write(&input, serde_json::to_vec(&gltf).expect("json")).expect("gltf");
+
+    // --max-extent 8 drops the BC7 source's finest level (16x8) and keeps the other four.
+    let (dataset, out) = import_ok(&input, "kept-blocks", &["--max-extent", "8"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("3 textures (2 with their KTX2/DDS blocks kept, the others encoded as bc1)"),
+        "{stdout}"
+    );
+    let infos = dataset.textures.textures();
+    let chain = |id: u32| -> Vec<u8> {
+        let mut all = Vec::new();
+        let mut level = Vec::new();
+        for l in 0..infos[id as usize].mip_count() {
+            dataset.textures.read_mip(id, l, &mut level).expect("mip");
+            all.extend_from_slice(&level);
+        }
+        all
+    };
+    use citystream_streaming::dataset::TextureFormat;
+    // Textures are numbered in traversal order; find each by its format.
+    let id_of = |format: TextureFormat| -> u32 {
+        let ids: Vec<usize> = (0..infos.len()).filter(|&i| infos[i].format() == format).collect();
+        assert_eq!(ids.len(), 1, "{format:?}: {infos:?}");
+        ids[0] as u32
+    };
+    let (bc7_id, bc3_id, bc1_id) = (
+        id_of(TextureFormat::Bc7),
+        id_of(TextureFormat::Bc3),
+        id_of(TextureFormat::Bc1),
+    );
+    let info = |id: u32| {
+        let i = &infos[id as usize];
+        (i.width(), i.height(), i.mip_count())
+    };
+    assert_eq!(info(bc7_id), (8, 4, 4));
+    assert_eq!(chain(bc7_id), bc7[1..].concat(), "BC7 blocks changed");
+    assert_eq!(info(bc3_id), (8, 8, 4));
+    assert_eq!(chain(bc3_id), bc3.concat(), "BC3 blocks (and their alpha) changed");
+    // The tinted texture was decoded, tinted and re-encoded as --format (bc1).
+    assert_eq!(info(bc1_id), (8, 8, 4));
+    // The colormap holds the mean of the decoded level 0.
+    let mut texels = [0u8; 8 * 4 * 4];
+    let mut block = [0u8; 64];
+    for (b, data) in bc7[1].chunks_exact(16).enumerate() {
+        bcdec_rs::bc7(data, &mut block, 16);
+        for y in 0..4 {
+            let to = (y * 8 + b * 4) * 4;
+            texels[to..to + 16].copy_from_slice(&block[y * 16..y * 16 + 16]);
+        }
+    }
+    let mean: Vec<u8> = (0..4)
+        .map(|c| {
+            let sum: u32 = texels.chunks_exact(4).map(|p| u32::from(p[c])).sum();
+            ((sum + 16) / 32) as u8
+        })
+        .collect();
+    assert_eq!(dataset.colormap.colours()[bc7_id as usize].to_vec(), mean);
 }

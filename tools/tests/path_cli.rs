@@ -67,7 +67,7 @@ fn path_rejects_bad_arguments_clearly() {
     assert!(!out.status.success());
     let stderr = text(&out.stderr);
     assert!(
-        stderr.contains("no-dataset") && stderr.contains("scene.bin"),
+        stderr.contains("no-dataset") && stderr.contains("dataset.manifest") && stderr.contains("missing"),
         "{stderr}"
     );
     assert!(!out_file.exists());

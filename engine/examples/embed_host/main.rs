@@ -60,7 +60,7 @@ impl Facades {
     fn texel(texture: u32, x: u32, y: u32) -> [u8; 4] {
         let row = y / 16;
         let brick = (x + (row % 2) * 16) / 32;
-        let mortar = y % 16 == 0 || (x + (row % 2) * 16) % 32 == 0;
+        let mortar = y.is_multiple_of(16) || (x + (row % 2) * 16).is_multiple_of(32);
         let hue = (texture * 47 % 360) as f32;
         let shade = if mortar {
             0.35

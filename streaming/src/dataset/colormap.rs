@@ -3,9 +3,9 @@
 use std::path::Path;
 
 use super::error::DatasetError;
-use super::io_util::{decode_table, encode_table, read_all, write_all};
+use super::io_util::{decode_table, encode_table, read_all, write_new_durably};
 
-const MAGIC: &[u8; 8] = b"CSCOLMAP";
+pub(crate) const MAGIC: &[u8; 8] = b"CSCOLMAP";
 
 /// Mean colour of every texture, indexed by texture id. The renderer keeps it resident and
 /// blends it with sampled texels by displayed mip level (paper Eq. 8).
@@ -42,34 +42,53 @@ impl Colormap {
 
     /// Reads `colormap.bin`.
     pub fn read(path: &Path) -> Result<Self, DatasetError> {
+        Ok(Self::read_with_write_id(path)?.0)
+    }
+
+    /// Reads `colormap.bin` and returns the write id in its header.
+    pub(crate) fn read_with_write_id(path: &Path) -> Result<(Self, u64), DatasetError> {
         let bytes = read_all(path)?;
-        let (_, body) = decode_table(path, &bytes, MAGIC, 4)?;
-        Ok(Self {
+        let table = decode_table(path, &bytes, MAGIC, 4)?;
+        Ok((Self::from_records(table.body), table.write_id))
+    }
+
+    /// Colours from the table's records, 4 bytes each.
+    pub(crate) fn from_records(body: &[u8]) -> Self {
+        Self {
             colours: body.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(),
-        })
+        }
     }
 
-    /// Writes `colormap.bin`.
-    pub fn write(&self, path: &Path) -> Result<(), DatasetError> {
+    /// Writes `colormap.bin` of write `write_id` (a new file, flushed to disk).
+    pub(crate) fn write_new(&self, path: &Path, write_id: u64) -> Result<u64, DatasetError> {
         let body: Vec<u8> = self.colours.iter().flatten().copied().collect();
-        write_all(path, &encode_table(MAGIC, self.colours.len() as u64, &body))
+        let bytes = encode_table(MAGIC, write_id, self.colours.len() as u64, &body);
+        write_new_durably(path, &bytes)?;
+        Ok(bytes.len() as u64)
     }
 }
 
-const CRC_MAGIC: &[u8; 8] = b"CSTXCRC\0";
+pub(crate) const CRC_MAGIC: &[u8; 8] = b"CSTXCRC\0";
 
-/// Reads `textures.crc`: the CRC-32 of each texture's whole mip chain, used only by `verify`.
-pub(crate) fn read_checksums(path: &Path) -> Result<Vec<u32>, DatasetError> {
+/// Reads `textures.crc`: the CRC-32 of every mip, textures in id order, levels finest first.
+/// Returns them and the write id.
+pub(crate) fn read_checksums(path: &Path) -> Result<(Vec<u32>, u64), DatasetError> {
     let bytes = read_all(path)?;
-    let (_, body) = decode_table(path, &bytes, CRC_MAGIC, 4)?;
-    Ok(body
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect())
+    let table = decode_table(path, &bytes, CRC_MAGIC, 4)?;
+    Ok((u32_records(table.body), table.write_id))
 }
 
-/// Writes `textures.crc`.
-pub(crate) fn write_checksums(path: &Path, checksums: &[u32]) -> Result<(), DatasetError> {
+/// Little-endian u32 records.
+pub(crate) fn u32_records(body: &[u8]) -> Vec<u32> {
+    body.chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Writes `textures.crc` of write `write_id` (a new file, flushed to disk).
+pub(crate) fn write_checksums(path: &Path, write_id: u64, checksums: &[u32]) -> Result<u64, DatasetError> {
     let body: Vec<u8> = checksums.iter().flat_map(|c| c.to_le_bytes()).collect();
-    write_all(path, &encode_table(CRC_MAGIC, checksums.len() as u64, &body))
+    let bytes = encode_table(CRC_MAGIC, write_id, checksums.len() as u64, &body);
+    write_new_durably(path, &bytes)?;
+    Ok(bytes.len() as u64)
 }

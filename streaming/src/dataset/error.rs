@@ -59,6 +59,33 @@ pub enum DatasetError {
         /// The version this build reads and writes.
         supported: u32,
     },
+    /// The file is from format version 1, which `citystream upgrade` converts.
+    #[error(
+        "{}: format version {found} dataset; this build reads version {} only: upgrade it with `citystream upgrade {}` (rewrites it atomically)",
+        path.display(), super::FORMAT_VERSION, dataset_dir(path).display()
+    )]
+    NeedsUpgrade {
+        /// The file (or the dataset directory) found in the old version.
+        path: PathBuf,
+        /// The version found.
+        found: u32,
+    },
+    /// A file's write id differs from the manifest's: the files come from different writes.
+    #[error("{}: written by write {found:016x}, but the dataset manifest names write {expected:016x}: files of different writes are mixed", path.display())]
+    MixedWrites {
+        /// The file from another write.
+        path: PathBuf,
+        /// Its write id.
+        found: u64,
+        /// The manifest's write id.
+        expected: u64,
+    },
+    /// Another process holds the dataset directory's write lock.
+    #[error("{}: another process is writing a dataset here (its lock is held); try again when it has finished", dir.display())]
+    Locked {
+        /// The dataset directory.
+        dir: PathBuf,
+    },
     /// The file is shorter (or longer) than its header or an offset says.
     #[error("{}: truncated or mis-sized: {what} needs bytes {offset}..{end}, but the file is {file_len} bytes", path.display())]
     Truncated {
@@ -120,6 +147,18 @@ pub enum DatasetError {
     /// Data handed to the writer is inconsistent (wrong mip chain length, out-of-range ids ...).
     #[error("invalid dataset content: {0}")]
     InvalidInput(String),
+}
+
+/// The dataset directory a file path belongs to, for the upgrade command in messages: the
+/// directory itself, or the file's parent.
+fn dataset_dir(path: &std::path::Path) -> &std::path::Path {
+    if path.is_dir() {
+        path
+    } else {
+        path.parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(std::path::Path::new("."))
+    }
 }
 
 impl DatasetError {

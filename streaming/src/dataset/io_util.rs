@@ -6,8 +6,12 @@ use super::error::{DatasetError, Magic};
 use super::FORMAT_VERSION;
 
 /// Length of the common header of `textures.meta`, `colormap.bin` and `textures.crc`:
-/// magic (8), version (u32), flags (u32, 0), record count (u64), body CRC-32 (u32), reserved (u32).
-pub(crate) const TABLE_HEADER_BYTES: usize = 32;
+/// magic (8), version (u32), flags (u32, 0), write id (u64), record count (u64), CRC-32 of
+/// the header's first 32 bytes and the body (u32), reserved (u32).
+pub(crate) const TABLE_HEADER_BYTES: usize = 40;
+
+/// The format version `citystream upgrade` converts from.
+pub(crate) const LEGACY_VERSION: u32 = 1;
 
 /// Reads a whole file, mapping "not found" to [`DatasetError::Missing`].
 pub(crate) fn read_all(path: &Path) -> Result<Vec<u8>, DatasetError> {
@@ -29,9 +33,18 @@ pub fn ensure_regular_file(path: &Path) -> std::io::Result<()> {
     }
 }
 
-/// Writes a whole file.
-pub(crate) fn write_all(path: &Path, bytes: &[u8]) -> Result<(), DatasetError> {
-    std::fs::write(path, bytes).map_err(|e| DatasetError::io(path, e))
+/// Creates a new file (never replacing one), writes `bytes` and flushes them to disk.
+pub(crate) fn write_new_durably(path: &Path, bytes: &[u8]) -> Result<(), DatasetError> {
+    use std::io::Write;
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .and_then(|mut file| {
+            file.write_all(bytes)?;
+            file.sync_all()
+        })
+        .map_err(|e| DatasetError::io(path, e))
 }
 
 pub(crate) fn u32_at(bytes: &[u8], at: usize) -> u32 {
@@ -52,8 +65,21 @@ pub(crate) fn f64_at(bytes: &[u8], at: usize) -> f64 {
     f64::from_bits(u64_at(bytes, at))
 }
 
-/// Checks length, magic, version and the zero flags word of a header of `header_len` bytes.
-pub(crate) fn check_prefix(path: &Path, bytes: &[u8], magic: &[u8; 8], header_len: usize) -> Result<(), DatasetError> {
+/// Checks length, magic, version and the zero flags word of a version-2 header of
+/// `header_len` bytes, and returns the write id stored after them.
+pub(crate) fn check_prefix(path: &Path, bytes: &[u8], magic: &[u8; 8], header_len: usize) -> Result<u64, DatasetError> {
+    check_versioned_prefix(path, bytes, magic, header_len, FORMAT_VERSION)?;
+    Ok(u64_at(bytes, 16))
+}
+
+/// [`check_prefix`] for a given format version (1 is read only by the upgrade).
+pub(crate) fn check_versioned_prefix(
+    path: &Path,
+    bytes: &[u8],
+    magic: &[u8; 8],
+    header_len: usize,
+    expected_version: u32,
+) -> Result<(), DatasetError> {
     if bytes.len() < header_len {
         return Err(DatasetError::Truncated {
             path: path.to_path_buf(),
@@ -73,11 +99,18 @@ pub(crate) fn check_prefix(path: &Path, bytes: &[u8], magic: &[u8; 8], header_le
         });
     }
     let version = u32_at(bytes, 8);
-    if version != FORMAT_VERSION {
-        return Err(DatasetError::UnsupportedVersion {
-            path: path.to_path_buf(),
-            found: version,
-            supported: FORMAT_VERSION,
+    if version != expected_version {
+        return Err(if version == LEGACY_VERSION && expected_version == FORMAT_VERSION {
+            DatasetError::NeedsUpgrade {
+                path: path.to_path_buf(),
+                found: version,
+            }
+        } else {
+            DatasetError::UnsupportedVersion {
+                path: path.to_path_buf(),
+                found: version,
+                supported: expected_version,
+            }
         });
     }
     let flags = u32_at(bytes, 12);
@@ -91,64 +124,96 @@ pub(crate) fn check_prefix(path: &Path, bytes: &[u8], magic: &[u8; 8], header_le
     Ok(())
 }
 
-/// Starts a header: magic, version, zero flags.
-pub(crate) fn header_prefix(magic: &[u8; 8]) -> Vec<u8> {
+/// Starts a version-2 header: magic, version, zero flags, write id.
+pub(crate) fn header_prefix(magic: &[u8; 8], write_id: u64) -> Vec<u8> {
     let mut out = Vec::with_capacity(TABLE_HEADER_BYTES);
     out.extend_from_slice(magic);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
     out.extend_from_slice(&0u32.to_le_bytes());
+    out.extend_from_slice(&write_id.to_le_bytes());
     out
 }
 
+/// CRC-32 of the header bytes before the checksum field and of the body, so a flipped
+/// bit anywhere in the file (counts, write id and origin included) is caught.
+pub(crate) fn header_and_body_crc(header: &[u8], body: &[u8]) -> u32 {
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(header);
+    hasher.update(body);
+    hasher.finalize()
+}
+
 /// Encodes a table file: common header then `body`, whose records number `count`.
-pub(crate) fn encode_table(magic: &[u8; 8], count: u64, body: &[u8]) -> Vec<u8> {
-    let mut out = header_prefix(magic);
+pub(crate) fn encode_table(magic: &[u8; 8], write_id: u64, count: u64, body: &[u8]) -> Vec<u8> {
+    let mut out = header_prefix(magic, write_id);
     out.extend_from_slice(&count.to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(body).to_le_bytes());
+    let crc = header_and_body_crc(&out, body);
+    out.extend_from_slice(&crc.to_le_bytes());
     out.extend_from_slice(&0u32.to_le_bytes());
+    debug_assert_eq!(out.len(), TABLE_HEADER_BYTES);
     out.extend_from_slice(body);
     out
 }
 
+/// A table file's record count, its body and the write id in its header.
+pub(crate) struct Table<'a> {
+    pub count: u64,
+    pub body: &'a [u8],
+    pub write_id: u64,
+}
+
 /// Decodes a table file written by [`encode_table`] whose records are `record_len` bytes:
-/// checks header, exact size and body checksum, and returns `(count, body)`.
+/// checks header, exact size and checksum (header and body).
 pub(crate) fn decode_table<'a>(
     path: &Path,
     bytes: &'a [u8],
     magic: &[u8; 8],
     record_len: usize,
-) -> Result<(u64, &'a [u8]), DatasetError> {
-    check_prefix(path, bytes, magic, TABLE_HEADER_BYTES)?;
-    let count = u64_at(bytes, 16);
-    let body_len = count
-        .checked_mul(record_len as u64)
-        .ok_or_else(|| DatasetError::Corrupt {
-            path: path.to_path_buf(),
-            offset: 16,
-            what: format!("record count {count} is absurd"),
-        })?;
-    let end = body_len.saturating_add(TABLE_HEADER_BYTES as u64);
-    if end != bytes.len() as u64 {
-        return Err(DatasetError::Truncated {
-            path: path.to_path_buf(),
-            what: format!("{count} records of {record_len} bytes"),
-            offset: TABLE_HEADER_BYTES as u64,
-            end,
-            file_len: bytes.len() as u64,
-        });
-    }
-    let body = &bytes[TABLE_HEADER_BYTES..];
-    let stored = u32_at(bytes, 24);
-    let computed = crc32fast::hash(body);
+) -> Result<Table<'a>, DatasetError> {
+    let write_id = check_prefix(path, bytes, magic, TABLE_HEADER_BYTES)?;
+    let count = u64_at(bytes, 24);
+    let body = table_body(path, bytes, count, record_len, TABLE_HEADER_BYTES)?;
+    let stored = u32_at(bytes, 32);
+    let computed = header_and_body_crc(&bytes[..32], body);
     if stored != computed {
         return Err(DatasetError::Checksum {
             path: path.to_path_buf(),
-            what: "the record table".into(),
-            offset: TABLE_HEADER_BYTES as u64,
-            end,
+            what: "the table (header and records)".into(),
+            offset: 0,
+            end: bytes.len() as u64,
             stored,
             computed,
         });
     }
-    Ok((count, body))
+    Ok(Table { count, body, write_id })
+}
+
+/// The body of a table of `count` records after a `header_len`-byte header, checking that
+/// the file holds exactly that many.
+pub(crate) fn table_body<'a>(
+    path: &Path,
+    bytes: &'a [u8],
+    count: u64,
+    record_len: usize,
+    header_len: usize,
+) -> Result<&'a [u8], DatasetError> {
+    let count_offset = if header_len == TABLE_HEADER_BYTES { 24 } else { 16 };
+    let body_len = count
+        .checked_mul(record_len as u64)
+        .ok_or_else(|| DatasetError::Corrupt {
+            path: path.to_path_buf(),
+            offset: count_offset,
+            what: format!("record count {count} is absurd"),
+        })?;
+    let end = body_len.saturating_add(header_len as u64);
+    if end != bytes.len() as u64 {
+        return Err(DatasetError::Truncated {
+            path: path.to_path_buf(),
+            what: format!("{count} records of {record_len} bytes"),
+            offset: header_len as u64,
+            end,
+            file_len: bytes.len() as u64,
+        });
+    }
+    Ok(&bytes[header_len..])
 }

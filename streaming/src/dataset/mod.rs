@@ -1,7 +1,10 @@
 //! On-disk city dataset format: scene file, texture pack with per-mip byte ranges, colormap.
 //!
-//! A dataset is a directory of five files (format version [`FORMAT_VERSION`], all
-//! little-endian, specified in `docs/DATASET.md`):
+//! A dataset is a directory holding a manifest, `dataset.manifest`, that names the current
+//! write, and that write's subdirectory `write-<id>/` with five files (format version
+//! [`FORMAT_VERSION`], all little-endian, specified in `docs/DATASET.md`). Every file
+//! carries the write id in its header, so files of different writes are never mixed; writes
+//! replace a dataset atomically ([`DatasetFiles`], [`DatasetWriter`]):
 //!
 //! - `scene.bin` ([`Scene`]): meshes (one texture each), flat vertex and index arrays,
 //!   per-mesh and scene bounds, positions relative to an f64 origin.
@@ -11,13 +14,14 @@
 //! - `textures.pack`: every mip of every texture, so a loader reads exactly one mip with one
 //!   positioned read ([`TexturePack::read_mip`]) and never a whole texture (paper §3.5).
 //! - `colormap.bin` ([`Colormap`]): mean colour per texture, the City Colormap (paper §3.7).
-//! - `textures.crc`: CRC-32 per mip chain, read only by [`verify`].
+//! - `textures.crc`: CRC-32 of every mip, checked on every read ([`TexturePack::read_mip`]).
 //!
 //! Contracts:
 //! - Opening ([`Dataset::open`], [`TexturePack::open`]) reads the scene and the tables but
 //!   no mip data, and validates everything a renderer relies on (sizes, checksums of the
-//!   tables and scene, texture extents and offsets inside the pack, mesh ranges, indices,
-//!   finite attributes). After a successful open, every `(texture, level)` pair below
+//!   tables and of the whole scene, one write id everywhere, texture extents and offsets
+//!   inside the pack, mesh ranges, indices, finite attributes, bounds that match the
+//!   vertices). After a successful open, every `(texture, level)` pair below
 //!   [`TextureInfo::mip_count`] maps to a byte range inside the pack.
 //! - Every failure is a [`DatasetError`] naming the file and the offset or index at fault;
 //!   no input makes this module panic or read out of bounds.
@@ -26,26 +30,30 @@
 
 mod colormap;
 mod error;
+mod files;
 mod format;
 mod io_util;
+mod legacy;
 mod pack;
 mod scene;
 mod verify;
 mod writer;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub use colormap::Colormap;
 pub use error::{DatasetError, Magic};
+pub use files::{write_dir_name, DatasetFiles, MANIFEST_FILE};
 pub use format::{full_mip_count, TextureFormat, TextureInfo, MAX_EXTENT_LOG2, MAX_PACK_OFFSET};
 pub use io_util::ensure_regular_file;
+pub use legacy::{upgrade, UpgradeSummary};
 pub use pack::{MipLocation, TexturePack, PACK_HEADER_BYTES};
 pub use scene::{Aabb, Mesh, Scene};
 pub use verify::{verify, VerifyReport};
 pub use writer::{DatasetWriter, WriteSummary};
 
 /// The format version this build reads and writes.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// Scene file name inside a dataset directory.
 pub const SCENE_FILE: &str = "scene.bin";
 /// Texture metadata file name.
@@ -54,7 +62,7 @@ pub const META_FILE: &str = "textures.meta";
 pub const PACK_FILE: &str = "textures.pack";
 /// City Colormap file name.
 pub const COLORMAP_FILE: &str = "colormap.bin";
-/// Per-texture checksum file name.
+/// Per-mip checksum file name.
 pub const CHECKSUM_FILE: &str = "textures.crc";
 
 /// An opened dataset: the scene, the texture table with an open pack, and the colormap.
@@ -62,7 +70,7 @@ pub const CHECKSUM_FILE: &str = "textures.crc";
 /// Threading: `Send + Sync`; see [`TexturePack`] for concurrent mip reads.
 #[derive(Debug)]
 pub struct Dataset {
-    dir: PathBuf,
+    files: DatasetFiles,
     /// All meshes and geometry.
     pub scene: Scene,
     /// Texture metadata and mip reads.
@@ -72,28 +80,52 @@ pub struct Dataset {
 }
 
 impl Dataset {
-    /// Opens the dataset in `dir`: reads and validates `scene.bin`, `textures.meta`,
-    /// `colormap.bin` and the header of `textures.pack`, and checks they agree (every mesh's
-    /// texture exists, one colour per texture). Reads no mip data.
+    /// Opens the dataset in `dir`: reads its manifest, then reads and validates `scene.bin`,
+    /// `textures.meta`, `textures.crc`, `colormap.bin` and the header of `textures.pack` of
+    /// the write it names, and checks they agree (one write id, every mesh's texture exists,
+    /// one colour per texture). Reads no mip data.
+    ///
+    /// A writer may replace the dataset meanwhile and remove the files just resolved; the
+    /// open then starts again from the new manifest (a few times at most).
     pub fn open(dir: impl AsRef<Path>) -> Result<Self, DatasetError> {
         let dir = dir.as_ref();
-        let textures = TexturePack::open(dir)?;
-        let colormap_path = dir.join(COLORMAP_FILE);
-        let colormap = Colormap::read(&colormap_path)?;
+        let mut attempts = 0;
+        loop {
+            let files = DatasetFiles::resolve(dir)?;
+            match Self::open_files(&files) {
+                Ok(dataset) => return Ok(dataset),
+                Err(e) => {
+                    attempts += 1;
+                    let replaced = DatasetFiles::resolve(dir).is_ok_and(|now| now.write_id() != files.write_id());
+                    if !replaced || attempts >= 3 {
+                        return Err(e);
+                    }
+                }
+            }
+        }
+    }
+
+    /// [`Dataset::open`] of resolved files.
+    pub fn open_files(files: &DatasetFiles) -> Result<Self, DatasetError> {
+        let textures = TexturePack::open_files(files)?;
+        let colormap_path = files.path(COLORMAP_FILE);
+        let (colormap, write_id) = Colormap::read_with_write_id(&colormap_path)?;
+        files.check_write_id(&colormap_path, write_id)?;
         if colormap.len() != textures.textures().len() {
             return Err(DatasetError::Corrupt {
                 path: colormap_path,
-                offset: 16,
+                offset: 24,
                 what: format!("{} colours for {} textures", colormap.len(), textures.len()),
             });
         }
-        let scene_path = dir.join(SCENE_FILE);
-        let scene = Scene::read(&scene_path)?;
+        let scene_path = files.path(SCENE_FILE);
+        let (scene, write_id) = Scene::read_with_write_id(&scene_path, scene::SceneLayout::CURRENT)?;
+        files.check_write_id(&scene_path, write_id)?;
         let count = textures.len();
         if let Some((m, mesh)) = scene.meshes.iter().enumerate().find(|(_, m)| m.texture >= count) {
             return Err(DatasetError::Corrupt {
                 path: scene_path,
-                offset: 96 + m as u64 * 44 + 16,
+                offset: scene::SceneLayout::CURRENT.header_len as u64 + m as u64 * 44 + 16,
                 what: format!(
                     "mesh {m} uses texture {}, but the dataset has {count} textures",
                     mesh.texture
@@ -101,7 +133,7 @@ impl Dataset {
             });
         }
         Ok(Self {
-            dir: dir.to_path_buf(),
+            files: files.clone(),
             scene,
             textures,
             colormap,
@@ -110,12 +142,23 @@ impl Dataset {
 
     /// The dataset directory.
     pub fn dir(&self) -> &Path {
-        &self.dir
+        self.files.dir()
     }
 
-    /// Host bytes per texture of the opened metadata (texture table + colormap entry),
-    /// excluding the scene geometry.
+    /// Where the opened write's files are.
+    pub fn files(&self) -> &DatasetFiles {
+        &self.files
+    }
+
+    /// Host bytes per texture of the opened metadata (texture record, index of its first mip
+    /// checksum, colormap entry), excluding the scene geometry and the per-mip checksums
+    /// ([`Dataset::metadata_bytes_per_mip`]).
     pub fn metadata_bytes_per_texture() -> usize {
-        std::mem::size_of::<TextureInfo>() + std::mem::size_of::<[u8; 4]>()
+        std::mem::size_of::<TextureInfo>() + std::mem::size_of::<u32>() + std::mem::size_of::<[u8; 4]>()
+    }
+
+    /// Host bytes per mip of the opened metadata: its CRC-32.
+    pub fn metadata_bytes_per_mip() -> usize {
+        std::mem::size_of::<u32>()
     }
 }

@@ -4,15 +4,20 @@ use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
+use super::colormap::read_checksums;
 use super::error::DatasetError;
+use super::files::DatasetFiles;
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
-use super::io_util::{check_prefix, decode_table, read_all, u64_at, TABLE_HEADER_BYTES};
-use super::{META_FILE, PACK_FILE};
+use super::io_util::{check_prefix, decode_table, read_all, u32_at, u64_at, TABLE_HEADER_BYTES};
+use super::{CHECKSUM_FILE, META_FILE, PACK_FILE};
 
 pub(crate) const META_MAGIC: &[u8; 8] = b"CSTXMETA";
 pub(crate) const PACK_MAGIC: &[u8; 8] = b"CSTXPACK";
-/// Bytes before the first mip in `textures.pack`.
+/// Bytes before the first mip in `textures.pack`: magic, version, flags, write id, texture
+/// count (u64), file length (u64), CRC-32 of bytes 0..40 (u32), zeros.
 pub const PACK_HEADER_BYTES: u64 = 64;
+/// Where the pack header's checksum lies; it covers the bytes before it.
+pub(crate) const PACK_HEADER_CRC_AT: usize = 40;
 
 /// Where one mip lies in `textures.pack` and how big it is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -38,24 +43,36 @@ pub struct TexturePack {
     file: File,
     pack_len: u64,
     textures: Vec<TextureInfo>,
+    /// CRC-32 of every mip, textures in id order, finest level first.
+    mip_checksums: Vec<u32>,
+    /// Index of each texture's level 0 in `mip_checksums`.
+    first_checksum: Vec<u32>,
 }
 
 impl TexturePack {
-    /// Reads `textures.meta` from `dir` and opens `textures.pack`, checking its header and
-    /// that every texture's mip chain lies inside it. Reads no mip data.
+    /// Reads `textures.meta` and `textures.crc` of the dataset in `dir` and opens
+    /// `textures.pack`, checking its header and that every texture's mip chain lies inside
+    /// it. Reads no mip data.
     pub fn open(dir: &Path) -> Result<Self, DatasetError> {
-        let meta_path = dir.join(META_FILE);
+        Self::open_files(&DatasetFiles::resolve(dir)?)
+    }
+
+    /// [`TexturePack::open`] of resolved dataset files: every file must carry their write id.
+    pub fn open_files(files: &DatasetFiles) -> Result<Self, DatasetError> {
+        let meta_path = files.path(META_FILE);
         let meta = read_all(&meta_path)?;
-        let (count, body) = decode_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES)?;
+        let table = decode_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES)?;
+        files.check_write_id(&meta_path, table.write_id)?;
+        let (count, body) = (table.count, table.body);
         if count > u64::from(u32::MAX) {
             return Err(DatasetError::Corrupt {
                 path: meta_path,
-                offset: 16,
+                offset: 24,
                 what: format!("texture count {count} exceeds 2^32 - 1"),
             });
         }
 
-        let pack_path = dir.join(PACK_FILE);
+        let pack_path = files.path(PACK_FILE);
         let file = super::io_util::ensure_regular_file(&pack_path)
             .and_then(|()| File::open(&pack_path))
             .map_err(|e| DatasetError::io(&pack_path, e))?;
@@ -72,16 +89,36 @@ impl TexturePack {
         }
         file.read_exact_at(&mut header, 0)
             .map_err(|e| DatasetError::io(&pack_path, e))?;
-        check_prefix(&pack_path, &header, PACK_MAGIC, header.len())?;
-        let pack_count = u64_at(&header, 16);
+        let write_id = check_prefix(&pack_path, &header, PACK_MAGIC, header.len())?;
+        let stored = u32_at(&header, PACK_HEADER_CRC_AT);
+        let computed = crc32fast::hash(&header[..PACK_HEADER_CRC_AT]);
+        if stored != computed {
+            return Err(DatasetError::Checksum {
+                path: pack_path,
+                what: "the pack header".into(),
+                offset: 0,
+                end: PACK_HEADER_CRC_AT as u64,
+                stored,
+                computed,
+            });
+        }
+        if header[PACK_HEADER_CRC_AT + 4..].iter().any(|&b| b != 0) {
+            return Err(DatasetError::Corrupt {
+                path: pack_path,
+                offset: PACK_HEADER_CRC_AT as u64 + 4,
+                what: "reserved header bytes are not 0".into(),
+            });
+        }
+        files.check_write_id(&pack_path, write_id)?;
+        let pack_count = u64_at(&header, 24);
         if pack_count != count {
             return Err(DatasetError::Corrupt {
                 path: pack_path,
-                offset: 16,
+                offset: 24,
                 what: format!("pack holds {pack_count} textures but {} lists {count}", META_FILE),
             });
         }
-        let recorded_len = u64_at(&header, 24);
+        let recorded_len = u64_at(&header, 32);
         if recorded_len != pack_len {
             return Err(DatasetError::Truncated {
                 path: pack_path,
@@ -116,11 +153,34 @@ impl TexturePack {
             }
             textures.push(info);
         }
+
+        let checksum_path = files.path(CHECKSUM_FILE);
+        let (mip_checksums, write_id) = read_checksums(&checksum_path)?;
+        files.check_write_id(&checksum_path, write_id)?;
+        let mut first_checksum = Vec::with_capacity(textures.len());
+        let mut mips = 0u64;
+        for info in &textures {
+            // At most 15 levels per texture and 2^32 - 1 textures: no u64 overflow.
+            first_checksum.push(u32::try_from(mips).unwrap_or(u32::MAX));
+            mips += u64::from(info.mip_count());
+        }
+        if mips != mip_checksums.len() as u64 || mips > u64::from(u32::MAX) {
+            return Err(DatasetError::Corrupt {
+                path: checksum_path,
+                offset: 24,
+                what: format!(
+                    "{} mip checksums, but {META_FILE} lists {mips} mips (at most 2^32 - 1)",
+                    mip_checksums.len()
+                ),
+            });
+        }
         Ok(Self {
             pack_path,
             file,
             pack_len,
             textures,
+            mip_checksums,
+            first_checksum,
         })
     }
 
@@ -168,18 +228,48 @@ impl TexturePack {
     }
 
     /// Reads exactly one mip with one positioned read into `buf`, which is resized to the
-    /// mip's length (its capacity is reused across calls).
+    /// mip's length (its capacity is reused across calls), and checks it against the mip's
+    /// stored CRC-32 ([`DatasetError::Checksum`] on a mismatch).
     pub fn read_mip(&self, texture: u32, level: u32, buf: &mut Vec<u8>) -> Result<MipLocation, DatasetError> {
         let location = self.mip_location(texture, level)?;
         let len =
             usize::try_from(location.len).map_err(|_| DatasetError::InvalidInput("mip larger than memory".into()))?;
         buf.resize(len, 0);
         self.read_at(location, buf)?;
+        self.check_mip(texture, level, location, buf)?;
         Ok(location)
     }
 
+    /// The stored CRC-32 of one mip.
+    pub fn mip_checksum(&self, texture: u32, level: u32) -> Result<u32, DatasetError> {
+        self.mip_location(texture, level)?;
+        Ok(self.mip_checksums[self.first_checksum[texture as usize] as usize + level as usize])
+    }
+
+    fn check_mip(&self, texture: u32, level: u32, location: MipLocation, bytes: &[u8]) -> Result<(), DatasetError> {
+        let stored = self.mip_checksum(texture, level)?;
+        let computed = crc32fast::hash(bytes);
+        if stored == computed {
+            return Ok(());
+        }
+        Err(DatasetError::Checksum {
+            path: self.pack_path.clone(),
+            what: format!(
+                "texture {texture} level {level} ({}x{} {})",
+                location.width,
+                location.height,
+                self.textures[texture as usize].format().name()
+            ),
+            offset: location.offset,
+            end: location.offset + location.len,
+            stored,
+            computed,
+        })
+    }
+
     /// Reads exactly one mip into `dst` (for example mapped staging memory), which must be
-    /// exactly [`MipLocation::len`] bytes long.
+    /// exactly [`MipLocation::len`] bytes long, and checks it as [`TexturePack::read_mip`]
+    /// does.
     pub fn read_mip_into(&self, texture: u32, level: u32, dst: &mut [u8]) -> Result<MipLocation, DatasetError> {
         let location = self.mip_location(texture, level)?;
         if dst.len() as u64 != location.len {
@@ -190,10 +280,11 @@ impl TexturePack {
             )));
         }
         self.read_at(location, dst)?;
+        self.check_mip(texture, level, location, dst)?;
         Ok(location)
     }
 
-    /// Reads `len` bytes at `offset` of the pack (used by `verify` for whole chains).
+    /// Reads `len` bytes at `offset` of the pack, unchecked (checksums cover whole mips).
     pub fn read_range(&self, offset: u64, dst: &mut [u8]) -> Result<(), DatasetError> {
         let end = offset.saturating_add(dst.len() as u64);
         if end > self.pack_len {
@@ -234,9 +325,10 @@ impl TexturePack {
         self.pack_len
     }
 
-    /// Host bytes the texture table occupies (what opening a dataset costs per texture,
+    /// Host bytes the texture table and mip checksums occupy (what opening a dataset costs,
     /// colormap not included).
     pub fn metadata_bytes(&self) -> usize {
-        self.textures.len() * std::mem::size_of::<TextureInfo>()
+        self.textures.len() * (std::mem::size_of::<TextureInfo>() + std::mem::size_of::<u32>())
+            + self.mip_checksums.len() * std::mem::size_of::<u32>()
     }
 }

@@ -1,20 +1,21 @@
 //! `scene.bin`: meshes and their geometry.
 //!
-//! Layout (little-endian), version 1:
+//! Layout (little-endian), version 2:
 //!
 //! | offset | size | field |
 //! |---|---|---|
 //! | 0 | 8 | magic `CSSCENE\0` |
 //! | 8 | 4 | version |
 //! | 12 | 4 | flags (0) |
-//! | 16 | 8 | mesh count M |
-//! | 24 | 8 | vertex count V |
-//! | 32 | 8 | index count I |
-//! | 40 | 24 | origin, 3 × f64 |
-//! | 64 | 24 | scene bounds, min then max, 6 × f32 relative to the origin |
-//! | 88 | 4 | CRC-32 of everything after the header |
-//! | 92 | 4 | reserved (0) |
-//! | 96 | 44·M | meshes: first vertex, vertex count, first index, index count, texture (5 × u32), bounds (6 × f32) |
+//! | 16 | 8 | write id |
+//! | 24 | 8 | mesh count M |
+//! | 32 | 8 | vertex count V |
+//! | 40 | 8 | index count I |
+//! | 48 | 24 | origin, 3 × f64 |
+//! | 72 | 24 | scene bounds, min then max, 6 × f32 relative to the origin |
+//! | 96 | 4 | CRC-32 of bytes 0..96 and of everything after the header |
+//! | 100 | 4 | reserved (0) |
+//! | 104 | 44·M | meshes: first vertex, vertex count, first index, index count, texture (5 × u32), bounds (6 × f32) |
 //! | … | 12·V | positions, 3 × f32 relative to the origin |
 //! | … | 12·V | normals, 3 × f32 |
 //! | … | 8·V | texture coordinates, 2 × f32 |
@@ -23,11 +24,47 @@
 use std::path::Path;
 
 use super::error::DatasetError;
-use super::io_util::{check_prefix, f32_at, f64_at, header_prefix, read_all, u32_at, u64_at, write_all};
+use super::io_util::{
+    check_versioned_prefix, f32_at, f64_at, header_and_body_crc, header_prefix, read_all, u32_at, u64_at,
+    write_new_durably,
+};
 
 const MAGIC: &[u8; 8] = b"CSSCENE\0";
-const HEADER_BYTES: usize = 96;
 const MESH_RECORD_BYTES: usize = 44;
+
+/// Where the header fields of one format version lie.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct SceneLayout {
+    version: u32,
+    /// Header length; the mesh records start here.
+    pub(crate) header_len: usize,
+    counts_at: usize,
+    origin_at: usize,
+    bounds_at: usize,
+    crc_at: usize,
+    crc_covers_header: bool,
+}
+
+impl SceneLayout {
+    pub(crate) const CURRENT: SceneLayout = SceneLayout {
+        version: super::FORMAT_VERSION,
+        header_len: 104,
+        counts_at: 24,
+        origin_at: 48,
+        bounds_at: 72,
+        crc_at: 96,
+        crc_covers_header: true,
+    };
+    pub(crate) const LEGACY: SceneLayout = SceneLayout {
+        version: super::io_util::LEGACY_VERSION,
+        header_len: 96,
+        counts_at: 16,
+        origin_at: 40,
+        bounds_at: 64,
+        crc_at: 88,
+        crc_covers_header: false,
+    };
+}
 
 /// Axis-aligned bounding box in scene coordinates (metres, relative to [`Scene::origin`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -182,9 +219,11 @@ impl Scene {
         Ok(mesh_index)
     }
 
-    /// Encodes the scene file. Validates first, so a written scene always reads back.
-    pub fn encode(&self, path_for_errors: &Path) -> Result<Vec<u8>, DatasetError> {
-        self.validate(path_for_errors)?;
+    /// Encodes the scene file of write `write_id`. Validates first, so a written scene always
+    /// reads back.
+    pub fn encode(&self, path_for_errors: &Path, write_id: u64) -> Result<Vec<u8>, DatasetError> {
+        let layout = SceneLayout::CURRENT;
+        self.validate_with(path_for_errors, layout)?;
         let mut body = Vec::with_capacity(
             self.meshes.len() * MESH_RECORD_BYTES + self.positions.len() * 32 + self.indices.len() * 4,
         );
@@ -209,92 +248,127 @@ impl Scene {
         for i in &self.indices {
             body.extend_from_slice(&i.to_le_bytes());
         }
-        let mut out = header_prefix(MAGIC);
+        let mut out = header_prefix(MAGIC, write_id);
         for count in [self.meshes.len(), self.positions.len(), self.indices.len()] {
             out.extend_from_slice(&(count as u64).to_le_bytes());
         }
         for v in self.origin {
             out.extend_from_slice(&v.to_le_bytes());
         }
-        let bounds = if self.meshes.is_empty() {
+        let bounds = self.stored_bounds();
+        for v in bounds.min.iter().chain(&bounds.max) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        debug_assert_eq!(out.len(), layout.crc_at);
+        let crc = header_and_body_crc(&out, &body);
+        out.extend_from_slice(&crc.to_le_bytes());
+        out.extend_from_slice(&0u32.to_le_bytes());
+        debug_assert_eq!(out.len(), layout.header_len);
+        out.extend_from_slice(&body);
+        Ok(out)
+    }
+
+    /// The bounds as stored: all zero for a scene without meshes.
+    fn stored_bounds(&self) -> Aabb {
+        if self.meshes.is_empty() {
             Aabb {
                 min: [0.0; 3],
                 max: [0.0; 3],
             }
         } else {
             self.bounds
-        };
-        for v in bounds.min.iter().chain(&bounds.max) {
-            out.extend_from_slice(&v.to_le_bytes());
         }
-        out.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
-        out.extend_from_slice(&0u32.to_le_bytes());
-        debug_assert_eq!(out.len(), HEADER_BYTES);
-        out.extend_from_slice(&body);
-        Ok(out)
     }
 
-    /// Writes the scene file to `path`.
-    pub fn write(&self, path: &Path) -> Result<(), DatasetError> {
-        let bytes = self.encode(path)?;
-        write_all(path, &bytes)
+    /// Writes the scene file of write `write_id` to `path`, which must not exist yet, and
+    /// flushes it to disk.
+    pub(crate) fn write_new(&self, path: &Path, write_id: u64) -> Result<u64, DatasetError> {
+        let bytes = self.encode(path, write_id)?;
+        write_new_durably(path, &bytes)?;
+        Ok(bytes.len() as u64)
     }
 
-    /// Reads and validates a scene file.
+    /// Reads and validates a scene file (its whole content is under its checksum).
     pub fn read(path: &Path) -> Result<Scene, DatasetError> {
+        Ok(Self::read_with_write_id(path, SceneLayout::CURRENT)?.0)
+    }
+
+    /// Reads a scene file of `layout`'s version; returns the scene and its write id (0 for
+    /// version 1, which had none).
+    pub(crate) fn read_with_write_id(path: &Path, layout: SceneLayout) -> Result<(Scene, u64), DatasetError> {
         let bytes = read_all(path)?;
-        Self::decode(path, &bytes)
+        Self::decode_with(path, &bytes, layout)
     }
 
     /// Decodes and validates scene bytes; `path` is only used in error messages.
     pub fn decode(path: &Path, bytes: &[u8]) -> Result<Scene, DatasetError> {
-        check_prefix(path, bytes, MAGIC, HEADER_BYTES)?;
+        Ok(Self::decode_with(path, bytes, SceneLayout::CURRENT)?.0)
+    }
+
+    fn decode_with(path: &Path, bytes: &[u8], layout: SceneLayout) -> Result<(Scene, u64), DatasetError> {
+        let header_len = layout.header_len;
+        check_versioned_prefix(path, bytes, MAGIC, header_len, layout.version)?;
+        let write_id = if layout.crc_covers_header { u64_at(bytes, 16) } else { 0 };
         let corrupt = |offset: u64, what: String| DatasetError::Corrupt {
             path: path.to_path_buf(),
             offset,
             what,
         };
-        let mesh_count = u64_at(bytes, 16);
-        let vertex_count = u64_at(bytes, 24);
-        let index_count = u64_at(bytes, 32);
+        let at = layout.counts_at;
+        let mesh_count = u64_at(bytes, at);
+        let vertex_count = u64_at(bytes, at + 8);
+        let index_count = u64_at(bytes, at + 16);
         for (count, offset, name) in [
-            (mesh_count, 16, "mesh"),
-            (vertex_count, 24, "vertex"),
-            (index_count, 32, "index"),
+            (mesh_count, at, "mesh"),
+            (vertex_count, at + 8, "vertex"),
+            (index_count, at + 16, "index"),
         ] {
             if count > u64::from(u32::MAX) {
-                return Err(corrupt(offset, format!("{name} count {count} exceeds 2^32 - 1")));
+                return Err(corrupt(offset as u64, format!("{name} count {count} exceeds 2^32 - 1")));
             }
         }
         // Counts are below 2^32, so these products cannot overflow u64.
         let body_len = mesh_count * MESH_RECORD_BYTES as u64 + vertex_count * 32 + index_count * 4;
-        let end = HEADER_BYTES as u64 + body_len;
+        let end = header_len as u64 + body_len;
         if end != bytes.len() as u64 {
             return Err(DatasetError::Truncated {
                 path: path.to_path_buf(),
                 what: format!("{mesh_count} meshes, {vertex_count} vertices and {index_count} indices"),
-                offset: HEADER_BYTES as u64,
+                offset: header_len as u64,
                 end,
                 file_len: bytes.len() as u64,
             });
         }
-        let body = &bytes[HEADER_BYTES..];
-        let stored = u32_at(bytes, 88);
-        let computed = crc32fast::hash(body);
+        let body = &bytes[header_len..];
+        let stored = u32_at(bytes, layout.crc_at);
+        let (computed, covered_from) = if layout.crc_covers_header {
+            (header_and_body_crc(&bytes[..layout.crc_at], body), 0)
+        } else {
+            (crc32fast::hash(body), header_len as u64)
+        };
         if stored != computed {
             return Err(DatasetError::Checksum {
                 path: path.to_path_buf(),
-                what: "the scene body".into(),
-                offset: HEADER_BYTES as u64,
+                what: if layout.crc_covers_header {
+                    "the scene (header and body)".into()
+                } else {
+                    "the scene body".into()
+                },
+                offset: covered_from,
                 end,
                 stored,
                 computed,
             });
         }
-        let origin = [f64_at(bytes, 40), f64_at(bytes, 48), f64_at(bytes, 56)];
+        if u32_at(bytes, layout.crc_at + 4) != 0 {
+            return Err(corrupt(layout.crc_at as u64 + 4, "reserved word is not 0".into()));
+        }
+        let o = layout.origin_at;
+        let origin = [f64_at(bytes, o), f64_at(bytes, o + 8), f64_at(bytes, o + 16)];
+        let b = layout.bounds_at;
         let bounds = Aabb {
-            min: [f32_at(bytes, 64), f32_at(bytes, 68), f32_at(bytes, 72)],
-            max: [f32_at(bytes, 76), f32_at(bytes, 80), f32_at(bytes, 84)],
+            min: [f32_at(bytes, b), f32_at(bytes, b + 4), f32_at(bytes, b + 8)],
+            max: [f32_at(bytes, b + 12), f32_at(bytes, b + 16), f32_at(bytes, b + 20)],
         };
         let (mesh_bytes, rest) = body.split_at(mesh_count as usize * MESH_RECORD_BYTES);
         let (position_bytes, rest) = rest.split_at(vertex_count as usize * 12);
@@ -328,14 +402,18 @@ impl Scene {
             uvs: uv_bytes.chunks_exact(8).map(|c| [f32_at(c, 0), f32_at(c, 4)]).collect(),
             indices: index_bytes.chunks_exact(4).map(|c| u32_at(c, 0)).collect(),
         };
-        scene.validate(path)?;
-        Ok(scene)
+        scene.validate_with(path, layout)?;
+        Ok((scene, write_id))
     }
 
     /// Checks every invariant a renderer relies on: mesh ranges inside the arrays, indices
     /// inside their mesh, whole triangles, finite attributes, bounds that hold their
     /// vertices. Errors carry the byte offset the value has (or would have) in the file.
     pub fn validate(&self, path: &Path) -> Result<(), DatasetError> {
+        self.validate_with(path, SceneLayout::CURRENT)
+    }
+
+    fn validate_with(&self, path: &Path, layout: SceneLayout) -> Result<(), DatasetError> {
         let corrupt = |offset: u64, what: String| DatasetError::Corrupt {
             path: path.to_path_buf(),
             offset,
@@ -351,9 +429,12 @@ impl Scene {
             )));
         }
         if self.origin.iter().any(|v| !v.is_finite()) {
-            return Err(corrupt(40, format!("scene origin {:?} is not finite", self.origin)));
+            return Err(corrupt(
+                layout.origin_at as u64,
+                format!("scene origin {:?} is not finite", self.origin),
+            ));
         }
-        let mesh_base = HEADER_BYTES as u64;
+        let mesh_base = layout.header_len as u64;
         let positions_base = mesh_base + self.meshes.len() as u64 * MESH_RECORD_BYTES as u64;
         let normals_base = positions_base + vertex_count * 12;
         let uvs_base = normals_base + vertex_count * 12;
@@ -438,8 +519,9 @@ impl Scene {
                 ));
             }
             let fv = mesh.first_vertex as usize;
+            let mut tight = Aabb::EMPTY;
             for (k, p) in self.positions[fv..fv + mesh.vertex_count as usize].iter().enumerate() {
-                let tolerance = 1e-4 * (1.0 + p.iter().fold(0.0f32, |a, v| a.max(v.abs())));
+                let tolerance = bounds_tolerance(p);
                 if !mesh.bounds.contains(*p, tolerance) {
                     return Err(corrupt(
                         record + 20,
@@ -450,18 +532,51 @@ impl Scene {
                         ),
                     ));
                 }
+                tight.extend(*p);
+            }
+            // Bounds drive culling and the overview camera: loose ones (a flipped exponent
+            // bit makes 1e7 of 10) would hide the city or park the camera far outside it.
+            if !close_boxes(&mesh.bounds, &tight) {
+                return Err(corrupt(
+                    record + 20,
+                    format!(
+                        "mesh {m}: bounds {:?} do not match its vertices, which span {tight:?}",
+                        mesh.bounds
+                    ),
+                ));
             }
             all.union(&mesh.bounds);
         }
-        if all.is_valid() {
-            let tolerance = 1e-4 * (1.0 + all.min.iter().chain(&all.max).fold(0.0f32, |a, v| a.max(v.abs())));
-            if !self.bounds.contains(all.min, tolerance) || !self.bounds.contains(all.max, tolerance) {
-                return Err(corrupt(
-                    64,
-                    format!("scene bounds {:?} do not contain the mesh bounds {all:?}", self.bounds),
-                ));
-            }
+        let stored = self.stored_bounds();
+        let consistent = if all.is_valid() {
+            close_boxes(&stored, &all)
+        } else {
+            // No mesh has vertices: the writer stores zeros, or the empty box.
+            stored.min == [0.0; 3] && stored.max == [0.0; 3] || stored == Aabb::EMPTY
+        };
+        if !consistent {
+            return Err(corrupt(
+                layout.bounds_at as u64,
+                format!(
+                    "scene bounds {:?} are not the union of the mesh bounds {all:?}",
+                    self.bounds
+                ),
+            ));
         }
         Ok(())
     }
+}
+
+/// How far a bound may lie from a coordinate of magnitude `|p|`: f32 rounding, relative.
+fn bounds_tolerance(p: &[f32; 3]) -> f32 {
+    1e-4 * (1.0 + p.iter().fold(0.0f32, |a, v| a.max(v.abs())))
+}
+
+/// Whether two boxes agree within [`bounds_tolerance`] of their corners (finite ones only).
+fn close_boxes(a: &Aabb, b: &Aabb) -> bool {
+    a.is_valid()
+        && b.is_valid()
+        && [(a.min, b.min), (a.max, b.max)]
+            .iter()
+            .all(|(x, y)| (0..3).all(|i| (x[i] - y[i]).abs() <= bounds_tolerance(x).max(bounds_tolerance(y))))
 }

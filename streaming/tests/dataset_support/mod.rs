@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat, WriteSummary};
+use citystream_streaming::dataset::{DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary};
 
 /// One texture of the fixture: what was written.
 #[derive(Debug, Clone)]
@@ -128,14 +128,31 @@ pub fn write_fixture(name: &str) -> Fixture {
     }
 }
 
-/// Copies a dataset directory.
+/// Copies a dataset directory (the manifest and the write subdirectory).
 pub fn copy_dir(from: &Path, name: &str) -> PathBuf {
     let to = test_dir(name);
+    copy_tree(from, &to);
+    to
+}
+
+fn copy_tree(from: &Path, to: &Path) {
     for entry in std::fs::read_dir(from).expect("read dir") {
         let entry = entry.expect("dir entry");
-        std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy file");
+        let target = to.join(entry.file_name());
+        if entry.file_type().expect("file type").is_dir() {
+            std::fs::create_dir_all(&target).expect("create subdirectory");
+            copy_tree(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).expect("copy file");
+        }
     }
-    to
+}
+
+/// Path of one data file (`scene.bin`, ...) of the dataset in `dir`.
+pub fn data_file(dir: &Path, name: &str) -> PathBuf {
+    DatasetFiles::resolve(dir)
+        .expect("resolve the dataset's manifest")
+        .path(name)
 }
 
 /// Edits a file in place.
@@ -145,15 +162,28 @@ pub fn patch(path: &Path, edit: impl FnOnce(&mut Vec<u8>)) {
     std::fs::write(path, bytes).expect("write patched file");
 }
 
-/// Recomputes the body checksum of a table file (meta, colormap, crc) after a patch, so the
-/// test reaches the check behind the checksum.
+/// Recomputes the checksum of a table file (meta, colormap, crc: header bytes 0..32 and the
+/// records) after a patch, so the test reaches the check behind the checksum.
 pub fn fix_table_crc(bytes: &mut [u8]) {
-    let crc = crc32fast::hash(&bytes[32..]);
-    bytes[24..28].copy_from_slice(&crc.to_le_bytes());
+    let crc = crc_of(&bytes[..32], &bytes[40..]);
+    bytes[32..36].copy_from_slice(&crc.to_le_bytes());
 }
 
-/// Same for `scene.bin`.
+/// Same for `scene.bin` (header bytes 0..96 and the body).
 pub fn fix_scene_crc(bytes: &mut [u8]) {
-    let crc = crc32fast::hash(&bytes[96..]);
-    bytes[88..92].copy_from_slice(&crc.to_le_bytes());
+    let crc = crc_of(&bytes[..96], &bytes[104..]);
+    bytes[96..100].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// Same for the header of `textures.pack` (bytes 0..40).
+pub fn fix_pack_header_crc(bytes: &mut [u8]) {
+    let crc = crc32fast::hash(&bytes[..40]);
+    bytes[40..44].copy_from_slice(&crc.to_le_bytes());
+}
+
+fn crc_of(header: &[u8], body: &[u8]) -> u32 {
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(header);
+    hasher.update(body);
+    hasher.finalize()
 }

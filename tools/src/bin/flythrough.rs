@@ -461,7 +461,7 @@ fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: f64, reside
         let bar = format!("{}{}", "#".repeat(done.min(BAR)), "-".repeat(BAR - done.min(BAR)));
         eprint!("\r[{bar}] {line}");
         let _ = std::io::stderr().flush();
-    } else if frame % 30 == 0 || frame + 1 == frames {
+    } else if frame.is_multiple_of(30) || frame + 1 == frames {
         eprintln!("{line}");
     }
 }
@@ -561,7 +561,6 @@ fn city_gpu(
     device: &Arc<Device>,
     commands: &mut CommandContext,
     dataset: &Arc<Dataset>,
-    dir: &std::path::Path,
     city: &CityGeometry,
     policy: Box<dyn citystream_streaming::controller::LoadPolicy>,
     config: &StreamConfig,
@@ -571,7 +570,7 @@ fn city_gpu(
     let source = FaultySource::new(
         DatasetSource::new(Arc::clone(dataset)),
         faults,
-        dir.join(citystream_streaming::dataset::PACK_FILE),
+        dataset.textures.pack_path().to_path_buf(),
     );
     let streamer = TextureStreamer::new(
         device,
@@ -729,7 +728,6 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         device,
         &mut commands,
         &dataset,
-        dir,
         &city,
         policy,
         &stream_config(
@@ -750,7 +748,6 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             device,
             &mut commands,
             &dataset,
-            dir,
             &city,
             PolicyKind::Baseline.build(&PolicyOptions::default())?,
             &reference_config(fragment_area, layer_size),
@@ -1164,7 +1161,6 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         device,
         &mut commands,
         &dataset,
-        dir,
         &city,
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
         &reference_config(fragment_area, layer_size),

@@ -84,16 +84,35 @@ fn fit(path: &Path, image: RgbaImage, max_extent_log2: u8) -> UserImage {
 }
 
 fn decode(path: &Path) -> Result<RgbaImage> {
-    let is_ktx2 = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case("ktx2"));
-    if is_ktx2 {
-        let bytes = std::fs::read(path)?;
-        return decode_ktx2(&bytes);
+    citystream_streaming::dataset::ensure_regular_file(path)?;
+    decode_image_bytes(&std::fs::read(path)?)
+}
+
+/// Largest image side the tools decode: the dataset format's largest texture side.
+pub const MAX_IMAGE_SIDE: u32 = 1 << citystream_streaming::dataset::MAX_EXTENT_LOG2;
+
+const KTX2_MAGIC: [u8; 8] = [0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB];
+
+/// Decodes a PNG, JPEG, DDS or KTX2 image to RGBA8. Images up to [`MAX_IMAGE_SIDE`] on a
+/// side decode (the decoder's memory limit is raised to what that needs); larger ones are
+/// refused with their extent, before anything is allocated.
+pub fn decode_image_bytes(bytes: &[u8]) -> Result<RgbaImage> {
+    if bytes.starts_with(&KTX2_MAGIC) {
+        return decode_ktx2(bytes);
     }
-    let reader = image::ImageReader::open(path)?.with_guessed_format()?;
-    Ok(reader.decode()?.to_rgba8())
+    let reader = || image::ImageReader::new(std::io::Cursor::new(bytes)).with_guessed_format();
+    let (w, h) = reader()?.into_dimensions()?;
+    if w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
+        bail!("image is {w}x{h}, larger than the maximum {MAX_IMAGE_SIDE} texels per side; downscale it first");
+    }
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_IMAGE_SIDE);
+    limits.max_image_height = Some(MAX_IMAGE_SIDE);
+    // RGBA with 16-bit channels at the largest extent: the biggest decode accepted (2 GiB).
+    limits.max_alloc = Some(u64::from(MAX_IMAGE_SIDE) * u64::from(MAX_IMAGE_SIDE) * 8);
+    let mut reader = reader()?;
+    reader.limits(limits);
+    Ok(reader.decode()?.into_rgba8())
 }
 
 /// Level 0 of a KTX2 file as RGBA8.
@@ -108,7 +127,7 @@ pub fn decode_ktx2(bytes: &[u8]) -> Result<RgbaImage> {
         );
     }
     let (w, h) = (header.pixel_width, header.pixel_height.max(1));
-    if w == 0 || w > 16384 || h > 16384 {
+    if w == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
         bail!("KTX2 extent {w}x{h} is out of range");
     }
     let level = reader.levels().next().context("KTX2 file has no levels")?;
@@ -148,6 +167,32 @@ pub fn decode_ktx2(bytes: &[u8]) -> Result<RgbaImage> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A PNG of `w`×`h` RGBA8 texels of one colour, compressed fast.
+    fn flat_png(w: u32, h: u32) -> Vec<u8> {
+        use image::codecs::png::{CompressionType, FilterType as PngFilter, PngEncoder};
+        use image::ImageEncoder;
+        let texels = vec![7u8; w as usize * h as usize * 4];
+        let mut png = Vec::new();
+        PngEncoder::new_with_quality(&mut png, CompressionType::Fast, PngFilter::NoFilter)
+            .write_image(&texels, w, h, image::ExtendedColorType::Rgba8)
+            .expect("encode png");
+        png
+    }
+
+    #[test]
+    fn images_of_the_largest_extent_decode_and_larger_ones_are_refused_by_size() {
+        // 16384² RGBA8 is 1 GiB decoded, twice the image crate's default limit.
+        let image = decode_image_bytes(&flat_png(MAX_IMAGE_SIDE, MAX_IMAGE_SIDE)).expect("largest extent decodes");
+        assert_eq!(image.dimensions(), (MAX_IMAGE_SIDE, MAX_IMAGE_SIDE));
+        assert_eq!(image.get_pixel(MAX_IMAGE_SIDE - 1, MAX_IMAGE_SIDE - 1).0, [7; 4]);
+        drop(image);
+        let err = decode_image_bytes(&flat_png(MAX_IMAGE_SIDE + 1, 2)).expect_err("too wide");
+        assert!(
+            format!("{err:#}").contains("16385x2, larger than the maximum 16384"),
+            "{err:#}"
+        );
+    }
 
     #[test]
     fn sizes_round_to_the_nearest_power_of_two_within_limits() {

@@ -10,7 +10,8 @@ pub(crate) mod library;
 mod rng;
 mod texture;
 
-pub(crate) use texture::{downsample, encode_chain};
+pub use texture::EncodedTexture;
+pub(crate) use texture::{decode_level, downsample, encode_chain, mean_colour};
 
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
@@ -85,7 +86,8 @@ pub struct GenArgs {
     /// City size.
     #[arg(long, value_enum, default_value = "small")]
     pub preset: Preset,
-    /// Seed; the same seed always gives the same dataset, byte for byte.
+    /// Seed; the same seed always gives the same dataset: every mesh, mip and colour byte for
+    /// byte (only the write id in each file's header differs between runs).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Output directory (created; existing dataset files in it are replaced).

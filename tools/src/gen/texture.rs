@@ -14,6 +14,7 @@ use super::rng::{hash2, value_noise};
 /// One encoded texture: its mip chain (finest first, back to back) and mean colour.
 #[derive(Debug)]
 pub struct EncodedTexture {
+    pub format: TextureFormat,
     pub width: u32,
     pub height: u32,
     pub mip_count: u32,
@@ -300,12 +301,41 @@ pub fn encode_chain(level0: Vec<u8>, width: u32, height: u32, format: TextureFor
         }
     }
     Ok(EncodedTexture {
+        format,
         width,
         height,
         mip_count,
         chain,
         mean,
     })
+}
+
+/// One stored level of `width`×`height` texels in `format`, as RGBA8 rows (block formats
+/// decoded; `data` must hold the level's [`TextureFormat::mip_bytes`]).
+pub fn decode_level(format: TextureFormat, data: &[u8], width: u32, height: u32) -> Vec<u8> {
+    let (w, h) = (width as usize, height as usize);
+    let mut out = vec![0u8; w * h * 4];
+    match format {
+        TextureFormat::Rgba8 => out.copy_from_slice(&data[..w * h * 4]),
+        TextureFormat::Bc1 => texpresso::Format::Bc1.decompress(data, w, h, &mut out),
+        TextureFormat::Bc3 => texpresso::Format::Bc3.decompress(data, w, h, &mut out),
+        TextureFormat::Bc7 => {
+            let blocks_wide = w.div_ceil(4);
+            let mut texels = [0u8; 64];
+            for (b, block) in data.chunks_exact(16).take(blocks_wide * h.div_ceil(4)).enumerate() {
+                bcdec_rs::bc7(block, &mut texels, 16);
+                let (bx, by) = (b % blocks_wide * 4, b / blocks_wide * 4);
+                // Blocks overhang levels below 4 texels a side: keep the texels inside.
+                for y in 0..4.min(h - by) {
+                    for x in 0..4.min(w - bx) {
+                        let to = ((by + y) * w + bx + x) * 4;
+                        out[to..to + 4].copy_from_slice(&texels[(y * 4 + x) * 4..(y * 4 + x) * 4 + 4]);
+                    }
+                }
+            }
+        }
+    }
+    out
 }
 
 /// Synthesises and encodes one texture.

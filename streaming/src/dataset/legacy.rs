@@ -1,0 +1,228 @@
+//! Format version 1 (read only here) and `citystream upgrade`, which rewrites a version-1
+//! dataset as the current version.
+//!
+//! Version 1 kept its five files at the top of the dataset directory, with no manifest and no
+//! write id; its table headers were 32 bytes (count at 16, CRC-32 of the body at 24), the
+//! pack header had the count at 16 and the length at 24, the scene header was 96 bytes with
+//! a CRC of the body only, and `textures.crc` held one CRC per mip chain.
+
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::Path;
+
+use super::colormap::{self, u32_records, Colormap};
+use super::error::DatasetError;
+use super::files::DatasetFiles;
+use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
+use super::io_util::{check_versioned_prefix, read_all, table_body, u32_at, u64_at, LEGACY_VERSION};
+use super::pack::{META_MAGIC, PACK_HEADER_BYTES, PACK_MAGIC};
+use super::scene::{Scene, SceneLayout};
+use super::writer::{DatasetWriter, WriteSummary};
+use super::{CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
+
+const LEGACY_TABLE_HEADER_BYTES: usize = 32;
+
+/// What [`upgrade`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UpgradeSummary {
+    /// The version the dataset had.
+    pub from_version: u32,
+    /// The new write, or `None` when the dataset already had the current version.
+    pub written: Option<WriteSummary>,
+}
+
+/// Rewrites the version-1 dataset in `dir` as the current version, atomically (through
+/// [`DatasetWriter`]): every mip chain is checked against its version-1 CRC before it is
+/// copied, and the version-1 files are removed only once the new dataset is in place. A
+/// dataset that already has the current version is left as it is.
+pub fn upgrade(dir: &Path) -> Result<UpgradeSummary, DatasetError> {
+    match DatasetFiles::resolve(dir) {
+        Ok(_) => {
+            return Ok(UpgradeSummary {
+                from_version: FORMAT_VERSION,
+                written: None,
+            })
+        }
+        Err(DatasetError::NeedsUpgrade { .. }) => {}
+        Err(e) => return Err(e),
+    }
+    let mut writer = DatasetWriter::create(dir)?;
+    let legacy = LegacyDataset::open(dir)?;
+    let mut chain = Vec::new();
+    for (id, info) in legacy.textures.iter().enumerate() {
+        let len = usize::try_from(info.chain_len())
+            .map_err(|_| DatasetError::InvalidInput(format!("texture {id}: mip chain larger than memory")))?;
+        chain.resize(len, 0);
+        legacy.read_chain(id as u32, info, &mut chain)?;
+        writer.add_texture(
+            info.format(),
+            info.width(),
+            info.height(),
+            info.mip_count(),
+            &chain,
+            legacy.colours.colours()[id],
+        )?;
+    }
+    let written = writer.finish(&legacy.scene)?;
+    Ok(UpgradeSummary {
+        from_version: LEGACY_VERSION,
+        written: Some(written),
+    })
+}
+
+/// A version-1 dataset, opened with the checks version 1 allowed.
+struct LegacyDataset {
+    scene: Scene,
+    textures: Vec<TextureInfo>,
+    colours: Colormap,
+    chain_checksums: Vec<u32>,
+    pack: File,
+    pack_len: u64,
+    pack_path: std::path::PathBuf,
+}
+
+impl LegacyDataset {
+    fn open(dir: &Path) -> Result<Self, DatasetError> {
+        let meta_path = dir.join(META_FILE);
+        let meta = read_all(&meta_path)?;
+        let (count, body) = legacy_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES)?;
+        let mut textures = Vec::with_capacity(body.len() / TEXTURE_RECORD_BYTES);
+        for (index, chunk) in body.chunks_exact(TEXTURE_RECORD_BYTES).enumerate() {
+            let mut record = [0u8; TEXTURE_RECORD_BYTES];
+            record.copy_from_slice(chunk);
+            textures.push(TextureInfo::decode(&record).map_err(|what| DatasetError::Corrupt {
+                path: meta_path.clone(),
+                offset: (LEGACY_TABLE_HEADER_BYTES + index * TEXTURE_RECORD_BYTES) as u64,
+                what: format!("texture {index}: {what}"),
+            })?);
+        }
+
+        let pack_path = dir.join(PACK_FILE);
+        let pack = super::io_util::ensure_regular_file(&pack_path)
+            .and_then(|()| File::open(&pack_path))
+            .map_err(|e| DatasetError::io(&pack_path, e))?;
+        let pack_len = pack.metadata().map_err(|e| DatasetError::io(&pack_path, e))?.len();
+        let mut header = [0u8; PACK_HEADER_BYTES as usize];
+        if pack_len < PACK_HEADER_BYTES {
+            return Err(DatasetError::Truncated {
+                path: pack_path,
+                what: "the header".into(),
+                offset: 0,
+                end: PACK_HEADER_BYTES,
+                file_len: pack_len,
+            });
+        }
+        pack.read_exact_at(&mut header, 0)
+            .map_err(|e| DatasetError::io(&pack_path, e))?;
+        check_versioned_prefix(&pack_path, &header, PACK_MAGIC, header.len(), LEGACY_VERSION)?;
+        if u64_at(&header, 16) != count || u64_at(&header, 24) != pack_len {
+            return Err(DatasetError::Corrupt {
+                path: pack_path,
+                offset: 16,
+                what: format!(
+                    "header lists {} textures and {} bytes; {META_FILE} lists {count} textures, the file has {pack_len} bytes",
+                    u64_at(&header, 16),
+                    u64_at(&header, 24)
+                ),
+            });
+        }
+
+        let colormap_path = dir.join(COLORMAP_FILE);
+        let colours_bytes = read_all(&colormap_path)?;
+        let (colour_count, colour_body) = legacy_table(&colormap_path, &colours_bytes, colormap::MAGIC, 4)?;
+        let checksum_path = dir.join(CHECKSUM_FILE);
+        let checksum_bytes = read_all(&checksum_path)?;
+        let (checksum_count, checksum_body) = legacy_table(&checksum_path, &checksum_bytes, colormap::CRC_MAGIC, 4)?;
+        for (path, found) in [(&colormap_path, colour_count), (&checksum_path, checksum_count)] {
+            if found != count {
+                return Err(DatasetError::Corrupt {
+                    path: path.clone(),
+                    offset: 16,
+                    what: format!("{found} records for {count} textures"),
+                });
+            }
+        }
+
+        let scene_path = dir.join(SCENE_FILE);
+        let (scene, _) = Scene::read_with_write_id(&scene_path, SceneLayout::LEGACY)?;
+        if let Some((m, mesh)) = scene
+            .meshes
+            .iter()
+            .enumerate()
+            .find(|(_, m)| u64::from(m.texture) >= count)
+        {
+            return Err(DatasetError::Corrupt {
+                path: scene_path,
+                offset: SceneLayout::LEGACY.header_len as u64 + m as u64 * 44 + 16,
+                what: format!(
+                    "mesh {m} uses texture {}, but the dataset has {count} textures",
+                    mesh.texture
+                ),
+            });
+        }
+        Ok(Self {
+            scene,
+            textures,
+            colours: Colormap::from_records(colour_body),
+            chain_checksums: u32_records(checksum_body),
+            pack,
+            pack_len,
+            pack_path,
+        })
+    }
+
+    /// Reads texture `id`'s whole chain into `dst` and checks its version-1 CRC.
+    fn read_chain(&self, id: u32, info: &TextureInfo, dst: &mut [u8]) -> Result<(), DatasetError> {
+        let (offset, end) = (info.offset(), info.offset() + info.chain_len());
+        if offset < PACK_HEADER_BYTES || end > self.pack_len {
+            return Err(DatasetError::Truncated {
+                path: self.pack_path.clone(),
+                what: format!("texture {id}'s mip chain"),
+                offset,
+                end,
+                file_len: self.pack_len,
+            });
+        }
+        self.pack
+            .read_exact_at(dst, offset)
+            .map_err(|e| DatasetError::io(&self.pack_path, e))?;
+        let stored = self.chain_checksums[id as usize];
+        let computed = crc32fast::hash(dst);
+        if stored != computed {
+            return Err(DatasetError::Checksum {
+                path: self.pack_path.clone(),
+                what: format!("texture {id}'s mip chain"),
+                offset,
+                end,
+                stored,
+                computed,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// A version-1 table: header, exact size, CRC-32 of the body. Returns `(count, body)`.
+fn legacy_table<'a>(
+    path: &Path,
+    bytes: &'a [u8],
+    magic: &[u8; 8],
+    record_len: usize,
+) -> Result<(u64, &'a [u8]), DatasetError> {
+    check_versioned_prefix(path, bytes, magic, LEGACY_TABLE_HEADER_BYTES, LEGACY_VERSION)?;
+    let count = u64_at(bytes, 16);
+    let body = table_body(path, bytes, count, record_len, LEGACY_TABLE_HEADER_BYTES)?;
+    let stored = u32_at(bytes, 24);
+    let computed = crc32fast::hash(body);
+    if stored != computed {
+        return Err(DatasetError::Checksum {
+            path: path.to_path_buf(),
+            what: "the record table".into(),
+            offset: LEGACY_TABLE_HEADER_BYTES as u64,
+            end: bytes.len() as u64,
+            stored,
+            computed,
+        });
+    }
+    Ok((count, body))
+}

@@ -1,0 +1,720 @@
+//! Fuzz harnesses for every parser of untrusted input: dataset files, camera paths, glTF/GLB
+//! import and KTX2/DDS/PNG texture input.
+//!
+//! Coverage-guided fuzzers for Rust (`cargo fuzz`, libFuzzer) need a nightly compiler and
+//! AFL++ needs its own compiler toolchain, neither of which this project's stable toolchain
+//! and package registries provide. So each harness is a seeded in-process mutator over valid
+//! seeds: bit flips, extreme bytes and fields (0, all ones, NaN, ±inf, 2^31, huge floats),
+//! truncations, extensions, deletions, duplications and splices between seeds; for text
+//! formats also number tokens replaced by extreme ones and structural characters removed; for
+//! binary dataset files checksums recomputed half of the time so that the checks behind them
+//! are reached. The same seed gives the same inputs. The `fuzz` binary runs a harness and
+//! checks that no input panics, hangs or allocates beyond a bound.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use citystream_streaming::bench::path::{standard_path, CameraPath};
+use citystream_streaming::dataset::{
+    verify, Dataset, DatasetFiles, DatasetWriter, Scene, TextureFormat, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE,
+    META_FILE, PACK_FILE, SCENE_FILE,
+};
+use citystream_streaming::rng::SplitMix64;
+
+/// The parsers a harness drives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Target {
+    /// `Dataset::open`, every mip read and `verify`, one mutated file at a time.
+    Dataset,
+    /// `CameraPath::from_json` and sampling of what parses.
+    Path,
+    /// glTF and GLB import (`import::load_slice`) without writing a dataset.
+    Gltf,
+    /// KTX2, DDS and PNG decoding (`decode_image_bytes`).
+    Texture,
+}
+
+impl Target {
+    /// Every target.
+    pub const ALL: [Target; 4] = [Target::Dataset, Target::Path, Target::Gltf, Target::Texture];
+
+    /// Lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Target::Dataset => "dataset",
+            Target::Path => "path",
+            Target::Gltf => "gltf",
+            Target::Texture => "texture",
+        }
+    }
+}
+
+/// One harness: valid seeds and a way to run one (mutated) input.
+#[derive(Debug)]
+pub struct Harness {
+    target: Target,
+    seeds: Vec<Seed>,
+    work: PathBuf,
+}
+
+#[derive(Debug)]
+struct Seed {
+    /// What the bytes are: a dataset file name, or a file name whose extension says the kind.
+    name: String,
+    bytes: Vec<u8>,
+}
+
+/// What one input did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    /// The parser accepted it (and everything downstream ran).
+    Accepted,
+    /// The parser returned an error.
+    Rejected,
+}
+
+impl Harness {
+    /// Builds the seeds of `target` in `work` (a scratch directory it owns).
+    pub fn new(target: Target, work: &Path) -> Result<Self> {
+        let _ = std::fs::remove_dir_all(work);
+        std::fs::create_dir_all(work).with_context(|| format!("creating {}", work.display()))?;
+        let seeds = match target {
+            Target::Dataset => dataset_seeds(work)?,
+            Target::Path => path_seeds()?,
+            Target::Gltf => gltf_seeds(work)?,
+            Target::Texture => texture_seeds()?,
+        };
+        Ok(Self {
+            target,
+            seeds,
+            work: work.to_path_buf(),
+        })
+    }
+
+    /// The target.
+    pub fn target(&self) -> Target {
+        self.target
+    }
+
+    /// The `index`-th input of the stream `seed`: a mutation of one of the seeds, with the name
+    /// of the seed it came from.
+    pub fn input(&self, seed: u64, index: u64) -> (usize, Vec<u8>) {
+        let mut rng = SplitMix64::stream(seed, index);
+        let which = below(&mut rng, self.seeds.len());
+        let original = &self.seeds[which];
+        let donor = &self.seeds[below(&mut rng, self.seeds.len())].bytes;
+        let text = matches!(self.target, Target::Path) || original.name.ends_with(".gltf");
+        let mut bytes = mutate(&mut rng, &original.bytes, donor, text);
+        if self.target == Target::Dataset && rng.next_u64().is_multiple_of(2) {
+            fix_dataset_checksum(&original.name, &mut bytes);
+        }
+        (which, bytes)
+    }
+
+    /// Runs one input through the parser and everything that consumes what it returns.
+    /// Errors are fine; a panic propagates to the caller.
+    pub fn run(&self, seed_index: usize, bytes: &[u8]) -> Outcome {
+        let name = &self.seeds[seed_index].name;
+        match self.target {
+            Target::Dataset => self.run_dataset(name, bytes),
+            Target::Path => run_path(bytes),
+            Target::Gltf => self.run_gltf(name, bytes),
+            Target::Texture => run_texture(bytes),
+        }
+    }
+
+    fn dataset_dir(&self) -> PathBuf {
+        self.work.join("dataset")
+    }
+
+    fn run_dataset(&self, name: &str, bytes: &[u8]) -> Outcome {
+        let dir = self.dataset_dir();
+        let path = dataset_file_path(&dir, name);
+        let write = std::fs::write(&path, bytes);
+        let outcome = if write.is_err() {
+            Outcome::Rejected
+        } else {
+            match Dataset::open(&dir) {
+                Ok(dataset) => {
+                    let mut buf = Vec::new();
+                    for (id, info) in dataset.textures.textures().iter().enumerate() {
+                        for level in 0..info.mip_count() {
+                            let _ = dataset.textures.read_mip(id as u32, level, &mut buf);
+                        }
+                    }
+                    match verify(&dir) {
+                        Ok(_) => Outcome::Accepted,
+                        Err(_) => Outcome::Rejected,
+                    }
+                }
+                Err(_) => Outcome::Rejected,
+            }
+        };
+        // Restore the dataset's own file (the first seed of that name) for the next input.
+        if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
+            let _ = std::fs::write(&path, &original.bytes);
+        }
+        outcome
+    }
+
+    fn run_gltf(&self, name: &str, bytes: &[u8]) -> Outcome {
+        let base = self.work.join("gltf");
+        // RGBA8 and a small extent: the harness is about parsing, not encoding.
+        match crate::import::load_slice(bytes, &base, Path::new(name), TextureFormat::Rgba8, 64) {
+            Ok(_) => Outcome::Accepted,
+            Err(_) => Outcome::Rejected,
+        }
+    }
+
+    /// Names of the seeds, for the report.
+    pub fn seed_names(&self) -> Vec<&str> {
+        self.seeds.iter().map(|s| s.name.as_str()).collect()
+    }
+}
+
+fn run_path(bytes: &[u8]) -> Outcome {
+    // `CameraPath::load` refuses text that is not UTF-8 the same way.
+    let Ok(text) = std::str::from_utf8(bytes) else {
+        return Outcome::Rejected;
+    };
+    match CameraPath::from_json(text) {
+        Ok(path) => {
+            let end = path.duration_s();
+            for t in [0.0, end / 3.0, end * 0.999, end, end + 1.0, -1.0] {
+                let pose = path.sample(t);
+                assert!(
+                    pose.position.iter().chain(&pose.look_at).all(|v| v.is_finite()),
+                    "a parsed path gave a non-finite pose at t = {t}: {pose:?}"
+                );
+            }
+            let _ = path.pauses();
+            let _ = path.jumps();
+            Outcome::Accepted
+        }
+        Err(_) => Outcome::Rejected,
+    }
+}
+
+fn run_texture(bytes: &[u8]) -> Outcome {
+    // Both readers of texture files: block sources kept as they are by `import`, and the
+    // decoder every other image goes through.
+    let kept = crate::import::block_source(bytes);
+    match crate::gen::library::decode_image_bytes(bytes) {
+        Ok(_) => Outcome::Accepted,
+        Err(_) if matches!(kept, Ok(Some(_))) => Outcome::Accepted,
+        Err(_) => Outcome::Rejected,
+    }
+}
+
+fn below(rng: &mut SplitMix64, n: usize) -> usize {
+    (rng.next_u64() % n.max(1) as u64) as usize
+}
+
+/// Values that break careless arithmetic, as little-endian 4- and 8-byte fields.
+const EXTREME_U32: [u32; 9] = [
+    0,
+    1,
+    u32::MAX,
+    0x8000_0000,
+    0x7fff_ffff,
+    0x7fc0_0000, // f32 NaN
+    0x7f80_0000, // f32 +inf
+    0xff80_0000, // f32 -inf
+    0x7149_f2ca, // f32 1e30
+];
+const EXTREME_U64: [u64; 6] = [
+    0,
+    u64::MAX,
+    1 << 32,
+    1 << 63,
+    0x7ff8_0000_0000_0000, // f64 NaN
+    0x7ff0_0000_0000_0000, // f64 +inf
+];
+const EXTREME_NUMBERS: [&str; 14] = [
+    "0",
+    "-0",
+    "-1",
+    "1e308",
+    "-1e308",
+    "1e999",
+    "NaN",
+    "Infinity",
+    "4294967296",
+    "18446744073709551616",
+    "2147483648",
+    "1e-320",
+    "0.5",
+    "99999999999999999999999999999",
+];
+
+/// One to four mutations of `original`; `donor` provides spliced bytes.
+fn mutate(rng: &mut SplitMix64, original: &[u8], donor: &[u8], text: bool) -> Vec<u8> {
+    let mut b = original.to_vec();
+    let count = 1 + below(rng, 4);
+    for _ in 0..count {
+        let kinds = if text { 10 } else { 8 };
+        match below(rng, kinds) {
+            0 if !b.is_empty() => {
+                let i = below(rng, b.len());
+                b[i] ^= 1 << below(rng, 8);
+            }
+            1 if !b.is_empty() => {
+                let i = below(rng, b.len());
+                b[i] = [0u8, 0xff, 0x7f, 0x80, b'0', b'"'][below(rng, 6)];
+            }
+            2 if b.len() >= 4 => {
+                // Aligned fields: headers are made of them.
+                let i = below(rng, b.len() / 4) * 4;
+                let v = EXTREME_U32[below(rng, EXTREME_U32.len())];
+                b[i..i + 4].copy_from_slice(&v.to_le_bytes());
+            }
+            3 if b.len() >= 8 => {
+                let i = below(rng, b.len() / 8) * 8;
+                let v = EXTREME_U64[below(rng, EXTREME_U64.len())];
+                b[i..i + 8].copy_from_slice(&v.to_le_bytes());
+            }
+            4 => {
+                let keep = below(rng, b.len() + 1);
+                b.truncate(keep);
+            }
+            5 if !donor.is_empty() => {
+                // Splice: a run of the donor over a run of the input.
+                let from = below(rng, donor.len());
+                let len = 1 + below(rng, (donor.len() - from).min(256));
+                let at = below(rng, b.len() + 1);
+                let end = (at + len).min(b.len());
+                b.splice(at..end, donor[from..from + len].iter().copied());
+            }
+            6 if !b.is_empty() => {
+                let at = below(rng, b.len());
+                let len = 1 + below(rng, (b.len() - at).min(64));
+                if below(rng, 2) == 0 {
+                    b.drain(at..at + len);
+                } else {
+                    let copy: Vec<u8> = b[at..at + len].to_vec();
+                    b.splice(at..at, copy);
+                }
+            }
+            7 => {
+                let extra: Vec<u8> = (0..1 + below(rng, 32)).map(|_| rng.next_u64() as u8).collect();
+                let at = below(rng, b.len() + 1);
+                b.splice(at..at, extra);
+            }
+            8 => replace_number(rng, &mut b),
+            9 if !b.is_empty() => {
+                // Remove a structural character of JSON.
+                let positions: Vec<usize> = b
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, c)| b"{}[],:\"".contains(c))
+                    .map(|(i, _)| i)
+                    .collect();
+                if !positions.is_empty() {
+                    b.remove(positions[below(rng, positions.len())]);
+                }
+            }
+            _ => {}
+        }
+    }
+    b
+}
+
+/// Replaces one number token of JSON text with an extreme one.
+fn replace_number(rng: &mut SplitMix64, b: &mut Vec<u8>) {
+    let is_number_byte = |c: u8| c.is_ascii_digit() || b"-+.eE".contains(&c);
+    let starts: Vec<usize> = (0..b.len())
+        .filter(|&i| b[i].is_ascii_digit() && (i == 0 || !is_number_byte(b[i - 1])))
+        .collect();
+    if starts.is_empty() {
+        return;
+    }
+    let start = starts[below(rng, starts.len())];
+    let start = if start > 0 && b[start - 1] == b'-' {
+        start - 1
+    } else {
+        start
+    };
+    let mut end = start + 1;
+    while end < b.len() && is_number_byte(b[end]) {
+        end += 1;
+    }
+    let replacement = EXTREME_NUMBERS[below(rng, EXTREME_NUMBERS.len())];
+    b.splice(start..end, replacement.bytes());
+}
+
+fn dataset_file_path(dir: &Path, name: &str) -> PathBuf {
+    if name == MANIFEST_FILE {
+        dir.join(name)
+    } else {
+        // Resolved once per seed set: the fixture's manifest is restored after every input.
+        DatasetFiles::resolve(dir).map_or_else(|_| dir.join(name), |files| files.path(name))
+    }
+}
+
+/// Recomputes the checksum of a dataset file (layout of `docs/DATASET.md`), so that mutated
+/// fields reach the checks behind it.
+fn fix_dataset_checksum(name: &str, b: &mut [u8]) {
+    let crc_of = |parts: &[&[u8]]| {
+        let mut hasher = crc32fast::Hasher::new();
+        for part in parts {
+            hasher.update(part);
+        }
+        hasher.finalize()
+    };
+    let (covered_to, crc_at, body_from) = match name {
+        SCENE_FILE => (96, 96, 104),
+        PACK_FILE => (40, 40, usize::MAX),
+        MANIFEST_FILE => (24, 24, usize::MAX),
+        _ => (32, 32, 40),
+    };
+    if b.len() < crc_at + 4 || (body_from != usize::MAX && b.len() < body_from) {
+        return;
+    }
+    let crc = if body_from == usize::MAX {
+        crc_of(&[&b[..covered_to]])
+    } else {
+        crc_of(&[&b[..covered_to], &b[body_from..]])
+    };
+    b[crc_at..crc_at + 4].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// A small dataset with every format, rectangular and partial chains, a second write to
+/// splice files from, and each of its six files as a seed.
+fn dataset_seeds(work: &Path) -> Result<Vec<Seed>> {
+    let dir = work.join("dataset");
+    let other = work.join("dataset-other-write");
+    for target in [&dir, &other] {
+        let mut writer = DatasetWriter::create(target)?;
+        let textures: [(TextureFormat, u32, u32, u32); 5] = [
+            (TextureFormat::Rgba8, 8, 8, 4),
+            (TextureFormat::Bc1, 16, 4, 5),
+            (TextureFormat::Bc3, 8, 8, 2),
+            (TextureFormat::Bc7, 4, 4, 3),
+            (TextureFormat::Bc1, 32, 32, 6),
+        ];
+        let mut scene = Scene::new([391_000.0, 35.0, 5_819_000.0]);
+        for (t, &(format, w, h, mips)) in textures.iter().enumerate() {
+            let len: u64 = (0..mips)
+                .map(|l| format.mip_bytes((w >> l).max(1), (h >> l).max(1)))
+                .sum();
+            let chain: Vec<u8> = (0..len)
+                .map(|i| (i as u8).wrapping_mul(31).wrapping_add(t as u8))
+                .collect();
+            writer.add_texture(format, w, h, mips, &chain, [t as u8 * 40, 90, 200, 255])?;
+            let x = t as f32 * 10.0;
+            scene.push_mesh(
+                t as u32,
+                &[[x, 0.0, 0.0], [x + 8.0, 0.0, 0.0], [x + 8.0, 12.0, 0.0], [x, 12.0, 0.0]],
+                &[[0.0, 0.0, 1.0]; 4],
+                &[[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]],
+                &[0, 1, 2, 0, 2, 3],
+            )?;
+        }
+        writer.finish(&scene)?;
+    }
+    let files = DatasetFiles::resolve(&dir)?;
+    let mut seeds = Vec::new();
+    for name in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, CHECKSUM_FILE] {
+        seeds.push(Seed {
+            name: name.into(),
+            bytes: std::fs::read(files.path(name))?,
+        });
+    }
+    seeds.push(Seed {
+        name: MANIFEST_FILE.into(),
+        bytes: std::fs::read(dir.join(MANIFEST_FILE))?,
+    });
+    // Files of the other write are donors only through splices of same-named seeds: add them
+    // as seeds of their own name so a whole file of another write is also tried.
+    let other_files = DatasetFiles::resolve(&other)?;
+    for name in [SCENE_FILE, PACK_FILE] {
+        seeds.push(Seed {
+            name: name.into(),
+            bytes: std::fs::read(other_files.path(name))?,
+        });
+    }
+    Ok(seeds)
+}
+
+fn path_seeds() -> Result<Vec<Seed>> {
+    let mut scene = Scene::new([0.0; 3]);
+    for (i, x) in [-300.0f32, 0.0, 250.0].into_iter().enumerate() {
+        scene.push_mesh(
+            i as u32,
+            &[
+                [x, 0.0, -200.0],
+                [x + 50.0, 0.0, -200.0],
+                [x + 50.0, 40.0, 200.0],
+                [x, 40.0, 200.0],
+            ],
+            &[[0.0, 1.0, 0.0]; 4],
+            &[[0.0; 2]; 4],
+            &[0, 1, 2, 0, 2, 3],
+        )?;
+    }
+    let standard = standard_path(&scene, 60.0)?.to_json()?;
+    let handwritten = r#"{ "version": 1, "description": "two runs",
+  "keyframes": [
+    { "t": 0.0, "position": [0, 50, -100], "look_at": [0, 10, 0] },
+    { "t": 6.0, "position": [40, 80, -20], "look_at": [40, 10, 40], "hold_s": 2.0 },
+    { "t": 14.0, "position": [-50, 80, 0], "look_at": [0, 10, 0], "jump": true },
+    { "t": 20.5, "position": [-50, 30, 90], "look_at": [0, 0, 0] }
+  ] }"#;
+    Ok(vec![
+        Seed {
+            name: "standard.json".into(),
+            bytes: standard.into_bytes(),
+        },
+        Seed {
+            name: "handwritten.json".into(),
+            bytes: handwritten.as_bytes().to_vec(),
+        },
+    ])
+}
+
+/// The Khronos BoxTextured sample as `.gltf` (external buffer and PNG, copied into the
+/// harness's base directory) and `.glb`, and a two-node quad with a data-URI buffer.
+fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
+    let samples = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/gltf");
+    let base = work.join("gltf");
+    std::fs::create_dir_all(&base)?;
+    for file in ["BoxTextured0.bin", "CesiumLogoFlat.png"] {
+        std::fs::copy(samples.join("BoxTextured").join(file), base.join(file))
+            .with_context(|| format!("copying the glTF sample {file}"))?;
+    }
+    let read = |path: PathBuf| std::fs::read(&path).with_context(|| format!("reading {}", path.display()));
+    let mut bin = Vec::new();
+    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+    let uvs: [[f32; 2]; 4] = [[0.0, 2.0], [2.0, 2.0], [2.0, 0.0], [0.0, 0.0]];
+    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    let data_uri = format!("data:application/octet-stream;base64,{}", base64(&bin));
+    let sin_45_degrees = std::f32::consts::FRAC_1_SQRT_2;
+    let quad = serde_json::json!({
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [
+            {"translation": [391000.0, 0.0, 5819000.0], "children": [1, 2]},
+            {"mesh": 0, "rotation": [0.0, sin_45_degrees, 0.0, sin_45_degrees], "scale": [2.0, 2.0, 2.0]},
+            {"mesh": 0, "matrix": [1,0,0,0, 0,1,0,0, 0,0,1,0, 5,0,0,1]}
+        ],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2,
+                                    "material": 0, "mode": 4}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.8, 1.0, 1.0]}}],
+        "buffers": [{"uri": data_uri, "byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+             "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
+        ]
+    });
+    Ok(vec![
+        Seed {
+            name: "BoxTextured.gltf".into(),
+            bytes: read(samples.join("BoxTextured/BoxTextured.gltf"))?,
+        },
+        Seed {
+            name: "BoxTextured.glb".into(),
+            bytes: read(samples.join("BoxTextured-Binary/BoxTextured.glb"))?,
+        },
+        Seed {
+            name: "quad.gltf".into(),
+            bytes: serde_json::to_vec_pretty(&quad)?,
+        },
+    ])
+}
+
+fn base64(bytes: &[u8]) -> String {
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for chunk in bytes.chunks(3) {
+        let n = chunk.iter().fold(0u32, |acc, &b| (acc << 8) | u32::from(b)) << (8 * (3 - chunk.len()));
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ALPHABET[((n >> (18 - 6 * k)) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+/// KTX2 (RGBA8, BC1, BC3), DDS (DXT1, DXT5) and PNG files.
+fn texture_seeds() -> Result<Vec<Seed>> {
+    let mut bc1 = [0u8; 8];
+    let mut bc3 = [0u8; 16];
+    let texels: [[u8; 4]; 16] = std::array::from_fn(|i| [i as u8 * 16, 200, 40, 255 - i as u8]);
+    texpresso::Format::Bc1.compress_block_masked(texels, 0xffff, texpresso::Params::default(), &mut bc1);
+    texpresso::Format::Bc3.compress_block_masked(texels, 0xffff, texpresso::Params::default(), &mut bc3);
+    let rgba: Vec<u8> = (0..8 * 4 * 4).map(|i| (i * 7) as u8).collect();
+    let mut png = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut png)
+        .write_image(&rgba, 8, 4, image::ExtendedColorType::Rgba8)
+        .context("encoding the PNG seed")?;
+    Ok(vec![
+        Seed {
+            name: "rgba8.ktx2".into(),
+            bytes: ktx2_file(37, 8, 4, &rgba),
+        },
+        Seed {
+            name: "bc1.ktx2".into(),
+            bytes: ktx2_file(131, 4, 4, &bc1),
+        },
+        Seed {
+            name: "bc3.ktx2".into(),
+            bytes: ktx2_file(137, 4, 4, &bc3),
+        },
+        Seed {
+            name: "dxt1.dds".into(),
+            bytes: dds_file(b"DXT1", 4, 4, &bc1),
+        },
+        Seed {
+            name: "dxt5.dds".into(),
+            bytes: dds_file(b"DXT5", 4, 4, &bc3),
+        },
+        Seed {
+            name: "bc7-dx10.dds".into(),
+            bytes: dds_dx10_bc7(
+                8,
+                8,
+                &[
+                    [0x40; 64].to_vec(),
+                    [0x40; 16].to_vec(),
+                    [0x40; 16].to_vec(),
+                    [0x40; 16].to_vec(),
+                ],
+            ),
+        },
+        Seed {
+            name: "small.png".into(),
+            bytes: png,
+        },
+    ])
+}
+
+use image::ImageEncoder;
+
+/// A KTX2 file with one level: header, level index, an empty data format descriptor, data.
+fn ktx2_file(vk_format: u32, w: u32, h: u32, data: &[u8]) -> Vec<u8> {
+    let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
+    for v in [vk_format, 1, w, h, 0, 0, 1, 1, 0] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    let dfd_offset = 80 + 24;
+    for v in [dfd_offset as u32, 4, 0, 0] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    f.extend_from_slice(&0u64.to_le_bytes());
+    f.extend_from_slice(&0u64.to_le_bytes());
+    let data_offset = (dfd_offset + 4) as u64;
+    for v in [data_offset, data.len() as u64, data.len() as u64] {
+        f.extend_from_slice(&v.to_le_bytes());
+    }
+    f.extend_from_slice(&4u32.to_le_bytes());
+    f.extend_from_slice(data);
+    f
+}
+
+/// A DDS file with a `DX10` header (BC7, DXGI format 98) and `levels`, finest first.
+fn dds_dx10_bc7(w: u32, h: u32, levels: &[Vec<u8>]) -> Vec<u8> {
+    let mut dds = b"DDS ".to_vec();
+    for v in [124u32, 0x2_1007, h, w, levels[0].len() as u32, 0, levels.len() as u32] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    dds.extend_from_slice(&[0u8; 44]);
+    for v in [32u32, 0x4] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    dds.extend_from_slice(b"DX10");
+    dds.extend_from_slice(&[0u8; 20]);
+    dds.extend_from_slice(&0x40_1008u32.to_le_bytes());
+    dds.extend_from_slice(&[0u8; 16]);
+    // DXGI format, dimension (TEXTURE2D), misc flags, array size, misc flags 2.
+    for v in [98u32, 3, 0, 1, 0] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    for level in levels {
+        dds.extend_from_slice(level);
+    }
+    dds
+}
+
+/// A DDS file with a FourCC pixel format and one level.
+fn dds_file(four_cc: &[u8; 4], w: u32, h: u32, data: &[u8]) -> Vec<u8> {
+    let mut dds = b"DDS ".to_vec();
+    for v in [124u32, 0x1007, h, w, data.len() as u32, 0, 1] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    dds.extend_from_slice(&[0u8; 44]);
+    for v in [32u32, 0x4] {
+        dds.extend_from_slice(&v.to_le_bytes());
+    }
+    dds.extend_from_slice(four_cc);
+    dds.extend_from_slice(&[0u8; 20]);
+    dds.extend_from_slice(&0x1000u32.to_le_bytes());
+    dds.extend_from_slice(&[0u8; 16]);
+    dds.extend_from_slice(data);
+    dds
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seeds_are_accepted_and_inputs_are_reproducible() {
+        for target in Target::ALL {
+            let work =
+                std::env::temp_dir().join(format!("citystream-fuzz-unit-{}-{}", target.name(), std::process::id()));
+            let harness = Harness::new(target, &work).expect("harness");
+            for (i, seed) in harness.seeds.iter().enumerate() {
+                // A dataset file of the other write is refused in place of the dataset's own.
+                let from_other_write = harness.seeds[..i].iter().any(|s| s.name == seed.name);
+                let expected = if from_other_write {
+                    Outcome::Rejected
+                } else {
+                    Outcome::Accepted
+                };
+                assert_eq!(
+                    harness.run(i, &seed.bytes),
+                    expected,
+                    "{}: seed {}",
+                    target.name(),
+                    seed.name
+                );
+            }
+            assert_eq!(harness.input(7, 3), harness.input(7, 3));
+            assert_ne!(harness.input(7, 3), harness.input(7, 4));
+            let _ = std::fs::remove_dir_all(&work);
+        }
+    }
+
+    #[test]
+    fn number_tokens_are_replaced_whole() {
+        let mut rng = SplitMix64::new(1);
+        let mut text = br#"{"t": -12.5e3, "x": [1, 2]}"#.to_vec();
+        replace_number(&mut rng, &mut text);
+        let text = String::from_utf8(text).expect("utf-8");
+        assert!(!text.contains("12.5e3") || !text.contains("[1, 2]"), "{text}");
+        assert!(text.starts_with("{\"t\": "), "{text}");
+    }
+
+    #[test]
+    fn base64_matches_the_standard_alphabet() {
+        assert_eq!(base64(b"Man"), "TWFu");
+        assert_eq!(base64(b"Ma"), "TWE=");
+        assert_eq!(base64(b"M"), "TQ==");
+    }
+}

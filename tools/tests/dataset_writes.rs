@@ -1,0 +1,432 @@
+//! Writes never lose or mix datasets: `gen`, `import` and `atlas` killed at many moments
+//! leave the old or the new dataset, concurrent writers are refused, failed writes leave the
+//! old dataset, files that are not the tool's own are never touched, and version-1 datasets
+//! are named for `citystream upgrade`, which keeps their content.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::Instant;
+
+use citystream_streaming::dataset::{verify, Dataset, DatasetFiles, MANIFEST_FILE, SCENE_FILE};
+
+/// Kill moments per tool, spread evenly over an uninterrupted run.
+const KILL_MOMENTS: u32 = 20;
+
+fn citystream(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(args)
+        .output()
+        .expect("run citystream")
+}
+
+fn fresh_dir(name: &str) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dataset-writes").join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
+    dir
+}
+
+fn utf8(path: &Path) -> &str {
+    path.to_str().expect("utf-8 temp path")
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn succeed(args: &[&str]) {
+    let out = citystream(args);
+    assert!(out.status.success(), "{args:?} failed: {}", stderr(&out));
+}
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create copy");
+    for entry in std::fs::read_dir(from).expect("read dir") {
+        let entry = entry.expect("entry");
+        if entry.file_type().expect("type").is_dir() {
+            copy_tree(&entry.path(), &to.join(entry.file_name()));
+        } else {
+            std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
+        }
+    }
+}
+
+fn write_id(dir: &Path) -> u64 {
+    DatasetFiles::resolve(dir).expect("manifest").write_id()
+}
+
+/// The write subdirectories in `dir`.
+fn write_dirs(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .expect("read dir")
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("write-"))
+        .collect()
+}
+
+/// What identifies a dataset's content: scene, texture table, colours and every mip's
+/// checksum (which `verify` checks every mip against).
+fn fingerprint(dir: &Path) -> (String, Vec<u32>) {
+    let dataset = Dataset::open(dir).expect("open");
+    let checksums = dataset
+        .textures
+        .textures()
+        .iter()
+        .enumerate()
+        .flat_map(|(id, info)| (0..info.mip_count()).map(move |level| (id as u32, level)))
+        .map(|(id, level)| dataset.textures.mip_checksum(id, level).expect("checksum"))
+        .collect();
+    (
+        format!(
+            "{:?} {:?} {:?}",
+            dataset.scene,
+            dataset.textures.textures(),
+            dataset.colormap.colours()
+        ),
+        checksums,
+    )
+}
+
+/// Runs `args` (which write into `dir`) once uninterrupted into a scratch copy to learn its
+/// duration and result, then `KILL_MOMENTS` times over the old dataset in `dir`, killing it
+/// with SIGKILL at evenly spaced moments. After each kill `dir` must verify and hold the old
+/// or the new dataset. Returns how many kills left the old and how many the new one.
+fn kill_at_moments(name: &str, old: &Path, args: impl Fn(&Path) -> Vec<String>) -> (u32, u32) {
+    let reference = fresh_dir(&format!("{name}-reference"));
+    copy_tree(old, &reference);
+    let started = Instant::now();
+    let reference_args = args(&reference);
+    let out = Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(&reference_args)
+        .output()
+        .expect("run");
+    let duration = started.elapsed();
+    assert!(out.status.success(), "{reference_args:?}: {}", stderr(&out));
+    let new_content = fingerprint(&reference);
+    let old_content = fingerprint(old);
+    assert_ne!(new_content, old_content, "the write must change the dataset");
+    let old_id = write_id(old);
+
+    let dir = fresh_dir(name);
+    let (mut kept_old, mut got_new) = (0, 0);
+    for moment in 0..KILL_MOMENTS {
+        if dir.exists() && write_id(&dir) != old_id {
+            std::fs::remove_dir_all(&dir).expect("reset");
+        }
+        if !dir.exists() {
+            copy_tree(old, &dir);
+        }
+        let mut child = Command::new(env!("CARGO_BIN_EXE_citystream"))
+            .args(args(&dir))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn");
+        std::thread::sleep(duration.mul_f64((f64::from(moment) + 0.5) / f64::from(KILL_MOMENTS)));
+        let _ = child.kill();
+        child.wait().expect("reap");
+        let report = verify(&dir).unwrap_or_else(|e| panic!("{name}: kill {moment} left a broken dataset: {e}"));
+        assert!(report.textures > 0);
+        if write_id(&dir) == old_id {
+            assert!(
+                fingerprint(&dir) == old_content,
+                "{name}: kill {moment}: old write id, other content"
+            );
+            kept_old += 1;
+        } else {
+            assert!(
+                fingerprint(&dir) == new_content,
+                "{name}: kill {moment} left a dataset that is neither the old nor the new one"
+            );
+            got_new += 1;
+        }
+    }
+    // What a killed writer left behind goes with the next write.
+    let out = Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(args(&dir))
+        .output()
+        .expect("run");
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(write_dirs(&dir).len(), 1, "stale writes left: {:?}", write_dirs(&dir));
+    assert!(fingerprint(&dir) == new_content);
+    eprintln!("{name}: {kept_old} kills kept the old dataset, {got_new} left the new one ({duration:?} per run)");
+    (kept_old, got_new)
+}
+
+fn gen_tiny(name: &str, seed: &str) -> PathBuf {
+    let dir = fresh_dir(name);
+    succeed(&["gen", "--preset", "tiny", "--seed", seed, "--out", utf8(&dir)]);
+    dir
+}
+
+fn strings(args: &[&str]) -> Vec<String> {
+    args.iter().map(|s| s.to_string()).collect()
+}
+
+#[test]
+fn killed_gen_leaves_the_old_or_the_new_dataset() {
+    let old = gen_tiny("gen-old", "1");
+    let (kept_old, _) = kill_at_moments("gen-kill", &old, |dir| {
+        strings(&["gen", "--preset", "small", "--seed", "2", "--out", utf8(dir)])
+    });
+    assert!(kept_old > 0, "no kill landed before the switch");
+}
+
+#[test]
+fn killed_atlas_leaves_the_old_or_the_new_dataset() {
+    let source = fresh_dir("atlas-source");
+    succeed(&["gen", "--preset", "small", "--seed", "3", "--out", utf8(&source)]);
+    let old = gen_tiny("atlas-old", "1");
+    let source_str = utf8(&source).to_string();
+    let (kept_old, _) = kill_at_moments("atlas-kill", &old, move |dir| {
+        strings(&["atlas", &source_str, "--out", utf8(dir), "--atlas-extent", "2048"])
+    });
+    assert!(kept_old > 0, "no kill landed before the switch");
+}
+
+/// A glTF of one quad textured with a `side`² PNG, so that import spends its time decoding,
+/// resampling and encoding.
+fn write_big_texture_gltf(dir: &Path, side: u32) -> PathBuf {
+    std::fs::create_dir_all(dir).expect("dir");
+    let mut bin = Vec::new();
+    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [10.0, 10.0, 0.0], [0.0, 10.0, 0.0]];
+    let uvs: [[f32; 2]; 4] = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
+    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
+        bin.extend_from_slice(&v.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(dir.join("quad.bin"), &bin).expect("bin");
+    image::RgbaImage::from_fn(side, side, |x, y| {
+        image::Rgba([(x % 251) as u8, (y % 241) as u8, ((x ^ y) % 256) as u8, 255])
+    })
+    .save(dir.join("big.png"))
+    .expect("png");
+    let gltf = serde_json::json!({
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}],
+        "images": [{"uri": "big.png"}],
+        "buffers": [{"uri": "quad.bin", "byteLength": bin.len()}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [10.0, 10.0, 0.0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
+        ]
+    });
+    let path = dir.join("quad.gltf");
+    std::fs::write(&path, serde_json::to_vec(&gltf).expect("json")).expect("gltf");
+    path
+}
+
+#[test]
+fn killed_import_leaves_the_old_or_the_new_dataset() {
+    let gltf = write_big_texture_gltf(&fresh_dir("import-source"), 4096);
+    let old = gen_tiny("import-old", "1");
+    let gltf_str = utf8(&gltf).to_string();
+    let (kept_old, _) = kill_at_moments("import-kill", &old, move |dir| {
+        strings(&["import", &gltf_str, "--out", utf8(dir), "--max-extent", "4096"])
+    });
+    assert!(kept_old > 0, "no kill landed before the switch");
+}
+
+#[test]
+fn concurrent_writers_never_mix() {
+    for round in 0..3 {
+        let dir = fresh_dir(&format!("concurrent-{round}"));
+        let spawn = |seed: &str| {
+            Command::new(env!("CARGO_BIN_EXE_citystream"))
+                .args(["gen", "--preset", "small", "--seed", seed, "--out", utf8(&dir)])
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .expect("spawn")
+        };
+        let (a, b) = (spawn("1"), spawn("2"));
+        let (a, b) = (a.wait_with_output().expect("a"), b.wait_with_output().expect("b"));
+        assert!(
+            a.status.success() || b.status.success(),
+            "neither writer finished: {} / {}",
+            stderr(&a),
+            stderr(&b)
+        );
+        for out in [&a, &b] {
+            if !out.status.success() {
+                assert!(stderr(out).contains("another process is writing"), "{}", stderr(out));
+            }
+        }
+        verify(&dir).expect("the dataset verifies");
+        let got = fingerprint(&dir);
+        let expected: Vec<_> = [("1", &a), ("2", &b)]
+            .into_iter()
+            .filter(|(_, out)| out.status.success())
+            .map(|(seed, _)| {
+                let reference = fresh_dir(&format!("concurrent-{round}-seed-{seed}"));
+                succeed(&["gen", "--preset", "small", "--seed", seed, "--out", utf8(&reference)]);
+                fingerprint(&reference)
+            })
+            .collect();
+        assert!(expected.contains(&got), "round {round}: a mixed dataset");
+        assert_eq!(write_dirs(&dir).len(), 1);
+    }
+}
+
+#[test]
+fn failed_writes_leave_the_old_dataset_untouched() {
+    let dir = gen_tiny("failed-writes", "4");
+    let before = (write_id(&dir), fingerprint(&dir));
+    let no_images = fresh_dir("failed-writes-no-images");
+    std::fs::create_dir_all(&no_images).expect("dir");
+    std::fs::write(no_images.join("readme.txt"), b"not an image").expect("file");
+    // A glTF whose image does not decode.
+    let broken = write_big_texture_gltf(&fresh_dir("failed-writes-gltf"), 64);
+    std::fs::write(broken.with_file_name("big.png"), b"\x89PNG but not really").expect("png");
+    let failures: [Vec<&str>; 2] = [
+        vec![
+            "gen",
+            "--preset",
+            "tiny",
+            "--textures-from",
+            utf8(&no_images),
+            "--out",
+            utf8(&dir),
+        ],
+        vec!["import", utf8(&broken), "--out", utf8(&dir)],
+    ];
+    for args in failures {
+        let out = citystream(&args);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        verify(&dir).unwrap_or_else(|e| panic!("{args:?} broke the dataset: {e}"));
+        assert_eq!(
+            (write_id(&dir), fingerprint(&dir)),
+            before,
+            "{args:?} changed the dataset"
+        );
+        assert_eq!(write_dirs(&dir).len(), 1, "{args:?} left its partial write");
+    }
+    // A successful atlas of a dataset into itself replaces it.
+    succeed(&["atlas", utf8(&dir), "--out", utf8(&dir), "--atlas-extent", "512"]);
+    verify(&dir).expect("atlas into itself");
+    assert_ne!(write_id(&dir), before.0);
+}
+
+#[test]
+fn files_that_are_not_the_tools_own_are_never_touched() {
+    let dir = fresh_dir("user-files");
+    std::fs::create_dir_all(&dir).expect("dir");
+    // The user's own files, one named like a dataset file.
+    std::fs::write(dir.join("notes.txt"), b"survey notes").expect("notes");
+    std::fs::write(dir.join(SCENE_FILE), b"my scene, not a dataset").expect("scene");
+    std::fs::create_dir_all(dir.join("write-photos")).expect("photos");
+    succeed(&["gen", "--preset", "tiny", "--out", utf8(&dir)]);
+    succeed(&["gen", "--preset", "tiny", "--seed", "2", "--out", utf8(&dir)]);
+    verify(&dir).expect("dataset");
+    assert_eq!(std::fs::read(dir.join("notes.txt")).expect("notes"), b"survey notes");
+    assert_eq!(
+        std::fs::read(dir.join(SCENE_FILE)).expect("scene"),
+        b"my scene, not a dataset"
+    );
+    assert!(dir.join("write-photos").is_dir());
+
+    // A file named like the manifest that is not one is refused, not replaced.
+    let dir = fresh_dir("user-manifest");
+    std::fs::create_dir_all(&dir).expect("dir");
+    std::fs::write(dir.join(MANIFEST_FILE), b"my own manifest of photos").expect("manifest");
+    let out = citystream(&["gen", "--preset", "tiny", "--out", utf8(&dir)]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains(MANIFEST_FILE), "{}", stderr(&out));
+    assert_eq!(
+        std::fs::read(dir.join(MANIFEST_FILE)).expect("kept"),
+        b"my own manifest of photos"
+    );
+    assert!(write_dirs(&dir).is_empty());
+}
+
+/// A version-1 dataset written by the version-1 `gen --preset tiny --seed 3 --max-extent 16`.
+fn v1_fixture(name: &str) -> PathBuf {
+    let dir = fresh_dir(name);
+    copy_tree(&Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/v1-tiny"), &dir);
+    dir
+}
+
+#[test]
+fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
+    let dir = v1_fixture("v1");
+    std::fs::write(dir.join("notes.txt"), b"mine").expect("notes");
+    for command in ["info", "verify"] {
+        let out = citystream(&[command, utf8(&dir)]);
+        assert!(!out.status.success(), "{command} accepted a version-1 dataset");
+        let message = stderr(&out);
+        assert!(
+            message.contains("format version 1") && message.contains(&format!("citystream upgrade {}", utf8(&dir))),
+            "{command}: {message}"
+        );
+    }
+    let out = citystream(&["upgrade", utf8(&dir)]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("from format version 1 to 2"));
+    verify(&dir).expect("upgraded dataset verifies");
+    // The version-1 files are gone, the user's file stays.
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .expect("dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|n| !n.starts_with("write-"))
+        .collect();
+    names.sort();
+    assert_eq!(names, [MANIFEST_FILE, "notes.txt"]);
+    // The same command with this build writes the same content.
+    let regenerated = fresh_dir("v1-regenerated");
+    succeed(&[
+        "gen",
+        "--preset",
+        "tiny",
+        "--seed",
+        "3",
+        "--max-extent",
+        "16",
+        "--out",
+        utf8(&regenerated),
+    ]);
+    assert!(
+        fingerprint(&dir) == fingerprint(&regenerated),
+        "the upgrade changed the content"
+    );
+    // Upgrading again does nothing.
+    let id = write_id(&dir);
+    let out = citystream(&["upgrade", utf8(&dir)]);
+    assert!(out.status.success());
+    assert!(String::from_utf8_lossy(&out.stdout).contains("nothing to do"));
+    assert_eq!(write_id(&dir), id);
+}
+
+#[test]
+fn damaged_version_1_datasets_are_not_upgraded() {
+    let dir = v1_fixture("v1-damaged");
+    let pack = dir.join("textures.pack");
+    let mut bytes = std::fs::read(&pack).expect("pack");
+    let n = bytes.len();
+    bytes[n - 5] ^= 0x55;
+    std::fs::write(&pack, &bytes).expect("write");
+    let out = citystream(&["upgrade", utf8(&dir)]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("textures.pack") && stderr(&out).contains("checksum"),
+        "{}",
+        stderr(&out)
+    );
+    // Nothing was written: the version-1 files are all still there.
+    assert!(!dir.join(MANIFEST_FILE).exists());
+    assert!(write_dirs(&dir).is_empty());
+    assert_eq!(std::fs::read(&pack).expect("pack"), bytes);
+}
