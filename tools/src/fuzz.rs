@@ -606,8 +606,9 @@ fn texture_seeds() -> Result<Vec<Seed>> {
 
 use image::ImageEncoder;
 
-/// A KTX2 file with one level: header, level index, an empty data format descriptor, data.
-fn ktx2_file(vk_format: u32, w: u32, h: u32, data: &[u8]) -> Vec<u8> {
+/// A KTX2 file with one level: header, level index, an empty data format descriptor, data
+/// (also the library tests' minimal KTX2 writer).
+pub(crate) fn ktx2_file(vk_format: u32, w: u32, h: u32, data: &[u8]) -> Vec<u8> {
     let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
     for v in [vk_format, 1, w, h, 0, 0, 1, 1, 0] {
         f.extend_from_slice(&v.to_le_bytes());

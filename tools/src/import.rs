@@ -815,6 +815,11 @@ fn dds_blocks(bytes: &[u8]) -> Result<Option<DdsLevels>> {
         bail!("DDS header size is {}, not 124", u32_at(4)?);
     }
     let (height, width) = (u32_at(12)?, u32_at(16)?);
+    let side_ok = |v: u32| v.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&v);
+    if !side_ok(width) || !side_ok(height) {
+        // Not keepable as blocks; the decoder reports what is wrong with it.
+        return Ok(None);
+    }
     const DDSD_MIPMAPCOUNT: u32 = 0x2_0000;
     let levels = if u32_at(8)? & DDSD_MIPMAPCOUNT != 0 {
         u32_at(28)?.max(1)

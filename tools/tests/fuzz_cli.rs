@@ -54,3 +54,42 @@ fn bad_options_are_refused() {
         assert!(stderr.contains(args[0]), "{args:?}: {stderr}");
     }
 }
+
+#[test]
+fn inputs_that_once_failed_stay_fixed() {
+    // tools/tests/data/fuzz holds inputs the harnesses found failing (panics inside the gltf
+    // crate, a 136-byte DDS that made the decoder allocate 432 MiB); each must now be a plain
+    // error with a small heap.
+    let corpus = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fuzz");
+    let mut files: Vec<_> = std::fs::read_dir(&corpus)
+        .expect("corpus")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    files.sort();
+    assert!(files.len() >= 6);
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("fuzz-replay");
+    let output = Command::new(env!("CARGO_BIN_EXE_fuzz"))
+        .arg("--out")
+        .arg(&out)
+        .arg("--replay")
+        .args(&files)
+        .output()
+        .expect("fuzz runs");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert_eq!(stdout.lines().count(), files.len(), "{stdout}");
+    for line in stdout.lines() {
+        assert!(line.contains(": Rejected; heap growth "), "{line}");
+        let kib: f64 = line
+            .split("heap growth ")
+            .nth(1)
+            .and_then(|rest| rest.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no heap growth in {line}"));
+        assert!(kib < 1024.0, "{line}");
+    }
+}

@@ -337,6 +337,56 @@ fn broken_gltf_files_give_clear_errors() {
         assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
     }
 
+    // What the fuzz harness found panicking inside the gltf crate: each a clear error now.
+    type Edit = fn(&mut serde_json::Value);
+    let cases: [(&str, Edit, &str); 4] = [
+        (
+            "missing-position-accessor",
+            |doc| doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = json!(7),
+            "refers to accessor 7, but the file has 4 accessors",
+        ),
+        (
+            "empty-accessor",
+            |doc| doc["accessors"][1]["count"] = json!(0),
+            "accessor 1 (NORMAL) has count 0",
+        ),
+        (
+            "short-stride",
+            |doc| doc["bufferViews"][0]["byteStride"] = json!(4),
+            "byteStride 4, smaller than the 12-byte element",
+        ),
+        (
+            "image-without-mime-type",
+            |doc| doc["images"][0] = json!({"bufferView": 3}),
+            "image 0 lies in a buffer view but names no mimeType",
+        ),
+    ];
+    for (name, edit, needle) in cases {
+        let src = fresh_dir(&format!("fuzz-found-{name}"));
+        let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
+        let mut doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
+        edit(&mut doc);
+        std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
+        let out = import(&input, &out_dir, &[]);
+        assert!(!out.status.success(), "{name} imported");
+        assert!(stderr(&out).contains(needle), "{name}: {}", stderr(&out));
+        assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
+    }
+    // A GLB whose header declares fewer bytes than the header itself.
+    let mut glb = std::fs::read(data("BoxTextured-Binary/BoxTextured.glb")).expect("glb");
+    glb[8..12].copy_from_slice(&4u32.to_le_bytes());
+    let path = dir.join("short-length.glb");
+    std::fs::write(&path, glb).expect("write");
+    let out = import(&path, &out_dir, &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("GLB header declares Some(4) bytes"),
+        "{}",
+        stderr(&out)
+    );
+    assert!(!stderr(&out).contains("panicked"), "{}", stderr(&out));
+
     let src = fresh_dir("missing-src");
     let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
     std::fs::remove_file(src.join("tex.png")).expect("remove png");

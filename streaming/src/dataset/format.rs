@@ -61,14 +61,16 @@ impl TextureFormat {
     }
 
     /// Bytes of one mip of `width` × `height` texels. Block formats round each side up to
-    /// whole 4×4 blocks, so BC1 levels of 2×2 and 1×1 still take one 8-byte block.
+    /// whole 4×4 blocks, so BC1 levels of 2×2 and 1×1 still take one 8-byte block. Saturates
+    /// at `u64::MAX` (only for extents near 2^32 a side, far past any valid texture).
     pub fn mip_bytes(self, width: u32, height: u32) -> u64 {
         let (w, h) = (u64::from(width), u64::from(height));
-        match self {
-            Self::Rgba8 => w * h * 4,
-            Self::Bc1 => w.div_ceil(4) * h.div_ceil(4) * 8,
-            Self::Bc3 | Self::Bc7 => w.div_ceil(4) * h.div_ceil(4) * 16,
-        }
+        let (units, unit_bytes) = match self {
+            Self::Rgba8 => (w * h, 4),
+            Self::Bc1 => (w.div_ceil(4) * h.div_ceil(4), 8),
+            Self::Bc3 | Self::Bc7 => (w.div_ceil(4) * h.div_ceil(4), 16),
+        };
+        units.saturating_mul(unit_bytes)
     }
 }
 
@@ -229,4 +231,20 @@ impl TextureInfo {
 /// Number of levels of a full mip chain for an extent of `2^width_log2 × 2^height_log2`.
 pub fn full_mip_count(width_log2: u8, height_log2: u8) -> u8 {
     width_log2.max(height_log2) + 1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mip_bytes_saturates_instead_of_overflowing() {
+        // A damaged DDS header once reached this with u32::MAX sides (found by fuzzing).
+        for format in TextureFormat::ALL {
+            assert!(format.mip_bytes(u32::MAX, u32::MAX) >= 1 << 63, "{format:?}");
+        }
+        assert_eq!(TextureFormat::Bc1.mip_bytes(2, 2), 8);
+        assert_eq!(TextureFormat::Bc7.mip_bytes(8, 4), 32);
+        assert_eq!(TextureFormat::Rgba8.mip_bytes(16384, 16384), 1 << 30);
+    }
 }

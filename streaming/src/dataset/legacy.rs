@@ -15,7 +15,7 @@ use super::error::DatasetError;
 use super::files::DatasetFiles;
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{check_versioned_prefix, read_all, table_body, u32_at, u64_at, LEGACY_VERSION};
-use super::pack::{META_MAGIC, PACK_HEADER_BYTES, PACK_MAGIC};
+use super::pack::{open_pack, META_MAGIC, PACK_HEADER_BYTES, PACK_MAGIC};
 use super::scene::{Scene, SceneLayout};
 use super::writer::{DatasetWriter, WriteSummary};
 use super::{CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
@@ -98,22 +98,7 @@ impl LegacyDataset {
         }
 
         let pack_path = dir.join(PACK_FILE);
-        let pack = super::io_util::ensure_regular_file(&pack_path)
-            .and_then(|()| File::open(&pack_path))
-            .map_err(|e| DatasetError::io(&pack_path, e))?;
-        let pack_len = pack.metadata().map_err(|e| DatasetError::io(&pack_path, e))?.len();
-        let mut header = [0u8; PACK_HEADER_BYTES as usize];
-        if pack_len < PACK_HEADER_BYTES {
-            return Err(DatasetError::Truncated {
-                path: pack_path,
-                what: "the header".into(),
-                offset: 0,
-                end: PACK_HEADER_BYTES,
-                file_len: pack_len,
-            });
-        }
-        pack.read_exact_at(&mut header, 0)
-            .map_err(|e| DatasetError::io(&pack_path, e))?;
+        let (pack, pack_len, header) = open_pack(&pack_path)?;
         check_versioned_prefix(&pack_path, &header, PACK_MAGIC, header.len(), LEGACY_VERSION)?;
         if u64_at(&header, 16) != count || u64_at(&header, 24) != pack_len {
             return Err(DatasetError::Corrupt {

@@ -49,6 +49,28 @@ pub struct TexturePack {
     first_checksum: Vec<u32>,
 }
 
+/// Opens `textures.pack` (a regular file only) and reads its header: the file, its length
+/// and the header bytes.
+pub(crate) fn open_pack(path: &Path) -> Result<(File, u64, [u8; PACK_HEADER_BYTES as usize]), DatasetError> {
+    let file = super::io_util::ensure_regular_file(path)
+        .and_then(|()| File::open(path))
+        .map_err(|e| DatasetError::io(path, e))?;
+    let len = file.metadata().map_err(|e| DatasetError::io(path, e))?.len();
+    if len < PACK_HEADER_BYTES {
+        return Err(DatasetError::Truncated {
+            path: path.to_path_buf(),
+            what: "the header".into(),
+            offset: 0,
+            end: PACK_HEADER_BYTES,
+            file_len: len,
+        });
+    }
+    let mut header = [0u8; PACK_HEADER_BYTES as usize];
+    file.read_exact_at(&mut header, 0)
+        .map_err(|e| DatasetError::io(path, e))?;
+    Ok((file, len, header))
+}
+
 impl TexturePack {
     /// Reads `textures.meta` and `textures.crc` of the dataset in `dir` and opens
     /// `textures.pack`, checking its header and that every texture's mip chain lies inside
@@ -73,22 +95,7 @@ impl TexturePack {
         }
 
         let pack_path = files.path(PACK_FILE);
-        let file = super::io_util::ensure_regular_file(&pack_path)
-            .and_then(|()| File::open(&pack_path))
-            .map_err(|e| DatasetError::io(&pack_path, e))?;
-        let pack_len = file.metadata().map_err(|e| DatasetError::io(&pack_path, e))?.len();
-        let mut header = [0u8; PACK_HEADER_BYTES as usize];
-        if pack_len < PACK_HEADER_BYTES {
-            return Err(DatasetError::Truncated {
-                path: pack_path,
-                what: "the header".into(),
-                offset: 0,
-                end: PACK_HEADER_BYTES,
-                file_len: pack_len,
-            });
-        }
-        file.read_exact_at(&mut header, 0)
-            .map_err(|e| DatasetError::io(&pack_path, e))?;
+        let (file, pack_len, header) = open_pack(&pack_path)?;
         let write_id = check_prefix(&pack_path, &header, PACK_MAGIC, header.len())?;
         let stored = u32_at(&header, PACK_HEADER_CRC_AT);
         let computed = crc32fast::hash(&header[..PACK_HEADER_CRC_AT]);

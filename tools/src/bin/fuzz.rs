@@ -43,6 +43,10 @@ struct Args {
     /// Scratch files and failing inputs go here.
     #[arg(long, default_value = "out/fuzz")]
     out: PathBuf,
+    /// Runs the saved failing inputs given (named `TARGET-SEED-INDEX--SEEDFILE.bin`, as
+    /// this tool saves them) once each and reports what they do, instead of fuzzing.
+    #[arg(long, num_args = 1..)]
+    replay: Vec<PathBuf>,
 }
 
 /// Totals of one harness.
@@ -93,6 +97,9 @@ fn main() -> Result<()> {
                 *message = info.to_string();
             }
         }));
+    }
+    if !args.replay.is_empty() {
+        return replay(&args, &last_panic);
     }
     let current = Arc::new(Mutex::new(Current::default()));
     spawn_watchdog(
@@ -195,7 +202,8 @@ fn run_harness(
             });
         }
         if let Some(failure) = failure {
-            let path = failures.join(format!("{name}-{}-{index}.bin", args.seed));
+            let seed_name = harness.seed_names()[seed_index];
+            let path = failures.join(format!("{name}-{}-{index}--{seed_name}.bin", args.seed));
             std::fs::write(&path, &bytes).with_context(|| format!("saving {}", path.display()))?;
             totals
                 .first_failure
@@ -214,6 +222,44 @@ fn run_harness(
         }
     }
     Ok((totals, started.elapsed()))
+}
+
+/// Runs each saved input once: outcome, heap growth, time, and the panic if any.
+fn replay(args: &Args, last_panic: &Mutex<String>) -> Result<()> {
+    for file in &args.replay {
+        let name = file.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        let target = Target::ALL
+            .into_iter()
+            .find(|t| name.starts_with(&format!("{}-", t.name())))
+            .with_context(|| format!("{}: the name does not start with a target", file.display()))?;
+        let seed_name = name
+            .strip_suffix(".bin")
+            .and_then(|n| n.split_once("--"))
+            .map(|(_, seed)| seed)
+            .with_context(|| format!("{}: the name does not end with --SEEDFILE.bin", file.display()))?;
+        let harness = Harness::new(target, &args.out.join(format!("replay-{}", target.name())))?;
+        let seed_index = harness
+            .seed_names()
+            .iter()
+            .position(|n| *n == seed_name)
+            .with_context(|| format!("{}: {} has no seed {seed_name}", file.display(), target.name()))?;
+        let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
+        GLOBAL.reset_peak_memory();
+        let started = Instant::now();
+        let result = std::panic::catch_unwind(AssertUnwindSafe(|| harness.run(seed_index, &bytes)));
+        let (growth, took) = (GLOBAL.get_peak_memory(), started.elapsed());
+        let outcome = match result {
+            Ok(outcome) => format!("{outcome:?}"),
+            Err(_) => format!("panicked: {}", last_panic.lock().map(|m| m.clone()).unwrap_or_default()),
+        };
+        println!(
+            "{}: {outcome}; heap growth {:.0} KiB; {:.1} ms",
+            file.display(),
+            growth as f64 / 1024.0,
+            took.as_secs_f64() * 1e3
+        );
+    }
+    Ok(())
 }
 
 /// Ends the process when one input runs longer than `hang`, saving it first.

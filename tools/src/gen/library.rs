@@ -91,6 +91,11 @@ fn decode(path: &Path) -> Result<RgbaImage> {
 /// Largest image side the tools decode: the dataset format's largest texture side.
 pub const MAX_IMAGE_SIDE: u32 = 1 << citystream_streaming::dataset::MAX_EXTENT_LOG2;
 
+/// Decoded sizes below this are decoded whatever the file size.
+const MIN_SUSPICIOUS_DECODE: u64 = 64 << 20;
+/// More than deflate's limit (about 1032:1) and than JPEG reaches on flat images.
+const MAX_COMPRESSION_RATIO: u64 = 2048;
+
 const KTX2_MAGIC: [u8; 8] = [0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB];
 
 /// Decodes a PNG, JPEG, DDS or KTX2 image to RGBA8. Images up to [`MAX_IMAGE_SIDE`] on a
@@ -104,6 +109,26 @@ pub fn decode_image_bytes(bytes: &[u8]) -> Result<RgbaImage> {
     let (w, h) = reader()?.into_dimensions()?;
     if w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
         bail!("image is {w}x{h}, larger than the maximum {MAX_IMAGE_SIDE} texels per side; downscale it first");
+    }
+    // Decoders allocate the whole image before reading its data, so a header claiming a
+    // huge extent in a tiny file would cost that memory for nothing.
+    let decoded = u64::from(w) * u64::from(h) * 4;
+    if bytes.starts_with(b"DDS ") {
+        // DXT1 stores 8 bytes per 4x4 block, DXT3/5 16: level 0 must be in the file.
+        let block = if bytes.get(84..88) == Some(b"DXT1") { 8 } else { 16 };
+        let needed = 128 + u64::from(w.div_ceil(4)) * u64::from(h.div_ceil(4)) * block;
+        if (bytes.len() as u64) < needed {
+            bail!(
+                "DDS image of {w}x{h} needs {needed} bytes for its first level, the file has {}",
+                bytes.len()
+            );
+        }
+    } else if decoded > MIN_SUSPICIOUS_DECODE && decoded / MAX_COMPRESSION_RATIO > bytes.len() as u64 {
+        bail!(
+            "image claims {w}x{h} ({} MiB decoded) in {} bytes, beyond any real compression: damaged or hostile",
+            decoded >> 20,
+            bytes.len()
+        );
     }
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(MAX_IMAGE_SIDE);
@@ -167,6 +192,7 @@ pub fn decode_ktx2(bytes: &[u8]) -> Result<RgbaImage> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::fuzz::ktx2_file;
 
     /// A PNG of `w`×`h` RGBA8 texels of one colour, compressed fast.
     fn flat_png(w: u32, h: u32) -> Vec<u8> {
@@ -194,6 +220,37 @@ mod tests {
         );
     }
 
+    /// A DXT1 DDS header claiming `w`×`h`, followed by `data`.
+    fn dxt1_dds(w: u32, h: u32, data: &[u8]) -> Vec<u8> {
+        let mut dds = b"DDS ".to_vec();
+        for v in [124u32, 0x1007, h, w, 0, 0, 1] {
+            dds.extend_from_slice(&v.to_le_bytes());
+        }
+        dds.extend_from_slice(&[0u8; 44]);
+        for v in [32u32, 0x4] {
+            dds.extend_from_slice(&v.to_le_bytes());
+        }
+        dds.extend_from_slice(b"DXT1");
+        dds.extend_from_slice(&[0u8; 40]);
+        dds.extend_from_slice(data);
+        dds
+    }
+
+    #[test]
+    fn tiny_files_claiming_huge_images_are_refused_before_allocating() {
+        // Found by `fuzz --target texture`: 136 bytes made the decoder allocate 432 MiB.
+        let err = decode_image_bytes(&dxt1_dds(12292, 12292, &[0u8; 8])).expect_err("short DDS");
+        assert!(format!("{err:#}").contains("needs 75546760 bytes"), "{err:#}");
+        assert!(decode_image_bytes(&dxt1_dds(8, 8, &[0u8; 32])).is_ok());
+        // A PNG header claiming 16384x16384 with no data behind it.
+        let mut png = flat_png(4, 4);
+        png[16..24].copy_from_slice(&[0, 0, 0x40, 0, 0, 0, 0x40, 0]);
+        let crc = crc32fast::hash(&png[12..29]);
+        png[29..33].copy_from_slice(&crc.to_be_bytes());
+        let err = decode_image_bytes(&png).expect_err("hostile PNG");
+        assert!(format!("{err:#}").contains("beyond any real compression"), "{err:#}");
+    }
+
     #[test]
     fn sizes_round_to_the_nearest_power_of_two_within_limits() {
         assert_eq!(pow2_log2(100, 9), 7);
@@ -201,29 +258,6 @@ mod tests {
         assert_eq!(pow2_log2(3000, 9), 9);
         assert_eq!(pow2_log2(1, 9), 2);
         assert_eq!(pow2_log2(64, 9), 6);
-    }
-
-    /// A minimal KTX2 file: header, one level index entry, an empty DFD, then the data.
-    pub(crate) fn ktx2_file(vk_format: u32, w: u32, h: u32, data: &[u8]) -> Vec<u8> {
-        let mut f = Vec::new();
-        f.extend_from_slice(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A]);
-        // vkFormat, typeSize, width, height, depth, layers, faces, levels, supercompression
-        for v in [vk_format, 1, w, h, 0, 0, 1, 1, 0] {
-            f.extend_from_slice(&v.to_le_bytes());
-        }
-        let dfd_offset = 80 + 24;
-        for v in [dfd_offset as u32, 4, 0, 0] {
-            f.extend_from_slice(&v.to_le_bytes());
-        }
-        f.extend_from_slice(&0u64.to_le_bytes());
-        f.extend_from_slice(&0u64.to_le_bytes());
-        let data_offset = (dfd_offset + 4) as u64;
-        for v in [data_offset, data.len() as u64, data.len() as u64] {
-            f.extend_from_slice(&v.to_le_bytes());
-        }
-        f.extend_from_slice(&4u32.to_le_bytes());
-        f.extend_from_slice(data);
-        f
     }
 
     #[test]
