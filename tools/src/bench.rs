@@ -38,7 +38,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 
-use crate::default_city::{build_then_move, ensure_default_city, is_dataset, DEFAULT_CITY_DIR};
+use crate::default_city::{build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR};
 use crate::report::{self, RunInput};
 
 /// Which benchmark `citystream bench` runs.
@@ -227,6 +227,8 @@ fn pressure_runs(budget_mb: u64) -> Vec<BenchRun> {
 fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
     let source = data_dir.join("large");
     let atlas = data_dir.join("large-atlas");
+    upgrade_if_old(&source, false)?;
+    upgrade_if_old(&atlas, false)?;
     if !is_dataset(&atlas) {
         if !is_dataset(&source) {
             eprintln!(

@@ -29,6 +29,22 @@ pub fn is_dataset(dir: &Path) -> bool {
     DatasetFiles::resolve(dir).is_ok()
 }
 
+/// Upgrades a dataset the tools created in an earlier format version (the default city, the
+/// benchmark cities): ours to rewrite, and cheaper than rebuilding. Returns whether it did.
+pub fn upgrade_if_old(dir: &Path, quiet: bool) -> Result<bool> {
+    if !matches!(DatasetFiles::resolve(dir), Err(DatasetError::NeedsUpgrade { .. })) {
+        return Ok(false);
+    }
+    if !quiet {
+        eprintln!(
+            "upgrading {} to the current dataset format (`citystream upgrade`)",
+            dir.display()
+        );
+    }
+    upgrade(dir).with_context(|| format!("upgrading {}", dir.display()))?;
+    Ok(true)
+}
+
 /// The per-mesh-texture city the atlases of `dir` are made from.
 pub fn source_dir(dir: &Path) -> PathBuf {
     let name = dir
@@ -44,18 +60,7 @@ pub fn source_dir(dir: &Path) -> PathBuf {
 /// renamed into place when complete, so runs started at the same time never
 /// write into one directory or read a half-written city.
 pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
-    if is_dataset(dir) {
-        return Ok(false);
-    }
-    if matches!(DatasetFiles::resolve(dir), Err(DatasetError::NeedsUpgrade { .. })) {
-        // The default city of an earlier build: ours to rewrite, and cheaper than rebuilding.
-        if !quiet {
-            eprintln!(
-                "upgrading the default city in {} to the current dataset format",
-                dir.display()
-            );
-        }
-        upgrade(dir).with_context(|| format!("upgrading the default city in {}", dir.display()))?;
+    if is_dataset(dir) || upgrade_if_old(dir, quiet)? {
         return Ok(false);
     }
     let started = std::time::Instant::now();
@@ -189,6 +194,22 @@ mod tests {
 
         build_then_move(&dir, empty_dataset).expect("moved");
         assert!(is_dataset(&dir));
+        let _ = std::fs::remove_dir_all(&root);
+    }
+
+    #[test]
+    fn datasets_of_an_earlier_format_are_upgraded_in_place_once() {
+        let root = scratch("upgrade");
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/v1-tiny");
+        std::fs::create_dir_all(&root).expect("dir");
+        for entry in std::fs::read_dir(&fixture).expect("fixture") {
+            let entry = entry.expect("entry");
+            std::fs::copy(entry.path(), root.join(entry.file_name())).expect("copy");
+        }
+        assert!(!is_dataset(&root));
+        assert!(upgrade_if_old(&root, true).expect("upgrade"));
+        assert!(is_dataset(&root));
+        assert!(!upgrade_if_old(&root, true).expect("nothing to do"));
         let _ = std::fs::remove_dir_all(&root);
     }
 
