@@ -73,7 +73,7 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
             source.display()
         );
     }
-    if !is_dataset(&source) {
+    if !is_dataset(&source) && !upgrade_if_old(&source, quiet)? {
         build_then_move(&source, |partial| {
             crate::gen::run(&GenArgs {
                 preset: Preset::Small,

@@ -750,6 +750,7 @@ fn kept_blocks(
 /// The blocks of a KTX2 or DDS file, or `None` when it holds something else (RGBA8, BC2,
 /// a non-power-of-two extent ...). Errors for files that claim BC data but are damaged.
 pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
+    let side_ok = |v: u32| v.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&v);
     let (format, width, height, levels) = if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB]) {
         use ktx2::Format;
         let reader = ktx2::Reader::new(bytes).map_err(|e| anyhow!("invalid KTX2: {e:?}"))?;
@@ -765,11 +766,23 @@ pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
             Some(Format::BC7_UNORM_BLOCK | Format::BC7_SRGB_BLOCK) => TextureFormat::Bc7,
             _ => return Ok(None),
         };
-        if header.supercompression_scheme.is_some() || header.layer_count > 1 || header.face_count > 1 {
+        let (width, height) = (header.pixel_width, header.pixel_height);
+        if header.supercompression_scheme.is_some()
+            || header.layer_count > 1
+            || header.face_count > 1
+            || !side_ok(width)
+            || !side_ok(height)
+        {
             return Ok(None);
         }
-        let levels: Vec<Vec<u8>> = reader.levels().map(|level| level.data.to_vec()).collect();
-        (format, header.pixel_width, header.pixel_height, levels)
+        // A level index may list any number of (overlapping) levels: copy a full chain at most.
+        let full_chain = width.max(height).trailing_zeros() as usize + 1;
+        let levels: Vec<Vec<u8>> = reader
+            .levels()
+            .take(full_chain)
+            .map(|level| level.data.to_vec())
+            .collect();
+        (format, width, height, levels)
     } else if bytes.starts_with(b"DDS ") {
         match dds_blocks(bytes)? {
             Some(found) => found,
@@ -778,7 +791,6 @@ pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
     } else {
         return Ok(None);
     };
-    let side_ok = |v: u32| v.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&v);
     if !side_ok(width) || !side_ok(height) || levels.is_empty() {
         return Ok(None);
     }
@@ -915,5 +927,44 @@ fn fit_power_of_two(image: RgbaImage, max_log2: u32, input: &Path) -> RgbaImage 
         image
     } else {
         image::imageops::resize(&image, tw, th, FilterType::Triangle)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A KTX2 file of a 4x4 BC1 texture whose level index lists `entries` levels, every one
+    /// pointing at the same 8-byte block.
+    fn ktx2_with_level_entries(entries: usize) -> Vec<u8> {
+        let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
+        for v in [131u32, 1, 4, 4, 0, 0, 1, entries as u32, 0] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        let dfd_offset = 80 + 24 * entries;
+        for v in [dfd_offset as u32, 4, 0, 0] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        f.extend_from_slice(&[0u8; 16]);
+        let data_offset = (dfd_offset + 4) as u64;
+        for _ in 0..entries {
+            for v in [data_offset, 8, 8] {
+                f.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        f.extend_from_slice(&4u32.to_le_bytes());
+        f.extend_from_slice(&[0x55; 8]);
+        f
+    }
+
+    #[test]
+    fn a_level_index_longer_than_the_chain_is_not_copied_whole() {
+        // 100,000 entries (2.4 MB of index): at most the full chain (3 levels of 4x4) is kept.
+        let source = block_source(&ktx2_with_level_entries(100_000))
+            .expect("readable")
+            .expect("BC1 blocks");
+        assert_eq!((source.format, source.width, source.height), (TextureFormat::Bc1, 4, 4));
+        assert_eq!(source.levels.len(), 3);
+        assert!(source.levels.iter().all(|l| l == &[0x55; 8]));
     }
 }

@@ -411,6 +411,38 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
 }
 
 #[test]
+fn concurrent_upgrades_of_one_dataset_both_succeed() {
+    // Two runs finding the same old city: the second waits for the first, then has nothing to do.
+    for round in 0..3 {
+        let dir = v1_fixture(&format!("v1-concurrent-{round}"));
+        let spawn = || {
+            Command::new(env!("CARGO_BIN_EXE_citystream"))
+                .args(["upgrade", utf8(&dir)])
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped())
+                .spawn()
+                .expect("spawn")
+        };
+        let (a, b) = (spawn(), spawn());
+        let (a, b) = (a.wait_with_output().expect("a"), b.wait_with_output().expect("b"));
+        for out in [&a, &b] {
+            assert!(out.status.success(), "round {round}: {}", stderr(out));
+        }
+        let said: Vec<String> = [&a, &b]
+            .iter()
+            .map(|o| String::from_utf8_lossy(&o.stdout).into_owned())
+            .collect();
+        assert_eq!(
+            said.iter().filter(|s| s.contains("nothing to do")).count(),
+            1,
+            "round {round}: {said:?}"
+        );
+        verify(&dir).expect("upgraded dataset verifies");
+        assert_eq!(write_dirs(&dir).len(), 1);
+    }
+}
+
+#[test]
 fn damaged_version_1_datasets_are_not_upgraded() {
     let dir = v1_fixture("v1-damaged");
     let pack = dir.join("textures.pack");

@@ -106,7 +106,9 @@ pub fn write_dir_name(write_id: u64) -> String {
 
 fn parse_write_dir_name(name: &str) -> Option<u64> {
     let hex = name.strip_prefix(WRITE_DIR_PREFIX)?;
-    (hex.len() == 16).then(|| u64::from_str_radix(hex, 16).ok()).flatten()
+    // Exactly what `write_dir_name` makes: a user's `write-+00…` or upper-case name is not ours.
+    let ours = hex.len() == 16 && hex.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
+    ours.then(|| u64::from_str_radix(hex, 16).ok()).flatten()
 }
 
 fn encode_manifest(write_id: u64) -> Vec<u8> {
@@ -194,15 +196,20 @@ pub(crate) struct PendingWrite {
 }
 
 impl PendingWrite {
-    /// Creates `dir` if needed, takes its write lock, removes what earlier writers that died
-    /// left behind, and creates the new write's subdirectory.
-    pub(crate) fn begin(dir: &Path) -> Result<Self, DatasetError> {
+    /// Creates `dir` if needed, takes its write lock (waiting for another writer to finish
+    /// when `wait`, else failing with [`DatasetError::Locked`]), removes what earlier writers
+    /// that died left behind, and creates the new write's subdirectory.
+    pub(crate) fn begin(dir: &Path, wait: bool) -> Result<Self, DatasetError> {
         std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
         let lock = File::open(dir).map_err(|e| DatasetError::io(dir, e))?;
-        match lock.try_lock() {
-            Ok(()) => {}
-            Err(TryLockError::WouldBlock) => return Err(DatasetError::Locked { dir: dir.to_path_buf() }),
-            Err(TryLockError::Error(e)) => return Err(DatasetError::io(dir, e)),
+        if wait {
+            lock.lock().map_err(|e| DatasetError::io(dir, e))?;
+        } else {
+            match lock.try_lock() {
+                Ok(()) => {}
+                Err(TryLockError::WouldBlock) => return Err(DatasetError::Locked { dir: dir.to_path_buf() }),
+                Err(TryLockError::Error(e)) => return Err(DatasetError::io(dir, e)),
+            }
         }
         let manifest_path = dir.join(MANIFEST_FILE);
         let previous = match read_all(&manifest_path) {
@@ -236,6 +243,11 @@ impl PendingWrite {
         self.write_id
     }
 
+    /// The write the manifest named when the lock was taken (`None`: no dataset yet).
+    pub(crate) fn previous(&self) -> Option<u64> {
+        self.previous
+    }
+
     pub(crate) fn path(&self, name: &str) -> PathBuf {
         self.data_dir.join(name)
     }
@@ -254,6 +266,8 @@ impl PendingWrite {
     /// version-1 files; failures there only leave garbage the next writer removes.
     pub(crate) fn commit(mut self) -> Result<(), DatasetError> {
         sync_dir(&self.data_dir)?;
+        // The new subdirectory's own entry must be durable before a manifest names it.
+        sync_dir(&self.dir)?;
         let temp = self
             .dir
             .join(format!("{TEMP_MANIFEST_PREFIX}{:016x}.tmp", self.write_id));
@@ -312,7 +326,14 @@ mod tests {
         for id in [1, 0xdead_beef, u64::MAX] {
             assert_eq!(parse_write_dir_name(&write_dir_name(id)), Some(id));
         }
-        for other in ["write-1", "write-xyz0000000000000", "writes-0000000000000001", "photos"] {
+        for other in [
+            "write-1",
+            "write-xyz0000000000000",
+            "writes-0000000000000001",
+            "photos",
+            "write-+000000000000001",
+            "write-00000000DEADBEEF",
+        ] {
             assert_eq!(parse_write_dir_name(other), None, "{other}");
         }
     }

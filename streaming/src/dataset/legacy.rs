@@ -46,7 +46,15 @@ pub fn upgrade(dir: &Path) -> Result<UpgradeSummary, DatasetError> {
         Err(DatasetError::NeedsUpgrade { .. }) => {}
         Err(e) => return Err(e),
     }
-    let mut writer = DatasetWriter::create(dir)?;
+    // Waits for a concurrent upgrade (two runs finding the same old city), then finds the
+    // dataset already in the current version and leaves it.
+    let mut writer = DatasetWriter::create_waiting(dir)?;
+    if writer.replaces_a_dataset() {
+        return Ok(UpgradeSummary {
+            from_version: FORMAT_VERSION,
+            written: None,
+        });
+    }
     let legacy = LegacyDataset::open(dir)?;
     let mut chain = Vec::new();
     for (id, info) in legacy.textures.iter().enumerate() {

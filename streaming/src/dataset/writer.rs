@@ -62,7 +62,21 @@ impl DatasetWriter {
     /// is untouched until [`DatasetWriter::finish`]; a file named `dataset.manifest` that is
     /// not a dataset manifest is an error, never replaced.
     pub fn create(dir: &Path) -> Result<Self, DatasetError> {
-        let pending = PendingWrite::begin(dir)?;
+        Self::start(PendingWrite::begin(dir, false)?)
+    }
+
+    /// [`DatasetWriter::create`], waiting for another writer of `dir` to finish instead of
+    /// failing with [`DatasetError::Locked`].
+    pub fn create_waiting(dir: &Path) -> Result<Self, DatasetError> {
+        Self::start(PendingWrite::begin(dir, true)?)
+    }
+
+    /// Whether `dir` held a dataset (a manifest) when this writer took its lock.
+    pub fn replaces_a_dataset(&self) -> bool {
+        self.pending.previous().is_some()
+    }
+
+    fn start(pending: PendingWrite) -> Result<Self, DatasetError> {
         let pack_path = pending.path(PACK_FILE);
         let file = std::fs::OpenOptions::new()
             .write(true)
