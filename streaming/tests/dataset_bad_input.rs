@@ -279,6 +279,18 @@ fn count_mismatches_between_files_are_reported() {
     assert_names(&open_err(&dir), CHECKSUM_FILE, &["mip checksums"]);
 }
 
+/// Writes `word` at byte `at` of a copy of the fixture's `scene.bin` (checksum recomputed, so
+/// the check behind it is reached) and expects a `Corrupt` error naming `needle`.
+fn assert_scene_word_refused(name: &str, at: usize, word: [u8; 4], needle: &str) {
+    let dir = damaged(name, SCENE_FILE, |b| {
+        b[at..at + 4].copy_from_slice(&word);
+        fix_scene_crc(b);
+    });
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
+    assert_names(&err, SCENE_FILE, &[needle]);
+}
+
 /// Byte offsets of the scene sections for the fixture.
 struct SceneLayout {
     meshes: usize,
@@ -347,13 +359,7 @@ fn non_finite_attributes_are_rejected() {
         ("nan-bounds", layout.meshes + 44 + 20, f32::NAN, "mesh 1: bounds"),
     ];
     for (name, at, value, needle) in cases {
-        let dir = damaged(name, SCENE_FILE, |b| {
-            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
-            fix_scene_crc(b);
-        });
-        let err = open_err(&dir);
-        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
-        assert_names(&err, SCENE_FILE, &[needle]);
+        assert_scene_word_refused(name, at, value.to_le_bytes(), needle);
     }
 }
 
@@ -369,13 +375,7 @@ fn mesh_ranges_and_texture_ids_are_checked() {
     ];
     for (name, field, value, needle) in cases {
         let at = layout.meshes + 44 + field;
-        let dir = damaged(name, SCENE_FILE, |b| {
-            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
-            fix_scene_crc(b);
-        });
-        let err = open_err(&dir);
-        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
-        assert_names(&err, SCENE_FILE, &[needle]);
+        assert_scene_word_refused(name, at, value.to_le_bytes(), needle);
     }
 }
 
@@ -480,13 +480,7 @@ fn bounds_that_do_not_match_the_vertices_are_refused() {
         ("mesh-inf", layout.meshes + 44 + 20, f32::NEG_INFINITY, "mesh 1: bounds"),
     ];
     for (name, at, value, needle) in cases {
-        let dir = damaged(name, SCENE_FILE, |b| {
-            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
-            fix_scene_crc(b);
-        });
-        let err = open_err(&dir);
-        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
-        assert_names(&err, SCENE_FILE, &[needle]);
+        assert_scene_word_refused(name, at, value.to_le_bytes(), needle);
     }
 }
 

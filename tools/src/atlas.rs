@@ -222,17 +222,6 @@ fn z_order(x: i64, z: i64) -> u128 {
     spread(x) | (spread(z) << 1)
 }
 
-fn decode(format: TextureFormat, data: &[u8], w: u32, h: u32) -> Vec<u8> {
-    match format {
-        TextureFormat::Bc1 => {
-            let mut out = vec![0u8; (w * h * 4) as usize];
-            texpresso::Format::Bc1.decompress(data, w as usize, h as usize, &mut out);
-            out
-        }
-        _ => data.to_vec(),
-    }
-}
-
 /// Runs `citystream atlas`.
 pub fn run(args: &AtlasArgs) -> Result<()> {
     let start = Instant::now();
@@ -492,7 +481,7 @@ fn build_atlas(
                 continue;
             }
             dataset.textures.read_mip(t as u32, level, &mut buf)?;
-            let texels = decode(info.format(), &buf, w, h);
+            let texels = crate::gen::decode_level(info.format(), &buf, w, h);
             let (x0, y0) = ((p.x >> level) as usize, (p.y >> level) as usize);
             for row in 0..h as usize {
                 let dst = ((y0 + row) * side + x0) * 4;

@@ -483,16 +483,8 @@ fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
             .with_context(|| format!("copying the glTF sample {file}"))?;
     }
     let read = |path: PathBuf| std::fs::read(&path).with_context(|| format!("reading {}", path.display()));
-    let mut bin = Vec::new();
-    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
-    let uvs: [[f32; 2]; 4] = [[0.0, 2.0], [2.0, 2.0], [2.0, 0.0], [0.0, 0.0]];
-    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
-        bin.extend_from_slice(&v.to_le_bytes());
-    }
-    for i in [0u16, 1, 2, 0, 2, 3] {
-        bin.extend_from_slice(&i.to_le_bytes());
-    }
-    let data_uri = format!("data:application/octet-stream;base64,{}", base64(&bin));
+    let quad_data = quad_buffer(1.0, 2.0);
+    let data_uri = format!("data:application/octet-stream;base64,{}", base64(&quad_data.bytes));
     let sin_45_degrees = std::f32::consts::FRAC_1_SQRT_2;
     let quad = serde_json::json!({
         "asset": {"version": "2.0"},
@@ -506,18 +498,9 @@ fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
         "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2,
                                     "material": 0, "mode": 4}]}],
         "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.8, 1.0, 1.0]}}],
-        "buffers": [{"uri": data_uri, "byteLength": bin.len()}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
-            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
-            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
-             "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]},
-            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
-            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
-        ]
+        "buffers": [{"uri": data_uri, "byteLength": quad_data.bytes.len()}],
+        "bufferViews": quad_data.buffer_views,
+        "accessors": quad_data.accessors
     });
     Ok(vec![
         Seed {
@@ -533,6 +516,45 @@ fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
             bytes: serde_json::to_vec_pretty(&quad)?,
         },
     ])
+}
+
+/// One square quad in the xy plane as a glTF buffer, with what describes it.
+#[derive(Debug)]
+pub struct QuadBuffer {
+    /// Positions (48 bytes), UVs (32), u16 indices (12).
+    pub bytes: Vec<u8>,
+    /// The three buffer views over buffer 0.
+    pub buffer_views: serde_json::Value,
+    /// Accessors 0 (POSITION, with min and max), 1 (TEXCOORD_0), 2 (indices).
+    pub accessors: serde_json::Value,
+}
+
+/// A quad of `side` metres with UVs from 0 to `uv_max` (beyond 1 they repeat): the glTF
+/// buffer behind the fuzz seed and the tests' glTF files.
+pub fn quad_buffer(side: f32, uv_max: f32) -> QuadBuffer {
+    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [side, 0.0, 0.0], [side, side, 0.0], [0.0, side, 0.0]];
+    let uvs: [[f32; 2]; 4] = [[0.0, uv_max], [uv_max, uv_max], [uv_max, 0.0], [0.0, 0.0]];
+    let mut bytes = Vec::new();
+    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bytes.extend_from_slice(&i.to_le_bytes());
+    }
+    QuadBuffer {
+        bytes,
+        buffer_views: serde_json::json!([
+            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
+        ]),
+        accessors: serde_json::json!([
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+             "min": [0.0, 0.0, 0.0], "max": [side, side, 0.0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
+        ]),
+    }
 }
 
 fn base64(bytes: &[u8]) -> String {
@@ -566,27 +588,29 @@ fn texture_seeds() -> Result<Vec<Seed>> {
     Ok(vec![
         Seed {
             name: "rgba8.ktx2".into(),
-            bytes: ktx2_file(37, 8, 4, &rgba),
+            bytes: ktx2_file(37, 8, 4, &[rgba]),
         },
         Seed {
             name: "bc1.ktx2".into(),
-            bytes: ktx2_file(131, 4, 4, &bc1),
+            bytes: ktx2_file(131, 4, 4, &[bc1.to_vec()]),
         },
         Seed {
             name: "bc3.ktx2".into(),
-            bytes: ktx2_file(137, 4, 4, &bc3),
+            bytes: ktx2_file(137, 4, 4, &[bc3.to_vec()]),
         },
         Seed {
             name: "dxt1.dds".into(),
-            bytes: dds_file(b"DXT1", 4, 4, &bc1),
+            bytes: dds_file(b"DXT1", 0, 4, 4, &[bc1.to_vec()]),
         },
         Seed {
             name: "dxt5.dds".into(),
-            bytes: dds_file(b"DXT5", 4, 4, &bc3),
+            bytes: dds_file(b"DXT5", 0, 4, 4, &[bc3.to_vec()]),
         },
         Seed {
             name: "bc7-dx10.dds".into(),
-            bytes: dds_dx10_bc7(
+            bytes: dds_file(
+                b"DX10",
+                98,
                 8,
                 8,
                 &[
@@ -606,56 +630,47 @@ fn texture_seeds() -> Result<Vec<Seed>> {
 
 use image::ImageEncoder;
 
-/// A KTX2 file with one level: header, level index, an empty data format descriptor, data
-/// (also the library tests' minimal KTX2 writer).
-pub(crate) fn ktx2_file(vk_format: u32, w: u32, h: u32, data: &[u8]) -> Vec<u8> {
+/// A KTX2 file of `levels` (finest first): header, level index, a 4-byte data format
+/// descriptor, then the levels in order. The minimal writer behind the fuzz seeds and the
+/// tests' KTX2 files.
+pub fn ktx2_file(vk_format: u32, width: u32, height: u32, levels: &[Vec<u8>]) -> Vec<u8> {
     let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
-    for v in [vk_format, 1, w, h, 0, 0, 1, 1, 0] {
+    for v in [vk_format, 1, width, height, 0, 0, 1, levels.len() as u32, 0] {
         f.extend_from_slice(&v.to_le_bytes());
     }
-    let dfd_offset = 80 + 24;
+    let dfd_offset = 80 + 24 * levels.len();
     for v in [dfd_offset as u32, 4, 0, 0] {
         f.extend_from_slice(&v.to_le_bytes());
     }
-    f.extend_from_slice(&0u64.to_le_bytes());
-    f.extend_from_slice(&0u64.to_le_bytes());
-    let data_offset = (dfd_offset + 4) as u64;
-    for v in [data_offset, data.len() as u64, data.len() as u64] {
-        f.extend_from_slice(&v.to_le_bytes());
+    // No supercompression global data.
+    f.extend_from_slice(&[0u8; 16]);
+    let mut offset = (dfd_offset + 4) as u64;
+    for level in levels {
+        for v in [offset, level.len() as u64, level.len() as u64] {
+            f.extend_from_slice(&v.to_le_bytes());
+        }
+        offset += level.len() as u64;
     }
     f.extend_from_slice(&4u32.to_le_bytes());
-    f.extend_from_slice(data);
+    for level in levels {
+        f.extend_from_slice(level);
+    }
     f
 }
 
-/// A DDS file with a `DX10` header (BC7, DXGI format 98) and `levels`, finest first.
-fn dds_dx10_bc7(w: u32, h: u32, levels: &[Vec<u8>]) -> Vec<u8> {
+/// A DDS file of `levels` (finest first) with the FourCC `four_cc`; `DX10` adds the extended
+/// header naming `dxgi_format` (ignored otherwise). The minimal writer behind the fuzz seeds
+/// and the tests' DDS files.
+pub fn dds_file(four_cc: &[u8; 4], dxgi_format: u32, width: u32, height: u32, levels: &[Vec<u8>]) -> Vec<u8> {
+    const DDSD_MIPMAPCOUNT: u32 = 0x2_0000;
+    const CAPS_MIPMAP: u32 = 0x40_0008;
+    let mipmapped = levels.len() > 1;
+    let flags = 0x1007 | if mipmapped { DDSD_MIPMAPCOUNT } else { 0 };
     let mut dds = b"DDS ".to_vec();
-    for v in [124u32, 0x2_1007, h, w, levels[0].len() as u32, 0, levels.len() as u32] {
-        dds.extend_from_slice(&v.to_le_bytes());
-    }
-    dds.extend_from_slice(&[0u8; 44]);
-    for v in [32u32, 0x4] {
-        dds.extend_from_slice(&v.to_le_bytes());
-    }
-    dds.extend_from_slice(b"DX10");
-    dds.extend_from_slice(&[0u8; 20]);
-    dds.extend_from_slice(&0x40_1008u32.to_le_bytes());
-    dds.extend_from_slice(&[0u8; 16]);
-    // DXGI format, dimension (TEXTURE2D), misc flags, array size, misc flags 2.
-    for v in [98u32, 3, 0, 1, 0] {
-        dds.extend_from_slice(&v.to_le_bytes());
-    }
-    for level in levels {
-        dds.extend_from_slice(level);
-    }
-    dds
-}
-
-/// A DDS file with a FourCC pixel format and one level.
-fn dds_file(four_cc: &[u8; 4], w: u32, h: u32, data: &[u8]) -> Vec<u8> {
-    let mut dds = b"DDS ".to_vec();
-    for v in [124u32, 0x1007, h, w, data.len() as u32, 0, 1] {
+    // size, flags (caps|height|width|pixelformat[|mipmapcount]), height, width, linear size,
+    // depth, mip count
+    let linear_size = levels.first().map_or(0, Vec::len) as u32;
+    for v in [124u32, flags, height, width, linear_size, 0, levels.len() as u32] {
         dds.extend_from_slice(&v.to_le_bytes());
     }
     dds.extend_from_slice(&[0u8; 44]);
@@ -664,9 +679,18 @@ fn dds_file(four_cc: &[u8; 4], w: u32, h: u32, data: &[u8]) -> Vec<u8> {
     }
     dds.extend_from_slice(four_cc);
     dds.extend_from_slice(&[0u8; 20]);
-    dds.extend_from_slice(&0x1000u32.to_le_bytes());
+    let caps = 0x1000 | if mipmapped { CAPS_MIPMAP } else { 0 };
+    dds.extend_from_slice(&caps.to_le_bytes());
     dds.extend_from_slice(&[0u8; 16]);
-    dds.extend_from_slice(data);
+    if four_cc == b"DX10" {
+        // DXGI format, dimension (TEXTURE2D), misc flags, array size, misc flags 2.
+        for v in [dxgi_format, 3, 0, 1, 0] {
+            dds.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    for level in levels {
+        dds.extend_from_slice(level);
+    }
     dds
 }
 

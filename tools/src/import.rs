@@ -750,7 +750,6 @@ fn kept_blocks(
 /// The blocks of a KTX2 or DDS file, or `None` when it holds something else (RGBA8, BC2,
 /// a non-power-of-two extent ...). Errors for files that claim BC data but are damaged.
 pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
-    let side_ok = |v: u32| v.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&v);
     let (format, width, height, levels) = if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB]) {
         use ktx2::Format;
         let reader = ktx2::Reader::new(bytes).map_err(|e| anyhow!("invalid KTX2: {e:?}"))?;
@@ -770,8 +769,8 @@ pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
         if header.supercompression_scheme.is_some()
             || header.layer_count > 1
             || header.face_count > 1
-            || !side_ok(width)
-            || !side_ok(height)
+            || !keepable_side(width)
+            || !keepable_side(height)
         {
             return Ok(None);
         }
@@ -791,7 +790,8 @@ pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
     } else {
         return Ok(None);
     };
-    if !side_ok(width) || !side_ok(height) || levels.is_empty() {
+    // Both readers have checked the sides (`keepable_side`).
+    if levels.is_empty() {
         return Ok(None);
     }
     let full_chain = width.max(height).trailing_zeros() as usize + 1;
@@ -812,6 +812,12 @@ pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
     }))
 }
 
+/// Whether blocks of a texture with this side can be kept: a power of two, at least one
+/// 4-texel block, at most the largest texture side.
+fn keepable_side(side: u32) -> bool {
+    side.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&side)
+}
+
 type DdsLevels = (TextureFormat, u32, u32, Vec<Vec<u8>>);
 
 /// The BC1/BC3/BC7 levels of a DDS file (FourCC `DXT1`/`DXT5`, or `DX10` with a BC1, BC3 or
@@ -827,8 +833,7 @@ fn dds_blocks(bytes: &[u8]) -> Result<Option<DdsLevels>> {
         bail!("DDS header size is {}, not 124", u32_at(4)?);
     }
     let (height, width) = (u32_at(12)?, u32_at(16)?);
-    let side_ok = |v: u32| v.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&v);
-    if !side_ok(width) || !side_ok(height) {
+    if !keepable_side(width) || !keepable_side(height) {
         // Not keepable as blocks; the decoder reports what is wrong with it.
         return Ok(None);
     }

@@ -8,6 +8,7 @@ use std::process::{Command, Output, Stdio};
 use std::time::Instant;
 
 use citystream_streaming::dataset::{verify, Dataset, DatasetFiles, MANIFEST_FILE, SCENE_FILE};
+use citystream_tools::fuzz::quad_buffer;
 
 /// Kill moments per tool, spread evenly over an uninterrupted run.
 const KILL_MOMENTS: u32 = 20;
@@ -189,16 +190,8 @@ fn killed_atlas_leaves_the_old_or_the_new_dataset() {
 /// resampling and encoding.
 fn write_big_texture_gltf(dir: &Path, side: u32) -> PathBuf {
     std::fs::create_dir_all(dir).expect("dir");
-    let mut bin = Vec::new();
-    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [10.0, 10.0, 0.0], [0.0, 10.0, 0.0]];
-    let uvs: [[f32; 2]; 4] = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
-    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
-        bin.extend_from_slice(&v.to_le_bytes());
-    }
-    for i in [0u16, 1, 2, 0, 2, 3] {
-        bin.extend_from_slice(&i.to_le_bytes());
-    }
-    std::fs::write(dir.join("quad.bin"), &bin).expect("bin");
+    let quad = quad_buffer(10.0, 1.0);
+    std::fs::write(dir.join("quad.bin"), &quad.bytes).expect("bin");
     image::RgbaImage::from_fn(side, side, |x, y| {
         image::Rgba([(x % 251) as u8, (y % 241) as u8, ((x ^ y) % 256) as u8, 255])
     })
@@ -213,17 +206,9 @@ fn write_big_texture_gltf(dir: &Path, side: u32) -> PathBuf {
         "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
         "textures": [{"source": 0}],
         "images": [{"uri": "big.png"}],
-        "buffers": [{"uri": "quad.bin", "byteLength": bin.len()}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
-            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
-            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [10.0, 10.0, 0.0]},
-            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
-            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
-        ]
+        "buffers": [{"uri": "quad.bin", "byteLength": quad.bytes.len()}],
+        "bufferViews": quad.buffer_views,
+        "accessors": quad.accessors
     });
     let path = dir.join("quad.gltf");
     std::fs::write(&path, serde_json::to_vec(&gltf).expect("json")).expect("gltf");

@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use citystream_streaming::dataset::Dataset;
+use citystream_tools::fuzz::{dds_file, ktx2_file, quad_buffer};
 use serde_json::json;
 
 fn citystream(args: &[&str]) -> Output {
@@ -432,53 +433,6 @@ fn shared_children_are_capped_under_a_memory_limit() {
     assert!(text.contains("node instances") && text.contains("trees"), "{text}");
 }
 
-/// A KTX2 file of `levels` (finest first): header, level index, a 4-byte data format
-/// descriptor, then the levels in order.
-fn ktx2_levels(vk_format: u32, w: u32, h: u32, levels: &[Vec<u8>]) -> Vec<u8> {
-    let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
-    for v in [vk_format, 1, w, h, 0, 0, 1, levels.len() as u32, 0] {
-        f.extend_from_slice(&v.to_le_bytes());
-    }
-    let dfd_offset = 80 + 24 * levels.len();
-    for v in [dfd_offset as u32, 4, 0, 0] {
-        f.extend_from_slice(&v.to_le_bytes());
-    }
-    f.extend_from_slice(&[0u8; 16]);
-    let mut offset = (dfd_offset + 4) as u64;
-    for level in levels {
-        for v in [offset, level.len() as u64, level.len() as u64] {
-            f.extend_from_slice(&v.to_le_bytes());
-        }
-        offset += level.len() as u64;
-    }
-    f.extend_from_slice(&4u32.to_le_bytes());
-    for level in levels {
-        f.extend_from_slice(level);
-    }
-    f
-}
-
-/// A DDS file with FourCC `DXT5` (BC3) and `levels`.
-fn dds_dxt5(w: u32, h: u32, levels: &[Vec<u8>]) -> Vec<u8> {
-    let mut dds = b"DDS ".to_vec();
-    // size, flags (caps|height|width|pixelformat|mipmapcount), height, width, pitch, depth, mips
-    for v in [124u32, 0x2_1007, h, w, levels[0].len() as u32, 0, levels.len() as u32] {
-        dds.extend_from_slice(&v.to_le_bytes());
-    }
-    dds.extend_from_slice(&[0u8; 44]);
-    for v in [32u32, 0x4] {
-        dds.extend_from_slice(&v.to_le_bytes());
-    }
-    dds.extend_from_slice(b"DXT5");
-    dds.extend_from_slice(&[0u8; 20]);
-    dds.extend_from_slice(&0x40_1008u32.to_le_bytes());
-    dds.extend_from_slice(&[0u8; 16]);
-    for level in levels {
-        dds.extend_from_slice(level);
-    }
-    dds
-}
-
 /// Deterministic block bytes for a `w`×`h` level of 16-byte blocks. Mode bits are forced to
 /// BC7 mode 6 (and are harmless BC3 alpha bits), so every block decodes to real colours.
 fn blocks(w: u32, h: u32, salt: u8) -> Vec<u8> {
@@ -502,18 +456,10 @@ fn block_compressed_ktx2_and_dds_sources_keep_their_blocks() {
         .map(|l| blocks((16 >> l).max(1), (8 >> l).max(1), l as u8))
         .collect();
     let bc3: Vec<Vec<u8>> = (0..4).map(|l| blocks(8 >> l, 8 >> l, 100 + l as u8)).collect();
-    std::fs::write(dir.join("facade.ktx2"), ktx2_levels(145, 16, 8, &bc7)).expect("ktx2");
-    std::fs::write(dir.join("sign.dds"), dds_dxt5(8, 8, &bc3)).expect("dds");
-    let mut bin = Vec::new();
-    let positions: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
-    let uvs: [[f32; 2]; 4] = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
-    for v in positions.iter().flatten().chain(uvs.iter().flatten()) {
-        bin.extend_from_slice(&v.to_le_bytes());
-    }
-    for i in [0u16, 1, 2, 0, 2, 3] {
-        bin.extend_from_slice(&i.to_le_bytes());
-    }
-    std::fs::write(dir.join("quad.bin"), &bin).expect("bin");
+    std::fs::write(dir.join("facade.ktx2"), ktx2_file(145, 16, 8, &bc7)).expect("ktx2");
+    std::fs::write(dir.join("sign.dds"), dds_file(b"DXT5", 0, 8, 8, &bc3)).expect("dds");
+    let quad = quad_buffer(1.0, 1.0);
+    std::fs::write(dir.join("quad.bin"), &quad.bytes).expect("bin");
     let primitive =
         |material: u32| json!({"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": material});
     let gltf = json!({
@@ -530,17 +476,9 @@ fn block_compressed_ktx2_and_dds_sources_keep_their_blocks() {
         ],
         "textures": [{"source": 0}, {"source": 1}],
         "images": [{"uri": "facade.ktx2"}, {"uri": "sign.dds"}],
-        "buffers": [{"uri": "quad.bin", "byteLength": bin.len()}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
-            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
-            {"buffer": 0, "byteOffset": 80, "byteLength": 12}
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]},
-            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
-            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}
-        ]
+        "buffers": [{"uri": "quad.bin", "byteLength": quad.bytes.len()}],
+        "bufferViews": quad.buffer_views,
+        "accessors": quad.accessors
     });
     let input = dir.join("scene.gltf");
     std::fs::write(&input, serde_json::to_vec(&gltf).expect("json")).expect("gltf");

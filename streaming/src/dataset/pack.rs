@@ -250,11 +250,18 @@ impl TexturePack {
     /// The stored CRC-32 of one mip.
     pub fn mip_checksum(&self, texture: u32, level: u32) -> Result<u32, DatasetError> {
         self.mip_location(texture, level)?;
-        Ok(self.mip_checksums[self.first_checksum[texture as usize] as usize + level as usize])
+        Ok(self.stored_checksum(texture, level))
     }
 
+    /// The stored CRC-32 of a `(texture, level)` pair [`TexturePack::mip_location`] accepted.
+    fn stored_checksum(&self, texture: u32, level: u32) -> u32 {
+        self.mip_checksums[self.first_checksum[texture as usize] as usize + level as usize]
+    }
+
+    /// Checks a mip just read; `location` is what `mip_location` returned for it, so the
+    /// pair is known to exist.
     fn check_mip(&self, texture: u32, level: u32, location: MipLocation, bytes: &[u8]) -> Result<(), DatasetError> {
-        let stored = self.mip_checksum(texture, level)?;
+        let stored = self.stored_checksum(texture, level);
         let computed = crc32fast::hash(bytes);
         if stored == computed {
             return Ok(());

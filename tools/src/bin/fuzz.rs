@@ -169,11 +169,7 @@ fn run_harness(
             c.bytes.clone_from(&bytes);
             c.started = Some(Instant::now());
         }
-        let input_started = Instant::now();
-        GLOBAL.reset_peak_memory();
-        let result = std::panic::catch_unwind(AssertUnwindSafe(|| harness.run(seed_index, &bytes)));
-        let growth = GLOBAL.get_peak_memory();
-        let took = input_started.elapsed();
+        let Measured { result, growth, took } = measure(harness, seed_index, &bytes, last_panic);
         if let Ok(mut c) = current.lock() {
             c.started = None;
         }
@@ -184,9 +180,8 @@ fn run_harness(
         match result {
             Ok(Outcome::Accepted) => totals.accepted += 1,
             Ok(Outcome::Rejected) => totals.rejected += 1,
-            Err(_) => {
+            Err(message) => {
                 totals.panics += 1;
-                let message = last_panic.lock().map(|m| m.clone()).unwrap_or_default();
                 let site = message.lines().next().unwrap_or_default().to_string();
                 *totals.panic_sites.entry(site).or_insert(0) += 1;
                 failure = Some(format!("input {index} panicked: {message}"));
@@ -224,6 +219,23 @@ fn run_harness(
     Ok((totals, started.elapsed()))
 }
 
+/// What one input did: its outcome or panic message, the heap growth it caused (peak
+/// over the input) and its duration.
+struct Measured {
+    result: std::result::Result<Outcome, String>,
+    growth: usize,
+    took: Duration,
+}
+
+fn measure(harness: &Harness, seed_index: usize, bytes: &[u8], last_panic: &Mutex<String>) -> Measured {
+    GLOBAL.reset_peak_memory();
+    let started = Instant::now();
+    let result = std::panic::catch_unwind(AssertUnwindSafe(|| harness.run(seed_index, bytes)));
+    let (growth, took) = (GLOBAL.get_peak_memory(), started.elapsed());
+    let result = result.map_err(|_| last_panic.lock().map(|m| m.clone()).unwrap_or_default());
+    Measured { result, growth, took }
+}
+
 /// Runs each saved input once: outcome, heap growth, time, and the panic if any.
 fn replay(args: &Args, last_panic: &Mutex<String>) -> Result<()> {
     for file in &args.replay {
@@ -244,13 +256,10 @@ fn replay(args: &Args, last_panic: &Mutex<String>) -> Result<()> {
             .position(|n| *n == seed_name)
             .with_context(|| format!("{}: {} has no seed {seed_name}", file.display(), target.name()))?;
         let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
-        GLOBAL.reset_peak_memory();
-        let started = Instant::now();
-        let result = std::panic::catch_unwind(AssertUnwindSafe(|| harness.run(seed_index, &bytes)));
-        let (growth, took) = (GLOBAL.get_peak_memory(), started.elapsed());
+        let Measured { result, growth, took } = measure(&harness, seed_index, &bytes, last_panic);
         let outcome = match result {
             Ok(outcome) => format!("{outcome:?}"),
-            Err(_) => format!("panicked: {}", last_panic.lock().map(|m| m.clone()).unwrap_or_default()),
+            Err(message) => format!("panicked: {message}"),
         };
         println!(
             "{}: {outcome}; heap growth {:.0} KiB; {:.1} ms",

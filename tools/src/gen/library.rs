@@ -192,7 +192,7 @@ pub fn decode_ktx2(bytes: &[u8]) -> Result<RgbaImage> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fuzz::ktx2_file;
+    use crate::fuzz::{dds_file, ktx2_file};
 
     /// A PNG of `w`×`h` RGBA8 texels of one colour, compressed fast.
     fn flat_png(w: u32, h: u32) -> Vec<u8> {
@@ -220,28 +220,12 @@ mod tests {
         );
     }
 
-    /// A DXT1 DDS header claiming `w`×`h`, followed by `data`.
-    fn dxt1_dds(w: u32, h: u32, data: &[u8]) -> Vec<u8> {
-        let mut dds = b"DDS ".to_vec();
-        for v in [124u32, 0x1007, h, w, 0, 0, 1] {
-            dds.extend_from_slice(&v.to_le_bytes());
-        }
-        dds.extend_from_slice(&[0u8; 44]);
-        for v in [32u32, 0x4] {
-            dds.extend_from_slice(&v.to_le_bytes());
-        }
-        dds.extend_from_slice(b"DXT1");
-        dds.extend_from_slice(&[0u8; 40]);
-        dds.extend_from_slice(data);
-        dds
-    }
-
     #[test]
     fn tiny_files_claiming_huge_images_are_refused_before_allocating() {
         // Found by `fuzz --target texture`: 136 bytes made the decoder allocate 432 MiB.
-        let err = decode_image_bytes(&dxt1_dds(12292, 12292, &[0u8; 8])).expect_err("short DDS");
+        let err = decode_image_bytes(&dds_file(b"DXT1", 0, 12292, 12292, &[vec![0u8; 8]])).expect_err("short DDS");
         assert!(format!("{err:#}").contains("needs 75546760 bytes"), "{err:#}");
-        assert!(decode_image_bytes(&dxt1_dds(8, 8, &[0u8; 32])).is_ok());
+        assert!(decode_image_bytes(&dds_file(b"DXT1", 0, 8, 8, &[vec![0u8; 32]])).is_ok());
         // A PNG header claiming 16384x16384 with no data behind it.
         let mut png = flat_png(4, 4);
         png[16..24].copy_from_slice(&[0, 0, 0x40, 0, 0, 0, 0x40, 0]);
@@ -266,23 +250,8 @@ mod tests {
         let mut block = [0u8; 8];
         let solid = [[30u8, 160, 60, 255]; 16];
         texpresso::Format::Bc1.compress_block_masked(solid, 0xffff, texpresso::Params::default(), &mut block);
-        let mut dds = b"DDS ".to_vec();
-        // size, flags (caps|height|width|pixelformat), height, width, linear size, depth, mips
-        for v in [124u32, 0x1007, 8, 8, 32, 0, 1] {
-            dds.extend_from_slice(&v.to_le_bytes());
-        }
-        dds.extend_from_slice(&[0u8; 44]);
-        for v in [32u32, 0x4] {
-            dds.extend_from_slice(&v.to_le_bytes());
-        }
-        dds.extend_from_slice(b"DXT1");
-        dds.extend_from_slice(&[0u8; 20]);
-        dds.extend_from_slice(&0x1000u32.to_le_bytes());
-        dds.extend_from_slice(&[0u8; 16]);
-        assert_eq!(dds.len(), 128);
-        for _ in 0..4 {
-            dds.extend_from_slice(&block);
-        }
+        let dds = dds_file(b"DXT1", 0, 8, 8, &[block.repeat(4)]);
+        assert_eq!(dds.len(), 128 + 32);
         let dir = std::env::temp_dir().join(format!("citystream-dds-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("create dir");
         std::fs::write(dir.join("wall.DDS"), &dds).expect("write dds");
@@ -299,7 +268,7 @@ mod tests {
     #[test]
     fn ktx2_rgba8_and_bc1_decode_and_bad_files_are_errors() {
         let rgba: Vec<u8> = (0..4 * 2 * 4).map(|i| i as u8 * 3).collect();
-        let image = decode_ktx2(&ktx2_file(37, 4, 2, &rgba)).expect("rgba8 ktx2");
+        let image = decode_ktx2(&ktx2_file(37, 4, 2, std::slice::from_ref(&rgba))).expect("rgba8 ktx2");
         assert_eq!(image.dimensions(), (4, 2));
         assert_eq!(image.into_raw(), rgba);
 
@@ -307,14 +276,14 @@ mod tests {
         let mut block = [0u8; 8];
         let solid = [[200u8, 40, 40, 255]; 16];
         texpresso::Format::Bc1.compress_block_masked(solid, 0xffff, texpresso::Params::default(), &mut block);
-        let image = decode_ktx2(&ktx2_file(131, 4, 4, &block)).expect("bc1 ktx2");
+        let image = decode_ktx2(&ktx2_file(131, 4, 4, &[block.to_vec()])).expect("bc1 ktx2");
         assert!(image.pixels().all(|p| (i32::from(p[0]) - 200).abs() <= 8 && p[1] < 60));
 
         assert!(decode_ktx2(b"not a ktx2 file").is_err());
-        let truncated = ktx2_file(37, 64, 64, &rgba);
+        let truncated = ktx2_file(37, 64, 64, std::slice::from_ref(&rgba));
         assert!(decode_ktx2(&truncated).is_err(), "level shorter than 64x64");
         assert!(
-            decode_ktx2(&ktx2_file(145, 4, 4, &[0u8; 16])).is_err(),
+            decode_ktx2(&ktx2_file(145, 4, 4, &[vec![0u8; 16]])).is_err(),
             "BC7 is refused"
         );
     }
