@@ -420,6 +420,9 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     uploads_recorded: bool,
     tau: u32,
     gpu_tau: u32,
+    /// The compaction's threshold: 0 (every seen mesh) when eviction ranks
+    /// by the view and the read-back holds every mesh, else `gpu_tau`.
+    compact_tau: u32,
     fragment_area: f32,
     deterministic: bool,
     latest_feedback: Option<(u64, Vec<FeedbackEntry>)>,
@@ -508,11 +511,12 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             },
             colormap,
         )?;
+        let feedback_capacity = config.feedback_capacity.unwrap_or(mesh_count);
         let compactor = FeedbackCompactor::with_slots(
             device,
             &mut commands,
             mesh_count,
-            config.feedback_capacity.unwrap_or(mesh_count),
+            feedback_capacity,
             config.frames_in_flight,
         )?;
         let queue = Arc::new(UploadQueue::default());
@@ -549,6 +553,11 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             uploads_recorded: false,
             tau: config.weight_cutoff,
             gpu_tau: feedback_tau(config.weight_cutoff, config.fragment_area),
+            compact_tau: if config.eviction == Eviction::View && feedback_capacity >= mesh_count {
+                0
+            } else {
+                feedback_tau(config.weight_cutoff, config.fragment_area)
+            },
             fragment_area: config.fragment_area,
             deterministic: config.deterministic,
             latest_feedback: None,
@@ -647,7 +656,10 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.loader.is_streaming()
     }
 
-    /// τ in the feedback's fixed point, as the compaction applies it.
+    /// τ in the feedback's fixed point: entries at or above it are loaded.
+    /// With [`Eviction::View`] the compaction keeps lighter entries too
+    /// (eviction needs to know they are in view), so read-backs may list
+    /// entries below it.
     pub fn gpu_tau(&self) -> u32 {
         self.gpu_tau
     }
@@ -738,8 +750,15 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                 s.unread = false;
             }
             let entries = self.compactor.read_back(i as u32)?.entries;
-            let records = prepare(records_from_feedback(&entries, self.fragment_area), self.tau);
-            self.needs.observe(&records, self.loader.mesh_textures());
+            // Eviction sees every mesh the view shows (below τ too: a texture
+            // seen only by small meshes is still sampled, not out of view);
+            // the loader sees those reaching τ, as compacted before.
+            self.needs.observe(
+                &records_from_feedback(&entries, self.fragment_area),
+                self.loader.mesh_textures(),
+            );
+            let heavy: Vec<FeedbackEntry> = entries.iter().filter(|e| e.weight >= self.gpu_tau).copied().collect();
+            let records = prepare(records_from_feedback(&heavy, self.fragment_area), self.tau);
             if !self.loader.is_streaming() {
                 loading_started = if self.deterministic {
                     self.loader.run_cycle(&records, self.decision).is_some()
@@ -1123,7 +1142,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// feedback pass wrote into this frame's read-back slot (resetting the
     /// array for the next frame). Must follow that pass; call once per frame.
     pub fn record_feedback_resolve(&mut self, cmd: vk::CommandBuffer) -> Result<()> {
-        self.record_feedback_resolve_with_tau(cmd, self.gpu_tau)
+        self.record_feedback_resolve_with_tau(cmd, self.compact_tau)
     }
 
     /// As [`record_feedback_resolve`](Self::record_feedback_resolve) with

@@ -413,3 +413,84 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
     drop(streamer);
     assert_no_validation_errors(&device)
 }
+
+/// Meshes lighter than τ are not loaded (the paper's cutoff), but the view
+/// still shows them: view-serving eviction must count their textures as in
+/// view, not as out of view and first to drop.
+#[test]
+fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<()> {
+    let device = sync_validated_device()?;
+    let mut source = MemorySource::new();
+    for _ in 0..QUADS {
+        source.push_bc1(TEXTURE, TEXTURE);
+    }
+    let (vertices, indices, meshes) = quad_row();
+    let view = FeedbackView::default();
+    let target = RenderTarget::new(&device, WIDTH, HEIGHT)?;
+    let feedback_target = RenderTarget::new(&device, WIDTH / 4, HEIGHT / 4)?;
+    let mut streamer = TextureStreamer::new(
+        &device,
+        source,
+        meshes.iter().map(|m| m.texture).collect(),
+        &vec![[90, 90, 90, 255]; QUADS as usize],
+        PolicyKind::Baseline.build(&PolicyOptions::default())?,
+        &StreamConfig {
+            layer_size: TEXTURE,
+            eviction: Eviction::View,
+            memory_budget_bytes: 64 << 20,
+            staging_bytes: 1 << 20,
+            fragment_area: view.fragment_area(HEIGHT, feedback_target.height()),
+            // No mesh of this view weighs this much.
+            weight_cutoff: 1 << 30,
+            deterministic: true,
+            ..StreamConfig::default()
+        },
+    )?;
+    let mut setup = CommandContext::new(&device, "weight cutoff test")?;
+    let renderer = CityRenderer::new(
+        &device,
+        &mut setup,
+        &vertices,
+        &indices,
+        meshes,
+        streamer.cache(),
+        streamer.compactor(),
+    )?;
+    let mut frame_commands = (0..2)
+        .map(|i| CommandContext::new(&device, &format!("weight cutoff frame {i}")))
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    // The first three quads are on screen, the rest of the row is not.
+    let camera = Camera {
+        eye: Vec3::new(15.0, 5.0, 14.0),
+        target: Vec3::new(15.0, 5.0, 0.0),
+        fov_y: 60f32.to_radians(),
+        near: 0.1,
+        far: 100.0,
+    };
+    for _ in 0..8 {
+        let begun = streamer.begin_frame()?;
+        let commands = &mut frame_commands[begun.slot as usize];
+        let cmd = commands.begin_completed()?;
+        streamer.record_uploads(cmd)?;
+        renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
+        streamer.record_feedback_resolve(cmd)?;
+        renderer.record_visible(cmd, &target, &camera, 1.0, true);
+        let submit = streamer.end_frame(16.0)?;
+        commands.submit_frame(&submit.waits, &[submit.signal])?;
+    }
+    device.wait_idle()?;
+    let in_view: Vec<u32> = (0..QUADS).filter(|&t| streamer.needs().in_view(t)).collect();
+    ensure!(
+        in_view.len() >= 2 && in_view.iter().all(|&t| t < 3),
+        "textures counted in view: {in_view:?} (quads 0 to 2 are on screen)"
+    );
+    let entries = streamer.latest_feedback().map(|(_, e)| e.len()).unwrap_or(0);
+    ensure!(
+        streamer.totals().loaded_mips == 0,
+        "{} mips loaded although no mesh reaches τ ({entries} entries read back)",
+        streamer.totals().loaded_mips
+    );
+    drop(renderer);
+    drop(streamer);
+    assert_no_validation_errors(&device)
+}

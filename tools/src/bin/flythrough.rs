@@ -907,11 +907,16 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                 written.push(path.display().to_string());
             }
             if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
-                let entries = gpu
+                // The reference loads what the loader serves (entries
+                // reaching τ); lighter ones are read back for eviction only.
+                let entries: Vec<FeedbackEntry> = gpu
                     .streamer
                     .feedback_of(begun.index)?
                     .map(|f| f.entries)
-                    .unwrap_or_default();
+                    .unwrap_or_default()
+                    .into_iter()
+                    .filter(|e| e.weight >= tau)
+                    .collect();
                 reference_incomplete += load_reference(reference, &mut commands, &entries, meshes)?;
                 let cmd = commands.begin()?;
                 reference.renderer.record_visible(cmd, &target, &camera, 1.0, true);
