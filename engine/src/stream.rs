@@ -696,7 +696,9 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.compactor.read_back(slot as u32).map(Some)
     }
 
-    /// The feedback most recently handed to the loader, with its frame.
+    /// The feedback most recently handed to the loader, with its frame
+    /// (with [`Eviction::View`] it lists meshes lighter than τ too, which
+    /// the loader skips; see [`gpu_tau`](Self::gpu_tau)).
     pub fn latest_feedback(&self) -> Option<(u64, &[FeedbackEntry])> {
         self.latest_feedback.as_ref().map(|(f, e)| (*f, e.as_slice()))
     }

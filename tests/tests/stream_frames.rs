@@ -3,9 +3,12 @@
 //! blocks are evicted and unbound while earlier frames may still sample
 //! them. Runs with synchronization validation; any message fails.
 
+use std::sync::Arc;
+
 use anyhow::{ensure, Context, Result};
 use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
+use citystream_engine::device::Device;
 use citystream_engine::gpu_types::{Vertex, TEXTURE_SAMPLEABLE};
 use citystream_engine::image::memory_barrier;
 use citystream_engine::stream::{StreamConfig, TextureStreamer};
@@ -327,40 +330,37 @@ fn calls_out_of_order_are_refused() -> Result<()> {
     assert_no_validation_errors(&device)
 }
 
-#[test]
-fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<()> {
-    let device = sync_validated_device()?;
-    // Texture 0 is twice the layer size; the others fit.
-    let mut source = MemorySource::new();
-    source.push_bc1(2 * TEXTURE, 2 * TEXTURE);
-    for _ in 1..QUADS {
-        source.push_bc1(TEXTURE, TEXTURE);
-    }
-    let (vertices, indices, mut meshes) = quad_row();
-    meshes[0].texture_width = 2 * TEXTURE;
-    meshes[0].texture_height = 2 * TEXTURE;
+/// Streams `frames` frames of a fixed view of the row's first quads
+/// (texture 0 among them; the rest of the row is off screen) with the
+/// baseline policy, then waits for the device and returns the streamer.
+fn stream_fixed_view(
+    device: &Arc<Device>,
+    source: MemorySource,
+    meshes: Vec<CityMesh>,
+    config: StreamConfig,
+    frames: u32,
+) -> Result<TextureStreamer<MemorySource>> {
+    let (vertices, indices, _) = quad_row();
     let view = FeedbackView::default();
-    let target = RenderTarget::new(&device, WIDTH, HEIGHT)?;
-    let feedback_target = RenderTarget::new(&device, WIDTH / 4, HEIGHT / 4)?;
+    let target = RenderTarget::new(device, WIDTH, HEIGHT)?;
+    let feedback_target = RenderTarget::new(device, WIDTH / 4, HEIGHT / 4)?;
     let mut streamer = TextureStreamer::new(
-        &device,
+        device,
         source,
         meshes.iter().map(|m| m.texture).collect(),
         &vec![[90, 90, 90, 255]; QUADS as usize],
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
         &StreamConfig {
             layer_size: TEXTURE,
-            memory_budget_bytes: 64 << 20,
             staging_bytes: 1 << 20,
             fragment_area: view.fragment_area(HEIGHT, feedback_target.height()),
-            weight_cutoff: 1,
             deterministic: true,
-            ..StreamConfig::default()
+            ..config
         },
     )?;
-    let mut setup = CommandContext::new(&device, "oversized texture test")?;
+    let mut setup = CommandContext::new(device, "fixed view setup")?;
     let renderer = CityRenderer::new(
-        &device,
+        device,
         &mut setup,
         &vertices,
         &indices,
@@ -369,9 +369,8 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         streamer.compactor(),
     )?;
     let mut frame_commands = (0..2)
-        .map(|i| CommandContext::new(&device, &format!("oversized texture frame {i}")))
+        .map(|i| CommandContext::new(device, &format!("fixed view frame {i}")))
         .collect::<std::result::Result<Vec<_>, _>>()?;
-    // The camera looks at the first quads, texture 0 among them.
     let camera = Camera {
         eye: Vec3::new(15.0, 5.0, 14.0),
         target: Vec3::new(15.0, 5.0, 0.0),
@@ -379,7 +378,7 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         near: 0.1,
         far: 100.0,
     };
-    for _ in 0..30 {
+    for _ in 0..frames {
         let begun = streamer.begin_frame()?;
         let commands = &mut frame_commands[begun.slot as usize];
         let cmd = commands.begin_completed()?;
@@ -391,6 +390,27 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         commands.submit_frame(&submit.waits, &[submit.signal])?;
     }
     device.wait_idle()?;
+    Ok(streamer)
+}
+
+#[test]
+fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<()> {
+    let device = sync_validated_device()?;
+    // Texture 0 is twice the layer size; the others fit.
+    let mut source = MemorySource::new();
+    source.push_bc1(2 * TEXTURE, 2 * TEXTURE);
+    for _ in 1..QUADS {
+        source.push_bc1(TEXTURE, TEXTURE);
+    }
+    let (_, _, mut meshes) = quad_row();
+    meshes[0].texture_width = 2 * TEXTURE;
+    meshes[0].texture_height = 2 * TEXTURE;
+    let config = StreamConfig {
+        memory_budget_bytes: 64 << 20,
+        weight_cutoff: 1,
+        ..StreamConfig::default()
+    };
+    let streamer = stream_fixed_view(&device, source, meshes, config, 30)?;
     let failures = streamer.load_failures();
     ensure!(
         streamer.failed_textures() == 1 && streamer.totals().failed == 1,
@@ -409,7 +429,6 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         "the textures beside it were not streamed: resident levels {resident:?}, totals {:?}",
         streamer.totals()
     );
-    drop(renderer);
     drop(streamer);
     assert_no_validation_errors(&device)
 }
@@ -424,61 +443,15 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
     for _ in 0..QUADS {
         source.push_bc1(TEXTURE, TEXTURE);
     }
-    let (vertices, indices, meshes) = quad_row();
-    let view = FeedbackView::default();
-    let target = RenderTarget::new(&device, WIDTH, HEIGHT)?;
-    let feedback_target = RenderTarget::new(&device, WIDTH / 4, HEIGHT / 4)?;
-    let mut streamer = TextureStreamer::new(
-        &device,
-        source,
-        meshes.iter().map(|m| m.texture).collect(),
-        &vec![[90, 90, 90, 255]; QUADS as usize],
-        PolicyKind::Baseline.build(&PolicyOptions::default())?,
-        &StreamConfig {
-            layer_size: TEXTURE,
-            eviction: Eviction::View,
-            memory_budget_bytes: 64 << 20,
-            staging_bytes: 1 << 20,
-            fragment_area: view.fragment_area(HEIGHT, feedback_target.height()),
-            // No mesh of this view weighs this much.
-            weight_cutoff: 1 << 30,
-            deterministic: true,
-            ..StreamConfig::default()
-        },
-    )?;
-    let mut setup = CommandContext::new(&device, "weight cutoff test")?;
-    let renderer = CityRenderer::new(
-        &device,
-        &mut setup,
-        &vertices,
-        &indices,
-        meshes,
-        streamer.cache(),
-        streamer.compactor(),
-    )?;
-    let mut frame_commands = (0..2)
-        .map(|i| CommandContext::new(&device, &format!("weight cutoff frame {i}")))
-        .collect::<std::result::Result<Vec<_>, _>>()?;
-    // The first three quads are on screen, the rest of the row is not.
-    let camera = Camera {
-        eye: Vec3::new(15.0, 5.0, 14.0),
-        target: Vec3::new(15.0, 5.0, 0.0),
-        fov_y: 60f32.to_radians(),
-        near: 0.1,
-        far: 100.0,
+    let (_, _, meshes) = quad_row();
+    let config = StreamConfig {
+        eviction: Eviction::View,
+        memory_budget_bytes: 64 << 20,
+        // No mesh of this view weighs this much.
+        weight_cutoff: 1 << 30,
+        ..StreamConfig::default()
     };
-    for _ in 0..8 {
-        let begun = streamer.begin_frame()?;
-        let commands = &mut frame_commands[begun.slot as usize];
-        let cmd = commands.begin_completed()?;
-        streamer.record_uploads(cmd)?;
-        renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
-        streamer.record_feedback_resolve(cmd)?;
-        renderer.record_visible(cmd, &target, &camera, 1.0, true);
-        let submit = streamer.end_frame(16.0)?;
-        commands.submit_frame(&submit.waits, &[submit.signal])?;
-    }
-    device.wait_idle()?;
+    let streamer = stream_fixed_view(&device, source, meshes, config, 8)?;
     let in_view: Vec<u32> = (0..QUADS).filter(|&t| streamer.needs().in_view(t)).collect();
     ensure!(
         in_view.len() >= 2 && in_view.iter().all(|&t| t < 3),
@@ -490,7 +463,6 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
         "{} mips loaded although no mesh reaches τ ({entries} entries read back)",
         streamer.totals().loaded_mips
     );
-    drop(renderer);
     drop(streamer);
     assert_no_validation_errors(&device)
 }
