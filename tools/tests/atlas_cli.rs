@@ -2,22 +2,14 @@
 //! level-0 texels from the atlas.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use citystream_streaming::dataset::{Dataset, TextureFormat};
 
-fn citystream(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(args)
-        .output()
-        .expect("run citystream")
-}
+mod cli_support;
+use cli_support::citystream;
 
 fn fresh_dir(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("atlas-cli").join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
-    dir
+    cli_support::fresh_path("atlas-cli", name)
 }
 
 fn run_ok(args: &[&str]) -> String {

@@ -1,22 +1,14 @@
 //! End-to-end checks of `citystream gen`, `info` and `verify` on the tiny city.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use citystream_streaming::dataset::{Dataset, DatasetFiles, META_FILE, PACK_FILE};
 
-fn citystream(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(args)
-        .output()
-        .expect("run citystream")
-}
+mod cli_support;
+use cli_support::{citystream, copy_tree, stderr};
 
 fn fresh_dir(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dataset-cli").join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
-    dir
+    cli_support::fresh_path("dataset-cli", name)
 }
 
 fn gen(name: &str, extra: &[&str]) -> PathBuf {
@@ -39,18 +31,6 @@ fn copy_dir(from: &Path, name: &str) -> PathBuf {
     to
 }
 
-fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).expect("create copy");
-    for entry in std::fs::read_dir(from).expect("read dir") {
-        let entry = entry.expect("entry");
-        if entry.file_type().expect("type").is_dir() {
-            copy_tree(&entry.path(), &to.join(entry.file_name()));
-        } else {
-            std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
-        }
-    }
-}
-
 /// Path of one data file of the dataset in `dir`.
 fn data_file(dir: &Path, name: &str) -> PathBuf {
     DatasetFiles::resolve(dir).expect("manifest").path(name)
@@ -71,10 +51,6 @@ fn same_content(a: &Path, b: &Path) -> bool {
             mip_a == mip_b
         })
     })
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
 #[test]

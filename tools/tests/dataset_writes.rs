@@ -4,52 +4,29 @@
 //! are named for `citystream upgrade`, which keeps their content.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Instant;
 
 use citystream_streaming::dataset::{verify, Dataset, DatasetFiles, MANIFEST_FILE, SCENE_FILE};
 use citystream_tools::fuzz::quad_buffer;
 
+mod cli_support;
+use cli_support::{citystream, copy_tree, stderr};
+
 /// Kill moments per tool, spread evenly over an uninterrupted run.
 const KILL_MOMENTS: u32 = 20;
 
-fn citystream(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(args)
-        .output()
-        .expect("run citystream")
-}
-
 fn fresh_dir(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("dataset-writes").join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
-    dir
+    cli_support::fresh_path("dataset-writes", name)
 }
 
 fn utf8(path: &Path) -> &str {
     path.to_str().expect("utf-8 temp path")
 }
 
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
 fn succeed(args: &[&str]) {
     let out = citystream(args);
     assert!(out.status.success(), "{args:?} failed: {}", stderr(&out));
-}
-
-fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).expect("create copy");
-    for entry in std::fs::read_dir(from).expect("read dir") {
-        let entry = entry.expect("entry");
-        if entry.file_type().expect("type").is_dir() {
-            copy_tree(&entry.path(), &to.join(entry.file_name()));
-        } else {
-            std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
-        }
-    }
 }
 
 fn write_id(dir: &Path) -> u64 {

@@ -7,22 +7,11 @@ use citystream_streaming::dataset::Dataset;
 use citystream_tools::fuzz::{dds_file, ktx2_file, quad_buffer};
 use serde_json::json;
 
-fn citystream(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(args)
-        .output()
-        .expect("run citystream")
-}
+mod cli_support;
+use cli_support::{citystream, stderr};
 
 fn fresh_dir(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("import-gltf").join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("create dir");
-    dir
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
+    cli_support::fresh_dir("import-gltf", name)
 }
 
 fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {

@@ -1,23 +1,15 @@
 //! End-to-end checks of `citystream path` on the tiny city.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::PathBuf;
 
 use citystream_streaming::bench::path::{standard_path, CameraPath, STANDARD_JUMPS, STANDARD_PAUSES};
 use citystream_streaming::dataset::Dataset;
 
-fn citystream(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(args)
-        .output()
-        .expect("run citystream")
-}
+mod cli_support;
+use cli_support::citystream;
 
 fn fresh_dir(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("path-cli").join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("create temp dir");
-    dir
+    cli_support::fresh_dir("path-cli", name)
 }
 
 fn text(bytes: &[u8]) -> String {

@@ -4,7 +4,9 @@
 //! the file and line, and `bench` driven through a fake flythrough script.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+
+mod cli_support;
+use cli_support::citystream;
 
 type TestResult = Result<(), Box<dyn std::error::Error>>;
 
@@ -16,13 +18,6 @@ fn scratch(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("creating the scratch directory");
     dir
-}
-
-fn citystream(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(args)
-        .output()
-        .expect("running citystream")
 }
 
 /// Median (mean of the middle two for an even count), mean, max, min.

@@ -1,0 +1,49 @@
+//! Helpers the tools' command-line tests share (each test file is its own
+//! crate and includes this module with `mod cli_support;`).
+
+#![allow(dead_code)] // reason: each test binary uses a different subset
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Runs the `citystream` binary built with these tests.
+pub fn citystream(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(args)
+        .output()
+        .expect("run citystream")
+}
+
+/// `CARGO_TARGET_TMPDIR/group/name`, removed if it exists; its parent exists,
+/// it does not (for commands that must create their output themselves).
+pub fn fresh_path(group: &str, name: &str) -> PathBuf {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(group).join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
+    dir
+}
+
+/// [`fresh_path`], created empty.
+pub fn fresh_dir(group: &str, name: &str) -> PathBuf {
+    let dir = fresh_path(group, name);
+    std::fs::create_dir_all(&dir).expect("create dir");
+    dir
+}
+
+/// The command's standard error, as text.
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// Copies the directory tree `from` to `to`.
+pub fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create copy");
+    for entry in std::fs::read_dir(from).expect("read dir") {
+        let entry = entry.expect("entry");
+        if entry.file_type().expect("type").is_dir() {
+            copy_tree(&entry.path(), &to.join(entry.file_name()));
+        } else {
+            std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
+        }
+    }
+}
