@@ -512,6 +512,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             colormap,
         )?;
         let feedback_capacity = config.feedback_capacity.unwrap_or(mesh_count);
+        let gpu_tau = feedback_tau(config.weight_cutoff, config.fragment_area);
         let compactor = FeedbackCompactor::with_slots(
             device,
             &mut commands,
@@ -552,11 +553,11 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             resolved_this_frame: false,
             uploads_recorded: false,
             tau: config.weight_cutoff,
-            gpu_tau: feedback_tau(config.weight_cutoff, config.fragment_area),
+            gpu_tau,
             compact_tau: if config.eviction == Eviction::View && feedback_capacity >= mesh_count {
                 0
             } else {
-                feedback_tau(config.weight_cutoff, config.fragment_area)
+                gpu_tau
             },
             fragment_area: config.fragment_area,
             deterministic: config.deterministic,
@@ -755,12 +756,15 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             // Eviction sees every mesh the view shows (below τ too: a texture
             // seen only by small meshes is still sampled, not out of view);
             // the loader sees those reaching τ, as compacted before.
-            self.needs.observe(
-                &records_from_feedback(&entries, self.fragment_area),
-                self.loader.mesh_textures(),
-            );
-            let heavy: Vec<FeedbackEntry> = entries.iter().filter(|e| e.weight >= self.gpu_tau).copied().collect();
-            let records = prepare(records_from_feedback(&heavy, self.fragment_area), self.tau);
+            let seen = records_from_feedback(&entries, self.fragment_area);
+            self.needs.observe(&seen, self.loader.mesh_textures());
+            let heavy = seen
+                .into_iter()
+                .zip(&entries)
+                .filter(|(_, entry)| entry.weight >= self.gpu_tau)
+                .map(|(record, _)| record)
+                .collect();
+            let records = prepare(heavy, self.tau);
             if !self.loader.is_streaming() {
                 loading_started = if self.deterministic {
                     self.loader.run_cycle(&records, self.decision).is_some()
