@@ -7,10 +7,13 @@ set -euo pipefail
 say() { printf '[setup] %s\n' "$*"; }
 fail() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
 
-PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools g++)
+# xvfb and the X11 client libraries (loaded at run time by the window code):
+# `flythrough --window` and its tests, which run under a virtual X server.
+PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools g++
+  xvfb libx11-6 libx11-xcb1 libxcursor1 libxrandr2 libxi6 libxkbcommon-x11-0)
 MIN_MESA_MAJOR=24
 STAMP_DIR="${CITYSTREAM_SETUP_STAMP_DIR:-/var/lib/citystream}"
-STAMP="$STAMP_DIR/setup-v2"
+STAMP="$STAMP_DIR/setup-v3"
 
 mesa_major() {
   dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | sed -E 's/^([0-9]+:)?([0-9]+).*/\2/' || true
@@ -24,7 +27,7 @@ all_installed() {
   local m
   m="$(mesa_major)"
   [[ -n "$m" && "$m" -ge $MIN_MESA_MAJOR ]] || return 1
-  command -v glslangValidator >/dev/null && command -v spirv-val >/dev/null
+  command -v glslangValidator >/dev/null && command -v spirv-val >/dev/null && command -v Xvfb >/dev/null
 }
 
 if [[ -f "$STAMP" ]] && all_installed; then

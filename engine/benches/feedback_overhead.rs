@@ -39,8 +39,10 @@ fn main() -> Result<()> {
             validation: false,
             synchronization: false,
             app_name: "feedback overhead bench".into(),
+            extensions: Vec::new(),
         },
         device_name: None,
+        presentation: false,
     })?);
     println!("device: {}", citystream_engine::device::describe(&device));
     let mut commands = CommandContext::new(&device, "bench")?;

@@ -26,6 +26,10 @@ pub struct DeviceOptions {
     /// Case-insensitive substring of the wanted device's name. When `None`,
     /// `CITYSTREAM_DEVICE` is consulted, then the best device is chosen.
     pub device_name: Option<String>,
+    /// Enable `VK_KHR_swapchain` to present to a window (the `present`
+    /// module); fails with [`EngineError::MissingFeature`] where the device
+    /// lacks it.
+    pub presentation: bool,
 }
 
 /// What the chosen device reports about sparse residency.
@@ -389,11 +393,28 @@ impl Device {
         let queue_infos = [vk::DeviceQueueCreateInfo::default()
             .queue_family_index(queue_family)
             .queue_priorities(&priorities)];
+        let mut extensions = Vec::new();
+        if options.presentation {
+            // SAFETY: plain enumeration on a physical device of this instance.
+            let available = unsafe { instance.raw.enumerate_device_extension_properties(physical) }
+                .vk("vkEnumerateDeviceExtensionProperties")?;
+            if !available.iter().any(|e| {
+                e.extension_name_as_c_str()
+                    .is_ok_and(|n| n == ash::khr::swapchain::NAME)
+            }) {
+                return Err(EngineError::MissingFeature {
+                    device: chosen.name.clone(),
+                    feature: "VK_KHR_swapchain (presentation to a window)".to_owned(),
+                });
+            }
+            extensions.push(ash::khr::swapchain::NAME.as_ptr());
+        }
         let required = required_features();
         let mut vk12 = required.vulkan12;
         let mut vk13 = required.vulkan13;
         let create_info = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_infos)
+            .enabled_extension_names(&extensions)
             .enabled_features(&required.core)
             .push_next(&mut vk12)
             .push_next(&mut vk13);

@@ -14,6 +14,11 @@ pub enum EngineError {
     /// A layer the caller asked for is not installed.
     #[error("Vulkan layer {0} is not installed (Debian package vulkan-validationlayers; run `make setup`)")]
     LayerMissing(String),
+    /// An instance extension the caller asked for is not available.
+    #[error(
+        "the Vulkan loader offers no instance extension {0} (needed to show a window; is a display server running?)"
+    )]
+    ExtensionMissing(String),
     /// The user asked for a device by name and none matched.
     #[error("no Vulkan device matches {wanted:?}; devices present: {available}")]
     NoSuchDevice { wanted: String, available: String },

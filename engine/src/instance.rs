@@ -74,6 +74,9 @@ pub struct InstanceOptions {
     pub synchronization: bool,
     /// Application name reported to the driver.
     pub app_name: String,
+    /// Further instance extensions to enable, e.g. the surface extensions a
+    /// window needs (`present::instance_extensions`). Each must be available.
+    pub extensions: Vec<CString>,
 }
 
 impl Default for InstanceOptions {
@@ -82,6 +85,7 @@ impl Default for InstanceOptions {
             validation: default_validation(),
             synchronization: default_synchronization_validation(),
             app_name: "citystream".to_owned(),
+            extensions: Vec::new(),
         }
     }
 }
@@ -182,6 +186,15 @@ impl Instance {
         }
         if has_debug_utils {
             extensions.push(ash::ext::debug_utils::NAME.as_ptr());
+        }
+        for wanted in &options.extensions {
+            let available = available_extensions
+                .iter()
+                .any(|e| e.extension_name_as_c_str().is_ok_and(|n| n == wanted.as_c_str()));
+            if !available {
+                return Err(EngineError::ExtensionMissing(wanted.to_string_lossy().into_owned()));
+            }
+            extensions.push(wanted.as_ptr());
         }
 
         let app_name = CString::new(options.app_name.replace('\0', " ")).unwrap_or_default();

@@ -9,7 +9,8 @@
 //! that own their memory), [`sparse`] (partially resident images and
 //! `vkQueueBindSparse`), [`commands`] (submissions), [`pipeline`] (shaders,
 //! pipelines, descriptors), [`target`] (off-screen colour + depth and
-//! read-back), [`staging`] (host-visible upload ring), [`timing`] (CPU and
+//! read-back), `present` (feature `window`: surface, swapchain and
+//! screenshots of presented frames), [`staging`] (host-visible upload ring), [`timing`] (CPU and
 //! GPU frame timing), [`texture_cache`] and [`feedback`] (the GPU halves of
 //! the cache and of the feedback), [`city`] (the engine's own city passes).
 //!
@@ -36,6 +37,8 @@ pub mod instance;
 mod memory;
 pub mod pipeline;
 pub mod placeholder;
+#[cfg(feature = "window")]
+pub mod present;
 pub mod probe;
 pub mod scene;
 pub mod shaders;

@@ -89,6 +89,12 @@ impl RenderTarget {
         self.height
     }
 
+    /// The colour image, in TRANSFER_SRC_OPTIMAL after
+    /// [`end_and_copy`](Self::end_and_copy) (a presenter blits from it).
+    pub fn color_image(&self) -> vk::Image {
+        self.color.raw()
+    }
+
     /// Records the transitions and `vkCmdBeginRendering` that clear colour to
     /// `clear` and depth to 1.
     pub fn begin(&self, device: &Device, cmd: vk::CommandBuffer, clear: [f32; 4]) {
@@ -99,10 +105,12 @@ impl RenderTarget {
             self.color.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            // An earlier frame still in flight may be drawing into or
-            // copying out of this image: wait for those before discarding it.
+            // An earlier frame still in flight may be drawing into, copying
+            // or blitting out of this image: wait for those before discarding it.
             (
-                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT | vk::PipelineStageFlags2::COPY,
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT
+                    | vk::PipelineStageFlags2::COPY
+                    | vk::PipelineStageFlags2::BLIT,
                 vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             ),
             (
@@ -187,7 +195,11 @@ impl RenderTarget {
                 vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
                 vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             ),
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+            // The copy below, and a presenter's blit into a window after it.
+            (
+                vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::BLIT,
+                vk::AccessFlags2::TRANSFER_READ,
+            ),
         );
         let region = vk::BufferImageCopy {
             buffer_offset: 0,

@@ -266,6 +266,38 @@ fn bad_documents_are_rejected_with_clear_errors() {
 }
 
 #[test]
+fn save_replaces_a_file_whole_and_leaves_no_temporary_files() {
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("camera-path-save");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join("flight.json");
+    std::fs::write(&file, "an older file the user keeps").expect("write");
+    let path = sample_path();
+    path.save(&file).expect("save over an existing file");
+    assert_eq!(CameraPath::load(&file).expect("load"), path);
+    let names: Vec<String> = std::fs::read_dir(&dir)
+        .expect("list")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, ["flight.json"], "only the saved file remains");
+
+    // A failed replacement (the name is a directory) keeps what was there and leaves no
+    // half-written file behind.
+    let blocked = dir.join("a_directory.json");
+    std::fs::create_dir(&blocked).expect("dir");
+    std::fs::write(blocked.join("inside"), "kept").expect("write");
+    let e = path.save(&blocked).expect_err("cannot replace a directory");
+    assert!(e.to_string().contains("a_directory.json"), "{e}");
+    assert_eq!(std::fs::read_to_string(blocked.join("inside")).expect("read"), "kept");
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .expect("list")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["a_directory.json", "flight.json"]);
+}
+
+#[test]
 fn load_errors_name_the_file() {
     let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("camera-path");
     std::fs::create_dir_all(&dir).expect("temp dir");

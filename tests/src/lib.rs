@@ -27,8 +27,10 @@ fn device_with_validation(synchronization: bool) -> Result<Arc<Device>> {
             validation: true,
             synchronization,
             app_name: "citystream tests".to_owned(),
+            extensions: Vec::new(),
         },
         device_name: None,
+        presentation: false,
     };
     Ok(Arc::new(
         Device::new(&options).context("creating a validated Vulkan device")?,

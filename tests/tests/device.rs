@@ -12,8 +12,10 @@ fn unknown_device_name_lists_the_devices_present() -> Result<()> {
             validation: true,
             synchronization: false,
             app_name: "device name test".into(),
+            extensions: Vec::new(),
         },
         device_name: Some("no such gpu 9000".into()),
+        presentation: false,
     };
     let error = Device::new(&options).expect_err("a device name nobody has must fail");
     let EngineError::NoSuchDevice { wanted, available } = &error else {
@@ -44,8 +46,10 @@ fn device_is_picked_by_part_of_its_name() -> Result<()> {
             validation: true,
             synchronization: false,
             app_name: "device name test".into(),
+            extensions: Vec::new(),
         },
         device_name: Some(fragment.clone()),
+        presentation: false,
     };
     let picked = Device::new(&options)?;
     ensure!(

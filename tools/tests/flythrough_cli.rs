@@ -256,11 +256,14 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         let mut lines = csv.lines();
         assert_eq!(
             lines.next(),
-            Some("frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,resident_bytes,mip_deficit,psnr_db")
+            Some(
+                "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,\
+                 resident_bytes,mip_deficit,psnr_db,eye_x,eye_y,eye_z,look_x,look_y,look_z"
+            )
         );
         let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
         assert_eq!(rows.len(), 30);
-        assert!(rows.iter().all(|r| r.len() == 16));
+        assert!(rows.iter().all(|r| r.len() == 22));
         let csv_mips: u64 = rows.iter().map(|r| r[10].parse::<u64>().expect("mips column")).sum();
         assert_eq!(csv_mips, mips, "per-frame mips add up to the total");
         assert!(

@@ -607,14 +607,48 @@ impl CameraPath {
         Ok(text)
     }
 
-    /// Writes [`CameraPath::to_json`] to `path`.
+    /// Writes [`CameraPath::to_json`] to `path` atomically: to a new file beside it, flushed
+    /// to disk, then renamed over `path`, so a crash or a full disk leaves either the old file
+    /// or the new one, never a torn mix.
     pub fn save(&self, path: impl AsRef<Path>) -> Result<(), PathError> {
         let path = path.as_ref();
         let text = self.to_json()?;
-        std::fs::write(path, text).map_err(|error| PathError::Io {
+        let io = |error| PathError::Io {
             path: path.to_path_buf(),
             error,
-        })
+        };
+        let name = path
+            .file_name()
+            .ok_or_else(|| io(std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file name")))?;
+        let dir = match path.parent() {
+            Some(parent) if !parent.as_os_str().is_empty() => parent.to_path_buf(),
+            _ => std::path::PathBuf::from("."),
+        };
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let temp = dir.join(format!(
+            ".{}.{}-{nanos}.tmp",
+            name.to_string_lossy(),
+            std::process::id()
+        ));
+        let written = (|| {
+            use std::io::Write;
+            let mut file = std::fs::OpenOptions::new().write(true).create_new(true).open(&temp)?;
+            file.write_all(text.as_bytes())?;
+            file.sync_all()?;
+            std::fs::rename(&temp, path)
+        })();
+        if let Err(error) = written {
+            let _ = std::fs::remove_file(&temp);
+            return Err(io(error));
+        }
+        // The rename is durable once the directory is; where it cannot be opened (a platform
+        // without directory handles) the file is still complete.
+        if let Ok(dir) = std::fs::File::open(&dir) {
+            let _ = dir.sync_all();
+        }
+        Ok(())
     }
 
     /// Length of the path: the end of the last keyframe (its `t + hold_s`), seconds.

@@ -19,6 +19,7 @@ use citystream_engine::gpu_types::{FeedbackEntry, Vertex, FEEDBACK_MIP_ONE, TEXT
 use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder;
+use citystream_engine::present::PresentMode;
 use citystream_engine::scene::MeshRenderer;
 use citystream_engine::stream::{DatasetSource, StreamConfig, TextureStreamer};
 use citystream_engine::target::{write_png, RenderTarget};
@@ -96,9 +97,11 @@ struct Args {
     #[arg(long, default_value = "out/flythrough")]
     out: PathBuf,
     /// Camera path: `standard` (the benchmark path derived from the dataset,
-    /// see docs/PATHS.md) or a path file written by `citystream path`.
-    #[arg(long, default_value = "standard")]
-    path: String,
+    /// see docs/PATHS.md) or a path file (`citystream path`, or recorded in
+    /// the window). Default: `standard`; with --window, free flight from the
+    /// overview.
+    #[arg(long)]
+    path: Option<String>,
     /// Number of frames to render (default: as many as the path lasts; 240
     /// with --placeholder).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
@@ -107,9 +110,10 @@ struct Args {
     /// length; at most a day).
     #[arg(long, value_parser = parse_duration_s)]
     duration_s: Option<f64>,
-    /// Write every N-th frame as PNG (0 writes none).
-    #[arg(long, default_value_t = 20)]
-    frame_interval: u32,
+    /// Write every N-th frame as PNG (0 writes none). Default: 20; with
+    /// --window, 0 (the PNGs are then what the window presented).
+    #[arg(long)]
+    frame_interval: Option<u32>,
     /// Image width in pixels.
     #[arg(long, default_value_t = 640, value_parser = clap::value_parser!(u32).range(16..=8192))]
     width: u32,
@@ -187,6 +191,24 @@ struct Args {
     /// with every needed mip resident and report PSNR against it (0: never).
     #[arg(long, default_value_t = 30)]
     psnr_interval: u32,
+    /// Open a window and fly through the city interactively (docs/WINDOW.md):
+    /// mouse and keys fly, --path replays a path at wall-clock speed, R
+    /// records. Needs a display (X11, or XWayland).
+    #[arg(long, conflicts_with_all = ["placeholder", "pop_in"])]
+    window: bool,
+    /// With --window: vsync (default), mailbox or immediate; vsync where the
+    /// display lacks the one asked for.
+    #[arg(long, default_value = "vsync", requires = "window")]
+    present_mode: PresentMode,
+    /// With --window: record the flown camera path from the first frame to
+    /// this path file (R stops and restarts it); written when recording stops
+    /// or the window closes, replacing the file atomically.
+    #[arg(long, requires = "window")]
+    record: Option<PathBuf>,
+    /// With --window: scripted input (docs/WINDOW.md), for demos and tests:
+    /// key presses, mouse looks, resizes, minimising and screenshots by frame.
+    #[arg(long, requires = "window")]
+    input_script: Option<PathBuf>,
 }
 
 /// `--memory-budget-mb`: whole MB, or `None` for `unlimited`.
@@ -376,16 +398,23 @@ impl PassTimes {
     }
 }
 
+mod window;
+
 fn main() -> Result<()> {
     let args = Args::parse();
+    if args.window {
+        return window::run(&args);
+    }
     let device = Arc::new(
         Device::new(&DeviceOptions {
             instance: InstanceOptions {
                 validation: args.validation.unwrap_or_else(default_validation),
                 synchronization: default_synchronization_validation(),
                 app_name: "citystream flythrough".into(),
+                extensions: Vec::new(),
             },
             device_name: args.device.clone(),
+            presentation: false,
         })
         .context("creating the Vulkan device")?,
     );
@@ -395,14 +424,7 @@ fn main() -> Result<()> {
     if args.placeholder {
         return placeholder_city(&args, &device);
     }
-    let dir = match &args.dataset {
-        Some(dir) => dir.clone(),
-        None => {
-            let dir = PathBuf::from(DEFAULT_CITY_DIR);
-            ensure_default_city(&dir, false)?;
-            dir
-        }
-    };
+    let dir = dataset_dir(&args)?;
     if args.pop_in {
         pop_in(&args, &device, &dir)
     } else {
@@ -411,11 +433,64 @@ fn main() -> Result<()> {
 }
 
 /// The camera path the run follows: the standard path of the dataset or a file.
-fn camera_path(args: &Args, scene: &citystream_streaming::dataset::Scene) -> Result<CameraPath> {
-    if args.path == "standard" {
+fn camera_path(name: &str, scene: &citystream_streaming::dataset::Scene) -> Result<CameraPath> {
+    if name == "standard" {
         standard_path(scene, DEFAULT_STANDARD_DURATION_S).context("deriving the standard path of the dataset")
     } else {
-        CameraPath::load(&args.path).with_context(|| format!("reading the camera path {}", args.path))
+        CameraPath::load(name).with_context(|| format!("reading the camera path {name}"))
+    }
+}
+
+/// The dataset directory: `--dataset`, or the default city (created on first run).
+fn dataset_dir(args: &Args) -> Result<PathBuf> {
+    match &args.dataset {
+        Some(dir) => Ok(dir.clone()),
+        None => {
+            let dir = PathBuf::from(DEFAULT_CITY_DIR);
+            ensure_default_city(&dir, false)?;
+            Ok(dir)
+        }
+    }
+}
+
+/// The streaming policy the options ask for.
+fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::controller::LoadPolicy>> {
+    args.policy
+        .build(&PolicyOptions {
+            alpha_ms: args.alpha,
+            beta: args.beta,
+            s_max_mb: 64.0,
+            s_min_bytes: 64 * 1024,
+            fixed_load_size_mb: args.load_size_mb,
+            fixed_mip_bias: args.mip_bias,
+        })
+        .context("building the streaming policy")
+}
+
+/// The latency (ms) of a frame the controller is given: measured with the
+/// real clock (after sleeping through the modelled bind cost, as a driver
+/// would stall), modelled with the others.
+fn frame_latency(
+    clock: Clock,
+    applied: &citystream_engine::texture_cache::CycleReport,
+    latency: &BindLatencyModel,
+    rng: &mut SplitMix64,
+    measured_ms: impl FnOnce() -> f64,
+) -> f64 {
+    let mut bind_cost_ms = 0.0;
+    if applied.blocks_bound + applied.blocks_unbound > 0 {
+        let runs = u64::from(applied.bind_entries);
+        let blocks = u64::from(applied.blocks_bound + applied.blocks_unbound);
+        bind_cost_ms = latency.cost_s(blocks, runs, rng) * 1000.0;
+        if clock == Clock::Real && bind_cost_ms > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(bind_cost_ms / 1000.0));
+        }
+    }
+    match clock {
+        Clock::Real => measured_ms(),
+        Clock::Fixed | Clock::Modelled => {
+            FIXED_RENDER_MS + bind_cost_ms + applied.bytes_uploaded as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
+        }
     }
 }
 
@@ -597,22 +672,48 @@ fn city_gpu(
 /// needed level; 0 when everything needed is shown.
 fn mip_deficit(entries: &[FeedbackEntry], tau: u32, meshes: &[CityMesh], cache: &GpuTextureCache) -> Option<f64> {
     let (mut weighted, mut total) = (0.0f64, 0.0f64);
-    for entry in entries.iter().filter(|e| e.weight >= tau) {
-        let Some(mesh) = meshes.get(entry.mesh_id as usize) else {
-            continue;
-        };
-        let needed = f64::from(entry.mip) / f64::from(FEEDBACK_MIP_ONE);
-        let displayed = match cache.texture_data(mesh.texture) {
-            Some(d) if d.state == TEXTURE_SAMPLEABLE => needed
-                .max(f64::from(d.lowest_mip))
-                .min(f64::from(d.mip_count.saturating_sub(1))),
-            _ => f64::from(mesh.max_mip()),
-        };
+    for (entry, _, needed, displayed) in served_levels(entries, tau, meshes, cache) {
         let weight = f64::from(entry.weight);
         weighted += weight * (displayed - needed).max(0.0);
         total += weight;
     }
     (total > 0.0).then(|| weighted / total)
+}
+
+/// Textures that feedback entries reaching `tau` show at least a whole
+/// level coarser than they need: what streaming has still to deliver.
+fn pending_textures(entries: &[FeedbackEntry], tau: u32, meshes: &[CityMesh], cache: &GpuTextureCache) -> usize {
+    let mut pending: Vec<u32> = served_levels(entries, tau, meshes, cache)
+        .filter(|(_, _, needed, displayed)| displayed - needed >= 1.0)
+        .map(|(_, mesh, _, _)| mesh.texture)
+        .collect();
+    pending.sort_unstable();
+    pending.dedup();
+    pending.len()
+}
+
+/// For each entry reaching `tau`: its mesh, the level it needs and the level
+/// the cache displays (the coarsest when the texture is not sampleable).
+fn served_levels<'a>(
+    entries: &'a [FeedbackEntry],
+    tau: u32,
+    meshes: &'a [CityMesh],
+    cache: &'a GpuTextureCache,
+) -> impl Iterator<Item = (&'a FeedbackEntry, &'a CityMesh, f64, f64)> + 'a {
+    entries
+        .iter()
+        .filter(move |e| e.weight >= tau)
+        .filter_map(move |entry| {
+            let mesh = meshes.get(entry.mesh_id as usize)?;
+            let needed = f64::from(entry.mip) / f64::from(FEEDBACK_MIP_ONE);
+            let displayed = match cache.texture_data(mesh.texture) {
+                Some(d) if d.state == TEXTURE_SAMPLEABLE => needed
+                    .max(f64::from(d.lowest_mip))
+                    .min(f64::from(d.mip_count.saturating_sub(1))),
+                _ => f64::from(mesh.max_mip()),
+            };
+            Some((entry, mesh, needed, displayed))
+        })
 }
 
 /// Loads, into the reference streamer, every level from the one each seen
@@ -657,8 +758,54 @@ fn psnr_db(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
     }
 }
 
-const CSV_HEADER: &str =
-    "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,resident_bytes,mip_deficit,psnr_db";
+const CSV_HEADER: &str = "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
+                          blocks_bound,resident_bytes,mip_deficit,psnr_db,eye_x,eye_y,eye_z,look_x,look_y,look_z";
+
+/// One frame's line of frames.csv.
+struct CsvRow<'a> {
+    frame: u32,
+    time_s: f64,
+    frame_ms: f64,
+    telemetry: &'a citystream_streaming::controller::Telemetry,
+    applied: &'a citystream_engine::texture_cache::CycleReport,
+    resident: u64,
+    deficit: Option<f64>,
+    psnr: Option<f64>,
+    camera: &'a Camera,
+}
+
+fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
+    let t = row.telemetry;
+    let (eye, look) = (row.camera.eye, row.camera.target);
+    // The pose exactly (shortest round-trip form): a replay is compared with it.
+    writeln!(
+        csv,
+        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{}",
+        row.frame,
+        row.time_s,
+        row.frame_ms,
+        t.tw_ms,
+        t.tm_ms,
+        t.tb_ms,
+        t.tbl_ms,
+        t.tbu_ms,
+        t.load_size_mb,
+        t.mip_bias,
+        row.applied.mips_uploaded,
+        row.applied.bytes_uploaded,
+        row.applied.blocks_bound,
+        row.resident,
+        optional(row.deficit),
+        optional(row.psnr),
+        eye.x,
+        eye.y,
+        eye.z,
+        look.x,
+        look.y,
+        look.z,
+    )?;
+    Ok(())
+}
 
 fn optional(value: Option<f64>) -> String {
     value
@@ -677,11 +824,11 @@ struct CityTargets {
     fragment_area: f32,
 }
 
-fn city_targets(args: &Args, device: &Arc<Device>) -> Result<CityTargets> {
-    let target = RenderTarget::new(device, args.width, args.height)?;
-    let feedback_target = RenderTarget::new(device, (args.width / 4).max(16), (args.height / 4).max(16))?;
+fn city_targets(device: &Arc<Device>, width: u32, height: u32) -> Result<CityTargets> {
+    let target = RenderTarget::new(device, width, height)?;
+    let feedback_target = RenderTarget::new(device, (width / 4).max(16), (height / 4).max(16))?;
     let view = FeedbackView::default();
-    let fragment_area = view.fragment_area(args.height, feedback_target.height());
+    let fragment_area = view.fragment_area(height, feedback_target.height());
     Ok(CityTargets {
         target,
         feedback_target,
@@ -711,18 +858,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         feedback_target,
         view,
         fragment_area,
-    } = city_targets(args, device)?;
-    let policy = args
-        .policy
-        .build(&PolicyOptions {
-            alpha_ms: args.alpha,
-            beta: args.beta,
-            s_max_mb: 64.0,
-            s_min_bytes: 64 * 1024,
-            fixed_load_size_mb: args.load_size_mb,
-            fixed_mip_bias: args.mip_bias,
-        })
-        .context("building the streaming policy")?;
+    } = city_targets(device, args.width, args.height)?;
+    let policy = build_policy(args)?;
     let frames_in_flight = args.frames_in_flight;
     let mut gpu = city_gpu(
         device,
@@ -768,7 +905,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let bounds = scene.bounds;
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
     let extent = size.x.max(size.y).max(size.z).max(1.0);
-    let path = camera_path(args, scene)?;
+    let path_name = args.path.as_deref().unwrap_or("standard");
+    let path = camera_path(path_name, scene)?;
     path.restart();
     let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
     // With the fixed clock the frame count follows from the duration; with
@@ -778,7 +916,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         .unwrap_or_else(|| ((duration_s * 1000.0 / FIXED_STEP_MS).ceil() as u32).max(1));
     eprintln!(
         "path: {} ({:.1} s, pauses at {:?} s, jumps at {:?} s)",
-        args.path,
+        path_name,
         path.duration_s(),
         path.pauses()
             .iter()
@@ -837,7 +975,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         frames_run += 1;
         let camera = pose_camera(&path.sample(time_s), extent);
         let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
-        let write_frame = args.frame_interval > 0 && frame % args.frame_interval == 0;
+        let write_frame = frame_interval(args) > 0 && frame % frame_interval(args) == 0;
 
         // Algorithm 1 through the streamer: retire finished frames, hand
         // completed feedback to the loader, pack and bind what it loaded.
@@ -885,8 +1023,11 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         pass_times.end(cmd, slot, 1);
         pass_times.begin(cmd, slot, 2);
         // The error reference needs every seen mesh: τ = 0 then.
-        gpu.streamer
-            .record_feedback_resolve_with_tau(cmd, if measure_error { 0 } else { tau })?;
+        if measure_error {
+            gpu.streamer.record_feedback_resolve_with_tau(cmd, 0)?;
+        } else {
+            gpu.streamer.record_feedback_resolve(cmd)?;
+        }
         pass_times.end(cmd, slot, 2);
         pass_times.begin(cmd, slot, 3);
         gpu.renderer.record_visible(cmd, &target, &camera, 1.0, true);
@@ -925,15 +1066,9 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             }
         }
 
-        let mut bind_cost_ms = 0.0;
-        if applied.blocks_bound + applied.blocks_unbound > 0 {
-            let runs = u64::from(applied.bind_entries);
-            let blocks = u64::from(applied.blocks_bound + applied.blocks_unbound);
-            bind_cost_ms = latency.cost_s(blocks, runs, &mut latency_rng) * 1000.0;
-            if args.clock == Clock::Real && bind_cost_ms > 0.0 {
-                std::thread::sleep(Duration::from_secs_f64(bind_cost_ms / 1000.0));
-            }
-        }
+        frame_ms = frame_latency(args.clock, &applied, &latency, &mut latency_rng, || {
+            clock.tick().as_secs_f64() * 1000.0
+        });
         let bytes = applied.bytes_uploaded;
         let mips = u64::from(applied.mips_uploaded);
         mips_total += mips;
@@ -944,13 +1079,6 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
         }
 
-        let measured = clock.tick().as_secs_f64() * 1000.0;
-        frame_ms = match args.clock {
-            Clock::Real => measured,
-            Clock::Fixed | Clock::Modelled => {
-                FIXED_RENDER_MS + bind_cost_ms + bytes as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
-            }
-        };
         sim_time_s += match args.clock {
             Clock::Modelled => frame_ms.max(FIXED_STEP_MS),
             _ => FIXED_STEP_MS,
@@ -960,19 +1088,19 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         deficits.extend(deficit);
         psnrs.extend(psnr.filter(|p| p.is_finite()));
         uploads_at.push((time_s, mips));
-        writeln!(
-            csv,
-            "{frame},{time_s:.4},{frame_ms:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{mips},{bytes},{},{resident},{},{}",
-            t.tw_ms,
-            t.tm_ms,
-            t.tb_ms,
-            t.tbl_ms,
-            t.tbu_ms,
-            t.load_size_mb,
-            t.mip_bias,
-            applied.blocks_bound,
-            optional(deficit),
-            optional(psnr),
+        write_csv_row(
+            &mut csv,
+            &CsvRow {
+                frame,
+                time_s,
+                frame_ms,
+                telemetry: &t,
+                applied: &applied,
+                resident,
+                deficit,
+                psnr,
+                camera: &camera,
+            },
         )?;
         let mb_per_s = bytes as f64 / 1e6 / (frame_ms / 1000.0).max(1e-6);
         status(
@@ -1160,7 +1288,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         feedback_target,
         view,
         fragment_area,
-    } = city_targets(args, device)?;
+    } = city_targets(device, args.width, args.height)?;
     // Levels are loaded explicitly, one per frame: the policy never runs.
     let mut gpu = city_gpu(
         device,
@@ -1175,7 +1303,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     // the benchmark sees longest.
     let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
     let extent = size.x.max(size.y).max(size.z).max(1.0);
-    let path = camera_path(args, scene)?;
+    let path = camera_path(args.path.as_deref().unwrap_or("standard"), scene)?;
     let at = path.pauses().first().map_or(0.0, |p| p.start_s);
     let camera = pose_camera(&path.sample_between(None, at), extent);
     // What the static view needs: one streamer frame of feedback.
@@ -1234,7 +1362,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         gpu.streamer.load_levels_now(&levels, &mut commands)?;
         let direct = render(&gpu, &mut commands, false)?;
         let blended = render(&gpu, &mut commands, true)?;
-        if args.frame_interval > 0 && frames % args.frame_interval == 0 {
+        if frame_interval(args) > 0 && frames % frame_interval(args) == 0 {
             write_png(
                 &direct,
                 &frames_dir_path(args).join(format!("popin_direct_{frames:03}.png")),
@@ -1284,6 +1412,11 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     Ok(())
 }
 
+/// `--frame-interval`: 20 by default headless, 0 in the window.
+fn frame_interval(args: &Args) -> u32 {
+    args.frame_interval.unwrap_or(if args.window { 0 } else { 20 })
+}
+
 fn frames_dir_path(args: &Args) -> PathBuf {
     args.out.join("frames")
 }
@@ -1314,7 +1447,7 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
         renderer.record(cmd, camera.view_projection(aspect, 0.0), [0.4, 0.8, 0.3, 1.0]);
         target.end_and_copy(device, cmd);
         commands.submit_and_wait(&[])?;
-        if args.frame_interval > 0 && frame % args.frame_interval == 0 {
+        if frame_interval(args) > 0 && frame % frame_interval(args) == 0 {
             let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
             write_png(&target.read_pixels()?, &path)?;
             written.push(path.display().to_string());

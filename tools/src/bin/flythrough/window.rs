@@ -1,0 +1,1055 @@
+//! `flythrough --window`: the streamed city in a window (docs/WINDOW.md).
+//!
+//! The frame is the headless one (the same streamer calls, the same passes
+//! into the same off-screen target, the same clocks), followed by a blit of
+//! that target into the acquired swapchain image; so a windowed frame under
+//! `--clock fixed` is the headless frame of the same number, pixel for pixel.
+//! Input (real or scripted) goes through one `Action` handler.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use glam::Vec3;
+use serde::Deserialize;
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+use citystream_engine::city::CityMesh;
+use citystream_engine::commands::{CommandContext, SemaphoreSignal, SemaphoreWait};
+use citystream_engine::device::describe;
+use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
+use citystream_engine::present::{self, Presenter, Surface};
+use citystream_engine::target::write_png;
+use citystream_engine::timing::CpuFrameClock;
+use citystream_engine::{Device, DeviceOptions};
+use citystream_streaming::bench::path::{CameraPath, CameraPose, Keyframe};
+use citystream_streaming::bind_latency::BindLatencyModel;
+use citystream_streaming::dataset::Dataset;
+use citystream_streaming::rng::SplitMix64;
+
+use super::{
+    build_policy, cache_layer_size, camera_path, city_gpu, city_targets, dataset_dir, frame_interval, frame_latency,
+    frames_dir_path, open_city, pending_textures, pose_camera, stream_config, write_csv_row, Args, CityGpu,
+    CityTargets, Clock, CsvRow, CSV_HEADER, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
+};
+
+/// What a key (or a scripted event) does.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum Action {
+    Forward,
+    Back,
+    Left,
+    Right,
+    Down,
+    Up,
+    /// Held: fly four times as fast.
+    Fast,
+    /// Jump to the dataset's overview.
+    Overview,
+    /// Play the camera path (`--path`, default the standard path) from its start.
+    Replay,
+    /// Stop or resume streaming (feedback and loading); the view keeps what is resident.
+    PauseStreaming,
+    /// Blend the City Colormap by mip level (Eq. 8) or show sampled colour only.
+    ToggleColormap,
+    /// Start or stop recording the camera path.
+    Record,
+    Quit,
+}
+
+impl Action {
+    fn of_key(code: KeyCode) -> Option<Action> {
+        Some(match code {
+            KeyCode::KeyW | KeyCode::ArrowUp => Action::Forward,
+            KeyCode::KeyS | KeyCode::ArrowDown => Action::Back,
+            KeyCode::KeyA | KeyCode::ArrowLeft => Action::Left,
+            KeyCode::KeyD | KeyCode::ArrowRight => Action::Right,
+            KeyCode::KeyQ | KeyCode::PageDown => Action::Down,
+            KeyCode::KeyE | KeyCode::PageUp => Action::Up,
+            KeyCode::ShiftLeft | KeyCode::ShiftRight => Action::Fast,
+            KeyCode::KeyO | KeyCode::Home => Action::Overview,
+            KeyCode::KeyP => Action::Replay,
+            KeyCode::Space => Action::PauseStreaming,
+            KeyCode::KeyC => Action::ToggleColormap,
+            KeyCode::KeyR => Action::Record,
+            KeyCode::Escape => Action::Quit,
+            _ => return None,
+        })
+    }
+
+    /// Held actions move the camera while down; the others act once on press.
+    fn is_held(self) -> bool {
+        matches!(
+            self,
+            Action::Forward | Action::Back | Action::Left | Action::Right | Action::Down | Action::Up | Action::Fast
+        )
+    }
+}
+
+/// The controls, printed at start.
+const HELP: &str = "controls: drag with the left mouse button to look, W/A/S/D fly, Q/E down/up, Shift faster, \
+                    scroll wheel changes speed, O overview, P play the path, Space pause streaming, \
+                    C colormap blending, R start/stop recording, Esc quit";
+
+/// One scripted input event (`--input-script`), applied before frame `frame` renders.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ScriptEvent {
+    frame: u32,
+    #[serde(default)]
+    press: Option<Action>,
+    #[serde(default)]
+    release: Option<Action>,
+    /// A mouse drag, in pixels (x right, y down).
+    #[serde(default)]
+    look: Option<[f64; 2]>,
+    /// Scroll-wheel notches (positive: faster).
+    #[serde(default)]
+    scroll: Option<f64>,
+    /// Ask the window system for this inner size.
+    #[serde(default)]
+    resize: Option<[u32; 2]>,
+    /// Minimise (and unmap) the window for this many wall-clock seconds.
+    #[serde(default)]
+    minimise_s: Option<f64>,
+    /// Write the presented image of this frame to OUT/frames/.
+    #[serde(default)]
+    screenshot: bool,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Script {
+    events: Vec<ScriptEvent>,
+}
+
+fn load_script(path: &Path) -> Result<Vec<ScriptEvent>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading the input script {}", path.display()))?;
+    let script: Script =
+        serde_json::from_str(&text).with_context(|| format!("parsing the input script {}", path.display()))?;
+    let mut events = script.events;
+    for (i, e) in events.iter().enumerate() {
+        let actions = [
+            e.press.is_some(),
+            e.release.is_some(),
+            e.look.is_some(),
+            e.scroll.is_some(),
+            e.resize.is_some(),
+            e.minimise_s.is_some(),
+            e.screenshot,
+        ];
+        if actions.iter().filter(|a| **a).count() != 1 {
+            bail!(
+                "{}: event {i} (frame {}) must do exactly one of press, release, look, scroll, resize, \
+                 minimise_s, screenshot",
+                path.display(),
+                e.frame
+            );
+        }
+        let finite = e.look.is_none_or(|l| l.iter().all(|v| v.is_finite()))
+            && e.scroll.is_none_or(f64::is_finite)
+            && e.minimise_s
+                .is_none_or(|s| s.is_finite() && (0.0..=3600.0).contains(&s));
+        if !finite {
+            bail!(
+                "{}: event {i} (frame {}): numbers must be finite (minimise_s within 0..=3600)",
+                path.display(),
+                e.frame
+            );
+        }
+        if let Some([w, h]) = e.resize {
+            if !(16..=8192).contains(&w) || !(16..=8192).contains(&h) {
+                bail!(
+                    "{}: event {i} (frame {}): resize {w}x{h} is outside 16..=8192 per side",
+                    path.display(),
+                    e.frame
+                );
+            }
+        }
+    }
+    // Stable: events of one frame keep their order.
+    events.sort_by_key(|e| e.frame);
+    Ok(events)
+}
+
+/// The free-flying camera: a position and a view direction.
+#[derive(Clone, Copy, Debug)]
+struct FlyCamera {
+    position: Vec3,
+    yaw: f32,
+    pitch: f32,
+    /// Distance of the look-at point written to recorded paths.
+    look_distance: f32,
+}
+
+impl FlyCamera {
+    fn from_pose(pose: &CameraPose) -> Self {
+        let position = Vec3::from(pose.position);
+        let offset = Vec3::from(pose.look_at) - position;
+        let distance = offset.length().max(1e-3);
+        let dir = offset / distance;
+        Self {
+            position,
+            yaw: dir.z.atan2(dir.x),
+            pitch: dir.y.clamp(-1.0, 1.0).asin(),
+            look_distance: distance,
+        }
+    }
+
+    fn direction(&self) -> Vec3 {
+        Vec3::new(
+            self.yaw.cos() * self.pitch.cos(),
+            self.pitch.sin(),
+            self.yaw.sin() * self.pitch.cos(),
+        )
+    }
+
+    fn pose(&self) -> CameraPose {
+        CameraPose {
+            position: self.position.to_array(),
+            look_at: (self.position + self.direction() * self.look_distance).to_array(),
+            in_pause: false,
+            jumped: false,
+        }
+    }
+}
+
+/// The dataset's overview: above the middle of its bounds, looking down on it.
+fn overview_pose(dataset: &Dataset) -> CameraPose {
+    let bounds = dataset.scene.bounds;
+    let (min, max) = (Vec3::from(bounds.min), Vec3::from(bounds.max));
+    let centre = (min + max) * 0.5;
+    let size = max - min;
+    let extent = size.x.max(size.z).max(1.0);
+    let eye = Vec3::new(centre.x, max.y + extent * 0.45, centre.z - extent * 0.55);
+    CameraPose {
+        position: eye.to_array(),
+        look_at: centre.to_array(),
+        in_pause: false,
+        jumped: false,
+    }
+}
+
+/// Records the flown path: a keyframe per frame in which the camera moved,
+/// `hold_s` on the keyframe where it then held still, `jump` where it teleported.
+#[derive(Debug)]
+struct Recorder {
+    file: PathBuf,
+    started_s: f64,
+    keyframes: Vec<Keyframe>,
+}
+
+impl Recorder {
+    fn new(file: PathBuf, started_s: f64) -> Self {
+        Self {
+            file,
+            started_s,
+            keyframes: Vec::new(),
+        }
+    }
+
+    fn push(&mut self, time_s: f64, pose: &CameraPose, jumped: bool) {
+        let t = time_s - self.started_s;
+        if let Some(last) = self.keyframes.last_mut() {
+            if t <= last.end_s() {
+                return;
+            }
+            if !jumped && last.position == pose.position && last.look_at == pose.look_at {
+                last.hold_s = t - last.t;
+                return;
+            }
+        }
+        let mut keyframe = Keyframe::new(t, pose.position, pose.look_at);
+        keyframe.jump = jumped && !self.keyframes.is_empty();
+        self.keyframes.push(keyframe);
+    }
+
+    /// Writes the path (atomically); `None` when nothing was recorded.
+    fn save(self) -> Result<Option<(PathBuf, usize, f64)>> {
+        if self.keyframes.is_empty() {
+            return Ok(None);
+        }
+        let count = self.keyframes.len();
+        let path = CameraPath::new(self.keyframes)
+            .context("the recorded path")?
+            .with_description("recorded in the flythrough window");
+        path.save(&self.file)
+            .with_context(|| format!("writing the recorded path {}", self.file.display()))?;
+        Ok(Some((self.file, count, path.duration_s())))
+    }
+}
+
+/// A path played at the camera clock's speed.
+#[derive(Debug)]
+struct Replay {
+    path: CameraPath,
+    started_s: f64,
+    previous_t: Option<f64>,
+}
+
+/// Bytes uploaded over the last second, for the MB/s the title shows.
+#[derive(Debug, Default)]
+struct Throughput {
+    samples: std::collections::VecDeque<(f64, u64)>,
+}
+
+impl Throughput {
+    fn push(&mut self, time_s: f64, bytes: u64) -> f64 {
+        self.samples.push_back((time_s, bytes));
+        while self.samples.front().is_some_and(|(t, _)| time_s - t > 1.0) {
+            self.samples.pop_front();
+        }
+        let span = self.samples.front().map_or(0.0, |(t, _)| time_s - t).max(1e-3);
+        self.samples.iter().map(|(_, b)| *b).sum::<u64>() as f64 / 1e6 / span.max(FIXED_STEP_MS / 1000.0)
+    }
+}
+
+/// Everything that needs the window: created on the first `resumed`.
+struct Viewer {
+    window: Arc<Window>,
+    device: Arc<Device>,
+    dataset: Arc<Dataset>,
+    meshes: Vec<CityMesh>,
+    extent: f32,
+    gpu: CityGpu,
+    targets: CityTargets,
+    frame_commands: Vec<CommandContext>,
+    // Dropped after the frames that use its semaphores (its Drop waits for the device).
+    presenter: Presenter,
+    size: (u32, u32),
+    needs_resize: bool,
+    minimised_until: Option<Instant>,
+    // Camera and input.
+    camera: FlyCamera,
+    replay: Option<Replay>,
+    path: Option<CameraPath>,
+    held: Vec<Action>,
+    dragging: Option<(f64, f64)>,
+    speed: f32,
+    jumped: bool,
+    // Toggles.
+    streaming_paused: bool,
+    colormap_blend: bool,
+    recorder: Option<Recorder>,
+    // Clocks and stats.
+    time_s: f64,
+    frame: u32,
+    frame_ms: f64,
+    clock: CpuFrameClock,
+    last_frame_at: Option<Instant>,
+    latency: BindLatencyModel,
+    latency_rng: SplitMix64,
+    throughput: Throughput,
+    pending: usize,
+    last_feedback: Option<u64>,
+    title_at: Instant,
+    warned_over_budget: bool,
+    csv: std::io::BufWriter<std::fs::File>,
+    screenshots: Vec<String>,
+}
+
+/// The winit application: the viewer once resumed, and the first error.
+struct App<'a> {
+    args: &'a Args,
+    dir: PathBuf,
+    device: Option<Arc<Device>>,
+    script: Vec<ScriptEvent>,
+    viewer: Option<Viewer>,
+    error: Option<anyhow::Error>,
+}
+
+/// Runs the window until Esc, a close, or `--frames`/`--duration-s`.
+pub(super) fn run(args: &Args) -> Result<()> {
+    if args.clock == Clock::Modelled {
+        bail!("--clock modelled is for headless benchmarks; the window uses real (default) or fixed");
+    }
+    let script = match &args.input_script {
+        Some(path) => load_script(path)?,
+        None => Vec::new(),
+    };
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow!(
+            "cannot open a window: {e}. Is DISPLAY set to a running X server (or XWayland)? \
+             Without --window the flythrough renders headless."
+        )
+    })?;
+    let dir = dataset_dir(args)?;
+    let extensions = present::instance_extensions(&event_loop).context("the window system's Vulkan extensions")?;
+    let device = Arc::new(
+        Device::new(&DeviceOptions {
+            instance: InstanceOptions {
+                validation: args.validation.unwrap_or_else(default_validation),
+                synchronization: default_synchronization_validation(),
+                app_name: "citystream flythrough window".into(),
+                extensions,
+            },
+            device_name: args.device.clone(),
+            presentation: true,
+        })
+        .context("creating the Vulkan device")?,
+    );
+    eprintln!("device: {}", describe(&device));
+    eprintln!("{HELP}");
+    let mut app = App {
+        args,
+        dir,
+        device: Some(Arc::clone(&device)),
+        script,
+        viewer: None,
+        error: None,
+    };
+    event_loop.run_app(&mut app).context("the window's event loop")?;
+    let viewer = app.viewer.take();
+    let outcome = match viewer {
+        Some(viewer) => viewer.finish(args),
+        None => Ok(()),
+    };
+    if let Some(error) = app.error.take() {
+        return Err(error);
+    }
+    outcome?;
+    // Warnings too: swapchain misuse often shows as one.
+    let messages = device.validation_log().messages();
+    if device.instance().is_some_and(|i| i.validation_enabled()) {
+        eprintln!("validation: {} message(s)", messages.len());
+    }
+    if let Some(first) = messages.first() {
+        bail!(
+            "{} Vulkan validation message(s) while the window ran; the first: {}: {}",
+            messages.len(),
+            first.id,
+            first.text
+        );
+    }
+    Ok(())
+}
+
+impl App<'_> {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, error: anyhow::Error) {
+        if self.error.is_none() {
+            self.error = Some(error);
+        }
+        event_loop.exit();
+    }
+}
+
+impl ApplicationHandler for App<'_> {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.viewer.is_some() {
+            return;
+        }
+        let Some(device) = self.device.take() else {
+            return;
+        };
+        match Viewer::new(self.args, &self.dir, device, event_loop) {
+            Ok(viewer) => {
+                self.viewer = Some(viewer);
+                event_loop.set_control_flow(ControlFlow::Poll);
+            }
+            Err(e) => self.fail(event_loop, e),
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        let Some(viewer) = self.viewer.as_mut() else {
+            return;
+        };
+        let result = match event {
+            WindowEvent::CloseRequested => {
+                event_loop.exit();
+                Ok(())
+            }
+            WindowEvent::Resized(size) => {
+                viewer.on_resize(size.width, size.height);
+                Ok(())
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                if event.repeat {
+                    return;
+                }
+                let PhysicalKey::Code(code) = event.physical_key else {
+                    return;
+                };
+                match Action::of_key(code) {
+                    Some(action) => viewer.act(action, event.state == ElementState::Pressed, self.args),
+                    None => Ok(()),
+                }
+            }
+            WindowEvent::MouseInput {
+                state,
+                button: MouseButton::Left,
+                ..
+            } => {
+                if state == ElementState::Released {
+                    viewer.dragging = None;
+                } else {
+                    viewer.dragging = Some((f64::NAN, f64::NAN));
+                }
+                Ok(())
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                if let Some((x, y)) = viewer.dragging {
+                    if x.is_finite() {
+                        viewer.look(position.x - x, position.y - y);
+                    }
+                    viewer.dragging = Some((position.x, position.y));
+                }
+                Ok(())
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                let notches = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => f64::from(y),
+                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+                };
+                viewer.scroll(notches);
+                Ok(())
+            }
+            WindowEvent::Occluded(occluded) => {
+                // Minimised (or fully covered) on some window systems: nothing to show.
+                if !occluded {
+                    viewer.needs_resize = true;
+                }
+                Ok(())
+            }
+            WindowEvent::RedrawRequested => viewer.redraw(self.args, &mut self.script, event_loop),
+            _ => Ok(()),
+        };
+        if viewer.quit_requested() {
+            event_loop.exit();
+        }
+        if let Err(e) = result {
+            self.fail(event_loop, e);
+        }
+    }
+
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        let Some(viewer) = self.viewer.as_mut() else {
+            return;
+        };
+        match viewer.minimised_until {
+            Some(until) if Instant::now() < until => {
+                event_loop.set_control_flow(ControlFlow::WaitUntil(until));
+            }
+            Some(_) => {
+                viewer.minimised_until = None;
+                viewer.window.set_visible(true);
+                viewer.window.set_minimized(false);
+                let size = viewer.window.inner_size();
+                viewer.on_resize(size.width, size.height);
+                event_loop.set_control_flow(ControlFlow::Poll);
+                viewer.window.request_redraw();
+            }
+            None => viewer.window.request_redraw(),
+        }
+    }
+}
+
+impl Viewer {
+    fn new(args: &Args, dir: &Path, device: Arc<Device>, event_loop: &ActiveEventLoop) -> Result<Self> {
+        let (dataset, city) = open_city(dir)?;
+        let attributes = Window::default_attributes()
+            .with_title(format!("citystream · {}", dir.display()))
+            .with_inner_size(PhysicalSize::new(args.width, args.height));
+        let window = Arc::new(event_loop.create_window(attributes).context("creating the window")?);
+        let inner = window.inner_size();
+        let size = (inner.width.max(16), inner.height.max(16));
+        let surface = Surface::new(&device, Arc::clone(&window) as Arc<dyn present::PresentWindow>)
+            .context("creating the window's Vulkan surface")?;
+        let presenter = Presenter::new(&device, surface, size, args.present_mode, args.frames_in_flight, true)
+            .context("creating the swapchain")?;
+        if presenter.mode() != args.present_mode {
+            eprintln!(
+                "note: the display has no {} presentation; using {}",
+                args.present_mode.name(),
+                presenter.mode().name()
+            );
+        }
+        let size = presenter.extent();
+        let layer_size = cache_layer_size(&dataset, &device);
+        let mut commands = CommandContext::new(&device, "window setup")?;
+        let targets = city_targets(&device, size.0, size.1)?;
+        let gpu = city_gpu(
+            &device,
+            &mut commands,
+            &dataset,
+            &city,
+            build_policy(args)?,
+            &stream_config(
+                args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES),
+                args.frames_in_flight,
+                targets.fragment_area,
+                args.clock,
+                args.eviction,
+                args.cache_layers,
+                layer_size,
+            ),
+            args.inject_read_failures,
+        )?;
+        let frame_commands = (0..args.frames_in_flight)
+            .map(|i| CommandContext::new(&device, &format!("window frame (slot {i})")))
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let bounds = dataset.scene.bounds;
+        let span = Vec3::from(bounds.max) - Vec3::from(bounds.min);
+        let extent = span.x.max(span.y).max(span.z).max(1.0);
+        let path = match &args.path {
+            Some(name) => Some(camera_path(name, &dataset.scene)?),
+            None => None,
+        };
+        let replay = path.as_ref().map(|path| {
+            path.restart();
+            Replay {
+                path: path.clone(),
+                started_s: 0.0,
+                previous_t: None,
+            }
+        });
+        let start = match &path {
+            Some(path) => path.sample_between(None, 0.0),
+            None => overview_pose(&dataset),
+        };
+        std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+        let csv_path = args.out.join("frames.csv");
+        let mut csv = std::io::BufWriter::new(
+            std::fs::File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?,
+        );
+        writeln!(csv, "{CSV_HEADER}")?;
+        eprintln!(
+            "scene: {} ({} meshes, {} textures), {}x{} window, {} presentation, {} frame(s) in flight",
+            dir.display(),
+            dataset.scene.meshes.len(),
+            dataset.textures.len(),
+            size.0,
+            size.1,
+            presenter.mode().name(),
+            args.frames_in_flight
+        );
+        let recorder = args.record.clone().map(|file| {
+            eprintln!("recording the camera path to {}", file.display());
+            Recorder::new(file, 0.0)
+        });
+        let meshes = city.1;
+        Ok(Self {
+            window,
+            device,
+            dataset,
+            meshes,
+            extent,
+            gpu,
+            targets,
+            frame_commands,
+            presenter,
+            size,
+            needs_resize: false,
+            minimised_until: None,
+            camera: FlyCamera::from_pose(&start),
+            replay,
+            path,
+            held: Vec::new(),
+            dragging: None,
+            speed: extent / 20.0,
+            jumped: false,
+            streaming_paused: false,
+            colormap_blend: true,
+            recorder,
+            time_s: 0.0,
+            frame: 0,
+            frame_ms: FIXED_STEP_MS,
+            clock: CpuFrameClock::new(),
+            last_frame_at: None,
+            latency: BindLatencyModel::preset(args.bind_latency),
+            latency_rng: SplitMix64::new(args.seed),
+            throughput: Throughput::default(),
+            pending: 0,
+            last_feedback: None,
+            title_at: Instant::now(),
+            warned_over_budget: false,
+            csv,
+            screenshots: Vec::new(),
+        })
+    }
+
+    fn quit_requested(&self) -> bool {
+        self.held.contains(&Action::Quit)
+    }
+
+    fn on_resize(&mut self, width: u32, height: u32) {
+        if width == 0 || height == 0 {
+            // Minimised: no swapchain can have this size; render nothing until restored.
+            self.size = (0, 0);
+            return;
+        }
+        if (width, height) != self.size {
+            self.size = (width, height);
+            self.needs_resize = true;
+        }
+    }
+
+    /// A press or release of `action` (a key, or a scripted event).
+    fn act(&mut self, action: Action, pressed: bool, args: &Args) -> Result<()> {
+        if action.is_held() || action == Action::Quit {
+            self.held.retain(|a| *a != action);
+            if pressed {
+                self.held.push(action);
+                if action != Action::Fast && action != Action::Quit {
+                    self.take_over();
+                }
+            }
+            return Ok(());
+        }
+        if !pressed {
+            return Ok(());
+        }
+        match action {
+            Action::Overview => {
+                self.take_over();
+                let look_distance = self.camera.look_distance;
+                self.camera = FlyCamera::from_pose(&overview_pose(&self.dataset));
+                self.camera.look_distance = look_distance;
+                self.jumped = true;
+            }
+            Action::Replay => {
+                let path = match &self.path {
+                    Some(path) => path.clone(),
+                    None => camera_path("standard", &self.dataset.scene)?,
+                };
+                path.restart();
+                self.replay = Some(Replay {
+                    path,
+                    started_s: self.time_s,
+                    previous_t: None,
+                });
+                self.jumped = true;
+                eprintln!("\nplaying the camera path from its start");
+            }
+            Action::PauseStreaming => {
+                self.streaming_paused = !self.streaming_paused;
+                eprintln!(
+                    "\nstreaming {}",
+                    if self.streaming_paused { "paused" } else { "resumed" }
+                );
+            }
+            Action::ToggleColormap => {
+                self.colormap_blend = !self.colormap_blend;
+                eprintln!("\ncolormap blending {}", if self.colormap_blend { "on" } else { "off" });
+            }
+            Action::Record => match self.recorder.take() {
+                Some(recorder) => report_saved(recorder.save()?),
+                None => {
+                    let file = args
+                        .record
+                        .clone()
+                        .unwrap_or_else(|| args.out.join("recorded_path.json"));
+                    eprintln!("\nrecording the camera path to {}", file.display());
+                    self.recorder = Some(Recorder::new(file, self.time_s));
+                    // The first keyframe is where the camera is now.
+                    self.jumped = false;
+                }
+            },
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// The user flies: a path that was playing stops where it is.
+    fn take_over(&mut self) {
+        if self.replay.take().is_some() {
+            eprintln!("\npath replay stopped: free flight");
+        }
+    }
+
+    fn look(&mut self, dx: f64, dy: f64) {
+        self.take_over();
+        const RADIANS_PER_PIXEL: f32 = 0.004;
+        self.camera.yaw += dx as f32 * RADIANS_PER_PIXEL;
+        self.camera.pitch = (self.camera.pitch - dy as f32 * RADIANS_PER_PIXEL).clamp(-1.5, 1.5);
+    }
+
+    fn scroll(&mut self, notches: f64) {
+        let factor = 1.25f32.powf(notches.clamp(-20.0, 20.0) as f32);
+        self.speed = (self.speed * factor).clamp(self.extent * 1e-4, self.extent * 2.0);
+    }
+
+    /// Moves the camera by the held keys over `dt_s` seconds, or along the
+    /// path being replayed; returns this frame's pose.
+    fn advance_camera(&mut self, dt_s: f64) -> CameraPose {
+        if let Some(replay) = self.replay.as_mut() {
+            let t = self.time_s - replay.started_s;
+            let pose = replay.path.sample_between(replay.previous_t, t);
+            replay.previous_t = Some(t);
+            let look_distance = self.camera.look_distance;
+            self.camera = FlyCamera::from_pose(&pose);
+            self.camera.look_distance = look_distance;
+            // The path's own look-at, exactly, so a recording reproduces it.
+            return CameraPose {
+                jumped: pose.jumped || std::mem::take(&mut self.jumped),
+                ..pose
+            };
+        }
+        let forward = self.camera.direction();
+        let right = forward.cross(Vec3::Y).normalize_or_zero();
+        let mut velocity = Vec3::ZERO;
+        for action in &self.held {
+            velocity += match action {
+                Action::Forward => forward,
+                Action::Back => -forward,
+                Action::Right => right,
+                Action::Left => -right,
+                Action::Up => Vec3::Y,
+                Action::Down => -Vec3::Y,
+                _ => Vec3::ZERO,
+            };
+        }
+        let fast = if self.held.contains(&Action::Fast) { 4.0 } else { 1.0 };
+        self.camera.position += velocity.normalize_or_zero() * self.speed * fast * dt_s as f32;
+        let mut pose = self.camera.pose();
+        pose.jumped = std::mem::take(&mut self.jumped);
+        pose
+    }
+
+    fn apply_script(&mut self, args: &Args, script: &mut Vec<ScriptEvent>) -> Result<bool> {
+        let mut screenshot = false;
+        let due = script.iter().take_while(|e| e.frame <= self.frame).count();
+        for event in script.drain(..due) {
+            if let Some(action) = event.press {
+                self.act(action, true, args)?;
+            } else if let Some(action) = event.release {
+                self.act(action, false, args)?;
+            } else if let Some([dx, dy]) = event.look {
+                self.look(dx, dy);
+            } else if let Some(notches) = event.scroll {
+                self.scroll(notches);
+            } else if let Some([w, h]) = event.resize {
+                if let Some(size) = self.window.request_inner_size(PhysicalSize::new(w, h)) {
+                    self.on_resize(size.width, size.height);
+                }
+            } else if let Some(seconds) = event.minimise_s {
+                // What a window manager does on iconify: the window is unmapped and has no area.
+                self.window.set_minimized(true);
+                self.window.set_visible(false);
+                self.on_resize(0, 0);
+                self.minimised_until = Some(Instant::now() + Duration::from_secs_f64(seconds));
+                return Ok(screenshot);
+            } else if event.screenshot {
+                screenshot = true;
+            }
+        }
+        Ok(screenshot)
+    }
+
+    fn redraw(&mut self, args: &Args, script: &mut Vec<ScriptEvent>, event_loop: &ActiveEventLoop) -> Result<()> {
+        if self.minimised_until.is_some() {
+            return Ok(());
+        }
+        let screenshot = self.apply_script(args, script)? || {
+            let interval = frame_interval(args);
+            interval > 0 && self.frame.is_multiple_of(interval)
+        };
+        if self.minimised_until.is_some() || self.size.0 == 0 {
+            return Ok(());
+        }
+        if self.needs_resize {
+            self.resize()?;
+        }
+        if self.quit_requested() {
+            return Ok(());
+        }
+        // This frame's camera time: wall-clock time since the last frame (at
+        // most a second: a stall does not skip the path ahead), or the fixed step.
+        let now = Instant::now();
+        let dt_s = match (args.clock, self.last_frame_at) {
+            (_, None) => 0.0,
+            (Clock::Real, Some(at)) => now.duration_since(at).as_secs_f64().min(1.0),
+            (_, Some(_)) => FIXED_STEP_MS / 1000.0,
+        };
+        let done = args.frames.is_some_and(|n| self.frame >= n)
+            || args.duration_s.is_some_and(|d| self.time_s + dt_s > d + 1e-9);
+        if done {
+            event_loop.exit();
+            return Ok(());
+        }
+        self.last_frame_at = Some(now);
+        self.time_s += dt_s;
+        self.render(args, screenshot, dt_s, now)
+    }
+
+    /// Recreates the swapchain and the render targets at the window's size.
+    fn resize(&mut self) -> Result<()> {
+        self.needs_resize = false;
+        self.presenter
+            .resize(self.size.0, self.size.1)
+            .context("recreating the swapchain")?;
+        let (width, height) = self.presenter.extent();
+        if (width, height) != (self.targets.target.width(), self.targets.target.height()) {
+            // The presenter waited for the device: the old targets are unused.
+            self.targets = city_targets(&self.device, width, height)?;
+        }
+        self.size = (width, height);
+        Ok(())
+    }
+
+    fn render(&mut self, args: &Args, screenshot: bool, dt_s: f64, now: Instant) -> Result<()> {
+        let pose = self.advance_camera(dt_s);
+        if let Some(recorder) = self.recorder.as_mut() {
+            recorder.push(self.time_s, &pose, pose.jumped);
+        }
+        let camera = pose_camera(&pose, self.extent);
+        let tau = self.gpu.streamer.gpu_tau();
+
+        let begun = self.gpu.streamer.begin_frame()?;
+        if begun.over_budget && !self.warned_over_budget {
+            self.warned_over_budget = true;
+            eprintln!("\nwarning: the view needs more texture memory than the budget holds; showing what fits");
+        }
+        if let Some((from, entries)) = self.gpu.streamer.latest_feedback() {
+            if self.last_feedback != Some(from) {
+                self.last_feedback = Some(from);
+                self.pending = pending_textures(entries, tau, &self.meshes, self.gpu.streamer.cache());
+            }
+        }
+        let acquired = self.presenter.acquire(begun.slot)?;
+        let commands = &mut self.frame_commands[begun.slot as usize];
+        let cmd = commands.begin_completed()?;
+        let applied = self.gpu.streamer.record_uploads(cmd)?;
+        let CityTargets {
+            target,
+            feedback_target,
+            view,
+            ..
+        } = &self.targets;
+        if !self.streaming_paused {
+            self.gpu
+                .renderer
+                .record_feedback(cmd, feedback_target, &camera, view, target.height())?;
+            self.gpu.streamer.record_feedback_resolve(cmd)?;
+        }
+        self.gpu
+            .renderer
+            .record_visible(cmd, target, &camera, 1.0, self.colormap_blend);
+        if let Some(image) = &acquired {
+            self.presenter.record_blit(cmd, image, target, screenshot)?;
+        }
+        let submit = self.gpu.streamer.end_frame(self.frame_ms)?;
+        let mut waits: Vec<SemaphoreWait> = submit.waits.clone();
+        let mut signals: Vec<SemaphoreSignal> = vec![submit.signal];
+        if let Some(image) = &acquired {
+            waits.push(image.wait);
+            signals.push(image.signal);
+        }
+        commands.submit_frame(&waits, &signals)?;
+        match acquired {
+            Some(image) => {
+                if !self.presenter.present(image)? {
+                    self.needs_resize = true;
+                }
+            }
+            None => self.needs_resize = true,
+        }
+        if screenshot && !self.needs_resize {
+            self.gpu.streamer.wait_for_frame(begun.index)?;
+            let path = frames_dir_path(args).join(format!("frame_{:05}.png", self.frame));
+            write_png(&self.presenter.read_screenshot()?, &path)?;
+            self.screenshots.push(path.display().to_string());
+        }
+
+        self.frame_ms = frame_latency(args.clock, &applied, &self.latency, &mut self.latency_rng, || {
+            self.clock.tick().as_secs_f64() * 1000.0
+        });
+        let resident = self.gpu.streamer.cache().utilisation().bound_bytes;
+        let telemetry = self.gpu.streamer.policy().telemetry();
+        write_csv_row(
+            &mut self.csv,
+            &CsvRow {
+                frame: self.frame,
+                time_s: self.time_s,
+                frame_ms: self.frame_ms,
+                telemetry: &telemetry,
+                applied: &applied,
+                resident,
+                deficit: None,
+                psnr: None,
+                camera: &camera,
+            },
+        )?;
+        let mb_per_s = self.throughput.push(self.time_s, applied.bytes_uploaded);
+        if now.duration_since(self.title_at) >= Duration::from_millis(250) || self.frame == 0 {
+            self.title_at = now;
+            let budget = args
+                .memory_budget_mb
+                .0
+                .map_or_else(|| "unlimited".to_owned(), |mb| format!("{mb} MB"));
+            let mut title = format!(
+                "citystream · {:.1} ms · s {:.2} MB · b {:.2} · {:.1} MB/s · {:.0} MB / {budget} · {} pending",
+                self.frame_ms,
+                telemetry.load_size_mb,
+                telemetry.mip_bias,
+                mb_per_s,
+                resident as f64 / 1e6,
+                self.pending
+            );
+            if self.streaming_paused {
+                title.push_str(" · streaming paused");
+            }
+            if !self.colormap_blend {
+                title.push_str(" · no colormap");
+            }
+            if self.recorder.is_some() {
+                title.push_str(" · REC");
+            }
+            self.window.set_title(&title);
+        }
+        self.frame += 1;
+        Ok(())
+    }
+
+    /// After the event loop: save a recording in progress, wait for the GPU,
+    /// report, and fail on textures that could not be loaded.
+    fn finish(mut self, args: &Args) -> Result<()> {
+        self.csv.flush()?;
+        if let Some(recorder) = self.recorder.take() {
+            report_saved(recorder.save()?);
+        }
+        self.device.wait_idle()?;
+        eprintln!(
+            "{} frames ({:.1} s of camera time), {} screenshot(s), frames.csv in {}",
+            self.frame,
+            self.time_s,
+            self.screenshots.len(),
+            args.out.display()
+        );
+        let failed = self.gpu.streamer.failed_textures();
+        if failed > 0 {
+            let first = self
+                .gpu
+                .streamer
+                .load_failures()
+                .first()
+                .map(|f| format!("; the first: {}", f.reason))
+                .unwrap_or_default();
+            let message = format!("{failed} texture(s) failed to load{first}");
+            if !args.allow_load_failures {
+                bail!("{message} (--allow-load-failures exits 0)");
+            }
+            eprintln!("warning: {message}");
+        }
+        Ok(())
+    }
+}
+
+fn report_saved(saved: Option<(PathBuf, usize, f64)>) {
+    match saved {
+        Some((file, keyframes, seconds)) => eprintln!(
+            "\nrecorded {keyframes} keyframes ({seconds:.1} s) to {}; replay with --path {}",
+            file.display(),
+            file.display()
+        ),
+        None => eprintln!("\nnothing recorded"),
+    }
+}
