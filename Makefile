@@ -7,7 +7,7 @@ OUT ?= out/run
 CITY ?=
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
-.PHONY: all setup build run test check fmt clippy doc embed bench fuzz-long
+.PHONY: all setup build run window test check fmt clippy doc embed bench fuzz-long
 
 all: build
 
@@ -22,6 +22,10 @@ run: build
 	./target/release/flythrough $(if $(CITY),--dataset "$(CITY)") --clock fixed --bind-latency desktop --out $(OUT)
 	./target/release/citystream report --run $(OUT) --name adaptive --out $(OUT)
 	@echo "frames, summary.json, frames.csv, table.md and charts in $(OUT)"
+
+# The flythrough in a window on the default city (or CITY): needs a display.
+window: build
+	./target/release/flythrough --window $(if $(CITY),--dataset "$(CITY)") --width 1280 --height 720
 
 test: setup
 	$(CARGO) test --workspace

@@ -248,7 +248,11 @@ impl Presenter {
             surface,
             device: Arc::clone(device),
         };
-        presenter.create(width, height, mode)?;
+        if !presenter.create(width, height, mode)? {
+            return Err(EngineError::InvalidRequest(
+                "the window has no area (minimised?): create the presenter once it shows".into(),
+            ));
+        }
         Ok(presenter)
     }
 
@@ -267,7 +271,8 @@ impl Presenter {
         self.format
     }
 
-    fn create(&mut self, width: u32, height: u32, wanted: PresentMode) -> Result<()> {
+    /// `false`: the window has no area now (minimised); the old swapchain stays.
+    fn create(&mut self, width: u32, height: u32, wanted: PresentMode) -> Result<bool> {
         let physical = self.device.physical();
         let surface = self.surface.raw;
         let loader = &self.surface.loader;
@@ -310,9 +315,7 @@ impl Presenter {
             caps.current_extent
         };
         if extent.width == 0 || extent.height == 0 {
-            return Err(EngineError::InvalidRequest(
-                "the window has no area (minimised): render nothing until it is restored".into(),
-            ));
+            return Ok(false);
         }
         self.mode = if modes.contains(&wanted.raw()) {
             wanted
@@ -375,16 +378,16 @@ impl Presenter {
         } else {
             None
         };
-        Ok(())
+        Ok(true)
     }
 
     /// Recreates the swapchain for a window now `width` × `height` (after a
     /// resize, or when [`acquire`](Self::acquire) or
     /// [`present`](Self::present) said it is out of date). Waits for the
     /// queue to go idle first: the old images, semaphores and screenshot
-    /// buffer may still be in use. A window without area (minimised) is an
-    /// error: skip frames until it has one.
-    pub fn resize(&mut self, width: u32, height: u32) -> Result<()> {
+    /// buffer may still be in use. `false`: the window has no area now
+    /// (minimised); render nothing and try again once it has one.
+    pub fn resize(&mut self, width: u32, height: u32) -> Result<bool> {
         self.device.wait_idle()?;
         self.create(width, height, self.requested)
     }

@@ -356,8 +356,45 @@ fn windowed_replay_follows_the_wall_clock() {
 }
 
 #[test]
-fn windowed_mode_without_a_display_fails_clearly() {
-    let dir = fresh_dir("windowed", "no_display");
+fn windowed_mode_refuses_bad_input_clearly() {
+    let dir = fresh_dir("windowed", "bad_input");
+    // Scripts are checked before anything opens, each error naming the event.
+    for (script, expected) in [
+        (
+            r#"{"events": [{"frame": 1, "press": "forward"}, {"frame": 2, "press": "up", "look": [1, 1]}]}"#,
+            "event 1",
+        ),
+        (r#"{"events": [{"frame": 1, "press": "warp"}]}"#, "warp"),
+        (r#"{"events": [{"frame": 1, "resize": [0, 100]}]}"#, "resize 0x100"),
+        (
+            r#"{"events": [{"frame": 1, "screenshot": true, "colour": 1}]}"#,
+            "colour",
+        ),
+        (r#"{"events": [{"frame": 1, "minimise_s": -1}]}"#, "minimise_s"),
+        ("[1, 2", "parsing the input script"),
+    ] {
+        let file = write_script(&dir, script);
+        let out = flythrough(
+            None,
+            &["--window"],
+            &[("--input-script", &file), ("--out", &dir.join("out"))],
+        );
+        assert!(!out.status.success(), "{script} was accepted");
+        let text = stderr(&out);
+        assert!(
+            text.contains(expected) && text.contains("script.json"),
+            "{script}: {text}"
+        );
+        assert!(!text.contains("panicked"), "{text}");
+    }
+    let out = flythrough(None, &["--window", "--clock", "modelled"], &[]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("modelled"), "{}", stderr(&out));
+    let out = flythrough(None, &["--window", "--present-mode", "sometimes"], &[]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("--present-mode"), "{}", stderr(&out));
+
+    // Without a display: a clear error, before any dataset is opened or created.
     let out = flythrough(None, &["--window", "--frames", "2"], &[("--out", &dir.join("out"))]);
     assert!(!out.status.success());
     let text = stderr(&out);

@@ -327,12 +327,17 @@ struct Viewer {
     size: (u32, u32),
     needs_resize: bool,
     minimised_until: Option<Instant>,
+    /// Hidden (minimised or covered, where the window system says so): no frames.
+    occluded: bool,
     // Camera and input.
     camera: FlyCamera,
     replay: Option<Replay>,
     path: Option<CameraPath>,
     held: Vec<Action>,
-    dragging: Option<(f64, f64)>,
+    /// The left button is down: cursor motion turns the view.
+    dragging: bool,
+    /// The cursor's last position in the window.
+    cursor: Option<(f64, f64)>,
     speed: f32,
     jumped: bool,
     // Toggles.
@@ -351,6 +356,8 @@ struct Viewer {
     pending: usize,
     last_feedback: Option<u64>,
     title_at: Instant,
+    /// The live stats last shown in the title bar.
+    title: String,
     warned_over_budget: bool,
     csv: std::io::BufWriter<std::fs::File>,
     screenshots: Vec<String>,
@@ -488,20 +495,18 @@ impl ApplicationHandler for App<'_> {
                 button: MouseButton::Left,
                 ..
             } => {
-                if state == ElementState::Released {
-                    viewer.dragging = None;
-                } else {
-                    viewer.dragging = Some((f64::NAN, f64::NAN));
-                }
+                viewer.dragging = state == ElementState::Pressed;
                 Ok(())
             }
             WindowEvent::CursorMoved { position, .. } => {
-                if let Some((x, y)) = viewer.dragging {
-                    if x.is_finite() {
-                        viewer.look(position.x - x, position.y - y);
-                    }
-                    viewer.dragging = Some((position.x, position.y));
+                if let (true, Some((x, y))) = (viewer.dragging, viewer.cursor) {
+                    viewer.look(position.x - x, position.y - y);
                 }
+                viewer.cursor = Some((position.x, position.y));
+                Ok(())
+            }
+            WindowEvent::CursorLeft { .. } => {
+                viewer.cursor = None;
                 Ok(())
             }
             WindowEvent::MouseWheel { delta, .. } => {
@@ -513,9 +518,13 @@ impl ApplicationHandler for App<'_> {
                 Ok(())
             }
             WindowEvent::Occluded(occluded) => {
-                // Minimised (or fully covered) on some window systems: nothing to show.
+                // Minimised or fully covered: nothing to show, and presenting
+                // to a hidden window may wait on a refresh that never comes.
+                viewer.occluded = occluded;
                 if !occluded {
-                    viewer.needs_resize = true;
+                    let size = viewer.window.inner_size();
+                    viewer.on_resize(size.width, size.height);
+                    viewer.window.request_redraw();
                 }
                 Ok(())
             }
@@ -547,7 +556,11 @@ impl ApplicationHandler for App<'_> {
                 event_loop.set_control_flow(ControlFlow::Poll);
                 viewer.window.request_redraw();
             }
-            None => viewer.window.request_redraw(),
+            None if viewer.occluded || viewer.size.0 == 0 => event_loop.set_control_flow(ControlFlow::Wait),
+            None => {
+                event_loop.set_control_flow(ControlFlow::Poll);
+                viewer.window.request_redraw();
+            }
         }
     }
 }
@@ -649,11 +662,13 @@ impl Viewer {
             size,
             needs_resize: false,
             minimised_until: None,
+            occluded: false,
             camera: FlyCamera::from_pose(&start),
             replay,
             path,
             held: Vec::new(),
-            dragging: None,
+            dragging: false,
+            cursor: None,
             speed: extent / 20.0,
             jumped: false,
             streaming_paused: false,
@@ -670,6 +685,7 @@ impl Viewer {
             pending: 0,
             last_feedback: None,
             title_at: Instant::now(),
+            title: String::new(),
             warned_over_budget: false,
             csv,
             screenshots: Vec::new(),
@@ -845,7 +861,7 @@ impl Viewer {
     }
 
     fn redraw(&mut self, args: &Args, script: &mut Vec<ScriptEvent>, event_loop: &ActiveEventLoop) -> Result<()> {
-        if self.minimised_until.is_some() {
+        if self.minimised_until.is_some() || self.occluded {
             return Ok(());
         }
         let screenshot = self.apply_script(args, script)? || {
@@ -857,6 +873,9 @@ impl Viewer {
         }
         if self.needs_resize {
             self.resize()?;
+            if self.size.0 == 0 {
+                return Ok(());
+            }
         }
         if self.quit_requested() {
             return Ok(());
@@ -883,9 +902,15 @@ impl Viewer {
     /// Recreates the swapchain and the render targets at the window's size.
     fn resize(&mut self) -> Result<()> {
         self.needs_resize = false;
-        self.presenter
+        let shown = self
+            .presenter
             .resize(self.size.0, self.size.1)
             .context("recreating the swapchain")?;
+        if !shown {
+            // The window system says it has no area after all: wait for the next resize.
+            self.size = (0, 0);
+            return Ok(());
+        }
         let (width, height) = self.presenter.extent();
         if (width, height) != (self.targets.target.width(), self.targets.target.height()) {
             // The presenter waited for the device: the old targets are unused.
@@ -944,6 +969,7 @@ impl Viewer {
             signals.push(image.signal);
         }
         commands.submit_frame(&waits, &signals)?;
+        let presented = acquired.is_some();
         match acquired {
             Some(image) => {
                 if !self.presenter.present(image)? {
@@ -952,7 +978,9 @@ impl Viewer {
             }
             None => self.needs_resize = true,
         }
-        if screenshot && !self.needs_resize {
+        if screenshot && presented {
+            // The copy was recorded after the blit; a swapchain now out of
+            // date still held this frame's image when it ran.
             self.gpu.streamer.wait_for_frame(begun.index)?;
             let path = frames_dir_path(args).join(format!("frame_{:05}.png", self.frame));
             write_png(&self.presenter.read_screenshot()?, &path)?;
@@ -1004,6 +1032,7 @@ impl Viewer {
                 title.push_str(" · REC");
             }
             self.window.set_title(&title);
+            self.title = title;
         }
         self.frame += 1;
         Ok(())
@@ -1018,11 +1047,12 @@ impl Viewer {
         }
         self.device.wait_idle()?;
         eprintln!(
-            "{} frames ({:.1} s of camera time), {} screenshot(s), frames.csv in {}",
+            "{} frames ({:.1} s of camera time), {} screenshot(s), frames.csv in {}\nlast status: {}",
             self.frame,
             self.time_s,
             self.screenshots.len(),
-            args.out.display()
+            args.out.display(),
+            self.title
         );
         let failed = self.gpu.streamer.failed_textures();
         if failed > 0 {
