@@ -191,6 +191,10 @@ pub struct Presenter {
     screenshots: bool,
     acquired: Vec<Semaphore>,
     rendered: Vec<Semaphore>,
+    /// Render-finished semaphores of replaced swapchains: a present's wait
+    /// on them is not covered by waiting for the queue (presents take no
+    /// fence), so they live until the presenter goes.
+    retired: Vec<Semaphore>,
     screenshot: Option<Buffer>,
     surface: Surface,
     device: Arc<Device>,
@@ -207,6 +211,9 @@ impl std::fmt::Debug for Presenter {
             .finish()
     }
 }
+
+/// How long `acquire` waits for an image before the frame goes unpresented.
+const ACQUIRE_TIMEOUT_NS: u64 = 1_000_000_000;
 
 /// Swapchain formats that take the target's 8-bit UNORM values unchanged
 /// (an sRGB format would encode them a second time).
@@ -244,6 +251,7 @@ impl Presenter {
             screenshots,
             acquired,
             rendered: Vec::new(),
+            retired: Vec::new(),
             screenshot: None,
             surface,
             device: Arc::clone(device),
@@ -293,6 +301,24 @@ impl Presenter {
                 device: self.device.name().to_owned(),
                 feature: format!("an 8-bit UNORM swapchain format for this window (it offers {formats:?})"),
             })?;
+        let blit_dst = self.device.format_properties(format.format).optimal_tiling_features;
+        let blit_src = self
+            .device
+            .format_properties(crate::target::COLOR_FORMAT)
+            .optimal_tiling_features;
+        if !blit_dst.contains(vk::FormatFeatureFlags::BLIT_DST | vk::FormatFeatureFlags::SAMPLED_IMAGE_FILTER_LINEAR)
+            || !blit_src
+                .contains(vk::FormatFeatureFlags::BLIT_SRC | vk::FormatFeatureFlags::SAMPLED_IMAGE_FILTER_LINEAR)
+        {
+            return Err(EngineError::MissingFeature {
+                device: self.device.name().to_owned(),
+                feature: format!(
+                    "linear blits from {:?} to the swapchain's {:?}",
+                    crate::target::COLOR_FORMAT,
+                    format.format
+                ),
+            });
+        }
         let mut usage = vk::ImageUsageFlags::TRANSFER_DST;
         if self.screenshots {
             usage |= vk::ImageUsageFlags::TRANSFER_SRC;
@@ -362,9 +388,11 @@ impl Presenter {
         self.images = unsafe { self.loader.get_swapchain_images(swapchain) }.vk("vkGetSwapchainImagesKHR")?;
         self.format = format.format;
         self.extent = extent;
-        self.rendered = (0..self.images.len())
+        let rendered = (0..self.images.len())
             .map(|i| Semaphore::new(&self.device, &format!("swapchain image {i} rendered")))
             .collect::<Result<Vec<_>>>()?;
+        self.retired
+            .append(&mut std::mem::replace(&mut self.rendered, rendered));
         self.screenshot = if self.screenshots {
             Some(Buffer::new(
                 &self.device,
@@ -394,7 +422,8 @@ impl Presenter {
 
     /// Acquires the next image for the frame in `slot` (the slot whose
     /// previous frame the caller saw complete); `None` when the swapchain is
-    /// out of date and must be [`resize`](Self::resize)d first.
+    /// out of date and must be [`resize`](Self::resize)d first, or when no
+    /// image came within a second (a hidden window): render without presenting.
     pub fn acquire(&mut self, slot: u32) -> Result<Option<AcquiredImage>> {
         let semaphore = self
             .acquired
@@ -405,11 +434,13 @@ impl Presenter {
         // slot's previous frame) completed, so it is unsignalled and unused.
         let acquired = unsafe {
             self.loader
-                .acquire_next_image(self.swapchain, u64::MAX, semaphore, vk::Fence::null())
+                .acquire_next_image(self.swapchain, ACQUIRE_TIMEOUT_NS, semaphore, vk::Fence::null())
         };
         let (index, suboptimal) = match acquired {
             Ok(pair) => pair,
-            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => return Ok(None),
+            // A hidden window may never release an image (no refresh comes):
+            // the frame goes unpresented rather than the program hanging.
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR | vk::Result::TIMEOUT | vk::Result::NOT_READY) => return Ok(None),
             Err(e) => return Err(e).vk("vkAcquireNextImageKHR"),
         };
         Ok(Some(AcquiredImage {
@@ -571,15 +602,32 @@ impl Presenter {
             .wait_semaphores(&waits)
             .swapchains(&swapchains)
             .image_indices(&indices);
-        let queue = self.device.queue();
-        // SAFETY: queue access is serialised by the lock; the image was
-        // acquired from this swapchain and its frame submitted signalling `waits`.
-        let result = unsafe { self.loader.queue_present(*queue, &info) };
+        let result = {
+            let queue = self.device.queue();
+            // SAFETY: queue access is serialised by the lock; the image was
+            // acquired from this swapchain and its frame submitted signalling `waits`.
+            unsafe { self.loader.queue_present(*queue, &info) }
+        };
         match result {
-            Ok(suboptimal) => Ok(!suboptimal && !acquired.suboptimal),
+            // Some surfaces report every present as suboptimal (a copy
+            // path); recreating is worth it only when the size changed.
+            Ok(suboptimal) if suboptimal || acquired.suboptimal => Ok(!self.extent_changed()?),
+            Ok(_) => Ok(true),
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => Ok(false),
             Err(e) => Err(e).vk("vkQueuePresentKHR"),
         }
+    }
+
+    /// Whether the surface's extent differs from the swapchain's.
+    fn extent_changed(&self) -> Result<bool> {
+        // SAFETY: physical device and surface belong to this instance.
+        let caps = unsafe {
+            self.surface
+                .loader
+                .get_physical_device_surface_capabilities(self.device.physical(), self.surface.raw)
+        }
+        .vk("vkGetPhysicalDeviceSurfaceCapabilitiesKHR")?;
+        Ok(caps.current_extent.width != u32::MAX && caps.current_extent != self.extent)
     }
 
     /// The image the last [`record_blit`](Self::record_blit) with

@@ -291,7 +291,7 @@ fn windowed_resize_and_minimise_recreate_the_swapchain_cleanly() {
         r#"{"events": [{"frame": 5, "screenshot": true}, {"frame": 10, "resize": [240, 136]},
                        {"frame": 15, "screenshot": true}, {"frame": 20, "minimise_s": 0.4},
                        {"frame": 25, "resize": [352, 200]}, {"frame": 26, "minimise_s": 0.2},
-                       {"frame": 40, "screenshot": true}]}"#,
+                       {"frame": 26, "screenshot": true}, {"frame": 40, "screenshot": true}]}"#,
     );
     let out_dir = dir.join("window");
     let out = flythrough(
@@ -304,7 +304,8 @@ fn windowed_resize_and_minimise_recreate_the_swapchain_cleanly() {
     // Every frame rendered (none lost to the minimised spells), each presented
     // image at the window's size of its moment.
     assert_eq!(poses(&out_dir.join("frames.csv")).len(), 50);
-    for (frame, size) in [(5, (640, 360)), (15, (240, 136)), (40, (352, 200))] {
+    // Events after a minimise in the same frame wait for the window to show.
+    for (frame, size) in [(5, (640, 360)), (15, (240, 136)), (26, (352, 200)), (40, (352, 200))] {
         let image = png(&out_dir.join("frames").join(format!("frame_{frame:05}.png")));
         assert_eq!(image.dimensions(), size, "frame {frame}");
         let first = image.get_pixel(0, 0);
@@ -327,11 +328,18 @@ fn windowed_replay_follows_the_wall_clock() {
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let out_dir = dir.join("window");
+    // Hidden for 1.5 s after frame 10: camera time stands still meanwhile.
+    let script = write_script(&dir, r#"{"events": [{"frame": 10, "minimise_s": 1.5}]}"#);
     let started = std::time::Instant::now();
     let out = flythrough(
         Some(&x),
         &["--window", "--duration-s", "1.5", "--width", "160", "--height", "96"],
-        &[("--dataset", &city), ("--out", &out_dir), ("--path", &path_file)],
+        &[
+            ("--dataset", &city),
+            ("--out", &out_dir),
+            ("--path", &path_file),
+            ("--input-script", &script),
+        ],
     );
     let wall_s = started.elapsed().as_secs_f64();
     assert_ok(&out, "the window");
@@ -340,7 +348,23 @@ fn windowed_replay_follows_the_wall_clock() {
     // Camera time is wall time: the run lasts at least as long as the 1.5 s it
     // shows, and each frame shows the path where it is at that frame's time.
     assert!(last.1 >= 1.4 && last.1 <= 1.5 + 1e-6, "last frame at {} s", last.1);
-    assert!(wall_s >= last.1, "{wall_s} s of wall time for {} s of path", last.1);
+    assert!(
+        wall_s >= last.1 + 1.5,
+        "{wall_s} s of wall time for {} s of path",
+        last.1
+    );
+    let largest_step = rows.windows(2).map(|w| w[1].1 - w[0].1).fold(0.0, f64::max);
+    assert!(largest_step < 0.9, "camera time jumped {largest_step} s between frames");
+    let csv = std::fs::read_to_string(out_dir.join("frames.csv")).expect("frames.csv");
+    let worst_latency = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(2).expect("dt_ms").parse::<f64>().expect("number"))
+        .fold(0.0, f64::max);
+    assert!(
+        worst_latency < 900.0,
+        "the hidden spell counted as a {worst_latency} ms frame"
+    );
     let path = CameraPath::load(&path_file).expect("path");
     for (frame, t, pose) in &rows {
         let expected = path.sample(*t);

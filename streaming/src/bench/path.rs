@@ -632,10 +632,22 @@ impl CameraPath {
             name.to_string_lossy(),
             std::process::id()
         ));
+        // Only a file this call created is ever removed.
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&temp)
+            .map_err(io)?;
         let written = (|| {
             use std::io::Write;
-            let mut file = std::fs::OpenOptions::new().write(true).create_new(true).open(&temp)?;
             file.write_all(text.as_bytes())?;
+            // The replaced file's permissions carry over (a path to a symlink
+            // is replaced by the file, not written through).
+            if let Ok(old) = std::fs::metadata(path) {
+                if old.is_file() {
+                    file.set_permissions(old.permissions())?;
+                }
+            }
             file.sync_all()?;
             std::fs::rename(&temp, path)
         })();

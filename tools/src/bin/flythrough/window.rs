@@ -272,26 +272,45 @@ impl Recorder {
         self.keyframes.push(keyframe);
     }
 
-    /// Writes the path (atomically); `None` when nothing was recorded.
-    fn save(self) -> Result<Option<(PathBuf, usize, f64)>> {
+    /// Writes the path (atomically); `None` when nothing was recorded. On
+    /// failure the recorder comes back, keyframes intact.
+    fn save(self) -> std::result::Result<Option<SavedPath>, (Self, anyhow::Error)> {
         if self.keyframes.is_empty() {
             return Ok(None);
         }
-        let count = self.keyframes.len();
-        let path = CameraPath::new(self.keyframes)
-            .context("the recorded path")?
-            .with_description("recorded in the flythrough window");
-        path.save(&self.file)
-            .with_context(|| format!("writing the recorded path {}", self.file.display()))?;
-        Ok(Some((self.file, count, path.duration_s())))
+        let written = CameraPath::new(self.keyframes.clone())
+            .context("the recorded path")
+            .and_then(|path| {
+                let path = path.with_description("recorded in the flythrough window");
+                path.save(&self.file)
+                    .with_context(|| format!("writing the recorded path {}", self.file.display()))?;
+                Ok(path.duration_s())
+            });
+        match written {
+            Ok(duration_s) => Ok(Some(SavedPath {
+                file: self.file,
+                keyframes: self.keyframes.len(),
+                duration_s,
+            })),
+            Err(e) => Err((self, e)),
+        }
     }
+}
+
+/// A recording written to its file.
+#[derive(Debug)]
+struct SavedPath {
+    file: PathBuf,
+    keyframes: usize,
+    duration_s: f64,
 }
 
 /// A path played at the camera clock's speed.
 #[derive(Debug)]
 struct Replay {
     path: CameraPath,
-    started_s: f64,
+    /// Camera time of the path's start: the first frame that plays it.
+    started_s: Option<f64>,
     previous_t: Option<f64>,
 }
 
@@ -322,13 +341,16 @@ struct Viewer {
     gpu: CityGpu,
     targets: CityTargets,
     frame_commands: Vec<CommandContext>,
-    // Dropped after the frames that use its semaphores (its Drop waits for the device).
     presenter: Presenter,
     size: (u32, u32),
     needs_resize: bool,
     minimised_until: Option<Instant>,
     /// Hidden (minimised or covered, where the window system says so): no frames.
     occluded: bool,
+    /// Frames were skipped or the swapchain recreated since the last frame.
+    interrupted: bool,
+    /// A scripted screenshot waits for the next rendered frame.
+    screenshot_pending: bool,
     // Camera and input.
     camera: FlyCamera,
     replay: Option<Replay>,
@@ -420,6 +442,9 @@ pub(super) fn run(args: &Args) -> Result<()> {
         None => Ok(()),
     };
     if let Some(error) = app.error.take() {
+        if let Err(also) = outcome {
+            eprintln!("error while closing: {also:#}");
+        }
         return Err(error);
     }
     outcome?;
@@ -456,7 +481,8 @@ impl ApplicationHandler for App<'_> {
         let Some(device) = self.device.take() else {
             return;
         };
-        match Viewer::new(self.args, &self.dir, device, event_loop) {
+        let screenshots = frame_interval(self.args) > 0 || self.script.iter().any(|e| e.screenshot);
+        match Viewer::new(self.args, &self.dir, device, event_loop, screenshots) {
             Ok(viewer) => {
                 self.viewer = Some(viewer);
                 event_loop.set_control_flow(ControlFlow::Poll);
@@ -556,7 +582,15 @@ impl ApplicationHandler for App<'_> {
                 event_loop.set_control_flow(ControlFlow::Poll);
                 viewer.window.request_redraw();
             }
-            None if viewer.occluded || viewer.size.0 == 0 => event_loop.set_control_flow(ControlFlow::Wait),
+            None if viewer.occluded => event_loop.set_control_flow(ControlFlow::Wait),
+            None if viewer.size.0 == 0 => {
+                // No area: look again shortly (a restore may bring no event
+                // when the size did not change).
+                let size = viewer.window.inner_size();
+                viewer.on_resize(size.width, size.height);
+                event_loop.set_control_flow(ControlFlow::WaitUntil(Instant::now() + Duration::from_millis(100)));
+                viewer.window.request_redraw();
+            }
             None => {
                 event_loop.set_control_flow(ControlFlow::Poll);
                 viewer.window.request_redraw();
@@ -566,7 +600,13 @@ impl ApplicationHandler for App<'_> {
 }
 
 impl Viewer {
-    fn new(args: &Args, dir: &Path, device: Arc<Device>, event_loop: &ActiveEventLoop) -> Result<Self> {
+    fn new(
+        args: &Args,
+        dir: &Path,
+        device: Arc<Device>,
+        event_loop: &ActiveEventLoop,
+        screenshots: bool,
+    ) -> Result<Self> {
         let (dataset, city) = open_city(dir)?;
         let attributes = Window::default_attributes()
             .with_title(format!("citystream · {}", dir.display()))
@@ -576,8 +616,15 @@ impl Viewer {
         let size = (inner.width.max(16), inner.height.max(16));
         let surface = Surface::new(&device, Arc::clone(&window) as Arc<dyn present::PresentWindow>)
             .context("creating the window's Vulkan surface")?;
-        let presenter = Presenter::new(&device, surface, size, args.present_mode, args.frames_in_flight, true)
-            .context("creating the swapchain")?;
+        let presenter = Presenter::new(
+            &device,
+            surface,
+            size,
+            args.present_mode,
+            args.frames_in_flight,
+            screenshots,
+        )
+        .context("creating the swapchain")?;
         if presenter.mode() != args.present_mode {
             eprintln!(
                 "note: the display has no {} presentation; using {}",
@@ -620,7 +667,7 @@ impl Viewer {
             path.restart();
             Replay {
                 path: path.clone(),
-                started_s: 0.0,
+                started_s: Some(0.0),
                 previous_t: None,
             }
         });
@@ -663,6 +710,8 @@ impl Viewer {
             needs_resize: false,
             minimised_until: None,
             occluded: false,
+            interrupted: false,
+            screenshot_pending: false,
             camera: FlyCamera::from_pose(&start),
             replay,
             path,
@@ -739,7 +788,7 @@ impl Viewer {
                 path.restart();
                 self.replay = Some(Replay {
                     path,
-                    started_s: self.time_s,
+                    started_s: None,
                     previous_t: None,
                 });
                 self.jumped = true;
@@ -757,7 +806,14 @@ impl Viewer {
                 eprintln!("\ncolormap blending {}", if self.colormap_blend { "on" } else { "off" });
             }
             Action::Record => match self.recorder.take() {
-                Some(recorder) => report_saved(recorder.save()?),
+                Some(recorder) => match recorder.save() {
+                    Ok(saved) => report_saved(saved),
+                    Err((recorder, e)) => {
+                        // Keep recording: R again retries, closing the window fails the run.
+                        eprintln!("\nwarning: {e:#}; still recording");
+                        self.recorder = Some(recorder);
+                    }
+                },
                 None => {
                     let file = args
                         .record
@@ -765,8 +821,6 @@ impl Viewer {
                         .unwrap_or_else(|| args.out.join("recorded_path.json"));
                     eprintln!("\nrecording the camera path to {}", file.display());
                     self.recorder = Some(Recorder::new(file, self.time_s));
-                    // The first keyframe is where the camera is now.
-                    self.jumped = false;
                 }
             },
             _ => {}
@@ -783,6 +837,8 @@ impl Viewer {
 
     fn look(&mut self, dx: f64, dy: f64) {
         self.take_over();
+        // A scripted drag of any size stays a finite angle.
+        let (dx, dy) = (dx.clamp(-1e4, 1e4), dy.clamp(-1e4, 1e4));
         const RADIANS_PER_PIXEL: f32 = 0.004;
         self.camera.yaw += dx as f32 * RADIANS_PER_PIXEL;
         self.camera.pitch = (self.camera.pitch - dy as f32 * RADIANS_PER_PIXEL).clamp(-1.5, 1.5);
@@ -797,7 +853,7 @@ impl Viewer {
     /// path being replayed; returns this frame's pose.
     fn advance_camera(&mut self, dt_s: f64) -> CameraPose {
         if let Some(replay) = self.replay.as_mut() {
-            let t = self.time_s - replay.started_s;
+            let t = self.time_s - *replay.started_s.get_or_insert(self.time_s);
             let pose = replay.path.sample_between(replay.previous_t, t);
             replay.previous_t = Some(t);
             let look_distance = self.camera.look_distance;
@@ -830,10 +886,11 @@ impl Viewer {
         pose
     }
 
-    fn apply_script(&mut self, args: &Args, script: &mut Vec<ScriptEvent>) -> Result<bool> {
-        let mut screenshot = false;
-        let due = script.iter().take_while(|e| e.frame <= self.frame).count();
-        for event in script.drain(..due) {
+    /// Applies the script's events due before this frame, up to a minimise
+    /// (the rest wait until the window shows again).
+    fn apply_script(&mut self, args: &Args, script: &mut Vec<ScriptEvent>) -> Result<()> {
+        while script.first().is_some_and(|e| e.frame <= self.frame) {
+            let event = script.remove(0);
             if let Some(action) = event.press {
                 self.act(action, true, args)?;
             } else if let Some(action) = event.release {
@@ -852,27 +909,28 @@ impl Viewer {
                 self.window.set_visible(false);
                 self.on_resize(0, 0);
                 self.minimised_until = Some(Instant::now() + Duration::from_secs_f64(seconds));
-                return Ok(screenshot);
+                return Ok(());
             } else if event.screenshot {
-                screenshot = true;
+                self.screenshot_pending = true;
             }
         }
-        Ok(screenshot)
+        Ok(())
     }
 
     fn redraw(&mut self, args: &Args, script: &mut Vec<ScriptEvent>, event_loop: &ActiveEventLoop) -> Result<()> {
         if self.minimised_until.is_some() || self.occluded {
+            self.interrupted = true;
             return Ok(());
         }
-        let screenshot = self.apply_script(args, script)? || {
-            let interval = frame_interval(args);
-            interval > 0 && self.frame.is_multiple_of(interval)
-        };
+        self.apply_script(args, script)?;
         if self.minimised_until.is_some() || self.size.0 == 0 {
+            self.interrupted = true;
             return Ok(());
         }
         if self.needs_resize {
             self.resize()?;
+            // The resize waited for the GPU: not this frame's latency.
+            self.interrupted = true;
             if self.size.0 == 0 {
                 return Ok(());
             }
@@ -880,13 +938,21 @@ impl Viewer {
         if self.quit_requested() {
             return Ok(());
         }
+        if std::mem::take(&mut self.interrupted) {
+            // Time hidden or waiting is neither frame latency for the
+            // controller nor camera time (a path resumes where it was).
+            self.clock.tick();
+            self.last_frame_at = None;
+        }
         // This frame's camera time: wall-clock time since the last frame (at
         // most a second: a stall does not skip the path ahead), or the fixed step.
         let now = Instant::now();
-        let dt_s = match (args.clock, self.last_frame_at) {
-            (_, None) => 0.0,
-            (Clock::Real, Some(at)) => now.duration_since(at).as_secs_f64().min(1.0),
-            (_, Some(_)) => FIXED_STEP_MS / 1000.0,
+        let dt_s = match args.clock {
+            _ if self.frame == 0 => 0.0,
+            Clock::Real => self
+                .last_frame_at
+                .map_or(0.0, |at| now.duration_since(at).as_secs_f64().min(1.0)),
+            _ => FIXED_STEP_MS / 1000.0,
         };
         let done = args.frames.is_some_and(|n| self.frame >= n)
             || args.duration_s.is_some_and(|d| self.time_s + dt_s > d + 1e-9);
@@ -896,6 +962,9 @@ impl Viewer {
         }
         self.last_frame_at = Some(now);
         self.time_s += dt_s;
+        let interval = frame_interval(args);
+        let screenshot =
+            std::mem::take(&mut self.screenshot_pending) || (interval > 0 && self.frame.is_multiple_of(interval));
         self.render(args, screenshot, dt_s, now)
     }
 
@@ -978,6 +1047,12 @@ impl Viewer {
             }
             None => self.needs_resize = true,
         }
+        if screenshot && !presented {
+            eprintln!(
+                "\nwarning: frame {} was not presented (the swapchain was out of date): no screenshot of it",
+                self.frame
+            );
+        }
         if screenshot && presented {
             // The copy was recorded after the blit; a swapchain now out of
             // date still held this frame's image when it ran.
@@ -1041,11 +1116,11 @@ impl Viewer {
     /// After the event loop: save a recording in progress, wait for the GPU,
     /// report, and fail on textures that could not be loaded.
     fn finish(mut self, args: &Args) -> Result<()> {
+        self.device.wait_idle()?;
         self.csv.flush()?;
         if let Some(recorder) = self.recorder.take() {
-            report_saved(recorder.save()?);
+            report_saved(recorder.save().map_err(|(_, e)| e)?);
         }
-        self.device.wait_idle()?;
         eprintln!(
             "{} frames ({:.1} s of camera time), {} screenshot(s), frames.csv in {}\nlast status: {}",
             self.frame,
@@ -1073,10 +1148,23 @@ impl Viewer {
     }
 }
 
-fn report_saved(saved: Option<(PathBuf, usize, f64)>) {
+impl Drop for Viewer {
+    fn drop(&mut self) {
+        // The streamer, targets, command buffers and swapchain may still be
+        // in use by frames in flight; they go once the GPU is done (also on
+        // error paths, which skip `finish`).
+        let _ = self.device.wait_idle();
+    }
+}
+
+fn report_saved(saved: Option<SavedPath>) {
     match saved {
-        Some((file, keyframes, seconds)) => eprintln!(
-            "\nrecorded {keyframes} keyframes ({seconds:.1} s) to {}; replay with --path {}",
+        Some(SavedPath {
+            file,
+            keyframes,
+            duration_s,
+        }) => eprintln!(
+            "\nrecorded {keyframes} keyframes ({duration_s:.1} s) to {}; replay with --path {}",
             file.display(),
             file.display()
         ),
