@@ -667,6 +667,36 @@ fn city_gpu(
     Ok(CityGpu { streamer, renderer })
 }
 
+/// The streamer and renderer of the run the options ask for (policy,
+/// budget, eviction, clock, frames in flight, injected failures).
+fn streamed_city_gpu(
+    args: &Args,
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Arc<Dataset>,
+    city: &CityGeometry,
+    fragment_area: f32,
+    layer_size: u32,
+) -> Result<CityGpu> {
+    city_gpu(
+        device,
+        commands,
+        dataset,
+        city,
+        build_policy(args)?,
+        &stream_config(
+            args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES),
+            args.frames_in_flight,
+            fragment_area,
+            args.clock,
+            args.eviction,
+            args.cache_layers,
+            layer_size,
+        ),
+        args.inject_read_failures,
+    )
+}
+
 /// The mip deficit of one frame: the weighted mean, over the meshes whose
 /// feedback weight reaches `tau` (those streaming serves), of displayed minus
 /// needed level; 0 when everything needed is shown.
@@ -859,25 +889,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         view,
         fragment_area,
     } = city_targets(device, args.width, args.height)?;
-    let policy = build_policy(args)?;
     let frames_in_flight = args.frames_in_flight;
-    let mut gpu = city_gpu(
-        device,
-        &mut commands,
-        &dataset,
-        &city,
-        policy,
-        &stream_config(
-            args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES),
-            frames_in_flight,
-            fragment_area,
-            args.clock,
-            args.eviction,
-            args.cache_layers,
-            layer_size,
-        ),
-        args.inject_read_failures,
-    )?;
+    let mut gpu = streamed_city_gpu(args, device, &mut commands, &dataset, &city, fragment_area, layer_size)?;
     // The error reference: every needed level resident, no budget, loaded
     // synchronously between frames (its policy never runs).
     let mut reference = if args.psnr_interval > 0 {

@@ -35,9 +35,9 @@ use citystream_streaming::dataset::Dataset;
 use citystream_streaming::rng::SplitMix64;
 
 use super::{
-    build_policy, cache_layer_size, camera_path, city_gpu, city_targets, dataset_dir, frame_interval, frame_latency,
-    frames_dir_path, open_city, pending_textures, pose_camera, stream_config, write_csv_row, Args, CityGpu,
-    CityTargets, Clock, CsvRow, CSV_HEADER, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
+    cache_layer_size, camera_path, city_targets, dataset_dir, frame_interval, frame_latency, frames_dir_path,
+    open_city, pending_textures, pose_camera, streamed_city_gpu, write_csv_row, Args, CityGpu, CityTargets, Clock,
+    CsvRow, CSV_HEADER, FIXED_STEP_MS,
 };
 
 /// What a key (or a scripted event) does.
@@ -636,22 +636,14 @@ impl Viewer {
         let layer_size = cache_layer_size(&dataset, &device);
         let mut commands = CommandContext::new(&device, "window setup")?;
         let targets = city_targets(&device, size.0, size.1)?;
-        let gpu = city_gpu(
+        let gpu = streamed_city_gpu(
+            args,
             &device,
             &mut commands,
             &dataset,
             &city,
-            build_policy(args)?,
-            &stream_config(
-                args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES),
-                args.frames_in_flight,
-                targets.fragment_area,
-                args.clock,
-                args.eviction,
-                args.cache_layers,
-                layer_size,
-            ),
-            args.inject_read_failures,
+            targets.fragment_area,
+            layer_size,
         )?;
         let frame_commands = (0..args.frames_in_flight)
             .map(|i| CommandContext::new(&device, &format!("window frame (slot {i})")))
