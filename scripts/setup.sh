@@ -9,11 +9,12 @@ fail() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
 
 # xvfb and the X11 client libraries (loaded at run time by the window code):
 # `flythrough --window` and its tests, which run under a virtual X server.
+# nginx-light: the remote-dataset tests serve a city over HTTP from loopback.
 PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools g++
-  xvfb libx11-6 libx11-xcb1 libxcursor1 libxrandr2 libxi6 libxkbcommon-x11-0)
+  xvfb libx11-6 libx11-xcb1 libxcursor1 libxrandr2 libxi6 libxkbcommon-x11-0 nginx-light)
 MIN_MESA_MAJOR=24
 STAMP_DIR="${CITYSTREAM_SETUP_STAMP_DIR:-/var/lib/citystream}"
-STAMP="$STAMP_DIR/setup-v3"
+STAMP="$STAMP_DIR/setup-v4"
 
 mesa_major() {
   dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | sed -E 's/^([0-9]+:)?([0-9]+).*/\2/' || true
@@ -27,7 +28,7 @@ all_installed() {
   local m
   m="$(mesa_major)"
   [[ -n "$m" && "$m" -ge $MIN_MESA_MAJOR ]] || return 1
-  command -v glslangValidator >/dev/null && command -v spirv-val >/dev/null && command -v Xvfb >/dev/null
+  command -v glslangValidator >/dev/null && command -v spirv-val >/dev/null && command -v Xvfb >/dev/null && [[ -x /usr/sbin/nginx ]]
 }
 
 if [[ -f "$STAMP" ]] && all_installed; then
@@ -72,6 +73,13 @@ say "installing mesa-vulkan-drivers from bookworm-backports (lavapipe with spars
 $SUDO apt-get install -y -q -t bookworm-backports mesa-vulkan-drivers \
   || fail "could not install mesa-vulkan-drivers from bookworm-backports"
 say "installing ${PACKAGES[*]}"
+# nginx's package starts a system-wide server on port 80; the tests start their own on
+# loopback, so keep package scripts from starting services (only if no policy is set).
+POLICY=/usr/sbin/policy-rc.d
+if [[ ! -e $POLICY ]]; then
+  printf '#!/bin/sh\nexit 101\n' | $SUDO tee "$POLICY" >/dev/null && $SUDO chmod +x "$POLICY"
+  trap '$SUDO rm -f "$POLICY"' EXIT
+fi
 $SUDO apt-get install -y -q "${PACKAGES[@]}" || fail "could not install ${PACKAGES[*]}"
 
 m="$(mesa_major)"

@@ -8,6 +8,8 @@ pub mod controller;
 pub mod dataset;
 pub mod loader;
 pub mod records;
+#[cfg(feature = "remote")]
+pub mod remote;
 pub mod residency;
 pub mod rng;
 pub mod source;

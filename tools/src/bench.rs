@@ -280,7 +280,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         );
     }
     let dataset = match (&args.dataset, args.scenario) {
-        (Some(dir), _) if !dir.exists() => bail!("dataset directory {} does not exist", dir.display()),
+        (Some(dir), _) if !dir.exists() && !citystream_streaming::remote::is_remote(&dir.to_string_lossy()) => {
+            bail!("dataset directory {} does not exist", dir.display())
+        }
         (Some(dir), _) => dir.clone(),
         (None, Scenario::Standard) => {
             let dir = PathBuf::from(DEFAULT_CITY_DIR);

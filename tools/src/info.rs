@@ -5,14 +5,14 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
-use citystream_streaming::dataset::{Dataset, FORMAT_VERSION, SCENE_FILE};
+use anyhow::Result;
+use citystream_streaming::dataset::{Dataset, FORMAT_VERSION};
 use serde::Serialize;
 
 /// Options of `citystream info`.
 #[derive(Debug, clap::Args)]
 pub struct InfoArgs {
-    /// Dataset directory.
+    /// Dataset directory, or its URL (`http(s)://host/path/`, `s3://bucket/prefix/`).
     pub dir: PathBuf,
     /// Print JSON instead of text.
     #[arg(long)]
@@ -53,7 +53,7 @@ struct Info {
 /// Runs `citystream info`.
 pub fn run(args: &InfoArgs) -> Result<()> {
     let start = Instant::now();
-    let dataset = Dataset::open(&args.dir).with_context(|| format!("opening {}", args.dir.display()))?;
+    let dataset = crate::open_dataset(&args.dir)?;
     let open_seconds = start.elapsed().as_secs_f64();
     let info = collect(args, &dataset, open_seconds)?;
     let mut text = Vec::new();
@@ -80,10 +80,7 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         mips += u64::from(t.mip_count());
     }
     let scene = &dataset.scene;
-    let scene_path = dataset.files().path(SCENE_FILE);
-    let scene_bytes = std::fs::metadata(&scene_path)
-        .with_context(|| format!("reading the size of {}", scene_path.display()))?
-        .len();
+    let scene_bytes = dataset.scene_file_len();
     Ok(Info {
         dir: args.dir.display().to_string(),
         format_version: FORMAT_VERSION,

@@ -16,3 +16,16 @@ pub mod report;
 pub mod simulate;
 pub mod upgrade;
 pub mod verify;
+
+use std::path::Path;
+
+use anyhow::Context;
+use citystream_streaming::dataset::Dataset;
+use citystream_streaming::remote::{open_dataset as open_location, RemoteOptions};
+
+/// Opens the dataset at `location`: a directory, or a URL (`http(s)://host/path/`,
+/// `s3://bucket/prefix/`; see `citystream_streaming::remote`).
+pub fn open_dataset(location: &Path) -> anyhow::Result<Dataset> {
+    open_location(&location.to_string_lossy(), &RemoteOptions::default())
+        .with_context(|| format!("opening dataset {}", location.display()))
+}

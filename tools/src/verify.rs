@@ -4,19 +4,21 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use citystream_streaming::dataset::verify;
+use citystream_streaming::dataset::verify_dataset;
 
 /// Options of `citystream verify`.
 #[derive(Debug, clap::Args)]
 pub struct VerifyArgs {
-    /// Dataset directory.
+    /// Dataset directory, or its URL (`http(s)://host/path/`, `s3://bucket/prefix/`).
     pub dir: PathBuf,
 }
 
 /// Runs `citystream verify`; fails (non-zero exit) with the file and offset of the first problem.
 pub fn run(args: &VerifyArgs) -> Result<()> {
     let start = Instant::now();
-    let report = verify(&args.dir).with_context(|| format!("verify failed for {}", args.dir.display()))?;
+    let dataset =
+        crate::open_dataset(&args.dir).with_context(|| format!("verify failed for {}", args.dir.display()))?;
+    let report = verify_dataset(&dataset).with_context(|| format!("verify failed for {}", args.dir.display()))?;
     crate::gen::print_stdout(&format!(
         "ok: {}: {} meshes, {} textures, {} mips, {:.1} MB of mip data checked in {:.2} s\n",
         args.dir.display(),

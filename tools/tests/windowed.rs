@@ -30,7 +30,7 @@ impl Drop for Xvfb {
 /// The stamp `scripts/setup.sh` leaves once everything (Xvfb included) is installed.
 fn setup_ran() -> bool {
     let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v3").exists()
+    Path::new(&dir).join("setup-v4").exists()
 }
 
 /// Starts Xvfb on a display it picks itself (`-displayfd`), so tests running

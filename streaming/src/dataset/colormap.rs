@@ -47,8 +47,12 @@ impl Colormap {
 
     /// Reads `colormap.bin` and returns the write id in its header.
     pub(crate) fn read_with_write_id(path: &Path) -> Result<(Self, u64), DatasetError> {
-        let bytes = read_all(path)?;
-        let table = decode_table(path, &bytes, MAGIC, 4)?;
+        Self::decode_with_write_id(path, &read_all(path)?)
+    }
+
+    /// Decodes `colormap.bin` bytes; `path` names them in errors.
+    pub(crate) fn decode_with_write_id(path: &Path, bytes: &[u8]) -> Result<(Self, u64), DatasetError> {
+        let table = decode_table(path, bytes, MAGIC, 4)?;
         Ok((Self::from_records(table.body), table.write_id))
     }
 
@@ -70,11 +74,10 @@ impl Colormap {
 
 pub(crate) const CRC_MAGIC: &[u8; 8] = b"CSTXCRC\0";
 
-/// Reads `textures.crc`: the CRC-32 of every mip, textures in id order, levels finest first.
-/// Returns them and the write id.
-pub(crate) fn read_checksums(path: &Path) -> Result<(Vec<u32>, u64), DatasetError> {
-    let bytes = read_all(path)?;
-    let table = decode_table(path, &bytes, CRC_MAGIC, 4)?;
+/// Decodes `textures.crc` (`path` names it in errors): the CRC-32 of every mip, textures in
+/// id order, levels finest first. Returns them and the write id.
+pub(crate) fn decode_checksums(path: &Path, bytes: &[u8]) -> Result<(Vec<u32>, u64), DatasetError> {
+    let table = decode_table(path, bytes, CRC_MAGIC, 4)?;
     Ok((u32_records(table.body), table.write_id))
 }
 

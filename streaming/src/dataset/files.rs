@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 
 use super::error::DatasetError;
 use super::io_util::{check_prefix, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION};
+use super::store::DatasetStore;
 use super::{CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
 
 /// The manifest file at the top of a dataset directory.
@@ -61,6 +62,17 @@ impl DatasetFiles {
         Ok(Self {
             dir: dir.to_path_buf(),
             data_dir: dir.join(write_dir_name(write_id)),
+            write_id,
+        })
+    }
+
+    /// Reads the manifest of the dataset at `root` of `store` (a remote dataset).
+    pub fn resolve_in(store: &dyn DatasetStore, root: &Path) -> Result<Self, DatasetError> {
+        let manifest_path = root.join(MANIFEST_FILE);
+        let write_id = decode_manifest(&manifest_path, &store.read_all(&manifest_path)?)?;
+        Ok(Self {
+            dir: root.to_path_buf(),
+            data_dir: root.join(write_dir_name(write_id)),
             write_id,
         })
     }

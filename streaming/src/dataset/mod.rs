@@ -36,10 +36,12 @@ mod io_util;
 mod legacy;
 mod pack;
 mod scene;
+mod store;
 mod verify;
 mod writer;
 
 use std::path::Path;
+use std::sync::Arc;
 
 pub use colormap::Colormap;
 pub use error::{DatasetError, Magic};
@@ -49,7 +51,8 @@ pub use io_util::ensure_regular_file;
 pub use legacy::{upgrade, UpgradeSummary};
 pub use pack::{MipLocation, TexturePack, PACK_HEADER_BYTES};
 pub use scene::{Aabb, Mesh, Scene};
-pub use verify::{verify, VerifyReport};
+pub use store::DatasetStore;
+pub use verify::{verify, verify_dataset, VerifyReport};
 pub use writer::{DatasetWriter, WriteSummary};
 
 /// The format version this build reads and writes.
@@ -77,6 +80,7 @@ pub struct Dataset {
     pub textures: TexturePack,
     /// Mean colour per texture.
     pub colormap: Colormap,
+    scene_file_len: u64,
 }
 
 impl Dataset {
@@ -107,9 +111,39 @@ impl Dataset {
 
     /// [`Dataset::open`] of resolved files.
     pub fn open_files(files: &DatasetFiles) -> Result<Self, DatasetError> {
-        let textures = TexturePack::open_files(files)?;
+        Self::open_files_in(None, files)
+    }
+
+    /// Opens the dataset at `root` of `store` (a remote dataset: `root` is its URL): the
+    /// manifest, then the files of the write it names, validated as [`Dataset::open`] does;
+    /// mips are then read from the store by range. If the dataset is replaced meanwhile,
+    /// the open starts again from the new manifest (a few times at most).
+    pub fn open_store(store: Arc<dyn DatasetStore>, root: &Path) -> Result<Self, DatasetError> {
+        let mut attempts = 0;
+        loop {
+            let files = DatasetFiles::resolve_in(store.as_ref(), root)?;
+            match Self::open_files_in(Some(&store), &files) {
+                Ok(dataset) => return Ok(dataset),
+                Err(e) => {
+                    attempts += 1;
+                    let replaced = DatasetFiles::resolve_in(store.as_ref(), root)
+                        .is_ok_and(|now| now.write_id() != files.write_id());
+                    if !replaced || attempts >= 3 {
+                        return Err(e);
+                    }
+                }
+            }
+        }
+    }
+
+    fn open_files_in(store: Option<&Arc<dyn DatasetStore>>, files: &DatasetFiles) -> Result<Self, DatasetError> {
+        let read_file = |path: &Path| match store {
+            Some(store) => store.read_all(path),
+            None => io_util::read_all(path),
+        };
+        let textures = TexturePack::open_files_in(store, files)?;
         let colormap_path = files.path(COLORMAP_FILE);
-        let (colormap, write_id) = Colormap::read_with_write_id(&colormap_path)?;
+        let (colormap, write_id) = Colormap::decode_with_write_id(&colormap_path, &read_file(&colormap_path)?)?;
         files.check_write_id(&colormap_path, write_id)?;
         if colormap.len() != textures.textures().len() {
             return Err(DatasetError::Corrupt {
@@ -119,7 +153,8 @@ impl Dataset {
             });
         }
         let scene_path = files.path(SCENE_FILE);
-        let (scene, write_id) = Scene::read_with_write_id(&scene_path, scene::SceneLayout::CURRENT)?;
+        let scene_bytes = read_file(&scene_path)?;
+        let (scene, write_id) = Scene::decode_with(&scene_path, &scene_bytes, scene::SceneLayout::CURRENT)?;
         files.check_write_id(&scene_path, write_id)?;
         let count = textures.len();
         if let Some((m, mesh)) = scene.meshes.iter().enumerate().find(|(_, m)| m.texture >= count) {
@@ -137,7 +172,13 @@ impl Dataset {
             scene,
             textures,
             colormap,
+            scene_file_len: scene_bytes.len() as u64,
         })
+    }
+
+    /// Bytes of the scene file as it was read.
+    pub fn scene_file_len(&self) -> u64 {
+        self.scene_file_len
     }
 
     /// The dataset directory.

@@ -3,12 +3,14 @@
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
-use super::colormap::read_checksums;
+use super::colormap::decode_checksums;
 use super::error::DatasetError;
 use super::files::DatasetFiles;
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{check_prefix, decode_table, read_all, u32_at, u64_at, TABLE_HEADER_BYTES};
+use super::store::DatasetStore;
 use super::{CHECKSUM_FILE, META_FILE, PACK_FILE};
 
 pub(crate) const META_MAGIC: &[u8; 8] = b"CSTXMETA";
@@ -40,13 +42,20 @@ pub struct MipLocation {
 #[derive(Debug)]
 pub struct TexturePack {
     pack_path: PathBuf,
-    file: File,
+    reader: PackReader,
     pack_len: u64,
     textures: Vec<TextureInfo>,
     /// CRC-32 of every mip, textures in id order, finest level first.
     mip_checksums: Vec<u32>,
     /// Index of each texture's level 0 in `mip_checksums`.
     first_checksum: Vec<u32>,
+}
+
+/// How mips are read: positioned reads of the local file, or ranged reads of a store.
+#[derive(Debug)]
+enum PackReader {
+    File(File),
+    Store(Arc<dyn DatasetStore>),
 }
 
 /// Opens `textures.pack` (a regular file only) and reads its header: the file, its length
@@ -81,8 +90,18 @@ impl TexturePack {
 
     /// [`TexturePack::open`] of resolved dataset files: every file must carry their write id.
     pub fn open_files(files: &DatasetFiles) -> Result<Self, DatasetError> {
+        Self::open_files_in(None, files)
+    }
+
+    /// [`TexturePack::open_files`] of a dataset in `store` (`None`: the local directory):
+    /// the tables are read whole, the pack's header and length by range.
+    pub fn open_files_in(store: Option<&Arc<dyn DatasetStore>>, files: &DatasetFiles) -> Result<Self, DatasetError> {
+        let read_file = |path: &Path| match store {
+            Some(store) => store.read_all(path),
+            None => read_all(path),
+        };
         let meta_path = files.path(META_FILE);
-        let meta = read_all(&meta_path)?;
+        let meta = read_file(&meta_path)?;
         let table = decode_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES)?;
         files.check_write_id(&meta_path, table.write_id)?;
         let (count, body) = (table.count, table.body);
@@ -95,7 +114,27 @@ impl TexturePack {
         }
 
         let pack_path = files.path(PACK_FILE);
-        let (file, pack_len, header) = open_pack(&pack_path)?;
+        let (reader, pack_len, header) = match store {
+            None => {
+                let (file, len, header) = open_pack(&pack_path)?;
+                (PackReader::File(file), len, header)
+            }
+            Some(store) => {
+                let len = store.len(&pack_path)?;
+                if len < PACK_HEADER_BYTES {
+                    return Err(DatasetError::Truncated {
+                        path: pack_path,
+                        what: "the header".into(),
+                        offset: 0,
+                        end: PACK_HEADER_BYTES,
+                        file_len: len,
+                    });
+                }
+                let mut header = [0u8; PACK_HEADER_BYTES as usize];
+                store.read_at(&pack_path, 0, &mut header)?;
+                (PackReader::Store(Arc::clone(store)), len, header)
+            }
+        };
         let write_id = check_prefix(&pack_path, &header, PACK_MAGIC, header.len())?;
         let stored = u32_at(&header, PACK_HEADER_CRC_AT);
         let computed = crc32fast::hash(&header[..PACK_HEADER_CRC_AT]);
@@ -162,7 +201,7 @@ impl TexturePack {
         }
 
         let checksum_path = files.path(CHECKSUM_FILE);
-        let (mip_checksums, write_id) = read_checksums(&checksum_path)?;
+        let (mip_checksums, write_id) = decode_checksums(&checksum_path, &read_file(&checksum_path)?)?;
         files.check_write_id(&checksum_path, write_id)?;
         let mut first_checksum = Vec::with_capacity(textures.len());
         let mut mips = 0u64;
@@ -183,7 +222,7 @@ impl TexturePack {
         }
         Ok(Self {
             pack_path,
-            file,
+            reader,
             pack_len,
             textures,
             mip_checksums,
@@ -304,13 +343,24 @@ impl TexturePack {
         if end > self.pack_len {
             return Err(self.truncated(offset, end));
         }
-        self.file.read_exact_at(dst, offset).map_err(|e| {
-            if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                self.truncated(offset, end)
-            } else {
-                DatasetError::io(&self.pack_path, e)
-            }
-        })
+        match &self.reader {
+            PackReader::File(file) => file.read_exact_at(dst, offset).map_err(|e| {
+                if e.kind() == std::io::ErrorKind::UnexpectedEof {
+                    self.truncated(offset, end)
+                } else {
+                    DatasetError::io(&self.pack_path, e)
+                }
+            }),
+            PackReader::Store(store) => store.read_at(&self.pack_path, offset, dst),
+        }
+    }
+
+    /// Whether mips come from a remote store (reads are slow; overlap many).
+    pub fn is_remote(&self) -> bool {
+        match &self.reader {
+            PackReader::File(_) => false,
+            PackReader::Store(store) => store.is_remote(),
+        }
     }
 
     fn read_at(&self, location: MipLocation, dst: &mut [u8]) -> Result<(), DatasetError> {
@@ -319,7 +369,10 @@ impl TexturePack {
 
     fn truncated(&self, offset: u64, end: u64) -> DatasetError {
         // The file may have shrunk after opening; report its current length.
-        let file_len = self.file.metadata().map(|m| m.len()).unwrap_or(self.pack_len);
+        let file_len = match &self.reader {
+            PackReader::File(file) => file.metadata().map(|m| m.len()).unwrap_or(self.pack_len),
+            PackReader::Store(_) => self.pack_len,
+        };
         DatasetError::Truncated {
             path: self.pack_path.clone(),
             what: "a mip".into(),

@@ -305,7 +305,7 @@ impl Scene {
         Ok(Self::decode_with(path, bytes, SceneLayout::CURRENT)?.0)
     }
 
-    fn decode_with(path: &Path, bytes: &[u8], layout: SceneLayout) -> Result<(Scene, u64), DatasetError> {
+    pub(crate) fn decode_with(path: &Path, bytes: &[u8], layout: SceneLayout) -> Result<(Scene, u64), DatasetError> {
         let header_len = layout.header_len;
         check_versioned_prefix(path, bytes, MAGIC, header_len, layout.version)?;
         let write_id = if layout.crc_covers_header { u64_at(bytes, 16) } else { 0 };

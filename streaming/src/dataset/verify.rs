@@ -25,7 +25,12 @@ pub struct VerifyReport {
 /// texture with one positioned read, checking each against its stored CRC-32. Returns the
 /// first problem found.
 pub fn verify(dir: &Path) -> Result<VerifyReport, DatasetError> {
-    let dataset = Dataset::open(dir)?;
+    verify_dataset(&Dataset::open(dir)?)
+}
+
+/// [`verify`] of an opened dataset (local or remote): the overlap check and every mip read
+/// and checksummed.
+pub fn verify_dataset(dataset: &Dataset) -> Result<VerifyReport, DatasetError> {
     let pack = &dataset.textures;
     let mut by_offset: Vec<(u64, u64, u32)> = pack
         .textures()

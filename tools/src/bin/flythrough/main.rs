@@ -872,7 +872,7 @@ type CityGeometry = (Vec<Vertex>, Vec<CityMesh>);
 
 /// The dataset with its vertices and meshes in the engine's layout.
 fn open_city(dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGeometry)> {
-    let dataset = Arc::new(Dataset::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?);
+    let dataset = Arc::new(citystream_tools::open_dataset(dir)?);
     let city = city_geometry(&dataset)?;
     Ok((dataset, city))
 }

@@ -1,0 +1,32 @@
+//! Where a dataset's files are read from: a local directory, or a store that serves the
+//! same files by name and byte range (an HTTP server or an object store; see the tools'
+//! remote stores).
+//!
+//! A dataset opened from a store reads its small files (manifest, scene, tables) whole,
+//! once, and the pack by range: every mip is one ranged read, checked against its CRC-32
+//! like a local read. Paths are the dataset's file paths as [`super::DatasetFiles`] builds
+//! them under the store's root: for a remote store a URL held in a `Path`
+//! (`https://host/city/write-…/scene.bin`), so every error names the URL at fault.
+
+use std::path::Path;
+
+use super::error::DatasetError;
+
+/// Reads the files of a dataset (see the module docs).
+///
+/// Threading: `Send + Sync`; [`DatasetStore::read_at`] is called from many loader threads
+/// at once.
+pub trait DatasetStore: Send + Sync + std::fmt::Debug {
+    /// The whole file at `path` (the small files: manifest, scene, tables). A missing file
+    /// is [`DatasetError::Missing`].
+    fn read_all(&self, path: &Path) -> Result<Vec<u8>, DatasetError>;
+    /// The length of the file at `path`, in bytes.
+    fn len(&self, path: &Path) -> Result<u64, DatasetError>;
+    /// Exactly `dst.len()` bytes of the file at `path` from `offset`; fewer is
+    /// [`DatasetError::Truncated`].
+    fn read_at(&self, path: &Path, offset: u64, dst: &mut [u8]) -> Result<(), DatasetError>;
+    /// Whether reads are slow enough that readers should overlap many (a network store).
+    fn is_remote(&self) -> bool {
+        true
+    }
+}

@@ -1,0 +1,245 @@
+//! Datasets streamed from an HTTP server: nginx from Debian, started by each test on
+//! loopback with a configuration the test writes (range requests are nginx's default for
+//! static files). The tests fail when nginx is missing after the setup script ran
+//! (`make setup`); before it, they say so and skip.
+
+mod cli_support;
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use cli_support::{citystream, fresh_dir, stderr};
+
+/// The stamp `scripts/setup.sh` leaves once everything (nginx included) is installed.
+fn setup_ran() -> bool {
+    let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
+    Path::new(&dir).join("setup-v4").exists()
+}
+
+/// A running nginx serving one directory on a loopback port, stopped on drop.
+struct Nginx {
+    child: Child,
+    port: u16,
+}
+
+impl Drop for Nginx {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Nginx {
+    fn url(&self, path: &str) -> String {
+        format!("http://127.0.0.1:{}/{path}", self.port)
+    }
+}
+
+fn nginx_binary() -> Option<PathBuf> {
+    ["/usr/sbin/nginx", "/usr/bin/nginx"]
+        .iter()
+        .map(PathBuf::from)
+        .find(|p| p.exists())
+}
+
+/// Starts nginx serving `root`; `None` (skip) only when it is missing and the setup
+/// script never ran.
+fn start_nginx(work: &Path, root: &Path) -> Option<Nginx> {
+    let Some(binary) = nginx_binary() else {
+        assert!(
+            !setup_ran(),
+            "nginx is missing although the setup script ran: it should have installed nginx-light"
+        );
+        eprintln!("skipping: nginx is not installed and the setup script has not run; `make setup` installs it");
+        return None;
+    };
+    for _ in 0..5 {
+        // A port the system just handed out is free unless someone takes it meanwhile;
+        // then nginx fails to bind and the next one is tried.
+        let port = TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free port")
+            .port();
+        let conf = work.join("nginx.conf");
+        let temp = work.join("nginx-temp");
+        std::fs::create_dir_all(&temp).expect("nginx temp dir");
+        std::fs::write(
+            &conf,
+            format!(
+                "daemon off;\nmaster_process off;\nworker_processes 1;\npid {work}/nginx.pid;\n\
+                 error_log {work}/nginx-error.log;\nevents {{ worker_connections 256; }}\n\
+                 http {{\n  access_log off;\n  client_body_temp_path {temp};\n  proxy_temp_path {temp};\n\
+                 fastcgi_temp_path {temp};\n  uwsgi_temp_path {temp};\n  scgi_temp_path {temp};\n\
+                 server {{ listen 127.0.0.1:{port}; root {root}; }}\n}}\n",
+                work = work.display(),
+                temp = temp.display(),
+                root = root.display(),
+            ),
+        )
+        .expect("write nginx.conf");
+        let mut child = Command::new(&binary)
+            .arg("-c")
+            .arg(&conf)
+            .arg("-p")
+            .arg(work)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start nginx");
+        let started = Instant::now();
+        while started.elapsed() < Duration::from_secs(10) {
+            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+                return Some(Nginx { child, port });
+            }
+            if child.try_wait().expect("nginx status").is_some() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+    panic!(
+        "nginx did not start; its log: {}",
+        std::fs::read_to_string(work.join("nginx-error.log")).unwrap_or_default()
+    );
+}
+
+fn tiny_city(dir: &Path) -> PathBuf {
+    let city = dir.join("www").join("city");
+    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
+    assert!(out.status.success(), "gen failed: {}", stderr(&out));
+    city
+}
+
+fn flythrough(dataset: &str, out: &Path, extra: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args([
+            "--clock",
+            "fixed",
+            "--frames",
+            "90",
+            "--frame-interval",
+            "30",
+            "--psnr-interval",
+            "30",
+            "--width",
+            "160",
+            "--height",
+            "96",
+            "--dataset",
+            dataset,
+        ])
+        .args(extra)
+        .arg("--out")
+        .arg(out)
+        .env("CITYSTREAM_VALIDATION", "1")
+        .output()
+        .expect("run flythrough")
+}
+
+#[test]
+fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
+    let dir = fresh_dir("remote_dataset", "http_frames");
+    let city = tiny_city(&dir);
+    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+        return;
+    };
+    let url = nginx.url("city/");
+
+    let local_out = dir.join("local");
+    let out = flythrough(city.to_str().expect("utf-8"), &local_out, &[]);
+    assert!(out.status.success(), "local run: {}", stderr(&out));
+    let remote_out = dir.join("remote");
+    let out = flythrough(&url, &remote_out, &[]);
+    assert!(out.status.success(), "remote run: {}", stderr(&out));
+
+    // Frame for frame the same streaming (the fixed clock waits for every load, wherever it
+    // comes from): the same per-frame uploads, residency and error, and the same pixels.
+    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("local frames.csv");
+    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("remote frames.csv");
+    assert_eq!(local_csv.lines().count(), 91);
+    assert_eq!(
+        remote_csv, local_csv,
+        "frames.csv differs between the remote and the local run"
+    );
+    for frame in [0, 30, 60] {
+        let name = format!("frame_{frame:05}.png");
+        let local = image::open(local_out.join("frames").join(&name)).expect("local frame");
+        let remote = image::open(remote_out.join("frames").join(&name)).expect("remote frame");
+        assert!(local.to_rgba8() == remote.to_rgba8(), "{name} differs");
+    }
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(remote_out.join("summary.json")).expect("summary"))
+            .expect("json");
+    assert!(summary["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{summary}");
+    assert_eq!(summary["load_failures"], 0);
+}
+
+#[test]
+fn info_and_verify_read_a_remote_dataset() {
+    let dir = fresh_dir("remote_dataset", "info_verify");
+    let city = tiny_city(&dir);
+    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+        return;
+    };
+    let url = nginx.url("city");
+
+    let info = |location: &str| -> serde_json::Value {
+        let out = citystream(&["info", location, "--json"]);
+        assert!(out.status.success(), "info {location}: {}", stderr(&out));
+        let mut json: serde_json::Value = serde_json::from_slice(&out.stdout).expect("info JSON");
+        let object = json.as_object_mut().expect("object");
+        object.remove("dir");
+        object.remove("open_seconds");
+        json
+    };
+    assert_eq!(info(&url), info(city.to_str().expect("utf-8")));
+
+    let out = citystream(&["verify", &url]);
+    assert!(out.status.success(), "verify: {}", stderr(&out));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.starts_with("ok: ") && text.contains(&url), "{text}");
+
+    // A damaged mip on the server is found, named by URL and offset.
+    let pack = std::fs::read_dir(&city)
+        .expect("city")
+        .map(|e| e.expect("entry").path())
+        .find(|p| p.is_dir())
+        .expect("write directory")
+        .join("textures.pack");
+    let mut bytes = std::fs::read(&pack).expect("pack");
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0xff;
+    std::fs::write(&pack, bytes).expect("damage");
+    let out = citystream(&["verify", &url]);
+    assert!(!out.status.success(), "a damaged pack verified");
+    let text = stderr(&out);
+    assert!(
+        text.contains("textures.pack") && text.contains("http://127.0.0.1"),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_missing_remote_dataset_is_a_clear_error() {
+    let dir = fresh_dir("remote_dataset", "missing");
+    std::fs::create_dir_all(dir.join("www")).expect("www");
+    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+        return;
+    };
+    let url = nginx.url("nowhere/");
+    let out = citystream(&["info", &url]);
+    assert!(!out.status.success());
+    let text = stderr(&out);
+    assert!(text.contains("dataset.manifest") && text.contains("missing"), "{text}");
+    assert!(!text.contains("panicked"), "{text}");
+    for bad in ["ftp://host/city", "http://"] {
+        let out = citystream(&["info", bad]);
+        assert!(!out.status.success(), "{bad} accepted");
+        assert!(!stderr(&out).contains("panicked"), "{}", stderr(&out));
+    }
+}
