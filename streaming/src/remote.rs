@@ -58,6 +58,35 @@ impl Default for RemoteOptions {
     }
 }
 
+impl RemoteOptions {
+    /// The defaults, with `CITYSTREAM_REMOTE_RETRIES` (retries per request) and
+    /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds) applied where set; a value
+    /// that does not parse is an error naming the variable.
+    pub fn from_env() -> Result<Self, DatasetError> {
+        let mut options = Self::default();
+        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_RETRIES") {
+            options.retries =
+                text.trim().parse().ok().filter(|r| *r <= 100).ok_or_else(|| {
+                    DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_RETRIES={text}: not 0..=100"))
+                })?;
+        }
+        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_TIMEOUT_S") {
+            let seconds: f64 = text
+                .trim()
+                .parse()
+                .ok()
+                .filter(|s: &f64| s.is_finite() && *s > 0.0 && *s <= 3600.0)
+                .ok_or_else(|| {
+                    DatasetError::InvalidInput(format!(
+                        "CITYSTREAM_REMOTE_TIMEOUT_S={text}: not a number of seconds in (0, 3600]"
+                    ))
+                })?;
+            options.timeout = Duration::from_secs_f64(seconds);
+        }
+        Ok(options)
+    }
+}
+
 /// Whether `location` names a remote dataset (a URL this module opens).
 pub fn is_remote(location: &str) -> bool {
     ["http://", "https://", "s3://"]

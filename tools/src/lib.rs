@@ -6,6 +6,7 @@ pub mod atlas;
 pub mod bench;
 pub mod cache_report;
 pub mod default_city;
+pub mod fault_proxy;
 pub mod fuzz;
 pub mod gen;
 pub mod import;
@@ -26,6 +27,7 @@ use citystream_streaming::remote::{open_dataset as open_location, RemoteOptions}
 /// Opens the dataset at `location`: a directory, or a URL (`http(s)://host/path/`,
 /// `s3://bucket/prefix/`; see `citystream_streaming::remote`).
 pub fn open_dataset(location: &Path) -> anyhow::Result<Dataset> {
-    open_location(&location.to_string_lossy(), &RemoteOptions::default())
+    let options = RemoteOptions::from_env()?;
+    open_location(&location.to_string_lossy(), &options)
         .with_context(|| format!("opening dataset {}", location.display()))
 }

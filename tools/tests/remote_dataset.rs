@@ -243,3 +243,126 @@ fn a_missing_remote_dataset_is_a_clear_error() {
         assert!(!stderr(&out).contains("panicked"), "{}", stderr(&out));
     }
 }
+
+/// Runs `command`, killing it (and failing) if it has not ended after `limit`.
+fn output_within(mut command: Command, limit: Duration) -> Output {
+    let mut child = command
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let started = Instant::now();
+    loop {
+        if child.try_wait().expect("status").is_some() {
+            return child.wait_with_output().expect("output");
+        }
+        if started.elapsed() > limit {
+            let _ = child.kill();
+            let out = child.wait_with_output().expect("output");
+            panic!("still running after {limit:?}: a hang; stderr: {}", stderr(&out));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn fixed_run(dataset: &str, out: &Path, env: &[(&str, &str)]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_flythrough"));
+    command
+        .args([
+            "--clock",
+            "fixed",
+            "--frames",
+            "60",
+            "--frame-interval",
+            "0",
+            "--psnr-interval",
+            "0",
+            "--width",
+            "160",
+            "--height",
+            "96",
+            "--dataset",
+            dataset,
+        ])
+        .arg("--out")
+        .arg(out)
+        .env("CITYSTREAM_VALIDATION", "1")
+        .envs(env.iter().copied());
+    command
+}
+
+#[test]
+fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
+    use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
+    let dir = fresh_dir("remote_dataset", "faults_retried");
+    let city = tiny_city(&dir);
+    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+        return;
+    };
+    let proxy = FaultProxy::start(
+        ([127, 0, 0, 1], nginx.port).into(),
+        FaultOptions {
+            drop_every: 7,
+            truncate_every: 5,
+            ..FaultOptions::default()
+        },
+    )
+    .expect("proxy");
+    let local_out = dir.join("local");
+    let out = output_within(
+        fixed_run(city.to_str().expect("utf-8"), &local_out, &[]),
+        Duration::from_secs(300),
+    );
+    assert!(out.status.success(), "local: {}", stderr(&out));
+    let remote_out = dir.join("remote");
+    let url = format!("http://{}/city", proxy.addr());
+    let out = output_within(fixed_run(&url, &remote_out, &[]), Duration::from_secs(300));
+    assert!(out.status.success(), "through the faulty proxy: {}", stderr(&out));
+    assert!(
+        proxy.faults() >= 3,
+        "{} faults injected in {} requests",
+        proxy.faults(),
+        proxy.requests()
+    );
+    // Every fault was retried to success: the same frames as from disk, nothing failed.
+    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("csv");
+    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("csv");
+    assert_eq!(remote_csv, local_csv);
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(remote_out.join("summary.json")).expect("summary"))
+            .expect("json");
+    assert_eq!(summary["load_failures"], 0, "{summary}");
+}
+
+#[test]
+fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
+    use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
+    let dir = fresh_dir("remote_dataset", "faults_failing");
+    let _city = tiny_city(&dir);
+    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+        return;
+    };
+    let proxy = FaultProxy::start(
+        ([127, 0, 0, 1], nginx.port).into(),
+        FaultOptions {
+            fail_mips: true,
+            ..FaultOptions::default()
+        },
+    )
+    .expect("proxy");
+    let out_dir = dir.join("remote");
+    let url = format!("http://{}/city", proxy.addr());
+    // One retry per request: the loader's own three attempts follow.
+    let out = output_within(
+        fixed_run(&url, &out_dir, &[("CITYSTREAM_REMOTE_RETRIES", "1")]),
+        Duration::from_secs(300),
+    );
+    assert!(!out.status.success(), "a run whose every mip failed exited 0");
+    let text = stderr(&out);
+    assert!(text.contains("failed to load") && text.contains("503"), "{text}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).expect("summary")).expect("json");
+    let failed = summary["textures_failed"].as_u64().expect("textures_failed");
+    assert!(failed > 0, "{summary}");
+    assert_eq!(summary["mips_streamed"], 0, "{summary}");
+}
