@@ -153,6 +153,10 @@ impl MipSource for DatasetSource {
         Ok(info.mip_len(level))
     }
 
+    fn prefetch(&self, mips: &[(u32, u32)]) {
+        self.dataset.textures.prefetch(mips);
+    }
+
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> std::result::Result<(), SourceError> {
         self.check_buffer_len(texture, level, buf)?;
         self.dataset

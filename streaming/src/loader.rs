@@ -537,6 +537,9 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
             self.options.plan_chunk,
             self.gate.get().map(Arc::as_ref),
         );
+        // Priority order: a remote source issues the requests in this order.
+        let planned: Vec<(u32, u32)> = plan.items.iter().map(|item| (item.texture, item.level)).collect();
+        self.source.prefetch(&planned);
         let header_failures = plan.failures.len() as u64;
         for f in plan.failures.iter().cloned() {
             self.record_failure(f);

@@ -11,14 +11,23 @@
 //! requests run on a small tokio runtime owned by the [`RemoteStore`]; callers block on them
 //! from their own threads (the loader's), never from the render thread.
 //!
+//! Latency hiding: the loader hints each cycle's mips in priority order
+//! ([`DatasetStore::prefetch`]); the store merges ranges that lie back to back in the pack
+//! into one request, issues the requests in priority order with at most
+//! [`RemoteOptions::requests_in_flight`] at once, and [`DatasetStore::read_at`] takes a
+//! prefetched range when it arrives (or reads it directly if it was never hinted, failed,
+//! or took longer than a request may). What a cycle hinted and did not read is kept until
+//! the next cycle's hint, which drops what it does not ask for again.
+//!
 //! S3 settings come from the usual environment variables (`AWS_ACCESS_KEY_ID`,
 //! `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`, `AWS_REGION` / `AWS_DEFAULT_REGION`,
 //! `AWS_ENDPOINT_URL` / `AWS_ENDPOINT` for S3-compatible servers) or [`RemoteOptions`];
 //! without credentials, requests go unsigned (public buckets).
 
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use object_store::aws::AmazonS3Builder;
 use object_store::http::HttpBuilder;
@@ -39,6 +48,8 @@ pub struct RemoteOptions {
     pub retries: usize,
     /// The first retry's wait; each further one doubles it, up to 8 s.
     pub initial_backoff: Duration,
+    /// Prefetch requests in flight at most (each a mip, or back-to-back mips merged).
+    pub requests_in_flight: usize,
     /// S3 endpoint of an S3-compatible server (default: `AWS_ENDPOINT_URL`, then AWS).
     pub s3_endpoint: Option<String>,
     /// S3 region (default: `AWS_REGION`, `AWS_DEFAULT_REGION`, then `us-east-1`).
@@ -52,6 +63,7 @@ impl Default for RemoteOptions {
             connect_timeout: Duration::from_secs(5),
             retries: 5,
             initial_backoff: Duration::from_millis(100),
+            requests_in_flight: 16,
             s3_endpoint: None,
             s3_region: None,
         }
@@ -59,7 +71,8 @@ impl Default for RemoteOptions {
 }
 
 impl RemoteOptions {
-    /// The defaults, with `CITYSTREAM_REMOTE_RETRIES` (retries per request) and
+    /// The defaults, with `CITYSTREAM_REMOTE_RETRIES` (retries per request),
+    /// `CITYSTREAM_REMOTE_IN_FLIGHT` (prefetch requests in flight) and
     /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds) applied where set; a value
     /// that does not parse is an error naming the variable.
     pub fn from_env() -> Result<Self, DatasetError> {
@@ -69,6 +82,16 @@ impl RemoteOptions {
                 text.trim().parse().ok().filter(|r| *r <= 100).ok_or_else(|| {
                     DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_RETRIES={text}: not 0..=100"))
                 })?;
+        }
+        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_IN_FLIGHT") {
+            options.requests_in_flight =
+                text.trim()
+                    .parse()
+                    .ok()
+                    .filter(|n| (1..=1024).contains(n))
+                    .ok_or_else(|| {
+                        DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_IN_FLIGHT={text}: not 1..=1024"))
+                    })?;
         }
         if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_TIMEOUT_S") {
             let seconds: f64 = text
@@ -112,7 +135,42 @@ pub struct RemoteStore {
     prefix: String,
     store: Arc<dyn ObjectStore>,
     runtime: tokio::runtime::Runtime,
+    prefetched: Arc<Prefetched>,
+    in_flight: Arc<tokio::sync::Semaphore>,
+    /// How long `read_at` waits for a prefetched range before reading it directly.
+    prefetch_wait: Duration,
 }
+
+/// Ranges fetched ahead of their reads, by (file, offset, length).
+#[derive(Default)]
+struct Prefetched {
+    slots: Mutex<HashMap<(PathBuf, u64, u64), Slot>>,
+    changed: Condvar,
+}
+
+enum Slot {
+    Pending,
+    Ready(bytes::Bytes),
+    Failed,
+}
+
+impl Prefetched {
+    fn lock(&self) -> MutexGuard<'_, HashMap<(PathBuf, u64, u64), Slot>> {
+        // A poisoned lock only means a thread panicked while holding it; the map is intact.
+        self.slots.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// One prefetch request: back-to-back ranges merged, with the best priority among them.
+struct RangeRequest {
+    priority: usize,
+    start: u64,
+    end: u64,
+    members: Vec<(u64, u64)>,
+}
+
+/// Merged requests stay below this, so one slow request holds back little.
+const MAX_MERGED_BYTES: u64 = 8 << 20;
 
 impl std::fmt::Debug for RemoteStore {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -195,6 +253,9 @@ impl RemoteStore {
             prefix: prefix.to_owned(),
             store,
             runtime,
+            prefetched: Arc::default(),
+            in_flight: Arc::new(tokio::sync::Semaphore::new(options.requests_in_flight.max(1))),
+            prefetch_wait: options.timeout.saturating_mul(options.retries as u32 + 1),
         })
     }
 
@@ -251,7 +312,121 @@ impl DatasetStore for RemoteStore {
             .map_err(|e| Self::error(path, e))
     }
 
+    fn prefetch(&self, path: &Path, ranges: &[(u64, u64)]) {
+        let Ok(key) = self.key(path) else {
+            return;
+        };
+        let wanted: HashSet<(u64, u64)> = ranges.iter().copied().collect();
+        let mut fresh: Vec<(usize, u64, u64)> = Vec::new();
+        {
+            let mut slots = self.prefetched.lock();
+            // Bounded memory: what this cycle does not ask for again goes (requests still
+            // in flight finish first).
+            slots.retain(|(p, o, l), slot| matches!(slot, Slot::Pending) || (p == path && wanted.contains(&(*o, *l))));
+            for (priority, &(offset, len)) in ranges.iter().enumerate() {
+                if len == 0 {
+                    continue;
+                }
+                if let std::collections::hash_map::Entry::Vacant(entry) = slots.entry((path.to_path_buf(), offset, len))
+                {
+                    entry.insert(Slot::Pending);
+                    fresh.push((priority, offset, len));
+                }
+            }
+        }
+        if fresh.is_empty() {
+            return;
+        }
+        fresh.sort_by_key(|&(_, offset, _)| offset);
+        let mut requests: Vec<RangeRequest> = Vec::new();
+        for (priority, offset, len) in fresh {
+            match requests.last_mut() {
+                Some(last) if last.end == offset && last.end - last.start + len <= MAX_MERGED_BYTES => {
+                    last.end += len;
+                    last.priority = last.priority.min(priority);
+                    last.members.push((offset, len));
+                }
+                _ => requests.push(RangeRequest {
+                    priority,
+                    start: offset,
+                    end: offset + len,
+                    members: vec![(offset, len)],
+                }),
+            }
+        }
+        requests.sort_by_key(|r| r.priority);
+        let (store, semaphore, prefetched, path) = (
+            Arc::clone(&self.store),
+            Arc::clone(&self.in_flight),
+            Arc::clone(&self.prefetched),
+            path.to_path_buf(),
+        );
+        // One dispatcher per hint: it starts the requests in priority order as permits free up.
+        self.runtime.spawn(async move {
+            for request in requests {
+                let Ok(permit) = Arc::clone(&semaphore).acquire_owned().await else {
+                    return;
+                };
+                let (store, prefetched, key, path) =
+                    (Arc::clone(&store), Arc::clone(&prefetched), key.clone(), path.clone());
+                tokio::spawn(async move {
+                    let result = store.get_range(&key, request.start..request.end).await;
+                    drop(permit);
+                    let whole = matches!(&result, Ok(bytes) if bytes.len() as u64 == request.end - request.start);
+                    let mut slots = prefetched.lock();
+                    for (offset, len) in request.members {
+                        let slot = match &result {
+                            Ok(bytes) if whole => {
+                                let from = (offset - request.start) as usize;
+                                Slot::Ready(bytes.slice(from..from + len as usize))
+                            }
+                            _ => Slot::Failed,
+                        };
+                        if let Some(entry) = slots.get_mut(&(path.clone(), offset, len)) {
+                            *entry = slot;
+                        }
+                    }
+                    drop(slots);
+                    prefetched.changed.notify_all();
+                });
+            }
+        });
+    }
+
     fn read_at(&self, path: &Path, offset: u64, dst: &mut [u8]) -> Result<(), DatasetError> {
+        let slot_key = (path.to_path_buf(), offset, dst.len() as u64);
+        {
+            let mut slots = self.prefetched.lock();
+            let deadline = Instant::now() + self.prefetch_wait;
+            loop {
+                match slots.get(&slot_key) {
+                    None => break,
+                    Some(Slot::Pending) => {
+                        let now = Instant::now();
+                        if now >= deadline {
+                            break;
+                        }
+                        slots = self
+                            .prefetched
+                            .changed
+                            .wait_timeout(slots, deadline - now)
+                            .unwrap_or_else(|e| e.into_inner())
+                            .0;
+                    }
+                    Some(Slot::Ready(_)) => {
+                        if let Some(Slot::Ready(bytes)) = slots.remove(&slot_key) {
+                            dst.copy_from_slice(&bytes);
+                            return Ok(());
+                        }
+                    }
+                    // Read it directly, with the client's retries, and report that error.
+                    Some(Slot::Failed) => {
+                        slots.remove(&slot_key);
+                        break;
+                    }
+                }
+            }
+        }
         let key = self.key(path)?;
         let end = offset.saturating_add(dst.len() as u64);
         let bytes = self

@@ -105,6 +105,12 @@ pub trait MipSource: Send + Sync {
     /// [`MipSource::mip_len`]; a shorter file is [`SourceError::ShortRead`].
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError>;
 
+    /// The mips the loader is about to read this cycle, highest priority first: a source
+    /// with high latency (a remote store) starts fetching them now, many at once, so that
+    /// [`MipSource::read_mip`] finds them ready. A hint only: reads of mips not hinted, or
+    /// hinted and then not read, behave as without it. The default does nothing.
+    fn prefetch(&self, _mips: &[(u32, u32)]) {}
+
     /// [`SourceError::LengthMismatch`] unless `buf` holds exactly the
     /// mip's bytes: the check every [`MipSource::read_mip`] starts with.
     fn check_buffer_len(&self, texture: u32, level: u32, buf: &[u8]) -> Result<(), SourceError> {
@@ -449,6 +455,10 @@ impl<S: MipSource> MipSource for FaultySource<S> {
 
     fn mip_len(&self, texture: u32, level: u32) -> Result<u64, SourceError> {
         self.inner.mip_len(texture, level)
+    }
+
+    fn prefetch(&self, mips: &[(u32, u32)]) {
+        self.inner.prefetch(mips);
     }
 
     fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {

@@ -51,12 +51,16 @@ pub enum Scenario {
     /// The loader against raw positioned reads of the same mips
     /// ([`crate::loader_bench`]); no flythrough.
     Loader,
+    /// The loader from local disk, from nginx on loopback and through a proxy adding
+    /// 20 and 80 ms per request, at 1, 8 and 32 requests in flight
+    /// ([`crate::remote_bench`]); no flythrough.
+    Remote,
 }
 
 /// Options of `citystream bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
-    /// Which benchmark: `standard`, `pressure` or `loader` (see the module docs).
+    /// Which benchmark: `standard`, `pressure`, `loader` or `remote` (see the module docs).
     #[arg(long, value_enum, default_value = "standard")]
     scenario: Scenario,
     /// Dataset directory every run opens (default: the default city in
@@ -170,7 +174,7 @@ struct RunSettings {
 impl RunSettings {
     fn of(args: &BenchArgs) -> Self {
         match args.scenario {
-            Scenario::Standard | Scenario::Loader => RunSettings {
+            Scenario::Standard | Scenario::Loader | Scenario::Remote => RunSettings {
                 clock: "fixed",
                 frames: args.frames,
                 duration_s: None,
@@ -290,13 +294,19 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             dir
         }
         (None, Scenario::Pressure) => ensure_pressure_city(&args.data_dir)?,
-        (None, Scenario::Loader) => {
+        (None, Scenario::Loader | Scenario::Remote) => {
             let dir = PathBuf::from(DEFAULT_CITY_DIR);
             ensure_default_city(&dir, false)?;
             dir
         }
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    if args.scenario == Scenario::Remote {
+        let text = crate::remote_bench::run(&dataset, &args.out)?;
+        eprint!("{text}");
+        eprintln!("wrote {} and remote.json there", args.out.join("remote.md").display());
+        return Ok(());
+    }
     if args.scenario == Scenario::Loader {
         let text = crate::loader_bench::run(&dataset, &args.out)?;
         eprint!("{text}");
@@ -305,7 +315,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
 
     let runs = match args.scenario {
-        Scenario::Standard | Scenario::Loader => POLICY_RUNS
+        Scenario::Standard | Scenario::Loader | Scenario::Remote => POLICY_RUNS
             .iter()
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),

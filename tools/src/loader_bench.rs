@@ -83,15 +83,15 @@ fn drop_page_cache(_path: &Path) -> Result<bool> {
 }
 
 /// What one loader pass loaded.
-struct LoaderRun {
+pub(crate) struct LoaderRun {
     /// `(texture, level)` in the order the sink got them.
-    loaded: Vec<(u32, u32)>,
-    bytes: u64,
-    elapsed: Duration,
+    pub(crate) loaded: Vec<(u32, u32)>,
+    pub(crate) bytes: u64,
+    pub(crate) elapsed: Duration,
 }
 
 /// The unthrottled loader over every texture until it loads nothing more.
-fn loader_pass(dataset: &Arc<Dataset>) -> Result<LoaderRun> {
+pub(crate) fn loader_pass(dataset: &Arc<Dataset>) -> Result<LoaderRun> {
     let count = dataset.textures.len();
     let loaded = Arc::new(Mutex::new(Vec::new()));
     let sink = CountingSink {

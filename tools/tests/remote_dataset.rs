@@ -5,11 +5,11 @@
 
 mod cli_support;
 
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use citystream_tools::nginx::Nginx;
 use cli_support::{citystream, fresh_dir, stderr};
 
 /// The stamp `scripts/setup.sh` leaves once everything (nginx included) is installed.
@@ -18,94 +18,18 @@ fn setup_ran() -> bool {
     Path::new(&dir).join("setup-v4").exists()
 }
 
-/// A running nginx serving one directory on a loopback port, stopped on drop.
-struct Nginx {
-    child: Child,
-    port: u16,
-}
-
-impl Drop for Nginx {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Nginx {
-    fn url(&self, path: &str) -> String {
-        format!("http://127.0.0.1:{}/{path}", self.port)
-    }
-}
-
-fn nginx_binary() -> Option<PathBuf> {
-    ["/usr/sbin/nginx", "/usr/bin/nginx"]
-        .iter()
-        .map(PathBuf::from)
-        .find(|p| p.exists())
-}
-
 /// Starts nginx serving `root`; `None` (skip) only when it is missing and the setup
 /// script never ran.
 fn start_nginx(work: &Path, root: &Path) -> Option<Nginx> {
-    let Some(binary) = nginx_binary() else {
+    if citystream_tools::nginx::binary().is_none() {
         assert!(
             !setup_ran(),
             "nginx is missing although the setup script ran: it should have installed nginx-light"
         );
         eprintln!("skipping: nginx is not installed and the setup script has not run; `make setup` installs it");
         return None;
-    };
-    for _ in 0..5 {
-        // A port the system just handed out is free unless someone takes it meanwhile;
-        // then nginx fails to bind and the next one is tried.
-        let port = TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("a free port")
-            .port();
-        let conf = work.join("nginx.conf");
-        let temp = work.join("nginx-temp");
-        std::fs::create_dir_all(&temp).expect("nginx temp dir");
-        std::fs::write(
-            &conf,
-            format!(
-                "daemon off;\nmaster_process off;\nworker_processes 1;\npid {work}/nginx.pid;\n\
-                 error_log {work}/nginx-error.log;\nevents {{ worker_connections 256; }}\n\
-                 http {{\n  access_log off;\n  client_body_temp_path {temp};\n  proxy_temp_path {temp};\n\
-                 fastcgi_temp_path {temp};\n  uwsgi_temp_path {temp};\n  scgi_temp_path {temp};\n\
-                 server {{ listen 127.0.0.1:{port}; root {root}; }}\n}}\n",
-                work = work.display(),
-                temp = temp.display(),
-                root = root.display(),
-            ),
-        )
-        .expect("write nginx.conf");
-        let mut child = Command::new(&binary)
-            .arg("-c")
-            .arg(&conf)
-            .arg("-p")
-            .arg(work)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start nginx");
-        let started = Instant::now();
-        while started.elapsed() < Duration::from_secs(10) {
-            if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-                return Some(Nginx { child, port });
-            }
-            if child.try_wait().expect("nginx status").is_some() {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = child.kill();
-        let _ = child.wait();
     }
-    panic!(
-        "nginx did not start; its log: {}",
-        std::fs::read_to_string(work.join("nginx-error.log")).unwrap_or_default()
-    );
+    Some(Nginx::start(work, root).expect("start nginx"))
 }
 
 fn tiny_city(dir: &Path) -> PathBuf {
@@ -300,7 +224,7 @@ fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
         return;
     };
     let proxy = FaultProxy::start(
-        ([127, 0, 0, 1], nginx.port).into(),
+        ([127, 0, 0, 1], nginx.port()).into(),
         FaultOptions {
             drop_every: 7,
             truncate_every: 5,
@@ -343,7 +267,7 @@ fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
         return;
     };
     let proxy = FaultProxy::start(
-        ([127, 0, 0, 1], nginx.port).into(),
+        ([127, 0, 0, 1], nginx.port()).into(),
         FaultOptions {
             fail_mips: true,
             ..FaultOptions::default()

@@ -355,6 +355,20 @@ impl TexturePack {
         }
     }
 
+    /// Hints that `mips` (highest priority first) are about to be read: a remote store
+    /// starts fetching them ([`DatasetStore::prefetch`]); a local pack ignores it. Pairs
+    /// that do not exist are skipped (their read reports the error).
+    pub fn prefetch(&self, mips: &[(u32, u32)]) {
+        if let PackReader::Store(store) = &self.reader {
+            let ranges: Vec<(u64, u64)> = mips
+                .iter()
+                .filter_map(|&(texture, level)| self.mip_location(texture, level).ok())
+                .map(|location| (location.offset, location.len))
+                .collect();
+            store.prefetch(&self.pack_path, &ranges);
+        }
+    }
+
     /// Whether mips come from a remote store (reads are slow; overlap many).
     pub fn is_remote(&self) -> bool {
         match &self.reader {

@@ -25,6 +25,10 @@ pub trait DatasetStore: Send + Sync + std::fmt::Debug {
     /// Exactly `dst.len()` bytes of the file at `path` from `offset`; fewer is
     /// [`DatasetError::Truncated`].
     fn read_at(&self, path: &Path, offset: u64, dst: &mut [u8]) -> Result<(), DatasetError>;
+    /// `(offset, len)` ranges of the file at `path` about to be read with
+    /// [`DatasetStore::read_at`], highest priority first: a store with latency starts
+    /// fetching them. The default does nothing.
+    fn prefetch(&self, _path: &Path, _ranges: &[(u64, u64)]) {}
     /// Whether reads are slow enough that readers should overlap many (a network store).
     fn is_remote(&self) -> bool {
         true
