@@ -113,6 +113,9 @@ pub struct PlannedMip {
     pub from: TextureStatus,
     /// Its status once this mip is loaded.
     pub to: TextureStatus,
+    /// The finest level later cycles load for this texture if its record and the mip bias
+    /// stay as they are (one level per cycle down to it); `level` when this is the last.
+    pub target_level: u32,
 }
 
 /// What one cycle will load, in priority order.
@@ -170,6 +173,15 @@ fn candidate<S: MipSource + ?Sized>(
                 bytes,
                 from,
                 to,
+                // next_load goes on while sampled + bias < current level.
+                target_level: {
+                    let finest = f64::from(record.mip_level) + mip_bias;
+                    if finest.is_finite() {
+                        (finest.ceil().max(0.0) as u32).min(level)
+                    } else {
+                        level
+                    }
+                },
             }),
             Err(e) => fail(Some(level), e),
         },
@@ -537,9 +549,15 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
             self.options.plan_chunk,
             self.gate.get().map(Arc::as_ref),
         );
-        // Priority order: a remote source issues the requests in this order.
-        let planned: Vec<(u32, u32)> = plan.items.iter().map(|item| (item.texture, item.level)).collect();
-        self.source.prefetch(&planned);
+        // Priority order: a remote source issues the requests in this order. After this
+        // cycle's mips, the finer levels the next cycles will load for the same records
+        // (stored right before them in a pack, so a remote store fetches a texture's chain
+        // in one request), lowest priority.
+        let mut hints: Vec<(u32, u32)> = plan.items.iter().map(|item| (item.texture, item.level)).collect();
+        for item in &plan.items {
+            hints.extend((item.target_level..item.level).rev().map(|level| (item.texture, level)));
+        }
+        self.source.prefetch(&hints);
         let header_failures = plan.failures.len() as u64;
         for f in plan.failures.iter().cloned() {
             self.record_failure(f);

@@ -50,6 +50,8 @@ pub struct RemoteOptions {
     pub initial_backoff: Duration,
     /// Prefetch requests in flight at most (each a mip, or back-to-back mips merged).
     pub requests_in_flight: usize,
+    /// Bytes fetched ahead of their reads held at most (hints past it are not fetched).
+    pub prefetch_limit_bytes: u64,
     /// S3 endpoint of an S3-compatible server (default: `AWS_ENDPOINT_URL`, then AWS).
     pub s3_endpoint: Option<String>,
     /// S3 region (default: `AWS_REGION`, `AWS_DEFAULT_REGION`, then `us-east-1`).
@@ -64,6 +66,7 @@ impl Default for RemoteOptions {
             retries: 5,
             initial_backoff: Duration::from_millis(100),
             requests_in_flight: 16,
+            prefetch_limit_bytes: 256 << 20,
             s3_endpoint: None,
             s3_region: None,
         }
@@ -139,6 +142,7 @@ pub struct RemoteStore {
     in_flight: Arc<tokio::sync::Semaphore>,
     /// How long `read_at` waits for a prefetched range before reading it directly.
     prefetch_wait: Duration,
+    prefetch_limit_bytes: u64,
 }
 
 /// Ranges fetched ahead of their reads, by (file, offset, length).
@@ -256,6 +260,7 @@ impl RemoteStore {
             prefetched: Arc::default(),
             in_flight: Arc::new(tokio::sync::Semaphore::new(options.requests_in_flight.max(1))),
             prefetch_wait: options.timeout.saturating_mul(options.retries as u32 + 1),
+            prefetch_limit_bytes: options.prefetch_limit_bytes,
         })
     }
 
@@ -323,13 +328,15 @@ impl DatasetStore for RemoteStore {
             // Bounded memory: what this cycle does not ask for again goes (requests still
             // in flight finish first).
             slots.retain(|(p, o, l), slot| matches!(slot, Slot::Pending) || (p == path && wanted.contains(&(*o, *l))));
+            let mut held: u64 = slots.keys().map(|(_, _, len)| len).sum();
             for (priority, &(offset, len)) in ranges.iter().enumerate() {
-                if len == 0 {
+                if len == 0 || held.saturating_add(len) > self.prefetch_limit_bytes {
                     continue;
                 }
                 if let std::collections::hash_map::Entry::Vacant(entry) = slots.entry((path.to_path_buf(), offset, len))
                 {
                     entry.insert(Slot::Pending);
+                    held += len;
                     fresh.push((priority, offset, len));
                 }
             }

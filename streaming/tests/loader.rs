@@ -386,3 +386,73 @@ fn reads_failing_every_attempt_fail_their_texture_and_name_the_file() -> Result<
     );
     Ok(())
 }
+
+/// A source that records the prefetch hints it is given.
+struct HintedSource {
+    inner: MemorySource,
+    hints: Mutex<Vec<Vec<(u32, u32)>>>,
+}
+
+impl citystream_streaming::source::MipSource for HintedSource {
+    fn texture_count(&self) -> u32 {
+        self.inner.texture_count()
+    }
+    fn texture_format(
+        &self,
+        texture: u32,
+    ) -> Result<citystream_streaming::dataset::TextureFormat, citystream_streaming::source::SourceError> {
+        self.inner.texture_format(texture)
+    }
+    fn mip_chain(
+        &self,
+        texture: u32,
+    ) -> Result<citystream_streaming::states::MipChain, citystream_streaming::source::SourceError> {
+        self.inner.mip_chain(texture)
+    }
+    fn mip_len(&self, texture: u32, level: u32) -> Result<u64, citystream_streaming::source::SourceError> {
+        self.inner.mip_len(texture, level)
+    }
+    fn read_mip(
+        &self,
+        texture: u32,
+        level: u32,
+        buf: &mut [u8],
+    ) -> Result<(), citystream_streaming::source::SourceError> {
+        self.inner.read_mip(texture, level, buf)
+    }
+    fn prefetch(&self, mips: &[(u32, u32)]) {
+        self.hints.lock().expect("hints").push(mips.to_vec());
+    }
+}
+
+#[test]
+fn prefetch_hints_the_cycle_in_priority_order_then_the_finer_levels_the_records_need() -> Result<(), LoaderError> {
+    let mut inner = MemorySource::new();
+    inner.push_bc1(16, 16);
+    inner.push_bc1(16, 16);
+    let source = HintedSource {
+        inner,
+        hints: Mutex::new(Vec::new()),
+    };
+    let loader = Loader::new(source, MemorySink::new(), vec![0, 1], 2, options())?;
+    // Texture 1 (heavier) needs level 0, texture 0 level 1.
+    let records = prepare(vec![rec(0, 300, 1), rec(1, 500, 0)], 150);
+    loader.run_cycle(&records, unlimited()).expect("idle");
+    loader.run_cycle(&records, unlimited()).expect("idle");
+    let hints = loader.source().hints.lock().expect("hints").clone();
+    assert_eq!(hints.len(), 2);
+    // Cycle 1 loads both 4×4 levels (2), heavier first; then the levels still to come:
+    // texture 1 down to 0, texture 0 down to 1, nothing beyond what the records need.
+    assert_eq!(hints[0], vec![(1, 2), (0, 2), (1, 1), (1, 0), (0, 1)]);
+    assert_eq!(hints[1], vec![(1, 1), (0, 1), (1, 0)]);
+    // Hints change nothing else: one level per texture per cycle, as without them.
+    let mut staged: Vec<(u32, u32)> = loader
+        .sink()
+        .take_staged()
+        .iter()
+        .map(|m| (m.texture, m.level))
+        .collect();
+    staged.sort_unstable();
+    assert_eq!(staged, vec![(0, 1), (0, 2), (1, 1), (1, 2)]);
+    Ok(())
+}

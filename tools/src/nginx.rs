@@ -37,10 +37,12 @@ impl Nginx {
     /// go to `work`.
     pub fn start(work: &Path, root: &Path) -> Result<Self> {
         let binary = binary().context("nginx is not installed (`make setup` installs nginx-light)")?;
-        let temp = work.join("nginx-temp");
-        std::fs::create_dir_all(&temp).with_context(|| format!("creating {}", temp.display()))?;
         let root = std::path::absolute(root).with_context(|| format!("resolving {}", root.display()))?;
         let work = std::path::absolute(work).with_context(|| format!("resolving {}", work.display()))?;
+        let temp = work.join("nginx-temp");
+        std::fs::create_dir_all(&temp).with_context(|| format!("creating {}", temp.display()))?;
+        // Errors before the configuration's error_log applies go to standard error.
+        let stderr_path = work.join("nginx-stderr.log");
         for _ in 0..5 {
             // A port the system just handed out is free unless taken meanwhile; then nginx
             // fails to bind and another is tried.
@@ -70,7 +72,10 @@ impl Nginx {
                 .arg(&work)
                 .stdin(Stdio::null())
                 .stdout(Stdio::null())
-                .stderr(Stdio::null())
+                .stderr(
+                    std::fs::File::create(&stderr_path)
+                        .with_context(|| format!("creating {}", stderr_path.display()))?,
+                )
                 .spawn()
                 .with_context(|| format!("starting {}", binary.display()))?;
             let started = Instant::now();
@@ -87,7 +92,8 @@ impl Nginx {
             let _ = child.wait();
         }
         bail!(
-            "nginx did not start; its log: {}",
+            "nginx did not start: {}{}",
+            std::fs::read_to_string(&stderr_path).unwrap_or_default(),
             std::fs::read_to_string(work.join("nginx-error.log")).unwrap_or_default()
         )
     }
