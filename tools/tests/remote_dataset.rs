@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
 use citystream_tools::nginx::Nginx;
 use cli_support::{citystream, fresh_dir, stderr};
 
@@ -30,6 +31,15 @@ fn start_nginx(work: &Path, root: &Path) -> Option<Nginx> {
         return None;
     }
     Some(Nginx::start(work, root).expect("start nginx"))
+}
+
+/// A tiny city in the test's own directory, served by nginx (its parent as the root);
+/// `None` where the test skips.
+fn served_city(name: &str) -> Option<(PathBuf, PathBuf, Nginx)> {
+    let dir = fresh_dir("remote_dataset", name);
+    let city = tiny_city(&dir);
+    let nginx = start_nginx(&dir, &dir.join("www"))?;
+    Some((dir, city, nginx))
 }
 
 fn tiny_city(dir: &Path) -> PathBuf {
@@ -67,9 +77,7 @@ fn flythrough(dataset: &str, out: &Path, extra: &[&str]) -> Output {
 
 #[test]
 fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
-    let dir = fresh_dir("remote_dataset", "http_frames");
-    let city = tiny_city(&dir);
-    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+    let Some((dir, city, nginx)) = served_city("http_frames") else {
         return;
     };
     let url = nginx.url("city/");
@@ -96,18 +104,14 @@ fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
         let remote = image::open(remote_out.join("frames").join(&name)).expect("remote frame");
         assert!(local.to_rgba8() == remote.to_rgba8(), "{name} differs");
     }
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(remote_out.join("summary.json")).expect("summary"))
-            .expect("json");
-    assert!(summary["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{summary}");
-    assert_eq!(summary["load_failures"], 0);
+    let remote = summary(&remote_out);
+    assert!(remote["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{remote}");
+    assert_eq!(remote["load_failures"], 0);
 }
 
 #[test]
 fn info_and_verify_read_a_remote_dataset() {
-    let dir = fresh_dir("remote_dataset", "info_verify");
-    let city = tiny_city(&dir);
-    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+    let Some((_dir, city, nginx)) = served_city("info_verify") else {
         return;
     };
     let url = nginx.url("city");
@@ -215,23 +219,28 @@ fn fixed_run(dataset: &str, out: &Path, env: &[(&str, &str)]) -> Command {
     command
 }
 
+/// A tiny city served by nginx behind a fault proxy with `options`; `None` where the
+/// test skips (nginx missing before setup).
+fn city_behind_proxy(name: &str, options: FaultOptions) -> Option<(PathBuf, PathBuf, Nginx, FaultProxy)> {
+    let (dir, city, nginx) = served_city(name)?;
+    let proxy = FaultProxy::start(([127, 0, 0, 1], nginx.port()).into(), options).expect("proxy");
+    Some((dir, city, nginx, proxy))
+}
+
+fn summary(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json")).expect("json")
+}
+
 #[test]
 fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
-    use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
-    let dir = fresh_dir("remote_dataset", "faults_retried");
-    let city = tiny_city(&dir);
-    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+    let options = FaultOptions {
+        drop_every: 7,
+        truncate_every: 5,
+        ..FaultOptions::default()
+    };
+    let Some((dir, city, _nginx, proxy)) = city_behind_proxy("faults_retried", options) else {
         return;
     };
-    let proxy = FaultProxy::start(
-        ([127, 0, 0, 1], nginx.port()).into(),
-        FaultOptions {
-            drop_every: 7,
-            truncate_every: 5,
-            ..FaultOptions::default()
-        },
-    )
-    .expect("proxy");
     let local_out = dir.join("local");
     let out = output_within(
         fixed_run(city.to_str().expect("utf-8"), &local_out, &[]),
@@ -252,28 +261,19 @@ fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
     let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("csv");
     let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("csv");
     assert_eq!(remote_csv, local_csv);
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(remote_out.join("summary.json")).expect("summary"))
-            .expect("json");
-    assert_eq!(summary["load_failures"], 0, "{summary}");
+    let remote = summary(&remote_out);
+    assert_eq!(remote["load_failures"], 0, "{remote}");
 }
 
 #[test]
 fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
-    use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
-    let dir = fresh_dir("remote_dataset", "faults_failing");
-    let _city = tiny_city(&dir);
-    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
+    let options = FaultOptions {
+        fail_mips: true,
+        ..FaultOptions::default()
+    };
+    let Some((dir, _city, _nginx, proxy)) = city_behind_proxy("faults_failing", options) else {
         return;
     };
-    let proxy = FaultProxy::start(
-        ([127, 0, 0, 1], nginx.port()).into(),
-        FaultOptions {
-            fail_mips: true,
-            ..FaultOptions::default()
-        },
-    )
-    .expect("proxy");
     let out_dir = dir.join("remote");
     let url = format!("http://{}/city", proxy.addr());
     // One retry per request: the loader's own three attempts follow.
@@ -284,9 +284,8 @@ fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
     assert!(!out.status.success(), "a run whose every mip failed exited 0");
     let text = stderr(&out);
     assert!(text.contains("failed to load") && text.contains("503"), "{text}");
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).expect("summary")).expect("json");
-    let failed = summary["textures_failed"].as_u64().expect("textures_failed");
-    assert!(failed > 0, "{summary}");
-    assert_eq!(summary["mips_streamed"], 0, "{summary}");
+    let run = summary(&out_dir);
+    let failed = run["textures_failed"].as_u64().expect("textures_failed");
+    assert!(failed > 0, "{run}");
+    assert_eq!(run["mips_streamed"], 0, "{run}");
 }
