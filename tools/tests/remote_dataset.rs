@@ -11,13 +11,7 @@ use std::time::{Duration, Instant};
 
 use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
 use citystream_tools::nginx::Nginx;
-use cli_support::{citystream, fresh_dir, stderr};
-
-/// The stamp `scripts/setup.sh` leaves once everything (nginx included) is installed.
-fn setup_ran() -> bool {
-    let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v4").exists()
-}
+use cli_support::{citystream, fresh_dir, setup_ran, stderr};
 
 /// Starts nginx serving `root`; `None` (skip) only when it is missing and the setup
 /// script never ran.
@@ -49,31 +43,8 @@ fn tiny_city(dir: &Path) -> PathBuf {
     city
 }
 
-fn flythrough(dataset: &str, out: &Path, extra: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args([
-            "--clock",
-            "fixed",
-            "--frames",
-            "90",
-            "--frame-interval",
-            "30",
-            "--psnr-interval",
-            "30",
-            "--width",
-            "160",
-            "--height",
-            "96",
-            "--dataset",
-            dataset,
-        ])
-        .args(extra)
-        .arg("--out")
-        .arg(out)
-        .env("CITYSTREAM_VALIDATION", "1")
-        .output()
-        .expect("run flythrough")
-}
+/// 90 frames, every 30th written and measured against the fully resident reference.
+const FRAMES_AND_ERROR: [&str; 6] = ["--frames", "90", "--frame-interval", "30", "--psnr-interval", "30"];
 
 #[test]
 fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
@@ -83,10 +54,14 @@ fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
     let url = nginx.url("city/");
 
     let local_out = dir.join("local");
-    let out = flythrough(city.to_str().expect("utf-8"), &local_out, &[]);
+    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &FRAMES_AND_ERROR, &[])
+        .output()
+        .expect("run flythrough");
     assert!(out.status.success(), "local run: {}", stderr(&out));
     let remote_out = dir.join("remote");
-    let out = flythrough(&url, &remote_out, &[]);
+    let out = fixed_run(&url, &remote_out, &FRAMES_AND_ERROR, &[])
+        .output()
+        .expect("run flythrough");
     assert!(out.status.success(), "remote run: {}", stderr(&out));
 
     // Frame for frame the same streaming (the fixed clock waits for every load, wherever it
@@ -193,18 +168,14 @@ fn output_within(mut command: Command, limit: Duration) -> Output {
     }
 }
 
-fn fixed_run(dataset: &str, out: &Path, env: &[(&str, &str)]) -> Command {
+/// The flythrough on `dataset` with the fixed clock at 160×96 into `out`, with
+/// synchronization validation (frames overlap), `extra` options and `env` variables.
+fn fixed_run(dataset: &str, out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_flythrough"));
     command
         .args([
             "--clock",
             "fixed",
-            "--frames",
-            "60",
-            "--frame-interval",
-            "0",
-            "--psnr-interval",
-            "0",
             "--width",
             "160",
             "--height",
@@ -212,9 +183,10 @@ fn fixed_run(dataset: &str, out: &Path, env: &[(&str, &str)]) -> Command {
             "--dataset",
             dataset,
         ])
+        .args(extra)
         .arg("--out")
         .arg(out)
-        .env("CITYSTREAM_VALIDATION", "1")
+        .env("CITYSTREAM_VALIDATION", "sync")
         .envs(env.iter().copied());
     command
 }
@@ -231,6 +203,9 @@ fn summary(out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json")).expect("json")
 }
 
+/// 60 frames, no images, no error reference: what the fault tests compare.
+const SHORT_RUN: [&str; 6] = ["--frames", "60", "--frame-interval", "0", "--psnr-interval", "0"];
+
 #[test]
 fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
     let options = FaultOptions {
@@ -243,13 +218,13 @@ fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
     };
     let local_out = dir.join("local");
     let out = output_within(
-        fixed_run(city.to_str().expect("utf-8"), &local_out, &[]),
+        fixed_run(city.to_str().expect("utf-8"), &local_out, &SHORT_RUN, &[]),
         Duration::from_secs(300),
     );
     assert!(out.status.success(), "local: {}", stderr(&out));
     let remote_out = dir.join("remote");
     let url = format!("http://{}/city", proxy.addr());
-    let out = output_within(fixed_run(&url, &remote_out, &[]), Duration::from_secs(300));
+    let out = output_within(fixed_run(&url, &remote_out, &SHORT_RUN, &[]), Duration::from_secs(300));
     assert!(out.status.success(), "through the faulty proxy: {}", stderr(&out));
     assert!(
         proxy.faults() >= 3,
@@ -278,7 +253,7 @@ fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
     let url = format!("http://{}/city", proxy.addr());
     // One retry per request: the loader's own three attempts follow.
     let out = output_within(
-        fixed_run(&url, &out_dir, &[("CITYSTREAM_REMOTE_RETRIES", "1")]),
+        fixed_run(&url, &out_dir, &SHORT_RUN, &[("CITYSTREAM_REMOTE_RETRIES", "1")]),
         Duration::from_secs(300),
     );
     assert!(!out.status.success(), "a run whose every mip failed exited 0");

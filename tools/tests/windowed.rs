@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 
 use citystream_streaming::bench::path::CameraPath;
-use cli_support::{citystream, fresh_dir, stderr};
+use cli_support::{citystream, fresh_dir, setup_ran, stderr};
 
 /// A running Xvfb, killed on drop.
 struct Xvfb {
@@ -25,12 +25,6 @@ impl Drop for Xvfb {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
-}
-
-/// The stamp `scripts/setup.sh` leaves once everything (Xvfb included) is installed.
-fn setup_ran() -> bool {
-    let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v4").exists()
 }
 
 /// Starts Xvfb on a display it picks itself (`-displayfd`), so tests running

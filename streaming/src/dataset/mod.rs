@@ -93,14 +93,24 @@ impl Dataset {
     /// open then starts again from the new manifest (a few times at most).
     pub fn open(dir: impl AsRef<Path>) -> Result<Self, DatasetError> {
         let dir = dir.as_ref();
+        Self::open_resolved(|| DatasetFiles::resolve(dir), Self::open_files)
+    }
+
+    /// Resolves the manifest and opens the write it names; when the open fails because a
+    /// writer replaced the dataset meanwhile (the manifest now names another write), starts
+    /// again, three attempts at most.
+    fn open_resolved(
+        resolve: impl Fn() -> Result<DatasetFiles, DatasetError>,
+        open: impl Fn(&DatasetFiles) -> Result<Self, DatasetError>,
+    ) -> Result<Self, DatasetError> {
         let mut attempts = 0;
         loop {
-            let files = DatasetFiles::resolve(dir)?;
-            match Self::open_files(&files) {
+            let files = resolve()?;
+            match open(&files) {
                 Ok(dataset) => return Ok(dataset),
                 Err(e) => {
                     attempts += 1;
-                    let replaced = DatasetFiles::resolve(dir).is_ok_and(|now| now.write_id() != files.write_id());
+                    let replaced = resolve().is_ok_and(|now| now.write_id() != files.write_id());
                     if !replaced || attempts >= 3 {
                         return Err(e);
                     }
@@ -119,28 +129,14 @@ impl Dataset {
     /// mips are then read from the store by range. If the dataset is replaced meanwhile,
     /// the open starts again from the new manifest (a few times at most).
     pub fn open_store(store: Arc<dyn DatasetStore>, root: &Path) -> Result<Self, DatasetError> {
-        let mut attempts = 0;
-        loop {
-            let files = DatasetFiles::resolve_in(store.as_ref(), root)?;
-            match Self::open_files_in(Some(&store), &files) {
-                Ok(dataset) => return Ok(dataset),
-                Err(e) => {
-                    attempts += 1;
-                    let replaced = DatasetFiles::resolve_in(store.as_ref(), root)
-                        .is_ok_and(|now| now.write_id() != files.write_id());
-                    if !replaced || attempts >= 3 {
-                        return Err(e);
-                    }
-                }
-            }
-        }
+        Self::open_resolved(
+            || DatasetFiles::resolve_in(store.as_ref(), root),
+            |files| Self::open_files_in(Some(&store), files),
+        )
     }
 
     fn open_files_in(store: Option<&Arc<dyn DatasetStore>>, files: &DatasetFiles) -> Result<Self, DatasetError> {
-        let read_file = |path: &Path| match store {
-            Some(store) => store.read_all(path),
-            None => io_util::read_all(path),
-        };
+        let read_file = |path: &Path| store::read_file(store, path);
         let textures = TexturePack::open_files_in(store, files)?;
         let colormap_path = files.path(COLORMAP_FILE);
         let (colormap, write_id) = Colormap::decode_with_write_id(&colormap_path, &read_file(&colormap_path)?)?;

@@ -9,7 +9,7 @@ use super::colormap::decode_checksums;
 use super::error::DatasetError;
 use super::files::DatasetFiles;
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
-use super::io_util::{check_prefix, decode_table, read_all, u32_at, u64_at, TABLE_HEADER_BYTES};
+use super::io_util::{check_prefix, decode_table, u32_at, u64_at, TABLE_HEADER_BYTES};
 use super::store::DatasetStore;
 use super::{CHECKSUM_FILE, META_FILE, PACK_FILE};
 
@@ -96,10 +96,7 @@ impl TexturePack {
     /// [`TexturePack::open_files`] of a dataset in `store` (`None`: the local directory):
     /// the tables are read whole, the pack's header and length by range.
     pub fn open_files_in(store: Option<&Arc<dyn DatasetStore>>, files: &DatasetFiles) -> Result<Self, DatasetError> {
-        let read_file = |path: &Path| match store {
-            Some(store) => store.read_all(path),
-            None => read_all(path),
-        };
+        let read_file = |path: &Path| super::store::read_file(store, path);
         let meta_path = files.path(META_FILE);
         let meta = read_file(&meta_path)?;
         let table = decode_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES)?;

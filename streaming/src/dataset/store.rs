@@ -9,8 +9,17 @@
 //! (`https://host/city/write-…/scene.bin`), so every error names the URL at fault.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use super::error::DatasetError;
+
+/// A small file whole: from `store`, or from the local directory when there is none.
+pub(crate) fn read_file(store: Option<&Arc<dyn DatasetStore>>, path: &Path) -> Result<Vec<u8>, DatasetError> {
+    match store {
+        Some(store) => store.read_all(path),
+        None => super::io_util::read_all(path),
+    }
+}
 
 /// Reads the files of a dataset (see the module docs).
 ///

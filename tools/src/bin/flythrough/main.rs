@@ -405,20 +405,7 @@ fn main() -> Result<()> {
     if args.window {
         return window::run(&args);
     }
-    let device = Arc::new(
-        Device::new(&DeviceOptions {
-            instance: InstanceOptions {
-                validation: args.validation.unwrap_or_else(default_validation),
-                synchronization: default_synchronization_validation(),
-                app_name: "citystream flythrough".into(),
-                extensions: Vec::new(),
-            },
-            device_name: args.device.clone(),
-            presentation: false,
-        })
-        .context("creating the Vulkan device")?,
-    );
-    eprintln!("device: {}", describe(&device));
+    let device = flythrough_device(&args, "citystream flythrough", None)?;
     let frames_dir = args.out.join("frames");
     std::fs::create_dir_all(&frames_dir).with_context(|| format!("creating {}", frames_dir.display()))?;
     if args.placeholder {
@@ -430,6 +417,27 @@ fn main() -> Result<()> {
     } else {
         stream_city(&args, &device, &dir)
     }
+}
+
+/// The device the options ask for (`--device`, `--validation`, `CITYSTREAM_VALIDATION`),
+/// named on standard error; with `window` (its surface extensions), able to present.
+fn flythrough_device(args: &Args, app_name: &str, window: Option<Vec<std::ffi::CString>>) -> Result<Arc<Device>> {
+    let presentation = window.is_some();
+    let device = Arc::new(
+        Device::new(&DeviceOptions {
+            instance: InstanceOptions {
+                validation: args.validation.unwrap_or_else(default_validation),
+                synchronization: default_synchronization_validation(),
+                app_name: app_name.into(),
+                extensions: window.unwrap_or_default(),
+            },
+            device_name: args.device.clone(),
+            presentation,
+        })
+        .context("creating the Vulkan device")?,
+    );
+    eprintln!("device: {}", describe(&device));
+    Ok(device)
 }
 
 /// The camera path the run follows: the standard path of the dataset or a file.

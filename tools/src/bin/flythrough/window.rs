@@ -23,21 +23,19 @@ use winit::window::{Window, WindowId};
 
 use citystream_engine::city::CityMesh;
 use citystream_engine::commands::{CommandContext, SemaphoreSignal, SemaphoreWait};
-use citystream_engine::device::describe;
-use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::target::write_png;
 use citystream_engine::timing::CpuFrameClock;
-use citystream_engine::{Device, DeviceOptions};
+use citystream_engine::Device;
 use citystream_streaming::bench::path::{CameraPath, CameraPose, Keyframe};
 use citystream_streaming::bind_latency::BindLatencyModel;
 use citystream_streaming::dataset::Dataset;
 use citystream_streaming::rng::SplitMix64;
 
 use super::{
-    cache_layer_size, camera_path, city_targets, dataset_dir, frame_interval, frame_latency, frames_dir_path,
-    open_city, pending_textures, pose_camera, streamed_city_gpu, write_csv_row, Args, CityGpu, CityTargets, Clock,
-    CsvRow, CSV_HEADER, FIXED_STEP_MS,
+    cache_layer_size, camera_path, city_targets, dataset_dir, flythrough_device, frame_interval, frame_latency,
+    frames_dir_path, open_city, pending_textures, pose_camera, streamed_city_gpu, write_csv_row, Args, CityGpu,
+    CityTargets, Clock, CsvRow, CSV_HEADER, FIXED_STEP_MS,
 };
 
 /// What a key (or a scripted event) does.
@@ -412,20 +410,7 @@ pub(super) fn run(args: &Args) -> Result<()> {
     })?;
     let dir = dataset_dir(args)?;
     let extensions = present::instance_extensions(&event_loop).context("the window system's Vulkan extensions")?;
-    let device = Arc::new(
-        Device::new(&DeviceOptions {
-            instance: InstanceOptions {
-                validation: args.validation.unwrap_or_else(default_validation),
-                synchronization: default_synchronization_validation(),
-                app_name: "citystream flythrough window".into(),
-                extensions,
-            },
-            device_name: args.device.clone(),
-            presentation: true,
-        })
-        .context("creating the Vulkan device")?,
-    );
-    eprintln!("device: {}", describe(&device));
+    let device = flythrough_device(args, "citystream flythrough window", Some(extensions))?;
     eprintln!("{HELP}");
     let mut app = App {
         args,
