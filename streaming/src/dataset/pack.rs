@@ -366,14 +366,6 @@ impl TexturePack {
         }
     }
 
-    /// Whether mips come from a remote store (reads are slow; overlap many).
-    pub fn is_remote(&self) -> bool {
-        match &self.reader {
-            PackReader::File(_) => false,
-            PackReader::Store(store) => store.is_remote(),
-        }
-    }
-
     fn read_at(&self, location: MipLocation, dst: &mut [u8]) -> Result<(), DatasetError> {
         self.read_range(location.offset, dst)
     }

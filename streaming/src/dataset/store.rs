@@ -38,8 +38,4 @@ pub trait DatasetStore: Send + Sync + std::fmt::Debug {
     /// [`DatasetStore::read_at`], highest priority first: a store with latency starts
     /// fetching them. The default does nothing.
     fn prefetch(&self, _path: &Path, _ranges: &[(u64, u64)]) {}
-    /// Whether reads are slow enough that readers should overlap many (a network store).
-    fn is_remote(&self) -> bool {
-        true
-    }
 }
