@@ -10,11 +10,17 @@ fail() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
 # xvfb and the X11 client libraries (loaded at run time by the window code):
 # `flythrough --window` and its tests, which run under a virtual X server.
 # nginx-light: the remote-dataset tests serve a city over HTTP from loopback.
+# python3-venv: the S3-compatible server of those tests (moto, from PyPI) gets its own venv.
 PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools g++
-  xvfb libx11-6 libx11-xcb1 libxcursor1 libxrandr2 libxi6 libxkbcommon-x11-0 nginx-light)
+  xvfb libx11-6 libx11-xcb1 libxcursor1 libxrandr2 libxi6 libxkbcommon-x11-0 nginx-light
+  python3 python3-venv)
 MIN_MESA_MAJOR=24
 STAMP_DIR="${CITYSTREAM_SETUP_STAMP_DIR:-/var/lib/citystream}"
-STAMP="$STAMP_DIR/setup-v4"
+STAMP="$STAMP_DIR/setup-v5"
+# moto's S3 server mode, pinned, in a virtual environment of its own (no system Python
+# packages touched). The tests find it here (CITYSTREAM_S3_EMULATOR_DIR overrides).
+S3_EMULATOR_DIR="${CITYSTREAM_S3_EMULATOR_DIR:-/opt/citystream/s3-emulator}"
+S3_EMULATOR_PACKAGE="moto[server]==5.2.5"
 
 mesa_major() {
   dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null | sed -E 's/^([0-9]+:)?([0-9]+).*/\2/' || true
@@ -28,7 +34,12 @@ all_installed() {
   local m
   m="$(mesa_major)"
   [[ -n "$m" && "$m" -ge $MIN_MESA_MAJOR ]] || return 1
-  command -v glslangValidator >/dev/null && command -v spirv-val >/dev/null && command -v Xvfb >/dev/null && [[ -x /usr/sbin/nginx ]]
+  command -v glslangValidator >/dev/null && command -v spirv-val >/dev/null && command -v Xvfb >/dev/null && [[ -x /usr/sbin/nginx ]] \
+    && s3_emulator_installed
+}
+
+s3_emulator_installed() {
+  [[ -x "$S3_EMULATOR_DIR/bin/moto_server" ]] && "$S3_EMULATOR_DIR/bin/python" -c 'import moto, boto3' 2>/dev/null
 }
 
 if [[ -f "$STAMP" ]] && all_installed; then
@@ -85,7 +96,14 @@ $SUDO apt-get install -y -q "${PACKAGES[@]}" || fail "could not install ${PACKAG
 m="$(mesa_major)"
 [[ -n "$m" && "$m" -ge $MIN_MESA_MAJOR ]] \
   || fail "mesa-vulkan-drivers is version ${m:-missing}; lavapipe needs Mesa >= $MIN_MESA_MAJOR for sparse residency"
-all_installed || fail "some packages are still missing after install: ${PACKAGES[*]}"
+if ! s3_emulator_installed; then
+  say "installing the S3 emulator ($S3_EMULATOR_PACKAGE) into $S3_EMULATOR_DIR"
+  $SUDO rm -rf "$S3_EMULATOR_DIR"
+  $SUDO /usr/bin/python3 -m venv "$S3_EMULATOR_DIR" || fail "could not create a Python venv in $S3_EMULATOR_DIR"
+  $SUDO "$S3_EMULATOR_DIR/bin/pip" install -q --disable-pip-version-check "$S3_EMULATOR_PACKAGE" \
+    || fail "could not install $S3_EMULATOR_PACKAGE from PyPI into $S3_EMULATOR_DIR"
+fi
+all_installed || fail "some packages are still missing after install: ${PACKAGES[*]} or the S3 emulator"
 
 $SUDO mkdir -p "$STAMP_DIR" && $SUDO touch "$STAMP"
 say "done: mesa-vulkan-drivers $(dpkg-query -W -f='${Version}' mesa-vulkan-drivers), $(glslangValidator --version | head -1)"

@@ -19,6 +19,10 @@
 //! or took longer than a request may). What a cycle hinted and did not read is kept until
 //! the next cycle's hint, which drops what it does not ask for again.
 //!
+//! An optional on-disk mip cache ([`RemoteOptions::mip_cache`], [`MipCache`]) keeps the
+//! mips read, so a second flight over the same area reads them locally; hints skip what it
+//! holds.
+//!
 //! S3 settings come from the usual environment variables (`AWS_ACCESS_KEY_ID`,
 //! `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`, `AWS_REGION` / `AWS_DEFAULT_REGION`,
 //! `AWS_ENDPOINT_URL` / `AWS_ENDPOINT` for S3-compatible servers) or [`RemoteOptions`];
@@ -34,7 +38,7 @@ use object_store::http::HttpBuilder;
 use object_store::path::Path as ObjectPath;
 use object_store::{BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, RetryConfig};
 
-use crate::dataset::{Dataset, DatasetError, DatasetStore};
+use crate::dataset::{Dataset, DatasetError, DatasetStore, MipCache};
 
 /// How a remote dataset is reached.
 #[derive(Clone, Debug)]
@@ -56,6 +60,25 @@ pub struct RemoteOptions {
     pub s3_endpoint: Option<String>,
     /// S3 region (default: `AWS_REGION`, `AWS_DEFAULT_REGION`, then `us-east-1`).
     pub s3_region: Option<String>,
+    /// An on-disk mip cache to read through (none by default).
+    pub mip_cache: Option<MipCacheOptions>,
+}
+
+/// Where the on-disk mip cache lies and how much it holds.
+#[derive(Clone, Debug)]
+pub struct MipCacheOptions {
+    /// Its directory (created if missing; processes may share it).
+    pub dir: PathBuf,
+    /// Bytes it holds at most; `None`: a quarter of the space free on its filesystem when
+    /// it is opened ([`default_mip_cache_bytes`]).
+    pub capacity_bytes: Option<u64>,
+}
+
+/// The mip cache's default capacity in `dir` (which must exist): a quarter of the space
+/// free there, so the cache never crowds out the rest of the disk.
+pub fn default_mip_cache_bytes(dir: &Path) -> Result<u64, DatasetError> {
+    let stat = rustix::fs::statvfs(dir).map_err(|e| DatasetError::io(dir, e.into()))?;
+    Ok(stat.f_bavail.saturating_mul(stat.f_frsize) / 4)
 }
 
 impl Default for RemoteOptions {
@@ -69,6 +92,7 @@ impl Default for RemoteOptions {
             prefetch_limit_bytes: 256 << 20,
             s3_endpoint: None,
             s3_region: None,
+            mip_cache: None,
         }
     }
 }
@@ -76,8 +100,9 @@ impl Default for RemoteOptions {
 impl RemoteOptions {
     /// The defaults, with `CITYSTREAM_REMOTE_RETRIES` (retries per request),
     /// `CITYSTREAM_REMOTE_IN_FLIGHT` (prefetch requests in flight) and
-    /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds) applied where set; a value
-    /// that does not parse is an error naming the variable.
+    /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds), `CITYSTREAM_MIP_CACHE`
+    /// (the mip cache's directory) and `CITYSTREAM_MIP_CACHE_MB` (its capacity) applied
+    /// where set; a value that does not parse is an error naming the variable.
     pub fn from_env() -> Result<Self, DatasetError> {
         let mut options = Self::default();
         if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_RETRIES") {
@@ -108,6 +133,28 @@ impl RemoteOptions {
                     ))
                 })?;
             options.timeout = Duration::from_secs_f64(seconds);
+        }
+        if let Some(dir) = std::env::var_os("CITYSTREAM_MIP_CACHE").filter(|d| !d.is_empty()) {
+            options.mip_cache = Some(MipCacheOptions {
+                dir: PathBuf::from(dir),
+                capacity_bytes: None,
+            });
+        }
+        if let Ok(text) = std::env::var("CITYSTREAM_MIP_CACHE_MB") {
+            let megabytes: f64 = text
+                .trim()
+                .parse()
+                .ok()
+                .filter(|mb: &f64| mb.is_finite() && *mb * f64::from(1 << 20) >= 1.0 && *mb <= f64::from(1 << 30))
+                .ok_or_else(|| {
+                    DatasetError::InvalidInput(format!(
+                        "CITYSTREAM_MIP_CACHE_MB={text}: not a number of MB from 1 byte to 2^30 MB"
+                    ))
+                })?;
+            let cache = options.mip_cache.as_mut().ok_or_else(|| {
+                DatasetError::InvalidInput("CITYSTREAM_MIP_CACHE_MB is set but CITYSTREAM_MIP_CACHE is not".into())
+            })?;
+            cache.capacity_bytes = Some((megabytes * f64::from(1 << 20)) as u64);
         }
         Ok(options)
     }
@@ -143,6 +190,7 @@ pub struct RemoteStore {
     /// How long `read_at` waits for a prefetched range before reading it directly.
     prefetch_wait: Duration,
     prefetch_limit_bytes: u64,
+    mip_cache: Option<Arc<MipCache>>,
 }
 
 /// Ranges fetched ahead of their reads, by (file, offset, length).
@@ -245,6 +293,17 @@ impl RemoteStore {
             }
             other => return Err(bad(format!("scheme {other}:// is not http, https or s3"))),
         };
+        let mip_cache = match &options.mip_cache {
+            None => None,
+            Some(cache) => {
+                std::fs::create_dir_all(&cache.dir).map_err(|e| DatasetError::io(&cache.dir, e))?;
+                let capacity = match cache.capacity_bytes {
+                    Some(bytes) => bytes,
+                    None => default_mip_cache_bytes(&cache.dir)?,
+                };
+                Some(Arc::new(MipCache::open(&cache.dir, capacity)?))
+            }
+        };
         // Two workers serve every request in flight; callers block on their own threads.
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
@@ -261,6 +320,7 @@ impl RemoteStore {
             in_flight: Arc::new(tokio::sync::Semaphore::new(options.requests_in_flight.max(1))),
             prefetch_wait: options.timeout.saturating_mul(options.retries as u32 + 1),
             prefetch_limit_bytes: options.prefetch_limit_bytes,
+            mip_cache,
         })
     }
 
@@ -398,6 +458,10 @@ impl DatasetStore for RemoteStore {
                 });
             }
         });
+    }
+
+    fn mip_cache(&self) -> Option<&Arc<MipCache>> {
+        self.mip_cache.as_ref()
     }
 
     fn read_at(&self, path: &Path, offset: u64, dst: &mut [u8]) -> Result<(), DatasetError> {

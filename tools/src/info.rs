@@ -17,6 +17,8 @@ pub struct InfoArgs {
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub remote: crate::RemoteArgs,
 }
 
 /// Textures of one extent.
@@ -53,7 +55,7 @@ struct Info {
 /// Runs `citystream info`.
 pub fn run(args: &InfoArgs) -> Result<()> {
     let start = Instant::now();
-    let dataset = crate::open_dataset(&args.dir)?;
+    let dataset = crate::open_dataset_with(&args.dir, &args.remote.options()?)?;
     let open_seconds = start.elapsed().as_secs_f64();
     let info = collect(args, &dataset, open_seconds)?;
     let mut text = Vec::new();

@@ -16,20 +16,109 @@ pub mod nginx;
 pub mod path;
 pub mod remote_bench;
 pub mod report;
+pub mod s3_emulator;
 pub mod simulate;
 pub mod upgrade;
 pub mod verify;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::Context;
 use citystream_streaming::dataset::Dataset;
-use citystream_streaming::remote::{open_dataset as open_location, RemoteOptions};
+use citystream_streaming::remote::{open_dataset as open_location, MipCacheOptions, RemoteOptions};
 
 /// Opens the dataset at `location`: a directory, or a URL (`http(s)://host/path/`,
-/// `s3://bucket/prefix/`; see `citystream_streaming::remote`).
+/// `s3://bucket/prefix/`; see `citystream_streaming::remote`), with the remote settings of
+/// the environment ([`RemoteOptions::from_env`]).
 pub fn open_dataset(location: &Path) -> anyhow::Result<Dataset> {
-    let options = RemoteOptions::from_env()?;
-    open_location(&location.to_string_lossy(), &options)
+    open_dataset_with(location, &RemoteOptions::from_env()?)
+}
+
+/// [`open_dataset`] with explicit remote settings (ignored for a directory).
+pub fn open_dataset_with(location: &Path, options: &RemoteOptions) -> anyhow::Result<Dataset> {
+    open_location(&location.to_string_lossy(), options)
         .with_context(|| format!("opening dataset {}", location.display()))
+}
+
+/// How a remote dataset is read: command-line settings over the environment's.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct RemoteArgs {
+    /// Remote datasets: range requests in flight at most while prefetching
+    /// (default 16, or CITYSTREAM_REMOTE_IN_FLIGHT).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub remote_in_flight: Option<u32>,
+    /// Remote datasets: retries of a failed request, with exponential backoff
+    /// (default 5, or CITYSTREAM_REMOTE_RETRIES).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=100))]
+    pub remote_retries: Option<u32>,
+    /// Remote datasets: seconds before a request is abandoned and retried
+    /// (default 30, or CITYSTREAM_REMOTE_TIMEOUT_S).
+    #[arg(long, value_parser = parse_timeout_s)]
+    pub remote_timeout_s: Option<f64>,
+}
+
+/// The on-disk mip cache of a remote dataset, from the command line or the environment.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct MipCacheArgs {
+    /// Remote datasets: keep the mips read in this directory (created if
+    /// missing; processes may share it), so a second run over the same area
+    /// reads them locally; each checked against its CRC-32 (default:
+    /// CITYSTREAM_MIP_CACHE, else none).
+    #[arg(long)]
+    pub mip_cache: Option<PathBuf>,
+    /// With --mip-cache: MB it holds at most (fractions allowed), least
+    /// recently used mips going first (default: CITYSTREAM_MIP_CACHE_MB, else
+    /// a quarter of the space free on its filesystem).
+    #[arg(long, value_parser = parse_cache_mb)]
+    pub mip_cache_mb: Option<f64>,
+}
+
+fn parse_cache_mb(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(mb) if mb.is_finite() && mb * f64::from(1 << 20) >= 1.0 && mb <= f64::from(1 << 30) => Ok(mb),
+        _ => Err(format!("`{text}` is not a number of MB from 1 byte to 2^30 MB")),
+    }
+}
+
+fn parse_timeout_s(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && s > 0.0 && s <= 3600.0 => Ok(s),
+        _ => Err(format!("`{text}` is not a number of seconds in (0, 3600]")),
+    }
+}
+
+impl RemoteArgs {
+    /// The environment's settings ([`RemoteOptions::from_env`]) with these applied.
+    pub fn options(&self) -> anyhow::Result<RemoteOptions> {
+        let mut options = RemoteOptions::from_env()?;
+        if let Some(n) = self.remote_in_flight {
+            options.requests_in_flight = n as usize;
+        }
+        if let Some(n) = self.remote_retries {
+            options.retries = n as usize;
+        }
+        if let Some(s) = self.remote_timeout_s {
+            options.timeout = Duration::from_secs_f64(s);
+        }
+        Ok(options)
+    }
+
+    /// [`RemoteArgs::options`] with the mip cache `cache` names (over the environment's).
+    pub fn options_with_cache(&self, cache: &MipCacheArgs) -> anyhow::Result<RemoteOptions> {
+        let mut options = self.options()?;
+        if let Some(dir) = &cache.mip_cache {
+            options.mip_cache = Some(MipCacheOptions {
+                dir: dir.clone(),
+                capacity_bytes: None,
+            });
+        }
+        if let Some(mb) = cache.mip_cache_mb {
+            let Some(cache) = options.mip_cache.as_mut() else {
+                anyhow::bail!("--mip-cache-mb needs --mip-cache (or CITYSTREAM_MIP_CACHE)");
+            };
+            cache.capacity_bytes = Some((mb * f64::from(1 << 20)) as u64);
+        }
+        Ok(options)
+    }
 }

@@ -10,14 +10,20 @@ use citystream_streaming::dataset::verify_dataset;
 #[derive(Debug, clap::Args)]
 pub struct VerifyArgs {
     /// Dataset directory, or its URL (`http(s)://host/path/`, `s3://bucket/prefix/`).
+    /// A remote dataset's mips are read from the server, never from a mip cache.
     pub dir: PathBuf,
+    #[command(flatten)]
+    pub remote: crate::RemoteArgs,
 }
 
 /// Runs `citystream verify`; fails (non-zero exit) with the file and offset of the first problem.
 pub fn run(args: &VerifyArgs) -> Result<()> {
     let start = Instant::now();
-    let dataset =
-        crate::open_dataset(&args.dir).with_context(|| format!("verify failed for {}", args.dir.display()))?;
+    let mut options = args.remote.options()?;
+    // Verifying checks what the server holds.
+    options.mip_cache = None;
+    let dataset = crate::open_dataset_with(&args.dir, &options)
+        .with_context(|| format!("verify failed for {}", args.dir.display()))?;
     let report = verify_dataset(&dataset).with_context(|| format!("verify failed for {}", args.dir.display()))?;
     crate::gen::print_stdout(&format!(
         "ok: {}: {} meshes, {} textures, {} mips, {:.1} MB of mip data checked in {:.2} s\n",

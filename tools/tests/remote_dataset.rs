@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 
 use citystream_tools::fault_proxy::{FaultOptions, FaultProxy};
 use citystream_tools::nginx::Nginx;
+use citystream_tools::s3_emulator::S3Emulator;
 use cli_support::{citystream, fresh_dir, setup_ran, stderr};
 
 /// Starts nginx serving `root`; `None` (skip) only when it is missing and the setup
@@ -263,4 +264,266 @@ fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
     let failed = run["textures_failed"].as_u64().expect("textures_failed");
     assert!(failed > 0, "{run}");
     assert_eq!(run["mips_streamed"], 0, "{run}");
+}
+
+/// Starts the S3 emulator; `None` (skip) only when it is missing and the setup script never
+/// ran.
+fn start_s3(work: &Path) -> Option<S3Emulator> {
+    if citystream_tools::s3_emulator::binary().is_none() {
+        assert!(
+            !setup_ran(),
+            "the S3 emulator is missing although the setup script ran: it should have installed it"
+        );
+        eprintln!(
+            "skipping: the S3 emulator is not installed and the setup script has not run; `make setup` installs it"
+        );
+        return None;
+    }
+    Some(S3Emulator::start(work).expect("start the S3 emulator"))
+}
+
+/// A tiny city uploaded to `s3://citystream/cities/tiny/` of a fresh emulator.
+fn city_in_s3(name: &str) -> Option<(PathBuf, PathBuf, S3Emulator)> {
+    let dir = fresh_dir("remote_dataset", name);
+    let city = tiny_city(&dir);
+    let s3 = start_s3(&dir)?;
+    let files = s3.upload_dir("citystream", "cities/tiny", &city).expect("upload");
+    assert!(files >= 6, "{files} files uploaded");
+    Some((dir, city, s3))
+}
+
+const S3_CITY: &str = "s3://citystream/cities/tiny/";
+
+#[test]
+fn a_city_streamed_from_s3_renders_what_it_renders_from_disk() {
+    let Some((dir, city, s3)) = city_in_s3("s3_frames") else {
+        return;
+    };
+    let env: Vec<(&str, String)> = s3.client_env();
+    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+
+    let local_out = dir.join("local");
+    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &FRAMES_AND_ERROR, &[])
+        .output()
+        .expect("run flythrough");
+    assert!(out.status.success(), "local run: {}", stderr(&out));
+    let remote_out = dir.join("s3");
+    let out = output_within(
+        fixed_run(S3_CITY, &remote_out, &FRAMES_AND_ERROR, &env),
+        Duration::from_secs(300),
+    );
+    assert!(out.status.success(), "S3 run: {}", stderr(&out));
+    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("local frames.csv");
+    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("S3 frames.csv");
+    assert_eq!(
+        remote_csv, local_csv,
+        "frames.csv differs between the S3 and the local run"
+    );
+    for frame in [0, 30, 60] {
+        let name = format!("frame_{frame:05}.png");
+        let local = image::open(local_out.join("frames").join(&name)).expect("local frame");
+        let remote = image::open(remote_out.join("frames").join(&name)).expect("S3 frame");
+        assert!(local.to_rgba8() == remote.to_rgba8(), "{name} differs");
+    }
+    let run = summary(&remote_out);
+    assert!(run["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{run}");
+    assert_eq!(run["load_failures"], 0);
+
+    // info and verify read the bucket; a missing prefix is a clear error naming it.
+    let with_env = |args: &[&str]| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_citystream"));
+        command.args(args).envs(env.iter().copied());
+        command.output().expect("run citystream")
+    };
+    let out = with_env(&["verify", S3_CITY]);
+    assert!(out.status.success(), "verify: {}", stderr(&out));
+    assert!(String::from_utf8_lossy(&out.stdout).starts_with("ok: s3://citystream/cities/tiny"));
+    let out = with_env(&["info", S3_CITY, "--json"]);
+    assert!(out.status.success(), "info: {}", stderr(&out));
+    let info: serde_json::Value = serde_json::from_slice(&out.stdout).expect("info JSON");
+    assert_eq!(info["textures"], summary_of_local_info(&city)["textures"]);
+    let out = with_env(&["info", "s3://citystream/nowhere/"]);
+    assert!(!out.status.success());
+    let text = stderr(&out);
+    assert!(
+        text.contains("s3://citystream/nowhere") && text.contains("missing"),
+        "{text}"
+    );
+    assert!(!text.contains("panicked"), "{text}");
+}
+
+fn summary_of_local_info(city: &Path) -> serde_json::Value {
+    let out = citystream(&["info", city.to_str().expect("utf-8"), "--json"]);
+    assert!(out.status.success(), "info: {}", stderr(&out));
+    serde_json::from_slice(&out.stdout).expect("info JSON")
+}
+
+#[test]
+fn s3_requests_dropped_and_cut_short_are_retried_and_change_nothing() {
+    let Some((dir, city, s3)) = city_in_s3("s3_faults") else {
+        return;
+    };
+    let options = FaultOptions {
+        drop_every: 7,
+        truncate_every: 5,
+        ..FaultOptions::default()
+    };
+    let proxy = FaultProxy::start(([127, 0, 0, 1], s3.port()).into(), options).expect("proxy");
+    let mut env: Vec<(&str, String)> = s3.client_env();
+    env[0].1 = format!("http://{}", proxy.addr());
+    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+
+    let local_out = dir.join("local");
+    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &SHORT_RUN, &[])
+        .output()
+        .expect("run flythrough");
+    assert!(out.status.success(), "local: {}", stderr(&out));
+    let remote_out = dir.join("s3");
+    let out = output_within(
+        fixed_run(S3_CITY, &remote_out, &SHORT_RUN, &env),
+        Duration::from_secs(300),
+    );
+    assert!(out.status.success(), "S3 through the faulty proxy: {}", stderr(&out));
+    assert!(
+        proxy.faults() >= 3,
+        "{} faults injected in {} requests",
+        proxy.faults(),
+        proxy.requests()
+    );
+    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("csv");
+    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("csv");
+    assert_eq!(remote_csv, local_csv);
+    assert_eq!(summary(&remote_out)["load_failures"], 0);
+}
+
+/// Bytes in the files under `dir`.
+fn tree_bytes(dir: &Path) -> u64 {
+    std::fs::read_dir(dir).map_or(0, |entries| {
+        entries
+            .map(|e| e.expect("entry"))
+            .map(|e| {
+                let meta = e.metadata().expect("metadata");
+                if meta.is_dir() {
+                    tree_bytes(&e.path())
+                } else {
+                    meta.len()
+                }
+            })
+            .sum()
+    })
+}
+
+/// Bytes in the files under `dir` with one of `names`.
+fn tree_bytes_named(dir: &Path, names: &[&str]) -> u64 {
+    std::fs::read_dir(dir).map_or(0, |entries| {
+        entries
+            .map(|e| e.expect("entry"))
+            .map(|e| {
+                let meta = e.metadata().expect("metadata");
+                if meta.is_dir() {
+                    tree_bytes_named(&e.path(), names)
+                } else if names.iter().any(|n| e.file_name() == *n) {
+                    meta.len()
+                } else {
+                    0
+                }
+            })
+            .sum()
+    })
+}
+
+#[test]
+fn a_second_flight_reads_its_mips_from_the_mip_cache() {
+    let Some((dir, city, nginx)) = served_city("mip_cache") else {
+        return;
+    };
+    let cache = dir.join("mip-cache");
+    let cache_arg = cache.to_str().expect("utf-8");
+    let url = nginx.url("city/");
+    let with_cache: Vec<&str> = SHORT_RUN.iter().copied().chain(["--mip-cache", cache_arg]).collect();
+
+    // First flight: every mip comes from the server and goes into the cache.
+    let first_out = dir.join("first");
+    let out = output_within(fixed_run(&url, &first_out, &with_cache, &[]), Duration::from_secs(300));
+    assert!(out.status.success(), "first flight: {}", stderr(&out));
+    let first = summary(&first_out);
+    let mips = first["mips_streamed"].as_u64().expect("mips_streamed");
+    assert!(mips > 20, "{first}");
+    assert_eq!(first["mip_cache"]["hits"], 0, "{first}");
+    assert!(first["mip_cache"]["written"].as_u64() >= Some(mips), "{first}");
+
+    // Second flight through a server that refuses every mip: it renders the same, all from
+    // the cache.
+    let refusing = FaultProxy::start(
+        ([127, 0, 0, 1], nginx.port()).into(),
+        FaultOptions {
+            fail_mips: true,
+            ..FaultOptions::default()
+        },
+    )
+    .expect("proxy");
+    let second_out = dir.join("second");
+    let refusing_url = format!("http://{}/city/", refusing.addr());
+    let out = output_within(
+        fixed_run(
+            &refusing_url,
+            &second_out,
+            &SHORT_RUN,
+            &[("CITYSTREAM_MIP_CACHE", cache_arg)],
+        ),
+        Duration::from_secs(300),
+    );
+    assert!(out.status.success(), "second flight from the cache: {}", stderr(&out));
+    let second = summary(&second_out);
+    assert_eq!(second["mip_cache"]["misses"], 0, "{second}");
+    assert!(second["mip_cache"]["hits"].as_u64() >= Some(mips), "{second}");
+    assert_eq!(second["load_failures"], 0);
+    let csv = |out: &Path| std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
+    assert_eq!(csv(&second_out), csv(&first_out));
+    let local_out = dir.join("local");
+    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &SHORT_RUN, &[])
+        .output()
+        .expect("run flythrough");
+    assert!(out.status.success(), "local: {}", stderr(&out));
+    assert_eq!(csv(&first_out), csv(&local_out));
+
+    // A damaged entry is found by its CRC, dropped and read from the server again.
+    let entry = std::fs::read_dir(cache.join("v1"))
+        .expect("cache")
+        .map(|e| e.expect("entry").path())
+        .find(|p| p.is_dir())
+        .and_then(|ns| {
+            std::fs::read_dir(ns)
+                .expect("namespace")
+                .map(|e| e.expect("entry").path())
+                .find(|p| p.file_name().is_some_and(|n| n != "SOURCE"))
+        })
+        .expect("a cached mip");
+    let mut bytes = std::fs::read(&entry).expect("entry");
+    bytes[0] ^= 0xff;
+    std::fs::write(&entry, bytes).expect("damage");
+    let third_out = dir.join("third");
+    let out = output_within(fixed_run(&url, &third_out, &with_cache, &[]), Duration::from_secs(300));
+    assert!(out.status.success(), "third flight: {}", stderr(&out));
+    let third = summary(&third_out);
+    assert!(third["mip_cache"]["damaged"].as_u64() >= Some(1), "{third}");
+    assert_eq!(csv(&third_out), csv(&first_out));
+
+    // A cache smaller than the mips read (25 KB here) stays within its capacity.
+    let small = dir.join("small-cache");
+    let small_out = dir.join("small");
+    let small_args: Vec<&str> = SHORT_RUN
+        .iter()
+        .copied()
+        .chain(["--mip-cache", small.to_str().expect("utf-8"), "--mip-cache-mb", "0.005"])
+        .collect();
+    let out = output_within(fixed_run(&url, &small_out, &small_args, &[]), Duration::from_secs(300));
+    assert!(out.status.success(), "small cache: {}", stderr(&out));
+    let run = summary(&small_out);
+    assert!(run["mip_cache"]["evicted"].as_u64() > Some(0), "{run}");
+    // Its SOURCE note and lock file aside.
+    let held = tree_bytes(&small.join("v1")) - tree_bytes_named(&small.join("v1"), &["SOURCE", "lock"]);
+    assert!(held <= 5242, "a 0.005 MB cache holds {held} bytes");
+    assert!(held > 0);
+    assert_eq!(csv(&small_out), csv(&first_out));
 }

@@ -10,6 +10,7 @@ use super::error::DatasetError;
 use super::files::DatasetFiles;
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{check_prefix, decode_table, u32_at, u64_at, TABLE_HEADER_BYTES};
+use super::mip_cache::{CacheNamespace, MipCache};
 use super::store::DatasetStore;
 use super::{CHECKSUM_FILE, META_FILE, PACK_FILE};
 
@@ -51,11 +52,15 @@ pub struct TexturePack {
     first_checksum: Vec<u32>,
 }
 
-/// How mips are read: positioned reads of the local file, or ranged reads of a store.
+/// How mips are read: positioned reads of the local file, or ranged reads of a store
+/// (through its on-disk mip cache where it has one).
 #[derive(Debug)]
 enum PackReader {
     File(File),
-    Store(Arc<dyn DatasetStore>),
+    Store {
+        store: Arc<dyn DatasetStore>,
+        cache: Option<(Arc<MipCache>, CacheNamespace)>,
+    },
 }
 
 /// Opens `textures.pack` (a regular file only) and reads its header: the file, its length
@@ -129,7 +134,20 @@ impl TexturePack {
                 }
                 let mut header = [0u8; PACK_HEADER_BYTES as usize];
                 store.read_at(&pack_path, 0, &mut header)?;
-                (PackReader::Store(Arc::clone(store)), len, header)
+                // The pack's length and header (its write id, random per write, and the
+                // header's CRC) name its entries, not its URL: a mirror of the same write
+                // shares them.
+                let cache = store.mip_cache().map(|cache| {
+                    let mut identity = len.to_le_bytes().to_vec();
+                    identity.extend_from_slice(&header);
+                    let namespace = cache.namespace(&identity, &pack_path.to_string_lossy());
+                    (Arc::clone(cache), namespace)
+                });
+                let reader = PackReader::Store {
+                    store: Arc::clone(store),
+                    cache,
+                };
+                (reader, len, header)
             }
         };
         let write_id = check_prefix(&pack_path, &header, PACK_MAGIC, header.len())?;
@@ -278,8 +296,7 @@ impl TexturePack {
         let len =
             usize::try_from(location.len).map_err(|_| DatasetError::InvalidInput("mip larger than memory".into()))?;
         buf.resize(len, 0);
-        self.read_at(location, buf)?;
-        self.check_mip(texture, level, location, buf)?;
+        self.load_mip(texture, level, location, buf)?;
         Ok(location)
     }
 
@@ -329,9 +346,41 @@ impl TexturePack {
                 dst.len()
             )));
         }
+        self.load_mip(texture, level, location, dst)?;
+        Ok(location)
+    }
+
+    /// Reads a mip `mip_location` accepted into `dst` and checks it: from the mip cache
+    /// where it holds the mip, otherwise from the pack (then caching it).
+    fn load_mip(&self, texture: u32, level: u32, location: MipLocation, dst: &mut [u8]) -> Result<(), DatasetError> {
+        let cache = match &self.reader {
+            PackReader::Store { cache: Some(cache), .. } => Some(cache),
+            _ => None,
+        };
+        let crc = self.stored_checksum(texture, level);
+        if let Some((cache, namespace)) = cache {
+            if cache.read(namespace, texture, level, crc, dst) {
+                return Ok(());
+            }
+        }
         self.read_at(location, dst)?;
         self.check_mip(texture, level, location, dst)?;
-        Ok(location)
+        if let Some((cache, namespace)) = cache {
+            cache.write(namespace, texture, level, crc, dst);
+        }
+        Ok(())
+    }
+
+    /// The on-disk mip cache this pack reads through, if any (remote datasets opened with
+    /// one).
+    pub fn mip_cache(&self) -> Option<&MipCache> {
+        match &self.reader {
+            PackReader::Store {
+                cache: Some((cache, _)),
+                ..
+            } => Some(cache),
+            _ => None,
+        }
     }
 
     /// Reads `len` bytes at `offset` of the pack, unchecked (checksums cover whole mips).
@@ -348,17 +397,24 @@ impl TexturePack {
                     DatasetError::io(&self.pack_path, e)
                 }
             }),
-            PackReader::Store(store) => store.read_at(&self.pack_path, offset, dst),
+            PackReader::Store { store, .. } => store.read_at(&self.pack_path, offset, dst),
         }
     }
 
     /// Hints that `mips` (highest priority first) are about to be read: a remote store
-    /// starts fetching them ([`DatasetStore::prefetch`]); a local pack ignores it. Pairs
-    /// that do not exist are skipped (their read reports the error).
+    /// starts fetching those its mip cache does not hold ([`DatasetStore::prefetch`]); a
+    /// local pack ignores it. Pairs that do not exist are skipped (their read reports the
+    /// error).
     pub fn prefetch(&self, mips: &[(u32, u32)]) {
-        if let PackReader::Store(store) = &self.reader {
+        if let PackReader::Store { store, cache } = &self.reader {
             let ranges: Vec<(u64, u64)> = mips
                 .iter()
+                .filter(|&&(texture, level)| {
+                    cache.as_ref().is_none_or(|(cache, namespace)| {
+                        self.mip_checksum(texture, level)
+                            .is_ok_and(|crc| !cache.contains(namespace, texture, level, crc))
+                    })
+                })
                 .filter_map(|&(texture, level)| self.mip_location(texture, level).ok())
                 .map(|location| (location.offset, location.len))
                 .collect();
@@ -374,7 +430,7 @@ impl TexturePack {
         // The file may have shrunk after opening; report its current length.
         let file_len = match &self.reader {
             PackReader::File(file) => file.metadata().map(|m| m.len()).unwrap_or(self.pack_len),
-            PackReader::Store(_) => self.pack_len,
+            PackReader::Store { .. } => self.pack_len,
         };
         DatasetError::Truncated {
             path: self.pack_path.clone(),

@@ -12,6 +12,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use super::error::DatasetError;
+use super::mip_cache::MipCache;
 
 /// A small file whole: from `store`, or from the local directory when there is none.
 pub(crate) fn read_file(store: Option<&Arc<dyn DatasetStore>>, path: &Path) -> Result<Vec<u8>, DatasetError> {
@@ -38,4 +39,10 @@ pub trait DatasetStore: Send + Sync + std::fmt::Debug {
     /// [`DatasetStore::read_at`], highest priority first: a store with latency starts
     /// fetching them. The default does nothing.
     fn prefetch(&self, _path: &Path, _ranges: &[(u64, u64)]) {}
+    /// The on-disk cache mips read from this store go through: a pack opened from the
+    /// store reads cached mips locally (each checked against its CRC-32) and caches what
+    /// it reads. The default has none.
+    fn mip_cache(&self) -> Option<&Arc<MipCache>> {
+        None
+    }
 }

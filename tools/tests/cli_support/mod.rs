@@ -52,5 +52,5 @@ pub fn copy_tree(from: &Path, to: &Path) {
 /// what it installs (Xvfb, nginx) fail rather than skip once it has.
 pub fn setup_ran() -> bool {
     let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v4").exists()
+    Path::new(&dir).join("setup-v5").exists()
 }

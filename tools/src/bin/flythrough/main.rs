@@ -209,6 +209,10 @@ struct Args {
     /// key presses, mouse looks, resizes, minimising and screenshots by frame.
     #[arg(long, requires = "window")]
     input_script: Option<PathBuf>,
+    #[command(flatten)]
+    remote: citystream_tools::RemoteArgs,
+    #[command(flatten)]
+    mip_cache: citystream_tools::MipCacheArgs,
 }
 
 /// `--memory-budget-mb`: whole MB, or `None` for `unlimited`.
@@ -319,6 +323,17 @@ struct Run<'a> {
     gpu_pass_ms: Option<GpuPassMs>,
     validation_errors: usize,
     frames_written: Vec<String>,
+    /// The on-disk mip cache of a remote dataset read through one (`--mip-cache`).
+    mip_cache: Option<MipCacheSummary>,
+}
+
+/// `summary.json`'s `mip_cache`: where it lies, how big it may grow, what it did.
+#[derive(Debug, serde::Serialize)]
+struct MipCacheSummary {
+    dir: String,
+    capacity_bytes: u64,
+    #[serde(flatten)]
+    stats: citystream_streaming::dataset::MipCacheStats,
 }
 
 /// The passes of a flythrough frame, in recording order, timed separately.
@@ -878,15 +893,17 @@ fn city_targets(device: &Arc<Device>, width: u32, height: u32) -> Result<CityTar
 /// A dataset's vertices and meshes in the engine's layout.
 type CityGeometry = (Vec<Vertex>, Vec<CityMesh>);
 
-/// The dataset with its vertices and meshes in the engine's layout.
-fn open_city(dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGeometry)> {
-    let dataset = Arc::new(citystream_tools::open_dataset(dir)?);
+/// The dataset (with the remote settings of `args` where it is a URL) with its vertices and
+/// meshes in the engine's layout.
+fn open_city(args: &Args, dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGeometry)> {
+    let options = args.remote.options_with_cache(&args.mip_cache)?;
+    let dataset = Arc::new(citystream_tools::open_dataset_with(dir, &options)?);
     let city = city_geometry(&dataset)?;
     Ok((dataset, city))
 }
 
 fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
-    let (dataset, city) = open_city(dir)?;
+    let (dataset, city) = open_city(args, dir)?;
     let meshes = &city.1;
     let scene = &dataset.scene;
     let layer_size = cache_layer_size(&dataset, device);
@@ -1209,6 +1226,11 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         gpu_pass_ms,
         validation_errors,
         frames_written: written,
+        mip_cache: dataset.textures.mip_cache().map(|cache| MipCacheSummary {
+            dir: cache.dir().display().to_string(),
+            capacity_bytes: cache.capacity_bytes(),
+            stats: cache.stats(),
+        }),
     };
     let mut json = serde_json::to_value(summary)?;
     if let (Some(object), serde_json::Value::Object(extra)) = (json.as_object_mut(), serde_json::to_value(&run)?) {
@@ -1229,6 +1251,18 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         waits.throttle_ms,
         waits.readback_frames,
     );
+    if let Some(cache) = &run.mip_cache {
+        eprintln!(
+            "mip cache {}: {} hits, {} misses, {:.1} MB written, {} evicted, {} damaged (capacity {:.0} MB)",
+            cache.dir,
+            cache.stats.hits,
+            cache.stats.misses,
+            cache.stats.written_bytes as f64 / f64::from(1 << 20),
+            cache.stats.evicted,
+            cache.stats.damaged,
+            cache.capacity_bytes as f64 / f64::from(1 << 20)
+        );
+    }
     let failures = gpu.streamer.load_failures();
     drop(reference);
     drop(gpu);
@@ -1299,7 +1333,7 @@ struct PopIn {
 }
 
 fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
-    let (dataset, city) = open_city(dir)?;
+    let (dataset, city) = open_city(args, dir)?;
     let meshes = &city.1;
     let scene = &dataset.scene;
     let layer_size = cache_layer_size(&dataset, device);

@@ -592,7 +592,7 @@ impl Viewer {
         event_loop: &ActiveEventLoop,
         screenshots: bool,
     ) -> Result<Self> {
-        let (dataset, city) = open_city(dir)?;
+        let (dataset, city) = open_city(args, dir)?;
         let attributes = Window::default_attributes()
             .with_title(format!("citystream · {}", dir.display()))
             .with_inner_size(PhysicalSize::new(args.width, args.height));
