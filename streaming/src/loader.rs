@@ -550,12 +550,25 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
             self.gate.get().map(Arc::as_ref),
         );
         // Priority order: a remote source issues the requests in this order. After this
-        // cycle's mips, the finer levels the next cycles will load for the same records
-        // (stored right before them in a pack, so a remote store fetches a texture's chain
-        // in one request), lowest priority.
+        // cycle's mips, the finer levels the next cycles will load for the same records,
+        // breadth first: every record's next level before any record's level after that,
+        // so a store that holds only so much ahead spends it on the next cycles of every
+        // texture, not on the last cycles of a few. (A texture's levels lie back to back in
+        // a pack, so a store with room fetches its remaining chain in one request.)
         let mut hints: Vec<(u32, u32)> = plan.items.iter().map(|item| (item.texture, item.level)).collect();
-        for item in &plan.items {
-            hints.extend((item.target_level..item.level).rev().map(|level| (item.texture, level)));
+        let deepest = plan
+            .items
+            .iter()
+            .map(|item| item.level.saturating_sub(item.target_level))
+            .max()
+            .unwrap_or(0);
+        for ahead in 1..=deepest {
+            hints.extend(
+                plan.items
+                    .iter()
+                    .filter(|item| item.level >= item.target_level + ahead)
+                    .map(|item| (item.texture, item.level - ahead)),
+            );
         }
         self.source.prefetch(&hints);
         let header_failures = plan.failures.len() as u64;

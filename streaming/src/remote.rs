@@ -17,7 +17,9 @@
 //! [`RemoteOptions::requests_in_flight`] at once, and [`DatasetStore::read_at`] takes a
 //! prefetched range when it arrives (or reads it directly if it was never hinted, failed,
 //! or took longer than a request may). What a cycle hinted and did not read is kept until
-//! the next cycle's hint, which drops what it does not ask for again.
+//! the next cycle's hint, which drops what it does not ask for again. Hinted ranges past
+//! [`RemoteOptions::prefetch_limit_bytes`] wait, in priority order, and are requested as
+//! reads free room.
 //!
 //! An optional on-disk mip cache ([`RemoteOptions::mip_cache`], [`MipCache`]) keeps the
 //! mips read, so a second flight over the same area reads them locally; hints skip what it
@@ -28,7 +30,7 @@
 //! `AWS_ENDPOINT_URL` / `AWS_ENDPOINT` for S3-compatible servers) or [`RemoteOptions`];
 //! without credentials, requests go unsigned (public buckets).
 
-use std::collections::{HashMap, HashSet};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -88,7 +90,7 @@ impl Default for RemoteOptions {
             connect_timeout: Duration::from_secs(5),
             retries: 5,
             initial_backoff: Duration::from_millis(100),
-            requests_in_flight: 16,
+            requests_in_flight: 64,
             prefetch_limit_bytes: 256 << 20,
             s3_endpoint: None,
             s3_region: None,
@@ -100,7 +102,8 @@ impl Default for RemoteOptions {
 impl RemoteOptions {
     /// The defaults, with `CITYSTREAM_REMOTE_RETRIES` (retries per request),
     /// `CITYSTREAM_REMOTE_IN_FLIGHT` (prefetch requests in flight) and
-    /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds), `CITYSTREAM_MIP_CACHE`
+    /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds),
+    /// `CITYSTREAM_REMOTE_PREFETCH_MB` (bytes held ahead, MB), `CITYSTREAM_MIP_CACHE`
     /// (the mip cache's directory) and `CITYSTREAM_MIP_CACHE_MB` (its capacity) applied
     /// where set; a value that does not parse is an error naming the variable.
     pub fn from_env() -> Result<Self, DatasetError> {
@@ -134,6 +137,11 @@ impl RemoteOptions {
                 })?;
             options.timeout = Duration::from_secs_f64(seconds);
         }
+        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_PREFETCH_MB") {
+            options.prefetch_limit_bytes = parse_megabytes(&text).ok_or_else(|| {
+                DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_PREFETCH_MB={text}: {MEGABYTES}"))
+            })?;
+        }
         if let Some(dir) = std::env::var_os("CITYSTREAM_MIP_CACHE").filter(|d| !d.is_empty()) {
             options.mip_cache = Some(MipCacheOptions {
                 dir: PathBuf::from(dir),
@@ -141,23 +149,25 @@ impl RemoteOptions {
             });
         }
         if let Ok(text) = std::env::var("CITYSTREAM_MIP_CACHE_MB") {
-            let megabytes: f64 = text
-                .trim()
-                .parse()
-                .ok()
-                .filter(|mb: &f64| mb.is_finite() && *mb * f64::from(1 << 20) >= 1.0 && *mb <= f64::from(1 << 30))
-                .ok_or_else(|| {
-                    DatasetError::InvalidInput(format!(
-                        "CITYSTREAM_MIP_CACHE_MB={text}: not a number of MB from 1 byte to 2^30 MB"
-                    ))
-                })?;
+            let bytes = parse_megabytes(&text)
+                .ok_or_else(|| DatasetError::InvalidInput(format!("CITYSTREAM_MIP_CACHE_MB={text}: {MEGABYTES}")))?;
             let cache = options.mip_cache.as_mut().ok_or_else(|| {
                 DatasetError::InvalidInput("CITYSTREAM_MIP_CACHE_MB is set but CITYSTREAM_MIP_CACHE is not".into())
             })?;
-            cache.capacity_bytes = Some((megabytes * f64::from(1 << 20)) as u64);
+            cache.capacity_bytes = Some(bytes);
         }
         Ok(options)
     }
+}
+
+/// What [`parse_megabytes`] accepts.
+pub const MEGABYTES: &str = "not a number of MB from 1 byte to 2^30 MB (fractions allowed)";
+
+/// Bytes of a size given in MB (2^20 bytes; fractions allowed), from 1 byte to 2^30 MB.
+pub fn parse_megabytes(text: &str) -> Option<u64> {
+    let megabytes: f64 = text.trim().parse().ok()?;
+    let bytes = megabytes * f64::from(1 << 20);
+    (megabytes.is_finite() && bytes >= 1.0 && megabytes <= f64::from(1 << 30)).then_some(bytes as u64)
 }
 
 /// Whether `location` names a remote dataset (a URL this module opens).
@@ -193,11 +203,29 @@ pub struct RemoteStore {
     mip_cache: Option<Arc<MipCache>>,
 }
 
-/// Ranges fetched ahead of their reads, by (file, offset, length).
+/// Ranges fetched ahead of their reads.
 #[derive(Default)]
 struct Prefetched {
-    slots: Mutex<HashMap<(PathBuf, u64, u64), Slot>>,
+    state: Mutex<PrefetchState>,
     changed: Condvar,
+}
+
+/// A range by (file, offset, length).
+type RangeKey = (PathBuf, u64, u64);
+
+#[derive(Default)]
+struct PrefetchState {
+    /// Ranges requested or fetched, not yet read.
+    slots: HashMap<RangeKey, Slot>,
+    /// Ranges the last hint asked for that did not fit the bytes held ahead, in priority
+    /// order: requested as reads make room.
+    deferred: VecDeque<RangeKey>,
+}
+
+impl PrefetchState {
+    fn held_bytes(&self) -> u64 {
+        self.slots.keys().map(|(_, _, len)| len).sum()
+    }
 }
 
 enum Slot {
@@ -207,9 +235,9 @@ enum Slot {
 }
 
 impl Prefetched {
-    fn lock(&self) -> MutexGuard<'_, HashMap<(PathBuf, u64, u64), Slot>> {
+    fn lock(&self) -> MutexGuard<'_, PrefetchState> {
         // A poisoned lock only means a thread panicked while holding it; the map is intact.
-        self.slots.lock().unwrap_or_else(|e| e.into_inner())
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -347,6 +375,93 @@ impl RemoteStore {
         ObjectPath::parse(&key).map_err(|e| DatasetError::InvalidInput(format!("{}: {e}", path.display())))
     }
 
+    /// Requests the deferred ranges of `path` that fit in the room reads have freed.
+    fn top_up(&self, path: &Path) {
+        let mut fresh: Vec<(usize, u64, u64)> = Vec::new();
+        {
+            let mut state = self.prefetched.lock();
+            let mut held = state.held_bytes();
+            while let Some(range) = state.deferred.front() {
+                if held.saturating_add(range.2) > self.prefetch_limit_bytes {
+                    break;
+                }
+                let Some(range) = state.deferred.pop_front() else { break };
+                held += range.2;
+                if range.0 == path && !state.slots.contains_key(&range) {
+                    fresh.push((fresh.len(), range.1, range.2));
+                    state.slots.insert(range, Slot::Pending);
+                }
+            }
+        }
+        if !fresh.is_empty() {
+            if let Ok(key) = self.key(path) {
+                self.request(path, key, fresh);
+            }
+        }
+    }
+
+    /// Requests `(priority, offset, len)` ranges of `path` (already `Pending` slots):
+    /// back-to-back ranges merged, in priority order, at most `in_flight` at once.
+    fn request(&self, path: &Path, key: ObjectPath, mut fresh: Vec<(usize, u64, u64)>) {
+        if fresh.is_empty() {
+            return;
+        }
+        fresh.sort_by_key(|&(_, offset, _)| offset);
+        let mut requests: Vec<RangeRequest> = Vec::new();
+        for (priority, offset, len) in fresh {
+            match requests.last_mut() {
+                Some(last) if last.end == offset && last.end - last.start + len <= MAX_MERGED_BYTES => {
+                    last.end += len;
+                    last.priority = last.priority.min(priority);
+                    last.members.push((offset, len));
+                }
+                _ => requests.push(RangeRequest {
+                    priority,
+                    start: offset,
+                    end: offset + len,
+                    members: vec![(offset, len)],
+                }),
+            }
+        }
+        requests.sort_by_key(|r| r.priority);
+        let (store, semaphore, prefetched, path) = (
+            Arc::clone(&self.store),
+            Arc::clone(&self.in_flight),
+            Arc::clone(&self.prefetched),
+            path.to_path_buf(),
+        );
+        // One dispatcher per call: it starts the requests in priority order as permits free up.
+        self.runtime.spawn(async move {
+            for request in requests {
+                let Ok(permit) = Arc::clone(&semaphore).acquire_owned().await else {
+                    return;
+                };
+                let (store, prefetched, key, path) =
+                    (Arc::clone(&store), Arc::clone(&prefetched), key.clone(), path.clone());
+                tokio::spawn(async move {
+                    let result = store.get_range(&key, request.start..request.end).await;
+                    drop(permit);
+                    let whole = matches!(&result, Ok(bytes) if bytes.len() as u64 == request.end - request.start);
+                    let mut state = prefetched.lock();
+                    for (offset, len) in request.members {
+                        let slot = match &result {
+                            Ok(bytes) if whole => {
+                                let from = (offset - request.start) as usize;
+                                Slot::Ready(bytes.slice(from..from + len as usize))
+                            }
+                            _ => Slot::Failed,
+                        };
+                        if let Some(entry) = state.slots.get_mut(&(path.clone(), offset, len)) {
+                            *entry = slot;
+                        }
+                    }
+                    drop(state);
+                    prefetched.changed.notify_all();
+                });
+            }
+        });
+    }
+
     fn error(path: &Path, error: object_store::Error) -> DatasetError {
         match error {
             object_store::Error::NotFound { .. } => DatasetError::Missing {
@@ -384,80 +499,30 @@ impl DatasetStore for RemoteStore {
         let wanted: HashSet<(u64, u64)> = ranges.iter().copied().collect();
         let mut fresh: Vec<(usize, u64, u64)> = Vec::new();
         {
-            let mut slots = self.prefetched.lock();
-            // Bounded memory: what this cycle does not ask for again goes (requests still
+            let mut state = self.prefetched.lock();
+            // Bounded memory: what this hint does not ask for again goes (requests still
             // in flight finish first).
-            slots.retain(|(p, o, l), slot| matches!(slot, Slot::Pending) || (p == path && wanted.contains(&(*o, *l))));
-            let mut held: u64 = slots.keys().map(|(_, _, len)| len).sum();
+            state
+                .slots
+                .retain(|(p, o, l), slot| matches!(slot, Slot::Pending) || (p == path && wanted.contains(&(*o, *l))));
+            state.deferred.clear();
+            let mut held = state.held_bytes();
             for (priority, &(offset, len)) in ranges.iter().enumerate() {
-                if len == 0 || held.saturating_add(len) > self.prefetch_limit_bytes {
+                let range = (path.to_path_buf(), offset, len);
+                if len == 0 || state.slots.contains_key(&range) {
                     continue;
                 }
-                if let std::collections::hash_map::Entry::Vacant(entry) = slots.entry((path.to_path_buf(), offset, len))
-                {
-                    entry.insert(Slot::Pending);
-                    held += len;
-                    fresh.push((priority, offset, len));
+                // Past the limit, in priority order: requested as reads free room.
+                if held.saturating_add(len) > self.prefetch_limit_bytes {
+                    state.deferred.push_back(range);
+                    continue;
                 }
+                state.slots.insert(range, Slot::Pending);
+                held += len;
+                fresh.push((priority, offset, len));
             }
         }
-        if fresh.is_empty() {
-            return;
-        }
-        fresh.sort_by_key(|&(_, offset, _)| offset);
-        let mut requests: Vec<RangeRequest> = Vec::new();
-        for (priority, offset, len) in fresh {
-            match requests.last_mut() {
-                Some(last) if last.end == offset && last.end - last.start + len <= MAX_MERGED_BYTES => {
-                    last.end += len;
-                    last.priority = last.priority.min(priority);
-                    last.members.push((offset, len));
-                }
-                _ => requests.push(RangeRequest {
-                    priority,
-                    start: offset,
-                    end: offset + len,
-                    members: vec![(offset, len)],
-                }),
-            }
-        }
-        requests.sort_by_key(|r| r.priority);
-        let (store, semaphore, prefetched, path) = (
-            Arc::clone(&self.store),
-            Arc::clone(&self.in_flight),
-            Arc::clone(&self.prefetched),
-            path.to_path_buf(),
-        );
-        // One dispatcher per hint: it starts the requests in priority order as permits free up.
-        self.runtime.spawn(async move {
-            for request in requests {
-                let Ok(permit) = Arc::clone(&semaphore).acquire_owned().await else {
-                    return;
-                };
-                let (store, prefetched, key, path) =
-                    (Arc::clone(&store), Arc::clone(&prefetched), key.clone(), path.clone());
-                tokio::spawn(async move {
-                    let result = store.get_range(&key, request.start..request.end).await;
-                    drop(permit);
-                    let whole = matches!(&result, Ok(bytes) if bytes.len() as u64 == request.end - request.start);
-                    let mut slots = prefetched.lock();
-                    for (offset, len) in request.members {
-                        let slot = match &result {
-                            Ok(bytes) if whole => {
-                                let from = (offset - request.start) as usize;
-                                Slot::Ready(bytes.slice(from..from + len as usize))
-                            }
-                            _ => Slot::Failed,
-                        };
-                        if let Some(entry) = slots.get_mut(&(path.clone(), offset, len)) {
-                            *entry = slot;
-                        }
-                    }
-                    drop(slots);
-                    prefetched.changed.notify_all();
-                });
-            }
-        });
+        self.request(path, key, fresh);
     }
 
     fn mip_cache(&self) -> Option<&Arc<MipCache>> {
@@ -467,37 +532,46 @@ impl DatasetStore for RemoteStore {
     fn read_at(&self, path: &Path, offset: u64, dst: &mut [u8]) -> Result<(), DatasetError> {
         let slot_key = (path.to_path_buf(), offset, dst.len() as u64);
         {
-            let mut slots = self.prefetched.lock();
+            let mut state = self.prefetched.lock();
             let deadline = Instant::now() + self.prefetch_wait;
             loop {
-                match slots.get(&slot_key) {
-                    None => break,
+                match state.slots.get(&slot_key) {
+                    None => {
+                        // Read now, so not requested again later.
+                        if let Some(at) = state.deferred.iter().position(|range| *range == slot_key) {
+                            state.deferred.remove(at);
+                        }
+                        break;
+                    }
                     Some(Slot::Pending) => {
                         let now = Instant::now();
                         if now >= deadline {
                             break;
                         }
-                        slots = self
+                        state = self
                             .prefetched
                             .changed
-                            .wait_timeout(slots, deadline - now)
+                            .wait_timeout(state, deadline - now)
                             .unwrap_or_else(|e| e.into_inner())
                             .0;
                     }
                     Some(Slot::Ready(_)) => {
-                        if let Some(Slot::Ready(bytes)) = slots.remove(&slot_key) {
+                        if let Some(Slot::Ready(bytes)) = state.slots.remove(&slot_key) {
+                            drop(state);
                             dst.copy_from_slice(&bytes);
+                            self.top_up(path);
                             return Ok(());
                         }
                     }
                     // Read it directly, with the client's retries, and report that error.
                     Some(Slot::Failed) => {
-                        slots.remove(&slot_key);
+                        state.slots.remove(&slot_key);
                         break;
                     }
                 }
             }
         }
+        self.top_up(path);
         let key = self.key(path)?;
         let end = offset.saturating_add(dst.len() as u64);
         let bytes = self

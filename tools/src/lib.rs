@@ -45,7 +45,7 @@ pub fn open_dataset_with(location: &Path, options: &RemoteOptions) -> anyhow::Re
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct RemoteArgs {
     /// Remote datasets: range requests in flight at most while prefetching
-    /// (default 16, or CITYSTREAM_REMOTE_IN_FLIGHT).
+    /// (default 64, or CITYSTREAM_REMOTE_IN_FLIGHT).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
     pub remote_in_flight: Option<u32>,
     /// Remote datasets: retries of a failed request, with exponential backoff
@@ -56,6 +56,11 @@ pub struct RemoteArgs {
     /// (default 30, or CITYSTREAM_REMOTE_TIMEOUT_S).
     #[arg(long, value_parser = parse_timeout_s)]
     pub remote_timeout_s: Option<f64>,
+    /// Remote datasets: MB fetched ahead of their reads held at most; hints
+    /// past it wait for reads to make room (default 256, or
+    /// CITYSTREAM_REMOTE_PREFETCH_MB).
+    #[arg(long, value_parser = parse_megabytes_arg)]
+    pub remote_prefetch_mb: Option<u64>,
 }
 
 /// The on-disk mip cache of a remote dataset, from the command line or the environment.
@@ -70,15 +75,14 @@ pub struct MipCacheArgs {
     /// With --mip-cache: MB it holds at most (fractions allowed), least
     /// recently used mips going first (default: CITYSTREAM_MIP_CACHE_MB, else
     /// a quarter of the space free on its filesystem).
-    #[arg(long, value_parser = parse_cache_mb)]
-    pub mip_cache_mb: Option<f64>,
+    #[arg(long, value_parser = parse_megabytes_arg)]
+    pub mip_cache_mb: Option<u64>,
 }
 
-fn parse_cache_mb(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(mb) if mb.is_finite() && mb * f64::from(1 << 20) >= 1.0 && mb <= f64::from(1 << 30) => Ok(mb),
-        _ => Err(format!("`{text}` is not a number of MB from 1 byte to 2^30 MB")),
-    }
+/// MB (fractions allowed) as bytes.
+fn parse_megabytes_arg(text: &str) -> Result<u64, String> {
+    citystream_streaming::remote::parse_megabytes(text)
+        .ok_or_else(|| format!("`{text}`: {}", citystream_streaming::remote::MEGABYTES))
 }
 
 fn parse_timeout_s(text: &str) -> Result<f64, String> {
@@ -101,6 +105,9 @@ impl RemoteArgs {
         if let Some(s) = self.remote_timeout_s {
             options.timeout = Duration::from_secs_f64(s);
         }
+        if let Some(bytes) = self.remote_prefetch_mb {
+            options.prefetch_limit_bytes = bytes;
+        }
         Ok(options)
     }
 
@@ -113,11 +120,11 @@ impl RemoteArgs {
                 capacity_bytes: None,
             });
         }
-        if let Some(mb) = cache.mip_cache_mb {
+        if let Some(bytes) = cache.mip_cache_mb {
             let Some(cache) = options.mip_cache.as_mut() else {
                 anyhow::bail!("--mip-cache-mb needs --mip-cache (or CITYSTREAM_MIP_CACHE)");
             };
-            cache.capacity_bytes = Some((mb * f64::from(1 << 20)) as u64);
+            cache.capacity_bytes = Some(bytes);
         }
         Ok(options)
     }

@@ -72,13 +72,13 @@ pub struct Pass {
 
 /// Drops the pack's pages from the page cache where the OS allows it.
 #[cfg(target_os = "linux")]
-fn drop_page_cache(path: &Path) -> Result<bool> {
+pub(crate) fn drop_page_cache(path: &Path) -> Result<bool> {
     let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
     Ok(rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::DontNeed).is_ok())
 }
 
 #[cfg(not(target_os = "linux"))]
-fn drop_page_cache(_path: &Path) -> Result<bool> {
+pub(crate) fn drop_page_cache(_path: &Path) -> Result<bool> {
     Ok(false)
 }
 

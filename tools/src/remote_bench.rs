@@ -4,9 +4,10 @@
 //!
 //! Each pass is the loader benchmark's pass ([`crate::loader_bench`]): the unthrottled
 //! loader over every texture, cycle after cycle (one mip per texture per cycle), until
-//! nothing is left, every mip checked against its CRC-32. The local pass runs with the pack
-//! in the page cache (after a full pass), so it is the most the loader gets here; nginx
-//! serves the same files, also from the page cache.
+//! nothing is left, every mip checked against its CRC-32. Two local references: the pack in
+//! the page cache (after a full pass: the most the loader gets here) and read from the disk
+//! (its pages dropped first). nginx serves the same files from the page cache. Then the
+//! on-disk mip cache at 80 ms: a pass that fills it and one that reads it.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -16,14 +17,17 @@ use anyhow::{bail, Context, Result};
 use citystream_streaming::dataset::Dataset;
 use citystream_streaming::remote::{open_dataset, RemoteOptions};
 
+use citystream_streaming::remote::MipCacheOptions;
+
 use crate::fault_proxy::{FaultOptions, FaultProxy};
-use crate::loader_bench::loader_pass;
+use crate::loader_bench::{drop_page_cache, loader_pass};
 use crate::nginx::Nginx;
 
 /// One measured pass.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct RemotePass {
-    /// `local`, `nginx`, `nginx + 20 ms` or `nginx + 80 ms`.
+    /// `local (page cache)`, `local (disk)`, `nginx`, `nginx + 20 ms`, `nginx + 80 ms`, or
+    /// `nginx + 80 ms, mip cache filling` / `… warm`.
     pub source: String,
     /// Prefetch requests in flight (none for local reads).
     pub in_flight: Option<usize>,
@@ -78,9 +82,16 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
         rayon::current_num_threads(),
         nginx.port()
     );
-    // Warm the page cache, then the local reference.
+    // Warm the page cache, then the local references: warm, and from the disk.
     loader_pass(&local)?;
-    let mut passes = vec![measure("local", None, &local)?];
+    let mut passes = vec![measure("local (page cache)", None, &local)?];
+    if drop_page_cache(local.textures.pack_path())? {
+        passes.push(measure("local (disk)", None, &local)?);
+    } else {
+        eprintln!("the OS keeps the pack in its page cache: no local disk pass");
+    }
+    loader_pass(&local)?;
+    let mut delayed_80ms = None;
     for delay_ms in [0u64, 20, 80] {
         let proxy = if delay_ms > 0 {
             Some(FaultProxy::start(
@@ -103,7 +114,7 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
         } else {
             "nginx".to_owned()
         };
-        for in_flight in [1usize, 8, 32] {
+        for in_flight in [1usize, 8, 32, 64, 128] {
             let options = RemoteOptions {
                 requests_in_flight: in_flight,
                 ..RemoteOptions::default()
@@ -111,13 +122,42 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
             let remote = Arc::new(open_dataset(&url, &options).with_context(|| format!("opening {url}"))?);
             passes.push(measure(&source, Some(in_flight), &remote)?);
         }
+        if delay_ms == 80 {
+            delayed_80ms = Some((url, proxy));
+        }
+    }
+    // The mip cache at 80 ms and 32 in flight: a first pass fills it, a second reads it.
+    if let Some((url, _proxy)) = &delayed_80ms {
+        let cache_dir = out.join("mip-cache");
+        if cache_dir.exists() {
+            std::fs::remove_dir_all(&cache_dir).with_context(|| format!("emptying {}", cache_dir.display()))?;
+        }
+        let options = RemoteOptions {
+            requests_in_flight: 32,
+            mip_cache: Some(MipCacheOptions {
+                dir: cache_dir.clone(),
+                capacity_bytes: None,
+            }),
+            ..RemoteOptions::default()
+        };
+        for phase in ["filling", "warm"] {
+            let remote = Arc::new(open_dataset(url, &options).with_context(|| format!("opening {url}"))?);
+            passes.push(measure(
+                &format!("nginx + 80 ms, mip cache {phase}"),
+                Some(32),
+                &remote,
+            )?);
+        }
+        std::fs::remove_dir_all(&cache_dir).with_context(|| format!("removing {}", cache_dir.display()))?;
     }
 
-    let local_mb_s = passes[0].mb_per_s;
+    let cached_mb_s = passes[0].mb_per_s;
+    let disk_mb_s = passes.iter().find(|p| p.source == "local (disk)").map(|p| p.mb_per_s);
     let mut md = format!(
         "# Loader from local disk and over HTTP\n\n`{}`: {} mips, {:.1} MB, {} loader threads; \
          nginx on loopback, directly and through a proxy adding a delay per request.\n\n\
-         | source | requests in flight | MB/s | mips/s | of local MB/s |\n|---|---:|---:|---:|---:|\n",
+         | source | requests in flight | MB/s | mips/s | of local disk MB/s | of page-cache MB/s |\n\
+         |---|---:|---:|---:|---:|---:|\n",
         dataset_dir.display(),
         passes[0].mips,
         passes[0].bytes as f64 / f64::from(1 << 20),
@@ -125,17 +165,24 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
     );
     for pass in &passes {
         md.push_str(&format!(
-            "| {} | {} | {:.1} | {:.0} | {:.1} % |\n",
+            "| {} | {} | {:.1} | {:.0} | {} | {:.1} % |\n",
             pass.source,
             pass.in_flight.map_or_else(|| "-".to_owned(), |n| n.to_string()),
             pass.mb_per_s,
             pass.mips_per_s,
-            100.0 * pass.mb_per_s / local_mb_s.max(1e-9)
+            disk_mb_s.map_or_else(
+                || "-".to_owned(),
+                |disk| format!("{:.1} %", 100.0 * pass.mb_per_s / disk.max(1e-9))
+            ),
+            100.0 * pass.mb_per_s / cached_mb_s.max(1e-9)
         ));
     }
     md.push_str(
         "\nMB = 2^20 bytes. Every pass loads the same mips (every level of every texture, one per \
-         texture per cycle) and checks each against its CRC-32; the local pass has the pack in the page cache.\n",
+         texture per cycle) and checks each against its CRC-32. `local (page cache)` reads the pack from \
+         memory, `local (disk)` after dropping its pages; nginx serves from the page cache. The mip cache \
+         passes run behind the 80 ms proxy at 32 in flight: `filling` also writes every mip into an empty \
+         cache, `warm` reads them back from it (its files still in the page cache).\n",
     );
     std::fs::write(out.join("remote.json"), serde_json::to_string_pretty(&passes)?)?;
     std::fs::write(out.join("remote.md"), &md)?;
