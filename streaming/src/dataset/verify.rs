@@ -52,6 +52,15 @@ pub fn verify_dataset(dataset: &Dataset) -> Result<VerifyReport, DatasetError> {
         }
     }
 
+    // Every mip in read order: a remote store fetches ahead (as much as it holds, the rest
+    // as reads make room) instead of one request at a time; a local pack ignores it.
+    let order: Vec<(u32, u32)> = pack
+        .textures()
+        .iter()
+        .enumerate()
+        .flat_map(|(id, info)| (0..info.mip_count()).map(move |level| (id as u32, level)))
+        .collect();
+    pack.prefetch(&order);
     let mut buf = Vec::new();
     let mut mips = 0u64;
     let mut bytes_read = 0u64;
