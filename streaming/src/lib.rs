@@ -1,6 +1,7 @@
 //! Streaming policy (paper §3.4–3.5). Vulkan-free.
 #![forbid(unsafe_code)]
 
+pub mod atlas_tree;
 #[cfg(feature = "bench")]
 pub mod bench;
 pub mod bind_latency;

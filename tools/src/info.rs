@@ -50,6 +50,8 @@ struct Info {
     bounds_max: [f32; 3],
     host_bytes_per_texture: usize,
     open_seconds: f64,
+    /// The texture-atlas tree, where the dataset is one (`citystream atlas-tree`).
+    atlas_tree: Option<crate::atlas_tree::TreeInfo>,
 }
 
 /// Runs `citystream info`.
@@ -109,6 +111,9 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         bounds_max: scene.bounds.max,
         host_bytes_per_texture: Dataset::metadata_bytes_per_texture(),
         open_seconds,
+        atlas_tree: crate::atlas_tree::open_if_tree(dataset)?
+            .as_ref()
+            .map(crate::atlas_tree::TreeInfo::of),
     })
 }
 
@@ -132,6 +137,21 @@ fn print_text(out: &mut impl Write, info: &Info) -> std::io::Result<()> {
         writeln!(out, "  {format:<6} {count:>10} textures {bytes:>14} bytes")?;
     }
     writeln!(out, "pack       {:>12} bytes", info.pack_bytes)?;
+    if let Some(tree) = &info.atlas_tree {
+        writeln!(
+            out,
+            "atlas tree {:>12} nodes ({} leaves, depth {}), atlases {}x{}; distances {:.1} m (leaves) to {:.1} m (root) for {} px at {} texel/px",
+            tree.nodes,
+            tree.leaves,
+            tree.depth,
+            tree.atlas_extent,
+            tree.atlas_extent,
+            tree.leaf_min_distance_m,
+            tree.root_min_distance_m,
+            tree.screen_height,
+            tree.texel_per_pixel
+        )?;
+    }
     writeln!(out, "scene      {:>12} bytes", info.scene_bytes)?;
     writeln!(
         out,

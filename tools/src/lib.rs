@@ -3,6 +3,7 @@
 //! (for example, rendering a generated city and its atlas version).
 
 pub mod atlas;
+pub mod atlas_tree;
 pub mod bench;
 pub mod cache_report;
 pub mod default_city;

@@ -3,7 +3,9 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-use citystream_tools::{atlas, bench, cache_report, gen, import, info, path, report, simulate, upgrade, verify};
+use citystream_tools::{
+    atlas, atlas_tree, bench, cache_report, gen, import, info, path, report, simulate, upgrade, verify,
+};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -22,6 +24,8 @@ enum Command {
     Gen(gen::GenArgs),
     /// Pack a dataset's textures into square atlases.
     Atlas(atlas::AtlasArgs),
+    /// Build a texture-atlas tree (Buchholz & Döllner) from a dataset.
+    AtlasTree(atlas_tree::AtlasTreeArgs),
     /// Report how a dataset's textures pack into the sparse cache (utilisation).
     CacheReport(cache_report::CacheReportArgs),
     /// Import a glTF 2.0 scene as a dataset.
@@ -47,6 +51,7 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Gen(args) => gen::run(&args),
         Command::Atlas(args) => atlas::run(&args),
+        Command::AtlasTree(args) => atlas_tree::run(&args),
         Command::CacheReport(args) => cache_report::run(&args),
         Command::Import(args) => import::run(&args),
         Command::Info(args) => info::run(&args),

@@ -25,13 +25,17 @@ pub fn run(args: &VerifyArgs) -> Result<()> {
     let dataset = crate::open_dataset_with(&args.dir, &options)
         .with_context(|| format!("verify failed for {}", args.dir.display()))?;
     let report = verify_dataset(&dataset).with_context(|| format!("verify failed for {}", args.dir.display()))?;
+    let tree = crate::atlas_tree::open_if_tree(&dataset)
+        .with_context(|| format!("verify failed for {}", args.dir.display()))?;
     crate::gen::print_stdout(&format!(
-        "ok: {}: {} meshes, {} textures, {} mips, {:.1} MB of mip data checked in {:.2} s\n",
+        "ok: {}: {} meshes, {} textures, {} mips, {:.1} MB of mip data{} checked in {:.2} s\n",
         args.dir.display(),
         report.meshes,
         report.textures,
         report.mips,
         report.bytes_read as f64 / 1e6,
+        tree.map(|t| format!(", an atlas tree of {} nodes", t.nodes.len()))
+            .unwrap_or_default(),
         start.elapsed().as_secs_f64()
     ))
 }
