@@ -293,58 +293,77 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
         );
     }
 
-    // 2–3. Atlases bottom up (deepest first), parents from their children's level 0.
+    // 2–3. Atlases in post-order (children before their parent), so only the children
+    // awaiting their parent are held (half size: all a parent needs of them), and each
+    // atlas is written as soon as it is encoded: memory stays bounded by the depth and the
+    // batch, whatever the city's size. Texture ids follow the writing order.
     let format = atlas_format(infos);
-    let mut level0: Vec<Option<Vec<u8>>> = vec![None; nodes.len()];
-    let mut chains: Vec<Option<(Vec<u8>, [u8; 4])>> = vec![None; nodes.len()];
+    let levels = extent.trailing_zeros() + 1;
+    let mut writer = DatasetWriter::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let mut atlas_id = vec![0u32; nodes.len()];
     let mut min_distance = vec![d_min; nodes.len()];
-    let max_level = nodes.iter().map(|n| n.level).max().unwrap_or(0);
-    for level in (0..=max_level).rev() {
-        let at_level: Vec<usize> = (0..nodes.len()).filter(|&i| nodes[i].level == level).collect();
-        let composed: Vec<Result<Vec<u8>>> = at_level
+    let mut halves: BTreeMap<usize, Vec<u8>> = BTreeMap::new();
+    let order = post_order(&nodes);
+    let batch = (rayon::current_num_threads() * 8).max(8);
+    for (done, chunk) in order.chunks(batch).enumerate() {
+        // Leaves in parallel; inner nodes in order (their children are earlier).
+        let leaves: Vec<Result<Vec<u8>>> = chunk
             .par_iter()
             .map(|&i| {
-                let node = &nodes[i];
-                if node.children.is_empty() {
-                    compose_leaf(&dataset, &node.areas, extent)
+                if nodes[i].children.is_empty() {
+                    compose_leaf(&dataset, &nodes[i].areas, extent)
                 } else {
-                    Ok(compose_inner(node, &nodes, &level0, extent))
+                    Ok(Vec::new())
                 }
             })
             .collect();
-        for (&i, rgba) in at_level.iter().zip(composed) {
-            let rgba = rgba?;
-            if !nodes[i].children.is_empty() {
+        let mut composed: Vec<Vec<u8>> = Vec::with_capacity(chunk.len());
+        for (&i, leaf) in chunk.iter().zip(leaves) {
+            let rgba = if nodes[i].children.is_empty() {
+                leaf?
+            } else {
                 min_distance[i] = 2.0
                     * nodes[i]
                         .children
                         .iter()
                         .map(|&c| min_distance[c as usize])
                         .fold(0.0, f32::max);
-                for &c in &nodes[i].children {
-                    level0[c as usize] = None;
-                }
+                let children: Vec<([u32; 2], Vec<u8>)> = nodes[i]
+                    .children
+                    .iter()
+                    .map(|&c| {
+                        let half = halves
+                            .remove(&(c as usize))
+                            .context("a child's atlas was not composed")?;
+                        Ok((nodes[c as usize].quadrant, half))
+                    })
+                    .collect::<Result<_>>()?;
+                compose_inner(&children, extent)
+            };
+            if nodes[i].parent != NO_PARENT {
+                halves.insert(i, downsample(&rgba, extent as usize, extent as usize).0);
             }
-            chains[i] = Some(encode_chain(&rgba, extent, format));
-            level0[i] = Some(rgba);
+            composed.push(rgba);
         }
-        if !args.quiet && max_level > 0 {
+        let chains: Vec<(Vec<u8>, [u8; 4])> = composed
+            .par_iter()
+            .map(|rgba| encode_chain(rgba, extent, format))
+            .collect();
+        for (&i, (chain, mean)) in chunk.iter().zip(chains) {
+            atlas_id[i] = writer.add_texture(format, extent, extent, levels, &chain, mean)?;
+        }
+        let written = (done * batch + chunk.len()).min(order.len());
+        if !args.quiet && (written == order.len() || (done + 1).is_multiple_of(8)) {
             eprintln!(
-                "atlas-tree: level {level}: {} atlases ({:.1} s)",
-                at_level.len(),
+                "atlas-tree: {written}/{} atlases written ({:.1} s)",
+                order.len(),
                 start.elapsed().as_secs_f64()
             );
         }
     }
 
-    // 4. The output dataset: atlases (texture id = node), then the originals; the leaves'
-    // meshes, one per (leaf, texture), with root-atlas coordinates per vertex.
-    let mut writer = DatasetWriter::create(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let levels = extent.trailing_zeros() + 1;
-    for chain in &chains {
-        let (chain, mean) = chain.as_ref().context("an atlas was not composed")?;
-        writer.add_texture(format, extent, extent, levels, chain, *mean)?;
-    }
+    // 4. The originals after the atlases; the leaves' meshes, one per (leaf, texture), with
+    // root-atlas coordinates per vertex.
     let original_base = nodes.len() as u32;
     let mut buf = Vec::new();
     for (t, info) in infos.iter().enumerate() {
@@ -412,7 +431,7 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
             parent: node.parent,
             first_child: node.children.first().copied().unwrap_or(0),
             child_count: node.children.len() as u32,
-            atlas: i as u32,
+            atlas: atlas_id[i],
             uv_scale: scale,
             uv_offset: [
                 (node.offset[0] * f64::from(scale)) as f32,
@@ -766,32 +785,43 @@ fn bilinear_repeat(rgba: &[u8], w: u32, h: u32, u: f32, v: f32) -> [u8; 4] {
     })
 }
 
-/// An inner node's atlas: its children's side by side at double size, box-filtered.
-fn compose_inner(node: &BuildNode, nodes: &[BuildNode], level0: &[Option<Vec<u8>>], extent: u32) -> Vec<u8> {
+/// An inner node's atlas: its children's atlases at half size (`(quadrant, image)`),
+/// side by side; empty quadrants the children's mean colour.
+fn compose_inner(children: &[([u32; 2], Vec<u8>)], extent: u32) -> Vec<u8> {
     let side = extent as usize;
-    let big = side * 2;
-    let children: Vec<(&BuildNode, &Vec<u8>)> = node
-        .children
-        .iter()
-        .filter_map(|&c| level0[c as usize].as_ref().map(|img| (&nodes[c as usize], img)))
-        .collect();
+    let half = side / 2;
     let mean = {
         let colours: Vec<[u8; 4]> = children.iter().map(|(_, img)| mean_colour(img)).collect();
         [0, 1, 2, 3]
             .map(|c| (colours.iter().map(|col| u32::from(col[c])).sum::<u32>() / colours.len().max(1) as u32) as u8)
     };
-    let mut combined = vec![0u8; big * big * 4];
+    let mut combined = vec![0u8; side * side * 4];
     for texel in combined.chunks_exact_mut(4) {
         texel.copy_from_slice(&mean);
     }
-    for (child, img) in children {
-        let (qx, qy) = (child.quadrant[0] as usize * side, child.quadrant[1] as usize * side);
-        for row in 0..side {
-            let dst = ((qy + row) * big + qx) * 4;
-            combined[dst..dst + side * 4].copy_from_slice(&img[row * side * 4..(row + 1) * side * 4]);
+    for (quadrant, img) in children {
+        let (qx, qy) = (quadrant[0] as usize * half, quadrant[1] as usize * half);
+        for row in 0..half {
+            let dst = ((qy + row) * side + qx) * 4;
+            combined[dst..dst + half * 4].copy_from_slice(&img[row * half * 4..(row + 1) * half * 4]);
         }
     }
-    downsample(&combined, big, big).0
+    combined
+}
+
+/// Node indices with every node after its children (depth first).
+fn post_order(nodes: &[BuildNode]) -> Vec<usize> {
+    let mut out = Vec::with_capacity(nodes.len());
+    let mut stack = vec![(0usize, false)];
+    while let Some((n, expanded)) = stack.pop() {
+        if expanded || nodes[n].children.is_empty() {
+            out.push(n);
+        } else {
+            stack.push((n, true));
+            stack.extend(nodes[n].children.iter().rev().map(|&c| (c as usize, false)));
+        }
+    }
+    out
 }
 
 /// A full mip chain of an RGBA atlas in `format`, and its mean colour.
