@@ -15,7 +15,8 @@
 
 use std::path::Path;
 
-use crate::dataset::{Aabb, Dataset, DatasetError};
+use crate::dataset::{Aabb, Dataset, DatasetError, Scene};
+use crate::records::{MeshMetaData, DEFAULT_WEIGHT_CUTOFF};
 
 /// The tree's file, in the dataset's write directory.
 pub const TREE_FILE: &str = "atlas-tree.bin";
@@ -181,6 +182,29 @@ pub struct BlockPriority {
     pub distance: f32,
     /// Its node's depth (root 0).
     pub level: u32,
+}
+
+/// What the loader should load for a view (§6's ideal block set), as its records.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Paging {
+    /// The ideal block set, highest priority first.
+    pub ideal: Vec<Block>,
+    /// Blocks §6 would keep that did not fit the capacity.
+    pub over_capacity: usize,
+    /// Loader records, heaviest (most urgent) first: an atlas as the pseudo-mesh
+    /// `scene meshes + node` ([`AtlasTree::loader_mesh_textures`]), a leaf's originals as
+    /// its meshes; levels as fine as the block's distance needs.
+    pub records: Vec<MeshMetaData>,
+}
+
+/// The finest level of an atlas a camera `distance` away needs when level 0 suffices from
+/// `min_distance` on: each level further halves the texels, so doubles the distance.
+pub fn atlas_level_for(distance: f32, min_distance: f32, mip_count: u32) -> u32 {
+    if !(distance > min_distance && min_distance > 0.0) {
+        return 0;
+    }
+    let level = (distance / min_distance).log2().floor();
+    (level as u32).min(mip_count.saturating_sub(1))
 }
 
 /// Distance from `p` to the box (0 inside).
@@ -410,6 +434,67 @@ impl AtlasTree {
                 .then(a.block.cmp(&b.block))
         });
         all
+    }
+
+    /// The loader's mesh → texture table for this tree: the scene's meshes, then one
+    /// pseudo-mesh per node whose texture is the node's atlas.
+    pub fn loader_mesh_textures(&self, scene: &Scene) -> Vec<u32> {
+        scene
+            .meshes
+            .iter()
+            .map(|m| m.texture)
+            .chain(self.nodes.iter().map(|n| n.atlas))
+            .collect()
+    }
+
+    /// §6 for a view: the ideal block set (the first `capacity_blocks` of
+    /// [`AtlasTree::block_priorities`] that are not [`Usage::NotNeeded`]) as loader records
+    /// in priority order. `scene_meshes` is the scene's mesh count (where the atlas
+    /// pseudo-meshes start); `atlas_mips` the atlases' mip count.
+    pub fn paging(&self, view: &TreeView, capacity_blocks: usize, scene_meshes: u32, atlas_mips: u32) -> Paging {
+        let scale = self
+            .params
+            .distance_scale(view.screen_height, view.fov_y, view.texel_per_pixel) as f32;
+        let wanted: Vec<BlockPriority> = self
+            .block_priorities(view)
+            .into_iter()
+            .take_while(|p| p.usage != Usage::NotNeeded)
+            .collect();
+        let over_capacity = wanted.len().saturating_sub(capacity_blocks);
+        let ideal: Vec<BlockPriority> = wanted.into_iter().take(capacity_blocks).collect();
+        let count = ideal.len() as u32;
+        let mut records = Vec::new();
+        for (rank, priority) in ideal.iter().enumerate() {
+            // Heaviest first, all above the loader's cut-off.
+            let weight = DEFAULT_WEIGHT_CUTOFF.saturating_add(count - rank as u32);
+            match priority.block {
+                Block::Atlas(n) => {
+                    let node = &self.nodes[n as usize];
+                    records.push(MeshMetaData {
+                        mip_level: atlas_level_for(priority.distance, node.min_distance * scale, atlas_mips),
+                        weight,
+                        mesh_id: scene_meshes.saturating_add(n),
+                    });
+                }
+                // Nearer than d_min: the originals at full resolution (the paper loads
+                // them whole).
+                Block::Originals(n) => {
+                    let node = &self.nodes[n as usize];
+                    records.extend(
+                        (node.first_mesh..node.first_mesh + node.mesh_count).map(|mesh_id| MeshMetaData {
+                            mip_level: 0,
+                            weight,
+                            mesh_id,
+                        }),
+                    );
+                }
+            }
+        }
+        Paging {
+            ideal: ideal.iter().map(|p| p.block).collect(),
+            over_capacity,
+            records,
+        }
     }
 
     /// Opens the tree of an opened dataset (its write directory's [`TREE_FILE`]), checked
@@ -825,6 +910,38 @@ mod tests {
             leaves.sort_unstable();
             assert_eq!(leaves, vec![1, 2, 3, 4], "eye {eye:?}");
         }
+    }
+
+    #[test]
+    fn atlas_tree_paging_records_are_the_ideal_block_set_in_priority_order() {
+        let tree = row_tree();
+        let mut planes = EVERYWHERE;
+        planes[0] = [1.0, 0.0, 0.0, -150.0];
+        let view = view([140.0, 15.0, 5.0], planes);
+        let order: Vec<Block> = tree
+            .block_priorities(&view)
+            .iter()
+            .filter(|p| p.usage != Usage::NotNeeded)
+            .map(|p| p.block)
+            .collect();
+        // Scene meshes 0..4 (one per leaf); atlases are pseudo-meshes 4 + node.
+        let paging = tree.paging(&view, 3, 4, 7);
+        assert_eq!(paging.ideal, order[..3].to_vec());
+        assert_eq!(paging.over_capacity, order.len() - 3);
+        // Leaf 2's originals (its mesh 1), leaf 3's atlas (pseudo-mesh 7), leaf 4's (8),
+        // weights strictly falling, all above the cut-off.
+        let meshes: Vec<u32> = paging.records.iter().map(|r| r.mesh_id).collect();
+        assert_eq!(meshes, vec![1, 7, 8]);
+        assert!(paging.records.windows(2).all(|w| w[0].weight > w[1].weight));
+        assert!(paging.records.iter().all(|r| r.weight > DEFAULT_WEIGHT_CUTOFF));
+        // Leaf 3 is 60 m away, its atlas good from 10 m: two levels coarser do (40 m);
+        // leaf 4 at 160 m: four.
+        let levels: Vec<u32> = paging.records.iter().map(|r| r.mip_level).collect();
+        assert_eq!(levels, vec![0, 2, 4]);
+        assert_eq!(atlas_level_for(5.0, 10.0, 7), 0);
+        assert_eq!(atlas_level_for(1e9, 10.0, 7), 6);
+        assert_eq!(atlas_level_for(f32::NAN, 10.0, 7), 0);
+        assert_eq!(tree.loader_mesh_textures(&Scene::new([0.0; 3])), vec![0, 1, 2, 3, 4]);
     }
 
     #[test]
