@@ -714,6 +714,19 @@ impl AtlasTree {
             }
             nodes.push(node);
         }
+        // Every listed child names this node as its parent: child ranges never overlap, so
+        // the nodes form a tree (walks over it end, and visit each node once).
+        for (i, node) in nodes.iter().enumerate() {
+            if let Some(c) = node.children().find(|&c| nodes[c as usize].parent != i as u32) {
+                return Err(corrupt(
+                    HEADER_BYTES + c as usize * NODE_BYTES,
+                    format!(
+                        "node {c}: listed as a child of node {i}, but its parent is {}",
+                        nodes[c as usize].parent
+                    ),
+                ));
+            }
+        }
         // Every mesh in exactly one leaf.
         let mut owner = vec![false; scene.meshes.len()];
         for (i, node) in nodes.iter().enumerate() {

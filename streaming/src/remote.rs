@@ -64,6 +64,8 @@ pub struct RemoteOptions {
     pub s3_region: Option<String>,
     /// An on-disk mip cache to read through (none by default).
     pub mip_cache: Option<MipCacheOptions>,
+    /// `CITYSTREAM_MIP_CACHE_MB` where set: the capacity a cache named later gets.
+    pub mip_cache_capacity_bytes: Option<u64>,
 }
 
 /// Where the on-disk mip cache lies and how much it holds.
@@ -77,11 +79,17 @@ pub struct MipCacheOptions {
 }
 
 /// The mip cache's default capacity in `dir` (which must exist): a quarter of the space
-/// free there, so the cache never crowds out the rest of the disk.
+/// free there plus what the cache already holds (so reopening does not shrink it), so the
+/// cache never crowds out the rest of the disk; at least [`MIN_DEFAULT_MIP_CACHE_BYTES`].
 pub fn default_mip_cache_bytes(dir: &Path) -> Result<u64, DatasetError> {
     let stat = rustix::fs::statvfs(dir).map_err(|e| DatasetError::io(dir, e.into()))?;
-    Ok(stat.f_bavail.saturating_mul(stat.f_frsize) / 4)
+    let free = stat.f_bavail.saturating_mul(stat.f_frsize);
+    Ok((free.saturating_add(MipCache::bytes_in(dir)) / 4).max(MIN_DEFAULT_MIP_CACHE_BYTES))
 }
+
+/// The least a default mip cache capacity is (a full disk still gets a small cache; its
+/// writes then fail and are counted, and loads go on).
+pub const MIN_DEFAULT_MIP_CACHE_BYTES: u64 = 64 << 20;
 
 impl Default for RemoteOptions {
     fn default() -> Self {
@@ -95,6 +103,7 @@ impl Default for RemoteOptions {
             s3_endpoint: None,
             s3_region: None,
             mip_cache: None,
+            mip_cache_capacity_bytes: None,
         }
     }
 }
@@ -151,10 +160,12 @@ impl RemoteOptions {
         if let Ok(text) = std::env::var("CITYSTREAM_MIP_CACHE_MB") {
             let bytes = parse_megabytes(&text)
                 .ok_or_else(|| DatasetError::InvalidInput(format!("CITYSTREAM_MIP_CACHE_MB={text}: {MEGABYTES}")))?;
-            let cache = options.mip_cache.as_mut().ok_or_else(|| {
-                DatasetError::InvalidInput("CITYSTREAM_MIP_CACHE_MB is set but CITYSTREAM_MIP_CACHE is not".into())
-            })?;
-            cache.capacity_bytes = Some(bytes);
+            // Without a directory there is no cache to size (a `--mip-cache DIR` given later
+            // takes this capacity).
+            options.mip_cache_capacity_bytes = Some(bytes);
+            if let Some(cache) = options.mip_cache.as_mut() {
+                cache.capacity_bytes = Some(bytes);
+            }
         }
         Ok(options)
     }
@@ -382,7 +393,9 @@ impl RemoteStore {
             let mut state = self.prefetched.lock();
             let mut held = state.held_bytes();
             while let Some(range) = state.deferred.front() {
-                if held.saturating_add(range.2) > self.prefetch_limit_bytes {
+                // A range larger than the limit goes when nothing else is held, so it
+                // never blocks the ranges behind it for good.
+                if held > 0 && held.saturating_add(range.2) > self.prefetch_limit_bytes {
                     break;
                 }
                 let Some(range) = state.deferred.pop_front() else { break };
@@ -507,13 +520,16 @@ impl DatasetStore for RemoteStore {
                 .retain(|(p, o, l), slot| matches!(slot, Slot::Pending) || (p == path && wanted.contains(&(*o, *l))));
             state.deferred.clear();
             let mut held = state.held_bytes();
+            let mut deferred: HashSet<(u64, u64)> = HashSet::new();
             for (priority, &(offset, len)) in ranges.iter().enumerate() {
                 let range = (path.to_path_buf(), offset, len);
-                if len == 0 || state.slots.contains_key(&range) {
+                if len == 0 || state.slots.contains_key(&range) || deferred.contains(&(offset, len)) {
                     continue;
                 }
-                // Past the limit, in priority order: requested as reads free room.
-                if held.saturating_add(len) > self.prefetch_limit_bytes {
+                // Past the limit, in priority order: requested as reads free room. Once
+                // one range waits, the lower-priority ones behind it wait too.
+                if !deferred.is_empty() || (held > 0 && held.saturating_add(len) > self.prefetch_limit_bytes) {
+                    deferred.insert((offset, len));
                     state.deferred.push_back(range);
                     continue;
                 }

@@ -118,7 +118,7 @@ impl RemoteArgs {
         if let Some(dir) = &cache.mip_cache {
             options.mip_cache = Some(MipCacheOptions {
                 dir: dir.clone(),
-                capacity_bytes: None,
+                capacity_bytes: options.mip_cache_capacity_bytes,
             });
         }
         if let Some(bytes) = cache.mip_cache_mb {

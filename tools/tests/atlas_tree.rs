@@ -247,6 +247,24 @@ fn atlas_tree_bad_input_is_refused_clearly() {
         }
     }
     std::fs::write(&file, &good).expect("restore");
+
+    // A file whose nodes each list the next four as children and name the one before as
+    // parent passes every per-node check, but is no tree (walks over it would explode):
+    // refused.
+    let dataset = Dataset::open(&tree_dir).expect("dataset");
+    let mut chain = AtlasTree::open(&dataset).expect("tree");
+    let n = chain.nodes.len() as u32;
+    let meshes = dataset.scene.meshes.len() as u32;
+    for (k, node) in chain.nodes.iter_mut().enumerate() {
+        let k = k as u32;
+        node.parent = if k == 0 { u32::MAX } else { k - 1 };
+        node.child_count = (n - 1 - k).min(4);
+        node.first_child = if node.child_count > 0 { k + 1 } else { 0 };
+        (node.first_mesh, node.mesh_count) = if k == n - 1 { (0, meshes) } else { (0, 0) };
+    }
+    let bytes = chain.encode(dataset.files().write_id());
+    let error = AtlasTree::decode(&file, &bytes, &dataset).expect_err("a chain of overlapping children");
+    assert!(error.to_string().contains("listed as a child"), "{error}");
     let run = citystream(&["verify", tree_dir.to_str().expect("utf-8")]);
     assert!(run.status.success(), "{}", stderr(&run));
     assert!(String::from_utf8_lossy(&run.stdout).contains("atlas tree of"));

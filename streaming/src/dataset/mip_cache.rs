@@ -153,6 +153,21 @@ impl MipCache {
         Ok(cache)
     }
 
+    /// Bytes the entries in the cache directory `dir` hold (0 where there is none yet): what
+    /// a default capacity counts as the cache's own besides the free space.
+    pub fn bytes_in(dir: &Path) -> u64 {
+        let root = dir.join(LAYOUT_DIR);
+        let mut total = 0;
+        for namespace in std::fs::read_dir(&root).into_iter().flatten().flatten() {
+            for file in std::fs::read_dir(namespace.path()).into_iter().flatten().flatten() {
+                if file.file_name() != "SOURCE" && !file.file_name().to_string_lossy().starts_with(TEMP_PREFIX) {
+                    total += file.metadata().map_or(0, |m| if m.is_file() { m.len() } else { 0 });
+                }
+            }
+        }
+        total
+    }
+
     /// The cache's directory (as given to [`MipCache::open`]).
     pub fn dir(&self) -> &Path {
         self.root.parent().unwrap_or(&self.root)
@@ -272,14 +287,18 @@ impl MipCache {
 
     /// Writes `bytes` to a temporary file in `dir` and renames it to `path`.
     fn write_atomically(dir: &Path, path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+        // A name no other writer uses: process id, a per-process counter and the time
+        // (processes in different PID namespaces may share the id), created only if new.
+        let nanos = SystemTime::now()
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
         let temp = dir.join(format!(
-            "{TEMP_PREFIX}{}-{}",
+            "{TEMP_PREFIX}{}-{}-{nanos}",
             std::process::id(),
             TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
         ));
-        let written = File::create(&temp)
-            .and_then(|mut file| file.write_all(bytes))
-            .and_then(|()| std::fs::rename(&temp, path));
+        let mut file = OpenOptions::new().write(true).create_new(true).open(&temp)?;
+        let written = file.write_all(bytes).and_then(|()| std::fs::rename(&temp, path));
         if written.is_err() {
             let _ = std::fs::remove_file(&temp);
         }
@@ -340,11 +359,20 @@ impl MipCache {
             }
             accounting.written_since_scan = 0;
         }
-        let Ok(lock) = File::open(self.root.join(LOCK_FILE)) else {
-            return;
-        };
-        if lock.try_lock().is_err() {
-            return;
+        // Writable (an exclusive lock over NFS needs it) and recreated if someone emptied
+        // the directory. Only another process trimming skips this trim; where locking
+        // itself fails, trimming unlocked is still safe (removals of files another process
+        // also removes just fail).
+        let lock = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(self.root.join(LOCK_FILE));
+        if let Ok(lock) = &lock {
+            if let Err(std::fs::TryLockError::WouldBlock) = lock.try_lock() {
+                return;
+            }
         }
         if let Ok(mut entries) = self.scan() {
             let mut held: u64 = entries.iter().map(|e| e.len).sum();
@@ -367,7 +395,9 @@ impl MipCache {
             let mut accounting = self.accounting();
             accounting.held_bytes = held + accounting.written_since_scan;
         }
-        let _ = lock.unlock();
+        if let Ok(lock) = &lock {
+            let _ = lock.unlock();
+        }
     }
 }
 
@@ -526,6 +556,15 @@ mod tests {
         let entries = cache.scan().expect("scan");
         assert_eq!(entries.len(), 1, "temporary files are not entries");
         assert!(!stale.exists() && fresh_temp.exists());
+        // Someone empties the directory's lock file away: trimming still happens.
+        std::fs::remove_file(dir.join(LAYOUT_DIR).join(LOCK_FILE)).expect("remove the lock file");
+        for i in 1..40u32 {
+            let (bytes, crc) = mip(i as u8, 64 << 10);
+            cache.write(&ns, i, 0, crc, &bytes);
+        }
+        let held: u64 = cache.scan().expect("scan").iter().map(|e| e.len).sum();
+        assert!(held <= 1 << 20, "{held} bytes held in a 1 MiB cache");
+        assert!(cache.stats().evicted > 0);
         std::fs::remove_dir_all(&dir).expect("clean up");
     }
 }
