@@ -363,24 +363,11 @@ pub fn run(args: &AtlasArgs) -> Result<()> {
     let mut new_id: Vec<u32> = vec![0; count];
     let mut standalone = 0u32;
     let mut buf = Vec::new();
-    for (t, info) in infos.iter().enumerate() {
+    for t in 0..count {
         match placements[t] {
             Some(p) => new_id[t] = p.atlas as u32,
             None => {
-                let mut chain = Vec::with_capacity(info.chain_len() as usize);
-                for level in 0..info.mip_count() {
-                    dataset.textures.read_mip(t as u32, level, &mut buf)?;
-                    chain.extend_from_slice(&buf);
-                }
-                let colour = dataset.colormap.get(t as u32).unwrap_or([128, 128, 128, 255]);
-                new_id[t] = writer.add_texture(
-                    info.format(),
-                    info.width(),
-                    info.height(),
-                    info.mip_count(),
-                    &chain,
-                    colour,
-                )?;
+                new_id[t] = copy_texture(&dataset, t as u32, &mut writer, &mut buf)?;
                 standalone += 1;
             }
         }
@@ -437,6 +424,26 @@ pub fn run(args: &AtlasArgs) -> Result<()> {
         peak_buffered as f64 / f64::from(1 << 20),
         args.buffer_mb,
     ))
+}
+
+/// Copies texture `t` of `dataset` (every level, and its colormap colour) unchanged into
+/// `writer`; returns its id there. `buf` is reused between calls.
+pub fn copy_texture(dataset: &Dataset, t: u32, writer: &mut DatasetWriter, buf: &mut Vec<u8>) -> Result<u32> {
+    let info = dataset.textures.info(t)?;
+    let mut chain = Vec::with_capacity(info.chain_len() as usize);
+    for level in 0..info.mip_count() {
+        dataset.textures.read_mip(t, level, buf)?;
+        chain.extend_from_slice(buf);
+    }
+    let colour = dataset.colormap.get(t).unwrap_or([128, 128, 128, 255]);
+    Ok(writer.add_texture(
+        info.format(),
+        info.width(),
+        info.height(),
+        info.mip_count(),
+        &chain,
+        colour,
+    )?)
 }
 
 /// Composes one atlas: its mip chain (full, finest first) and the area-weighted mean colour

@@ -366,21 +366,8 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
     // root-atlas coordinates per vertex.
     let original_base = nodes.len() as u32;
     let mut buf = Vec::new();
-    for (t, info) in infos.iter().enumerate() {
-        let mut chain = Vec::with_capacity(info.chain_len() as usize);
-        for level in 0..info.mip_count() {
-            dataset.textures.read_mip(t as u32, level, &mut buf)?;
-            chain.extend_from_slice(&buf);
-        }
-        let colour = dataset.colormap.get(t as u32).unwrap_or([128, 128, 128, 255]);
-        writer.add_texture(
-            info.format(),
-            info.width(),
-            info.height(),
-            info.mip_count(),
-            &chain,
-            colour,
-        )?;
+    for t in 0..infos.len() as u32 {
+        crate::atlas::copy_texture(&dataset, t, &mut writer, &mut buf)?;
     }
     let mut out_scene = Scene::new(scene.origin);
     let mut atlas_uvs: Vec<[f32; 2]> = Vec::new();

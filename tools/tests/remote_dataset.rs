@@ -54,35 +54,10 @@ fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
     };
     let url = nginx.url("city/");
 
-    let local_out = dir.join("local");
-    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &FRAMES_AND_ERROR, &[])
-        .output()
-        .expect("run flythrough");
-    assert!(out.status.success(), "local run: {}", stderr(&out));
-    let remote_out = dir.join("remote");
-    let out = fixed_run(&url, &remote_out, &FRAMES_AND_ERROR, &[])
-        .output()
-        .expect("run flythrough");
-    assert!(out.status.success(), "remote run: {}", stderr(&out));
+    let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &FRAMES_AND_ERROR, &[]);
+    let remote_out = run_ok(&dir, "remote", &url, &FRAMES_AND_ERROR, &[]);
 
-    // Frame for frame the same streaming (the fixed clock waits for every load, wherever it
-    // comes from): the same per-frame uploads, residency and error, and the same pixels.
-    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("local frames.csv");
-    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("remote frames.csv");
-    assert_eq!(local_csv.lines().count(), 91);
-    assert_eq!(
-        remote_csv, local_csv,
-        "frames.csv differs between the remote and the local run"
-    );
-    for frame in [0, 30, 60] {
-        let name = format!("frame_{frame:05}.png");
-        let local = image::open(local_out.join("frames").join(&name)).expect("local frame");
-        let remote = image::open(remote_out.join("frames").join(&name)).expect("remote frame");
-        assert!(local.to_rgba8() == remote.to_rgba8(), "{name} differs");
-    }
-    let remote = summary(&remote_out);
-    assert!(remote["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{remote}");
-    assert_eq!(remote["load_failures"], 0);
+    let local_csv = assert_same_frames(&local_out, &remote_out);
 
     // With room for only a few mips held ahead (the tiny city's are about 330 bytes), most
     // hints wait for reads to free room: still the same frames.
@@ -184,6 +159,38 @@ fn output_within(mut command: Command, limit: Duration) -> Output {
     }
 }
 
+/// Asserts that two runs of [`FRAMES_AND_ERROR`] streamed frame for frame the same (the
+/// fixed clock waits for every load, wherever it comes from): the same per-frame uploads,
+/// residency and error, the same pixels, and no failure; returns the local frames.csv.
+fn assert_same_frames(local_out: &Path, remote_out: &Path) -> String {
+    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("local frames.csv");
+    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("remote frames.csv");
+    assert_eq!(local_csv.lines().count(), 91);
+    assert_eq!(
+        remote_csv, local_csv,
+        "frames.csv differs between the remote and the local run"
+    );
+    for frame in [0, 30, 60] {
+        let name = format!("frame_{frame:05}.png");
+        let local = image::open(local_out.join("frames").join(&name)).expect("local frame");
+        let remote = image::open(remote_out.join("frames").join(&name)).expect("remote frame");
+        assert!(local.to_rgba8() == remote.to_rgba8(), "{name} differs");
+    }
+    let remote = summary(remote_out);
+    assert!(remote["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{remote}");
+    assert_eq!(remote["load_failures"], 0);
+    local_csv
+}
+
+/// [`fixed_run`] into `dir/name`, failing the test unless it succeeds within 300 s; returns
+/// the output directory.
+fn run_ok(dir: &Path, name: &str, dataset: &str, args: &[&str], env: &[(&str, &str)]) -> PathBuf {
+    let out_dir = dir.join(name);
+    let out = output_within(fixed_run(dataset, &out_dir, args, env), Duration::from_secs(300));
+    assert!(out.status.success(), "{name} run of {dataset}: {}", stderr(&out));
+    out_dir
+}
+
 /// The flythrough on `dataset` with the fixed clock at 160×96 into `out`, with
 /// synchronization validation (frames overlap), `extra` options and `env` variables.
 fn fixed_run(dataset: &str, out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Command {
@@ -232,16 +239,9 @@ fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
     let Some((dir, city, _nginx, proxy)) = city_behind_proxy("faults_retried", options) else {
         return;
     };
-    let local_out = dir.join("local");
-    let out = output_within(
-        fixed_run(city.to_str().expect("utf-8"), &local_out, &SHORT_RUN, &[]),
-        Duration::from_secs(300),
-    );
-    assert!(out.status.success(), "local: {}", stderr(&out));
-    let remote_out = dir.join("remote");
+    let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
     let url = format!("http://{}/city", proxy.addr());
-    let out = output_within(fixed_run(&url, &remote_out, &SHORT_RUN, &[]), Duration::from_secs(300));
-    assert!(out.status.success(), "through the faulty proxy: {}", stderr(&out));
+    let remote_out = run_ok(&dir, "remote", &url, &SHORT_RUN, &[]);
     assert!(
         proxy.faults() >= 3,
         "{} faults injected in {} requests",
@@ -317,32 +317,9 @@ fn a_city_streamed_from_s3_renders_what_it_renders_from_disk() {
     let env: Vec<(&str, String)> = s3.client_env();
     let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
 
-    let local_out = dir.join("local");
-    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &FRAMES_AND_ERROR, &[])
-        .output()
-        .expect("run flythrough");
-    assert!(out.status.success(), "local run: {}", stderr(&out));
-    let remote_out = dir.join("s3");
-    let out = output_within(
-        fixed_run(S3_CITY, &remote_out, &FRAMES_AND_ERROR, &env),
-        Duration::from_secs(300),
-    );
-    assert!(out.status.success(), "S3 run: {}", stderr(&out));
-    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("local frames.csv");
-    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("S3 frames.csv");
-    assert_eq!(
-        remote_csv, local_csv,
-        "frames.csv differs between the S3 and the local run"
-    );
-    for frame in [0, 30, 60] {
-        let name = format!("frame_{frame:05}.png");
-        let local = image::open(local_out.join("frames").join(&name)).expect("local frame");
-        let remote = image::open(remote_out.join("frames").join(&name)).expect("S3 frame");
-        assert!(local.to_rgba8() == remote.to_rgba8(), "{name} differs");
-    }
-    let run = summary(&remote_out);
-    assert!(run["mips_streamed"].as_u64().is_some_and(|m| m > 20), "{run}");
-    assert_eq!(run["load_failures"], 0);
+    let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &FRAMES_AND_ERROR, &[]);
+    let remote_out = run_ok(&dir, "s3", S3_CITY, &FRAMES_AND_ERROR, &env);
+    assert_same_frames(&local_out, &remote_out);
 
     // info and verify read the bucket; a missing prefix is a clear error naming it.
     let with_env = |args: &[&str]| {
@@ -388,17 +365,8 @@ fn s3_requests_dropped_and_cut_short_are_retried_and_change_nothing() {
     env[0].1 = format!("http://{}", proxy.addr());
     let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
 
-    let local_out = dir.join("local");
-    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &SHORT_RUN, &[])
-        .output()
-        .expect("run flythrough");
-    assert!(out.status.success(), "local: {}", stderr(&out));
-    let remote_out = dir.join("s3");
-    let out = output_within(
-        fixed_run(S3_CITY, &remote_out, &SHORT_RUN, &env),
-        Duration::from_secs(300),
-    );
-    assert!(out.status.success(), "S3 through the faulty proxy: {}", stderr(&out));
+    let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
+    let remote_out = run_ok(&dir, "s3", S3_CITY, &SHORT_RUN, &env);
     assert!(
         proxy.faults() >= 3,
         "{} faults injected in {} requests",
@@ -495,11 +463,7 @@ fn a_second_flight_reads_its_mips_from_the_mip_cache() {
     assert_eq!(second["load_failures"], 0);
     let csv = |out: &Path| std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
     assert_eq!(csv(&second_out), csv(&first_out));
-    let local_out = dir.join("local");
-    let out = fixed_run(city.to_str().expect("utf-8"), &local_out, &SHORT_RUN, &[])
-        .output()
-        .expect("run flythrough");
-    assert!(out.status.success(), "local: {}", stderr(&out));
+    let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
     assert_eq!(csv(&first_out), csv(&local_out));
 
     // A damaged entry is found by its CRC, dropped and read from the server again.
