@@ -26,6 +26,11 @@
 //!    [`FrameSubmit`] waits and signal the host's submission of this frame
 //!    must carry.
 //!
+//! A host with another way of knowing what the view needs (the texture-atlas tree's §6
+//! paging, `citystream_streaming::atlas_tree`) hands the loader its records with
+//! [`TextureStreamer::set_host_records`] before `begin_frame` instead: that frame's records
+//! replace the feedback, and steps 3's pass and resolve may be left out.
+//!
 //! Read-backs are consumed one or more frames after they were recorded:
 //! as soon as their frame completed, or, with
 //! [`StreamConfig::deterministic`], exactly `frames_in_flight` frames later
@@ -430,6 +435,8 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     fragment_area: f32,
     deterministic: bool,
     latest_feedback: Option<(u64, Vec<FeedbackEntry>)>,
+    /// Records the host set for the next `begin_frame`, in place of the feedback.
+    host_records: Option<Vec<MeshMetaData>>,
     eviction: Eviction,
     needs: NeedTable,
     gate: Arc<AdmissionGate>,
@@ -566,6 +573,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             fragment_area: config.fragment_area,
             deterministic: config.deterministic,
             latest_feedback: None,
+            host_records: None,
             eviction: config.eviction,
             needs: NeedTable::new(texture_count as usize),
             gate,
@@ -708,6 +716,23 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.latest_feedback.as_ref().map(|(f, e)| (*f, e.as_slice()))
     }
 
+    /// What the next [`begin_frame`](Self::begin_frame) hands the loader instead of the
+    /// feedback: records whose mesh ids index the mesh → texture table the streamer was
+    /// built with, weights as the loader's priorities (heaviest first; lighter than the
+    /// weight cut-off τ are skipped) and levels as the finest each needs. Replaces records
+    /// set before and not yet taken. A mesh id outside the table is refused.
+    pub fn set_host_records(&mut self, records: Vec<MeshMetaData>) -> Result<()> {
+        let meshes = self.loader.mesh_textures().len();
+        if let Some(bad) = records.iter().find(|r| r.mesh_id as usize >= meshes) {
+            return Err(EngineError::InvalidRequest(format!(
+                "host record for mesh {} of a mesh table of {meshes}",
+                bad.mesh_id
+            )));
+        }
+        self.host_records = Some(records);
+        Ok(())
+    }
+
     /// Step 1 of a frame; see the module docs.
     pub fn begin_frame(&mut self) -> Result<FrameBegin> {
         if self.in_frame {
@@ -752,7 +777,21 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             }
         }
         let mut loading_started = false;
-        if let Some((feedback_value, i)) = newest {
+        if let Some(records) = self.host_records.take() {
+            // The host decided what the view needs: feedback read back meanwhile is stale.
+            for s in self.slots.iter_mut().filter(|s| s.value <= completed) {
+                s.unread = false;
+            }
+            self.needs.observe(&records, self.loader.mesh_textures());
+            let records = prepare(records, self.tau);
+            if !self.loader.is_streaming() {
+                loading_started = if self.deterministic {
+                    self.loader.run_cycle(&records, self.decision).is_some()
+                } else {
+                    self.loader.try_spawn(records, self.decision)
+                };
+            }
+        } else if let Some((feedback_value, i)) = newest {
             for s in self.slots.iter_mut().filter(|s| s.unread && s.value <= feedback_value) {
                 s.unread = false;
             }

@@ -16,6 +16,7 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::Eviction;
 use citystream_engine::vk;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
+use citystream_streaming::records::MeshMetaData;
 use citystream_streaming::source::MemorySource;
 use citystream_tests::{assert_no_validation_errors, sync_validated_device};
 use glam::Vec3;
@@ -333,12 +334,15 @@ fn calls_out_of_order_are_refused() -> Result<()> {
 /// Streams `frames` frames of a fixed view of the row's first quads
 /// (texture 0 among them; the rest of the row is off screen) with the
 /// baseline policy, then waits for the device and returns the streamer.
+/// With `host_records`, every frame hands the loader those instead of
+/// feedback, and no feedback pass runs.
 fn stream_fixed_view(
     device: &Arc<Device>,
     source: MemorySource,
     meshes: Vec<CityMesh>,
     config: StreamConfig,
     frames: u32,
+    host_records: Option<Vec<MeshMetaData>>,
 ) -> Result<TextureStreamer<MemorySource>> {
     let (vertices, indices, _) = quad_row();
     let view = FeedbackView::default();
@@ -379,12 +383,17 @@ fn stream_fixed_view(
         far: 100.0,
     };
     for _ in 0..frames {
+        if let Some(records) = &host_records {
+            streamer.set_host_records(records.clone())?;
+        }
         let begun = streamer.begin_frame()?;
         let commands = &mut frame_commands[begun.slot as usize];
         let cmd = commands.begin_completed()?;
         streamer.record_uploads(cmd)?;
-        renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
-        streamer.record_feedback_resolve(cmd)?;
+        if host_records.is_none() {
+            renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
+            streamer.record_feedback_resolve(cmd)?;
+        }
         renderer.record_visible(cmd, &target, &camera, 1.0, true);
         let submit = streamer.end_frame(16.0)?;
         commands.submit_frame(&submit.waits, &[submit.signal])?;
@@ -410,7 +419,7 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         weight_cutoff: 1,
         ..StreamConfig::default()
     };
-    let streamer = stream_fixed_view(&device, source, meshes, config, 30)?;
+    let streamer = stream_fixed_view(&device, source, meshes, config, 30, None)?;
     let failures = streamer.load_failures();
     ensure!(
         streamer.failed_textures() == 1 && streamer.totals().failed == 1,
@@ -451,7 +460,7 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
         weight_cutoff: 1 << 30,
         ..StreamConfig::default()
     };
-    let streamer = stream_fixed_view(&device, source, meshes, config, 8)?;
+    let streamer = stream_fixed_view(&device, source, meshes, config, 8, None)?;
     let in_view: Vec<u32> = (0..QUADS).filter(|&t| streamer.needs().in_view(t)).collect();
     ensure!(
         in_view.len() >= 2 && in_view.iter().all(|&t| t < 3),
@@ -463,6 +472,52 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
         "{} mips loaded although no mesh reaches τ ({entries} entries read back)",
         streamer.totals().loaded_mips
     );
+    drop(streamer);
+    assert_no_validation_errors(&device)
+}
+
+/// A host that knows what the view needs another way (the texture-atlas tree's paging)
+/// hands the loader its own records: they replace the feedback, whatever the view shows.
+#[test]
+fn host_records_replace_the_feedback() -> Result<()> {
+    let device = sync_validated_device()?;
+    let mut source = MemorySource::new();
+    for _ in 0..QUADS {
+        source.push_bc1(TEXTURE, TEXTURE);
+    }
+    let (_, _, meshes) = quad_row();
+    let config = StreamConfig {
+        memory_budget_bytes: 64 << 20,
+        weight_cutoff: 1,
+        ..StreamConfig::default()
+    };
+    // The last quad is far off screen; quads 0 to 2 are on it.
+    let off_screen = QUADS - 1;
+    let records = vec![MeshMetaData {
+        mip_level: 0,
+        weight: 1000,
+        mesh_id: off_screen,
+    }];
+    let mut streamer = stream_fixed_view(&device, source, meshes, config, 30, Some(records))?;
+    let full = (1u32 << (TEXTURE.trailing_zeros() + 1)) - 1;
+    let resident: Vec<u32> = (0..QUADS).map(|t| streamer.cache().resident_levels(t)).collect();
+    ensure!(
+        resident[off_screen as usize] & 1 == 1,
+        "the host's texture did not reach level 0: resident levels {:b}",
+        resident[off_screen as usize]
+    );
+    ensure!(
+        resident[..off_screen as usize].iter().all(|&r| r == 0),
+        "textures the host did not ask for were loaded: {resident:?} (all levels: {full:b})"
+    );
+    let error = streamer
+        .set_host_records(vec![MeshMetaData {
+            mip_level: 0,
+            weight: 1000,
+            mesh_id: QUADS,
+        }])
+        .expect_err("a mesh id outside the table");
+    ensure!(error.to_string().contains("mesh 24"), "{error}");
     drop(streamer);
     assert_no_validation_errors(&device)
 }
