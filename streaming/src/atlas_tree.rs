@@ -497,12 +497,21 @@ impl AtlasTree {
         }
     }
 
-    /// Opens the tree of an opened dataset (its write directory's [`TREE_FILE`]), checked
-    /// against the dataset.
+    /// Opens the tree of an opened dataset (its write directory's [`TREE_FILE`], locally or
+    /// from the store it was opened from), checked against the dataset.
     pub fn open(dataset: &Dataset) -> Result<Self, DatasetError> {
+        Self::open_if_any(dataset)?.ok_or_else(|| DatasetError::Missing {
+            path: dataset.files().path(TREE_FILE),
+        })
+    }
+
+    /// [`AtlasTree::open`], or `None` where the dataset is no tree (has no [`TREE_FILE`]).
+    pub fn open_if_any(dataset: &Dataset) -> Result<Option<Self>, DatasetError> {
         let path = dataset.files().path(TREE_FILE);
-        let bytes = std::fs::read(&path).map_err(|e| DatasetError::io(&path, e))?;
-        Self::decode(&path, &bytes, dataset)
+        match dataset.read_write_file(TREE_FILE)? {
+            Some(bytes) => Self::decode(&path, &bytes, dataset).map(Some),
+            None => Ok(None),
+        }
     }
 
     /// Encodes the tree for the dataset write `write_id`.

@@ -453,16 +453,11 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
     })
 }
 
-/// The atlas tree of `dataset`, if it is one (its write directory holds `atlas-tree.bin`;
-/// local datasets only), checked against it.
+/// The atlas tree of `dataset`, if it is one (its write directory holds `atlas-tree.bin`,
+/// locally or remotely), checked against it.
 pub fn open_if_tree(dataset: &Dataset) -> Result<Option<AtlasTree>> {
     let path = dataset.files().path(TREE_FILE);
-    if !path.is_file() {
-        return Ok(None);
-    }
-    Ok(Some(
-        AtlasTree::open(dataset).with_context(|| format!("checking {}", path.display()))?,
-    ))
+    AtlasTree::open_if_any(dataset).with_context(|| format!("checking {}", path.display()))
 }
 
 /// What `info` reports of a tree.

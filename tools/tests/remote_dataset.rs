@@ -506,3 +506,34 @@ fn a_second_flight_reads_its_mips_from_the_mip_cache() {
     assert!(held > 0);
     assert_eq!(csv(&small_out), csv(&first_out));
 }
+
+#[test]
+fn a_texture_atlas_tree_is_read_and_checked_over_http() {
+    let Some((dir, city, nginx)) = served_city("atlas_tree") else {
+        return;
+    };
+    let tree = dir.join("www").join("tree");
+    let out = citystream(&[
+        "atlas-tree",
+        city.to_str().expect("utf-8"),
+        "--out",
+        tree.to_str().expect("utf-8"),
+        "--atlas-extent",
+        "128",
+        "--quiet",
+    ]);
+    assert!(out.status.success(), "atlas-tree: {}", stderr(&out));
+    let info = |location: &str| -> serde_json::Value {
+        let out = citystream(&["info", location, "--json"]);
+        assert!(out.status.success(), "info {location}: {}", stderr(&out));
+        let json: serde_json::Value = serde_json::from_slice(&out.stdout).expect("info JSON");
+        json["atlas_tree"].clone()
+    };
+    let url = nginx.url("tree/");
+    let local = info(tree.to_str().expect("utf-8"));
+    assert!(local["nodes"].as_u64().is_some_and(|n| n > 1), "{local}");
+    assert_eq!(info(&url), local);
+    let out = citystream(&["verify", &url]);
+    assert!(out.status.success(), "verify: {}", stderr(&out));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("atlas tree of"));
+}

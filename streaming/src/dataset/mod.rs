@@ -76,6 +76,8 @@ pub const CHECKSUM_FILE: &str = "textures.crc";
 #[derive(Debug)]
 pub struct Dataset {
     files: DatasetFiles,
+    /// Where it was opened from (`None`: the local directory).
+    store: Option<Arc<dyn DatasetStore>>,
     /// All meshes and geometry.
     pub scene: Scene,
     /// Texture metadata and mip reads.
@@ -167,11 +169,27 @@ impl Dataset {
         }
         Ok(Self {
             files: files.clone(),
+            store: store.cloned(),
             scene,
             textures,
             colormap,
             scene_file_len: scene_bytes.len() as u64,
         })
+    }
+
+    /// Another file of the opened write's directory (beside the five of the format, e.g. an
+    /// atlas tree's `atlas-tree.bin`), whole, from wherever the dataset was opened; `None`
+    /// where the write has no such file.
+    pub fn read_write_file(&self, name: &str) -> Result<Option<Vec<u8>>, DatasetError> {
+        let path = self.files.path(name);
+        if self.store.is_none() && !path.exists() {
+            return Ok(None);
+        }
+        match store::read_file(self.store.as_ref(), &path) {
+            Ok(bytes) => Ok(Some(bytes)),
+            Err(DatasetError::Missing { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
     }
 
     /// Bytes of the scene file as it was read.
