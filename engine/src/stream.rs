@@ -784,13 +784,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             }
             self.needs.observe(&records, self.loader.mesh_textures());
             let records = prepare(records, self.tau);
-            if !self.loader.is_streaming() {
-                loading_started = if self.deterministic {
-                    self.loader.run_cycle(&records, self.decision).is_some()
-                } else {
-                    self.loader.try_spawn(records, self.decision)
-                };
-            }
+            loading_started = self.start_loading(records);
         } else if let Some((feedback_value, i)) = newest {
             for s in self.slots.iter_mut().filter(|s| s.unread && s.value <= feedback_value) {
                 s.unread = false;
@@ -808,13 +802,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                 .map(|(record, _)| record)
                 .collect();
             let records = prepare(heavy, self.tau);
-            if !self.loader.is_streaming() {
-                loading_started = if self.deterministic {
-                    self.loader.run_cycle(&records, self.decision).is_some()
-                } else {
-                    self.loader.try_spawn(records, self.decision)
-                };
-            }
+            loading_started = self.start_loading(records);
             self.latest_feedback = Some((feedback_value - 1, entries));
         }
         // Pack what the loader staged, then bind.
@@ -846,6 +834,19 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             refused,
             over_budget,
         })
+    }
+
+    /// Hands `records` to the loader unless a loading task still runs (Algorithm 1's
+    /// gate): on this thread in deterministic runs, else on a worker. Whether a cycle ran
+    /// or started.
+    fn start_loading(&mut self, records: Vec<MeshMetaData>) -> bool {
+        if self.loader.is_streaming() {
+            false
+        } else if self.deterministic {
+            self.loader.run_cycle(&records, self.decision).is_some()
+        } else {
+            self.loader.try_spawn(records, self.decision)
+        }
     }
 
     /// Whether this frame is over budget, and the gate's threshold for the

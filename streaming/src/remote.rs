@@ -118,32 +118,24 @@ impl RemoteOptions {
     pub fn from_env() -> Result<Self, DatasetError> {
         let mut options = Self::default();
         if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_RETRIES") {
-            options.retries =
-                text.trim().parse().ok().filter(|r| *r <= 100).ok_or_else(|| {
-                    DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_RETRIES={text}: not 0..=100"))
-                })?;
+            options.retries = text.trim().parse().ok().filter(|r| *r <= MAX_RETRIES).ok_or_else(|| {
+                DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_RETRIES={text}: not 0..={MAX_RETRIES}"))
+            })?;
         }
         if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_IN_FLIGHT") {
-            options.requests_in_flight =
-                text.trim()
-                    .parse()
-                    .ok()
-                    .filter(|n| (1..=1024).contains(n))
-                    .ok_or_else(|| {
-                        DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_IN_FLIGHT={text}: not 1..=1024"))
-                    })?;
-        }
-        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_TIMEOUT_S") {
-            let seconds: f64 = text
+            options.requests_in_flight = text
                 .trim()
                 .parse()
                 .ok()
-                .filter(|s: &f64| s.is_finite() && *s > 0.0 && *s <= 3600.0)
+                .filter(|n| (1..=MAX_IN_FLIGHT).contains(n))
                 .ok_or_else(|| {
-                    DatasetError::InvalidInput(format!(
-                        "CITYSTREAM_REMOTE_TIMEOUT_S={text}: not a number of seconds in (0, 3600]"
-                    ))
+                    DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_IN_FLIGHT={text}: not 1..={MAX_IN_FLIGHT}"))
                 })?;
+        }
+        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_TIMEOUT_S") {
+            let seconds = parse_timeout_seconds(&text).ok_or_else(|| {
+                DatasetError::InvalidInput(format!("CITYSTREAM_REMOTE_TIMEOUT_S={text}: {TIMEOUT_SECONDS}"))
+            })?;
             options.timeout = Duration::from_secs_f64(seconds);
         }
         if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_PREFETCH_MB") {
@@ -169,6 +161,21 @@ impl RemoteOptions {
         }
         Ok(options)
     }
+}
+
+/// Retries per request at most ([`RemoteOptions::retries`]).
+pub const MAX_RETRIES: usize = 100;
+/// Requests in flight at most ([`RemoteOptions::requests_in_flight`]).
+pub const MAX_IN_FLIGHT: usize = 1024;
+/// What [`parse_timeout_seconds`] accepts.
+pub const TIMEOUT_SECONDS: &str = "not a number of seconds in (0, 3600]";
+
+/// A request timeout in seconds, from just above 0 to an hour.
+pub fn parse_timeout_seconds(text: &str) -> Option<f64> {
+    text.trim()
+        .parse()
+        .ok()
+        .filter(|s: &f64| s.is_finite() && *s > 0.0 && *s <= 3600.0)
 }
 
 /// What [`parse_megabytes`] accepts.

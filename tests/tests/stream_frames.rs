@@ -55,6 +55,15 @@ fn quad_row() -> (Vec<Vertex>, Vec<u32>, Vec<CityMesh>) {
     (vertices, indices, meshes)
 }
 
+/// One `TEXTURE`² BC1 texture per quad of [`quad_row`].
+fn row_source() -> MemorySource {
+    let mut source = MemorySource::new();
+    for _ in 0..QUADS {
+        source.push_bc1(TEXTURE, TEXTURE);
+    }
+    source
+}
+
 /// What one frame of [`run`] did.
 #[derive(Debug)]
 struct FrameRecord {
@@ -75,10 +84,7 @@ fn run(
     pause_at: Option<u32>,
 ) -> Result<Vec<FrameRecord>> {
     let device = sync_validated_device()?;
-    let mut source = MemorySource::new();
-    for _ in 0..QUADS {
-        source.push_bc1(TEXTURE, TEXTURE);
-    }
+    let source = row_source();
     let (vertices, indices, meshes) = quad_row();
     let colormap: Vec<[u8; 4]> = (0..QUADS)
         .map(|q| [q as u8 * 10, 128, 255 - q as u8 * 10, 255])
@@ -448,10 +454,7 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
 #[test]
 fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<()> {
     let device = sync_validated_device()?;
-    let mut source = MemorySource::new();
-    for _ in 0..QUADS {
-        source.push_bc1(TEXTURE, TEXTURE);
-    }
+    let source = row_source();
     let (_, _, meshes) = quad_row();
     let config = StreamConfig {
         eviction: Eviction::View,
@@ -481,10 +484,7 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
 #[test]
 fn host_records_replace_the_feedback() -> Result<()> {
     let device = sync_validated_device()?;
-    let mut source = MemorySource::new();
-    for _ in 0..QUADS {
-        source.push_bc1(TEXTURE, TEXTURE);
-    }
+    let source = row_source();
     let (_, _, meshes) = quad_row();
     let config = StreamConfig {
         memory_budget_bytes: 64 << 20,

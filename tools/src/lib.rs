@@ -18,6 +18,7 @@ pub mod path;
 pub mod remote_bench;
 pub mod report;
 pub mod s3_emulator;
+pub mod server_process;
 pub mod simulate;
 pub mod upgrade;
 pub mod verify;
@@ -27,7 +28,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use citystream_streaming::dataset::Dataset;
-use citystream_streaming::remote::{open_dataset as open_location, MipCacheOptions, RemoteOptions};
+use citystream_streaming::remote::{self, open_dataset as open_location, MipCacheOptions, RemoteOptions};
 
 /// Opens the dataset at `location`: a directory, or a URL (`http(s)://host/path/`,
 /// `s3://bucket/prefix/`; see `citystream_streaming::remote`), with the remote settings of
@@ -47,11 +48,11 @@ pub fn open_dataset_with(location: &Path, options: &RemoteOptions) -> anyhow::Re
 pub struct RemoteArgs {
     /// Remote datasets: range requests in flight at most while prefetching
     /// (default 64, or CITYSTREAM_REMOTE_IN_FLIGHT).
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=remote::MAX_IN_FLIGHT as i64))]
     pub remote_in_flight: Option<u32>,
     /// Remote datasets: retries of a failed request, with exponential backoff
     /// (default 5, or CITYSTREAM_REMOTE_RETRIES).
-    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=100))]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=remote::MAX_RETRIES as i64))]
     pub remote_retries: Option<u32>,
     /// Remote datasets: seconds before a request is abandoned and retried
     /// (default 30, or CITYSTREAM_REMOTE_TIMEOUT_S).
@@ -82,15 +83,11 @@ pub struct MipCacheArgs {
 
 /// MB (fractions allowed) as bytes.
 fn parse_megabytes_arg(text: &str) -> Result<u64, String> {
-    citystream_streaming::remote::parse_megabytes(text)
-        .ok_or_else(|| format!("`{text}`: {}", citystream_streaming::remote::MEGABYTES))
+    remote::parse_megabytes(text).ok_or_else(|| format!("`{text}`: {}", remote::MEGABYTES))
 }
 
 fn parse_timeout_s(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(s) if s.is_finite() && s > 0.0 && s <= 3600.0 => Ok(s),
-        _ => Err(format!("`{text}` is not a number of seconds in (0, 3600]")),
-    }
+    remote::parse_timeout_seconds(text).ok_or_else(|| format!("`{text}`: {}", remote::TIMEOUT_SECONDS))
 }
 
 impl RemoteArgs {

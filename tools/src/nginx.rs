@@ -6,9 +6,11 @@
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+
+use crate::server_process::wait_until_listening;
 
 /// A running nginx, stopped on drop.
 #[derive(Debug)]
@@ -78,18 +80,9 @@ impl Nginx {
                 )
                 .spawn()
                 .with_context(|| format!("starting {}", binary.display()))?;
-            let started = Instant::now();
-            while started.elapsed() < Duration::from_secs(10) {
-                if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-                    return Ok(Self { child, port });
-                }
-                if child.try_wait()?.is_some() {
-                    break;
-                }
-                std::thread::sleep(Duration::from_millis(20));
+            if wait_until_listening(&mut child, Duration::from_secs(10), || Some(port))?.is_some() {
+                return Ok(Self { child, port });
             }
-            let _ = child.kill();
-            let _ = child.wait();
         }
         bail!(
             "nginx did not start: {}{}",

@@ -3,12 +3,13 @@
 //! started on a free port and stopped when dropped. Objects live in its memory; path-style
 //! requests, range reads and SigV4-signed requests from any credentials.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+
+use crate::server_process::wait_until_listening;
 
 /// Credentials the emulator is given (it accepts any; the client signs with them).
 pub const ACCESS_KEY_ID: &str = "citystream";
@@ -77,24 +78,10 @@ impl S3Emulator {
             .stderr(log)
             .spawn()
             .with_context(|| format!("starting {}", binary.display()))?;
-        let started = Instant::now();
-        while started.elapsed() < Duration::from_secs(60) {
-            let mut text = String::new();
-            if let Ok(mut file) = std::fs::File::open(&log_path) {
-                let _ = file.read_to_string(&mut text);
-            }
-            if let Some(port) = announced_port(&text) {
-                if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-                    return Ok(Self { child, port });
-                }
-            }
-            if child.try_wait()?.is_some() {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(50));
+        let announced = || announced_port(&std::fs::read_to_string(&log_path).unwrap_or_default());
+        if let Some(port) = wait_until_listening(&mut child, Duration::from_secs(60), announced)? {
+            return Ok(Self { child, port });
         }
-        let _ = child.kill();
-        let _ = child.wait();
         bail!(
             "the S3 emulator did not start: {}",
             std::fs::read_to_string(&log_path).unwrap_or_default()

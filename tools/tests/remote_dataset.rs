@@ -242,17 +242,22 @@ fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
     let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
     let url = format!("http://{}/city", proxy.addr());
     let remote_out = run_ok(&dir, "remote", &url, &SHORT_RUN, &[]);
+    assert_faults_retried(&proxy, &local_out, &remote_out);
+}
+
+/// Asserts that `proxy` injected faults and every one was retried to success: the same
+/// frames as from disk, nothing failed.
+fn assert_faults_retried(proxy: &FaultProxy, local_out: &Path, remote_out: &Path) {
     assert!(
         proxy.faults() >= 3,
         "{} faults injected in {} requests",
         proxy.faults(),
         proxy.requests()
     );
-    // Every fault was retried to success: the same frames as from disk, nothing failed.
     let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("csv");
     let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("csv");
     assert_eq!(remote_csv, local_csv);
-    let remote = summary(&remote_out);
+    let remote = summary(remote_out);
     assert_eq!(remote["load_failures"], 0, "{remote}");
 }
 
@@ -367,16 +372,7 @@ fn s3_requests_dropped_and_cut_short_are_retried_and_change_nothing() {
 
     let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
     let remote_out = run_ok(&dir, "s3", S3_CITY, &SHORT_RUN, &env);
-    assert!(
-        proxy.faults() >= 3,
-        "{} faults injected in {} requests",
-        proxy.faults(),
-        proxy.requests()
-    );
-    let local_csv = std::fs::read_to_string(local_out.join("frames.csv")).expect("csv");
-    let remote_csv = std::fs::read_to_string(remote_out.join("frames.csv")).expect("csv");
-    assert_eq!(remote_csv, local_csv);
-    assert_eq!(summary(&remote_out)["load_failures"], 0);
+    assert_faults_retried(&proxy, &local_out, &remote_out);
 }
 
 /// Bytes in the files under `dir`.

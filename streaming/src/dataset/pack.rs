@@ -409,14 +409,13 @@ impl TexturePack {
         if let PackReader::Store { store, cache } = &self.reader {
             let ranges: Vec<(u64, u64)> = mips
                 .iter()
-                .filter(|&&(texture, level)| {
-                    cache.as_ref().is_none_or(|(cache, namespace)| {
-                        self.mip_checksum(texture, level)
-                            .is_ok_and(|crc| !cache.contains(namespace, texture, level, crc))
-                    })
+                .filter_map(|&(texture, level)| {
+                    let location = self.mip_location(texture, level).ok()?;
+                    let cached = cache.as_ref().is_some_and(|(cache, namespace)| {
+                        cache.contains(namespace, texture, level, self.stored_checksum(texture, level))
+                    });
+                    (!cached).then_some((location.offset, location.len))
                 })
-                .filter_map(|&(texture, level)| self.mip_location(texture, level).ok())
-                .map(|location| (location.offset, location.len))
                 .collect();
             store.prefetch(&self.pack_path, &ranges);
         }
