@@ -56,6 +56,10 @@ pub struct AtlasTreeArgs {
     /// Default: the scene's diagonal / 150 (the paper's Berlin model used / 151).
     #[arg(long)]
     pub min_distance: Option<f32>,
+    /// Memory for atlases composed but not yet written, MB (at least one atlas is
+    /// composed at a time, whatever this says).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
+    pub buffer_mb: u64,
     /// Do not print progress and the summary.
     #[arg(long)]
     pub quiet: bool,
@@ -66,8 +70,12 @@ pub const FOV_Y_DEGREES: f32 = 60.0;
 /// Texels of border around each texture's area in an atlas (keeps neighbours apart in the
 /// coarser levels; one BC1 block).
 const BORDER: u32 = 4;
-/// Depth at which splitting stops whatever fits.
-const MAX_DEPTH: u32 = 16;
+/// Depth at which splitting stops whatever fits, for `extent`² atlases: a vertex's f32
+/// root-atlas coordinates, scaled by `2^depth` for its node, must still place it within a
+/// quarter texel (`2^(depth − 24) · extent <= 1/4`); never beyond 16.
+fn max_depth(extent: u32) -> u32 {
+    22u32.saturating_sub(extent.trailing_zeros()).min(16)
+}
 
 /// One triangle of the input.
 #[derive(Clone, Copy, Debug)]
@@ -225,7 +233,7 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
             nodes[index].areas = areas;
             continue;
         }
-        let groups = if level < MAX_DEPTH {
+        let groups = if level < max_depth(extent) {
             split(&nodes[index].triangles, &triangles)
         } else {
             Vec::new()
@@ -304,7 +312,9 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
     let mut min_distance = vec![d_min; nodes.len()];
     let mut halves: BTreeMap<usize, Vec<u8>> = BTreeMap::new();
     let order = post_order(&nodes);
-    let batch = (rayon::current_num_threads() * 8).max(8);
+    // A batch's RGBA atlases and their chains fit --buffer-mb; one at least.
+    let per_atlas = u64::from(extent) * u64::from(extent) * 4 * 2;
+    let batch = ((args.buffer_mb << 20) / per_atlas).clamp(1, rayon::current_num_threads() as u64 * 8) as usize;
     for (done, chunk) in order.chunks(batch).enumerate() {
         // Leaves in parallel; inner nodes in order (their children are earlier).
         let leaves: Vec<Result<Vec<u8>>> = chunk

@@ -29,6 +29,7 @@ fn tiny_tree(name: &str, extent: u32) -> (PathBuf, PathBuf, TreeSummary) {
         texel_per_pixel: 1.0,
         screen_height: 1080,
         min_distance: None,
+        buffer_mb: 256,
         quiet: true,
     })
     .expect("build the tree");
