@@ -183,8 +183,9 @@ pub struct CityRenderer {
     meshes: Vec<CityMesh>,
 }
 
-fn city_pipeline(
+pub(crate) fn city_pipeline(
     device: &Arc<Device>,
+    vertex: shaders::ShaderSource,
     fragment: shaders::ShaderSource,
     bindings: Vec<BindingSpec>,
     depth: DepthMode,
@@ -194,7 +195,7 @@ fn city_pipeline(
     Pipeline::graphics(
         device,
         &GraphicsDesc {
-            vertex: shaders::CITY_VERT,
+            vertex,
             fragment,
             vertex_stride: std::mem::size_of::<CityVertex>() as u32,
             attributes: CityVertex::attributes(),
@@ -219,7 +220,34 @@ fn single_draw_geometry(
     indices: &[u32],
     meshes: &[CityMesh],
 ) -> Result<(Vec<CityVertex>, Vec<u32>)> {
-    let mut city_vertices = Vec::with_capacity(vertices.len());
+    let (sources, city_indices) = single_draw_layout(vertices.len(), indices, meshes)?;
+    let city_vertices = sources
+        .iter()
+        .map(|&(mesh_id, source)| {
+            let v = &vertices[source as usize];
+            CityVertex {
+                position: v.position,
+                normal: v.normal,
+                uv: v.uv,
+                mesh_id,
+            }
+        })
+        .collect();
+    Ok((city_vertices, city_indices))
+}
+
+/// A drawn vertex's mesh and the scene vertex it copies.
+pub(crate) type VertexSource = (u32, u32);
+
+/// The layout of [`single_draw_geometry`]: per drawn vertex, its mesh and the source
+/// vertex it copies; and the drawn indices. Per-vertex data a pass adds (a texture-atlas
+/// tree's root-atlas coordinates) is laid out by the same sources.
+pub(crate) fn single_draw_layout(
+    vertex_count: usize,
+    indices: &[u32],
+    meshes: &[CityMesh],
+) -> Result<(Vec<VertexSource>, Vec<u32>)> {
+    let mut sources = Vec::with_capacity(vertex_count);
     let mut city_indices = Vec::with_capacity(indices.len());
     for (id, mesh) in meshes.iter().enumerate() {
         let outside =
@@ -231,22 +259,19 @@ fn single_draw_geometry(
         let (Some(&low), Some(&high)) = (range.iter().min(), range.iter().max()) else {
             continue;
         };
-        let base = u32::try_from(city_vertices.len())
+        let base = u32::try_from(sources.len())
             .ok()
             .filter(|b| b.checked_add(high - low).is_some())
             .ok_or_else(|| EngineError::InvalidRequest("a city of more than 2^32 vertices".into()))?;
-        let start = mesh.vertex_offset as usize + low as usize;
-        let end = mesh.vertex_offset as usize + high as usize;
-        let used = vertices.get(start..=end).ok_or_else(outside)?;
-        city_vertices.extend(used.iter().map(|v| CityVertex {
-            position: v.position,
-            normal: v.normal,
-            uv: v.uv,
-            mesh_id: id as u32,
-        }));
+        let start = u64::from(mesh.vertex_offset) + u64::from(low);
+        let end = u64::from(mesh.vertex_offset) + u64::from(high);
+        if end >= vertex_count as u64 {
+            return Err(outside());
+        }
+        sources.extend((start..=end).map(|source| (id as u32, source as u32)));
         city_indices.extend(range.iter().map(|&i| base + (i - low)));
     }
-    Ok((city_vertices, city_indices))
+    Ok((sources, city_indices))
 }
 
 impl CityRenderer {
@@ -289,6 +314,7 @@ impl CityRenderer {
         let fragment = vk::ShaderStageFlags::FRAGMENT;
         let feedback = city_pipeline(
             device,
+            shaders::CITY_VERT,
             shaders::FEEDBACK_FRAG,
             vec![
                 (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
@@ -304,6 +330,7 @@ impl CityRenderer {
         // only rejects fragments behind what was drawn before).
         let depth_prepass = city_pipeline(
             device,
+            shaders::CITY_VERT,
             shaders::DEPTH_ONLY_FRAG,
             Vec::new(),
             DepthMode::TestAndWrite,
@@ -334,6 +361,7 @@ impl CityRenderer {
             .collect();
         let visible = city_pipeline(
             device,
+            shaders::CITY_VERT,
             shaders::CITY_FRAG,
             visible_bindings,
             DepthMode::TestAndWrite,
@@ -399,7 +427,14 @@ impl CityRenderer {
         &self.meshes
     }
 
-    fn draw_all(&self, cmd: vk::CommandBuffer, pipeline: &Pipeline, set: vk::DescriptorSet, base: CityDrawPush) {
+    /// Draws every mesh in one draw with `pipeline` (whose vertex input is [`CityVertex`]).
+    pub(crate) fn draw_all(
+        &self,
+        cmd: vk::CommandBuffer,
+        pipeline: &Pipeline,
+        set: vk::DescriptorSet,
+        base: CityDrawPush,
+    ) {
         pipeline.bind(cmd, set);
         // SAFETY: cmd is recording inside rendering; buffers are live.
         unsafe {
@@ -464,6 +499,30 @@ impl CityRenderer {
         lighting: f32,
         colormap_blend: bool,
     ) {
+        self.record_visible_with(
+            cmd,
+            target,
+            camera,
+            lighting,
+            colormap_blend,
+            &self.visible,
+            self.visible_set,
+        );
+    }
+
+    /// [`record_visible`](Self::record_visible) with another visible pipeline over the
+    /// same geometry (a texture-atlas tree's).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn record_visible_with(
+        &self,
+        cmd: vk::CommandBuffer,
+        target: &RenderTarget,
+        camera: &Camera,
+        lighting: f32,
+        colormap_blend: bool,
+        pipeline: &Pipeline,
+        set: vk::DescriptorSet,
+    ) {
         let aspect = target.width() as f32 / target.height() as f32;
         let direct = if colormap_blend { 0.0 } else { 1.0 };
         let base = CityDrawPush {
@@ -472,7 +531,7 @@ impl CityRenderer {
             ..CityDrawPush::default()
         };
         target.begin(&self.device, cmd, [0.55, 0.7, 0.9, 1.0]);
-        self.draw_all(cmd, &self.visible, self.visible_set, base);
+        self.draw_all(cmd, pipeline, set, base);
         target.end_and_copy(&self.device, cmd);
     }
 }

@@ -131,6 +131,11 @@ pub struct TextureProbePoint {
 pub const BINDING_FEEDBACK_MESHES: u32 = 16;
 /// Binding of the per-mesh `CityMeshInfo` array in the feedback and visible passes.
 pub const BINDING_CITY_MESHES: u32 = 17;
+/// Binding of the per-vertex root-atlas coordinates in a texture-atlas tree's visible pass.
+pub const BINDING_TREE_ATLAS_UVS: u32 = 18;
+/// Binding of the per-mesh texture matrices (`[scale, offset x, offset y, 0]`, scale 0 for
+/// the mesh's own coordinates) in a texture-atlas tree's visible pass.
+pub const BINDING_TREE_UV_TRANSFORMS: u32 = 19;
 /// `FEEDBACK_MIP_ONE`: a mip level is stored as `round(level * 256)`.
 pub const FEEDBACK_MIP_ONE: f32 = 256.0;
 /// `FEEDBACK_WEIGHT_ONE`: a weight is stored as `round(W * 8)`.
@@ -488,6 +493,8 @@ mod tests {
             ("BINDING_TEXTURE_PROBE_RESULTS", BINDING_TEXTURE_PROBE_RESULTS),
             ("BINDING_FEEDBACK_MESHES", BINDING_FEEDBACK_MESHES),
             ("BINDING_CITY_MESHES", BINDING_CITY_MESHES),
+            ("BINDING_TREE_ATLAS_UVS", BINDING_TREE_ATLAS_UVS),
+            ("BINDING_TREE_UV_TRANSFORMS", BINDING_TREE_UV_TRANSFORMS),
         ];
         assert_eq!(
             defines.len(),

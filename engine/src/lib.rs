@@ -12,7 +12,8 @@
 //! read-back), `present` (feature `window`: surface, swapchain and
 //! screenshots of presented frames), [`staging`] (host-visible upload ring), [`timing`] (CPU and
 //! GPU frame timing), [`texture_cache`] and [`feedback`] (the GPU halves of
-//! the cache and of the feedback), [`city`] (the engine's own city passes).
+//! the cache and of the feedback), [`city`] (the engine's own city passes),
+//! [`atlas_tree`] (the visible pass of the texture-atlas tree strategy).
 //!
 //! Ownership contract: every Vulkan handle has exactly one owner, a Rust value
 //! whose `Drop` destroys it. Resources hold an `Arc<Device>`, so the device
@@ -24,6 +25,7 @@
 //! `// SAFETY:` line.
 #![warn(unsafe_op_in_unsafe_fn)]
 
+pub mod atlas_tree;
 pub mod binder;
 pub mod buffer;
 pub mod city;

@@ -25,6 +25,7 @@ macro_rules! shader {
 
 shader!(CITY_VERT, "city.vert", "city_vert.spv");
 shader!(CITY_FRAG, "city.frag", "city_frag.spv");
+shader!(CITY_TREE_VERT, "city_tree.vert", "city_tree_vert.spv");
 shader!(DEPTH_ONLY_FRAG, "depth_only.frag", "depth_only_frag.spv");
 shader!(FEEDBACK_FRAG, "feedback.frag", "feedback_frag.spv");
 shader!(MESH_VERT, "mesh.vert", "mesh_vert.spv");
@@ -41,6 +42,7 @@ shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
 pub const ALL: &[ShaderSource] = &[
     CITY_VERT,
     CITY_FRAG,
+    CITY_TREE_VERT,
     DEPTH_ONLY_FRAG,
     FEEDBACK_FRAG,
     MESH_VERT,

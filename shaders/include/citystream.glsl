@@ -34,6 +34,10 @@
 #define BINDING_FEEDBACK_MESHES 16    // MeshFeedback[], written with atomics
 #define BINDING_CITY_MESHES 17        // CityMeshInfo[], one per mesh (feedback and visible passes)
 
+// ---- Visible pass of a texture-atlas tree (docs/ATLAS_TREE.md) -------------
+#define BINDING_TREE_ATLAS_UVS 18     // vec2[], per drawn vertex: its coordinates in the root atlas
+#define BINDING_TREE_UV_TRANSFORMS 19 // vec4[], per mesh: x = atlas scale (0: own texture coordinates), yz = offset
+
 // Fixed-point scales of MeshFeedback. A mip level is stored as
 // round(level * FEEDBACK_MIP_ONE); a weight W (1..17 per fragment) as
 // round(W * FEEDBACK_WEIGHT_ONE). The weight sum cannot overflow 32 bits at

@@ -69,8 +69,10 @@ pub fn texels_per_metre_at_unit_distance(screen_height: f32, fov_y: f32, texel_p
 pub struct TreeNode {
     /// Bounds of the node's triangles, relative to the scene origin.
     pub bounds: Aabb,
-    /// The camera must be at least this far from `bounds` for the atlas to need no
-    /// magnification (metres, for the tree's [`TreeParams`]).
+    /// From this distance to `bounds` on, the atlas at level 0 has every texel the view
+    /// needs (metres, for the tree's [`TreeParams`]); each doubling a level coarser. A leaf
+    /// is drawn with its atlas from the nearer `TreeParams::leaf_min_distance` on already,
+    /// where its atlas shows what the originals would (see [`AtlasTree::draw_distance`]).
     pub min_distance: f32,
     /// Parent index ([`NO_PARENT`] for the root, node 0).
     pub parent: u32,
@@ -218,6 +220,16 @@ pub fn distance_to(bounds: &Aabb, p: [f32; 3]) -> f32 {
     sum.sqrt()
 }
 
+/// The six planes of a view-projection matrix (column-major, Vulkan clip space: depth 0 to
+/// 1), inside where `a·x + b·y + c·z + d >= 0` (Gribb and Hartmann's extraction).
+pub fn frustum_planes(view_projection: [[f32; 4]; 4]) -> [[f32; 4]; 6] {
+    let row = |r: usize| view_projection.map(|column| column[r]);
+    let (x, y, z, w) = (row(0), row(1), row(2), row(3));
+    let add = |a: [f32; 4], b: [f32; 4]| [0, 1, 2, 3].map(|i| a[i] + b[i]);
+    let sub = |a: [f32; 4], b: [f32; 4]| [0, 1, 2, 3].map(|i| a[i] - b[i]);
+    [add(w, x), sub(w, x), add(w, y), sub(w, y), z, sub(w, z)]
+}
+
 /// Whether the box is at least partly inside every plane.
 pub fn intersects_frustum(bounds: &Aabb, planes: &[[f32; 4]; 6]) -> bool {
     planes.iter().all(|p| {
@@ -286,6 +298,33 @@ impl AtlasTree {
             .unwrap_or(0)
     }
 
+    /// The distance (for the tree's [`TreeParams`]) from which node `n` is drawn with its
+    /// atlas: an inner node's `min_distance`; a leaf's `d_min`
+    /// ([`TreeParams::leaf_min_distance`]), nearer than its `min_distance` where an original
+    /// has fewer texels than `d_min` needs: the leaf atlas holds those at their own
+    /// resolution, so it shows what the originals would from `d_min` on (and at level 0 up
+    /// to its `min_distance`, [`atlas_level_for`]).
+    pub fn draw_distance(&self, n: u32) -> f32 {
+        let node = &self.nodes[n as usize];
+        if node.is_leaf() {
+            node.min_distance.min(self.params.leaf_min_distance)
+        } else {
+            node.min_distance
+        }
+    }
+
+    /// Depth of every node (root 0), in one pass: children come after their parent.
+    pub fn levels(&self) -> Vec<u32> {
+        let mut levels = vec![0u32; self.nodes.len()];
+        for n in 0..self.nodes.len() {
+            let parent = self.nodes[n].parent;
+            if parent != NO_PARENT && (parent as usize) < n {
+                levels[n] = levels[parent as usize] + 1;
+            }
+        }
+        levels
+    }
+
     /// Depth of node `n` (root 0).
     pub fn level(&self, mut n: u32) -> u32 {
         let mut level = 0;
@@ -336,7 +375,7 @@ impl AtlasTree {
             } else {
                 fallback
             };
-            if distance_to(&node.bounds, view.eye) >= node.min_distance * scale {
+            if distance_to(&node.bounds, view.eye) >= self.draw_distance(n) * scale {
                 selection.draws.push((n, DrawWith::Atlas(fallback)));
                 selection.fallbacks += u32::from(fallback != n);
             } else if node.is_leaf() {
@@ -374,7 +413,7 @@ impl AtlasTree {
             };
             let visible = visible && intersects_frustum(&node.bounds, &view.planes);
             let category = if visible { Usage::Needed } else { Usage::Culled };
-            if distance_to(&node.bounds, view.eye) >= node.min_distance * scale {
+            if distance_to(&node.bounds, view.eye) >= self.draw_distance(n) * scale {
                 raise(&mut usage, Block::Atlas(n), category);
                 // Prefetch the next refinement.
                 if visible {
@@ -409,6 +448,7 @@ impl AtlasTree {
                 n = self.nodes[n as usize].parent;
             }
         }
+        let levels = self.levels();
         let mut all: Vec<BlockPriority> = (0..self.nodes.len() as u32)
             .flat_map(|n| {
                 let leaf = self.nodes[n as usize].is_leaf();
@@ -422,7 +462,7 @@ impl AtlasTree {
                     block,
                     usage: usage.get(&block).copied().unwrap_or(Usage::NotNeeded),
                     distance: distance_to(&self.nodes[n as usize].bounds, view.eye),
-                    level: self.level(n) + u32::from(matches!(block, Block::Originals(_))),
+                    level: levels[n as usize] + u32::from(matches!(block, Block::Originals(_))),
                 }
             })
             .collect();
@@ -452,30 +492,59 @@ impl AtlasTree {
     /// in priority order. `scene_meshes` is the scene's mesh count (where the atlas
     /// pseudo-meshes start); `atlas_mips` the atlases' mip count.
     pub fn paging(&self, view: &TreeView, capacity_blocks: usize, scene_meshes: u32, atlas_mips: u32) -> Paging {
+        self.paging_within(view, capacity_blocks as u64, |_, _| 1, scene_meshes, atlas_mips)
+    }
+
+    /// [`AtlasTree::paging`] with the capacity in bytes: the ideal block set is the longest
+    /// run of wanted blocks, in priority order, whose `block_bytes(block, level)` (an atlas
+    /// from the level its distance needs, a leaf's originals whole: `level` 0) sum to at most
+    /// `capacity_bytes`, so the capacity follows from a memory budget whatever the blocks
+    /// weigh.
+    pub fn paging_within(
+        &self,
+        view: &TreeView,
+        capacity_bytes: u64,
+        block_bytes: impl Fn(Block, u32) -> u64,
+        scene_meshes: u32,
+        atlas_mips: u32,
+    ) -> Paging {
         let scale = self
             .params
             .distance_scale(view.screen_height, view.fov_y, view.texel_per_pixel) as f32;
+        let level_of = |priority: &BlockPriority| match priority.block {
+            Block::Atlas(n) => atlas_level_for(
+                priority.distance,
+                self.nodes[n as usize].min_distance * scale,
+                atlas_mips,
+            ),
+            Block::Originals(_) => 0,
+        };
         let wanted: Vec<BlockPriority> = self
             .block_priorities(view)
             .into_iter()
             .take_while(|p| p.usage != Usage::NotNeeded)
             .collect();
-        let over_capacity = wanted.len().saturating_sub(capacity_blocks);
-        let ideal: Vec<BlockPriority> = wanted.into_iter().take(capacity_blocks).collect();
+        let mut used = 0u64;
+        let fitting = wanted
+            .iter()
+            .take_while(|p| {
+                used = used.saturating_add(block_bytes(p.block, level_of(p)));
+                used <= capacity_bytes
+            })
+            .count();
+        let over_capacity = wanted.len() - fitting;
+        let ideal: Vec<BlockPriority> = wanted.into_iter().take(fitting).collect();
         let count = ideal.len() as u32;
         let mut records = Vec::new();
         for (rank, priority) in ideal.iter().enumerate() {
             // Heaviest first, all above the loader's cut-off.
             let weight = DEFAULT_WEIGHT_CUTOFF.saturating_add(count - rank as u32);
             match priority.block {
-                Block::Atlas(n) => {
-                    let node = &self.nodes[n as usize];
-                    records.push(MeshMetaData {
-                        mip_level: atlas_level_for(priority.distance, node.min_distance * scale, atlas_mips),
-                        weight,
-                        mesh_id: scene_meshes.saturating_add(n),
-                    });
-                }
+                Block::Atlas(n) => records.push(MeshMetaData {
+                    mip_level: level_of(priority),
+                    weight,
+                    mesh_id: scene_meshes.saturating_add(n),
+                }),
                 // Nearer than d_min: the originals at full resolution (the paper loads
                 // them whole).
                 Block::Originals(n) => {
@@ -964,6 +1033,69 @@ mod tests {
         assert_eq!(atlas_level_for(1e9, 10.0, 7), 6);
         assert_eq!(atlas_level_for(f32::NAN, 10.0, 7), 0);
         assert_eq!(tree.loader_mesh_textures(&Scene::new([0.0; 3])), vec![0, 1, 2, 3, 4]);
+    }
+
+    #[test]
+    fn atlas_tree_paging_within_bytes_stops_at_the_first_block_that_overflows() {
+        let tree = row_tree();
+        let mut planes = EVERYWHERE;
+        planes[0] = [1.0, 0.0, 0.0, -150.0];
+        let view = view([140.0, 15.0, 5.0], planes);
+        // Originals weigh 100 bytes, an atlas 64 >> level: leaf 2's originals (100), leaf
+        // 3's atlas at level 2 (16), leaf 4's at level 4 (4) fit 120 bytes; the next does not.
+        let bytes = |block: Block, level: u32| match block {
+            Block::Originals(_) => 100,
+            Block::Atlas(_) => 64u64 >> level,
+        };
+        let by_bytes = tree.paging_within(&view, 120, bytes, 4, 7);
+        assert_eq!(by_bytes.ideal, tree.paging(&view, 3, 4, 7).ideal);
+        assert_eq!(tree.paging_within(&view, 99, bytes, 4, 7).ideal, Vec::<Block>::new());
+        // Sums saturate instead of wrapping round to fit.
+        assert!(tree
+            .paging_within(&view, 1 << 40, |_, _| u64::MAX, 4, 7)
+            .ideal
+            .is_empty());
+        assert_eq!(
+            tree.levels(),
+            (0..tree.nodes.len() as u32).map(|n| tree.level(n)).collect::<Vec<_>>()
+        );
+    }
+
+    #[test]
+    fn atlas_tree_frustum_planes_of_a_projection_keep_what_it_sees() {
+        // A camera at the origin looking down -z, 90° fov, square, depth 1..100, in
+        // Vulkan's clip space (depth 0..1): clip = P · p, column-major.
+        let (near, far) = (1.0f32, 100.0f32);
+        let a = far / (near - far);
+        let b = near * far / (near - far);
+        let projection = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, a, -1.0],
+            [0.0, 0.0, b, 0.0],
+        ];
+        let planes = frustum_planes(projection);
+        let point = |p: [f32; 3]| aabb(p, p);
+        assert!(intersects_frustum(&point([0.0, 0.0, -10.0]), &planes));
+        assert!(intersects_frustum(&point([9.0, -9.0, -10.0]), &planes));
+        assert!(
+            !intersects_frustum(&point([11.0, 0.0, -10.0]), &planes),
+            "right of the view"
+        );
+        assert!(!intersects_frustum(&point([0.0, 11.0, -10.0]), &planes), "above it");
+        assert!(!intersects_frustum(&point([0.0, 0.0, 10.0]), &planes), "behind the eye");
+        assert!(
+            !intersects_frustum(&point([0.0, 0.0, -0.5]), &planes),
+            "nearer than the near plane"
+        );
+        assert!(
+            !intersects_frustum(&point([0.0, 0.0, -101.0]), &planes),
+            "beyond the far plane"
+        );
+        assert!(intersects_frustum(
+            &aabb([-50.0, -1.0, -20.0], [50.0, 1.0, -10.0]),
+            &planes
+        ));
     }
 
     #[test]

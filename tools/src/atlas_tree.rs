@@ -12,7 +12,10 @@
 //!    cannot split further (one triangle, or all at one centre) scales its areas down to fit
 //!    (counted in the summary: those texels are magnified at `d_min`).
 //! 2. Leaves compose their atlas from the original textures (the mip level whose size is
-//!    nearest above what the area needs, bilinear, repeating); `min_distance = d_min`.
+//!    nearest above what the area needs, bilinear, repeating); `min_distance` is `d_min`
+//!    times the largest shortfall of an area (an original with fewer texels than `d_min`
+//!    needs, or an area scaled down to fit): from there on the atlas has every texel the
+//!    view needs, so neither it nor an ancestor ever shows less than the originals would.
 //! 3. Inner nodes, bottom up: the children's atlases side by side in a `2N × 2N` image (a
 //!    quadrant per child, empty ones the mean colour), box-filtered to `N × N`;
 //!    `min_distance` is twice the children's largest.
@@ -96,6 +99,9 @@ struct Area {
     /// Texture-coordinate range the area covers (before the border).
     uv_min: [f32; 2],
     uv_max: [f32; 2],
+    /// Texels the node's triangles need at `d_min` (u, v), before the caps: the original's
+    /// own texels and the atlas's.
+    needed: [f64; 2],
     /// Inner size in texels (without the border), and where the whole area starts.
     width: u32,
     height: u32,
@@ -330,6 +336,7 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
         let mut composed: Vec<Vec<u8>> = Vec::with_capacity(chunk.len());
         for (&i, leaf) in chunk.iter().zip(leaves) {
             let rgba = if nodes[i].children.is_empty() {
+                min_distance[i] = full_density_distance(d_min, &nodes[i].areas);
                 leaf?
             } else {
                 min_distance[i] = 2.0
@@ -544,6 +551,24 @@ fn collect_triangles(scene: &Scene) -> Result<Vec<Triangle>> {
     Ok(out)
 }
 
+/// A leaf's `min_distance`: the distance from which its atlas has every texel the view
+/// needs, `d_min` times the largest shortfall of an area (capped by its original's own
+/// texels, or scaled down to fit). Nearer, the originals are drawn, so a leaf atlas never
+/// shows less than they would; and since each level up halves the texels and doubles the
+/// distance, no ancestor does either.
+fn full_density_distance(d_min: f32, areas: &[Area]) -> f32 {
+    let shortfall = areas
+        .iter()
+        .flat_map(|a| {
+            [
+                a.needed[0] / f64::from(a.width.max(1)),
+                a.needed[1] / f64::from(a.height.max(1)),
+            ]
+        })
+        .fold(1.0f64, f64::max);
+    (f64::from(d_min) * shortfall) as f32
+}
+
 fn round_up4(v: u32) -> u32 {
     v.div_ceil(4) * 4
 }
@@ -585,16 +610,17 @@ fn required_areas(
         .map(|(texture, (per_repeat, uv_min, uv_max))| {
             let info = &infos[texture as usize];
             let own = [f64::from(info.width()), f64::from(info.height())];
+            let range = [0, 1].map(|a| f64::from((uv_max[a] - uv_min[a]).max(0.0)));
             let size = [0, 1].map(|a| {
-                let range = f64::from((uv_max[a] - uv_min[a]).max(0.0));
                 // Never finer than the texture itself, never more than the atlas holds.
-                let texels = (per_repeat[a].min(own[a]) * range).ceil().max(1.0);
+                let texels = (per_repeat[a].min(own[a]) * range[a]).ceil().max(1.0);
                 round_up4((texels as u32).min(extent - 2 * BORDER))
             });
             Area {
                 texture,
                 uv_min,
                 uv_max,
+                needed: [0, 1].map(|a| (per_repeat[a] * range[a]).max(1.0)),
                 width: size[0],
                 height: size[1],
                 x: 0,
@@ -854,11 +880,20 @@ mod tests {
             texture: 0,
             uv_min: [0.0; 2],
             uv_max: [1.0; 2],
+            needed: [f64::from(w), f64::from(h)],
             width: w,
             height: h,
             x: 0,
             y: 0,
         };
+        // Full density from d_min when every area has what it needs; a quarter of the
+        // texels along u moves it four times as far.
+        assert_eq!(full_density_distance(10.0, &[area(24, 24)]), 10.0);
+        let short = Area {
+            needed: [96.0, 24.0],
+            ..area(24, 24)
+        };
+        assert_eq!(full_density_distance(10.0, &[area(24, 24), short]), 40.0);
         // Four 24x24 areas (32x32 with borders) fill 64x64 exactly; a fifth does not fit.
         let mut four = vec![area(24, 24); 4];
         assert!(pack(&mut four, 64));

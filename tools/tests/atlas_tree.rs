@@ -75,7 +75,9 @@ fn atlas_tree_covers_every_triangle_exactly_once_at_each_cut() {
                 .fold(0.0, f32::max);
             assert_eq!(node.min_distance, 2.0 * children, "node {i}");
         } else {
-            assert_eq!(node.min_distance, tree.params.leaf_min_distance, "leaf {i}");
+            // From d_min on, later where an original has fewer texels than d_min needs.
+            assert!(node.min_distance >= tree.params.leaf_min_distance, "leaf {i}");
+            assert_eq!(tree.draw_distance(i as u32), tree.params.leaf_min_distance, "leaf {i}");
         }
     }
 
@@ -152,8 +154,10 @@ fn atlas_tree_leaf_atlases_hold_the_texel_per_pixel_bound_at_their_distance() {
     let scene = &dataset.scene;
     let p = tree.params;
     // Texels per metre a surface needs at the leaves' distance.
-    let needed = texels_per_metre_at_unit_distance(p.screen_height as f32, p.fov_y, p.texel_per_pixel)
-        / f64::from(p.leaf_min_distance);
+    let node_needed = |distance: f32| {
+        texels_per_metre_at_unit_distance(p.screen_height as f32, p.fov_y, p.texel_per_pixel) / f64::from(distance)
+    };
+    let needed = node_needed(p.leaf_min_distance);
     let extent = p.atlas_extent as f32;
     let original_base = tree.nodes.len() as u32;
     let mut checked = 0;
@@ -187,6 +191,15 @@ fn atlas_tree_leaf_atlases_hold_the_texel_per_pixel_bound_at_their_distance() {
                     metres_u <= allowed_u * 1.001 && metres_v <= allowed_v * 1.001,
                     "{metres_u} / {metres_v} m per atlas texel, allowed {allowed_u} / {allowed_v}"
                 );
+                // From the leaf's own distance on, the atlas has every texel the view needs,
+                // whatever the original holds (nearer, the originals are drawn).
+                let at_leaf = node_needed(node.min_distance);
+                assert!(
+                    metres_u * at_leaf <= 1.001 && metres_v * at_leaf <= 1.001,
+                    "{metres_u} / {metres_v} m per atlas texel at {} m, which needs {at_leaf} texels per metre",
+                    node.min_distance
+                );
+                assert!(node.min_distance >= p.leaf_min_distance);
                 checked += 1;
             }
         }

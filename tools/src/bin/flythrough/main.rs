@@ -12,6 +12,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, ValueEnum};
 use glam::Vec3;
 
+use citystream_engine::atlas_tree::AtlasTreeRenderer;
 use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::describe;
@@ -26,6 +27,9 @@ use citystream_engine::target::{write_png, RenderTarget};
 use citystream_engine::texture_cache::{Eviction, GpuTextureCache};
 use citystream_engine::timing::{CpuFrameClock, GpuTimer};
 use citystream_engine::{Device, DeviceOptions};
+use citystream_streaming::atlas_tree::{
+    atlas_level_for, distance_to, frustum_planes, intersects_frustum, AtlasTree, Block, DrawWith, TreeView,
+};
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::bind_latency::{BindLatencyModel, BindLatencyPreset};
@@ -65,6 +69,26 @@ impl Clock {
             Clock::Real => "real",
             Clock::Fixed => "fixed",
             Clock::Modelled => "modelled",
+        }
+    }
+}
+
+/// `--strategy`: how the run decides what to load and draws it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum Strategy {
+    /// The paper's: a GPU feedback pass says which mip each visible mesh needs.
+    Feedback,
+    /// The texture-atlas tree's (docs/ATLAS_TREE.md): nodes chosen by distance draw their
+    /// atlases, blocks paged by §6's priorities; `--dataset` names a tree.
+    AtlasTree,
+}
+
+impl Strategy {
+    /// The name written to summary.json.
+    fn name(self) -> &'static str {
+        match self {
+            Strategy::Feedback => "feedback",
+            Strategy::AtlasTree => "atlas-tree",
         }
     }
 }
@@ -120,6 +144,11 @@ struct Args {
     /// Image height in pixels.
     #[arg(long, default_value_t = 360, value_parser = clap::value_parser!(u32).range(16..=8192))]
     height: u32,
+    /// Streaming strategy: `feedback` (the paper's GPU feedback) or `atlas-tree` (a
+    /// texture-atlas tree built by `citystream atlas-tree`, named by --dataset; see
+    /// docs/ATLAS_TREE.md). Both share the loader, the cache and the policy.
+    #[arg(long, value_enum, default_value_t = Strategy::Feedback)]
+    strategy: Strategy,
     /// Streaming policy: adaptive (paper Eq. 4-7), baseline (s = s_max, b = 0) or fixed.
     #[arg(long, default_value = "adaptive")]
     policy: PolicyKind,
@@ -270,6 +299,16 @@ const FIXED_COPY_BYTES_PER_S: f64 = 12e9;
 struct Run<'a> {
     device: String,
     scene: String,
+    /// `feedback` or `atlas-tree`.
+    strategy: &'a str,
+    /// Per frame: draws of a renderer binding one texture per draw (meshes in view; for
+    /// the tree, atlases drawn plus original textures in view). citystream itself draws
+    /// every mesh in one draw whatever the strategy.
+    draw_calls: Stats,
+    /// Per frame: nodes drawn (the atlas tree only).
+    nodes_drawn: Option<Stats>,
+    /// The atlas tree and its paging (the atlas-tree strategy only).
+    atlas_tree: Option<TreeSummary>,
     policy: &'a str,
     alpha_ms: f64,
     mip_deficit: Option<Stats>,
@@ -417,6 +456,11 @@ mod window;
 
 fn main() -> Result<()> {
     let args = Args::parse();
+    if args.strategy == Strategy::AtlasTree && (args.window || args.placeholder || args.pop_in) {
+        bail!(
+            "--strategy atlas-tree streams a headless flythrough only; leave out --window, --placeholder and --pop-in"
+        );
+    }
     if args.window {
         return window::run(&args);
     }
@@ -663,6 +707,7 @@ fn city_gpu(
     policy: Box<dyn citystream_streaming::controller::LoadPolicy>,
     config: &StreamConfig,
     faults: Option<FaultPlan>,
+    tree: Option<&AtlasTree>,
 ) -> Result<CityGpu> {
     let (vertices, meshes) = city;
     let source = FaultySource::new(
@@ -670,10 +715,15 @@ fn city_gpu(
         faults,
         dataset.textures.pack_path().to_path_buf(),
     );
+    // A tree's loader also knows each node's atlas, as a mesh after the scene's.
+    let mesh_textures = match tree {
+        Some(tree) => tree.loader_mesh_textures(&dataset.scene),
+        None => dataset.scene.meshes.iter().map(|m| m.texture).collect(),
+    };
     let streamer = TextureStreamer::new(
         device,
         source,
-        dataset.scene.meshes.iter().map(|m| m.texture).collect(),
+        mesh_textures,
         dataset.colormap.colours(),
         policy,
         config,
@@ -692,6 +742,7 @@ fn city_gpu(
 
 /// The streamer and renderer of the run the options ask for (policy,
 /// budget, eviction, clock, frames in flight, injected failures).
+#[allow(clippy::too_many_arguments)]
 fn streamed_city_gpu(
     args: &Args,
     device: &Arc<Device>,
@@ -700,6 +751,7 @@ fn streamed_city_gpu(
     city: &CityGeometry,
     fragment_area: f32,
     layer_size: u32,
+    tree: Option<&AtlasTree>,
 ) -> Result<CityGpu> {
     city_gpu(
         device,
@@ -717,6 +769,7 @@ fn streamed_city_gpu(
             layer_size,
         ),
         args.inject_read_failures,
+        tree,
     )
 }
 
@@ -902,20 +955,296 @@ fn open_city(args: &Args, dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGe
     Ok((dataset, city))
 }
 
+/// The atlas-tree strategy's state: the tree, its visible pass, and what it drew.
+struct TreeRun {
+    tree: AtlasTree,
+    renderer: AtlasTreeRenderer,
+    /// Bytes the ideal block set may take: most of the memory budget, the rest left for
+    /// blocks on their way in and out.
+    capacity_bytes: u64,
+    atlas_mips: u32,
+    scene_meshes: u32,
+    /// Per frame: nodes drawn, of them with an ancestor's atlas, and blocks in the ideal set.
+    nodes_drawn: Vec<f64>,
+    fallbacks: Vec<f64>,
+    ideal_blocks: Vec<f64>,
+    /// Frames whose wanted blocks did not all fit the capacity.
+    frames_over_capacity: u64,
+}
+
+/// What one tree frame drew.
+struct TreeFrame {
+    nodes_drawn: u32,
+    draw_calls: u32,
+}
+
+/// `summary.json`'s `atlas_tree`.
+#[derive(Debug, serde::Serialize)]
+struct TreeSummary {
+    nodes: usize,
+    leaves: usize,
+    depth: u32,
+    atlas_extent: u32,
+    capacity_bytes: Option<u64>,
+    fallbacks: Stats,
+    ideal_blocks: Stats,
+    frames_over_capacity: u64,
+}
+
+/// The tree of `dataset` (`--strategy atlas-tree`), with a clear error where it has none.
+fn open_tree(dataset: &Dataset, dir: &std::path::Path) -> Result<AtlasTree> {
+    match AtlasTree::open_if_any(dataset)
+        .with_context(|| format!("reading the texture-atlas tree of {}", dir.display()))?
+    {
+        Some(tree) => Ok(tree),
+        None => bail!(
+            "{} is not a texture-atlas tree (no {}); build one with `citystream atlas-tree DATASET --out DIR` \
+             and pass that directory to --dataset",
+            dir.display(),
+            citystream_streaming::atlas_tree::TREE_FILE
+        ),
+    }
+}
+
+impl TreeRun {
+    fn new(
+        args: &Args,
+        device: &Arc<Device>,
+        commands: &mut CommandContext,
+        gpu: &CityGpu,
+        dataset: &Dataset,
+        tree: AtlasTree,
+    ) -> Result<Self> {
+        let renderer = AtlasTreeRenderer::new(
+            device,
+            commands,
+            &gpu.renderer,
+            &dataset.scene.indices,
+            &tree,
+            gpu.streamer.cache(),
+            args.frames_in_flight,
+        )?;
+        let atlas_mips = dataset.textures.info(tree.nodes[0].atlas)?.mip_count();
+        let budget = args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES);
+        eprintln!(
+            "atlas tree: {} nodes, {} leaves, depth {}, {}² atlases",
+            tree.nodes.len(),
+            tree.nodes.iter().filter(|n| n.is_leaf()).count(),
+            tree.depth(),
+            tree.params.atlas_extent
+        );
+        Ok(Self {
+            renderer,
+            capacity_bytes: budget / 8 * 7,
+            atlas_mips,
+            scene_meshes: dataset.scene.meshes.len() as u32,
+            tree,
+            nodes_drawn: Vec::new(),
+            fallbacks: Vec::new(),
+            ideal_blocks: Vec::new(),
+            frames_over_capacity: 0,
+        })
+    }
+
+    /// The view the traversal sees: the camera's frustum, the run's screen height, the
+    /// texel-per-pixel ratio the tree was built for.
+    fn view(&self, camera: &Camera, width: u32, height: u32) -> TreeView {
+        let aspect = width as f32 / height as f32;
+        TreeView {
+            eye: camera.eye.to_array(),
+            planes: frustum_planes(camera.view_projection(aspect, 0.0).to_cols_array_2d()),
+            screen_height: height as f32,
+            fov_y: camera.fov_y,
+            texel_per_pixel: self.tree.params.texel_per_pixel,
+        }
+    }
+
+    /// One frame: choose nodes by distance among the resident blocks (§4, §6), write the
+    /// choice into frame slot `slot`'s tables, hand the loader the ideal block set for the
+    /// next frame, and record the visible pass.
+    #[allow(clippy::too_many_arguments)]
+    fn record_frame(
+        &mut self,
+        cmd: citystream_engine::vk::CommandBuffer,
+        slot: u32,
+        gpu: &mut CityGpu,
+        dataset: &Dataset,
+        target: &RenderTarget,
+        camera: &Camera,
+    ) -> Result<TreeFrame> {
+        let view = self.view(camera, target.width(), target.height());
+        let tree = &self.tree;
+        let scale = tree
+            .params
+            .distance_scale(view.screen_height, view.fov_y, view.texel_per_pixel) as f32;
+        let cache = gpu.streamer.cache();
+        let sampleable_from = |texture: u32, level: u32| {
+            cache
+                .texture_data(texture)
+                .is_some_and(|d| d.state == TEXTURE_SAMPLEABLE && d.lowest_mip <= level)
+        };
+        // An atlas counts as resident from the level its distance needs; a leaf's
+        // originals when every one is whole (the paper loads them whole).
+        let resident = |block: Block| match block {
+            Block::Atlas(n) => {
+                let node = &tree.nodes[n as usize];
+                let distance = distance_to(&node.bounds, view.eye);
+                sampleable_from(
+                    node.atlas,
+                    atlas_level_for(distance, node.min_distance * scale, self.atlas_mips),
+                )
+            }
+            Block::Originals(n) => {
+                let node = &tree.nodes[n as usize];
+                (node.first_mesh..node.first_mesh + node.mesh_count)
+                    .all(|m| sampleable_from(dataset.scene.meshes[m as usize].texture, 0))
+            }
+        };
+        let selection = tree.select(&view, resident);
+        let draws = self.renderer.write_selection(slot, &selection)?;
+        // Draws of a renderer binding one texture per draw: one per atlas drawn, one per
+        // original texture (mesh) of the leaves drawn with theirs that is in view.
+        let original_draws = selection
+            .draws
+            .iter()
+            .filter(|(_, with)| *with == DrawWith::Originals)
+            .map(|&(n, _)| {
+                let node = &tree.nodes[n as usize];
+                (node.first_mesh..node.first_mesh + node.mesh_count)
+                    .filter(|&m| intersects_frustum(&dataset.scene.meshes[m as usize].bounds, &view.planes))
+                    .count() as u32
+            })
+            .sum::<u32>();
+        let textures = &dataset.textures;
+        let block_bytes = |block: Block, level: u32| match block {
+            Block::Atlas(n) => textures
+                .info(tree.nodes[n as usize].atlas)
+                .map(|info| (level..info.mip_count()).map(|l| info.mip_len(l)).sum())
+                .unwrap_or(0),
+            Block::Originals(n) => {
+                let node = &tree.nodes[n as usize];
+                (node.first_mesh..node.first_mesh + node.mesh_count)
+                    .filter_map(|m| textures.info(dataset.scene.meshes[m as usize].texture).ok())
+                    .map(|info| info.chain_len())
+                    .sum()
+            }
+        };
+        let paging = tree.paging_within(
+            &view,
+            self.capacity_bytes,
+            block_bytes,
+            self.scene_meshes,
+            self.atlas_mips,
+        );
+        self.frames_over_capacity += u64::from(paging.over_capacity > 0);
+        self.ideal_blocks.push(paging.ideal.len() as f64);
+        gpu.streamer.set_host_records(paging.records)?;
+        self.renderer
+            .record_visible(cmd, slot, &gpu.renderer, target, camera, true)?;
+        let nodes_drawn = selection.draws.len() as u32;
+        self.nodes_drawn.push(f64::from(nodes_drawn));
+        self.fallbacks.push(f64::from(selection.fallbacks));
+        Ok(TreeFrame {
+            nodes_drawn,
+            draw_calls: draws.atlas_draws + original_draws,
+        })
+    }
+
+    fn summary(&self, budget: Option<u64>) -> TreeSummary {
+        TreeSummary {
+            nodes: self.tree.nodes.len(),
+            leaves: self.tree.nodes.iter().filter(|n| n.is_leaf()).count(),
+            depth: self.tree.depth(),
+            atlas_extent: self.tree.params.atlas_extent,
+            capacity_bytes: budget.map(|_| self.capacity_bytes),
+            fallbacks: Stats::from_samples(&self.fallbacks),
+            ideal_blocks: Stats::from_samples(&self.ideal_blocks),
+            frames_over_capacity: self.frames_over_capacity,
+        }
+    }
+}
+
+/// Draws of the feedback strategy's frame as a renderer binding one texture per draw
+/// issues them: one per mesh in view.
+fn meshes_in_view(scene: &citystream_streaming::dataset::Scene, camera: &Camera, width: u32, height: u32) -> u32 {
+    let planes = frustum_planes(
+        camera
+            .view_projection(width as f32 / height as f32, 0.0)
+            .to_cols_array_2d(),
+    );
+    scene
+        .meshes
+        .iter()
+        .filter(|mesh| mesh.index_count > 0 && intersects_frustum(&mesh.bounds, &planes))
+        .count() as u32
+}
+
+/// The feedback entries (reaching `tau`) of the fully resident reference's own feedback
+/// pass for `camera`: what the reference must load where the run has no feedback of its
+/// own (the atlas-tree strategy). Its loader is handed no records, so only `load_now` fills it.
+fn reference_feedback(
+    reference: &mut CityGpu,
+    commands: &mut CommandContext,
+    targets: &CityTargets,
+    camera: &Camera,
+    visible_height: u32,
+) -> Result<Vec<FeedbackEntry>> {
+    let tau = reference.streamer.gpu_tau();
+    reference.streamer.set_host_records(Vec::new())?;
+    let begun = reference.streamer.begin_frame()?;
+    let cmd = commands.begin()?;
+    reference.streamer.record_uploads(cmd)?;
+    reference
+        .renderer
+        .record_feedback(cmd, &targets.feedback_target, camera, &targets.view, visible_height)?;
+    reference.streamer.record_feedback_resolve_with_tau(cmd, 0)?;
+    let submit = reference.streamer.end_frame(FIXED_STEP_MS)?;
+    commands.submit(&submit.waits, &[submit.signal])?;
+    reference.streamer.wait_for_frame(begun.index)?;
+    commands.wait()?;
+    Ok(reference
+        .streamer
+        .feedback_of(begun.index)?
+        .map(|f| f.entries)
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|e| e.weight >= tau)
+        .collect())
+}
+
 fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
     let (dataset, city) = open_city(args, dir)?;
+    let tree = match args.strategy {
+        Strategy::AtlasTree => Some(open_tree(&dataset, dir)?),
+        Strategy::Feedback => None,
+    };
     let meshes = &city.1;
     let scene = &dataset.scene;
     let layer_size = cache_layer_size(&dataset, device);
     let mut commands = CommandContext::new(device, "flythrough setup and measurements")?;
+    let targets = city_targets(device, args.width, args.height)?;
     let CityTargets {
         target,
         feedback_target,
         view,
         fragment_area,
-    } = city_targets(device, args.width, args.height)?;
+    } = &targets;
+    let fragment_area = *fragment_area;
     let frames_in_flight = args.frames_in_flight;
-    let mut gpu = streamed_city_gpu(args, device, &mut commands, &dataset, &city, fragment_area, layer_size)?;
+    let mut gpu = streamed_city_gpu(
+        args,
+        device,
+        &mut commands,
+        &dataset,
+        &city,
+        fragment_area,
+        layer_size,
+        tree.as_ref(),
+    )?;
+    let mut tree_run = match tree {
+        Some(tree) => Some(TreeRun::new(args, device, &mut commands, &gpu, &dataset, tree)?),
+        None => None,
+    };
     // The error reference: every needed level resident, no budget, loaded
     // synchronously between frames (its policy never runs).
     let mut reference = if args.psnr_interval > 0 {
@@ -926,6 +1255,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             &city,
             PolicyKind::Baseline.build(&PolicyOptions::default())?,
             &reference_config(fragment_area, layer_size),
+            None,
             None,
         )?)
     } else {
@@ -997,6 +1327,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut warned_over_budget = false;
     let mut warned_failure = false;
     let mut uploads_at: Vec<(f64, u64)> = Vec::new();
+    let (mut nodes_drawn, mut draw_call_samples) = (Vec::new(), Vec::new());
     for frame in 0..frames {
         let time_s = match args.clock {
             Clock::Fixed | Clock::Modelled => sim_time_s,
@@ -1055,20 +1386,34 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         pass_times.begin(cmd, slot, 0);
         let applied = gpu.streamer.record_uploads(cmd)?;
         pass_times.end(cmd, slot, 0);
+        // The atlas tree has no feedback: its two passes stay empty (0 ms).
         pass_times.begin(cmd, slot, 1);
-        gpu.renderer
-            .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
+        if tree_run.is_none() {
+            gpu.renderer
+                .record_feedback(cmd, feedback_target, &camera, view, args.height)?;
+        }
         pass_times.end(cmd, slot, 1);
         pass_times.begin(cmd, slot, 2);
         // The error reference needs every seen mesh: τ = 0 then.
-        if measure_error {
-            gpu.streamer.record_feedback_resolve_with_tau(cmd, 0)?;
-        } else {
-            gpu.streamer.record_feedback_resolve(cmd)?;
+        match (&tree_run, measure_error) {
+            (Some(_), _) => {}
+            (None, true) => gpu.streamer.record_feedback_resolve_with_tau(cmd, 0)?,
+            (None, false) => gpu.streamer.record_feedback_resolve(cmd)?,
         }
         pass_times.end(cmd, slot, 2);
         pass_times.begin(cmd, slot, 3);
-        gpu.renderer.record_visible(cmd, &target, &camera, 1.0, true);
+        let draw_calls = match tree_run.as_mut() {
+            Some(run) => {
+                let drawn = run.record_frame(cmd, slot, &mut gpu, &dataset, target, &camera)?;
+                nodes_drawn.push(f64::from(drawn.nodes_drawn));
+                drawn.draw_calls
+            }
+            None => {
+                gpu.renderer.record_visible(cmd, target, &camera, 1.0, true);
+                meshes_in_view(scene, &camera, args.width, args.height)
+            }
+        };
+        draw_call_samples.push(f64::from(draw_calls));
         pass_times.end(cmd, slot, 3);
         // The controller step with the previous frame's latency.
         let submit = gpu.streamer.end_frame(frame_ms)?;
@@ -1088,17 +1433,20 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
             if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
                 // The reference loads what the loader serves (entries
                 // reaching τ); lighter ones are read back for eviction only.
-                let entries: Vec<FeedbackEntry> = gpu
-                    .streamer
-                    .feedback_of(begun.index)?
-                    .map(|f| f.entries)
-                    .unwrap_or_default()
-                    .into_iter()
-                    .filter(|e| e.weight >= tau)
-                    .collect();
+                let entries: Vec<FeedbackEntry> = match tree_run {
+                    Some(_) => reference_feedback(reference, &mut commands, &targets, &camera, args.height)?,
+                    None => gpu
+                        .streamer
+                        .feedback_of(begun.index)?
+                        .map(|f| f.entries)
+                        .unwrap_or_default()
+                        .into_iter()
+                        .filter(|e| e.weight >= tau)
+                        .collect(),
+                };
                 reference_incomplete += load_reference(reference, &mut commands, &entries, meshes)?;
                 let cmd = commands.begin()?;
-                reference.renderer.record_visible(cmd, &target, &camera, 1.0, true);
+                reference.renderer.record_visible(cmd, target, &camera, 1.0, true);
                 commands.submit_and_wait(&[])?;
                 psnr = Some(psnr_db(&pixels, &target.read_pixels()?));
             }
@@ -1180,6 +1528,10 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let run = Run {
         device: describe(device),
         scene: dir.display().to_string(),
+        strategy: args.strategy.name(),
+        draw_calls: Stats::from_samples(&draw_call_samples),
+        nodes_drawn: (!nodes_drawn.is_empty()).then(|| Stats::from_samples(&nodes_drawn)),
+        atlas_tree: tree_run.as_ref().map(|run| run.summary(args.memory_budget_mb.bytes())),
         policy: gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
@@ -1265,6 +1617,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     }
     let failures = gpu.streamer.load_failures();
     drop(reference);
+    drop(tree_run);
     drop(gpu);
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");
@@ -1352,6 +1705,7 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
         &city,
         PolicyKind::Baseline.build(&PolicyOptions::default())?,
         &reference_config(fragment_area, layer_size),
+        None,
         None,
     )?;
     // The view of the path's first pause: the static view a user replaying

@@ -629,6 +629,7 @@ impl Viewer {
             &city,
             targets.fragment_area,
             layer_size,
+            None,
         )?;
         let frame_commands = (0..args.frames_in_flight)
             .map(|i| CommandContext::new(&device, &format!("window frame (slot {i})")))

@@ -1,0 +1,315 @@
+//! Drawing a texture-atlas tree (`docs/ATLAS_TREE.md`): the city's one draw, in which every
+//! mesh samples either its original texture or the atlas of the node chosen for it this
+//! frame ([`citystream_streaming::atlas_tree::AtlasTree::select`]).
+//!
+//! A per-draw renderer would bind each chosen node's atlas and draw its triangles; here, as
+//! in the feedback strategy's passes, one draw covers every mesh and the choice travels as
+//! a per-mesh table (texture and texture matrix) written each frame into that frame slot's
+//! buffers. Atlas coordinates come per vertex from a buffer laid out like the vertex
+//! buffer, so the vertex format is the city passes' own.
+
+use std::sync::Arc;
+
+use ash::vk;
+use citystream_streaming::atlas_tree::{AtlasTree, DrawWith, Selection};
+use gpu_allocator::MemoryLocation;
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::city::{city_pipeline, single_draw_layout, Camera, CityRenderer};
+use crate::commands::CommandContext;
+use crate::device::Device;
+use crate::error::{EngineError, Result};
+use crate::gpu_types::{CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS};
+use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, Pipeline};
+use crate::scene::upload_buffer;
+use crate::shaders;
+use crate::target::RenderTarget;
+use crate::texture_cache::GpuTextureCache;
+
+/// One frame slot's per-mesh tables and the descriptor set that reads them.
+struct TreeSlot {
+    set: vk::DescriptorSet,
+    mesh_info: Buffer,
+    uv_transforms: Buffer,
+}
+
+/// The visible pass of a texture-atlas tree over a [`CityRenderer`]'s geometry.
+pub struct AtlasTreeRenderer {
+    pipeline: Pipeline,
+    _pool: DescriptorPool,
+    slots: Vec<TreeSlot>,
+    /// Read by the vertex stage through every slot's set.
+    _atlas_uvs: Buffer,
+    /// Each mesh's own texture, as the feedback strategy draws it.
+    originals: Vec<CityMeshInfo>,
+    /// Per node: its atlas and texture matrix.
+    atlases: Vec<(CityMeshInfo, [f32; 4])>,
+    /// Per node: the meshes of the leaves under it, as a range of `subtree_meshes`.
+    subtree_ranges: Vec<std::ops::Range<u32>>,
+    subtree_meshes: Vec<u32>,
+    /// This frame's tables, written into a slot's buffers.
+    infos: Vec<CityMeshInfo>,
+    transforms: Vec<[f32; 4]>,
+}
+
+impl std::fmt::Debug for AtlasTreeRenderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AtlasTreeRenderer")
+            .field("meshes", &self.originals.len())
+            .field("nodes", &self.atlases.len())
+            .field("slots", &self.slots.len())
+            .finish()
+    }
+}
+
+/// What a selection draws, counted as a renderer that binds one texture per draw would
+/// draw it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TreeDraws {
+    /// Nodes drawn with an atlas (their own or a resident ancestor's).
+    pub atlas_draws: u32,
+    /// Leaves drawn with their original textures.
+    pub original_leaves: u32,
+}
+
+impl AtlasTreeRenderer {
+    /// Builds the pass for `tree` over `city` (built from the tree's dataset: its meshes are
+    /// the scene's, `indices` the scene's indices, `vertex_count` its vertices), with one
+    /// set of per-mesh tables per frame in flight. Every node's atlas must be a texture of
+    /// `cache`.
+    pub fn new(
+        device: &Arc<Device>,
+        commands: &mut CommandContext,
+        city: &CityRenderer,
+        indices: &[u32],
+        tree: &AtlasTree,
+        cache: &GpuTextureCache,
+        frames_in_flight: u32,
+    ) -> Result<Self> {
+        let meshes = city.meshes();
+        let invalid = |what: String| EngineError::InvalidRequest(format!("atlas tree: {what}"));
+        let root = tree.nodes.first().ok_or_else(|| invalid("no nodes".into()))?;
+        let extent = tree.params.atlas_extent;
+        let atlas_info = |atlas: u32| CityMeshInfo {
+            texture_id: atlas,
+            texture_width: extent,
+            texture_height: extent,
+            max_mip: extent.max(1).ilog2(),
+        };
+        let mut atlases = Vec::with_capacity(tree.nodes.len());
+        for (n, node) in tree.nodes.iter().enumerate() {
+            if cache.texture_data(node.atlas).is_none() {
+                return Err(invalid(format!(
+                    "node {n}'s atlas {} is not a texture of the cache",
+                    node.atlas
+                )));
+            }
+            if node.is_leaf() && node.first_mesh as u64 + node.mesh_count as u64 > meshes.len() as u64 {
+                return Err(invalid(format!(
+                    "leaf {n} has meshes beyond the city's {}",
+                    meshes.len()
+                )));
+            }
+            atlases.push((
+                atlas_info(node.atlas),
+                [node.uv_scale, node.uv_offset[0], node.uv_offset[1], 0.0],
+            ));
+        }
+        if root.uv_scale == 0.0 {
+            return Err(invalid("the root's texture matrix has scale 0".into()));
+        }
+        // Each node's leaf meshes, as one contiguous run per node: children's runs are
+        // nested in their parent's when leaves are listed depth first.
+        let mut subtree_meshes = Vec::new();
+        let mut subtree_ranges = vec![0..0; tree.nodes.len()];
+        let mut stack = vec![(0u32, false)];
+        let mut starts = vec![0u32; tree.nodes.len()];
+        while let Some((n, done)) = stack.pop() {
+            let node = &tree.nodes[n as usize];
+            if done {
+                subtree_ranges[n as usize] = starts[n as usize]..subtree_meshes.len() as u32;
+                continue;
+            }
+            starts[n as usize] = subtree_meshes.len() as u32;
+            stack.push((n, true));
+            if node.is_leaf() {
+                subtree_meshes.extend(node.first_mesh..node.first_mesh + node.mesh_count);
+            } else {
+                stack.extend(node.children().rev().map(|c| (c, false)));
+            }
+        }
+        let (sources, _) = single_draw_layout(tree.atlas_uvs.len(), indices, meshes)?;
+        let drawn_uvs: Vec<[f32; 2]> = sources
+            .iter()
+            .map(|&(_, source)| tree.atlas_uvs[source as usize])
+            .collect();
+        let atlas_uvs = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(if drawn_uvs.is_empty() {
+                &[[0.0f32; 2]][..]
+            } else {
+                &drawn_uvs
+            }),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "atlas tree vertex coordinates",
+        )?;
+        let fragment = vk::ShaderStageFlags::FRAGMENT;
+        let vertex = vk::ShaderStageFlags::VERTEX;
+        let mut bindings: Vec<BindingSpec> = cache
+            .descriptors()
+            .iter()
+            .map(|(binding, resource)| (*binding, resource.descriptor_type(), resource.count(), fragment))
+            .collect();
+        bindings.push((BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment));
+        bindings.push((BINDING_TREE_ATLAS_UVS, vk::DescriptorType::STORAGE_BUFFER, 1, vertex));
+        bindings.push((
+            BINDING_TREE_UV_TRANSFORMS,
+            vk::DescriptorType::STORAGE_BUFFER,
+            1,
+            vertex,
+        ));
+        let pipeline = city_pipeline(
+            device,
+            shaders::CITY_TREE_VERT,
+            shaders::CITY_FRAG,
+            bindings,
+            DepthMode::TestAndWrite,
+            true,
+            "atlas tree visible pipeline",
+        )?;
+        let slot_count = frames_in_flight.max(1);
+        let pool = DescriptorPool::new(device, &pipeline, slot_count, "atlas tree descriptors")?;
+        let table_bytes = |stride: usize| (stride * meshes.len().max(1)) as u64;
+        let mut slots = Vec::with_capacity(slot_count as usize);
+        for slot in 0..slot_count {
+            let host_buffer = |bytes: u64, name: String| {
+                Buffer::new(
+                    device,
+                    BufferDesc {
+                        size: bytes,
+                        usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                        location: MemoryLocation::CpuToGpu,
+                    },
+                    &name,
+                )
+            };
+            let mesh_info = host_buffer(
+                table_bytes(std::mem::size_of::<CityMeshInfo>()),
+                format!("atlas tree mesh textures (slot {slot})"),
+            )?;
+            let uv_transforms = host_buffer(
+                table_bytes(std::mem::size_of::<[f32; 4]>()),
+                format!("atlas tree texture matrices (slot {slot})"),
+            )?;
+            let mut resources = cache.descriptors().to_vec();
+            resources.extend([
+                (BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())),
+                (
+                    BINDING_TREE_ATLAS_UVS,
+                    DescriptorResource::StorageBuffer(atlas_uvs.raw()),
+                ),
+                (
+                    BINDING_TREE_UV_TRANSFORMS,
+                    DescriptorResource::StorageBuffer(uv_transforms.raw()),
+                ),
+            ]);
+            let set = pool.allocate(&pipeline, &resources)?;
+            slots.push(TreeSlot {
+                set,
+                mesh_info,
+                uv_transforms,
+            });
+        }
+        let originals = meshes
+            .iter()
+            .map(|mesh| CityMeshInfo {
+                texture_id: mesh.texture,
+                texture_width: mesh.texture_width,
+                texture_height: mesh.texture_height,
+                max_mip: mesh.max_mip(),
+            })
+            .collect();
+        Ok(Self {
+            pipeline,
+            _pool: pool,
+            slots,
+            _atlas_uvs: atlas_uvs,
+            originals,
+            atlases,
+            subtree_ranges,
+            subtree_meshes,
+            infos: Vec::new(),
+            transforms: Vec::new(),
+        })
+    }
+
+    /// Writes `selection` (of the tree this pass was built for) into frame slot `slot`'s
+    /// tables: each drawn node's leaf meshes get the atlas it is drawn with, or their own
+    /// textures; meshes under no draw (culled) the root's atlas. The slot's last frame must
+    /// have completed (as after [`crate::stream::TextureStreamer::begin_frame`] returned it).
+    pub fn write_selection(&mut self, slot: u32, selection: &Selection) -> Result<TreeDraws> {
+        let mut draws = TreeDraws::default();
+        let (root_info, root_transform) = self.atlases[0];
+        self.infos.clear();
+        self.infos.resize(self.originals.len(), root_info);
+        self.transforms.clear();
+        self.transforms.resize(self.originals.len(), root_transform);
+        for &(n, with) in &selection.draws {
+            let range =
+                self.subtree_ranges.get(n as usize).cloned().ok_or_else(|| {
+                    EngineError::InvalidRequest(format!("atlas tree: drawn node {n} is not in the tree"))
+                })?;
+            let meshes = &self.subtree_meshes[range.start as usize..range.end as usize];
+            match with {
+                DrawWith::Atlas(a) => {
+                    let (info, transform) = *self.atlases.get(a as usize).ok_or_else(|| {
+                        EngineError::InvalidRequest(format!("atlas tree: node {n} drawn with the atlas of node {a}"))
+                    })?;
+                    for &m in meshes {
+                        self.infos[m as usize] = info;
+                        self.transforms[m as usize] = transform;
+                    }
+                    draws.atlas_draws += 1;
+                }
+                DrawWith::Originals => {
+                    for &m in meshes {
+                        self.infos[m as usize] = self.originals[m as usize];
+                        self.transforms[m as usize] = [0.0; 4];
+                    }
+                    draws.original_leaves += 1;
+                }
+            }
+        }
+        let tables = self
+            .slots
+            .get_mut(slot as usize)
+            .ok_or_else(|| EngineError::InvalidRequest(format!("atlas tree: frame slot {slot} out of range")))?;
+        if !self.infos.is_empty() {
+            tables.mesh_info.write(0, &self.infos)?;
+            tables.uv_transforms.write(0, &self.transforms)?;
+        }
+        Ok(draws)
+    }
+
+    /// Records the visible pass of frame slot `slot` (as written by
+    /// [`write_selection`](Self::write_selection)) over `city`'s geometry into `target`,
+    /// its read-back copy included; lighting and blending as
+    /// [`CityRenderer::record_visible`].
+    pub fn record_visible(
+        &self,
+        cmd: vk::CommandBuffer,
+        slot: u32,
+        city: &CityRenderer,
+        target: &RenderTarget,
+        camera: &Camera,
+        colormap_blend: bool,
+    ) -> Result<()> {
+        let tables = self
+            .slots
+            .get(slot as usize)
+            .ok_or_else(|| EngineError::InvalidRequest(format!("atlas tree: frame slot {slot} out of range")))?;
+        city.record_visible_with(cmd, target, camera, 1.0, colormap_blend, &self.pipeline, tables.set);
+        Ok(())
+    }
+}
