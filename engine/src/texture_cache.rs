@@ -603,7 +603,8 @@ impl GpuTextureCache {
     /// recorded before the frame's passes, and its blocks no other level
     /// uses are unbound by the next bind batch, which waits for the frames
     /// submitted before. Returns the level and the blocks freed; `None` if
-    /// nothing is resident or a mip of it is staged in this cycle.
+    /// nothing is resident, a mip of it is staged in this cycle, or its layer
+    /// was evicted in this cycle (its levels are gone already).
     pub fn drop_finest(&mut self, texture: u32) -> Result<Option<(u32, u32)>> {
         let Some(slot) = self.slots.get(texture as usize).copied() else {
             return Err(EngineError::InvalidRequest(format!(
@@ -613,7 +614,9 @@ impl GpuTextureCache {
         let Some(placement) = slot.placement else {
             return Ok(None);
         };
-        if slot.resident == 0 || slot.pending != 0 {
+        // A layer evicted earlier in this cycle still shows its textures'
+        // levels as resident until the cycle reports it.
+        if slot.resident == 0 || slot.pending != 0 || !self.cache.is_live(&placement) {
             return Ok(None);
         }
         let mip = slot.resident.trailing_zeros();

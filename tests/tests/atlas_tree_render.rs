@@ -19,7 +19,7 @@ use citystream_engine::Device;
 use citystream_streaming::atlas_tree::{distance_to, AtlasTree, DrawWith, Selection};
 use citystream_streaming::dataset::{Dataset, TextureFormat};
 use citystream_tests::{assert_no_validation_errors, validated_device};
-use citystream_tools::atlas_tree::{build, AtlasTreeArgs};
+use citystream_tools::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
 use citystream_tools::gen::{self, FormatArg, GenArgs, Preset};
 use glam::Vec3;
 
@@ -149,6 +149,7 @@ fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()>
         texel_per_pixel: 1.0,
         screen_height: HEIGHT,
         min_distance: None,
+        distances: LeafDistances::FullDensity,
         buffer_mb: 64,
         quiet: true,
     })?;

@@ -509,6 +509,54 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
     assert_no_validation_errors(&device)
 }
 
+#[test]
+fn a_level_of_a_layer_evicted_in_the_same_cycle_is_not_dropped_again() -> Result<()> {
+    // View eviction may evict a layer and then, in the same cycle, look for levels to drop
+    // among textures whose table still shows them resident: those are gone already.
+    let device = validated_device()?;
+    let mut commands = CommandContext::new(&device, "evict then drop test")?;
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &GpuCacheConfig {
+            layer_size: 128,
+            layers: CacheLayers::Fixed(2),
+            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
+            eviction: Eviction::View,
+            memory_budget_bytes: 16 << 20,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 16,
+            texture_count: 2,
+            filtering: Filtering::Nearest,
+            staging_bytes: 1 << 20,
+        },
+        &[[9, 9, 9, 255], [9, 9, 9, 255]],
+    )?;
+    for texture in 0..2 {
+        for level in (0..5u32).rev() {
+            let side = 64 >> level;
+            let bytes = vec![texture as u8 * 100; (side * side * 4) as usize];
+            cache.stage(texture, TextureFormat::Rgba8, 64, 64, level, &bytes)?;
+        }
+    }
+    cache.finish_cycle(&mut commands)?;
+    let data = *cache.texture_data(0).expect("texture 0");
+    cache.evict_layer(data.image, data.layer)?;
+    ensure!(
+        cache.drop_finest(0)?.is_none(),
+        "a level of an evicted layer was dropped"
+    );
+    let report = cache.finish_cycle(&mut commands)?;
+    ensure!(report.invalidated_textures.contains(&0), "{report:?}");
+    ensure!(
+        cache.texture_data(0).is_some_and(|d| d.state == 0),
+        "texture 0 still sampleable"
+    );
+    drop(cache);
+    drop(commands);
+    assert_no_validation_errors(&device)
+}
+
 /// Stages every cacheable level of every source texture, coarsest first,
 /// and finishes the cycle; every mip must be staged.
 fn stage_every_level(

@@ -59,6 +59,13 @@ pub struct AtlasTreeArgs {
     /// Default: the scene's diagonal / 150 (the paper's Berlin model used / 151).
     #[arg(long)]
     pub min_distance: Option<f32>,
+    /// How leaves' distances are set: `full-density` (default: where the leaf atlas has every
+    /// texel the view needs, later than `d_min` where an original is coarser than `d_min`
+    /// needs; no node ever shows less than the originals) or `paper` (`d_min` for every
+    /// leaf, as Buchholz & Döllner: fewer nodes drawn, but ancestors of leaves with coarse
+    /// originals magnify them).
+    #[arg(long, value_enum, default_value_t = LeafDistances::FullDensity)]
+    pub distances: LeafDistances,
     /// Memory for atlases composed but not yet written, MB (at least one atlas is
     /// composed at a time, whatever this says).
     #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
@@ -66,6 +73,15 @@ pub struct AtlasTreeArgs {
     /// Do not print progress and the summary.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// `--distances`: how a leaf's `min_distance` is set.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LeafDistances {
+    /// Where the leaf's atlas has every texel the view needs.
+    FullDensity,
+    /// `d_min`, as the paper.
+    Paper,
 }
 
 /// The flythrough's vertical field of view, which the distances assume.
@@ -336,7 +352,10 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
         let mut composed: Vec<Vec<u8>> = Vec::with_capacity(chunk.len());
         for (&i, leaf) in chunk.iter().zip(leaves) {
             let rgba = if nodes[i].children.is_empty() {
-                min_distance[i] = full_density_distance(d_min, &nodes[i].areas);
+                min_distance[i] = match args.distances {
+                    LeafDistances::FullDensity => full_density_distance(d_min, &nodes[i].areas),
+                    LeafDistances::Paper => d_min,
+                };
                 leaf?
             } else {
                 min_distance[i] = 2.0

@@ -31,6 +31,20 @@
 //! writes `pressure.md`: the issue's acceptance ratios, measured.
 //!
 //! `--scenario loader` measures the loader alone ([`crate::loader_bench`]).
+//!
+//! `--scenario strategies` runs both streaming strategies, the paper's feedback and the
+//! texture-atlas tree (`docs/ATLAS_TREE.md`), on the same tree dataset (`--dataset`, a
+//! directory `citystream atlas-tree` wrote; default: the default city's tree in
+//! `data/city-tree`, built on first use) and path, with the `modelled` clock (reproducible:
+//! frame latency is the model's, a fixed render cost plus the desktop bind-latency model and
+//! the copies, and the camera moves on by it, so both runs see the same path), adaptive α =
+//! 16 ms, the budget `--budget-mb` and PSNR every 30 frames, and writes `strategies.md` (one
+//! table, the paper's Berlin figures beside it) and `strategies.json`. The render cost each
+//! strategy really has is in the table too: the GPU time of its passes, measured with
+//! timestamps, and the wall time per frame.
+//!
+//! `--strategy feedback|atlas-tree` passes the strategy to every run of the other
+//! scenarios (`atlas-tree` needs a tree dataset).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -55,14 +69,40 @@ pub enum Scenario {
     /// 20 and 80 ms per request, at 1, 8 and 32 requests in flight
     /// ([`crate::remote_bench`]); no flythrough.
     Remote,
+    /// Both streaming strategies (feedback, atlas tree) on one tree dataset and path.
+    Strategies,
+}
+
+/// `--strategy` of the flythrough runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum StrategyArg {
+    /// The paper's GPU feedback.
+    Feedback,
+    /// The texture-atlas tree (the dataset must be a tree).
+    AtlasTree,
+}
+
+impl StrategyArg {
+    fn name(self) -> &'static str {
+        match self {
+            StrategyArg::Feedback => "feedback",
+            StrategyArg::AtlasTree => "atlas-tree",
+        }
+    }
 }
 
 /// Options of `citystream bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
-    /// Which benchmark: `standard`, `pressure`, `loader` or `remote` (see the module docs).
+    /// Which benchmark: `standard`, `pressure`, `loader`, `remote` or `strategies` (see the
+    /// module docs).
     #[arg(long, value_enum, default_value = "standard")]
     scenario: Scenario,
+    /// Streaming strategy of every flythrough run: `feedback` (default) or `atlas-tree`
+    /// (--dataset then names a tree built by `citystream atlas-tree`). `--scenario
+    /// strategies` runs both.
+    #[arg(long, value_enum)]
+    strategy: Option<StrategyArg>,
     /// Dataset directory every run opens (default: the default city in
     /// data/city, created on first use; with `--scenario pressure`, the
     /// atlased `large` city under --data-dir).
@@ -71,7 +111,7 @@ pub struct BenchArgs {
     /// `--scenario pressure`: where `large` and `large-atlas` are generated.
     #[arg(long, default_value = "data")]
     data_dir: PathBuf,
-    /// `--scenario pressure`: memory budget of the budgeted runs, MB.
+    /// `--scenario pressure` and `strategies`: memory budget of the budgeted runs, MB.
     #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
     budget_mb: u64,
     /// Output directory: one subdirectory per run, plus table.md and the
@@ -174,6 +214,13 @@ struct RunSettings {
 impl RunSettings {
     fn of(args: &BenchArgs) -> Self {
         match args.scenario {
+            Scenario::Strategies => RunSettings {
+                clock: "modelled",
+                frames: args.frames,
+                duration_s: None,
+                width: args.width,
+                height: args.height,
+            },
             Scenario::Standard | Scenario::Loader | Scenario::Remote => RunSettings {
                 clock: "fixed",
                 frames: args.frames,
@@ -294,6 +341,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             dir
         }
         (None, Scenario::Pressure) => ensure_pressure_city(&args.data_dir)?,
+        (None, Scenario::Strategies) => ensure_default_tree(&args.data_dir)?,
         (None, Scenario::Loader | Scenario::Remote) => {
             let dir = PathBuf::from(DEFAULT_CITY_DIR);
             ensure_default_city(&dir, false)?;
@@ -314,13 +362,25 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         return Ok(());
     }
 
-    let runs = match args.scenario {
+    let mut runs = match args.scenario {
         Scenario::Standard | Scenario::Loader | Scenario::Remote => POLICY_RUNS
             .iter()
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),
         Scenario::Pressure => pressure_runs(args.budget_mb),
+        Scenario::Strategies => {
+            check_tree(&dataset)?;
+            strategy_runs(args.budget_mb)
+        }
     };
+    if let (Some(strategy), false) = (args.strategy, args.scenario == Scenario::Strategies) {
+        if strategy == StrategyArg::AtlasTree {
+            check_tree(&dataset)?;
+        }
+        for run in &mut runs {
+            run.args.extend(["--strategy".to_string(), strategy.name().to_string()]);
+        }
+    }
     let settings = RunSettings::of(args);
     let total = runs.len();
     let mut inputs = Vec::with_capacity(total);
@@ -363,6 +423,16 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     let outputs = report::write_report(&inputs, &args.out)?;
     report::print_outputs(&outputs);
+    if args.scenario == Scenario::Strategies {
+        let (text, json) = strategies_table(&args.out, &dataset, args.budget_mb)?;
+        let path = args.out.join("strategies.md");
+        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+        let json_path = args.out.join("strategies.json");
+        std::fs::write(&json_path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", json_path.display()))?;
+        eprint!("{text}");
+        eprintln!("wrote {} and {}", path.display(), json_path.display());
+    }
     if args.scenario == Scenario::Pressure {
         let path = args.out.join("pressure.md");
         let text = pressure_checks(&args.out, args.budget_mb)?;
@@ -371,6 +441,153 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         eprintln!("wrote {}", path.display());
     }
     Ok(())
+}
+
+/// The two runs of `--scenario strategies`: the same policy, budget and PSNR interval.
+fn strategy_runs(budget_mb: u64) -> Vec<BenchRun> {
+    let shared = [
+        "--policy",
+        "adaptive",
+        "--alpha",
+        "16",
+        "--psnr-interval",
+        "30",
+        "--frame-interval",
+        "0",
+        "--memory-budget-mb",
+    ];
+    [StrategyArg::Feedback, StrategyArg::AtlasTree]
+        .into_iter()
+        .map(|strategy| BenchRun {
+            dir: strategy.name().into(),
+            name: strategy.name().into(),
+            args: shared
+                .iter()
+                .map(|a| a.to_string())
+                .chain([budget_mb.to_string(), "--strategy".into(), strategy.name().into()])
+                .collect(),
+        })
+        .collect()
+}
+
+/// Refuses a dataset that is no texture-atlas tree, saying how to make one.
+fn check_tree(dataset: &Path) -> Result<()> {
+    if citystream_streaming::remote::is_remote(&dataset.to_string_lossy()) {
+        return Ok(()); // the flythrough opens it and says so
+    }
+    let opened = citystream_streaming::dataset::Dataset::open(dataset)
+        .with_context(|| format!("opening {}", dataset.display()))?;
+    if crate::atlas_tree::open_if_tree(&opened)?.is_none() {
+        bail!(
+            "{} is not a texture-atlas tree; build one with `citystream atlas-tree {} --out DIR` and pass DIR to --dataset",
+            dataset.display(),
+            dataset.display()
+        );
+    }
+    Ok(())
+}
+
+/// The default city's tree, `DATA/city-tree`, built from its per-mesh source on first use
+/// (`citystream atlas-tree data/city-per-mesh --out data/city-tree`).
+fn ensure_default_tree(data_dir: &Path) -> Result<PathBuf> {
+    let city = data_dir.join("city");
+    let tree = data_dir.join("city-tree");
+    upgrade_if_old(&tree, false)?;
+    if is_dataset(&tree) {
+        return Ok(tree);
+    }
+    ensure_default_city(&city, false)?;
+    let source = crate::default_city::source_dir(&city);
+    eprintln!(
+        "building the default city's tree: `citystream atlas-tree {} --out {}`",
+        source.display(),
+        tree.display()
+    );
+    build_then_move(&tree, |partial| {
+        crate::atlas_tree::run(&crate::atlas_tree::AtlasTreeArgs {
+            dataset: source.clone(),
+            out: partial.to_path_buf(),
+            atlas_extent: 512,
+            texel_per_pixel: 1.0,
+            screen_height: 1080,
+            min_distance: None,
+            distances: crate::atlas_tree::LeafDistances::FullDensity,
+            buffer_mb: 256,
+            quiet: false,
+        })
+    })?;
+    Ok(tree)
+}
+
+/// `strategies.md` and `strategies.json`: both runs in one table, the paper's figures beside.
+fn strategies_table(out: &Path, dataset: &Path, budget_mb: u64) -> Result<(String, serde_json::Value)> {
+    let mut text = format!(
+        "# Streaming strategies on {}: budget {budget_mb} MB\n\n\
+         | | frames | latency median / mean / max (ms, modelled) | GPU ms per frame, measured (feedback + compaction + visible) | wall ms per frame | MB streamed | peak resident MB | mean PSNR (dB) | draw calls mean / max | nodes drawn mean / max | tree depth |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        dataset.display()
+    );
+    let mut rows = Vec::new();
+    for strategy in [StrategyArg::Feedback, StrategyArg::AtlasTree] {
+        let summary = summary_of(&out.join(strategy.name()))?;
+        let shown = |v: Option<f64>, digits: usize| v.map_or("n/a".to_string(), |v| format!("{v:.digits$}"));
+        let pair = |key: &str| {
+            format!(
+                "{} / {}",
+                shown(stat(&summary, key, "mean"), 1),
+                shown(stat(&summary, key, "max"), 0)
+            )
+        };
+        let mb = |key: &str| count(&summary, key).map(|b| b / f64::from(1 << 20));
+        let depth = summary
+            .get("atlas_tree")
+            .and_then(|t| t.get("depth"))
+            .and_then(|d| d.as_f64());
+        let pass_ms = |pass: &str| {
+            stat(
+                summary.get("gpu_pass_ms").unwrap_or(&serde_json::Value::Null),
+                pass,
+                "mean",
+            )
+        };
+        let gpu_ms = match (pass_ms("feedback"), pass_ms("compaction"), pass_ms("visible")) {
+            (Some(f), Some(c), Some(v)) => format!("{:.1} ({f:.1} + {c:.1} + {v:.1})", f + c + v),
+            _ => "n/a".into(),
+        };
+        let nodes = match strategy {
+            StrategyArg::AtlasTree => pair("nodes_drawn"),
+            StrategyArg::Feedback => "n/a".into(),
+        };
+        text.push_str(&format!(
+            "| {} | {} | {} / {} / {} | {gpu_ms} | {} | {} | {} | {} | {} | {nodes} | {} |\n",
+            strategy.name(),
+            shown(count(&summary, "frames"), 0),
+            shown(stat(&summary, "frame_ms", "median"), 1),
+            shown(stat(&summary, "frame_ms", "mean"), 1),
+            shown(stat(&summary, "frame_ms", "max"), 1),
+            shown(count(&summary, "wall_ms_per_frame"), 1),
+            shown(mb("bytes_streamed"), 1),
+            shown(mb("peak_resident_bytes"), 1),
+            shown(stat(&summary, "psnr_db", "mean"), 2),
+            pair("draw_calls"),
+            shown(depth, 0),
+        ));
+        rows.push(serde_json::json!({"strategy": strategy.name(), "summary": summary}));
+    }
+    text.push_str(
+        "| paper: atlas tree, Berlin | | 14.5 ms mean (69 fps average, real) | | | | 160 blocks in memory (at most 350 MB in all) | | | mostly < 20, never > 40 | 6 |\n\n\
+         Latency is the `modelled` clock's (a fixed 8 ms render, the desktop bind-latency model, the copies at \
+         12 GB/s), the same for a strategy whatever this machine's speed; GPU ms are the strategy's passes timed \
+         with timestamps on this device (the atlas tree has no feedback pass). Draw calls are those of a renderer \
+         binding one texture per draw (citystream draws every mesh in one draw under both strategies). PSNR is \
+         against the same view with every texture the view needs resident (the originals).\n",
+    );
+    let json = serde_json::json!({
+        "dataset": dataset.display().to_string(),
+        "budget_mb": budget_mb,
+        "runs": rows,
+    });
+    Ok((text, json))
 }
 
 /// One run's summary.json.
