@@ -88,7 +88,9 @@ impl AtlasTreeRenderer {
     ) -> Result<Self> {
         let meshes = city.meshes();
         let invalid = |what: String| EngineError::InvalidRequest(format!("atlas tree: {what}"));
-        let root = tree.nodes.first().ok_or_else(|| invalid("no nodes".into()))?;
+        if tree.nodes.is_empty() {
+            return Err(invalid("no nodes".into()));
+        }
         let extent = tree.params.atlas_extent;
         let atlas_info = |atlas: u32| CityMeshInfo {
             texture_id: atlas,
@@ -98,6 +100,23 @@ impl AtlasTreeRenderer {
         };
         let mut atlases = Vec::with_capacity(tree.nodes.len());
         for (n, node) in tree.nodes.iter().enumerate() {
+            // What `AtlasTree::decode` checks of a file, for trees built in code too: the
+            // walk below relies on children after their parent and in range.
+            let children_end = u64::from(node.first_child) + u64::from(node.child_count);
+            if node.child_count > 0 && (node.first_child as usize <= n || children_end > tree.nodes.len() as u64) {
+                return Err(invalid(format!(
+                    "node {n}'s children {}..{children_end} are not after it within the {} nodes",
+                    node.first_child,
+                    tree.nodes.len()
+                )));
+            }
+            // Scale 0 means "own texture coordinates" to the vertex stage.
+            if !(node.uv_scale.is_finite() && node.uv_scale > 0.0) {
+                return Err(invalid(format!(
+                    "node {n}'s texture matrix has scale {}",
+                    node.uv_scale
+                )));
+            }
             if cache.texture_data(node.atlas).is_none() {
                 return Err(invalid(format!(
                     "node {n}'s atlas {} is not a texture of the cache",
@@ -114,9 +133,6 @@ impl AtlasTreeRenderer {
                 atlas_info(node.atlas),
                 [node.uv_scale, node.uv_offset[0], node.uv_offset[1], 0.0],
             ));
-        }
-        if root.uv_scale == 0.0 {
-            return Err(invalid("the root's texture matrix has scale 0".into()));
         }
         // Each node's leaf meshes, as one contiguous run per node: children's runs are
         // nested in their parent's when leaves are listed depth first.

@@ -13,9 +13,10 @@
 //!    (counted in the summary: those texels are magnified at `d_min`).
 //! 2. Leaves compose their atlas from the original textures (the mip level whose size is
 //!    nearest above what the area needs, bilinear, repeating); `min_distance` is `d_min`
-//!    times the largest shortfall of an area (an original with fewer texels than `d_min`
-//!    needs, or an area scaled down to fit): from there on the atlas has every texel the
-//!    view needs, so neither it nor an ancestor ever shows less than the originals would.
+//!    (`--distances paper`, the default) or, with `--distances full-density`, `d_min` times
+//!    the largest shortfall of an area (an original with fewer texels than `d_min` needs,
+//!    or an area scaled down to fit): from there on the atlas has every texel the view
+//!    needs, so no ancestor shows less than the originals would.
 //! 3. Inner nodes, bottom up: the children's atlases side by side in a `2N × 2N` image (a
 //!    quadrant per child, empty ones the mean colour), box-filtered to `N × N`;
 //!    `min_distance` is twice the children's largest.
@@ -59,12 +60,12 @@ pub struct AtlasTreeArgs {
     /// Default: the scene's diagonal / 150 (the paper's Berlin model used / 151).
     #[arg(long)]
     pub min_distance: Option<f32>,
-    /// How leaves' distances are set: `full-density` (default: where the leaf atlas has every
-    /// texel the view needs, later than `d_min` where an original is coarser than `d_min`
-    /// needs; no node ever shows less than the originals) or `paper` (`d_min` for every
-    /// leaf, as Buchholz & Döllner: fewer nodes drawn, but ancestors of leaves with coarse
-    /// originals magnify them).
-    #[arg(long, value_enum, default_value_t = LeafDistances::FullDensity)]
+    /// How leaves' distances are set: `paper` (default: `d_min` for every leaf, as Buchholz
+    /// & Döllner; where an original is coarser than `d_min` needs, the ancestors of its leaf
+    /// magnify it) or `full-density` (where the leaf's atlas has every texel the view needs:
+    /// no ancestor shows less than the originals, at the cost of drawing and paging more
+    /// nodes; see docs/ATLAS_TREE.md for both measured).
+    #[arg(long, value_enum, default_value_t = LeafDistances::Paper)]
     pub distances: LeafDistances,
     /// Memory for atlases composed but not yet written, MB (at least one atlas is
     /// composed at a time, whatever this says).

@@ -43,8 +43,8 @@
 //! strategy really has is in the table too: the GPU time of its passes, measured with
 //! timestamps, and the wall time per frame.
 //!
-//! `--strategy feedback|atlas-tree` passes the strategy to every run of the other
-//! scenarios (`atlas-tree` needs a tree dataset).
+//! `--strategy feedback|atlas-tree` passes the strategy to every run of the `standard` and
+//! `pressure` scenarios (`atlas-tree` needs a tree dataset).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -349,6 +349,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         }
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    if args.strategy.is_some() && matches!(args.scenario, Scenario::Loader | Scenario::Remote) {
+        bail!("--strategy applies to flythrough runs; `--scenario loader` and `remote` measure the loader alone");
+    }
     if args.scenario == Scenario::Remote {
         let text = crate::remote_bench::run(&dataset, &args.out)?;
         eprint!("{text}");
@@ -498,6 +501,15 @@ fn ensure_default_tree(data_dir: &Path) -> Result<PathBuf> {
     }
     ensure_default_city(&city, false)?;
     let source = crate::default_city::source_dir(&city);
+    if !is_dataset(&source) {
+        bail!(
+            "the default city's per-mesh source {} is missing (it is made with {}); remove {} to make both again, \
+             or pass --dataset TREE_DIR",
+            source.display(),
+            city.display(),
+            city.display()
+        );
+    }
     eprintln!(
         "building the default city's tree: `citystream atlas-tree {} --out {}`",
         source.display(),
@@ -511,7 +523,7 @@ fn ensure_default_tree(data_dir: &Path) -> Result<PathBuf> {
             texel_per_pixel: 1.0,
             screen_height: 1080,
             min_distance: None,
-            distances: crate::atlas_tree::LeafDistances::FullDensity,
+            distances: crate::atlas_tree::LeafDistances::Paper,
             buffer_mb: 256,
             quiet: false,
         })
@@ -578,7 +590,8 @@ fn strategies_table(out: &Path, dataset: &Path, budget_mb: u64) -> Result<(Strin
         "| paper: atlas tree, Berlin | | 14.5 ms mean (69 fps average, real) | | | | 160 blocks in memory (at most 350 MB in all) | | | mostly < 20, never > 40 | 6 |\n\n\
          Latency is the `modelled` clock's (a fixed 8 ms render, the desktop bind-latency model, the copies at \
          12 GB/s), the same for a strategy whatever this machine's speed; GPU ms are the strategy's passes timed \
-         with timestamps on this device (the atlas tree has no feedback pass). Draw calls are those of a renderer \
+         with timestamps on this device (the atlas tree has no feedback pass); wall ms include the PSNR \
+         measurements every 30th frame (for the tree also the reference's own feedback pass). Draw calls are those of a renderer \
          binding one texture per draw (citystream draws every mesh in one draw under both strategies). PSNR is \
          against the same view with every texture the view needs resident (the originals).\n",
     );

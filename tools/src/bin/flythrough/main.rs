@@ -27,9 +27,7 @@ use citystream_engine::target::{write_png, RenderTarget};
 use citystream_engine::texture_cache::{Eviction, GpuTextureCache};
 use citystream_engine::timing::{CpuFrameClock, GpuTimer};
 use citystream_engine::{Device, DeviceOptions};
-use citystream_streaming::atlas_tree::{
-    atlas_level_for, distance_to, frustum_planes, intersects_frustum, AtlasTree, Block, DrawWith, TreeView,
-};
+use citystream_streaming::atlas_tree::{frustum_planes, intersects_frustum, AtlasTree, Block, DrawWith, TreeView};
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::bind_latency::{BindLatencyModel, BindLatencyPreset};
@@ -301,9 +299,10 @@ struct Run<'a> {
     scene: String,
     /// `feedback` or `atlas-tree`.
     strategy: &'a str,
-    /// Per frame: draws of a renderer binding one texture per draw (meshes in view; for
-    /// the tree, atlases drawn plus original textures in view). citystream itself draws
-    /// every mesh in one draw whatever the strategy.
+    /// Per frame: draws of a renderer binding one texture per draw (meshes in view, a
+    /// mesh having one texture; for the tree, atlases drawn plus the meshes in view of the
+    /// leaves drawn with their originals). citystream itself draws every mesh in one draw
+    /// whatever the strategy.
     draw_calls: Stats,
     /// Per frame: nodes drawn (the atlas tree only).
     nodes_drawn: Option<Stats>,
@@ -964,8 +963,7 @@ struct TreeRun {
     capacity_bytes: u64,
     atlas_mips: u32,
     scene_meshes: u32,
-    /// Per frame: nodes drawn, of them with an ancestor's atlas, and blocks in the ideal set.
-    nodes_drawn: Vec<f64>,
+    /// Per frame: nodes drawn with an ancestor's atlas, and blocks in the ideal set.
     fallbacks: Vec<f64>,
     ideal_blocks: Vec<f64>,
     /// Frames whose wanted blocks did not all fit the capacity.
@@ -1039,7 +1037,6 @@ impl TreeRun {
             atlas_mips,
             scene_meshes: dataset.scene.meshes.len() as u32,
             tree,
-            nodes_drawn: Vec::new(),
             fallbacks: Vec::new(),
             ideal_blocks: Vec::new(),
             frames_over_capacity: 0,
@@ -1074,26 +1071,19 @@ impl TreeRun {
     ) -> Result<TreeFrame> {
         let view = self.view(camera, target.width(), target.height());
         let tree = &self.tree;
-        let scale = tree
-            .params
-            .distance_scale(view.screen_height, view.fov_y, view.texel_per_pixel) as f32;
         let cache = gpu.streamer.cache();
         let sampleable_from = |texture: u32, level: u32| {
             cache
                 .texture_data(texture)
                 .is_some_and(|d| d.state == TEXTURE_SAMPLEABLE && d.lowest_mip <= level)
         };
-        // An atlas counts as resident from the level its distance needs; a leaf's
-        // originals when every one is whole (the paper loads them whole).
+        // An atlas counts as resident once any level of it is: the cache holds atlases
+        // partially, refining from the coarsest level as the loader brings the finer ones
+        // (the paper pages whole atlases), and a node's own atlas at a coarser level than
+        // its distance needs still shows more than an ancestor's, which covers four times
+        // the ground per level up. A leaf's originals count once every one is whole.
         let resident = |block: Block| match block {
-            Block::Atlas(n) => {
-                let node = &tree.nodes[n as usize];
-                let distance = distance_to(&node.bounds, view.eye);
-                sampleable_from(
-                    node.atlas,
-                    atlas_level_for(distance, node.min_distance * scale, self.atlas_mips),
-                )
-            }
+            Block::Atlas(n) => sampleable_from(tree.nodes[n as usize].atlas, u32::MAX),
             Block::Originals(n) => {
                 let node = &tree.nodes[n as usize];
                 (node.first_mesh..node.first_mesh + node.mesh_count)
@@ -1142,7 +1132,6 @@ impl TreeRun {
         self.renderer
             .record_visible(cmd, slot, &gpu.renderer, target, camera, true)?;
         let nodes_drawn = selection.draws.len() as u32;
-        self.nodes_drawn.push(f64::from(nodes_drawn));
         self.fallbacks.push(f64::from(selection.fallbacks));
         Ok(TreeFrame {
             nodes_drawn,
