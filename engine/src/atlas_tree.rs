@@ -15,7 +15,7 @@ use citystream_streaming::atlas_tree::{AtlasTree, DrawWith, Selection};
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::city::{city_pipeline, single_draw_layout, Camera, CityRenderer};
+use crate::city::{city_pipeline, single_draw_layout, Camera, CityMesh, CityRenderer};
 use crate::commands::CommandContext;
 use crate::device::Device;
 use crate::error::{EngineError, Result};
@@ -237,15 +237,7 @@ impl AtlasTreeRenderer {
                 uv_transforms,
             });
         }
-        let originals = meshes
-            .iter()
-            .map(|mesh| CityMeshInfo {
-                texture_id: mesh.texture,
-                texture_width: mesh.texture_width,
-                texture_height: mesh.texture_height,
-                max_mip: mesh.max_mip(),
-            })
-            .collect();
+        let originals = meshes.iter().map(CityMesh::info).collect();
         Ok(Self {
             pipeline,
             _pool: pool,

@@ -54,6 +54,16 @@ impl CityMesh {
     pub fn max_mip(&self) -> u32 {
         31 - self.texture_width.max(self.texture_height).max(1).leading_zeros()
     }
+
+    /// What the city passes' shaders know of it.
+    pub fn info(&self) -> CityMeshInfo {
+        CityMeshInfo {
+            texture_id: self.texture,
+            texture_width: self.texture_width,
+            texture_height: self.texture_height,
+            max_mip: self.max_mip(),
+        }
+    }
 }
 
 /// A dataset's vertices in the engine's layout and its meshes with their
@@ -337,15 +347,7 @@ impl CityRenderer {
             false,
             "city depth pre-pass pipeline",
         )?;
-        let mesh_info: Vec<CityMeshInfo> = meshes
-            .iter()
-            .map(|mesh| CityMeshInfo {
-                texture_id: mesh.texture,
-                texture_width: mesh.texture_width,
-                texture_height: mesh.texture_height,
-                max_mip: mesh.max_mip(),
-            })
-            .collect();
+        let mesh_info: Vec<CityMeshInfo> = meshes.iter().map(CityMesh::info).collect();
         let mesh_info = upload_buffer(
             device,
             commands,

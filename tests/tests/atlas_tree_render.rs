@@ -21,6 +21,7 @@ use citystream_streaming::dataset::{Dataset, TextureFormat};
 use citystream_tests::{assert_no_validation_errors, validated_device};
 use citystream_tools::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
 use citystream_tools::gen::{self, FormatArg, GenArgs, Preset};
+use citystream_tools::image_error::psnr_db;
 use glam::Vec3;
 
 const WIDTH: u32 = 320;
@@ -32,23 +33,6 @@ const HEIGHT: u32 = 240;
 /// close but not equal; measured 41.5 to 42.8 dB on these views (drawing every leaf with
 /// the root's atlas instead gives 25.5 dB on the first).
 const MIN_PSNR_DB: f64 = 38.0;
-
-fn psnr_db(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
-    let (mut sum, mut n) = (0.0f64, 0u64);
-    for (p, q) in a.pixels().zip(b.pixels()) {
-        for c in 0..3 {
-            let d = f64::from(p.0[c]) - f64::from(q.0[c]);
-            sum += d * d;
-            n += 1;
-        }
-    }
-    let mse = sum / n.max(1) as f64;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    }
-}
 
 /// Renders the tree's dataset from `cameras` with every texture resident (every level):
 /// once with the original textures, once with each leaf drawn with its own atlas.

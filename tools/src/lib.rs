@@ -10,6 +10,7 @@ pub mod default_city;
 pub mod fault_proxy;
 pub mod fuzz;
 pub mod gen;
+pub mod image_error;
 pub mod import;
 pub mod info;
 pub mod loader_bench;

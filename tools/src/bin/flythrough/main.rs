@@ -38,6 +38,7 @@ use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
 use citystream_streaming::source::{FaultPlan, FaultySource, MipSource};
 use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
+use citystream_tools::image_error::{mse, psnr_db};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Clock {
@@ -844,25 +845,6 @@ fn load_reference(
     Ok(evicted.len() as u32)
 }
 
-/// Peak signal-to-noise ratio of `a` against `b` over RGB, in dB (∞ when equal).
-fn psnr_db(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
-    let mut sum = 0.0f64;
-    let mut n = 0u64;
-    for (p, q) in a.pixels().zip(b.pixels()) {
-        for c in 0..3 {
-            let d = f64::from(p.0[c]) - f64::from(q.0[c]);
-            sum += d * d;
-            n += 1;
-        }
-    }
-    let mse = sum / n.max(1) as f64;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    }
-}
-
 const CSV_HEADER: &str = "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
                           blocks_bound,resident_bytes,mip_deficit,psnr_db,eye_x,eye_y,eye_z,look_x,look_y,look_z";
 
@@ -1191,9 +1173,17 @@ fn reference_feedback(
     commands.submit(&submit.waits, &[submit.signal])?;
     reference.streamer.wait_for_frame(begun.index)?;
     commands.wait()?;
-    Ok(reference
-        .streamer
-        .feedback_of(begun.index)?
+    feedback_reaching(&reference.streamer, begun.index, tau)
+}
+
+/// The compacted feedback entries of completed frame `index` whose weight reaches `tau`.
+fn feedback_reaching<S: MipSource + 'static>(
+    streamer: &TextureStreamer<S>,
+    index: u64,
+    tau: u32,
+) -> Result<Vec<FeedbackEntry>> {
+    Ok(streamer
+        .feedback_of(index)?
         .map(|f| f.entries)
         .unwrap_or_default()
         .into_iter()
@@ -1424,14 +1414,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                 // reaching τ); lighter ones are read back for eviction only.
                 let entries: Vec<FeedbackEntry> = match tree_run {
                     Some(_) => reference_feedback(reference, &mut commands, &targets, &camera, args.height)?,
-                    None => gpu
-                        .streamer
-                        .feedback_of(begun.index)?
-                        .map(|f| f.entries)
-                        .unwrap_or_default()
-                        .into_iter()
-                        .filter(|e| e.weight >= tau)
-                        .collect(),
+                    None => feedback_reaching(&gpu.streamer, begun.index, tau)?,
                 };
                 reference_incomplete += load_reference(reference, &mut commands, &entries, meshes)?;
                 let cmd = commands.begin()?;
@@ -1647,20 +1630,6 @@ impl WaitCounts {
             self.throttle_ms += waited.as_secs_f64() * 1000.0;
         }
     }
-}
-
-/// Mean squared error over RGB between two images.
-fn mse(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
-    let mut sum = 0.0f64;
-    let mut n = 0u64;
-    for (p, q) in a.pixels().zip(b.pixels()) {
-        for c in 0..3 {
-            let d = f64::from(p.0[c]) - f64::from(q.0[c]);
-            sum += d * d;
-            n += 1;
-        }
-    }
-    sum / n.max(1) as f64
 }
 
 #[derive(Debug, serde::Serialize)]
