@@ -5,6 +5,7 @@ pub mod atlas_tree;
 #[cfg(feature = "bench")]
 pub mod bench;
 pub mod bind_latency;
+pub mod clipmap;
 pub mod controller;
 pub mod dataset;
 pub mod loader;
