@@ -15,6 +15,7 @@ pub mod import;
 pub mod info;
 pub mod loader_bench;
 pub mod nginx;
+pub mod patches;
 pub mod path;
 pub mod remote_bench;
 pub mod report;

@@ -4,7 +4,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 use citystream_tools::{
-    atlas, atlas_tree, bench, cache_report, gen, import, info, path, report, simulate, upgrade, verify,
+    atlas, atlas_tree, bench, cache_report, gen, import, info, patches, path, report, simulate, upgrade, verify,
 };
 
 #[derive(Debug, Parser)]
@@ -34,6 +34,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Write the standard benchmark camera path (paper §4.1) of a dataset.
     Path(path::PathArgs),
+    /// Cut an image into a simulated aerial survey over a city (the ground layer's patches).
+    Patches(patches::PatchesArgs),
     /// Run the streaming policy on the simulated-clock harness.
     Simulate(simulate::SimulateArgs),
     /// Check every offset, length and mip of a dataset.
@@ -56,6 +58,7 @@ fn main() -> Result<()> {
         Command::Import(args) => import::run(&args),
         Command::Info(args) => info::run(&args),
         Command::Path(args) => path::run(&args),
+        Command::Patches(args) => patches::run(&args),
         Command::Simulate(args) => simulate::run(&args),
         Command::Verify(args) => verify::run(&args),
         Command::Upgrade(args) => upgrade::run(&args),
