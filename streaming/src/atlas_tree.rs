@@ -292,10 +292,7 @@ pub fn world_length_of_texture_axes(positions: [[f32; 3]; 3], uvs: [[f32; 2]; 3]
 impl AtlasTree {
     /// Depth of the deepest node (the root alone: 1).
     pub fn depth(&self) -> u32 {
-        (0..self.nodes.len() as u32)
-            .map(|n| self.level(n) + 1)
-            .max()
-            .unwrap_or(0)
+        self.levels().into_iter().max().map_or(0, |level| level + 1)
     }
 
     /// The distance (for the tree's [`TreeParams`]) from which node `n` is drawn with its

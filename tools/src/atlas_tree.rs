@@ -497,6 +497,21 @@ pub fn open_if_tree(dataset: &Dataset) -> Result<Option<AtlasTree>> {
     AtlasTree::open_if_any(dataset).with_context(|| format!("checking {}", path.display()))
 }
 
+/// The atlas tree of `dataset` (opened from `location`), or an error saying it is none
+/// and how to build one: for commands that need a tree (`flythrough --strategy atlas-tree`,
+/// `bench --scenario strategies`).
+pub fn open_tree(dataset: &Dataset, location: &std::path::Path) -> Result<AtlasTree> {
+    match open_if_tree(dataset)? {
+        Some(tree) => Ok(tree),
+        None => bail!(
+            "{} is not a texture-atlas tree (no {TREE_FILE}); build one with `citystream atlas-tree {} --out DIR` \
+             and pass DIR to --dataset",
+            location.display(),
+            location.display()
+        ),
+    }
+}
+
 /// What `info` reports of a tree.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct TreeInfo {

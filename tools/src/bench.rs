@@ -480,14 +480,7 @@ fn check_tree(dataset: &Path) -> Result<()> {
     }
     let opened = citystream_streaming::dataset::Dataset::open(dataset)
         .with_context(|| format!("opening {}", dataset.display()))?;
-    if crate::atlas_tree::open_if_tree(&opened)?.is_none() {
-        bail!(
-            "{} is not a texture-atlas tree; build one with `citystream atlas-tree {} --out DIR` and pass DIR to --dataset",
-            dataset.display(),
-            dataset.display()
-        );
-    }
-    Ok(())
+    crate::atlas_tree::open_tree(&opened, dataset).map(drop)
 }
 
 /// The default city's tree, `DATA/city-tree`, built from its per-mesh source on first use

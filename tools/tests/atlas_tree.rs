@@ -246,7 +246,9 @@ fn atlas_tree_strategy_flies_the_tree_and_refuses_a_plain_dataset() {
     let (city, tree_dir, _) = tiny_tree("flythrough", 256);
     let out = tree_dir.with_file_name("flight");
     let fly = |dataset: &Path, out: &Path| {
+        // Two frames in flight by default: synchronization validation too.
         std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .env("CITYSTREAM_VALIDATION", "sync")
             .arg("--dataset")
             .arg(dataset)
             .args(["--strategy", "atlas-tree", "--clock", "fixed", "--frames", "90"])

@@ -971,21 +971,6 @@ struct TreeSummary {
     frames_over_capacity: u64,
 }
 
-/// The tree of `dataset` (`--strategy atlas-tree`), with a clear error where it has none.
-fn open_tree(dataset: &Dataset, dir: &std::path::Path) -> Result<AtlasTree> {
-    match AtlasTree::open_if_any(dataset)
-        .with_context(|| format!("reading the texture-atlas tree of {}", dir.display()))?
-    {
-        Some(tree) => Ok(tree),
-        None => bail!(
-            "{} is not a texture-atlas tree (no {}); build one with `citystream atlas-tree DATASET --out DIR` \
-             and pass that directory to --dataset",
-            dir.display(),
-            citystream_streaming::atlas_tree::TREE_FILE
-        ),
-    }
-}
-
 impl TreeRun {
     fn new(
         args: &Args,
@@ -1162,18 +1147,44 @@ fn reference_feedback(
 ) -> Result<Vec<FeedbackEntry>> {
     let tau = reference.streamer.gpu_tau();
     reference.streamer.set_host_records(Vec::new())?;
-    let begun = reference.streamer.begin_frame()?;
+    let index = feedback_frame_now(
+        reference,
+        commands,
+        (&targets.feedback_target, &targets.view),
+        camera,
+        visible_height,
+        Some(0),
+    )?;
+    feedback_reaching(&reference.streamer, index, tau)
+}
+
+/// Runs one streamer frame of feedback for `camera` (uploads, feedback pass, compaction
+/// with `compact_tau` or the streamer's own threshold) and waits for it; returns the
+/// frame's index, whose feedback is then readable.
+fn feedback_frame_now(
+    gpu: &mut CityGpu,
+    commands: &mut CommandContext,
+    (feedback_target, view): (&RenderTarget, &FeedbackView),
+    camera: &Camera,
+    visible_height: u32,
+    compact_tau: Option<u32>,
+) -> Result<u64> {
+    let begun = gpu.streamer.begin_frame()?;
     let cmd = commands.begin()?;
-    reference.streamer.record_uploads(cmd)?;
-    reference
-        .renderer
-        .record_feedback(cmd, &targets.feedback_target, camera, &targets.view, visible_height)?;
-    reference.streamer.record_feedback_resolve_with_tau(cmd, 0)?;
-    let submit = reference.streamer.end_frame(FIXED_STEP_MS)?;
+    gpu.streamer.record_uploads(cmd)?;
+    gpu.renderer
+        .record_feedback(cmd, feedback_target, camera, view, visible_height)?;
+    match compact_tau {
+        Some(tau) => gpu.streamer.record_feedback_resolve_with_tau(cmd, tau)?,
+        None => gpu.streamer.record_feedback_resolve(cmd)?,
+    }
+    let submit = gpu.streamer.end_frame(FIXED_STEP_MS)?;
     commands.submit(&submit.waits, &[submit.signal])?;
-    reference.streamer.wait_for_frame(begun.index)?;
+    // The frame timeline says when the feedback is readable (a fence may
+    // signal before the timeline value is visible).
+    gpu.streamer.wait_for_frame(begun.index)?;
     commands.wait()?;
-    feedback_reaching(&reference.streamer, begun.index, tau)
+    Ok(begun.index)
 }
 
 /// The compacted feedback entries of completed frame `index` whose weight reaches `tau`.
@@ -1194,7 +1205,7 @@ fn feedback_reaching<S: MipSource + 'static>(
 fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
     let (dataset, city) = open_city(args, dir)?;
     let tree = match args.strategy {
-        Strategy::AtlasTree => Some(open_tree(&dataset, dir)?),
+        Strategy::AtlasTree => Some(citystream_tools::atlas_tree::open_tree(&dataset, dir)?),
         Strategy::Feedback => None,
     };
     let meshes = &city.1;
@@ -1674,21 +1685,17 @@ fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()
     let at = path.pauses().first().map_or(0.0, |p| p.start_s);
     let camera = pose_camera(&path.sample_between(None, at), extent);
     // What the static view needs: one streamer frame of feedback.
-    gpu.streamer.begin_frame()?;
-    let cmd = commands.begin()?;
-    gpu.streamer.record_uploads(cmd)?;
-    gpu.renderer
-        .record_feedback(cmd, &feedback_target, &camera, &view, args.height)?;
-    gpu.streamer.record_feedback_resolve(cmd)?;
-    let submit = gpu.streamer.end_frame(FIXED_STEP_MS)?;
-    commands.submit(&submit.waits, &[submit.signal])?;
-    // The frame timeline says when the feedback is readable (a fence may
-    // signal before the timeline value is visible).
-    gpu.streamer.wait_for_frame(0)?;
-    commands.wait()?;
+    let index = feedback_frame_now(
+        &mut gpu,
+        &mut commands,
+        (&feedback_target, &view),
+        &camera,
+        args.height,
+        None,
+    )?;
     let entries = gpu
         .streamer
-        .feedback_of(0)?
+        .feedback_of(index)?
         .context("the pop-in view's feedback frame did not complete")?
         .entries;
     let source = gpu.streamer.source().inner().clone();
