@@ -20,6 +20,7 @@ use crate::commands::CommandContext;
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS};
+use crate::ground::GroundLayer;
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, Pipeline};
 use crate::scene::upload_buffer;
 use crate::shaders;
@@ -303,7 +304,9 @@ impl AtlasTreeRenderer {
     /// Records the visible pass of frame slot `slot` (as written by
     /// [`write_selection`](Self::write_selection)) over `city`'s geometry into `target`,
     /// its read-back copy included; lighting and blending as
-    /// [`CityRenderer::record_visible`].
+    /// [`CityRenderer::record_visible`], with the ground layer's same frame slot drawn
+    /// first where `ground` is given.
+    #[allow(clippy::too_many_arguments)]
     pub fn record_visible(
         &self,
         cmd: vk::CommandBuffer,
@@ -312,12 +315,21 @@ impl AtlasTreeRenderer {
         target: &RenderTarget,
         camera: &Camera,
         colormap_blend: bool,
+        ground: Option<&GroundLayer>,
     ) -> Result<()> {
         let tables = self
             .slots
             .get(slot as usize)
             .ok_or_else(|| EngineError::InvalidRequest(format!("atlas tree: frame slot {slot} out of range")))?;
-        city.record_visible_with(cmd, target, camera, 1.0, colormap_blend, &self.pipeline, tables.set);
-        Ok(())
+        city.record_visible_with(
+            cmd,
+            target,
+            camera,
+            1.0,
+            colormap_blend,
+            &self.pipeline,
+            tables.set,
+            ground.map(|layer| (layer, slot)),
+        )
     }
 }

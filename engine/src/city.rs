@@ -26,6 +26,7 @@ use crate::gpu_types::{
     CityDrawPush, CityMeshInfo, CityVertex, Vertex, BINDING_CITY_MESHES, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA,
     FEEDBACK_MAX_PIXELS,
 };
+use crate::ground::GroundLayer;
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
 use crate::scene::upload_buffer;
 use crate::shaders;
@@ -501,7 +502,8 @@ impl CityRenderer {
         lighting: f32,
         colormap_blend: bool,
     ) {
-        self.record_visible_with(
+        // Only the ground's draw can fail, and there is none.
+        let _ = self.record_visible_with(
             cmd,
             target,
             camera,
@@ -509,7 +511,55 @@ impl CityRenderer {
             colormap_blend,
             &self.visible,
             self.visible_set,
+            None,
         );
+    }
+
+    /// [`record_visible`](Self::record_visible) with the ground layer's frame slot
+    /// `slot` drawn first in the same rendering (the city's walls and roofs hide it; the
+    /// imagery covers the city's own ground surfaces). Record the layer's uploads before.
+    pub fn record_visible_on_ground(
+        &self,
+        cmd: vk::CommandBuffer,
+        target: &RenderTarget,
+        camera: &Camera,
+        colormap_blend: bool,
+        ground: (&GroundLayer, u32),
+    ) -> Result<()> {
+        self.record_visible_with(
+            cmd,
+            target,
+            camera,
+            1.0,
+            colormap_blend,
+            &self.visible,
+            self.visible_set,
+            Some(ground),
+        )
+    }
+
+    /// The ground alone as the view shows it: the city's depth, then the ground layer's
+    /// frame slot `slot` tested against it (hidden ground keeps the clear colour), into
+    /// `target` with its read-back copy. Measures the ground's error apart from the city's.
+    pub fn record_ground_only(
+        &self,
+        cmd: vk::CommandBuffer,
+        target: &RenderTarget,
+        camera: &Camera,
+        ground: (&GroundLayer, u32),
+    ) -> Result<()> {
+        let aspect = target.width() as f32 / target.height() as f32;
+        let view_proj = camera.view_projection(aspect, 0.0);
+        let base = CityDrawPush {
+            view_proj: view_proj.to_cols_array_2d(),
+            viewport_light: [target.width() as f32, target.height() as f32, 0.0, 1.0],
+            ..CityDrawPush::default()
+        };
+        target.begin(&self.device, cmd, [0.0, 0.0, 0.0, 1.0]);
+        self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);
+        let drawn = ground.0.record_draw(cmd, ground.1, view_proj);
+        target.end_and_copy(&self.device, cmd);
+        drawn
     }
 
     /// [`record_visible`](Self::record_visible) with another visible pipeline over the
@@ -524,17 +574,22 @@ impl CityRenderer {
         colormap_blend: bool,
         pipeline: &Pipeline,
         set: vk::DescriptorSet,
-    ) {
+        ground: Option<(&GroundLayer, u32)>,
+    ) -> Result<()> {
         let aspect = target.width() as f32 / target.height() as f32;
         let direct = if colormap_blend { 0.0 } else { 1.0 };
+        let view_proj = camera.view_projection(aspect, 0.0);
         let base = CityDrawPush {
-            view_proj: camera.view_projection(aspect, 0.0).to_cols_array_2d(),
+            view_proj: view_proj.to_cols_array_2d(),
             viewport_light: [target.width() as f32, target.height() as f32, lighting, direct],
             ..CityDrawPush::default()
         };
         target.begin(&self.device, cmd, [0.55, 0.7, 0.9, 1.0]);
+        // Ground first: the city's fragments over it then win the depth test early.
+        let drawn = ground.map_or(Ok(()), |(layer, slot)| layer.record_draw(cmd, slot, view_proj));
         self.draw_all(cmd, pipeline, set, base);
         target.end_and_copy(&self.device, cmd);
+        drawn
     }
 }
 

@@ -136,6 +136,10 @@ pub const BINDING_TREE_ATLAS_UVS: u32 = 18;
 /// Binding of the per-mesh texture matrices (`[scale, offset x, offset y, 0]`, scale 0 for
 /// the mesh's own coordinates) in a texture-atlas tree's visible pass.
 pub const BINDING_TREE_UV_TRANSFORMS: u32 = 19;
+/// Binding of the ground layer's tile array (`sampler2DArray`).
+pub const BINDING_GROUND_TILES: u32 = 20;
+/// Binding of the ground layer's tile map ([`GroundTileEntry`] per tile-array layer).
+pub const BINDING_GROUND_TILE_MAP: u32 = 21;
 /// `FEEDBACK_MIP_ONE`: a mip level is stored as `round(level * 256)`.
 pub const FEEDBACK_MIP_ONE: f32 = 256.0;
 /// `FEEDBACK_WEIGHT_ONE`: a weight is stored as `round(W * 8)`.
@@ -161,6 +165,37 @@ pub struct CityDrawPush {
     /// xy: target size in pixels, z: lighting weight, w: 1 = no colormap
     /// blending (direct sampling).
     pub viewport_light: [f32; 4],
+}
+
+/// `GroundPush`: push constants of the ground pass (its one quad over the imagery).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct GroundPush {
+    /// Column-major view-projection matrix.
+    pub view_proj: [[f32; 4]; 4],
+    /// Lower corner (x, z) and upper corner of the quad, metres.
+    pub area: [f32; 4],
+    /// x: ground height, y: tile size at scale 0 (metres), z: depth bias (NDC), w: texels
+    /// per tile side.
+    pub params: [f32; 4],
+    /// x: finest scale drawn, y: levels drawn, z: tiles per cache side, w: level slots.
+    pub levels: [i32; 4],
+    /// Colour where no patch covers the ground (RGB, 0 to 1).
+    pub fallback: [f32; 4],
+}
+
+/// `GroundTileEntry`: what one layer of the ground's tile array holds.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct GroundTileEntry {
+    /// Tile index along x at its scale.
+    pub x: i32,
+    /// Tile index along z.
+    pub z: i32,
+    /// Its scale.
+    pub scale: i32,
+    /// 1 when the layer holds its texels.
+    pub resident: u32,
 }
 
 /// `CityMeshInfo`: what the city passes know of one mesh, indexed by the
@@ -495,6 +530,8 @@ mod tests {
             ("BINDING_CITY_MESHES", BINDING_CITY_MESHES),
             ("BINDING_TREE_ATLAS_UVS", BINDING_TREE_ATLAS_UVS),
             ("BINDING_TREE_UV_TRANSFORMS", BINDING_TREE_UV_TRANSFORMS),
+            ("BINDING_GROUND_TILES", BINDING_GROUND_TILES),
+            ("BINDING_GROUND_TILE_MAP", BINDING_GROUND_TILE_MAP),
         ];
         assert_eq!(
             defines.len(),
@@ -581,6 +618,32 @@ mod tests {
         let header = include_str!("../../shaders/include/citystream.glsl");
         assert!(header.contains("#define TEXTURE_NOT_SAMPLEABLE 0u") && TEXTURE_NOT_SAMPLEABLE == 0);
         assert!(header.contains("#define TEXTURE_SAMPLEABLE 1u") && TEXTURE_SAMPLEABLE == 1);
+    }
+
+    #[test]
+    fn ground_layouts_match_spirv_and_fit_128_bytes() {
+        check(
+            "GroundPush",
+            &[
+                ("view_proj", offset_of!(GroundPush, view_proj)),
+                ("area", offset_of!(GroundPush, area)),
+                ("params", offset_of!(GroundPush, params)),
+                ("levels", offset_of!(GroundPush, levels)),
+                ("fallback", offset_of!(GroundPush, fallback)),
+            ],
+            size_of::<GroundPush>(),
+        );
+        assert!(size_of::<GroundPush>() <= 128, "the guaranteed push-constant size");
+        check(
+            "GroundTileEntry",
+            &[
+                ("x", offset_of!(GroundTileEntry, x)),
+                ("z", offset_of!(GroundTileEntry, z)),
+                ("scale", offset_of!(GroundTileEntry, scale)),
+                ("resident", offset_of!(GroundTileEntry, resident)),
+            ],
+            size_of::<GroundTileEntry>(),
+        );
     }
 
     #[test]

@@ -34,6 +34,7 @@ pub mod device;
 pub mod error;
 pub mod feedback;
 pub mod gpu_types;
+pub mod ground;
 pub mod image;
 pub mod instance;
 mod memory;

@@ -191,8 +191,14 @@ impl Pipeline {
                 offset,
             })
             .collect();
+        // A pass without attributes makes its vertices from gl_VertexIndex: no buffer binding.
+        let used_bindings = if attributes.is_empty() {
+            &[][..]
+        } else {
+            &vertex_bindings[..]
+        };
         let vertex_input = vk::PipelineVertexInputStateCreateInfo::default()
-            .vertex_binding_descriptions(&vertex_bindings)
+            .vertex_binding_descriptions(used_bindings)
             .vertex_attribute_descriptions(&attributes);
         let input_assembly =
             vk::PipelineInputAssemblyStateCreateInfo::default().topology(vk::PrimitiveTopology::TRIANGLE_LIST);

@@ -437,6 +437,8 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     latest_feedback: Option<(u64, Vec<FeedbackEntry>)>,
     /// Records the host set for the next `begin_frame`, in place of the feedback.
     host_records: Option<Vec<MeshMetaData>>,
+    /// Bytes the host uploaded outside the cache since the last loading cycle started.
+    host_upload_bytes: u64,
     eviction: Eviction,
     needs: NeedTable,
     gate: Arc<AdmissionGate>,
@@ -574,6 +576,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             deterministic: config.deterministic,
             latest_feedback: None,
             host_records: None,
+            host_upload_bytes: 0,
             eviction: config.eviction,
             needs: NeedTable::new(texture_count as usize),
             gate,
@@ -841,12 +844,36 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// or started.
     fn start_loading(&mut self, records: Vec<MeshMetaData>) -> bool {
         if self.loader.is_streaming() {
-            false
-        } else if self.deterministic {
-            self.loader.run_cycle(&records, self.decision).is_some()
-        } else {
-            self.loader.try_spawn(records, self.decision)
+            return false;
         }
+        // One load size for everything streamed: what the host uploaded of its own since
+        // the last cycle is this cycle's less.
+        let decision = Decision {
+            load_size_bytes: self.decision.load_size_bytes.saturating_sub(self.host_upload_bytes),
+            ..self.decision
+        };
+        let started = if self.deterministic {
+            self.loader.run_cycle(&records, decision).is_some()
+        } else {
+            self.loader.try_spawn(records, decision)
+        };
+        if started {
+            self.host_upload_bytes = 0;
+        }
+        started
+    }
+
+    /// The controller's current decision: the load size `s` and mip bias `b` of the next
+    /// loading cycle (Eq. 4–7).
+    pub fn decision(&self) -> Decision {
+        self.decision
+    }
+
+    /// Charges `bytes` the host uploaded of its own streamed data (a ground layer's tiles)
+    /// to the controller's load size: the next loading cycle loads that much less, so the
+    /// adaptive bound holds for everything streamed together.
+    pub fn charge_host_uploads(&mut self, bytes: u64) {
+        self.host_upload_bytes = self.host_upload_bytes.saturating_add(bytes);
     }
 
     /// Whether this frame is over budget, and the gate's threshold for the

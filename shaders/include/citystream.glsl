@@ -38,6 +38,30 @@
 #define BINDING_TREE_ATLAS_UVS 18     // vec2[], per drawn vertex: its coordinates in the root atlas
 #define BINDING_TREE_UV_TRANSFORMS 19 // vec4[], per mesh: x = atlas scale (0: own texture coordinates), yz = offset
 
+// ---- Ground layer: the flexible clipmap's tiles (engine/src/ground.rs) -----
+#define BINDING_GROUND_TILES 20       // sampler2DArray: clip-level tiles; layer = level slot * side² + tile slot
+#define BINDING_GROUND_TILE_MAP 21    // GroundTileEntry[], one per layer: the tile it holds, if resident
+
+// Push constants of the ground pass: one quad over the imagery's area.
+struct GroundPush {
+    mat4 view_proj;
+    vec4 area;              // xy: lower corner (x, z), zw: upper corner, metres in the dataset's frame
+    vec4 params;            // x: ground height y, y: ground size of a tile at scale 0 (metres),
+                            // z: depth bias toward the viewer (NDC), w: texels per tile side
+    ivec4 levels;           // x: finest scale drawn, y: levels drawn, z: tiles per cache side,
+                            // w: level slots of the tile array (a scale's slot is scale mod w)
+    vec4 fallback;          // colour where no patch covers the ground
+};
+
+// The tile map: what layer i of the tile array holds. A fragment's tile at a
+// scale is resident when the entry of its layer names it and is resident.
+struct GroundTileEntry {
+    int x;                  // tile index along x at its scale
+    int z;                  // along z
+    int scale;              // its scale (2^scale grid cells per side)
+    uint resident;          // 1: the layer holds its texels
+};
+
 // Fixed-point scales of MeshFeedback. A mip level is stored as
 // round(level * FEEDBACK_MIP_ONE); a weight W (1..17 per fragment) as
 // round(W * FEEDBACK_WEIGHT_ONE). The weight sum cannot overflow 32 bits at

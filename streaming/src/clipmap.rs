@@ -258,6 +258,16 @@ impl Clipmap {
         })
     }
 
+    /// The options it was built with.
+    pub fn options(&self) -> &ClipmapOptions {
+        &self.options
+    }
+
+    /// Ground size of a grid cell (a tile at scale 0), metres; 0 before the first patch.
+    pub fn cell_metres(&self) -> f64 {
+        self.cell_metres
+    }
+
     /// Levels (the paper's `L`), 0 before the first patch.
     pub fn level_count(&self) -> u32 {
         self.scales.map_or(0, |(fine, coarse)| (coarse - fine + 1) as u32)
@@ -403,6 +413,12 @@ impl Clipmap {
     /// covers it.
     pub fn patches_for(&self, key: TileKey) -> Vec<Patch> {
         let (min, max) = self.tile_bounds(key);
+        self.patches_in(min, max)
+    }
+
+    /// The patches whose interior overlaps the box `min..max` (a point where both are
+    /// equal), best first as in [`patches_for`](Self::patches_for).
+    pub fn patches_in(&self, min: [f64; 2], max: [f64; 2]) -> Vec<Patch> {
         let mut found: Vec<Patch> = self
             .patches
             .locate_in_envelope_intersecting(&AABB::from_corners(min, max))

@@ -8,6 +8,7 @@ pub mod bind_latency;
 pub mod clipmap;
 pub mod controller;
 pub mod dataset;
+pub mod ground;
 pub mod loader;
 pub mod records;
 #[cfg(feature = "remote")]

@@ -104,7 +104,7 @@ fn render_both(
         commands.submit_and_wait(&[])?;
         let originals = target.read_pixels()?;
         let cmd = commands.begin()?;
-        tree_renderer.record_visible(cmd, 0, &renderer, &target, camera, false)?;
+        tree_renderer.record_visible(cmd, 0, &renderer, &target, camera, false, None)?;
         commands.submit_and_wait(&[])?;
         images.push((originals, target.read_pixels()?));
     }

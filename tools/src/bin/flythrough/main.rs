@@ -219,6 +219,12 @@ struct Args {
     /// with every needed mip resident and report PSNR against it (0: never).
     #[arg(long, default_value_t = 30)]
     psnr_interval: u32,
+    /// Aerial imagery under the city (docs/GROUND.md): a patch set written by
+    /// `citystream patches`, draped on the ground through a flexible clipmap; each patch
+    /// is inserted when its arrival time comes, and ground tiles share the controller's
+    /// load size with the facades.
+    #[arg(long, conflicts_with_all = ["placeholder", "pop_in", "window"])]
+    ground: Option<PathBuf>,
     /// Open a window and fly through the city interactively (docs/WINDOW.md):
     /// mouse and keys fly, --path replays a path at wall-clock speed, R
     /// records. Needs a display (X11, or XWayland).
@@ -313,6 +319,13 @@ struct Run<'a> {
     alpha_ms: f64,
     mip_deficit: Option<Stats>,
     psnr_db: Option<Stats>,
+    /// With --ground: tiles of ground imagery composed and uploaded, their MB, and the
+    /// ground's PSNR against a reference with every arrived patch resident (both drawn
+    /// alone behind the city; an identical frame counts as 100 dB).
+    ground_tiles_uploaded: Option<u64>,
+    ground_mb_streamed: Option<f64>,
+    ground_psnr_db: Option<Stats>,
+    ground: Option<ground::GroundSummary>,
     clock: &'a str,
     bind_latency: &'a str,
     width: u32,
@@ -452,6 +465,7 @@ impl PassTimes {
     }
 }
 
+mod ground;
 mod window;
 
 fn main() -> Result<()> {
@@ -540,6 +554,7 @@ fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::controller:
 fn frame_latency(
     clock: Clock,
     applied: &citystream_engine::texture_cache::CycleReport,
+    other_upload_bytes: u64,
     latency: &BindLatencyModel,
     rng: &mut SplitMix64,
     measured_ms: impl FnOnce() -> f64,
@@ -556,7 +571,8 @@ fn frame_latency(
     match clock {
         Clock::Real => measured_ms(),
         Clock::Fixed | Clock::Modelled => {
-            FIXED_RENDER_MS + bind_cost_ms + applied.bytes_uploaded as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
+            let copied = applied.bytes_uploaded + other_upload_bytes;
+            FIXED_RENDER_MS + bind_cost_ms + copied as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
         }
     }
 }
@@ -752,7 +768,17 @@ fn streamed_city_gpu(
     fragment_area: f32,
     layer_size: u32,
     tree: Option<&AtlasTree>,
+    reserved_bytes: u64,
 ) -> Result<CityGpu> {
+    let budget = match args.memory_budget_mb.bytes() {
+        Some(budget) if budget <= reserved_bytes => bail!(
+            "the {} MB memory budget leaves nothing for textures beside the ground layer's {:.1} MB",
+            budget >> 20,
+            reserved_bytes as f64 / f64::from(1 << 20)
+        ),
+        Some(budget) => budget - reserved_bytes,
+        None => UNLIMITED_BUDGET_BYTES,
+    };
     city_gpu(
         device,
         commands,
@@ -760,7 +786,7 @@ fn streamed_city_gpu(
         city,
         build_policy(args)?,
         &stream_config(
-            args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES),
+            budget,
             args.frames_in_flight,
             fragment_area,
             args.clock,
@@ -1035,6 +1061,7 @@ impl TreeRun {
         dataset: &Dataset,
         target: &RenderTarget,
         camera: &Camera,
+        ground: Option<&citystream_engine::ground::GroundLayer>,
     ) -> Result<TreeFrame> {
         let view = self.view(camera, target.width(), target.height());
         let tree = &self.tree;
@@ -1097,7 +1124,7 @@ impl TreeRun {
         self.ideal_blocks.push(paging.ideal.len() as f64);
         gpu.streamer.set_host_records(paging.records)?;
         self.renderer
-            .record_visible(cmd, slot, &gpu.renderer, target, camera, true)?;
+            .record_visible(cmd, slot, &gpu.renderer, target, camera, true, ground)?;
         let nodes_drawn = selection.draws.len() as u32;
         self.fallbacks.push(f64::from(selection.fallbacks));
         Ok(TreeFrame {
@@ -1221,6 +1248,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     } = &targets;
     let fragment_area = *fragment_area;
     let frames_in_flight = args.frames_in_flight;
+    let ground_config = ground::ground_config(scene, frames_in_flight);
     let mut gpu = streamed_city_gpu(
         args,
         device,
@@ -1230,7 +1258,19 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         fragment_area,
         layer_size,
         tree.as_ref(),
+        // The ground's tile array and staging come out of the same budget.
+        args.ground.as_ref().map_or(0, |_| ground_config.memory_bytes()),
     )?;
+    let mut ground_run = match &args.ground {
+        Some(dir) => Some(ground::GroundRun::new(
+            device,
+            dir,
+            scene,
+            ground_config,
+            args.psnr_interval > 0,
+        )?),
+        None => None,
+    };
     let mut tree_run = match tree {
         Some(tree) => Some(TreeRun::new(args, device, &mut commands, &gpu, &dataset, tree)?),
         None => None,
@@ -1370,11 +1410,24 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         };
         // The streamer's throttle saw this slot's last frame complete.
         let slot = begun.slot;
+        // Patches that arrived, and the ground tiles this frame's share of the load size
+        // pays for; charged to the facades' next loading cycle.
+        let ground_frame = match ground_run.as_mut() {
+            Some(run) => {
+                let frame = run.update(time_s, slot, &camera, gpu.streamer.decision().load_size_bytes)?;
+                gpu.streamer.charge_host_uploads(frame.bytes);
+                frame
+            }
+            None => Default::default(),
+        };
         pass_times.collect(slot)?;
         let commands_of_frame = &mut frame_commands[slot as usize];
         let cmd = commands_of_frame.begin_completed()?;
         pass_times.begin(cmd, slot, 0);
         let applied = gpu.streamer.record_uploads(cmd)?;
+        if let Some(run) = ground_run.as_mut() {
+            run.layer.record_uploads(cmd, slot)?;
+        }
         pass_times.end(cmd, slot, 0);
         // The atlas tree has no feedback: its two passes stay empty (0 ms).
         pass_times.begin(cmd, slot, 1);
@@ -1394,12 +1447,19 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         pass_times.begin(cmd, slot, 3);
         let draw_calls = match tree_run.as_mut() {
             Some(run) => {
-                let drawn = run.record_frame(cmd, slot, &mut gpu, &dataset, target, &camera)?;
+                let ground = ground_run.as_ref().map(|g| &g.layer);
+                let drawn = run.record_frame(cmd, slot, &mut gpu, &dataset, target, &camera, ground)?;
                 nodes_drawn.push(f64::from(drawn.nodes_drawn));
                 drawn.draw_calls
             }
             None => {
-                gpu.renderer.record_visible(cmd, target, &camera, 1.0, true);
+                match ground_run.as_ref() {
+                    Some(run) => {
+                        gpu.renderer
+                            .record_visible_on_ground(cmd, target, &camera, true, (&run.layer, slot))?
+                    }
+                    None => gpu.renderer.record_visible(cmd, target, &camera, 1.0, true),
+                }
                 meshes_in_view(scene, &camera, args.width, args.height)
             }
         };
@@ -1429,15 +1489,32 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                 };
                 reference_incomplete += load_reference(reference, &mut commands, &entries, meshes)?;
                 let cmd = commands.begin()?;
-                reference.renderer.record_visible(cmd, target, &camera, 1.0, true);
+                // On the streamed ground, so that this error is the facades' alone
+                // (`ground_psnr_db` measures the ground's).
+                match ground_run.as_ref() {
+                    Some(run) => {
+                        reference
+                            .renderer
+                            .record_visible_on_ground(cmd, target, &camera, true, (&run.layer, slot))?
+                    }
+                    None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true),
+                }
                 commands.submit_and_wait(&[])?;
                 psnr = Some(psnr_db(&pixels, &target.read_pixels()?));
             }
+            if let (true, Some(run)) = (measure_error, ground_run.as_mut()) {
+                run.measure(&mut commands, &gpu.renderer, target, &camera, slot)?;
+            }
         }
 
-        frame_ms = frame_latency(args.clock, &applied, &latency, &mut latency_rng, || {
-            clock.tick().as_secs_f64() * 1000.0
-        });
+        frame_ms = frame_latency(
+            args.clock,
+            &applied,
+            ground_frame.bytes,
+            &latency,
+            &mut latency_rng,
+            || clock.tick().as_secs_f64() * 1000.0,
+        );
         let bytes = applied.bytes_uploaded;
         let mips = u64::from(applied.mips_uploaded);
         mips_total += mips;
@@ -1519,6 +1596,18 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         alpha_ms: args.alpha,
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         psnr_db: (!psnrs.is_empty()).then(|| Stats::from_samples(&psnrs)),
+        ground_tiles_uploaded: ground_run.as_ref().map(|g| g.layer.totals().tiles_uploaded),
+        ground_mb_streamed: ground_run
+            .as_ref()
+            .map(|g| g.layer.totals().bytes_uploaded as f64 / f64::from(1 << 20)),
+        ground_psnr_db: ground_run
+            .as_ref()
+            .filter(|g| !g.psnrs.is_empty())
+            .map(|g| Stats::from_samples(&g.psnrs)),
+        ground: ground_run
+            .as_ref()
+            .zip(args.ground.as_deref())
+            .map(|(g, dir)| g.summary(dir)),
         clock: args.clock.name(),
         bind_latency: args.bind_latency.name(),
         width: args.width,
@@ -1600,6 +1689,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     }
     let failures = gpu.streamer.load_failures();
     drop(reference);
+    drop(ground_run);
     drop(tree_run);
     drop(gpu);
     if validation_errors > 0 {

@@ -630,6 +630,7 @@ impl Viewer {
             targets.fragment_area,
             layer_size,
             None,
+            0,
         )?;
         let frame_commands = (0..args.frames_in_flight)
             .map(|i| CommandContext::new(&device, &format!("window frame (slot {i})")))
@@ -1040,7 +1041,7 @@ impl Viewer {
             self.screenshots.push(path.display().to_string());
         }
 
-        self.frame_ms = frame_latency(args.clock, &applied, &self.latency, &mut self.latency_rng, || {
+        self.frame_ms = frame_latency(args.clock, &applied, 0, &self.latency, &mut self.latency_rng, || {
             self.clock.tick().as_secs_f64() * 1000.0
         });
         let resident = self.gpu.streamer.cache().utilisation().bound_bytes;

@@ -1,0 +1,213 @@
+//! `flythrough --ground PATCHES`: a patch set (`citystream patches`) draped under the city
+//! through the engine's ground layer (a flexible clipmap), each patch inserted when its
+//! arrival time comes; tile uploads share the controller's load size with the facades.
+//! With PSNR measurements on, a second ground layer with every arrived patch resident is
+//! the reference the streamed ground is measured against (both drawn alone, behind the
+//! city's depth).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use citystream_engine::city::{Camera, CityRenderer};
+use citystream_engine::commands::CommandContext;
+use citystream_engine::ground::{GroundAllowance, GroundConfig, GroundFrame, GroundLayer};
+use citystream_engine::target::RenderTarget;
+use citystream_engine::Device;
+use citystream_streaming::clipmap::Patch;
+use citystream_streaming::dataset::Scene;
+use citystream_streaming::ground::PatchImage;
+use citystream_tools::image_error::psnr_db;
+use citystream_tools::patches::PatchSet;
+
+/// One patch ready to insert: where, and its decoded image.
+struct Arrival {
+    patch: Patch,
+    image: PatchImage,
+    arrival_s: f64,
+}
+
+/// The ground of one flythrough.
+pub struct GroundRun {
+    arrivals: Vec<Arrival>,
+    /// Patches inserted into the streamed layer so far (arrivals are sorted).
+    arrived: usize,
+    /// Patches inserted into the reference so far.
+    reference_arrived: usize,
+    pub layer: GroundLayer,
+    reference: Option<GroundLayer>,
+    pub psnrs: Vec<f64>,
+    /// Measurements in which the streamed ground equalled the reference.
+    pub identical_frames: u32,
+}
+
+/// The PSNR an identical ground counts as.
+pub const IDENTICAL_PSNR_DB: f64 = 100.0;
+
+/// Summary keys of the ground (`summary.json`).
+#[derive(Debug, serde::Serialize)]
+pub struct GroundSummary {
+    pub patches: String,
+    pub patches_arrived: usize,
+    pub patches_total: usize,
+    pub levels: u32,
+    pub tiles_invalidated: u64,
+    pub psnr_identical_frames: u32,
+    pub memory_bytes: u64,
+    pub tile_texels: u32,
+    pub cache_side: u32,
+}
+
+/// The ground layer's configuration for a flythrough over `scene`: tiles of 256 texels,
+/// 4 × 4 per level, up to 12 levels, at the scene's lowest point.
+pub fn ground_config(scene: &Scene, frames_in_flight: u32) -> GroundConfig {
+    GroundConfig {
+        frames_in_flight,
+        ground_height: scene.bounds.min[1],
+        ..GroundConfig::default()
+    }
+}
+
+impl GroundRun {
+    /// Opens the patch set in `dir`, decodes every patch (before the flight: a patch's
+    /// arrival inserts it, it does not read it) and builds the streamed layer, and a
+    /// reference layer when `reference` is set. Patches are moved from the set's origin
+    /// into the dataset's frame.
+    pub fn new(device: &Arc<Device>, dir: &Path, scene: &Scene, config: GroundConfig, reference: bool) -> Result<Self> {
+        let set = PatchSet::open(dir)?;
+        if set.patches.is_empty() {
+            bail!("{}: the patch set has no patches", dir.display());
+        }
+        // The set's corners are relative to the origin of the dataset it was cut for; the
+        // flown dataset's origin may differ (another write of the same city, say).
+        let shift = [set.origin[0] - scene.origin[0], set.origin[2] - scene.origin[2]];
+        if !shift.iter().all(|s| s.is_finite()) {
+            bail!("{}: origin {:?} is not finite", dir.display(), set.origin);
+        }
+        eprintln!("ground: decoding {} patches from {}", set.patches.len(), dir.display());
+        let mut arrivals = Vec::with_capacity(set.patches.len());
+        for record in &set.patches {
+            let path = dir.join(&record.file);
+            let decoded = image::open(&path)
+                .with_context(|| format!("decoding patch {} ({})", record.id, path.display()))?
+                .to_rgba8();
+            let image = PatchImage::from_rgba8(decoded.width(), decoded.height(), decoded.as_raw())
+                .map_err(|e| anyhow::anyhow!("patch {} ({}): {e}", record.id, path.display()))?;
+            arrivals.push(Arrival {
+                patch: Patch {
+                    id: record.id,
+                    min: [record.min[0] + shift[0], record.min[1] + shift[1]],
+                    max: [record.max[0] + shift[0], record.max[1] + shift[1]],
+                    metres_per_texel: record.metres_per_texel,
+                    captured_s: record.arrival_s,
+                },
+                image,
+                arrival_s: record.arrival_s,
+            });
+        }
+        arrivals.sort_by(|a, b| a.arrival_s.total_cmp(&b.arrival_s).then(a.patch.id.cmp(&b.patch.id)));
+        let reference = if reference {
+            Some(GroundLayer::new(
+                device,
+                GroundConfig {
+                    frames_in_flight: 1,
+                    staging_tiles: 64,
+                    ..config.clone()
+                },
+            )?)
+        } else {
+            None
+        };
+        Ok(Self {
+            arrivals,
+            arrived: 0,
+            reference_arrived: 0,
+            layer: GroundLayer::new(device, config)?,
+            reference,
+            psnrs: Vec::new(),
+            identical_frames: 0,
+        })
+    }
+
+    /// Inserts the patches whose arrival time is `time_s` or earlier; then recentres on the
+    /// eye and stages what the controller's load size `load_size_bytes` pays for into
+    /// frame slot `slot`.
+    pub fn update(&mut self, time_s: f64, slot: u32, camera: &Camera, load_size_bytes: u64) -> Result<GroundFrame> {
+        while let Some(next) = self.arrivals.get(self.arrived).filter(|a| a.arrival_s <= time_s) {
+            self.layer
+                .insert(next.patch, next.image.clone())
+                .with_context(|| format!("inserting patch {}", next.patch.id))?;
+            self.arrived += 1;
+        }
+        let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
+        Ok(self
+            .layer
+            .update(slot, eye, GroundAllowance::LoadSize(load_size_bytes))?)
+    }
+
+    /// PSNR of the streamed ground of frame slot `slot` (its frame complete) against the
+    /// reference with every arrived patch resident, both drawn alone behind the city.
+    pub fn measure(
+        &mut self,
+        commands: &mut CommandContext,
+        city: &CityRenderer,
+        target: &RenderTarget,
+        camera: &Camera,
+        slot: u32,
+    ) -> Result<Option<f64>> {
+        let Some(reference) = self.reference.as_mut() else {
+            return Ok(None);
+        };
+        if self.arrived == 0 {
+            return Ok(None);
+        }
+        let cmd = commands.begin()?;
+        city.record_ground_only(cmd, target, camera, (&self.layer, slot))?;
+        commands.submit_and_wait(&[])?;
+        let streamed = target.read_pixels()?;
+        while self.reference_arrived < self.arrived {
+            let next = &self.arrivals[self.reference_arrived];
+            reference.insert(next.patch, next.image.clone())?;
+            self.reference_arrived += 1;
+        }
+        let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
+        // Every tile of every window: a bounded number of batches of the staging's size.
+        let batches = reference.config().layers() / u64::from(reference.config().staging_tiles) + 2;
+        for _ in 0..batches {
+            let frame = reference.update(0, eye, GroundAllowance::Everything)?;
+            let cmd = commands.begin()?;
+            reference.record_uploads(cmd, 0)?;
+            commands.submit_and_wait(&[])?;
+            if frame.pending == 0 {
+                break;
+            }
+        }
+        let cmd = commands.begin()?;
+        city.record_ground_only(cmd, target, camera, (reference, 0))?;
+        commands.submit_and_wait(&[])?;
+        let psnr = psnr_db(&streamed, &target.read_pixels()?);
+        if psnr.is_infinite() {
+            self.identical_frames += 1;
+        }
+        // Identical images count as IDENTICAL_PSNR_DB, so they are not left out of the mean.
+        let psnr = psnr.min(IDENTICAL_PSNR_DB);
+        self.psnrs.push(psnr);
+        Ok(Some(psnr))
+    }
+
+    /// What `summary.json` says of the ground besides the headline keys.
+    pub fn summary(&self, dir: &Path) -> GroundSummary {
+        let config = self.layer.config();
+        GroundSummary {
+            patches: dir.display().to_string(),
+            patches_arrived: self.arrived,
+            patches_total: self.arrivals.len(),
+            levels: self.layer.imagery().clipmap().level_count(),
+            tiles_invalidated: self.layer.totals().tiles_invalidated,
+            psnr_identical_frames: self.identical_frames,
+            memory_bytes: config.memory_bytes(),
+            tile_texels: config.tile_texels,
+            cache_side: config.cache_side,
+        }
+    }
+}
