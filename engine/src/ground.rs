@@ -115,6 +115,9 @@ pub struct GroundTotals {
     pub patches: u64,
     /// Resident tiles patches invalidated (composed again when their turn comes).
     pub tiles_invalidated: u64,
+    /// Wall time spent composing tiles on the CPU, microseconds (not part of any modelled
+    /// frame latency: a host measures it with its real clock).
+    pub compose_micros: u64,
 }
 
 /// What one update did.
@@ -443,9 +446,13 @@ impl GroundLayer {
             .staging
             .mapped_mut()
             .ok_or_else(|| EngineError::InvalidRequest("ground staging is not host visible".into()))?;
+        let started = std::time::Instant::now();
         self.imagery
             .compose_tiles(&chosen, staging)
             .map_err(|e| EngineError::InvalidRequest(format!("ground layer: {e}")))?;
+        if !chosen.is_empty() {
+            self.totals.compose_micros += started.elapsed().as_micros() as u64;
+        }
         for &key in &chosen {
             self.pending.remove(&key);
             self.imagery.clipmap_mut().set_resident(key, true);

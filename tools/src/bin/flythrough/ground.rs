@@ -53,6 +53,9 @@ pub struct GroundSummary {
     pub levels: u32,
     pub tiles_invalidated: u64,
     pub psnr_identical_frames: u32,
+    /// CPU wall time composing the streamed layer's tiles (rayon workers), ms in all and per tile.
+    pub compose_ms: f64,
+    pub compose_ms_per_tile: Option<f64>,
     pub memory_bytes: u64,
     pub tile_texels: u32,
     pub cache_side: u32,
@@ -198,13 +201,17 @@ impl GroundRun {
     /// What `summary.json` says of the ground besides the headline keys.
     pub fn summary(&self, dir: &Path) -> GroundSummary {
         let config = self.layer.config();
+        let totals = self.layer.totals();
         GroundSummary {
             patches: dir.display().to_string(),
             patches_arrived: self.arrived,
             patches_total: self.arrivals.len(),
             levels: self.layer.imagery().clipmap().level_count(),
-            tiles_invalidated: self.layer.totals().tiles_invalidated,
+            tiles_invalidated: totals.tiles_invalidated,
             psnr_identical_frames: self.identical_frames,
+            compose_ms: totals.compose_micros as f64 / 1000.0,
+            compose_ms_per_tile: (totals.tiles_uploaded > 0)
+                .then(|| totals.compose_micros as f64 / 1000.0 / totals.tiles_uploaded as f64),
             memory_bytes: config.memory_bytes(),
             tile_texels: config.tile_texels,
             cache_side: config.cache_side,
