@@ -74,8 +74,10 @@ void main() {
     // A pixel's footprint on the ground, in texels of the finest level, as a level.
     float footprint = max(length(dFdx(p)), length(dFdy(p)));
     float finest_texel = tile_metres(finest) / push.params.w;
-    float lod = clamp(log2(max(footprint / finest_texel, 1e-6)), 0.0, float(count - 1));
-    int wanted = int(floor(lod));
+    float lod = log2(max(footprint / finest_texel, 1e-6));
+    // NaN (degenerate derivatives) reads as the finest level: clamp leaves NaN undefined.
+    lod = lod >= 0.0 ? min(lod, float(count - 1)) : 0.0;
+    int wanted = clamp(int(floor(lod)), 0, count - 1);
     int level = -1;
     int layer = -1;
     for (int i = wanted; i < count; ++i) {

@@ -96,8 +96,8 @@ impl GroundConfig {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum GroundAllowance {
     /// The controller's load size `s` (bytes per streaming cycle), shared with the facades:
-    /// the ground earns half of it per frame, saved up to `max(s, one tile)`, and spends it
-    /// a tile at a time; the host charges what it spent to the streamer
+    /// the ground earns half of it per frame, saved up to `max(s / 2, one tile)`, and spends
+    /// it a tile at a time; the host charges what it spent to the streamer
     /// ([`crate::stream::TextureStreamer::charge_host_uploads`]).
     LoadSize(u64),
     /// Every pending tile the staging buffer holds: for references and tests.
@@ -166,6 +166,14 @@ impl std::fmt::Debug for GroundLayer {
             .field("pending", &self.pending.len())
             .field("totals", &self.totals)
             .finish()
+    }
+}
+
+impl Drop for GroundLayer {
+    fn drop(&mut self) {
+        // The array, tile maps and staging may still be read by submitted frames; the
+        // host's frame loop does not tell this layer when they completed.
+        let _ = self.device.wait_idle();
     }
 }
 
@@ -418,7 +426,7 @@ impl GroundLayer {
                     .then(a.cmp(b))
             });
             if let GroundAllowance::LoadSize(load) = allowance {
-                self.credit = (self.credit + load / 2).min(load.max(tile_bytes));
+                self.credit = (self.credit + load / 2).min((load / 2).max(tile_bytes));
             }
             let mut empty = Vec::new();
             for key in order {

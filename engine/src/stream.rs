@@ -858,7 +858,8 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             self.loader.try_spawn(records, decision)
         };
         if started {
-            self.host_upload_bytes = 0;
+            // What this cycle could not absorb stays owed to the next ones.
+            self.host_upload_bytes -= self.host_upload_bytes.min(self.decision.load_size_bytes);
         }
         started
     }
@@ -870,8 +871,10 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     }
 
     /// Charges `bytes` the host uploaded of its own streamed data (a ground layer's tiles)
-    /// to the controller's load size: the next loading cycle loads that much less, so the
-    /// adaptive bound holds for everything streamed together.
+    /// to the controller's load size: the next loading cycles load that much less (what one
+    /// cycle cannot absorb is carried to the next), so over a run everything streamed
+    /// together stays within the adaptive load size; within one frame the host's share
+    /// can come on top of a cycle that started before it.
     pub fn charge_host_uploads(&mut self, bytes: u64) {
         self.host_upload_bytes = self.host_upload_bytes.saturating_add(bytes);
     }

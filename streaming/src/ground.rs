@@ -47,9 +47,11 @@ impl Level {
         self.texels[(y * self.width + x) as usize]
     }
 
-    /// The next coarser level: 2 × 2 box filter, an odd last row or column reused.
+    /// The next coarser level: 2 × 2 box filter; an odd size rounds up, its last texel
+    /// filtering the edge texel twice, so every texel of a level covers exactly twice the
+    /// ground of the level below (levels stay aligned with the patch's lower corner).
     fn halved(&self) -> Level {
-        let (width, height) = ((self.width / 2).max(1), (self.height / 2).max(1));
+        let (width, height) = (self.width.div_ceil(2), self.height.div_ceil(2));
         let mut texels = Vec::with_capacity((width * height) as usize);
         for y in 0..height {
             for x in 0..width {
@@ -65,10 +67,11 @@ impl Level {
         Level { width, height, texels }
     }
 
-    /// Bilinear sample at `(u, v)` in `[0, 1]²` over the level, clamped to its edges.
-    fn sample(&self, u: f64, v: f64) -> [f32; 4] {
-        let x = (u * f64::from(self.width) - 0.5).clamp(0.0, f64::from(self.width - 1));
-        let y = (v * f64::from(self.height) - 0.5).clamp(0.0, f64::from(self.height - 1));
+    /// Bilinear sample at continuous texel coordinates `(x, y)` of this level (texel
+    /// centres at `i + 0.5`), clamped to its edges.
+    fn sample(&self, x: f64, y: f64) -> [f32; 4] {
+        let x = (x - 0.5).clamp(0.0, f64::from(self.width - 1));
+        let y = (y - 0.5).clamp(0.0, f64::from(self.height - 1));
         let (x0, y0) = (x.floor() as u32, y.floor() as u32);
         let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
         let (fx, fy) = ((x - f64::from(x0)) as f32, (y - f64::from(y0)) as f32);
@@ -202,10 +205,12 @@ impl GroundImagery {
     fn colour_from(&self, patches: &[Patch], p: [f64; 2], footprint: f64) -> Option<[f32; 4]> {
         let patch = patches.iter().find(|patch| contains(patch, p))?;
         let image = self.images.get(&patch.id)?;
-        let level = &image.levels[patch_level(patch, image, footprint)];
-        let u = (p[0] - patch.min[0]) / (patch.max[0] - patch.min[0]);
-        let v = (p[1] - patch.min[1]) / (patch.max[1] - patch.min[1]);
-        Some(level.sample(u, v))
+        let index = patch_level(patch, image, footprint);
+        // In texels of level 0, then of the level: a level-k texel covers 2^k of level 0's.
+        let shrink = 0.5f64.powi(index as i32);
+        let x = (p[0] - patch.min[0]) / (patch.max[0] - patch.min[0]) * f64::from(image.width()) * shrink;
+        let y = (p[1] - patch.min[1]) / (patch.max[1] - patch.min[1]) * f64::from(image.height()) * shrink;
+        Some(image.levels[index].sample(x, y))
     }
 
     /// The ground's colour at `p` (RGBA, 0 to 255) seen with texels of `footprint` metres:
@@ -311,16 +316,26 @@ mod tests {
 
     #[test]
     fn clipmap_patch_mips_box_filter_to_one_texel() {
-        // A 3 × 2 checker of black and white: the chain is 3x2, 1x1.
+        // A 3 × 2 checker of black and white: the chain is 3x2, 2x1 (odd sizes round up, so
+        // every level covers the patch at twice the texel size), 1x1.
         let bytes: Vec<u8> = (0..6)
             .flat_map(|i| if i % 2 == 0 { [0u8; 4] } else { [255u8; 4] })
             .collect();
         let image = PatchImage::from_rgba8(3, 2, &bytes).expect("image");
-        assert_eq!(image.level_count(), 2);
-        let last = &image.levels[1];
-        assert_eq!((last.width, last.height), (1, 1));
-        // Texels (0,0), (1,0), (0,1), (1,1): black, white, white, black.
-        assert_eq!(last.texels[0], [128; 4]);
+        assert_eq!(image.level_count(), 3);
+        let middle = &image.levels[1];
+        assert_eq!((middle.width, middle.height), (2, 1));
+        // Texel 0 from (0,0), (1,0), (0,1), (1,1): black, white, white, black; texel 1 from
+        // the last column twice: (2,0) black, (2,1) white.
+        assert_eq!(middle.texels, vec![[128; 4], [128; 4]]);
+        let last = &image.levels[2];
+        assert_eq!((last.width, last.height, last.texels[0]), (1, 1, [128; 4]));
+        // A level's texels stay where the patch's are: a 4 × 1 ramp's level 1 holds the
+        // means of texels 0-1 and 2-3, sampled at their own centres.
+        let ramp: Vec<u8> = [0u8, 40, 80, 120].iter().flat_map(|&v| [v, v, v, 255]).collect();
+        let ramp = PatchImage::from_rgba8(4, 1, &ramp).expect("ramp");
+        assert_eq!(ramp.levels[1].sample(0.5, 0.5)[0], 20.0);
+        assert_eq!(ramp.levels[1].sample(1.5, 0.5)[0], 100.0);
         assert!(PatchImage::from_rgba8(2, 2, &[0; 15]).is_err());
         assert!(PatchImage::from_rgba8(0, 2, &[]).is_err());
     }
