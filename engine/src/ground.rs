@@ -355,7 +355,7 @@ impl GroundLayer {
     /// Inserts a patch and its image: the clipmap grows where it must, and every tile in a
     /// window that the patch overlaps waits to be composed again (resident ones keep their
     /// old texels on screen meanwhile). Returns how many resident tiles it invalidated.
-    pub fn insert(&mut self, patch: Patch, image: PatchImage) -> Result<usize> {
+    pub fn insert(&mut self, patch: Patch, image: impl Into<Arc<PatchImage>>) -> Result<usize> {
         let insertion = self
             .imagery
             .insert(patch, image)

@@ -6,6 +6,7 @@
 //! within it, so a tile holds what the reference shows at the tile's own resolution.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 
 use crate::clipmap::{Clipmap, ClipmapError, ClipmapOptions, Insertion, Patch, TileKey};
 
@@ -132,7 +133,8 @@ impl PatchImage {
 /// Patches with their images over a clipmap.
 pub struct GroundImagery {
     clipmap: Clipmap,
-    images: HashMap<u64, PatchImage>,
+    /// Shared with the host, which may hand the same image to another clipmap (a reference).
+    images: HashMap<u64, Arc<PatchImage>>,
 }
 
 impl std::fmt::Debug for GroundImagery {
@@ -185,7 +187,7 @@ impl GroundImagery {
 
     /// Inserts a patch with its image (see [`Clipmap::insert`]). An id already inserted is
     /// refused: ids name images.
-    pub fn insert(&mut self, patch: Patch, image: PatchImage) -> Result<Insertion, GroundError> {
+    pub fn insert(&mut self, patch: Patch, image: impl Into<Arc<PatchImage>>) -> Result<Insertion, GroundError> {
         if self.images.contains_key(&patch.id) {
             return Err(GroundError::BadImage {
                 id: patch.id,
@@ -193,7 +195,7 @@ impl GroundImagery {
             });
         }
         let insertion = self.clipmap.insert(patch)?;
-        self.images.insert(patch.id, image);
+        self.images.insert(patch.id, image.into());
         Ok(insertion)
     }
 

@@ -448,24 +448,14 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     let outputs = report::write_report(&inputs, &args.out)?;
     report::print_outputs(&outputs);
     if args.scenario == Scenario::Strategies {
-        let (text, json) = strategies_table(&args.out, &dataset, args.budget_mb)?;
-        let path = args.out.join("strategies.md");
-        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
-        let json_path = args.out.join("strategies.json");
-        std::fs::write(&json_path, serde_json::to_string_pretty(&json)?)
-            .with_context(|| format!("writing {}", json_path.display()))?;
-        eprint!("{text}");
-        eprintln!("wrote {} and {}", path.display(), json_path.display());
+        write_table(
+            &args.out,
+            "strategies",
+            strategies_table(&args.out, &dataset, args.budget_mb)?,
+        )?;
     }
     if args.scenario == Scenario::Ground {
-        let (text, json) = ground_table(&args.out, &dataset)?;
-        let path = args.out.join("ground.md");
-        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
-        let json_path = args.out.join("ground.json");
-        std::fs::write(&json_path, serde_json::to_string_pretty(&json)?)
-            .with_context(|| format!("writing {}", json_path.display()))?;
-        eprint!("{text}");
-        eprintln!("wrote {} and {}", path.display(), json_path.display());
+        write_table(&args.out, "ground", ground_table(&args.out, &dataset)?)?;
     }
     if args.scenario == Scenario::Pressure {
         let path = args.out.join("pressure.md");
@@ -474,6 +464,18 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         eprint!("{text}");
         eprintln!("wrote {}", path.display());
     }
+    Ok(())
+}
+
+/// Writes a comparison's `OUT/NAME.md` and `OUT/NAME.json` and shows the table.
+fn write_table(out: &Path, name: &str, (text, json): (String, serde_json::Value)) -> Result<()> {
+    let path = out.join(format!("{name}.md"));
+    std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+    let json_path = out.join(format!("{name}.json"));
+    std::fs::write(&json_path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", json_path.display()))?;
+    eprint!("{text}");
+    eprintln!("wrote {} and {}", path.display(), json_path.display());
     Ok(())
 }
 

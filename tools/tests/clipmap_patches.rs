@@ -4,7 +4,7 @@
 
 mod cli_support;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use citystream_streaming::clipmap::{Clipmap, ClipmapOptions, Patch};
 use citystream_streaming::dataset::Dataset;
@@ -17,6 +17,16 @@ fn gradient(path: &Path) {
         image::Rgba([(x % 256) as u8, (y % 256) as u8, 128, 255])
     });
     image.save(path).expect("write the source image");
+}
+
+/// A tiny generated city and a gradient image in `dir`: what every test here cuts.
+fn tiny_city_and_image(dir: &Path) -> (PathBuf, PathBuf) {
+    let city = dir.join("city");
+    let run = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
+    assert!(run.status.success(), "gen: {}", stderr(&run));
+    let image = dir.join("source.png");
+    gradient(&image);
+    (city, image)
 }
 
 fn cut(city: &Path, image: &Path, out: &Path, seed: &str) -> std::process::Output {
@@ -40,11 +50,7 @@ fn cut(city: &Path, image: &Path, out: &Path, seed: &str) -> std::process::Outpu
 #[test]
 fn clipmap_patches_cut_a_survey_over_the_city_that_feeds_the_clipmap() {
     let dir = fresh_dir("clipmap_patches", "survey");
-    let city = dir.join("city");
-    let run = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(run.status.success(), "gen: {}", stderr(&run));
-    let image = dir.join("source.png");
-    gradient(&image);
+    let (city, image) = tiny_city_and_image(&dir);
 
     let first = dir.join("first");
     let run = cut(&city, &image, &first, "7");
@@ -141,14 +147,7 @@ fn clipmap_patches_cut_a_survey_over_the_city_that_feeds_the_clipmap() {
 #[test]
 fn clipmap_patches_bad_input_is_refused_clearly() {
     let dir = fresh_dir("clipmap_patches", "bad_input");
-    let city = dir.join("city");
-    assert!(
-        citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")])
-            .status
-            .success()
-    );
-    let image = dir.join("source.png");
-    gradient(&image);
+    let (city, image) = tiny_city_and_image(&dir);
     let not_image = dir.join("notes.txt");
     std::fs::write(&not_image, "not an image").expect("write");
     let occupied = dir.join("occupied");
@@ -231,11 +230,7 @@ fn clipmap_patches_bad_input_is_refused_clearly() {
 #[test]
 fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
     let dir = fresh_dir("clipmap_patches", "flythrough");
-    let city = dir.join("city");
-    let run = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(run.status.success(), "gen: {}", stderr(&run));
-    let image = dir.join("source.png");
-    gradient(&image);
+    let (city, image) = tiny_city_and_image(&dir);
     let patches = dir.join("patches");
     assert!(cut(&city, &image, &patches, "3").status.success());
     let set = PatchSet::open(&patches).expect("set");

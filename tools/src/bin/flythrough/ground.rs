@@ -23,7 +23,8 @@ use citystream_tools::patches::PatchSet;
 /// One patch ready to insert: where, and its decoded image.
 struct Arrival {
     patch: Patch,
-    image: PatchImage,
+    /// Shared by the streamed layer and the reference: inserting clones no texels.
+    image: Arc<PatchImage>,
     arrival_s: f64,
 }
 
@@ -104,7 +105,7 @@ impl GroundRun {
                     metres_per_texel: record.metres_per_texel,
                     captured_s: record.arrival_s,
                 },
-                image,
+                image: Arc::new(image),
                 arrival_s: record.arrival_s,
             });
         }
@@ -138,7 +139,7 @@ impl GroundRun {
     pub fn update(&mut self, time_s: f64, slot: u32, camera: &Camera, load_size_bytes: u64) -> Result<GroundFrame> {
         while let Some(next) = self.arrivals.get(self.arrived).filter(|a| a.arrival_s <= time_s) {
             self.layer
-                .insert(next.patch, next.image.clone())
+                .insert(next.patch, Arc::clone(&next.image))
                 .with_context(|| format!("inserting patch {}", next.patch.id))?;
             self.arrived += 1;
         }
@@ -170,7 +171,7 @@ impl GroundRun {
         let streamed = target.read_pixels()?;
         while self.reference_arrived < self.arrived {
             let next = &self.arrivals[self.reference_arrived];
-            reference.insert(next.patch, next.image.clone())?;
+            reference.insert(next.patch, Arc::clone(&next.image))?;
             self.reference_arrived += 1;
         }
         let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
