@@ -90,6 +90,69 @@ impl GroundConfig {
     pub fn memory_bytes(&self) -> u64 {
         (self.layers() + u64::from(self.staging_tiles) * u64::from(self.frames_in_flight.max(1))) * self.tile_bytes()
     }
+
+    /// This configuration with `cache_side` and `level_slots` derived from `view`, then fitted
+    /// to `max_bytes` (`None`: no limit) and the device's `max_array_layers` by dropping the
+    /// finest levels (the layer draws the coarsest `level_slots` of the clipmap's levels, so
+    /// detail goes first, coverage never).
+    ///
+    /// - A level of texel size `t` is the one a pixel needs out to `t · focal_px` metres from
+    ///   the viewer (its footprint is `distance / focal_px` or more), and a window of
+    ///   `2g + 1` tiles reaches `g` tiles beyond the viewer's own tile wherever the viewer
+    ///   stands in it; so `g = ⌈focal_px / tile_texels⌉`, the side `2g + 1`.
+    /// - The coarsest level holds the extent in 2 × 2 tiles (texel `extent / (2 · tile)`); the
+    ///   finest any pixel needs has the footprint straight below the lowest eye
+    ///   (`min_eye_height / focal_px`), or the finest imagery if that is coarser. One slot per
+    ///   power of two in between.
+    pub fn sized_for(mut self, view: &GroundView, max_bytes: Option<u64>, max_array_layers: u32) -> Result<Self> {
+        let invalid = |what: String| EngineError::InvalidRequest(format!("ground layer: {what}"));
+        let finite_positive = |v: f64| v.is_finite() && v > 0.0;
+        if !(finite_positive(view.focal_px)
+            && finite_positive(view.min_eye_height_m)
+            && finite_positive(view.extent_m)
+            && finite_positive(view.finest_imagery_m))
+        {
+            return Err(invalid(format!("{view:?} needs finite, positive values")));
+        }
+        let tile = f64::from(self.tile_texels.max(1));
+        let reach_tiles = (view.focal_px / tile).ceil().clamp(1.0, 31.0) as u32;
+        self.cache_side = 2 * reach_tiles + 1;
+        let coarsest_texel = view.extent_m / (2.0 * tile);
+        let finest_texel = (view.min_eye_height_m / view.focal_px).max(view.finest_imagery_m);
+        let octaves = (coarsest_texel / finest_texel).log2().ceil().max(0.0);
+        self.level_slots = (octaves as u32).saturating_add(1).min(64);
+        let side_squared = self.cache_side * self.cache_side;
+        let level_bytes = u64::from(side_squared) * self.tile_bytes();
+        let staging_bytes = self.memory_bytes() - self.layers() * self.tile_bytes();
+        let by_memory = max_bytes.map_or(u64::MAX, |max| max.saturating_sub(staging_bytes) / level_bytes);
+        let by_layers = u64::from(max_array_layers / side_squared);
+        let fitted = u64::from(self.level_slots).min(by_memory).min(by_layers);
+        if fitted == 0 {
+            return Err(invalid(format!(
+                "not one level of {}² tiles of {} texels fits: {} MB allowed ({:.1} MB per level plus {:.1} MB of staging), {max_array_layers} array layers",
+                self.cache_side,
+                self.tile_texels,
+                max_bytes.map_or(u64::MAX, |m| m >> 20),
+                level_bytes as f64 / f64::from(1 << 20),
+                staging_bytes as f64 / f64::from(1 << 20)
+            )));
+        }
+        self.level_slots = fitted as u32;
+        Ok(self)
+    }
+}
+
+/// What a ground layer's capacities are derived from ([`GroundConfig::sized_for`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GroundView {
+    /// Focal length in pixels: viewport height / (2 · tan(fov_y / 2)).
+    pub focal_px: f64,
+    /// The lowest the eye comes above the ground plane, metres.
+    pub min_eye_height_m: f64,
+    /// The larger side of the ground the imagery covers, metres.
+    pub extent_m: f64,
+    /// Ground size of the finest imagery's texels, metres.
+    pub finest_imagery_m: f64,
 }
 
 /// How many tiles one [`GroundLayer::update`] may compose and upload.
@@ -626,5 +689,93 @@ impl GroundLayer {
         // vertex stage makes its six vertices from gl_VertexIndex.
         unsafe { self.device.raw().cmd_draw(cmd, 6, 1, 0, 0) };
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MB: u64 = 1 << 20;
+
+    fn view(focal_px: f64) -> GroundView {
+        GroundView {
+            focal_px,
+            min_eye_height_m: 20.0,
+            extent_m: 1350.0,
+            finest_imagery_m: 0.01,
+        }
+    }
+
+    #[test]
+    fn clipmap_capacities_follow_the_view_resolution() {
+        // 640 × 360 at 60°: focal 312 px needs two tiles of 256 beyond the viewer's; 1080p
+        // (935 px) four.
+        let focal = |height: f64| height / (2.0 * (30f64).to_radians().tan());
+        let small = GroundConfig::default()
+            .sized_for(&view(focal(360.0)), None, 2048)
+            .expect("fits");
+        assert_eq!(small.cache_side, 5);
+        let large = GroundConfig::default()
+            .sized_for(&view(focal(1080.0)), None, 2048)
+            .expect("fits");
+        assert_eq!(large.cache_side, 9);
+        // Coarsest texel 1350 / 512 = 2.64 m; finest 20 m / focal: 0.064 m at 360p (6
+        // octaves, 7 slots), 0.021 m at 1080p (7 octaves, 8 slots).
+        assert_eq!((small.level_slots, large.level_slots), (7, 8));
+        // Imagery no finer than 0.5 m needs no slot below it.
+        let coarse = GroundConfig::default()
+            .sized_for(
+                &GroundView {
+                    finest_imagery_m: 0.5,
+                    ..view(focal(1080.0))
+                },
+                None,
+                2048,
+            )
+            .expect("fits");
+        assert_eq!(coarse.level_slots, 4);
+        // Exactly one tile of reach where the focal length equals the tile.
+        assert_eq!(
+            GroundConfig::default()
+                .sized_for(&view(256.0), None, 2048)
+                .expect("fits")
+                .cache_side,
+            3
+        );
+    }
+
+    #[test]
+    fn clipmap_capacities_fit_the_budget_and_the_device_by_dropping_fine_levels() {
+        let config = GroundConfig::default();
+        let unlimited = config.clone().sized_for(&view(935.0), None, 2048).expect("fits");
+        assert_eq!(unlimited.level_slots, 8);
+        // 81 tiles of 256 KB = 20.25 MB a level, 8 MB of staging (16 tiles, 2 frames).
+        let fitted = config
+            .clone()
+            .sized_for(&view(935.0), Some(100 * MB), 2048)
+            .expect("fits");
+        assert_eq!(fitted.level_slots, 4);
+        assert!(fitted.memory_bytes() <= 100 * MB, "{}", fitted.memory_bytes());
+        assert_eq!(fitted.cache_side, unlimited.cache_side, "coverage is kept");
+        // The device's array layers: 256 / 81 = 3 levels.
+        assert_eq!(
+            config
+                .clone()
+                .sized_for(&view(935.0), None, 256)
+                .expect("fits")
+                .level_slots,
+            3
+        );
+        // Not one level: a clear error.
+        let error = config
+            .clone()
+            .sized_for(&view(935.0), Some(20 * MB), 2048)
+            .expect_err("too small");
+        assert!(error.to_string().contains("not one level"), "{error}");
+        for bad in [f64::NAN, 0.0, -1.0, f64::INFINITY] {
+            let error = config.clone().sized_for(&view(bad), None, 2048).expect_err("refused");
+            assert!(error.to_string().contains("finite, positive"), "{error}");
+        }
     }
 }

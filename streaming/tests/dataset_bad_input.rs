@@ -7,7 +7,7 @@ use std::path::Path;
 
 use citystream_streaming::dataset::{
     verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, CHECKSUM_FILE, COLORMAP_FILE,
-    MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
+    FORMAT_VERSION, MANIFEST_FILE, MAX_CRS_BYTES, META_FILE, PACK_FILE, SCENE_FILE,
 };
 use dataset_support::{
     copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES,
@@ -78,7 +78,7 @@ fn unsupported_version_is_reported() {
             err,
             DatasetError::UnsupportedVersion {
                 found: 7,
-                supported: 2,
+                supported: FORMAT_VERSION,
                 ..
             }
         ),
@@ -293,6 +293,7 @@ fn assert_scene_word_refused(name: &str, at: usize, word: [u8; 4], needle: &str)
 
 /// Byte offsets of the scene sections for the fixture.
 struct SceneLayout {
+    crs: usize,
     meshes: usize,
     positions: usize,
     normals: usize,
@@ -301,12 +302,15 @@ struct SceneLayout {
 }
 
 fn scene_layout(scene: &Scene) -> SceneLayout {
-    let meshes = 104;
+    let crs = 104;
+    let crs_len = scene.crs.as_ref().map_or(0, |c| c.as_str().len());
+    let meshes = crs + 4 + crs_len.next_multiple_of(4);
     let positions = meshes + 44 * scene.meshes.len();
     let normals = positions + 12 * scene.positions.len();
     let uvs = normals + 12 * scene.positions.len();
     let indices = uvs + 8 * scene.positions.len();
     SceneLayout {
+        crs,
         meshes,
         positions,
         normals,
@@ -457,7 +461,8 @@ fn any_flipped_scene_header_bit_is_refused() {
     let original = std::fs::read(&path).expect("read scene");
     let dir = copy_dir(&fixture.dir, "scene-header");
     let target = data_file(&dir, SCENE_FILE);
-    for byte in 16..104 {
+    // The CRS record after the header too.
+    for byte in 16..scene_layout(&fixture.scene).meshes {
         for bit in [0u8, 3, 7] {
             let mut bytes = original.clone();
             bytes[byte] ^= 1 << bit;
@@ -512,4 +517,75 @@ fn damaged_manifests_are_refused() {
         let err = open_err(&dir);
         assert_names(&err, MANIFEST_FILE, &[]);
     }
+}
+
+#[test]
+fn the_crs_round_trips_and_a_damaged_crs_record_is_refused() {
+    let fixture = write_fixture("crs-src");
+    let opened = Dataset::open(&fixture.dir).expect("open");
+    let crs = opened.scene.crs.as_ref().expect("the fixture has a CRS");
+    assert_eq!(crs.as_str(), dataset_support::FIXTURE_CRS);
+    assert_eq!(crs.epsg_code(), Some(25833));
+    let layout = scene_layout(&fixture.scene);
+    let text_at = layout.crs + 4;
+    let text_len = dataset_support::FIXTURE_CRS.len();
+    assert_ne!(text_len % 4, 0, "the fixture exercises the padding");
+    type Edit = Box<dyn Fn(&mut Vec<u8>)>;
+    let cases: [(&str, Edit, &str, u64); 5] = [
+        (
+            "crs-too-long",
+            Box::new(|b| b[104..108].copy_from_slice(&(MAX_CRS_BYTES as u32 + 1).to_le_bytes())),
+            "exceeds",
+            104,
+        ),
+        (
+            "crs-not-utf8",
+            Box::new(move |b| b[text_at + 3] = 0xff),
+            "not UTF-8",
+            text_at as u64,
+        ),
+        (
+            "crs-not-wkt",
+            Box::new(move |b| b[text_at] = b'1'),
+            "CRS: not a CRS",
+            text_at as u64,
+        ),
+        (
+            "crs-padding",
+            Box::new(move |b| b[text_at + text_len] = 1),
+            "padding",
+            (text_at + text_len) as u64,
+        ),
+        (
+            "crs-epsg-zero",
+            Box::new(move |b| {
+                // Rewrites the record as `EPSG:0`, keeping its length with padding.
+                let text = b"EPSG:0";
+                b[104..108].copy_from_slice(&(text.len() as u32).to_le_bytes());
+                b[text_at..text_at + text.len()].copy_from_slice(text);
+                let padded = text.len().next_multiple_of(4);
+                b.drain(text_at + padded..layout.meshes);
+            }),
+            "EPSG code",
+            text_at as u64,
+        ),
+    ];
+    for (name, edit, needle, offset) in cases {
+        let dir = damaged(name, SCENE_FILE, |b| {
+            edit(b);
+            fix_scene_crc(b);
+        });
+        let err = open_err(&dir);
+        assert!(
+            matches!(err, DatasetError::Corrupt { offset: at, .. } if at == offset),
+            "{name}: {err}"
+        );
+        assert_names(&err, SCENE_FILE, &[needle]);
+    }
+    // A length that moves the meshes is a size mismatch.
+    let dir = damaged("crs-length", SCENE_FILE, |b| {
+        b[104..108].copy_from_slice(&(text_len as u32 + 4).to_le_bytes());
+        fix_scene_crc(b);
+    });
+    assert!(matches!(open_err(&dir), DatasetError::Truncated { .. }));
 }

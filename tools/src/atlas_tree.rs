@@ -406,7 +406,10 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
     for t in 0..infos.len() as u32 {
         crate::atlas::copy_texture(&dataset, t, &mut writer, &mut buf)?;
     }
-    let mut out_scene = Scene::new(scene.origin);
+    let mut out_scene = Scene {
+        crs: scene.crs.clone(),
+        ..Scene::new(scene.origin)
+    };
     let mut atlas_uvs: Vec<[f32; 2]> = Vec::new();
     let mut tree_nodes: Vec<TreeNode> = Vec::with_capacity(nodes.len());
     for (i, node) in nodes.iter().enumerate() {

@@ -536,12 +536,24 @@ fn ground_runs(patches: &Path) -> Vec<BenchRun> {
     ]
 }
 
-/// `DATA/patches`: the Blue Marble of `DATA/imagery/bmng.jpg` cut over `dataset` with the
-/// defaults of `citystream patches`, on first use.
+/// `DATA/patches` (for `DATA/city`; `DATA/patches-NAME` for another dataset `NAME`): the
+/// Blue Marble of `DATA/imagery/bmng.jpg` cut over `dataset` with the defaults of
+/// `citystream patches`, on first use, and again when the dataset has changed frame (a set
+/// for another origin or CRS would not lie under the city).
 fn ensure_default_patches(data_dir: &Path, dataset: &Path) -> Result<PathBuf> {
-    let patches = data_dir.join("patches");
+    let name = match dataset.file_name().and_then(|n| n.to_str()) {
+        Some("city") | None => "patches".to_string(),
+        Some(name) => format!("patches-{name}"),
+    };
+    let patches = data_dir.join(name);
     if patches.join(crate::patches::PATCHES_FILE).is_file() {
-        return Ok(patches);
+        let set = crate::patches::PatchSet::open(&patches)?;
+        let scene = &citystream_streaming::dataset::Dataset::open(dataset)
+            .with_context(|| format!("opening {}", dataset.display()))?
+            .scene;
+        if set.origin == scene.origin && set.check_frame(&patches, dataset, scene).is_ok() {
+            return Ok(patches);
+        }
     }
     let image = data_dir.join("imagery").join("bmng.jpg");
     if !image.is_file() {

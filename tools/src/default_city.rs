@@ -41,7 +41,7 @@ pub fn upgrade_if_old(dir: &Path, quiet: bool) -> Result<bool> {
             dir.display()
         );
     }
-    upgrade(dir).with_context(|| format!("upgrading {}", dir.display()))?;
+    upgrade(dir, None).with_context(|| format!("upgrading {}", dir.display()))?;
     Ok(true)
 }
 

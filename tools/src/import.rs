@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
+use citystream_streaming::dataset::{Crs, DatasetWriter, Scene, TextureFormat};
 use image::imageops::FilterType;
 use image::RgbaImage;
 use rayon::prelude::*;
@@ -53,6 +53,16 @@ pub struct ImportArgs {
     /// Largest texture side in texels (a power of two, 4 to 16384); larger images are downscaled.
     #[arg(long, default_value_t = 512)]
     pub max_extent: u32,
+    /// The coordinate reference system the model's coordinates are in (`EPSG:<code>` or WKT),
+    /// axes as the scene frame maps them: x easting, y height, −z northing. glTF carries no
+    /// CRS; without this option the dataset has a local frame.
+    #[arg(long, value_parser = parse_crs)]
+    pub crs: Option<Crs>,
+}
+
+/// Parses a `--crs` value.
+pub fn parse_crs(text: &str) -> Result<Crs, String> {
+    Crs::parse(text).map_err(|e| e.to_string())
 }
 
 /// What a mesh's texture is made of: an image (by glTF image index) tinted by a factor.
@@ -126,7 +136,8 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     }
     let format = args.format.texture_format();
     let input = &args.input;
-    let imported = load(input, format, args.max_extent)?;
+    let mut imported = load(input, format, args.max_extent)?;
+    imported.scene.crs = args.crs.clone();
     let kept = imported.kept_blocks;
     let mut writer = DatasetWriter::create(&args.out)?;
     for t in imported.textures {

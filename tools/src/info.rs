@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use citystream_streaming::dataset::{Dataset, FORMAT_VERSION};
+use citystream_streaming::dataset::{Crs, Dataset, FORMAT_VERSION};
 use serde::Serialize;
 
 /// Options of `citystream info`.
@@ -46,6 +46,10 @@ struct Info {
     pack_bytes: u64,
     scene_bytes: u64,
     origin: [f64; 3],
+    /// The CRS the origin is in (`EPSG:<code>` or WKT); `None`: a local frame.
+    crs: Option<String>,
+    /// The origin in the CRS's axes: easting, northing, height (with a CRS only).
+    origin_crs: Option<[f64; 3]>,
     bounds_min: [f32; 3],
     bounds_max: [f32; 3],
     host_bytes_per_texture: usize,
@@ -107,6 +111,8 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         pack_bytes: dataset.textures.pack_len(),
         scene_bytes,
         origin: scene.origin,
+        crs: scene.crs.as_ref().map(|crs| crs.to_string()),
+        origin_crs: scene.crs.as_ref().map(|_| Crs::from_scene(scene.origin)),
         bounds_min: scene.bounds.min,
         bounds_max: scene.bounds.max,
         host_bytes_per_texture: Dataset::metadata_bytes_per_texture(),
@@ -158,6 +164,18 @@ fn print_text(out: &mut impl Write, info: &Info) -> std::io::Result<()> {
         "origin     ({:.3}, {:.3}, {:.3}); bounds {:?} .. {:?} (relative, metres)",
         info.origin[0], info.origin[1], info.origin[2], info.bounds_min, info.bounds_max
     )?;
+    match (&info.crs, info.origin_crs) {
+        (Some(crs), Some([e, n, h])) => {
+            // WKT can run to kilobytes over many lines: its first line names it.
+            let name = crs.lines().next().unwrap_or_default();
+            let more = if crs.contains('\n') { " …" } else { "" };
+            writeln!(
+                out,
+                "crs        {name}{more}; origin easting {e:.3} northing {n:.3} height {h:.3} (x east, y up, z south)"
+            )?;
+        }
+        _ => writeln!(out, "crs        none (a local frame, not georeferenced)")?,
+    }
     writeln!(
         out,
         "opened in {:.3} s; {} host bytes of metadata per texture",

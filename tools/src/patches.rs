@@ -12,21 +12,24 @@
 //!
 //! The set is a directory (replaced atomically: written beside it, then renamed):
 //! `patches.json` and one PNG per patch. `patches.json` (`format` "citystream-patches",
-//! `version` 1): the source image's name, size and CRC-32, the dataset directory and
-//! origin, the ground extent (metres relative to the dataset's origin, x and z), the path
+//! `version` 2): the source image's name, size and CRC-32, the dataset directory, origin
+//! and `crs` (the dataset's, `null` for a local frame: the patches are georeferenced in
+//! it, see `citystream_streaming::dataset::Crs`), the ground extent (metres relative to the dataset's origin, x and z), the path
 //! duration, the seed, and per patch its `id`, `file`, `width`, `height`, `min` and `max`
-//! (x, z, metres relative to the origin), `metres_per_texel` and `arrival_s`.
+//! (x, z, metres relative to the origin), `metres_per_texel` and `arrival_s`. Version 1
+//! (no `crs`) is read as a set in a local frame.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use citystream_streaming::bench::path::DEFAULT_STANDARD_DURATION_S;
+use citystream_streaming::dataset::{Crs, Scene};
 use citystream_streaming::rng::SplitMix64;
 
 /// The file describing a patch set.
 pub const PATCHES_FILE: &str = "patches.json";
 /// `patches.json`'s format version.
-pub const PATCHES_VERSION: u32 = 1;
+pub const PATCHES_VERSION: u32 = 2;
 
 /// Options of `citystream patches`.
 #[derive(Debug, Clone, clap::Args)]
@@ -91,6 +94,10 @@ pub struct PatchSet {
     pub dataset: String,
     /// The dataset's origin (x, y, z), which the corners are relative to.
     pub origin: [f64; 3],
+    /// The dataset's CRS (`EPSG:<code>` or WKT) the origin and so the patches are in;
+    /// `None`: a local frame (and every version-1 set).
+    #[serde(default)]
+    pub crs: Option<String>,
     /// The ground extent the image covers: min and max (x, z).
     pub extent_min: [f64; 2],
     /// See `extent_min`.
@@ -114,12 +121,18 @@ impl PatchSet {
         if set.format != "citystream-patches" {
             bail!("{}: format {:?} is not citystream-patches", path.display(), set.format);
         }
-        if set.version != PATCHES_VERSION {
+        if !(1..=PATCHES_VERSION).contains(&set.version) {
             bail!(
-                "{}: version {} (this build reads version {PATCHES_VERSION})",
+                "{}: version {} (this build reads versions 1 to {PATCHES_VERSION})",
                 path.display(),
                 set.version
             );
+        }
+        if set.version == 1 && set.crs.is_some() {
+            bail!("{}: a version-1 set has no `crs`", path.display());
+        }
+        if let Some(crs) = &set.crs {
+            Crs::parse(crs).with_context(|| format!("{}: `crs`", path.display()))?;
         }
         if !(set.duration_s.is_finite() && set.duration_s >= 0.0) {
             bail!("{}: duration {} s", path.display(), set.duration_s);
@@ -168,6 +181,43 @@ impl PatchSet {
             }
         }
         Ok(set)
+    }
+
+    /// The set's CRS (checked by [`PatchSet::open`]).
+    pub fn crs(&self) -> Option<Crs> {
+        self.crs.as_deref().and_then(|text| Crs::parse(text).ok())
+    }
+
+    /// Fails unless the set (in `dir`) is georeferenced in the CRS of `scene` (of the dataset
+    /// `dataset`), or both are in local frames: the set's corners are moved between the
+    /// origins, which only means something within one CRS.
+    pub fn check_frame(&self, dir: &Path, dataset: &Path, scene: &Scene) -> Result<()> {
+        let recut = format!(
+            "cut the patches for it with `citystream patches IMAGE --dataset {} --out {}`",
+            dataset.display(),
+            dir.display()
+        );
+        match (self.crs(), &scene.crs) {
+            (None, None) => Ok(()),
+            (Some(set), Some(city)) if set.same_as(city) => Ok(()),
+            (Some(set), Some(city)) => bail!(
+                "{}: the patches are georeferenced in {set}, the dataset {} in {city}; citystream does not reproject: {recut}",
+                dir.display(),
+                dataset.display()
+            ),
+            (Some(set), None) => bail!(
+                "{}: the patches are georeferenced in {set}, but the dataset {} has no CRS (a local frame): \
+                 if its origin is in {set}, say so with `citystream upgrade {} --crs {set}`; otherwise {recut}",
+                dir.display(),
+                dataset.display(),
+                dataset.display()
+            ),
+            (None, Some(city)) => bail!(
+                "{}: the patches were cut for a dataset in a local frame (no CRS), the dataset {} is in {city}: {recut}",
+                dir.display(),
+                dataset.display()
+            ),
+        }
     }
 }
 
@@ -295,6 +345,7 @@ pub fn cut(args: &PatchesArgs) -> Result<PatchSet> {
         source_crc32: crc32fast::hash(&bytes),
         dataset: args.dataset.display().to_string(),
         origin: dataset.scene.origin,
+        crs: dataset.scene.crs.as_ref().map(|crs| crs.to_string()),
         extent_min,
         extent_max,
         duration_s: DEFAULT_STANDARD_DURATION_S,

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use citystream_streaming::dataset::{upgrade, FORMAT_VERSION};
+use citystream_streaming::dataset::{upgrade, Crs, FORMAT_VERSION};
 
 /// Options of `citystream upgrade`.
 #[derive(Debug, clap::Args)]
@@ -12,19 +12,25 @@ pub struct UpgradeArgs {
     /// Dataset directory. It is rewritten atomically: until the new version is complete,
     /// flushed and verified, the old one stays in place untouched.
     pub dir: PathBuf,
+    /// The coordinate reference system the dataset's origin is in (`EPSG:<code>` or WKT),
+    /// for a dataset that has none (older versions had none). A dataset already in another
+    /// CRS is refused: its coordinates would have to be transformed.
+    #[arg(long, value_parser = crate::import::parse_crs)]
+    pub crs: Option<Crs>,
 }
 
 /// Runs `citystream upgrade`.
 pub fn run(args: &UpgradeArgs) -> Result<()> {
     let start = Instant::now();
-    let summary = upgrade(&args.dir).with_context(|| format!("upgrading {}", args.dir.display()))?;
+    let summary = upgrade(&args.dir, args.crs.as_ref()).with_context(|| format!("upgrading {}", args.dir.display()))?;
+    let crs = args.crs.as_ref().map_or(String::new(), |crs| format!(" in CRS {crs}"));
     let line = match summary.written {
         None => format!(
-            "{} already has format version {FORMAT_VERSION}; nothing to do\n",
+            "{} already has format version {FORMAT_VERSION}{crs}; nothing to do\n",
             args.dir.display()
         ),
         Some(written) => format!(
-            "upgraded {} from format version {} to {FORMAT_VERSION}: {} textures, {} mips, {} meshes, {:.1} MB of mip data checked and copied in {:.2} s\n",
+            "upgraded {} from format version {} to {FORMAT_VERSION}{crs}: {} textures, {} mips, {} meshes, {:.1} MB of mip data checked and copied in {:.2} s\n",
             args.dir.display(),
             summary.from_version,
             written.textures,

@@ -73,6 +73,10 @@ fn clipmap_patches_cut_a_survey_over_the_city_that_feeds_the_clipmap() {
     // Over the city: the base layer covers its whole ground extent from the start; every
     // other patch is centred within it and arrives, in order, within the path.
     let dataset = Dataset::open(&city).expect("city");
+    // Georeferenced in the city's CRS (generated cities: ETRS89 / UTM 33N), from its origin.
+    assert_eq!(set.crs.as_deref(), Some("EPSG:25833"));
+    assert_eq!(set.crs(), dataset.scene.crs);
+    assert_eq!(set.origin, dataset.scene.origin);
     let b = dataset.scene.bounds;
     let (city_min, city_max) = (
         [f64::from(b.min[0]), f64::from(b.min[2])],
@@ -263,6 +267,13 @@ fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
         .as_u64()
         .expect("ground_tiles_uploaded");
     assert!(tiles > 0, "{summary}");
+    // The window follows the view: 96 px tall at 60° is an 83 px focal length, one tile of
+    // 256 texels beyond the viewer's own each way.
+    assert_eq!(summary["ground"]["cache_side"], 3, "{summary}");
+    assert!(
+        summary["ground"]["level_slots"].as_u64().is_some_and(|s| s >= 1),
+        "{summary}"
+    );
     let mb = summary["ground_mb_streamed"].as_f64().expect("ground_mb_streamed");
     let tile_mb = (256.0 * 256.0 * 4.0) / f64::from(1 << 20);
     assert!((mb - tiles as f64 * tile_mb).abs() < 1e-9, "{mb} MB for {tiles} tiles");
@@ -286,17 +297,18 @@ fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
         serde_json::from_str(&std::fs::read_to_string(plain.join("summary.json")).expect("summary")).expect("JSON");
     assert!(summary["ground_tiles_uploaded"].is_null() && summary["ground_psnr_db"].is_null());
 
-    // A budget the ground's tile array alone fills, and a directory that is no patch set.
+    // A budget half of which holds not one level of the ground, and a directory that is no
+    // patch set.
     let run = fly(
         "30",
         &["--ground", patches.to_str().expect("utf-8"), "--memory-budget-mb", "8"],
         &dir.join("small"),
     );
     assert!(!run.status.success());
+    let text = stderr(&run);
     assert!(
-        stderr(&run).contains("leaves nothing for textures beside the ground layer"),
-        "{}",
-        stderr(&run)
+        text.contains("half the 8 MB memory budget") && text.contains("not one level"),
+        "{text}"
     );
     let run = fly(
         "30",
@@ -305,4 +317,30 @@ fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
     );
     assert!(!run.status.success());
     assert!(stderr(&run).contains("patches.json"), "{}", stderr(&run));
+
+    // A set in another CRS, or cut for a city in a local frame, is refused: its corners
+    // would land somewhere else.
+    let json = std::fs::read_to_string(patches.join("patches.json")).expect("json");
+    let mut value: serde_json::Value = serde_json::from_str(&json).expect("json");
+    let elsewhere = dir.join("elsewhere");
+    std::fs::create_dir_all(&elsewhere).expect("dir");
+    for p in &set.patches {
+        std::fs::copy(patches.join(&p.file), elsewhere.join(&p.file)).expect("copy patch");
+    }
+    for (crs, version, expected) in [
+        (serde_json::json!("EPSG:32633"), 2, "georeferenced in EPSG:32633"),
+        (serde_json::Value::Null, 1, "cut for a dataset in a local frame"),
+    ] {
+        value["crs"] = crs;
+        value["version"] = serde_json::json!(version);
+        std::fs::write(elsewhere.join("patches.json"), value.to_string()).expect("write");
+        let run = fly(
+            "30",
+            &["--ground", elsewhere.to_str().expect("utf-8")],
+            &dir.join("elsewhere-out"),
+        );
+        assert!(!run.status.success());
+        let text = stderr(&run);
+        assert!(text.contains(expected) && text.contains("EPSG:25833"), "{text}");
+    }
 }

@@ -1,7 +1,8 @@
 //! Writes never lose or mix datasets: `gen`, `import` and `atlas` killed at many moments
 //! leave the old or the new dataset, concurrent writers are refused, failed writes leave the
-//! old dataset, files that are not the tool's own are never touched, and version-1 datasets
-//! are named for `citystream upgrade`, which keeps their content.
+//! old dataset, files that are not the tool's own are never touched, and version-1 and
+//! version-2 datasets are named for `citystream upgrade`, which keeps their content and gives
+//! them a CRS when asked.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -45,8 +46,28 @@ fn write_dirs(dir: &Path) -> Vec<String> {
 
 /// What identifies a dataset's content: scene, texture table, colours and every mip's
 /// checksum (which `verify` checks every mip against).
-fn fingerprint(dir: &Path) -> (String, Vec<u32>) {
-    let dataset = Dataset::open(dir).expect("open");
+fn fingerprint(dir: &Path) -> Fingerprint {
+    fingerprint_of(Dataset::open(dir).expect("open"))
+}
+
+/// Scene, textures and colours as text, and every mip's checksum.
+type Fingerprint = (String, Vec<u32>);
+/// A scene's origin and CRS.
+type Frame = ([f64; 3], Option<String>);
+
+/// [`fingerprint`] apart from the scene's frame (origin and CRS), which generated cities
+/// changed in format version 3; returns the frame beside it.
+fn fingerprint_and_frame(dir: &Path) -> (Fingerprint, Frame) {
+    let mut dataset = Dataset::open(dir).expect("open");
+    let frame = (
+        dataset.scene.origin,
+        dataset.scene.crs.take().map(|crs| crs.to_string()),
+    );
+    dataset.scene.origin = [0.0; 3];
+    (fingerprint_of(dataset), frame)
+}
+
+fn fingerprint_of(dataset: Dataset) -> Fingerprint {
     let checksums = dataset
         .textures
         .textures()
@@ -337,7 +358,7 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
     }
     let out = citystream(&["upgrade", utf8(&dir)]);
     assert!(out.status.success(), "{}", stderr(&out));
-    assert!(String::from_utf8_lossy(&out.stdout).contains("from format version 1 to 2"));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("from format version 1 to 3"));
     verify(&dir).expect("upgraded dataset verifies");
     // The version-1 files are gone, the user's file stays.
     let mut names: Vec<String> = std::fs::read_dir(&dir)
@@ -360,9 +381,15 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
         "--out",
         utf8(&regenerated),
     ]);
-    assert!(
-        fingerprint(&dir) == fingerprint(&regenerated),
-        "the upgrade changed the content"
+    // Generated cities now sit at Berlin's UTM coordinates with +z south (northing −z) and
+    // say so; the upgrade keeps the old frame as it was, without a CRS.
+    let (upgraded, upgraded_frame) = fingerprint_and_frame(&dir);
+    let (fresh, fresh_frame) = fingerprint_and_frame(&regenerated);
+    assert!(upgraded == fresh, "the upgrade changed the content");
+    assert_eq!(upgraded_frame, ([391_250.0, 34.0, 5_819_500.0], None));
+    assert_eq!(
+        fresh_frame,
+        ([391_250.0, 34.0, -5_819_500.0], Some("EPSG:25833".to_string()))
     );
     // Upgrading again does nothing.
     let id = write_id(&dir);
@@ -370,6 +397,116 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
     assert!(out.status.success());
     assert!(String::from_utf8_lossy(&out.stdout).contains("nothing to do"));
     assert_eq!(write_id(&dir), id);
+}
+
+/// A version-2 dataset written by the version-2 `gen --preset tiny --seed 3 --max-extent 16`.
+fn v2_fixture(name: &str) -> PathBuf {
+    let dir = fresh_dir(name);
+    copy_tree(&Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/v2-tiny"), &dir);
+    dir
+}
+
+fn upgrade_stdout(args: &[&str]) -> String {
+    let out = citystream(args);
+    assert!(out.status.success(), "{args:?} failed: {}", stderr(&out));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+#[test]
+fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_them_a_crs() {
+    let dir = v2_fixture("v2");
+    for command in ["info", "verify"] {
+        let out = citystream(&[command, utf8(&dir)]);
+        assert!(!out.status.success(), "{command} accepted a version-2 dataset");
+        let message = stderr(&out);
+        assert!(
+            message.contains("format version 2") && message.contains(&format!("citystream upgrade {}", utf8(&dir))),
+            "{command}: {message}"
+        );
+    }
+    let old_write = write_dirs(&dir);
+    // A text that is no CRS is refused before anything is written.
+    let out = citystream(&["upgrade", utf8(&dir), "--crs", "UTM 33N"]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("not a CRS"), "{}", stderr(&out));
+    assert_eq!(write_dirs(&dir), old_write);
+
+    let regenerated = fresh_dir("v2-regenerated");
+    succeed(&[
+        "gen",
+        "--preset",
+        "tiny",
+        "--seed",
+        "3",
+        "--max-extent",
+        "16",
+        "--out",
+        utf8(&regenerated),
+    ]);
+    let (fresh, _) = fingerprint_and_frame(&regenerated);
+
+    // Without --crs: the same content in a local frame.
+    let plain = v2_fixture("v2-plain");
+    assert!(upgrade_stdout(&["upgrade", utf8(&plain)]).contains("from format version 2 to 3:"));
+    verify(&plain).expect("upgraded dataset verifies");
+    assert_eq!(write_dirs(&plain).len(), 1, "the version-2 write is removed");
+    let (content, frame) = fingerprint_and_frame(&plain);
+    assert!(content == fresh, "the upgrade changed the content");
+    assert_eq!(frame, ([391_250.0, 34.0, 5_819_500.0], None));
+
+    // With --crs: the same content, georeferenced.
+    let said = upgrade_stdout(&["upgrade", utf8(&dir), "--crs", "epsg:25833"]);
+    assert!(said.contains("from format version 2 to 3 in CRS EPSG:25833"), "{said}");
+    let (content, frame) = fingerprint_and_frame(&dir);
+    assert!(content == fresh, "the upgrade changed the content");
+    assert_eq!(frame.1.as_deref(), Some("EPSG:25833"));
+    // The same CRS again (as WKT naming it) is nothing to do; another one is refused.
+    let id = write_id(&dir);
+    let wkt = r#"PROJCRS["ETRS89 / UTM zone 33N",BASEGEOGCRS["ETRS89",ID["EPSG",4258]],ID["EPSG",25833]]"#;
+    assert!(upgrade_stdout(&["upgrade", utf8(&dir), "--crs", wkt]).contains("nothing to do"));
+    let out = citystream(&["upgrade", utf8(&dir), "--crs", "EPSG:32633"]);
+    assert!(!out.status.success());
+    let message = stderr(&out);
+    assert!(
+        message.contains("already in CRS EPSG:25833") && message.contains("EPSG:32633"),
+        "{message}"
+    );
+    assert_eq!(write_id(&dir), id, "a refused upgrade writes nothing");
+
+    // A current dataset without a CRS gets one, and keeps its content.
+    let said = upgrade_stdout(&["upgrade", utf8(&plain), "--crs", wkt]);
+    assert!(said.contains("from format version 3 to 3"), "{said}");
+    let (content, frame) = fingerprint_and_frame(&plain);
+    assert!(content == fresh);
+    assert_eq!(frame.1.as_deref(), Some(wkt));
+}
+
+#[test]
+fn info_reports_the_crs_and_the_origin_in_its_axes() {
+    let dir = fresh_dir("info-crs");
+    succeed(&[
+        "gen",
+        "--preset",
+        "tiny",
+        "--seed",
+        "3",
+        "--max-extent",
+        "16",
+        "--out",
+        utf8(&dir),
+    ]);
+    let out = citystream(&["info", utf8(&dir), "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let info: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
+    assert_eq!(info["format_version"], 3);
+    assert_eq!(info["crs"], "EPSG:25833");
+    // Easting, northing, height of the scene origin (x east, y up, z south).
+    assert_eq!(info["origin_crs"], serde_json::json!([391_250.0, 5_819_500.0, 34.0]));
+    let text = upgrade_stdout(&["info", utf8(&dir)]);
+    assert!(
+        text.contains("crs        EPSG:25833; origin easting 391250.000 northing 5819500.000 height 34.000"),
+        "{text}"
+    );
 }
 
 #[test]

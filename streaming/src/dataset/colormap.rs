@@ -4,6 +4,7 @@ use std::path::Path;
 
 use super::error::DatasetError;
 use super::io_util::{decode_table, encode_table, read_all, write_new_durably};
+use super::FORMAT_VERSION;
 
 pub(crate) const MAGIC: &[u8; 8] = b"CSCOLMAP";
 
@@ -47,12 +48,12 @@ impl Colormap {
 
     /// Reads `colormap.bin` and returns the write id in its header.
     pub(crate) fn read_with_write_id(path: &Path) -> Result<(Self, u64), DatasetError> {
-        Self::decode_with_write_id(path, &read_all(path)?)
+        Self::decode_with_write_id(path, &read_all(path)?, FORMAT_VERSION)
     }
 
-    /// Decodes `colormap.bin` bytes; `path` names them in errors.
-    pub(crate) fn decode_with_write_id(path: &Path, bytes: &[u8]) -> Result<(Self, u64), DatasetError> {
-        let table = decode_table(path, bytes, MAGIC, 4)?;
+    /// Decodes `colormap.bin` bytes of format `version`; `path` names them in errors.
+    pub(crate) fn decode_with_write_id(path: &Path, bytes: &[u8], version: u32) -> Result<(Self, u64), DatasetError> {
+        let table = decode_table(path, bytes, MAGIC, 4, version)?;
         Ok((Self::from_records(table.body), table.write_id))
     }
 
@@ -76,8 +77,8 @@ pub(crate) const CRC_MAGIC: &[u8; 8] = b"CSTXCRC\0";
 
 /// Decodes `textures.crc` (`path` names it in errors): the CRC-32 of every mip, textures in
 /// id order, levels finest first. Returns them and the write id.
-pub(crate) fn decode_checksums(path: &Path, bytes: &[u8]) -> Result<(Vec<u32>, u64), DatasetError> {
-    let table = decode_table(path, bytes, CRC_MAGIC, 4)?;
+pub(crate) fn decode_checksums(path: &Path, bytes: &[u8], version: u32) -> Result<(Vec<u32>, u64), DatasetError> {
+    let table = decode_table(path, bytes, CRC_MAGIC, 4, version)?;
     Ok((u32_records(table.body), table.write_id))
 }
 

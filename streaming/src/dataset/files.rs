@@ -16,9 +16,11 @@ use std::fs::{File, TryLockError};
 use std::path::{Path, PathBuf};
 
 use super::error::DatasetError;
-use super::io_util::{check_prefix, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION};
+use super::io_util::{
+    check_prefix, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION, PREVIOUS_VERSION,
+};
 use super::store::DatasetStore;
-use super::{CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
+use super::{CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
 
 /// The manifest file at the top of a dataset directory.
 pub const MANIFEST_FILE: &str = "dataset.manifest";
@@ -42,15 +44,24 @@ pub struct DatasetFiles {
     dir: PathBuf,
     data_dir: PathBuf,
     write_id: u64,
+    /// The format version every file must have: this build's, or the previous one's for
+    /// the upgrade.
+    version: u32,
 }
 
 impl DatasetFiles {
     /// Reads the manifest of the dataset in `dir`. A version-1 dataset (files at the top,
     /// no manifest) is reported as [`DatasetError::NeedsUpgrade`].
     pub fn resolve(dir: &Path) -> Result<Self, DatasetError> {
+        Self::resolve_version(dir, FORMAT_VERSION)
+    }
+
+    /// [`DatasetFiles::resolve`] of a dataset of format `version` (the upgrade reads the
+    /// previous version with this).
+    pub(crate) fn resolve_version(dir: &Path, version: u32) -> Result<Self, DatasetError> {
         let manifest_path = dir.join(MANIFEST_FILE);
         let write_id = match read_all(&manifest_path) {
-            Ok(bytes) => decode_manifest(&manifest_path, &bytes)?,
+            Ok(bytes) => decode_manifest(&manifest_path, &bytes, version)?,
             Err(DatasetError::Missing { .. }) if legacy_file(&dir.join(SCENE_FILE), b"CSSCENE\0") => {
                 return Err(DatasetError::NeedsUpgrade {
                     path: dir.to_path_buf(),
@@ -63,18 +74,25 @@ impl DatasetFiles {
             dir: dir.to_path_buf(),
             data_dir: dir.join(write_dir_name(write_id)),
             write_id,
+            version,
         })
     }
 
     /// Reads the manifest of the dataset at `root` of `store` (a remote dataset).
     pub fn resolve_in(store: &dyn DatasetStore, root: &Path) -> Result<Self, DatasetError> {
         let manifest_path = root.join(MANIFEST_FILE);
-        let write_id = decode_manifest(&manifest_path, &store.read_all(&manifest_path)?)?;
+        let write_id = decode_manifest(&manifest_path, &store.read_all(&manifest_path)?, FORMAT_VERSION)?;
         Ok(Self {
             dir: root.to_path_buf(),
             data_dir: root.join(write_dir_name(write_id)),
             write_id,
+            version: FORMAT_VERSION,
         })
+    }
+
+    /// The format version of the files.
+    pub fn version(&self) -> u32 {
+        self.version
     }
 
     /// The dataset directory (where the manifest is).
@@ -131,8 +149,8 @@ fn encode_manifest(write_id: u64) -> Vec<u8> {
     out
 }
 
-fn decode_manifest(path: &Path, bytes: &[u8]) -> Result<u64, DatasetError> {
-    let write_id = check_prefix(path, bytes, MANIFEST_MAGIC, MANIFEST_BYTES)?;
+fn decode_manifest(path: &Path, bytes: &[u8], version: u32) -> Result<u64, DatasetError> {
+    let write_id = check_prefix(path, bytes, MANIFEST_MAGIC, MANIFEST_BYTES, version)?;
     if bytes.len() != MANIFEST_BYTES {
         return Err(DatasetError::Truncated {
             path: path.to_path_buf(),
@@ -225,7 +243,14 @@ impl PendingWrite {
         }
         let manifest_path = dir.join(MANIFEST_FILE);
         let previous = match read_all(&manifest_path) {
-            Ok(bytes) => Some(decode_manifest(&manifest_path, &bytes)?),
+            // A dataset of the previous version is replaced like one of this version.
+            Ok(bytes) => Some(match decode_manifest(&manifest_path, &bytes, FORMAT_VERSION) {
+                Err(DatasetError::NeedsUpgrade {
+                    found: PREVIOUS_VERSION,
+                    ..
+                }) => decode_manifest(&manifest_path, &bytes, PREVIOUS_VERSION)?,
+                current => current?,
+            }),
             Err(DatasetError::Missing { .. }) => None,
             // A file of that name that is not our manifest is never replaced.
             Err(e) => return Err(e),
@@ -270,6 +295,7 @@ impl PendingWrite {
             dir: self.dir.clone(),
             data_dir: self.data_dir.clone(),
             write_id: self.write_id,
+            version: FORMAT_VERSION,
         }
     }
 
@@ -354,13 +380,19 @@ mod tests {
     fn manifest_round_trips_and_catches_flips() {
         let path = Path::new("m");
         let bytes = encode_manifest(0x0123_4567_89ab_cdef);
-        assert_eq!(decode_manifest(path, &bytes).expect("decode"), 0x0123_4567_89ab_cdef);
+        assert_eq!(
+            decode_manifest(path, &bytes, FORMAT_VERSION).expect("decode"),
+            0x0123_4567_89ab_cdef
+        );
         for byte in 0..MANIFEST_BYTES {
             let mut flipped = bytes.clone();
             flipped[byte] ^= 0x10;
-            assert!(decode_manifest(path, &flipped).is_err(), "flip in byte {byte} accepted");
+            assert!(
+                decode_manifest(path, &flipped, FORMAT_VERSION).is_err(),
+                "flip in byte {byte} accepted"
+            );
         }
-        assert!(decode_manifest(path, &bytes[..20]).is_err());
+        assert!(decode_manifest(path, &bytes[..20], FORMAT_VERSION).is_err());
     }
 
     #[test]

@@ -10,8 +10,12 @@ use super::FORMAT_VERSION;
 /// the header's first 32 bytes and the body (u32), reserved (u32).
 pub(crate) const TABLE_HEADER_BYTES: usize = 40;
 
-/// The format version `citystream upgrade` converts from.
+/// The first format version (files at the top of the directory, no manifest), which
+/// `citystream upgrade` converts.
 pub(crate) const LEGACY_VERSION: u32 = 1;
+
+/// The format version before this one (no CRS), which `citystream upgrade` converts.
+pub(crate) const PREVIOUS_VERSION: u32 = 2;
 
 /// Reads a whole file, mapping "not found" to [`DatasetError::Missing`].
 pub(crate) fn read_all(path: &Path) -> Result<Vec<u8>, DatasetError> {
@@ -65,14 +69,22 @@ pub(crate) fn f64_at(bytes: &[u8], at: usize) -> f64 {
     f64::from_bits(u64_at(bytes, at))
 }
 
-/// Checks length, magic, version and the zero flags word of a version-2 header of
-/// `header_len` bytes, and returns the write id stored after them.
-pub(crate) fn check_prefix(path: &Path, bytes: &[u8], magic: &[u8; 8], header_len: usize) -> Result<u64, DatasetError> {
-    check_versioned_prefix(path, bytes, magic, header_len, FORMAT_VERSION)?;
+/// Checks length, magic, version (`version`: the current one, or the previous one for the
+/// upgrade) and the zero flags word of a header of `header_len` bytes, and returns the write
+/// id stored after them.
+pub(crate) fn check_prefix(
+    path: &Path,
+    bytes: &[u8],
+    magic: &[u8; 8],
+    header_len: usize,
+    version: u32,
+) -> Result<u64, DatasetError> {
+    check_versioned_prefix(path, bytes, magic, header_len, version)?;
     Ok(u64_at(bytes, 16))
 }
 
-/// [`check_prefix`] for a given format version (1 is read only by the upgrade).
+/// The version check of [`check_prefix`] (version 1 has no write id there). A file of an
+/// older version than this build's is [`DatasetError::NeedsUpgrade`].
 pub(crate) fn check_versioned_prefix(
     path: &Path,
     bytes: &[u8],
@@ -100,7 +112,8 @@ pub(crate) fn check_versioned_prefix(
     }
     let version = u32_at(bytes, 8);
     if version != expected_version {
-        return Err(if version == LEGACY_VERSION && expected_version == FORMAT_VERSION {
+        let upgradable = matches!(version, LEGACY_VERSION | PREVIOUS_VERSION);
+        return Err(if upgradable && expected_version == FORMAT_VERSION {
             DatasetError::NeedsUpgrade {
                 path: path.to_path_buf(),
                 found: version,
@@ -124,7 +137,7 @@ pub(crate) fn check_versioned_prefix(
     Ok(())
 }
 
-/// Starts a version-2 header: magic, version, zero flags, write id.
+/// Starts a header of this version: magic, version, zero flags, write id.
 pub(crate) fn header_prefix(magic: &[u8; 8], write_id: u64) -> Vec<u8> {
     let mut out = Vec::with_capacity(TABLE_HEADER_BYTES);
     out.extend_from_slice(magic);
@@ -169,8 +182,9 @@ pub(crate) fn decode_table<'a>(
     bytes: &'a [u8],
     magic: &[u8; 8],
     record_len: usize,
+    version: u32,
 ) -> Result<Table<'a>, DatasetError> {
-    let write_id = check_prefix(path, bytes, magic, TABLE_HEADER_BYTES)?;
+    let write_id = check_prefix(path, bytes, magic, TABLE_HEADER_BYTES, version)?;
     let count = u64_at(bytes, 24);
     let body = table_body(path, bytes, count, record_len, TABLE_HEADER_BYTES)?;
     let stored = u32_at(bytes, 32);

@@ -1,5 +1,5 @@
 //! Format version 1 (read only here) and `citystream upgrade`, which rewrites a version-1
-//! dataset as the current version.
+//! or version-2 dataset as the current version.
 //!
 //! Version 1 kept its five files at the top of the dataset directory, with no manifest and no
 //! write id; its table headers were 32 bytes (count at 16, CRC-32 of the body at 24), the
@@ -11,14 +11,15 @@ use std::os::unix::fs::FileExt;
 use std::path::Path;
 
 use super::colormap::{self, u32_records, Colormap};
+use super::crs::Crs;
 use super::error::DatasetError;
 use super::files::DatasetFiles;
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
-use super::io_util::{check_versioned_prefix, read_all, table_body, u32_at, u64_at, LEGACY_VERSION};
+use super::io_util::{check_versioned_prefix, read_all, table_body, u32_at, u64_at, LEGACY_VERSION, PREVIOUS_VERSION};
 use super::pack::{open_pack, META_MAGIC, PACK_HEADER_BYTES, PACK_MAGIC};
 use super::scene::{Scene, SceneLayout};
 use super::writer::{DatasetWriter, WriteSummary};
-use super::{CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
+use super::{Dataset, CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
 
 const LEGACY_TABLE_HEADER_BYTES: usize = 32;
 
@@ -27,35 +28,101 @@ const LEGACY_TABLE_HEADER_BYTES: usize = 32;
 pub struct UpgradeSummary {
     /// The version the dataset had.
     pub from_version: u32,
-    /// The new write, or `None` when the dataset already had the current version.
+    /// The new write, or `None` when the dataset already had the current version (and the
+    /// CRS asked for, if any).
     pub written: Option<WriteSummary>,
 }
 
-/// Rewrites the version-1 dataset in `dir` as the current version, atomically (through
-/// [`DatasetWriter`]): every mip chain is checked against its version-1 CRC before it is
-/// copied, and the version-1 files are removed only once the new dataset is in place. A
-/// dataset that already has the current version is left as it is.
-pub fn upgrade(dir: &Path) -> Result<UpgradeSummary, DatasetError> {
-    match DatasetFiles::resolve(dir) {
-        Ok(_) => {
-            return Ok(UpgradeSummary {
-                from_version: FORMAT_VERSION,
-                written: None,
-            })
+impl UpgradeSummary {
+    fn nothing_to_do() -> Self {
+        Self {
+            from_version: FORMAT_VERSION,
+            written: None,
         }
-        Err(DatasetError::NeedsUpgrade { .. }) => {}
-        Err(e) => return Err(e),
+    }
+}
+
+/// Rewrites the dataset in `dir` as the current version, atomically (through
+/// [`DatasetWriter`]), giving it `crs` (`None`: no CRS). A version-1 dataset has every mip
+/// chain checked against its version-1 CRC before it is copied, a version-2 one every mip
+/// against its CRC; older files are removed only once the new dataset is in place.
+///
+/// A dataset of the current version is left as it is, unless `crs` is given and the dataset
+/// has none: then it is rewritten with it. One already in another CRS is refused
+/// ([`DatasetError::InvalidInput`]): a new CRS means new coordinates, which this does not
+/// compute.
+pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetError> {
+    if current_needs_nothing(dir, crs)? {
+        return Ok(UpgradeSummary::nothing_to_do());
     }
     // Waits for a concurrent upgrade (two runs finding the same old city), then finds the
     // dataset already in the current version and leaves it.
     let mut writer = DatasetWriter::create_waiting(dir)?;
-    if writer.replaces_a_dataset() {
-        return Ok(UpgradeSummary {
-            from_version: FORMAT_VERSION,
-            written: None,
-        });
+    if current_needs_nothing(dir, crs)? {
+        return Ok(UpgradeSummary::nothing_to_do());
     }
-    let legacy = LegacyDataset::open(dir)?;
+    let files = match DatasetFiles::resolve(dir) {
+        Ok(files) => Some(files),
+        Err(DatasetError::NeedsUpgrade {
+            found: PREVIOUS_VERSION,
+            ..
+        }) => Some(DatasetFiles::resolve_version(dir, PREVIOUS_VERSION)?),
+        Err(DatasetError::NeedsUpgrade { .. }) => None,
+        Err(e) => return Err(e),
+    };
+    let Some(files) = files else {
+        return upgrade_legacy(dir, writer, crs);
+    };
+    let dataset = Dataset::open_files(&files)?;
+    let mut chain = Vec::new();
+    let mut level = Vec::new();
+    for (id, info) in dataset.textures.textures().iter().enumerate() {
+        chain.clear();
+        for l in 0..info.mip_count() {
+            dataset.textures.read_mip(id as u32, l, &mut level)?;
+            chain.extend_from_slice(&level);
+        }
+        writer.add_texture(
+            info.format(),
+            info.width(),
+            info.height(),
+            info.mip_count(),
+            &chain,
+            dataset.colormap.colours()[id],
+        )?;
+    }
+    let mut scene = dataset.scene;
+    scene.crs = crs.cloned();
+    let written = writer.finish(&scene)?;
+    Ok(UpgradeSummary {
+        from_version: files.version(),
+        written: Some(written),
+    })
+}
+
+/// Whether `dir` holds a dataset of this version that already has `crs` (or any CRS or none,
+/// when `crs` is `None`). Fails when it has another CRS.
+fn current_needs_nothing(dir: &Path, crs: Option<&Crs>) -> Result<bool, DatasetError> {
+    match DatasetFiles::resolve(dir) {
+        Ok(files) => {
+            let Some(wanted) = crs else { return Ok(true) };
+            match Dataset::open_files(&files)?.scene.crs {
+                None => Ok(false),
+                Some(have) if have.same_as(wanted) => Ok(true),
+                Some(have) => Err(DatasetError::InvalidInput(format!(
+                    "{}: the dataset is already in CRS {have}; giving it {wanted} would need its coordinates transformed, which citystream does not do",
+                    dir.display()
+                ))),
+            }
+        }
+        Err(DatasetError::NeedsUpgrade { .. }) => Ok(false),
+        Err(e) => Err(e),
+    }
+}
+
+/// The version-1 half of [`upgrade`].
+fn upgrade_legacy(dir: &Path, mut writer: DatasetWriter, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetError> {
+    let mut legacy = LegacyDataset::open(dir)?;
     let mut chain = Vec::new();
     for (id, info) in legacy.textures.iter().enumerate() {
         let len = usize::try_from(info.chain_len())
@@ -71,6 +138,7 @@ pub fn upgrade(dir: &Path) -> Result<UpgradeSummary, DatasetError> {
             legacy.colours.colours()[id],
         )?;
     }
+    legacy.scene.crs = crs.cloned();
     let written = writer.finish(&legacy.scene)?;
     Ok(UpgradeSummary {
         from_version: LEGACY_VERSION,

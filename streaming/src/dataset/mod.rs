@@ -7,7 +7,8 @@
 //! replace a dataset atomically ([`DatasetFiles`], [`DatasetWriter`]):
 //!
 //! - `scene.bin` ([`Scene`]): meshes (one texture each), flat vertex and index arrays,
-//!   per-mesh and scene bounds, positions relative to an f64 origin.
+//!   per-mesh and scene bounds, positions relative to an f64 origin, and the coordinate
+//!   reference system ([`Crs`]) the origin is given in.
 //! - `textures.meta` ([`TextureInfo`], 10 bytes per texture): extent as log2, mip count,
 //!   format and the offset of the texture's first mip in the pack. Per-mip offsets are
 //!   derived: mips lie back to back, level 0 (finest) first.
@@ -29,6 +30,7 @@
 //!   Mips of block formats smaller than 4 texels on a side still occupy whole 4×4 blocks.
 
 mod colormap;
+mod crs;
 mod error;
 mod files;
 mod format;
@@ -45,6 +47,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 pub use colormap::Colormap;
+pub use crs::{Crs, CrsError, MAX_CRS_BYTES};
 pub use error::{DatasetError, Magic};
 pub use files::{write_dir_name, DatasetFiles, MANIFEST_FILE};
 pub use format::{full_mip_count, TextureFormat, TextureInfo, MAX_EXTENT_LOG2, MAX_PACK_OFFSET};
@@ -58,7 +61,7 @@ pub use verify::{verify, verify_dataset, VerifyReport};
 pub use writer::{DatasetWriter, WriteSummary};
 
 /// The format version this build reads and writes.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 /// Scene file name inside a dataset directory.
 pub const SCENE_FILE: &str = "scene.bin";
 /// Texture metadata file name.
@@ -143,7 +146,8 @@ impl Dataset {
         let read_file = |path: &Path| store::read_file(store, path);
         let textures = TexturePack::open_files_in(store, files)?;
         let colormap_path = files.path(COLORMAP_FILE);
-        let (colormap, write_id) = Colormap::decode_with_write_id(&colormap_path, &read_file(&colormap_path)?)?;
+        let (colormap, write_id) =
+            Colormap::decode_with_write_id(&colormap_path, &read_file(&colormap_path)?, files.version())?;
         files.check_write_id(&colormap_path, write_id)?;
         if colormap.len() != textures.textures().len() {
             return Err(DatasetError::Corrupt {
@@ -154,13 +158,18 @@ impl Dataset {
         }
         let scene_path = files.path(SCENE_FILE);
         let scene_bytes = read_file(&scene_path)?;
-        let (scene, write_id) = Scene::decode_with(&scene_path, &scene_bytes, scene::SceneLayout::CURRENT)?;
+        let layout = if files.version() == io_util::PREVIOUS_VERSION {
+            scene::SceneLayout::PREVIOUS
+        } else {
+            scene::SceneLayout::CURRENT
+        };
+        let (scene, write_id) = Scene::decode_with(&scene_path, &scene_bytes, layout)?;
         files.check_write_id(&scene_path, write_id)?;
         let count = textures.len();
         if let Some((m, mesh)) = scene.meshes.iter().enumerate().find(|(_, m)| m.texture >= count) {
             return Err(DatasetError::Corrupt {
                 path: scene_path,
-                offset: scene::SceneLayout::CURRENT.header_len as u64 + m as u64 * 44 + 16,
+                offset: scene.mesh_record_offset(layout, m) + 16,
                 what: format!(
                     "mesh {m} uses texture {}, but the dataset has {count} textures",
                     mesh.texture

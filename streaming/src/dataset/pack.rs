@@ -104,7 +104,7 @@ impl TexturePack {
         let read_file = |path: &Path| super::store::read_file(store, path);
         let meta_path = files.path(META_FILE);
         let meta = read_file(&meta_path)?;
-        let table = decode_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES)?;
+        let table = decode_table(&meta_path, &meta, META_MAGIC, TEXTURE_RECORD_BYTES, files.version())?;
         files.check_write_id(&meta_path, table.write_id)?;
         let (count, body) = (table.count, table.body);
         if count > u64::from(u32::MAX) {
@@ -150,7 +150,7 @@ impl TexturePack {
                 (reader, len, header)
             }
         };
-        let write_id = check_prefix(&pack_path, &header, PACK_MAGIC, header.len())?;
+        let write_id = check_prefix(&pack_path, &header, PACK_MAGIC, header.len(), files.version())?;
         let stored = u32_at(&header, PACK_HEADER_CRC_AT);
         let computed = crc32fast::hash(&header[..PACK_HEADER_CRC_AT]);
         if stored != computed {
@@ -216,7 +216,7 @@ impl TexturePack {
         }
 
         let checksum_path = files.path(CHECKSUM_FILE);
-        let (mip_checksums, write_id) = decode_checksums(&checksum_path, &read_file(&checksum_path)?)?;
+        let (mip_checksums, write_id) = decode_checksums(&checksum_path, &read_file(&checksum_path)?, files.version())?;
         files.check_write_id(&checksum_path, write_id)?;
         let mut first_checksum = Vec::with_capacity(textures.len());
         let mut mips = 0u64;

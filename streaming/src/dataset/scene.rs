@@ -1,6 +1,6 @@
 //! `scene.bin`: meshes and their geometry.
 //!
-//! Layout (little-endian), version 2:
+//! Layout (little-endian), version 3:
 //!
 //! | offset | size | field |
 //! |---|---|---|
@@ -15,14 +15,19 @@
 //! | 72 | 24 | scene bounds, min then max, 6 × f32 relative to the origin |
 //! | 96 | 4 | CRC-32 of bytes 0..96 and of everything after the header |
 //! | 100 | 4 | reserved (0) |
-//! | 104 | 44·M | meshes: first vertex, vertex count, first index, index count, texture (5 × u32), bounds (6 × f32) |
+//! | 104 | 4 | CRS text length C in bytes (0: no CRS), at most [`MAX_CRS_BYTES`] |
+//! | 108 | C | CRS text, UTF-8 (`EPSG:<code>` or WKT), then zero bytes to a multiple of 4 |
+//! | 108 + ⌈C/4⌉·4 | 44·M | meshes: first vertex, vertex count, first index, index count, texture (5 × u32), bounds (6 × f32) |
 //! | … | 12·V | positions, 3 × f32 relative to the origin |
 //! | … | 12·V | normals, 3 × f32 |
 //! | … | 8·V | texture coordinates, 2 × f32 |
 //! | … | 4·I | indices, u32, relative to the mesh's first vertex |
+//!
+//! Version 2 had no CRS record (meshes at 104); version 1 a 96-byte header.
 
 use std::path::Path;
 
+use super::crs::{Crs, MAX_CRS_BYTES};
 use super::error::DatasetError;
 use super::io_util::{
     check_versioned_prefix, f32_at, f64_at, header_and_body_crc, header_prefix, read_all, u32_at, u64_at,
@@ -43,6 +48,8 @@ pub(crate) struct SceneLayout {
     bounds_at: usize,
     crc_at: usize,
     crc_covers_header: bool,
+    /// Whether the CRS record follows the header (version 3 on).
+    crs_record: bool,
 }
 
 impl SceneLayout {
@@ -54,6 +61,13 @@ impl SceneLayout {
         bounds_at: 72,
         crc_at: 96,
         crc_covers_header: true,
+        crs_record: true,
+    };
+    /// Version 2: as version 3 without the CRS record.
+    pub(crate) const PREVIOUS: SceneLayout = SceneLayout {
+        version: super::io_util::PREVIOUS_VERSION,
+        crs_record: false,
+        ..Self::CURRENT
     };
     pub(crate) const LEGACY: SceneLayout = SceneLayout {
         version: super::io_util::LEGACY_VERSION,
@@ -63,7 +77,17 @@ impl SceneLayout {
         bounds_at: 64,
         crc_at: 88,
         crc_covers_header: false,
+        crs_record: false,
     };
+
+    /// Bytes of the CRS record of a scene in `crs` (none before version 3).
+    fn crs_record_len(self, crs: Option<&Crs>) -> usize {
+        if self.crs_record {
+            4 + crs.map_or(0, |c| c.as_str().len().next_multiple_of(4))
+        } else {
+            0
+        }
+    }
 }
 
 /// Axis-aligned bounding box in scene coordinates (metres, relative to [`Scene::origin`]).
@@ -133,9 +157,12 @@ pub struct Mesh {
 /// vertex); every mesh is a range of them plus a range of [`Scene::indices`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scene {
-    /// World position of the scene's local origin. Positions are f32 relative to it so that
-    /// cities far from the world origin keep centimetre precision.
+    /// World position of the scene's local origin (x east, y up, z south). Positions are f32
+    /// relative to it so that cities far from the world origin keep centimetre precision.
     pub origin: [f64; 3],
+    /// The coordinate reference system `origin` (and so every absolute position) is given
+    /// in, axes as [`Crs::from_scene`] maps them; `None`: a local frame, not georeferenced.
+    pub crs: Option<Crs>,
     /// Union of all mesh bounds.
     pub bounds: Aabb,
     /// The meshes.
@@ -156,6 +183,7 @@ impl Scene {
     pub fn new(origin: [f64; 3]) -> Self {
         Self {
             origin,
+            crs: None,
             bounds: Aabb::EMPTY,
             meshes: Vec::new(),
             positions: Vec::new(),
@@ -225,8 +253,15 @@ impl Scene {
         let layout = SceneLayout::CURRENT;
         self.validate_with(path_for_errors, layout)?;
         let mut body = Vec::with_capacity(
-            self.meshes.len() * MESH_RECORD_BYTES + self.positions.len() * 32 + self.indices.len() * 4,
+            layout.crs_record_len(self.crs.as_ref())
+                + self.meshes.len() * MESH_RECORD_BYTES
+                + self.positions.len() * 32
+                + self.indices.len() * 4,
         );
+        let crs_text = self.crs.as_ref().map_or("", Crs::as_str).as_bytes();
+        body.extend_from_slice(&(crs_text.len() as u32).to_le_bytes());
+        body.extend_from_slice(crs_text);
+        body.resize(layout.crs_record_len(self.crs.as_ref()), 0);
         for m in &self.meshes {
             for v in [m.first_vertex, m.vertex_count, m.first_index, m.index_count, m.texture] {
                 body.extend_from_slice(&v.to_le_bytes());
@@ -266,6 +301,11 @@ impl Scene {
         debug_assert_eq!(out.len(), layout.header_len);
         out.extend_from_slice(&body);
         Ok(out)
+    }
+
+    /// Byte offset of mesh `mesh`'s record in a scene file of `layout`.
+    pub(crate) fn mesh_record_offset(&self, layout: SceneLayout, mesh: usize) -> u64 {
+        (layout.header_len + layout.crs_record_len(self.crs.as_ref()) + mesh * MESH_RECORD_BYTES) as u64
     }
 
     /// The bounds as stored: all zero for a scene without meshes.
@@ -327,18 +367,45 @@ impl Scene {
                 return Err(corrupt(offset as u64, format!("{name} count {count} exceeds 2^32 - 1")));
             }
         }
+        let crs_len = if layout.crs_record {
+            if bytes.len() < header_len + 4 {
+                return Err(DatasetError::Truncated {
+                    path: path.to_path_buf(),
+                    what: "the CRS record".into(),
+                    offset: header_len as u64,
+                    end: header_len as u64 + 4,
+                    file_len: bytes.len() as u64,
+                });
+            }
+            let len = u32_at(bytes, header_len) as usize;
+            if len > MAX_CRS_BYTES {
+                return Err(corrupt(
+                    header_len as u64,
+                    format!("CRS text length {len} exceeds {MAX_CRS_BYTES} bytes"),
+                ));
+            }
+            len
+        } else {
+            0
+        };
+        let meshes_at = if layout.crs_record {
+            header_len + 4 + crs_len.next_multiple_of(4)
+        } else {
+            header_len
+        };
         // Counts are below 2^32, so these products cannot overflow u64.
         let body_len = mesh_count * MESH_RECORD_BYTES as u64 + vertex_count * 32 + index_count * 4;
-        let end = header_len as u64 + body_len;
+        let end = meshes_at as u64 + body_len;
         if end != bytes.len() as u64 {
             return Err(DatasetError::Truncated {
                 path: path.to_path_buf(),
                 what: format!("{mesh_count} meshes, {vertex_count} vertices and {index_count} indices"),
-                offset: header_len as u64,
+                offset: meshes_at as u64,
                 end,
                 file_len: bytes.len() as u64,
             });
         }
+        // What the checksum covers after the header: the CRS record and the meshes' data.
         let body = &bytes[header_len..];
         let stored = u32_at(bytes, layout.crc_at);
         let (computed, covered_from) = if layout.crc_covers_header {
@@ -370,7 +437,19 @@ impl Scene {
             min: [f32_at(bytes, b), f32_at(bytes, b + 4), f32_at(bytes, b + 8)],
             max: [f32_at(bytes, b + 12), f32_at(bytes, b + 16), f32_at(bytes, b + 20)],
         };
-        let (mesh_bytes, rest) = body.split_at(mesh_count as usize * MESH_RECORD_BYTES);
+        let crs = if crs_len == 0 {
+            None
+        } else {
+            let text_at = header_len + 4;
+            let text = std::str::from_utf8(&bytes[text_at..text_at + crs_len])
+                .map_err(|e| corrupt(text_at as u64, format!("CRS text is not UTF-8: {e}")))?;
+            let crs = Crs::parse(text).map_err(|e| corrupt(text_at as u64, format!("CRS: {e}")))?;
+            if let Some(at) = (text_at + crs_len..meshes_at).find(|&at| bytes[at] != 0) {
+                return Err(corrupt(at as u64, "CRS padding is not 0".into()));
+            }
+            Some(crs)
+        };
+        let (mesh_bytes, rest) = bytes[meshes_at..].split_at(mesh_count as usize * MESH_RECORD_BYTES);
         let (position_bytes, rest) = rest.split_at(vertex_count as usize * 12);
         let (normal_bytes, rest) = rest.split_at(vertex_count as usize * 12);
         let (uv_bytes, index_bytes) = rest.split_at(vertex_count as usize * 8);
@@ -395,6 +474,7 @@ impl Scene {
         };
         let scene = Scene {
             origin,
+            crs,
             bounds,
             meshes,
             positions: vec3s(position_bytes),
@@ -434,7 +514,7 @@ impl Scene {
                 format!("scene origin {:?} is not finite", self.origin),
             ));
         }
-        let mesh_base = layout.header_len as u64;
+        let mesh_base = (layout.header_len + layout.crs_record_len(self.crs.as_ref())) as u64;
         let positions_base = mesh_base + self.meshes.len() as u64 * MESH_RECORD_BYTES as u64;
         let normals_base = positions_base + vertex_count * 12;
         let uvs_base = normals_base + vertex_count * 12;

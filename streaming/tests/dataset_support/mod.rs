@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use citystream_streaming::dataset::{DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary};
+use citystream_streaming::dataset::{Crs, DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary};
 
 /// One texture of the fixture: what was written.
 #[derive(Debug, Clone)]
@@ -62,9 +62,15 @@ pub fn mip_extent(width: u32, height: u32, level: u32) -> (u32, u32) {
     ((width >> level).max(1), (height >> level).max(1))
 }
 
-/// A scene of one mesh per texture (quads and a triangle), far from the world origin.
+/// The fixture's CRS: multi-line WKT of a length that is not a multiple of 4, so the CRS
+/// record has padding.
+pub const FIXTURE_CRS: &str = "PROJCRS[\"ETRS89 / UTM zone 33N\",\n  BASEGEOGCRS[\"ETRS89\"],\n  ID[\"EPSG\",25833]]";
+
+/// A scene of one mesh per texture (quads and a triangle), far from the world origin, in
+/// [`FIXTURE_CRS`].
 pub fn fixture_scene(textures: u32) -> Scene {
-    let mut scene = Scene::new([391_250.5, 34.25, 5_819_500.75]);
+    let mut scene = Scene::new([391_250.5, 34.25, -5_819_500.75]);
+    scene.crs = Some(Crs::parse(FIXTURE_CRS).expect("fixture CRS"));
     for t in 0..textures {
         let x = t as f32 * 10.0;
         if t % 3 == 2 {
@@ -169,7 +175,8 @@ pub fn fix_table_crc(bytes: &mut [u8]) {
     bytes[32..36].copy_from_slice(&crc.to_le_bytes());
 }
 
-/// Same for `scene.bin` (header bytes 0..96 and the body).
+/// Same for `scene.bin` (header bytes 0..96 and everything after the header: the CRS record
+/// and the body).
 pub fn fix_scene_crc(bytes: &mut [u8]) {
     let crc = crc_of(&bytes[..96], &bytes[104..]);
     bytes[96..100].copy_from_slice(&crc.to_le_bytes());

@@ -5,7 +5,7 @@
 //! seen from outside; UV (0,0) is the top-left of the texture as seen from the front.
 
 use anyhow::Result;
-use citystream_streaming::dataset::Scene;
+use citystream_streaming::dataset::{Crs, Scene};
 
 use super::rng::{mix, Rng};
 
@@ -90,9 +90,13 @@ enum District {
     Park,
 }
 
-/// World position of the city centre: the scene origin is far from (0,0,0) on purpose, like
-/// projected coordinates of a real city, and positions are stored relative to it.
-pub const ORIGIN: [f64; 3] = [391_250.0, 34.0, 5_819_500.0];
+/// World position of the city centre (x east, y up, z south): Berlin's ETRS89 / UTM zone 33N
+/// coordinates ([`CRS_EPSG`]), easting 391,250 m, northing 5,819,500 m, 34 m high, like the
+/// paper's Berlin dataset. Far from (0,0,0) on purpose; positions are stored relative to it.
+pub const ORIGIN: [f64; 3] = [391_250.0, 34.0, -5_819_500.0];
+
+/// The CRS generated cities are placed in: ETRS89 / UTM zone 33N.
+pub const CRS_EPSG: u32 = 25833;
 
 struct Builder {
     city: City,
@@ -295,7 +299,10 @@ fn district_of(params: &LayoutParams, seed: u64, bx: u32, bz: u32) -> District {
 pub fn layout(params: LayoutParams, seed: u64) -> Result<City> {
     let mut b = Builder {
         city: City {
-            scene: Scene::new(ORIGIN),
+            scene: Scene {
+                crs: Some(Crs::epsg(CRS_EPSG)),
+                ..Scene::new(ORIGIN)
+            },
             textures: Vec::new(),
         },
         params,

@@ -5,17 +5,17 @@
 //! the reference the streamed ground is measured against (both drawn alone, behind the
 //! city's depth).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use citystream_engine::city::{Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
-use citystream_engine::ground::{GroundAllowance, GroundConfig, GroundFrame, GroundLayer};
+use citystream_engine::ground::{GroundAllowance, GroundConfig, GroundFrame, GroundLayer, GroundView};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
-use citystream_streaming::dataset::Scene;
+use citystream_streaming::dataset::{Dataset, Scene};
 use citystream_streaming::ground::PatchImage;
 use citystream_tools::image_error::psnr_db;
 use citystream_tools::patches::PatchSet;
@@ -60,34 +60,120 @@ pub struct GroundSummary {
     pub memory_bytes: u64,
     pub tile_texels: u32,
     pub cache_side: u32,
+    /// Levels the tile array holds (derived from the view, the imagery and the budget).
+    pub level_slots: u32,
 }
 
-/// The ground layer's configuration for a flythrough over `scene`: tiles of 256 texels,
-/// 4 × 4 per level, up to 12 levels, at the scene's lowest point.
-pub fn ground_config(scene: &Scene, frames_in_flight: u32) -> GroundConfig {
-    GroundConfig {
-        frames_in_flight,
-        ground_height: scene.bounds.min[1],
-        ..GroundConfig::default()
-    }
+/// A patch set opened for the flown dataset: in its CRS (or both in local frames), with
+/// the shift that moves the set's corners from the origin it was cut for to the dataset's.
+pub struct GroundSet {
+    dir: PathBuf,
+    set: PatchSet,
+    shift: [f64; 2],
 }
 
-impl GroundRun {
-    /// Opens the patch set in `dir`, decodes every patch (before the flight: a patch's
-    /// arrival inserts it, it does not read it) and builds the streamed layer, and a
-    /// reference layer when `reference` is set. Patches are moved from the set's origin
-    /// into the dataset's frame.
-    pub fn new(device: &Arc<Device>, dir: &Path, scene: &Scene, config: GroundConfig, reference: bool) -> Result<Self> {
+impl GroundSet {
+    /// Opens and checks the patch set in `dir` for `dataset`.
+    pub fn open(dir: &Path, dataset: &Dataset) -> Result<Self> {
+        let scene = &dataset.scene;
         let set = PatchSet::open(dir)?;
         if set.patches.is_empty() {
             bail!("{}: the patch set has no patches", dir.display());
         }
+        set.check_frame(dir, dataset.dir(), scene)?;
         // The set's corners are relative to the origin of the dataset it was cut for; the
         // flown dataset's origin may differ (another write of the same city, say).
         let shift = [set.origin[0] - scene.origin[0], set.origin[2] - scene.origin[2]];
         if !shift.iter().all(|s| s.is_finite()) {
             bail!("{}: origin {:?} is not finite", dir.display(), set.origin);
         }
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            set,
+            shift,
+        })
+    }
+
+    /// The larger side of the ground its patches cover, metres.
+    fn extent_m(&self) -> f64 {
+        let patches = &self.set.patches;
+        let side = |d: usize| {
+            let lo = patches.iter().map(|p| p.min[d]).fold(f64::INFINITY, f64::min);
+            let hi = patches.iter().map(|p| p.max[d]).fold(f64::NEG_INFINITY, f64::max);
+            hi - lo
+        };
+        side(0).max(side(1))
+    }
+
+    /// Ground size of its finest texels, metres.
+    fn finest_m(&self) -> f64 {
+        self.set
+            .patches
+            .iter()
+            .map(|p| p.metres_per_texel)
+            .fold(f64::INFINITY, f64::min)
+    }
+}
+
+/// The ground layer's configuration for a flythrough over `scene` with `set`: tiles of 256
+/// texels at the scene's lowest point; the window's side from the view's focal length
+/// (`focal_px`), the levels from the set's extent down to the footprint below the path's
+/// lowest eye (`min_eye_height_m` above the ground) or the set's finest imagery, fitted in
+/// half the memory budget (`budget`; the facades keep the other half, as the ground earns at
+/// most half the load size) and the device's array layers.
+pub fn ground_config(
+    set: &GroundSet,
+    scene: &Scene,
+    frames_in_flight: u32,
+    focal_px: f64,
+    min_eye_height_m: f64,
+    budget: Option<u64>,
+    device: &Device,
+) -> Result<GroundConfig> {
+    let view = GroundView {
+        focal_px,
+        min_eye_height_m,
+        extent_m: set.extent_m(),
+        finest_imagery_m: set.finest_m(),
+    };
+    let config = GroundConfig {
+        frames_in_flight,
+        ground_height: scene.bounds.min[1],
+        ..GroundConfig::default()
+    }
+    .sized_for(
+        &view,
+        budget.map(|b| b / 2),
+        device.properties().limits.max_image_array_layers,
+    )
+    .with_context(|| match budget {
+        Some(b) => format!(
+            "sizing the ground layer for {} in half the {} MB memory budget",
+            set.dir.display(),
+            b >> 20
+        ),
+        None => format!("sizing the ground layer for {}", set.dir.display()),
+    })?;
+    eprintln!(
+        "ground: {} level slots of {}² tiles ({:.1} MB) for a {:.0} px focal length, eye down to {:.1} m, {:.0} m of imagery down to {:.3} m/texel",
+        config.level_slots,
+        config.cache_side,
+        config.memory_bytes() as f64 / f64::from(1 << 20),
+        focal_px,
+        min_eye_height_m,
+        view.extent_m,
+        view.finest_imagery_m
+    );
+    Ok(config)
+}
+
+impl GroundRun {
+    /// Decodes every patch of `set` (before the flight: a patch's arrival inserts it, it
+    /// does not read it) and builds the streamed layer, and a reference layer when
+    /// `reference` is set; patches are moved from the set's origin into the dataset's.
+    pub fn new(device: &Arc<Device>, ground: GroundSet, config: GroundConfig, reference: bool) -> Result<Self> {
+        let GroundSet { dir, set, shift } = ground;
+        let dir = dir.as_path();
         eprintln!("ground: decoding {} patches from {}", set.patches.len(), dir.display());
         let mut arrivals = Vec::with_capacity(set.patches.len());
         for record in &set.patches {
@@ -216,6 +302,7 @@ impl GroundRun {
             memory_bytes: config.memory_bytes(),
             tile_texels: config.tile_texels,
             cache_side: config.cache_side,
+            level_slots: config.level_slots,
         }
     }
 }

@@ -577,6 +577,23 @@ fn frame_latency(
     }
 }
 
+/// `camera`'s focal length in pixels for a view `height_px` tall.
+fn focal_px(height_px: u32, camera: &Camera) -> f64 {
+    f64::from(height_px) / (2.0 * f64::from(camera.fov_y * 0.5).tan())
+}
+
+/// The lowest the eye of `path` comes above the ground plane at `ground_y` within
+/// `duration_s` (sampled at the fixed clock's step), never below the near plane of
+/// [`pose_camera`] for a scene `extent` wide: nothing nearer is drawn.
+fn lowest_eye_height(path: &CameraPath, duration_s: f64, ground_y: f32, extent: f32) -> f64 {
+    let steps = (duration_s * 1000.0 / FIXED_STEP_MS).ceil().max(0.0) as u64;
+    let lowest = (0..=steps)
+        .map(|i| path.sample_between(None, i as f64 * FIXED_STEP_MS / 1000.0).position[1] - ground_y)
+        .fold(f32::INFINITY, f32::min);
+    let near = pose_camera(&path.sample_between(None, 0.0), extent).near;
+    f64::from(lowest.max(near))
+}
+
 /// A camera at `pose`, with a depth range scaled to the scene.
 fn pose_camera(pose: &CameraPose, extent: f32) -> Camera {
     Camera {
@@ -1247,8 +1264,30 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         fragment_area,
     } = &targets;
     let fragment_area = *fragment_area;
+    let bounds = scene.bounds;
+    let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
+    let extent = size.x.max(size.y).max(size.z).max(1.0);
+    let path_name = args.path.as_deref().unwrap_or("standard");
+    let path = camera_path(path_name, scene)?;
+    path.restart();
+    let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
     let frames_in_flight = args.frames_in_flight;
-    let ground_config = ground::ground_config(scene, frames_in_flight);
+    let ground = match &args.ground {
+        Some(dir) => {
+            let set = ground::GroundSet::open(dir, &dataset)?;
+            let config = ground::ground_config(
+                &set,
+                scene,
+                frames_in_flight,
+                focal_px(args.height, &pose_camera(&path.sample_between(None, 0.0), extent)),
+                lowest_eye_height(&path, duration_s, scene.bounds.min[1], extent),
+                args.memory_budget_mb.bytes(),
+                device,
+            )?;
+            Some((set, config))
+        }
+        None => None,
+    };
     let mut gpu = streamed_city_gpu(
         args,
         device,
@@ -1259,16 +1298,10 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         layer_size,
         tree.as_ref(),
         // The ground's tile array and staging come out of the same budget.
-        args.ground.as_ref().map_or(0, |_| ground_config.memory_bytes()),
+        ground.as_ref().map_or(0, |(_, config)| config.memory_bytes()),
     )?;
-    let mut ground_run = match &args.ground {
-        Some(dir) => Some(ground::GroundRun::new(
-            device,
-            dir,
-            scene,
-            ground_config,
-            args.psnr_interval > 0,
-        )?),
+    let mut ground_run = match ground {
+        Some((set, config)) => Some(ground::GroundRun::new(device, set, config, args.psnr_interval > 0)?),
         None => None,
     };
     let mut tree_run = match tree {
@@ -1300,13 +1333,6 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let mut latency_rng = SplitMix64::new(args.seed);
     let mut pass_times = PassTimes::new(device, frames_in_flight)?;
 
-    let bounds = scene.bounds;
-    let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
-    let extent = size.x.max(size.y).max(size.z).max(1.0);
-    let path_name = args.path.as_deref().unwrap_or("standard");
-    let path = camera_path(path_name, scene)?;
-    path.restart();
-    let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
     // With the fixed clock the frame count follows from the duration; with
     // the modelled one it is at most that.
     let frames = args
