@@ -125,9 +125,10 @@ pub struct BenchArgs {
     /// `--scenario pressure`: where `large` and `large-atlas` are generated.
     #[arg(long, default_value = "data")]
     data_dir: PathBuf,
-    /// `--scenario pressure` and `strategies`: memory budget of the budgeted runs, MB.
-    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
-    budget_mb: u64,
+    /// Memory budget of the budgeted runs, MB: `--scenario pressure` and `strategies`
+    /// (default 256); `--scenario ground` passes it to both runs (default: the flythrough's).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
+    budget_mb: Option<u64>,
     /// Output directory: one subdirectory per run, plus table.md and the
     /// charts of the comparison.
     #[arg(long)]
@@ -252,6 +253,9 @@ impl RunSettings {
         }
     }
 }
+
+/// `--budget-mb` of `--scenario pressure` and `strategies` when not given.
+const DEFAULT_BUDGET_MB: u64 = 256;
 
 /// The pressure scenario's runs: the four policies under the budget, then
 /// adaptive α = 12 ms with ring eviction, then without a budget.
@@ -379,22 +383,23 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         return Ok(());
     }
 
+    let budget_mb = args.budget_mb.unwrap_or(DEFAULT_BUDGET_MB);
     let mut runs = match args.scenario {
         Scenario::Standard | Scenario::Loader | Scenario::Remote => POLICY_RUNS
             .iter()
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),
-        Scenario::Pressure => pressure_runs(args.budget_mb),
+        Scenario::Pressure => pressure_runs(budget_mb),
         Scenario::Strategies => {
             check_tree(&dataset)?;
-            strategy_runs(args.budget_mb)
+            strategy_runs(budget_mb)
         }
         Scenario::Ground => {
             let patches = match &args.ground {
                 Some(dir) => dir.clone(),
                 None => ensure_default_patches(&args.data_dir, &dataset)?,
             };
-            ground_runs(&patches)
+            ground_runs(&patches, args.budget_mb)
         }
     };
     if let (Some(strategy), false) = (args.strategy, args.scenario == Scenario::Strategies) {
@@ -451,7 +456,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         write_table(
             &args.out,
             "strategies",
-            strategies_table(&args.out, &dataset, args.budget_mb)?,
+            strategies_table(&args.out, &dataset, budget_mb)?,
         )?;
     }
     if args.scenario == Scenario::Ground {
@@ -459,7 +464,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     if args.scenario == Scenario::Pressure {
         let path = args.out.join("pressure.md");
-        let text = pressure_checks(&args.out, args.budget_mb)?;
+        let text = pressure_checks(&args.out, budget_mb)?;
         std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
         eprint!("{text}");
         eprintln!("wrote {}", path.display());
@@ -515,14 +520,15 @@ fn strategy_runs(budget_mb: u64) -> Vec<BenchRun> {
 
 /// The two runs of `--scenario ground`: the same policy and PSNR interval, the second
 /// with the imagery.
-fn ground_runs(patches: &Path) -> Vec<BenchRun> {
-    let shared = COMPARISON_ARGS;
+fn ground_runs(patches: &Path, budget_mb: Option<u64>) -> Vec<BenchRun> {
+    let budget = budget_mb.map(|b| ["--memory-budget-mb".to_string(), b.to_string()]);
     let run = |dir: &str, name: &str, extra: &[String]| BenchRun {
         dir: dir.into(),
         name: name.into(),
-        args: shared
+        args: COMPARISON_ARGS
             .iter()
             .map(|a| a.to_string())
+            .chain(budget.iter().flatten().cloned())
             .chain(extra.iter().cloned())
             .collect(),
     };
@@ -634,6 +640,19 @@ fn ground_table(out: &Path, dataset: &Path) -> Result<(String, serde_json::Value
         shown(ratio, 3),
         shown(max_with, 2),
         shown(max_without, 2),
+    ));
+    let ground = |key: &str| with.get("ground").and_then(|g| g.get(key)).and_then(|v| v.as_f64());
+    let budget = count(&with, "memory_budget_bytes").map_or("an unlimited".to_string(), |b| {
+        format!("the {:.0} MB", b / f64::from(1 << 20))
+    });
+    text.push_str(&format!(
+        "
+The ground layer (sized from the view, the imagery and the budget): {} level slots of {}² tiles of the clipmap's {} levels, {} MB of {budget} memory budget.
+",
+        shown(ground("level_slots"), 0),
+        shown(ground("cache_side"), 0),
+        shown(ground("levels"), 0),
+        shown(ground("memory_bytes").map(|b| b / f64::from(1 << 20)), 1),
     ));
     let json = serde_json::json!({
         "dataset": dataset.display().to_string(),

@@ -336,6 +336,21 @@ fn files_that_are_not_the_tools_own_are_never_touched() {
     assert!(write_dirs(&dir).is_empty());
 }
 
+/// Writes with this build what the fixtures' `gen` command wrote with theirs.
+fn gen_like_the_fixtures(dir: &Path) {
+    succeed(&[
+        "gen",
+        "--preset",
+        "tiny",
+        "--seed",
+        "3",
+        "--max-extent",
+        "16",
+        "--out",
+        utf8(dir),
+    ]);
+}
+
 /// A version-1 dataset written by the version-1 `gen --preset tiny --seed 3 --max-extent 16`.
 fn v1_fixture(name: &str) -> PathBuf {
     let dir = fresh_dir(name);
@@ -370,17 +385,7 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
     assert_eq!(names, [MANIFEST_FILE, "notes.txt"]);
     // The same command with this build writes the same content.
     let regenerated = fresh_dir("v1-regenerated");
-    succeed(&[
-        "gen",
-        "--preset",
-        "tiny",
-        "--seed",
-        "3",
-        "--max-extent",
-        "16",
-        "--out",
-        utf8(&regenerated),
-    ]);
+    gen_like_the_fixtures(&regenerated);
     // Generated cities now sit at Berlin's UTM coordinates with +z south (northing −z) and
     // say so; the upgrade keeps the old frame as it was, without a CRS.
     let (upgraded, upgraded_frame) = fingerprint_and_frame(&dir);
@@ -432,17 +437,7 @@ fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_th
     assert_eq!(write_dirs(&dir), old_write);
 
     let regenerated = fresh_dir("v2-regenerated");
-    succeed(&[
-        "gen",
-        "--preset",
-        "tiny",
-        "--seed",
-        "3",
-        "--max-extent",
-        "16",
-        "--out",
-        utf8(&regenerated),
-    ]);
+    gen_like_the_fixtures(&regenerated);
     let (fresh, _) = fingerprint_and_frame(&regenerated);
 
     // Without --crs: the same content in a local frame.
@@ -484,17 +479,7 @@ fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_th
 #[test]
 fn info_reports_the_crs_and_the_origin_in_its_axes() {
     let dir = fresh_dir("info-crs");
-    succeed(&[
-        "gen",
-        "--preset",
-        "tiny",
-        "--seed",
-        "3",
-        "--max-extent",
-        "16",
-        "--out",
-        utf8(&dir),
-    ]);
+    gen_like_the_fixtures(&dir);
     let out = citystream(&["info", utf8(&dir), "--json"]);
     assert!(out.status.success(), "{}", stderr(&out));
     let info: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");

@@ -82,14 +82,7 @@ pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetE
             dataset.textures.read_mip(id as u32, l, &mut level)?;
             chain.extend_from_slice(&level);
         }
-        writer.add_texture(
-            info.format(),
-            info.width(),
-            info.height(),
-            info.mip_count(),
-            &chain,
-            dataset.colormap.colours()[id],
-        )?;
+        copy_texture(&mut writer, info, &chain, dataset.colormap.colours()[id])?;
     }
     let mut scene = dataset.scene;
     scene.crs = crs.cloned();
@@ -98,6 +91,23 @@ pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetE
         from_version: files.version(),
         written: Some(written),
     })
+}
+
+/// Writes a texture of an older dataset, its whole mip chain in `chain`, unchanged.
+fn copy_texture(
+    writer: &mut DatasetWriter,
+    info: &TextureInfo,
+    chain: &[u8],
+    colour: [u8; 4],
+) -> Result<u32, DatasetError> {
+    writer.add_texture(
+        info.format(),
+        info.width(),
+        info.height(),
+        info.mip_count(),
+        chain,
+        colour,
+    )
 }
 
 /// Whether `dir` holds a dataset of this version that already has `crs` (or any CRS or none,
@@ -129,14 +139,7 @@ fn upgrade_legacy(dir: &Path, mut writer: DatasetWriter, crs: Option<&Crs>) -> R
             .map_err(|_| DatasetError::InvalidInput(format!("texture {id}: mip chain larger than memory")))?;
         chain.resize(len, 0);
         legacy.read_chain(id as u32, info, &mut chain)?;
-        writer.add_texture(
-            info.format(),
-            info.width(),
-            info.height(),
-            info.mip_count(),
-            &chain,
-            legacy.colours.colours()[id],
-        )?;
+        copy_texture(&mut writer, info, &chain, legacy.colours.colours()[id])?;
     }
     legacy.scene.crs = crs.cloned();
     let written = writer.finish(&legacy.scene)?;

@@ -121,6 +121,10 @@ impl GroundSet {
 /// lowest eye (`min_eye_height_m` above the ground) or the set's finest imagery, fitted in
 /// half the memory budget (`budget`; the facades keep the other half, as the ground earns at
 /// most half the load size) and the device's array layers.
+///
+/// Also returns the reference's configuration: every level of the imagery down to its
+/// finest texels and no budget, so that the ground's error counts what the derived levels
+/// and the budget leave out, not only what is still streaming.
 pub fn ground_config(
     set: &GroundSet,
     scene: &Scene,
@@ -129,31 +133,40 @@ pub fn ground_config(
     min_eye_height_m: f64,
     budget: Option<u64>,
     device: &Device,
-) -> Result<GroundConfig> {
+) -> Result<(GroundConfig, GroundConfig)> {
     let view = GroundView {
         focal_px,
         min_eye_height_m,
         extent_m: set.extent_m(),
         finest_imagery_m: set.finest_m(),
     };
-    let config = GroundConfig {
+    let layers = device.properties().limits.max_image_array_layers;
+    let base = GroundConfig {
         frames_in_flight,
         ground_height: scene.bounds.min[1],
         ..GroundConfig::default()
+    };
+    let every_level = GroundView {
+        min_eye_height_m: f64::MIN_POSITIVE,
+        ..view
+    };
+    let reference = GroundConfig {
+        frames_in_flight: 1,
+        staging_tiles: 64,
+        ..base.clone()
     }
-    .sized_for(
-        &view,
-        budget.map(|b| b / 2),
-        device.properties().limits.max_image_array_layers,
-    )
-    .with_context(|| match budget {
-        Some(b) => format!(
-            "sizing the ground layer for {} in half the {} MB memory budget",
-            set.dir.display(),
-            b >> 20
-        ),
-        None => format!("sizing the ground layer for {}", set.dir.display()),
-    })?;
+    .sized_for(&every_level, None, layers)
+    .context("sizing the ground's reference layer")?;
+    let config = base
+        .sized_for(&view, budget.map(|b| b / 2), layers)
+        .with_context(|| match budget {
+            Some(b) => format!(
+                "sizing the ground layer for {} in half the {} MB memory budget",
+                set.dir.display(),
+                b >> 20
+            ),
+            None => format!("sizing the ground layer for {}", set.dir.display()),
+        })?;
     eprintln!(
         "ground: {} level slots of {}² tiles ({:.1} MB) for a {:.0} px focal length, eye down to {:.1} m, {:.0} m of imagery down to {:.3} m/texel",
         config.level_slots,
@@ -164,14 +177,20 @@ pub fn ground_config(
         view.extent_m,
         view.finest_imagery_m
     );
-    Ok(config)
+    Ok((config, reference))
 }
 
 impl GroundRun {
     /// Decodes every patch of `set` (before the flight: a patch's arrival inserts it, it
-    /// does not read it) and builds the streamed layer, and a reference layer when
-    /// `reference` is set; patches are moved from the set's origin into the dataset's.
-    pub fn new(device: &Arc<Device>, ground: GroundSet, config: GroundConfig, reference: bool) -> Result<Self> {
+    /// does not read it) and builds the streamed layer, and a reference layer of
+    /// `reference` (the second of [`ground_config`]) where given; patches are moved from the
+    /// set's origin into the dataset's.
+    pub fn new(
+        device: &Arc<Device>,
+        ground: GroundSet,
+        config: GroundConfig,
+        reference: Option<GroundConfig>,
+    ) -> Result<Self> {
         let GroundSet { dir, set, shift } = ground;
         let dir = dir.as_path();
         eprintln!("ground: decoding {} patches from {}", set.patches.len(), dir.display());
@@ -196,18 +215,7 @@ impl GroundRun {
             });
         }
         arrivals.sort_by(|a, b| a.arrival_s.total_cmp(&b.arrival_s).then(a.patch.id.cmp(&b.patch.id)));
-        let reference = if reference {
-            Some(GroundLayer::new(
-                device,
-                GroundConfig {
-                    frames_in_flight: 1,
-                    staging_tiles: 64,
-                    ..config.clone()
-                },
-            )?)
-        } else {
-            None
-        };
+        let reference = reference.map(|config| GroundLayer::new(device, config)).transpose()?;
         Ok(Self {
             arrivals,
             arrived: 0,

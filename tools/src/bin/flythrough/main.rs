@@ -1275,7 +1275,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     let ground = match &args.ground {
         Some(dir) => {
             let set = ground::GroundSet::open(dir, &dataset)?;
-            let config = ground::ground_config(
+            let (config, reference) = ground::ground_config(
                 &set,
                 scene,
                 frames_in_flight,
@@ -1284,7 +1284,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                 args.memory_budget_mb.bytes(),
                 device,
             )?;
-            Some((set, config))
+            Some((set, config, reference))
         }
         None => None,
     };
@@ -1298,10 +1298,15 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         layer_size,
         tree.as_ref(),
         // The ground's tile array and staging come out of the same budget.
-        ground.as_ref().map_or(0, |(_, config)| config.memory_bytes()),
+        ground.as_ref().map_or(0, |(_, config, _)| config.memory_bytes()),
     )?;
     let mut ground_run = match ground {
-        Some((set, config)) => Some(ground::GroundRun::new(device, set, config, args.psnr_interval > 0)?),
+        Some((set, config, reference)) => Some(ground::GroundRun::new(
+            device,
+            set,
+            config,
+            (args.psnr_interval > 0).then_some(reference),
+        )?),
         None => None,
     };
     let mut tree_run = match tree {
