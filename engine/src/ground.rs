@@ -100,27 +100,31 @@ impl GroundConfig {
     ///   the viewer (its footprint is `distance / focal_px` or more), and a window of
     ///   `2g + 1` tiles reaches `g` tiles beyond the viewer's own tile wherever the viewer
     ///   stands in it; so `g = ⌈focal_px / tile_texels⌉`, the side `2g + 1`.
-    /// - The coarsest level holds the extent in 2 × 2 tiles (texel `extent / (2 · tile)`); the
-    ///   finest any pixel needs has the footprint straight below the lowest eye
-    ///   (`min_eye_height / focal_px`), or the finest imagery if that is coarser. One slot per
-    ///   power of two in between.
+    /// - The clipmap's coarsest level is one above the finest that groups the extent in 2 × 2
+    ///   tiles (§3.4), so its tile is under 4 × the extent however the grid is aligned, or
+    ///   one above the first patch's level (texels `2 · coarsest_imagery`) if coarser; the
+    ///   finest any pixel needs has the footprint `f` straight below the lowest eye
+    ///   (`min_eye_height / focal_px`), or the finest imagery if that is coarser, and the level
+    ///   drawn there has texels between `f / 2` and `f`. Levels are powers of two apart, so
+    ///   `⌈log2(2 · coarsest / f)⌉` slots hold every level from the coarsest down.
     pub fn sized_for(mut self, view: &GroundView, max_bytes: Option<u64>, max_array_layers: u32) -> Result<Self> {
         let invalid = |what: String| EngineError::InvalidRequest(format!("ground layer: {what}"));
         let finite_positive = |v: f64| v.is_finite() && v > 0.0;
         if !(finite_positive(view.focal_px)
             && finite_positive(view.min_eye_height_m)
             && finite_positive(view.extent_m)
-            && finite_positive(view.finest_imagery_m))
+            && finite_positive(view.finest_imagery_m)
+            && finite_positive(view.coarsest_imagery_m))
         {
             return Err(invalid(format!("{view:?} needs finite, positive values")));
         }
         let tile = f64::from(self.tile_texels.max(1));
         let reach_tiles = (view.focal_px / tile).ceil().clamp(1.0, 31.0) as u32;
         self.cache_side = 2 * reach_tiles + 1;
-        let coarsest_texel = view.extent_m / (2.0 * tile);
-        let finest_texel = (view.min_eye_height_m / view.focal_px).max(view.finest_imagery_m);
-        let octaves = (coarsest_texel / finest_texel).log2().ceil().max(0.0);
-        self.level_slots = (octaves as u32).saturating_add(1).min(64);
+        let coarsest_texel_bound = (4.0 * view.extent_m / tile).max(2.0 * view.coarsest_imagery_m);
+        let footprint = (view.min_eye_height_m / view.focal_px).max(view.finest_imagery_m);
+        let slots = (2.0 * coarsest_texel_bound / footprint).log2().ceil().clamp(1.0, 64.0);
+        self.level_slots = slots as u32;
         let side_squared = self.cache_side * self.cache_side;
         let level_bytes = u64::from(side_squared) * self.tile_bytes();
         let staging_bytes = self.memory_bytes() - self.layers() * self.tile_bytes();
@@ -153,6 +157,9 @@ pub struct GroundView {
     pub extent_m: f64,
     /// Ground size of the finest imagery's texels, metres.
     pub finest_imagery_m: f64,
+    /// Ground size of the coarsest imagery's texels, metres (the first patch to arrive sets
+    /// the clipmap's grid, whose coarsest level is at least one above it).
+    pub coarsest_imagery_m: f64,
 }
 
 /// How many tiles one [`GroundLayer::update`] may compose and upload.
@@ -704,6 +711,7 @@ mod tests {
             min_eye_height_m: 20.0,
             extent_m: 1350.0,
             finest_imagery_m: 0.01,
+            coarsest_imagery_m: 2.6,
         }
     }
 
@@ -720,9 +728,9 @@ mod tests {
             .sized_for(&view(focal(1080.0)), None, 2048)
             .expect("fits");
         assert_eq!(large.cache_side, 9);
-        // Coarsest texel 1350 / 512 = 2.64 m; finest 20 m / focal: 0.064 m at 360p (6
-        // octaves, 7 slots), 0.021 m at 1080p (7 octaves, 8 slots).
-        assert_eq!((small.level_slots, large.level_slots), (7, 8));
+        // 8 · 1350 / 256 = 42.2 m over the footprint 20 m / focal: 0.064 m at 360p (2^9.4,
+        // 10 slots), 0.021 m at 1080p (2^10.9, 11 slots).
+        assert_eq!((small.level_slots, large.level_slots), (10, 11));
         // Imagery no finer than 0.5 m needs no slot below it.
         let coarse = GroundConfig::default()
             .sized_for(
@@ -734,7 +742,7 @@ mod tests {
                 2048,
             )
             .expect("fits");
-        assert_eq!(coarse.level_slots, 4);
+        assert_eq!(coarse.level_slots, 7);
         // Exactly one tile of reach where the focal length equals the tile.
         assert_eq!(
             GroundConfig::default()
@@ -745,11 +753,78 @@ mod tests {
         );
     }
 
+    /// Scales `(coarsest, wanted)` of a clipmap holding a base patch over `[lo, lo + extent]²`
+    /// and a finer one inside it: the coarsest level, and the one the ground pass samples
+    /// where a pixel's footprint is `footprint` metres (texels no larger, or the finest).
+    fn clipmap_scales(origin: f64, lo: f64, extent: f64, base_m: f64, fine_m: f64, footprint: f64) -> (i32, i32) {
+        let mut clipmap = citystream_streaming::clipmap::Clipmap::new(ClipmapOptions {
+            origin: [origin, -origin],
+            tile_texels: 256,
+            cache_side: 5,
+        })
+        .expect("options");
+        let patch = |id, min: f64, max: f64, metres_per_texel| Patch {
+            id,
+            min: [min, min],
+            max: [max, max],
+            metres_per_texel,
+            captured_s: 0.0,
+        };
+        clipmap.insert(patch(0, lo, lo + extent, base_m)).expect("base");
+        clipmap
+            .insert(patch(1, lo + extent * 0.4, lo + extent * 0.5, fine_m))
+            .expect("fine");
+        let (finest, coarsest) = clipmap.scales().expect("levels");
+        let texel = |scale| clipmap.tile_metres(scale) / 256.0;
+        let wanted = (finest..=coarsest)
+            .rev()
+            .find(|&s| texel(s) <= footprint)
+            .unwrap_or(finest);
+        (coarsest, wanted)
+    }
+
+    #[test]
+    fn clipmap_capacities_hold_every_level_from_the_coarsest_to_the_one_a_pixel_needs() {
+        // Grids aligned anyhow, far from the origin too; eyes low and high; imagery finer and
+        // coarser than the footprint.
+        for origin in [0.0, 137.5, 391_250.0] {
+            for (lo, extent) in [(-672.0, 1344.0), (-4032.0, 8064.0), (13.0, 700.0), (-50.0, 5000.0)] {
+                for (base_m, fine_m) in [(2.625, 0.091), (15.75, 0.547), (1.0, 0.5)] {
+                    for eye in [5.0, 290.0, 447.0, 3000.0] {
+                        let view = GroundView {
+                            focal_px: 312.0,
+                            min_eye_height_m: eye,
+                            extent_m: extent,
+                            finest_imagery_m: fine_m,
+                            coarsest_imagery_m: base_m,
+                        };
+                        let config = GroundConfig::default().sized_for(&view, None, 1 << 16).expect("fits");
+                        let footprint = (eye / view.focal_px).max(fine_m);
+                        let (coarsest, wanted) = clipmap_scales(origin, lo, extent, base_m, fine_m, footprint);
+                        let needed = (coarsest - wanted + 1) as u32;
+                        assert!(
+                            config.level_slots >= needed,
+                            "{view:?} at origin {origin}: {} slots, {needed} levels needed",
+                            config.level_slots
+                        );
+                        // The bound spares at most the grid's worst alignment (two octaves) and
+                        // the footprint's rounding (one).
+                        assert!(
+                            config.level_slots <= needed + 3,
+                            "{view:?}: {} slots for {needed}",
+                            config.level_slots
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn clipmap_capacities_fit_the_budget_and_the_device_by_dropping_fine_levels() {
         let config = GroundConfig::default();
         let unlimited = config.clone().sized_for(&view(935.0), None, 2048).expect("fits");
-        assert_eq!(unlimited.level_slots, 8);
+        assert_eq!(unlimited.level_slots, 11);
         // 81 tiles of 256 KB = 20.25 MB a level, 8 MB of staging (16 tiles, 2 frames).
         let fitted = config
             .clone()

@@ -105,13 +105,13 @@ impl GroundSet {
         side(0).max(side(1))
     }
 
-    /// Ground size of its finest texels, metres.
-    fn finest_m(&self) -> f64 {
-        self.set
-            .patches
-            .iter()
-            .map(|p| p.metres_per_texel)
-            .fold(f64::INFINITY, f64::min)
+    /// Ground size of its finest and coarsest texels, metres.
+    fn texel_range_m(&self) -> (f64, f64) {
+        let texels = self.set.patches.iter().map(|p| p.metres_per_texel);
+        (
+            texels.clone().fold(f64::INFINITY, f64::min),
+            texels.fold(f64::NEG_INFINITY, f64::max),
+        )
     }
 }
 
@@ -134,11 +134,13 @@ pub fn ground_config(
     budget: Option<u64>,
     device: &Device,
 ) -> Result<(GroundConfig, GroundConfig)> {
+    let (finest_imagery_m, coarsest_imagery_m) = set.texel_range_m();
     let view = GroundView {
         focal_px,
         min_eye_height_m,
         extent_m: set.extent_m(),
-        finest_imagery_m: set.finest_m(),
+        finest_imagery_m,
+        coarsest_imagery_m,
     };
     let layers = device.properties().limits.max_image_array_layers;
     let base = GroundConfig {
