@@ -600,7 +600,6 @@ fn ground_table(out: &Path, dataset: &Path) -> Result<(String, serde_json::Value
         dataset.display()
     );
     for (name, summary) in [("without ground", &without), ("with ground", &with)] {
-        let ground = |key: &str| summary.get("ground").and_then(|g| g.get(key)).and_then(|v| v.as_f64());
         let ground_psnr = match stat(summary, "ground_psnr_db", "median") {
             Some(median) => format!(
                 "{median:.2} / {} / {}",
@@ -619,8 +618,8 @@ fn ground_table(out: &Path, dataset: &Path) -> Result<(String, serde_json::Value
             shown(stat(summary, "psnr_db", "mean"), 2),
             shown(count(summary, "ground_tiles_uploaded"), 0),
             shown(count(summary, "ground_mb_streamed"), 1),
-            shown(ground("compose_ms_per_tile"), 2),
-            shown(ground("patches_arrived"), 0),
+            shown(stat(summary, "ground", "compose_ms_per_tile"), 2),
+            shown(stat(summary, "ground", "patches_arrived"), 0),
         ));
     }
     let max_without = stat(&without, "frame_ms", "max");
@@ -641,18 +640,16 @@ fn ground_table(out: &Path, dataset: &Path) -> Result<(String, serde_json::Value
         shown(max_with, 2),
         shown(max_without, 2),
     ));
-    let ground = |key: &str| with.get("ground").and_then(|g| g.get(key)).and_then(|v| v.as_f64());
     let budget = count(&with, "memory_budget_bytes").map_or("an unlimited".to_string(), |b| {
         format!("the {:.0} MB", b / f64::from(1 << 20))
     });
     text.push_str(&format!(
-        "
-The ground layer (sized from the view, the imagery and the budget): {} level slots of {}² tiles of the clipmap's {} levels, {} MB of {budget} memory budget.
-",
-        shown(ground("level_slots"), 0),
-        shown(ground("cache_side"), 0),
-        shown(ground("levels"), 0),
-        shown(ground("memory_bytes").map(|b| b / f64::from(1 << 20)), 1),
+        "\nThe ground layer (sized from the view, the imagery and the budget): {} level slots of {}² \
+         tiles of the clipmap's {} levels, {} MB of {budget} memory budget.\n",
+        shown(stat(&with, "ground", "level_slots"), 0),
+        shown(stat(&with, "ground", "cache_side"), 0),
+        shown(stat(&with, "ground", "levels"), 0),
+        shown(stat(&with, "ground", "memory_bytes").map(|b| b / f64::from(1 << 20)), 1),
     ));
     let json = serde_json::json!({
         "dataset": dataset.display().to_string(),
