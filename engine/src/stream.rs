@@ -1139,7 +1139,9 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                     Ok(StageOutcome::NoLayer { image, .. }) if attempts < 4 => {
                         self.free_layer(image, value, &mut layers, &mut dropped_now)?
                     }
-                    Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. }) => false,
+                    Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. } | StageOutcome::EvictedItself) => {
+                        false
+                    }
                     // The cache cannot hold this texture at all (a format
                     // without an image, an extent above the layer): loading
                     // it again would fail again.
@@ -1340,6 +1342,16 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                     .stage(texture, format, chain.width, chain.height, level, &buffer)?
                 {
                     StageOutcome::Staged { .. } => break,
+                    // The next stage inserts the texture afresh, in a new ring layer.
+                    StageOutcome::EvictedItself if cycles_run < 2 => {
+                        cycles_run += 1;
+                    }
+                    StageOutcome::EvictedItself => {
+                        return Err(EngineError::InvalidRequest(format!(
+                            "texture {texture} level {level}: the cache's ring evicts the texture's own layer \
+                             to make room for it; the cache has too few layers for the budget"
+                        )))
+                    }
                     StageOutcome::MemoryPending if cycles_run < 2 => {
                         self.finish_cycle_now(commands, &mut total)?;
                         cycles_run += 1;

@@ -179,6 +179,10 @@ pub enum StageOutcome {
     /// The budget's freed memory is reusable only after the next
     /// `finish_cycle`; stop staging for this cycle.
     MemoryPending,
+    /// [`Eviction::Ring`]: the room the mip needed was made by evicting the ring's oldest
+    /// layer, and that layer held this texture; nothing was staged. The texture is no
+    /// longer resident: load it again later (its next stage inserts it afresh).
+    EvictedItself,
     /// [`Eviction::View`]: the budget has too few free blocks; nothing was
     /// staged.
     NoRoom {
@@ -716,6 +720,8 @@ impl GpuTextureCache {
             Ok(upload) => upload,
             Err(CacheError::MemoryPending { .. }) => return Ok(StageOutcome::MemoryPending),
             Err(CacheError::NoRoom { needed_blocks, .. }) => return Ok(StageOutcome::NoRoom { needed_blocks }),
+            // Not a failure of the texture: the ring reached its own layer.
+            Err(CacheError::Invalidated { .. }) => return Ok(StageOutcome::EvictedItself),
             Err(e) => return Err(cache_error(texture, mip, e)),
         };
         self.slots[texture as usize].pending |= 1 << mip;

@@ -1,4 +1,24 @@
-//! Image error against a reference, as the flythrough and the tests report it.
+//! Image error against a reference, as the flythrough, the bench, the report and the tests
+//! report it.
+//!
+//! One convention for every figure: every measured frame counts. A frame identical to its
+//! reference has an MSE of 0 and an unbounded PSNR; it counts at [`PSNR_CEILING_DB`], so the
+//! better a run streams, the more (not the fewer) of its frames pull its mean up. The mean
+//! squared error over all measured frames needs no ceiling; the PSNR of that mean
+//! ([`ErrorFigures::psnr_of_mean_mse_db`]) is the headline figure when runs are compared.
+
+use citystream_streaming::bench::stats::Stats;
+use serde::ser::SerializeMap;
+use serde::{Deserialize, Serialize, Serializer};
+
+/// The PSNR a frame identical to its reference counts as, in dB (an MSE of 6.5e-6). One
+/// 8-bit step on one channel of one pixel is 100.5 dB at 320×180 and more at larger sizes,
+/// so such a frame counts at the ceiling too; `ErrorFrames::identical` counts exact matches
+/// only, and the MSE keeps every difference.
+pub const PSNR_CEILING_DB: f64 = 100.0;
+
+/// Peak value of an 8-bit channel, squared: the numerator of PSNR.
+const PEAK_SQUARED: f64 = 255.0 * 255.0;
 
 /// Mean squared error over RGB between two images of the same size.
 pub fn mse(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
@@ -14,13 +34,144 @@ pub fn mse(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
     sum / n.max(1) as f64
 }
 
-/// Peak signal-to-noise ratio of `a` against `b` over RGB, in dB (∞ when equal).
-pub fn psnr_db(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
-    let mse = mse(a, b);
-    if mse == 0.0 {
-        f64::INFINITY
+/// PSNR of an MSE over 8-bit channels, in dB, at most [`PSNR_CEILING_DB`] (an MSE of 0, an
+/// identical image, gives the ceiling). An MSE that is no measurement (NaN, negative) gives
+/// NaN, never the ceiling.
+pub fn psnr_of_mse_db(mse: f64) -> f64 {
+    if mse > 0.0 {
+        (10.0 * (PEAK_SQUARED / mse).log10()).min(PSNR_CEILING_DB)
+    } else if mse == 0.0 {
+        PSNR_CEILING_DB
     } else {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
+        f64::NAN
+    }
+}
+
+/// Peak signal-to-noise ratio of `a` against `b` over RGB, in dB, at most
+/// [`PSNR_CEILING_DB`].
+pub fn psnr_db(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
+    psnr_of_mse_db(mse(a, b))
+}
+
+/// One measured frame: its MSE and the PSNR it counts as.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameError {
+    pub mse: f64,
+    pub psnr_db: f64,
+}
+
+impl FrameError {
+    /// The error of a frame with this MSE.
+    pub fn of_mse(mse: f64) -> Self {
+        FrameError {
+            mse,
+            psnr_db: psnr_of_mse_db(mse),
+        }
+    }
+
+    /// The error of `image` against `reference`.
+    pub fn of_images(image: &image::RgbaImage, reference: &image::RgbaImage) -> Self {
+        Self::of_mse(mse(image, reference))
+    }
+
+    /// Whether the frame equalled its reference.
+    pub fn identical(&self) -> bool {
+        self.mse == 0.0
+    }
+}
+
+/// Every measured frame of a run, in order.
+#[derive(Debug, Clone, Default)]
+pub struct ErrorSeries {
+    frames: Vec<FrameError>,
+}
+
+impl ErrorSeries {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Counts one measured frame.
+    pub fn push(&mut self, frame: FrameError) {
+        self.frames.push(frame);
+    }
+
+    pub fn frames(&self) -> &[FrameError] {
+        &self.frames
+    }
+
+    /// The figures `summary.json` carries; `None` when no frame was measured.
+    pub fn figures(&self) -> Option<ErrorFigures> {
+        if self.frames.is_empty() {
+            return None;
+        }
+        let psnrs: Vec<f64> = self.frames.iter().map(|f| f.psnr_db).collect();
+        let mses: Vec<f64> = self.frames.iter().map(|f| f.mse).collect();
+        let mean_mse = mses.iter().sum::<f64>() / mses.len() as f64;
+        Some(ErrorFigures {
+            psnr_db: Stats::from_samples(&psnrs),
+            psnr_ceiling_db: PSNR_CEILING_DB,
+            error_frames: ErrorFrames {
+                measured: self.frames.len() as u64,
+                identical: self.frames.iter().filter(|f| f.identical()).count() as u64,
+            },
+            mse: Stats::from_samples(&mses),
+            psnr_of_mean_mse_db: psnr_of_mse_db(mean_mse),
+        })
+    }
+}
+
+/// How many frames were measured, and how many of them equalled their reference.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorFrames {
+    pub measured: u64,
+    pub identical: u64,
+}
+
+/// The image-error figures of a run, as `summary.json` carries them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ErrorFigures {
+    /// PSNR per measured frame, identical frames at the ceiling.
+    pub psnr_db: Stats,
+    pub psnr_ceiling_db: f64,
+    pub error_frames: ErrorFrames,
+    /// MSE per measured frame (over RGB, 8-bit channels).
+    pub mse: Stats,
+    /// PSNR of the mean MSE over every measured frame: the headline error. It reaches the
+    /// ceiling only when every measured frame is identical.
+    pub psnr_of_mean_mse_db: f64,
+}
+
+/// The keys of [`ErrorFigures`] in `summary.json`, after a prefix (`""` for the city's,
+/// `"ground_"` for the ground's).
+pub const ERROR_KEYS: [&str; 5] = [
+    "psnr_db",
+    "psnr_ceiling_db",
+    "error_frames",
+    "mse",
+    "psnr_of_mean_mse_db",
+];
+
+/// Serializes a run's error figures as top-level keys with a prefix, each `null` when no
+/// frame was measured except the ceiling, which is the convention and always stated. Use
+/// with `#[serde(flatten)]`.
+#[derive(Debug, Clone, Copy)]
+pub struct PrefixedErrorFigures {
+    pub prefix: &'static str,
+    pub figures: Option<ErrorFigures>,
+}
+
+impl Serialize for PrefixedErrorFigures {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let key = |name: &str| format!("{}{name}", self.prefix);
+        let f = self.figures.as_ref();
+        let mut map = serializer.serialize_map(Some(ERROR_KEYS.len()))?;
+        map.serialize_entry(&key("psnr_db"), &f.map(|f| f.psnr_db))?;
+        map.serialize_entry(&key("psnr_ceiling_db"), &PSNR_CEILING_DB)?;
+        map.serialize_entry(&key("error_frames"), &f.map(|f| f.error_frames))?;
+        map.serialize_entry(&key("mse"), &f.map(|f| f.mse))?;
+        map.serialize_entry(&key("psnr_of_mean_mse_db"), &f.map(|f| f.psnr_of_mean_mse_db))?;
+        map.end()
     }
 }
 
@@ -32,10 +183,96 @@ mod tests {
     fn psnr_of_a_known_difference() {
         let a = image::RgbaImage::from_pixel(4, 4, image::Rgba([10, 20, 30, 255]));
         let mut b = a.clone();
-        assert_eq!(psnr_db(&a, &b), f64::INFINITY);
+        assert_eq!(psnr_db(&a, &b), PSNR_CEILING_DB);
         // One channel of one pixel off by 48: MSE 48² / 48 = 48.
         b.put_pixel(0, 0, image::Rgba([58, 20, 30, 0]));
         assert!((mse(&a, &b) - 48.0).abs() < 1e-12);
         assert!((psnr_db(&a, &b) - 10.0 * (65025.0f64 / 48.0).log10()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn psnr_of_hard_mses() {
+        assert_eq!(psnr_of_mse_db(0.0), PSNR_CEILING_DB);
+        // Below the ceiling's MSE the ceiling holds; far above, the PSNR goes negative.
+        assert_eq!(psnr_of_mse_db(1e-300), PSNR_CEILING_DB);
+        assert!((psnr_of_mse_db(PEAK_SQUARED) - 0.0).abs() < 1e-12);
+        assert!(psnr_of_mse_db(1e6) < 0.0);
+        // A NaN or negative MSE is no measurement of an identical frame: NaN, not 100 dB.
+        assert!(psnr_of_mse_db(f64::NAN).is_nan());
+        assert!(psnr_of_mse_db(-1.0).is_nan());
+        assert_eq!(psnr_of_mse_db(f64::INFINITY), f64::NEG_INFINITY);
+    }
+
+    #[test]
+    fn every_measured_frame_counts() {
+        let mut series = ErrorSeries::new();
+        assert_eq!(series.figures(), None);
+        for mse in [100.0, 0.0, 0.0, 2.0] {
+            series.push(FrameError::of_mse(mse));
+        }
+        let f = series.figures().expect("measured");
+        assert_eq!(
+            f.error_frames,
+            ErrorFrames {
+                measured: 4,
+                identical: 2
+            }
+        );
+        assert_eq!(f.psnr_ceiling_db, PSNR_CEILING_DB);
+        let psnr_100 = 10.0 * (PEAK_SQUARED / 100.0).log10();
+        let psnr_2 = 10.0 * (PEAK_SQUARED / 2.0).log10();
+        assert!((f.psnr_db.mean - (psnr_100 + psnr_2 + 200.0) / 4.0).abs() < 1e-9);
+        assert_eq!(f.psnr_db.max, PSNR_CEILING_DB);
+        assert_eq!(f.psnr_db.min, psnr_100);
+        assert!((f.mse.mean - 25.5).abs() < 1e-12);
+        assert!((f.psnr_of_mean_mse_db - 10.0 * (PEAK_SQUARED / 25.5).log10()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn all_identical_reaches_the_ceiling() {
+        let mut series = ErrorSeries::new();
+        series.push(FrameError::of_mse(0.0));
+        let f = series.figures().expect("measured");
+        assert_eq!(f.psnr_of_mean_mse_db, PSNR_CEILING_DB);
+        assert_eq!(
+            f.error_frames,
+            ErrorFrames {
+                measured: 1,
+                identical: 1
+            }
+        );
+    }
+
+    #[test]
+    fn prefixed_keys() {
+        #[derive(Serialize)]
+        struct Summary {
+            frames: u32,
+            #[serde(flatten)]
+            city: PrefixedErrorFigures,
+            #[serde(flatten)]
+            ground: PrefixedErrorFigures,
+        }
+        let mut series = ErrorSeries::new();
+        series.push(FrameError::of_mse(0.0));
+        let summary = Summary {
+            frames: 1,
+            city: PrefixedErrorFigures {
+                prefix: "",
+                figures: series.figures(),
+            },
+            ground: PrefixedErrorFigures {
+                prefix: "ground_",
+                figures: None,
+            },
+        };
+        let json: serde_json::Value = serde_json::to_value(&summary).expect("serializes");
+        for key in ERROR_KEYS {
+            assert!(!json[key].is_null(), "{key}: {json}");
+            let ground = format!("ground_{key}");
+            assert_eq!(json[&ground].is_null(), key != "psnr_ceiling_db", "{ground}: {json}");
+        }
+        assert_eq!(json["error_frames"]["identical"], 1);
+        assert_eq!(json["psnr_of_mean_mse_db"], PSNR_CEILING_DB);
     }
 }

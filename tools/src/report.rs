@@ -4,26 +4,31 @@
 //! - `DIR/summary.json`: objects `{"median","mean","max","min"}` under
 //!   `frame_ms`, `tw_ms`, `mips_per_s`, `mb_per_s`, `load_size_mb`,
 //!   `mip_bias`, and optionally (absent or `null` when not measured)
-//!   `mip_deficit` and `psnr_db`; plus `frames`, `duration_s`, `policy`,
+//!   `mip_deficit` and `psnr_db`, with `error_frames` (`measured`, `identical`) and
+//!   `psnr_of_mean_mse_db` when present; plus `frames`, `duration_s`, `policy`,
 //!   `bytes_streamed`, `mips_streamed`, `blocks_bound`,
 //!   `peak_resident_bytes`, and when present `unique_bytes_streamed`,
 //!   `memory_budget_bytes` (null: unlimited), `eviction` and
 //!   `frames_over_budget`. Other keys are ignored.
 //! - `DIR/frames.csv`: a header naming at least the columns
-//!   [`FRAME_COLUMNS`] (any order), then one row per frame; `mip_deficit` and
-//!   `psnr_db` cells may be empty on frames where they were not measured.
+//!   [`FRAME_COLUMNS`] (any order) and optionally `mse`, then one row per frame;
+//!   `mip_deficit`, `psnr_db` and `mse` cells are empty on frames where they were not
+//!   measured.
 //!
 //! Outputs, in the report directory:
 //! - `table.md`: the rows of the paper's Table 3 (frame latency, `t_w`,
 //!   Mip/s, MB/s, `s`, `b`) plus PSNR and mip deficit, with median, average
 //!   and max columns per run side by side, and a table of run totals. A
 //!   statistic the summary leaves out (PSNR, mip deficit) is taken from the
-//!   measured cells of `frames.csv`, or shown as "n/a" when there are none.
+//!   measured cells of `frames.csv`, or shown as "n/a" when there are none. An image-error
+//!   table gives per run the headline error, the PSNR of the mean MSE over every measured
+//!   frame (from the summary, or from the CSV's `mse` column), and how many of the measured
+//!   frames were identical to their reference.
 //! - `<run>_fig6.png` per run: the four panels of the paper's Fig. 6
 //!   (t_w and t_m; t_b with its edges t_bl and t_bu; s and b; MB/s and
 //!   Mip/s over time, rates counted per 0.10423 s window).
 //! - `speed_vs_error.png`: one labelled point per run at (mean frame
-//!   latency, mean PSNR), with a line out to its max frame latency.
+//!   latency, PSNR of the mean MSE), with a line out to its max frame latency.
 //!
 //! Charts are drawn with `plotters` into an RGB buffer and encoded with the
 //! `image` crate; the text uses the embedded DejaVu Sans font (licence in
@@ -38,6 +43,8 @@ use std::sync::OnceLock;
 use anyhow::{anyhow, bail, Context, Result};
 use citystream_streaming::bench::stats::{Stats, RATE_WINDOW_S};
 use citystream_streaming::controller::BYTES_PER_MB;
+
+use crate::image_error::{psnr_of_mse_db, ErrorFrames};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use serde::Deserialize;
@@ -136,6 +143,11 @@ struct SummaryJson {
     mip_deficit: Option<StatsJson>,
     #[serde(default)]
     psnr_db: Option<StatsJson>,
+    /// Absent in summaries of runs before every measured frame counted.
+    #[serde(default)]
+    error_frames: Option<ErrorFrames>,
+    #[serde(default)]
+    psnr_of_mean_mse_db: Option<f64>,
     frames: u64,
     duration_s: f64,
     policy: String,
@@ -171,6 +183,8 @@ struct FrameRow {
     bytes: u64,
     mip_deficit: Option<f64>,
     psnr_db: Option<f64>,
+    /// Absent from older CSVs.
+    mse: Option<f64>,
 }
 
 /// A run read from disk, with the statistics the table shows.
@@ -182,6 +196,42 @@ struct Run {
     frames: Vec<FrameRow>,
     mip_deficit: Option<Stats>,
     psnr_db: Option<Stats>,
+    /// The headline error and what it counts.
+    error: Option<RunError>,
+}
+
+/// A run's headline image error.
+#[derive(Debug, Clone, Copy)]
+struct RunError {
+    psnr_of_mean_mse_db: f64,
+    frames: ErrorFrames,
+}
+
+impl RunError {
+    /// From the summary's keys, or recomputed from the CSV's `mse` cells.
+    fn of(summary: &SummaryJson, frames: &[FrameRow]) -> Option<Self> {
+        if let (Some(psnr), Some(counted)) = (summary.psnr_of_mean_mse_db, summary.error_frames) {
+            return Some(RunError {
+                psnr_of_mean_mse_db: psnr,
+                frames: counted,
+            });
+        }
+        let mses: Vec<f64> = frames.iter().filter_map(|f| f.mse).collect();
+        if mses.is_empty() {
+            return None;
+        }
+        Some(RunError {
+            psnr_of_mean_mse_db: psnr_of_mse_db(mses.iter().sum::<f64>() / mses.len() as f64),
+            frames: ErrorFrames {
+                measured: mses.len() as u64,
+                identical: mses.iter().filter(|&&m| m == 0.0).count() as u64,
+            },
+        })
+    }
+
+    fn frames_cell(&self) -> String {
+        format!("{} / {}", self.frames.identical, self.frames.measured)
+    }
 }
 
 /// `citystream report`.
@@ -299,6 +349,7 @@ fn load_run(dir: &Path, name: &str) -> Result<Run> {
         .map(Stats::from)
         .or_else(|| measured(|f| f.mip_deficit));
     let psnr_db = summary.psnr_db.map(Stats::from).or_else(|| measured(|f| f.psnr_db));
+    let error = RunError::of(&summary, &frames);
     Ok(Run {
         name: name.to_string(),
         dir: dir.to_path_buf(),
@@ -306,6 +357,7 @@ fn load_run(dir: &Path, name: &str) -> Result<Run> {
         frames,
         mip_deficit,
         psnr_db,
+        error,
     })
 }
 
@@ -321,6 +373,7 @@ fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
         }
     };
     let names: Vec<&str> = header.trim_end_matches('\r').split(',').map(str::trim).collect();
+    let mse_column = names.iter().position(|n| *n == "mse");
     let mut index = [0usize; FRAME_COLUMNS.len()];
     for (slot, column) in index.iter_mut().zip(FRAME_COLUMNS) {
         *slot = names.iter().position(|n| *n == column).ok_or_else(|| {
@@ -392,6 +445,15 @@ fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
             bytes: count(11)?,
             mip_deficit: optional(14)?,
             psnr_db: optional(15)?,
+            mse: match mse_column.map(|c| cells[c]) {
+                None | Some("") => None,
+                Some(text) => Some(text.parse::<f64>().map_err(|e| {
+                    anyhow!(
+                        "{}: line {line_no}: column `mse` = {text:?}: not a number ({e})",
+                        path.display()
+                    )
+                })?),
+            },
         });
     }
     if rows.is_empty() {
@@ -406,7 +468,9 @@ fn markdown_table(runs: &[Run]) -> String {
     let _ = writeln!(
         out,
         "Rows as in the paper's Table 3, plus PSNR against the fully resident reference \
-         and the mip deficit; median, average and max per run.\n"
+         (every measured frame, identical ones at the summary's ceiling, 100 dB) and the mip \
+         deficit; median, average and max per run. The image-error table at the end compares \
+         runs by the PSNR of the mean MSE.\n"
     );
     let _ = write!(out, "| |");
     for run in runs {
@@ -426,7 +490,7 @@ fn markdown_table(runs: &[Run]) -> String {
         ("Transfer rate (MB/s)", |r| Some(r.summary.mb_per_s.into())),
         ("Load size s (MB)", |r| Some(r.summary.load_size_mb.into())),
         ("Mipmap bias b", |r| Some(r.summary.mip_bias.into())),
-        ("PSNR (dB)", |r| r.psnr_db),
+        ("PSNR per frame (dB)", |r| r.psnr_db),
         ("Mip deficit", |r| r.mip_deficit),
     ];
     for (label, pick) in rows {
@@ -497,23 +561,39 @@ fn markdown_table(runs: &[Run]) -> String {
             escape_cell(&run.dir.display().to_string())
         );
     }
+    let _ = writeln!(
+        out,
+        "\n## Image error\n\nThe PSNR of the mean squared error over every measured frame, and how many \
+         measured frames were identical to their reference.\n\n| Run | PSNR of mean MSE (dB) | Identical / measured |\n|---|---:|---:|"
+    );
+    for run in runs {
+        let (psnr, frames) = run.error.map_or(("n/a".to_string(), "n/a".to_string()), |e| {
+            (number(e.psnr_of_mean_mse_db), e.frames_cell())
+        });
+        let _ = writeln!(out, "| {} | {psnr} | {frames} |", escape_cell(&run.name));
+    }
     let _ = writeln!(out, "\nMB = 2^20 bytes. Transfer rates per {RATE_WINDOW_S} s window.");
     out
 }
 
 /// One line on a finished run for progress output: frame latency, transfer
-/// rate and PSNR from its `summary.json`.
+/// rate and image error from its `summary.json`.
 pub fn run_headline(dir: &Path) -> Result<String> {
     let path = dir.join("summary.json");
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let s: SummaryJson =
         serde_json::from_str(&text).with_context(|| format!("{}: not a valid flythrough summary", path.display()))?;
-    let psnr = s
-        .psnr_db
-        .map(|p| format!("{} dB", number(p.mean)))
-        .unwrap_or_else(|| "n/a".to_string());
+    let error = match (s.psnr_of_mean_mse_db, s.error_frames) {
+        (Some(psnr), Some(frames)) => format!(
+            "{} dB ({} of {} measured frames identical)",
+            number(psnr),
+            frames.identical,
+            frames.measured
+        ),
+        _ => "n/a".to_string(),
+    };
     Ok(format!(
-        "{} frames, frame latency mean {} / max {} ms, {} MB/s mean, PSNR mean {psnr}",
+        "{} frames, frame latency mean {} / max {} ms, {} MB/s mean, PSNR of mean MSE {error}",
         s.frames,
         number(s.frame_ms.mean),
         number(s.frame_ms.max),
@@ -808,7 +888,7 @@ fn draw_fig6(run: &Run, path: &Path) -> Result<()> {
 fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
     let measured: Vec<(&Run, f64)> = runs
         .iter()
-        .filter_map(|r| r.psnr_db.map(|p| (r, p.mean)))
+        .filter_map(|r| r.error.map(|e| (r, e.psnr_of_mean_mse_db)))
         .filter(|(_, p)| p.is_finite())
         .collect();
     let missing: Vec<&str> = runs
@@ -817,7 +897,7 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
         .map(|r| r.name.as_str())
         .collect();
     for name in &missing {
-        eprintln!("speed vs error: run `{name}` has no PSNR measurement; left out of the chart");
+        eprintln!("speed vs error: run `{name}` has no MSE measurement; left out of the chart");
     }
     let x_range = value_range(
         measured
@@ -839,7 +919,7 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
         chart
             .configure_mesh()
             .x_desc("frame latency (ms): dot = mean, cross = max")
-            .y_desc("mean PSNR (dB)")
+            .y_desc("PSNR of the mean MSE (dB)")
             .label_style(("sans-serif", 14))
             .axis_desc_style(("sans-serif", 16))
             .draw()
@@ -858,7 +938,10 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
             let marker = EmptyElement::at((mean, *psnr))
                 + Circle::new((0, 0), 6, color.filled())
                 + Text::new(
-                    run.name.clone(),
+                    match run.error {
+                        Some(e) => format!("{} ({} identical)", run.name, e.frames_cell()),
+                        None => run.name.clone(),
+                    },
                     (10, -20),
                     ("sans-serif", 16).into_font().color(&color),
                 );
@@ -866,7 +949,7 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
         }
         if !missing.is_empty() {
             root.draw(&Text::new(
-                format!("no PSNR measured: {}", missing.join(", ")),
+                format!("no MSE measured: {}", missing.join(", ")),
                 (20, SPEED_ERROR_SIZE.1 as i32 - 22),
                 ("sans-serif", 14),
             ))

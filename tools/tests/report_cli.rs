@@ -114,6 +114,26 @@ fn summary(frames: &[Frame], policy: &str, psnr: Option<[f64; 4]>, deficit: Opti
     )
 }
 
+/// `summary_text` with the headline error keys a flythrough writes.
+fn with_error(summary_text: &str, psnr_of_mean_mse_db: f64, identical: u32, measured: u32) -> String {
+    summary_text.replacen(
+        "\"frames\":",
+        &format!(
+            "\"psnr_of_mean_mse_db\": {psnr_of_mean_mse_db}, \
+             \"error_frames\": {{\"measured\": {measured}, \"identical\": {identical}}}, \"frames\":"
+        ),
+        1,
+    )
+}
+
+/// The part of `table` from the line `heading` on.
+fn section<'a>(table: &'a str, heading: &str) -> &'a str {
+    let start = table
+        .find(&format!("\n{heading}\n"))
+        .unwrap_or_else(|| panic!("table.md has no `{heading}`:\n{table}"));
+    &table[start..]
+}
+
 fn write_run(dir: &Path, csv_text: &str, summary_text: &str) {
     std::fs::create_dir_all(dir).expect("creating a run directory");
     std::fs::write(dir.join("frames.csv"), csv_text).expect("writing frames.csv");
@@ -135,6 +155,77 @@ fn row(table: &str, label: &str) -> Vec<String> {
 
 fn fmt3(s: [f64; 4]) -> Vec<String> {
     vec![format!("{:.2}", s[0]), format!("{:.2}", s[1]), format!("{:.2}", s[2])]
+}
+
+/// The image-error table: the PSNR of the mean MSE and identical / measured frames, from
+/// the summary's keys, or recomputed from the CSV's `mse` column of a summary without them,
+/// or n/a.
+#[test]
+fn image_error_table_compares_runs_by_the_psnr_of_the_mean_mse() -> TestResult {
+    let dir = scratch("image_error");
+    // Run A: the keys in summary.json.
+    let a = frames(20, 1.0, 5, 0);
+    let a_summary = with_error(
+        &summary(&a, "adaptive", Some([40.0, 45.0, 100.0, 20.0]), None),
+        33.25,
+        1,
+        4,
+    );
+    write_run(&dir.join("a"), &csv(&a), &a_summary);
+    // Run B: an older summary, with an `mse` column in the CSV (0 on an identical frame).
+    let b = frames(12, 1.0, 4, 0);
+    let mses = [
+        Some(26.0),
+        None,
+        None,
+        None,
+        Some(0.0),
+        None,
+        None,
+        None,
+        Some(1.0),
+        None,
+        None,
+        None,
+    ];
+    let mut b_csv = String::new();
+    for (i, line) in csv(&b).lines().enumerate() {
+        let mse = match i {
+            0 => "mse".to_string(),
+            _ => mses[i - 1].map(|m: f64| m.to_string()).unwrap_or_default(),
+        };
+        b_csv.push_str(&format!("{line},{mse}\n"));
+    }
+    write_run(&dir.join("b"), &b_csv, &summary(&b, "baseline", None, None));
+    // Run C: no error measured.
+    let c = frames(10, 1.0, 0, 0);
+    write_run(&dir.join("c"), &csv(&c), &summary(&c, "fixed", None, None));
+
+    let out = dir.join("report");
+    let run = |d: &str| dir.join(d).display().to_string();
+    let (ra, rb, rc, ro) = (run("a"), run("b"), run("c"), out.display().to_string());
+    let result = citystream(&["report", "--run", &ra, "--run", &rb, "--run", &rc, "--out", &ro]);
+    assert!(
+        result.status.success(),
+        "report failed: {}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    let table = std::fs::read_to_string(out.join("table.md"))?;
+    let table = section(&table, "## Image error");
+    assert!(
+        table.contains("| Run | PSNR of mean MSE (dB) | Identical / measured |"),
+        "{table}"
+    );
+    assert_eq!(row(table, "a"), ["33.25", "1 / 4"]);
+    // Mean MSE 9 over three measured frames: 10·log10(65025 / 9) = 38.588...
+    assert_eq!(
+        row(table, "b"),
+        [format!("{:.2}", 10.0 * (65025.0f64 / 9.0).log10()), "1 / 3".into()]
+    );
+    assert_eq!(row(table, "c"), ["n/a", "n/a"]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(stderr.contains("run `c` has no MSE measurement"), "{stderr}");
+    Ok(())
 }
 
 #[test]
@@ -211,7 +302,7 @@ fn table_has_the_statistics_of_each_run() -> TestResult {
     let measured = |r: &[Frame], pick: fn(&Frame) -> Option<f64>| stats(&r.iter().filter_map(pick).collect::<Vec<_>>());
     let na = ["n/a", "n/a", "n/a"].map(String::from).to_vec();
     let psnr = [fmt3(a_psnr), fmt3(measured(&b, |f| f.psnr_db)), na.clone()].concat();
-    assert_eq!(row(&table, "PSNR (dB)"), psnr);
+    assert_eq!(row(&table, "PSNR per frame (dB)"), psnr);
     let deficit = [fmt3(a_deficit), fmt3(measured(&b, |f| f.mip_deficit)), na].concat();
     assert_eq!(row(&table, "Mip deficit"), deficit);
 
@@ -265,13 +356,23 @@ fn charts_decode_with_their_size_and_are_drawn() -> TestResult {
     write_run(
         &dir.join("fast run"),
         &csv(&a),
-        &summary(&a, "adaptive", Some([31.0, 32.0, 35.0, 30.0]), None),
+        &with_error(
+            &summary(&a, "adaptive", Some([31.0, 32.0, 35.0, 30.0]), None),
+            31.5,
+            0,
+            20,
+        ),
     );
     let b = frames(200, 8.0, 10, 20);
     write_run(
         &dir.join("slow"),
         &csv(&b),
-        &summary(&b, "baseline", Some([28.0, 27.5, 33.0, 20.0]), None),
+        &with_error(
+            &summary(&b, "baseline", Some([28.0, 27.5, 33.0, 20.0]), None),
+            25.0,
+            0,
+            20,
+        ),
     );
     let out = dir.join("report");
     let result = citystream(&[
@@ -434,6 +535,7 @@ st() {{ echo "{{\"median\": $1, \"mean\": $1, \"max\": $1, \"min\": $1}}"; }}
 cat > "$out/summary.json" <<EOF
 {{"frame_ms": $(st $ms), "tw_ms": $(st $((ms + 1))), "mips_per_s": $(st 100),
  "mb_per_s": $(st 5), "load_size_mb": $(st 1), "mip_bias": $(st 0), "psnr_db": $(st $((60 - ms))),
+ "psnr_of_mean_mse_db": $((60 - ms)), "error_frames": {{"measured": $frames, "identical": 0}},
  "mip_deficit": null, "frames": $frames, "duration_s": 1, "policy": "$policy",
  "bytes_streamed": 1048576, "mips_streamed": 10, "blocks_bound": 16, "peak_resident_bytes": 2097152}}
 EOF
@@ -487,7 +589,10 @@ fn bench_runs_every_policy_and_reports() -> TestResult {
         "{stderr}"
     );
     assert!(
-        stderr.contains("7 frames, frame latency mean 12.00 / max 12.00 ms, 5.00 MB/s mean, PSNR mean 48.00 dB"),
+        stderr.contains(
+            "7 frames, frame latency mean 12.00 / max 12.00 ms, 5.00 MB/s mean, PSNR of mean MSE 48.00 dB \
+             (0 of 7 measured frames identical)"
+        ),
         "{stderr}"
     );
 
@@ -516,7 +621,7 @@ fn bench_runs_every_policy_and_reports() -> TestResult {
         .iter()
         .flat_map(|&p: &f64| fmt3([p; 4]))
         .collect();
-    assert_eq!(row(&table, "PSNR (dB)"), psnr);
+    assert_eq!(row(&table, "PSNR per frame (dB)"), psnr);
     assert_eq!(row(&table, "fixed s=4 MB b=0")[..3], ["fixed", "7", "1.00"]);
     for chart in [
         "baseline_fig6.png",
@@ -632,7 +737,7 @@ fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() 
     );
     // Both ran at PSNR 60 − ms: 48 against 48 for the unbudgeted α=12 run.
     assert!(
-        checks.contains("| PSNR: unbudgeted − adaptive α=12, mean (dB) | 0.000 | ≤ 3 | yes |"),
+        checks.contains("| PSNR of mean MSE: unbudgeted − adaptive α=12 (dB) | 0.000 | ≤ 3 | yes |"),
         "{checks}"
     );
     // The fake writes no unique bytes: not measured, not a pass.

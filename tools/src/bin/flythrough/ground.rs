@@ -17,7 +17,7 @@ use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
 use citystream_streaming::dataset::{Dataset, Scene};
 use citystream_streaming::ground::PatchImage;
-use citystream_tools::image_error::psnr_db;
+use citystream_tools::image_error::{ErrorSeries, FrameError};
 use citystream_tools::patches::PatchSet;
 
 /// One patch ready to insert: where, and its decoded image.
@@ -37,13 +37,9 @@ pub struct GroundRun {
     reference_arrived: usize,
     pub layer: GroundLayer,
     reference: Option<GroundLayer>,
-    pub psnrs: Vec<f64>,
-    /// Measurements in which the streamed ground equalled the reference.
-    pub identical_frames: u32,
+    /// The streamed ground's error at every measured frame.
+    pub errors: ErrorSeries,
 }
-
-/// The PSNR an identical ground counts as.
-pub const IDENTICAL_PSNR_DB: f64 = 100.0;
 
 /// Summary keys of the ground (`summary.json`).
 #[derive(Debug, serde::Serialize)]
@@ -53,7 +49,6 @@ pub struct GroundSummary {
     pub patches_total: usize,
     pub levels: u32,
     pub tiles_invalidated: u64,
-    pub psnr_identical_frames: u32,
     /// CPU wall time composing the streamed layer's tiles (rayon workers), ms in all and per tile.
     pub compose_ms: f64,
     pub compose_ms_per_tile: Option<f64>,
@@ -224,8 +219,7 @@ impl GroundRun {
             reference_arrived: 0,
             layer: GroundLayer::new(device, config)?,
             reference,
-            psnrs: Vec::new(),
-            identical_frames: 0,
+            errors: ErrorSeries::new(),
         })
     }
 
@@ -245,7 +239,7 @@ impl GroundRun {
             .update(slot, eye, GroundAllowance::LoadSize(load_size_bytes))?)
     }
 
-    /// PSNR of the streamed ground of frame slot `slot` (its frame complete) against the
+    /// Error of the streamed ground of frame slot `slot` (its frame complete) against the
     /// reference with every arrived patch resident, both drawn alone behind the city.
     pub fn measure(
         &mut self,
@@ -254,7 +248,7 @@ impl GroundRun {
         target: &RenderTarget,
         camera: &Camera,
         slot: u32,
-    ) -> Result<Option<f64>> {
+    ) -> Result<Option<FrameError>> {
         let Some(reference) = self.reference.as_mut() else {
             return Ok(None);
         };
@@ -285,14 +279,9 @@ impl GroundRun {
         let cmd = commands.begin()?;
         city.record_ground_only(cmd, target, camera, (reference, 0))?;
         commands.submit_and_wait(&[])?;
-        let psnr = psnr_db(&streamed, &target.read_pixels()?);
-        if psnr.is_infinite() {
-            self.identical_frames += 1;
-        }
-        // Identical images count as IDENTICAL_PSNR_DB, so they are not left out of the mean.
-        let psnr = psnr.min(IDENTICAL_PSNR_DB);
-        self.psnrs.push(psnr);
-        Ok(Some(psnr))
+        let error = FrameError::of_images(&streamed, &target.read_pixels()?);
+        self.errors.push(error);
+        Ok(Some(error))
     }
 
     /// What `summary.json` says of the ground besides the headline keys.
@@ -305,7 +294,6 @@ impl GroundRun {
             patches_total: self.arrivals.len(),
             levels: self.layer.imagery().clipmap().level_count(),
             tiles_invalidated: totals.tiles_invalidated,
-            psnr_identical_frames: self.identical_frames,
             compose_ms: totals.compose_micros as f64 / 1000.0,
             compose_ms_per_tile: (totals.tiles_uploaded > 0)
                 .then(|| totals.compose_micros as f64 / 1000.0 / totals.tiles_uploaded as f64),

@@ -38,7 +38,7 @@ use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
 use citystream_streaming::source::{FaultPlan, FaultySource, MipSource};
 use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
-use citystream_tools::image_error::{mse, psnr_db};
+use citystream_tools::image_error::{mse, ErrorSeries, FrameError, PrefixedErrorFigures};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Clock {
@@ -318,13 +318,18 @@ struct Run<'a> {
     policy: &'a str,
     alpha_ms: f64,
     mip_deficit: Option<Stats>,
-    psnr_db: Option<Stats>,
+    /// The facades' error against the fully resident reference: `psnr_db`,
+    /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured
+    /// frame counts, identical ones at the ceiling; `citystream_tools::image_error`).
+    #[serde(flatten)]
+    error: PrefixedErrorFigures,
     /// With --ground: tiles of ground imagery composed and uploaded, their MB, and the
-    /// ground's PSNR against a reference with every arrived patch resident (both drawn
-    /// alone behind the city; an identical frame counts as 100 dB).
+    /// ground's error against a reference with every arrived patch resident (both drawn
+    /// alone behind the city), under the same keys prefixed `ground_`.
     ground_tiles_uploaded: Option<u64>,
     ground_mb_streamed: Option<f64>,
-    ground_psnr_db: Option<Stats>,
+    #[serde(flatten)]
+    ground_error: PrefixedErrorFigures,
     ground: Option<ground::GroundSummary>,
     clock: &'a str,
     bind_latency: &'a str,
@@ -889,7 +894,8 @@ fn load_reference(
 }
 
 const CSV_HEADER: &str = "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
-                          blocks_bound,resident_bytes,mip_deficit,psnr_db,eye_x,eye_y,eye_z,look_x,look_y,look_z";
+                          blocks_bound,resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,\
+                          eye_x,eye_y,eye_z,look_x,look_y,look_z";
 
 /// One frame's line of frames.csv.
 struct CsvRow<'a> {
@@ -900,7 +906,9 @@ struct CsvRow<'a> {
     applied: &'a citystream_engine::texture_cache::CycleReport,
     resident: u64,
     deficit: Option<f64>,
-    psnr: Option<f64>,
+    /// The facades' and the ground's error, on measured frames.
+    error: Option<FrameError>,
+    ground_error: Option<FrameError>,
     camera: &'a Camera,
 }
 
@@ -910,7 +918,7 @@ fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
     // The pose exactly (shortest round-trip form): a replay is compared with it.
     writeln!(
         csv,
-        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{}",
+        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
         row.frame,
         row.time_s,
         row.frame_ms,
@@ -926,7 +934,12 @@ fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
         row.applied.blocks_bound,
         row.resident,
         optional(row.deficit),
-        optional(row.psnr),
+        // The error exactly (shortest round-trip form), so that figures recomputed from the
+        // CSV equal the summary's.
+        exact(row.error.map(|e| e.psnr_db)),
+        exact(row.error.map(|e| e.mse)),
+        exact(row.ground_error.map(|e| e.psnr_db)),
+        exact(row.ground_error.map(|e| e.mse)),
         eye.x,
         eye.y,
         eye.z,
@@ -942,6 +955,11 @@ fn optional(value: Option<f64>) -> String {
         .filter(|v| v.is_finite())
         .map(|v| format!("{v:.4}"))
         .unwrap_or_default()
+}
+
+/// A measured value in shortest round-trip form; empty when not measured.
+fn exact(value: Option<f64>) -> String {
+    value.map(|v| v.to_string()).unwrap_or_default()
 }
 
 /// The visible and feedback targets of the city passes and the feedback view.
@@ -1373,7 +1391,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
     writeln!(csv, "{CSV_HEADER}")?;
     let mut summary = SummaryBuilder::new();
     let mut deficits = Vec::new();
-    let mut psnrs = Vec::new();
+    let mut errors = ErrorSeries::new();
     let mut clock = CpuFrameClock::new();
     let started = std::time::Instant::now();
     let mut written = Vec::new();
@@ -1501,7 +1519,7 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         commands_of_frame.submit_frame(&submit.waits, &[submit.signal])?;
         waits.count(begun.cpu_wait, false);
 
-        let mut psnr = None;
+        let (mut error, mut ground_error) = (None, None);
         if write_frame || measure_error {
             // Reading this frame's image back is a wait outside the steady state.
             waits.count(gpu.streamer.wait_for_frame(begun.index)?, true);
@@ -1531,10 +1549,10 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                     None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true),
                 }
                 commands.submit_and_wait(&[])?;
-                psnr = Some(psnr_db(&pixels, &target.read_pixels()?));
+                error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
             }
             if let (true, Some(run)) = (measure_error, ground_run.as_mut()) {
-                run.measure(&mut commands, &gpu.renderer, target, &camera, slot)?;
+                ground_error = run.measure(&mut commands, &gpu.renderer, target, &camera, slot)?;
             }
         }
 
@@ -1563,7 +1581,9 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         let t = gpu.streamer.policy().telemetry();
         summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
-        psnrs.extend(psnr.filter(|p| p.is_finite()));
+        if let Some(error) = error {
+            errors.push(error);
+        }
         uploads_at.push((time_s, mips));
         write_csv_row(
             &mut csv,
@@ -1575,7 +1595,8 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
                 applied: &applied,
                 resident,
                 deficit,
-                psnr,
+                error,
+                ground_error,
                 camera: &camera,
             },
         )?;
@@ -1626,15 +1647,18 @@ fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Resu
         policy: gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
-        psnr_db: (!psnrs.is_empty()).then(|| Stats::from_samples(&psnrs)),
+        error: PrefixedErrorFigures {
+            prefix: "",
+            figures: errors.figures(),
+        },
         ground_tiles_uploaded: ground_run.as_ref().map(|g| g.layer.totals().tiles_uploaded),
         ground_mb_streamed: ground_run
             .as_ref()
             .map(|g| g.layer.totals().bytes_uploaded as f64 / f64::from(1 << 20)),
-        ground_psnr_db: ground_run
-            .as_ref()
-            .filter(|g| !g.psnrs.is_empty())
-            .map(|g| Stats::from_samples(&g.psnrs)),
+        ground_error: PrefixedErrorFigures {
+            prefix: "ground_",
+            figures: ground_run.as_ref().and_then(|g| g.errors.figures()),
+        },
         ground: ground_run
             .as_ref()
             .zip(args.ground.as_deref())

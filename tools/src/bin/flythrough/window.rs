@@ -1056,7 +1056,8 @@ impl Viewer {
                 applied: &applied,
                 resident,
                 deficit: None,
-                psnr: None,
+                error: None,
+                ground_error: None,
                 camera: &camera,
             },
         )?;
