@@ -910,7 +910,10 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
     let y_range = value_range(measured.iter().map(|(_, p)| *p), false);
     render_png(path, SPEED_ERROR_SIZE, |root| {
         let mut chart = ChartBuilder::on(root)
-            .caption("Speed against error: frame latency vs PSNR per run", ("sans-serif", 24))
+            .caption(
+                "Speed against error: frame latency vs PSNR of the mean MSE per run",
+                ("sans-serif", 24),
+            )
             .margin(16)
             .x_label_area_size(50)
             .y_label_area_size(70)
