@@ -40,19 +40,20 @@
 //! Threading: the streamer is used from one thread (the render thread); its
 //! loader runs on rayon workers and touches no Vulkan object.
 
-use std::collections::{BinaryHeap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use ash::vk;
 use citystream_cache::geometry::cacheable_mip_count;
-use citystream_cache::TexelFormat;
 use citystream_streaming::controller::{Decision, LoadPolicy};
-use citystream_streaming::dataset::{Dataset, DatasetError, TextureFormat};
+use citystream_streaming::dataset::TextureFormat;
 use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, TextureFailure};
 use citystream_streaming::records::{prepare, MeshMetaData};
+use citystream_streaming::residency::planner::{
+    admission_threshold, packing_order, Admission, BudgetPressure, LayerEviction, LevelDrop, PackingPass, RoomStep,
+};
 use citystream_streaming::residency::{AdmissionGate, KeepValue, NeedClass, NeedTable};
-use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
+use citystream_streaming::source::{texel_format, MipSink, MipSource, SinkError, SourceError, StagedMip};
 use citystream_streaming::states::{MipChain, TextureStates};
 
 use crate::commands::{CommandContext, SemaphoreSignal, SemaphoreWait, TimelineSemaphore};
@@ -64,113 +65,6 @@ use crate::pipeline::{DescriptorResource, Filtering};
 use crate::texture_cache::{
     CacheLayers, CycleReport, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome, CACHE_FORMATS,
 };
-
-/// The cache's texel format for a dataset format.
-pub fn texel_format(format: TextureFormat) -> TexelFormat {
-    match format {
-        TextureFormat::Bc1 => TexelFormat::BC1,
-        TextureFormat::Bc3 => TexelFormat::BC3,
-        TextureFormat::Bc7 => TexelFormat::BC7,
-        TextureFormat::Rgba8 => TexelFormat::RGBA8,
-    }
-}
-
-/// The dataset's texture pack as a [`MipSource`]. The chain it reports
-/// stops at the levels the cache can hold (both sides at least one texel
-/// block), so the loader never asks for a level the cache would refuse.
-#[derive(Debug, Clone)]
-pub struct DatasetSource {
-    dataset: Arc<Dataset>,
-}
-
-impl DatasetSource {
-    /// Reads from `dataset`.
-    pub fn new(dataset: Arc<Dataset>) -> Self {
-        Self { dataset }
-    }
-
-    /// The dataset read from.
-    pub fn dataset(&self) -> &Arc<Dataset> {
-        &self.dataset
-    }
-
-    fn chain(&self, texture: u32) -> std::result::Result<MipChain, SourceError> {
-        let info = self
-            .dataset
-            .textures
-            .info(texture)
-            .map_err(|_| SourceError::UnknownTexture { texture })?;
-        let cacheable = cacheable_mip_count(&texel_format(info.format()), info.width(), info.height());
-        Ok(MipChain {
-            width: info.width(),
-            height: info.height(),
-            mip_count: info.mip_count().min(cacheable).max(1),
-        })
-    }
-}
-
-fn source_error(texture: u32, level: u32, error: DatasetError) -> SourceError {
-    match error {
-        DatasetError::Io { path, source } => SourceError::File {
-            texture,
-            level,
-            path,
-            source,
-        },
-        other => SourceError::Other {
-            texture,
-            reason: other.to_string(),
-        },
-    }
-}
-
-impl MipSource for DatasetSource {
-    fn texture_count(&self) -> u32 {
-        self.dataset.textures.len()
-    }
-
-    fn texture_format(&self, texture: u32) -> std::result::Result<TextureFormat, SourceError> {
-        self.dataset
-            .textures
-            .info(texture)
-            .map(|info| info.format())
-            .map_err(|_| SourceError::UnknownTexture { texture })
-    }
-
-    fn mip_chain(&self, texture: u32) -> std::result::Result<MipChain, SourceError> {
-        self.chain(texture)
-    }
-
-    fn mip_len(&self, texture: u32, level: u32) -> std::result::Result<u64, SourceError> {
-        let chain = self.chain(texture)?;
-        if level >= chain.mip_count {
-            return Err(SourceError::UnknownLevel {
-                texture,
-                level,
-                mip_count: chain.mip_count,
-            });
-        }
-        let info = self
-            .dataset
-            .textures
-            .info(texture)
-            .map_err(|_| SourceError::UnknownTexture { texture })?;
-        Ok(info.mip_len(level))
-    }
-
-    fn prefetch(&self, mips: &[(u32, u32)]) {
-        self.dataset.textures.prefetch(mips);
-    }
-
-    fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> std::result::Result<(), SourceError> {
-        self.check_buffer_len(texture, level, buf)?;
-        self.dataset
-            .textures
-            .read_mip_into(texture, level, buf)
-            .map(|_| ())
-            .map_err(|e| source_error(texture, level, e))
-    }
-}
 
 /// Per cache format, how many textures of each extent the source holds.
 fn texture_extents<S: MipSource + ?Sized>(source: &S) -> Result<Vec<Vec<(u32, u64)>>> {
@@ -348,47 +242,6 @@ pub struct ResidencyTotals {
     pub unique_bytes_uploaded: u64,
 }
 
-/// A live cache layer and what evicting it would give up.
-#[derive(Clone, Debug)]
-struct LayerVictim {
-    worth: KeepValue,
-    image: u32,
-    layer: u32,
-    textures: Vec<u32>,
-}
-
-/// A resident level that may be dropped, ordered so that a max-heap pops
-/// the least worth first.
-#[derive(Clone, Copy, Debug)]
-struct Victim {
-    value: KeepValue,
-    texture: u32,
-    level: u32,
-}
-
-impl PartialEq for Victim {
-    fn eq(&self, other: &Self) -> bool {
-        self.cmp(other) == std::cmp::Ordering::Equal
-    }
-}
-
-impl Eq for Victim {}
-
-impl PartialOrd for Victim {
-    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(other))
-    }
-}
-
-impl Ord for Victim {
-    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
-        other
-            .value
-            .cmp_total(&self.value)
-            .then_with(|| other.texture.cmp(&self.texture))
-    }
-}
-
 /// What the host's submission of a frame must carry.
 #[derive(Clone, Debug)]
 pub struct FrameSubmit {
@@ -446,8 +299,7 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     deferred: Vec<StagedMip>,
     totals: ResidencyTotals,
     last_cycle: ResidencyCycle,
-    over_budget: bool,
-    last_declined: u64,
+    pressure: BudgetPressure,
 }
 
 impl<S: MipSource> std::fmt::Debug for TextureStreamer<S> {
@@ -583,8 +435,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             deferred: Vec::new(),
             totals: ResidencyTotals::default(),
             last_cycle: ResidencyCycle::default(),
-            over_budget: false,
-            last_declined: 0,
+            pressure: BudgetPressure::default(),
         })
     }
 
@@ -883,199 +734,73 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// loader: while the cache is nearly full of levels the view needs,
     /// loads not denser than the least dense of them would only be refused.
     fn update_pressure(&mut self, cycle_ran: bool) -> bool {
-        let used = self.cache.budget_use();
-        // Room is easy while a sixteenth of the budget is free or could be
-        // freed from levels the view does not need; only blocks no other
-        // level shares count, since dropping the others frees nothing.
-        let easy_room = used.budget_blocks / 16;
-        let mut threshold = 0.0;
-        if used.free_blocks() < easy_room {
-            let mut freeable = used.free_blocks();
-            let mut victims = self.build_victims();
-            while let Some(victim) = victims.pop() {
-                let blocks = u64::from(self.cache.exclusive_blocks(victim.texture, victim.level));
-                if blocks == 0 {
-                    continue;
-                }
-                if victim.value.class == NeedClass::Needed {
-                    threshold = victim.value.rank;
-                    break;
-                }
-                freeable += blocks;
-                if freeable >= easy_room {
-                    break;
-                }
-            }
-        }
+        let threshold = admission_threshold(&self.cache, &self.needs);
         self.gate.set_threshold(threshold);
         if threshold <= 0.0 {
             self.gate.clear_refused();
         }
-        let declined = self.gate.declined();
-        let newly_declined = declined > self.last_declined;
-        self.last_declined = declined;
-        let over = self.last_cycle.refused_for_room > 0
-            || newly_declined
-            || (self.over_budget && threshold > 0.0 && !cycle_ran);
-        self.over_budget = over;
+        let over = self.pressure.update(
+            self.last_cycle.refused_for_room,
+            self.gate.declined(),
+            threshold,
+            cycle_ran,
+        );
         if over {
             self.totals.frames_over_budget += 1;
         }
         over
     }
 
-    /// Every resident level that may be dropped now (each texture's finest,
-    /// none with a mip staged in this cycle), least worth on top.
-    fn build_victims(&self) -> BinaryHeap<Victim> {
-        self.cache
-            .resident_textures()
-            .filter(|&texture| !self.cache.has_pending(texture))
-            .map(|texture| {
-                let level = self.cache.resident_levels(texture).trailing_zeros();
-                let bytes = self.cache.level_bytes(texture, level);
-                Victim {
-                    value: self.needs.keep_value(texture, level, bytes),
-                    texture,
-                    level,
-                }
-            })
-            .collect()
-    }
-
-    /// Drops resident levels worth less than `load`, least worth first,
-    /// until `needed_blocks` blocks of the budget are free. Each drop
-    /// first moves the texture's streaming state back to the level that
-    /// stays resident (a texture the loader is working on is skipped).
-    /// Returns whether the room was made.
-    fn make_room(
-        &mut self,
-        needed_blocks: u64,
-        load: KeepValue,
-        victims: &mut Option<BinaryHeap<Victim>>,
-        dropped_now: &mut HashSet<u32>,
-    ) -> Result<bool> {
-        let mut heap = victims.take().unwrap_or_else(|| self.build_victims());
-        let made = loop {
-            if self.cache.budget_use().free_blocks() >= needed_blocks {
-                break true;
-            }
-            let Some(least) = heap.peek().copied() else {
-                break false;
+    /// Drops resident levels worth less than `load`, least worth first
+    /// (as `pass` plans), until `needed_blocks` blocks of the budget are
+    /// free. Each drop first moves the texture's streaming state back to the
+    /// level that stays resident (a texture the loader is working on is
+    /// skipped). Returns whether the room was made.
+    fn make_room(&mut self, pass: &mut PackingPass, needed_blocks: u64, load: KeepValue) -> Result<bool> {
+        loop {
+            let drop = match pass.next_drop(&self.cache, &self.needs, needed_blocks, load) {
+                RoomStep::Made => return Ok(true),
+                RoomStep::Refused => return Ok(false),
+                RoomStep::Drop(drop) => drop,
             };
-            if !least.value.yields_to(&load) {
-                break false;
+            if self.drop_level(drop)? {
+                pass.level_dropped(&self.cache, &self.needs, drop);
             }
-            heap.pop();
-            let texture = least.texture;
-            let held = self.cache.held_levels(texture);
-            if held == 0 || held.trailing_zeros() != least.level || self.cache.has_pending(texture) {
-                continue;
-            }
-            let rest = held & !(1 << least.level);
-            let next = (rest != 0).then(|| rest.trailing_zeros());
-            let holding = TextureStates::resident_status(Some(least.level));
-            let after = TextureStates::resident_status(next);
-            if !self.states.try_transition(texture, holding, after).unwrap_or(false) {
-                continue;
-            }
-            if self.cache.drop_finest(texture)?.is_none() {
-                let _ = self.states.try_transition(texture, after, holding);
-                continue;
-            }
-            self.totals.dropped_levels += 1;
-            self.last_cycle.dropped.push((texture, least.level));
-            dropped_now.insert(texture);
-            if let Some(level) = next {
-                let bytes = self.cache.level_bytes(texture, level);
-                heap.push(Victim {
-                    value: self.needs.keep_value(texture, level, bytes),
-                    texture,
-                    level,
-                });
-            }
-        };
-        *victims = Some(heap);
-        Ok(made)
+        }
     }
 
-    /// The live layers of `image` and the other images of its format ranked
-    /// for eviction, least worth last (so `pop` takes it): a layer is worth
-    /// its most valuable texture at that texture's coarsest resident level.
-    fn rank_layers(&self, image: u32) -> Vec<LayerVictim> {
-        let mut layers: Vec<LayerVictim> = self
-            .cache
-            .images_sharing_format(image)
-            .iter()
-            .flat_map(|&image| {
-                self.cache
-                    .layer_textures(image)
-                    .into_iter()
-                    .map(move |(layer, textures)| (image, layer, textures))
-            })
-            .map(|(image, layer, textures)| {
-                let mut worth = KeepValue {
-                    class: NeedClass::OutOfView,
-                    rank: f64::NEG_INFINITY,
-                };
-                for &texture in &textures {
-                    let resident = self.cache.resident_levels(texture);
-                    if resident == 0 {
-                        continue;
-                    }
-                    let coarsest = 31 - resident.leading_zeros();
-                    let value = self
-                        .needs
-                        .keep_value(texture, coarsest, self.cache.level_bytes(texture, coarsest));
-                    if worth.cmp_total(&value) == std::cmp::Ordering::Less {
-                        worth = value;
-                    }
-                }
-                LayerVictim {
-                    worth,
-                    image,
-                    layer,
-                    textures,
-                }
-            })
-            .collect();
-        // Oldest first among equals, as the ring would.
-        layers.reverse();
-        layers.sort_by(|a, b| b.worth.cmp_total(&a.worth));
-        layers
+    /// Carries out `drop`; false if the texture's state or the cache no
+    /// longer allows it (nothing changed then).
+    fn drop_level(&mut self, drop: LevelDrop) -> Result<bool> {
+        let LevelDrop { texture, level, next } = drop;
+        let holding = TextureStates::resident_status(Some(level));
+        let after = TextureStates::resident_status(next);
+        if !self.states.try_transition(texture, holding, after).unwrap_or(false) {
+            return Ok(false);
+        }
+        if self.cache.drop_finest(texture)?.is_none() {
+            let _ = self.states.try_transition(texture, after, holding);
+            return Ok(false);
+        }
+        self.totals.dropped_levels += 1;
+        self.last_cycle.dropped.push((texture, level));
+        Ok(true)
     }
 
     /// Evicts the live layer worth least among the images of `image`'s
-    /// format, if every texture in it
-    /// (at its most valuable, coarsest resident level) is worth less than
-    /// `load` and none has a mip staged in this cycle. Its textures are
-    /// reloaded from their first level when the view asks again. The
-    /// ranking is computed once per packing pass (`ranked`, per image).
-    fn free_layer(
-        &mut self,
-        image: u32,
-        load: KeepValue,
-        ranked: &mut std::collections::HashMap<u32, Vec<LayerVictim>>,
-        dropped_now: &mut HashSet<u32>,
-    ) -> Result<bool> {
-        let layers = ranked.entry(image).or_insert_with(|| self.rank_layers(image));
-        while let Some(least) = layers.last() {
-            if !least.worth.yields_to(&load) {
-                return Ok(false);
-            }
-            let Some(least) = layers.pop() else {
-                return Ok(false);
-            };
-            // Textures placed or loaded since the ranking make it stale.
-            if least.textures.iter().any(|&t| self.cache.has_pending(t)) {
-                continue;
-            }
-            self.cache.evict_layer(least.image, least.layer)?;
-            self.totals.evicted_layers += 1;
-            self.last_cycle.evicted_layers += 1;
-            dropped_now.extend(least.textures);
-            return Ok(true);
-        }
-        Ok(false)
+    /// format, if `pass` finds one whose every texture is worth less than
+    /// `load`. Its textures are reloaded from their first level when the view
+    /// asks again.
+    fn free_layer(&mut self, pass: &mut PackingPass, image: u32, load: KeepValue) -> Result<bool> {
+        let Some(eviction) = pass.next_layer_eviction(&self.cache, &self.needs, image, load) else {
+            return Ok(false);
+        };
+        let LayerEviction { image, layer, .. } = eviction;
+        self.cache.evict_layer(image, layer)?;
+        self.totals.evicted_layers += 1;
+        self.last_cycle.evicted_layers += 1;
+        pass.layer_evicted(eviction);
+        Ok(true)
     }
 
     /// [`Eviction::View`] packing: loaded mips go in, densest first; when
@@ -1089,33 +814,19 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.last_cycle = ResidencyCycle::default();
         let mut staged = std::mem::take(&mut self.deferred);
         staged.extend(self.queue.take());
-        let mut ranked: Vec<(KeepValue, StagedMip)> = staged
-            .into_iter()
-            .map(|mip| (self.needs.load_value(mip.texture, mip.bytes.len() as u64), mip))
-            .collect();
-        // Densest first; coarser levels of one texture before finer ones.
-        ranked.sort_by(|(a, x), (b, y)| {
-            b.cmp_total(a)
-                .then_with(|| x.texture.cmp(&y.texture))
-                .then_with(|| y.level.cmp(&x.level))
-        });
         let mut refused = 0;
-        let mut victims: Option<BinaryHeap<Victim>> = None;
-        let mut layers = std::collections::HashMap::new();
-        let mut dropped_now: HashSet<u32> = HashSet::new();
-        for (value, mip) in ranked {
+        let mut pass = PackingPass::new();
+        for (value, mip) in packing_order(&self.needs, staged) {
             let texture = mip.texture;
-            let held = self.cache.held_levels(texture);
-            let finest = (held != 0).then(|| held.trailing_zeros());
-            if finest.is_some_and(|f| mip.level >= f) {
-                continue; // Already held.
-            }
-            let follows = finest.is_none_or(|f| mip.level + 1 == f);
-            if !follows || dropped_now.contains(&texture) {
-                refused += 1;
-                let _ = self.states.settle(texture, TextureStates::resident_status(finest));
-                continue;
-            }
+            let finest = match pass.admit(&self.cache, texture, mip.level) {
+                Admission::AlreadyHeld => continue,
+                Admission::Refused { finest } => {
+                    refused += 1;
+                    let _ = self.states.settle(texture, TextureStates::resident_status(finest));
+                    continue;
+                }
+                Admission::Stage { finest } => finest,
+            };
             let source = self.loader.source();
             let (chain, format) = chain_and_format(source, texture)?;
             let mut attempts = 0;
@@ -1134,10 +845,10 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                         break;
                     }
                     Ok(StageOutcome::NoRoom { needed_blocks }) if attempts < 4 => {
-                        self.make_room(needed_blocks, value, &mut victims, &mut dropped_now)?
+                        self.make_room(&mut pass, needed_blocks, value)?
                     }
                     Ok(StageOutcome::NoLayer { image, .. }) if attempts < 4 => {
-                        self.free_layer(image, value, &mut layers, &mut dropped_now)?
+                        self.free_layer(&mut pass, image, value)?
                     }
                     Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. } | StageOutcome::EvictedItself) => {
                         false
@@ -1367,15 +1078,10 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                             class: NeedClass::Needed,
                             rank: f64::INFINITY,
                         };
-                        let mut victims = None;
-                        let mut dropped = HashSet::new();
+                        let mut pass = PackingPass::new();
                         let room = match outcome {
-                            StageOutcome::NoRoom { needed_blocks } => {
-                                self.make_room(needed_blocks, load, &mut victims, &mut dropped)?
-                            }
-                            StageOutcome::NoLayer { image, .. } => {
-                                self.free_layer(image, load, &mut Default::default(), &mut dropped)?
-                            }
+                            StageOutcome::NoRoom { needed_blocks } => self.make_room(&mut pass, needed_blocks, load)?,
+                            StageOutcome::NoLayer { image, .. } => self.free_layer(&mut pass, image, load)?,
                             _ => false,
                         };
                         if !room || cycles_run >= 2 {

@@ -31,10 +31,11 @@ use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::{
-    derive_image_layers, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, ImageDemand, Placement,
-    TexelFormat, TextureCache, Utilisation,
+    derive_image_layers, BudgetUse, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, ImageDemand,
+    Placement, TexelFormat, TextureCache, Utilisation,
 };
 use citystream_streaming::dataset::TextureFormat;
+use citystream_streaming::residency::planner::ResidentCache;
 use gpu_allocator::MemoryLocation;
 
 use crate::binder::VulkanBinder;
@@ -62,28 +63,7 @@ pub const CACHE_FORMATS: [(TextureFormat, vk::Format, TexelFormat); 4] = [
     (TextureFormat::Bc7, vk::Format::BC7_UNORM_BLOCK, TexelFormat::BC7),
 ];
 
-/// How the cache frees memory when the budget is reached.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub enum Eviction {
-    /// The paper's §3.6: the oldest layer is evicted whole, in ring order,
-    /// whatever it holds.
-    Ring,
-    /// Nothing is evicted by the cache itself: [`GpuTextureCache::stage`]
-    /// reports [`StageOutcome::NoRoom`] and the caller drops the levels the
-    /// view needs least ([`GpuTextureCache::drop_finest`]).
-    #[default]
-    View,
-}
-
-impl Eviction {
-    /// The name used on command lines and in reports.
-    pub fn name(self) -> &'static str {
-        match self {
-            Eviction::Ring => "ring",
-            Eviction::View => "view",
-        }
-    }
-}
+pub use citystream_streaming::residency::Eviction;
 
 /// How many array layers each cache image has.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -554,7 +534,7 @@ impl GpuTextureCache {
     }
 
     /// Bound blocks against the budget.
-    pub fn budget_use(&self) -> citystream_cache::BudgetUse {
+    pub fn budget_use(&self) -> BudgetUse {
         self.cache.budget_use()
     }
 
@@ -1137,4 +1117,43 @@ fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel:
 
 fn same_place(a: &Placement, b: &Placement) -> bool {
     a.image == b.image && a.layer == b.layer && a.region == b.region && a.assignment == b.assignment
+}
+
+/// The residency planner's view of the cache (`citystream_streaming::residency::planner`).
+impl ResidentCache for GpuTextureCache {
+    fn resident_textures(&self) -> impl Iterator<Item = u32> + '_ {
+        GpuTextureCache::resident_textures(self)
+    }
+
+    fn resident_levels(&self, texture: u32) -> u32 {
+        GpuTextureCache::resident_levels(self, texture)
+    }
+
+    fn held_levels(&self, texture: u32) -> u32 {
+        GpuTextureCache::held_levels(self, texture)
+    }
+
+    fn has_pending(&self, texture: u32) -> bool {
+        GpuTextureCache::has_pending(self, texture)
+    }
+
+    fn level_bytes(&self, texture: u32, level: u32) -> u64 {
+        GpuTextureCache::level_bytes(self, texture, level)
+    }
+
+    fn exclusive_blocks(&self, texture: u32, level: u32) -> u32 {
+        GpuTextureCache::exclusive_blocks(self, texture, level)
+    }
+
+    fn budget_use(&self) -> BudgetUse {
+        GpuTextureCache::budget_use(self)
+    }
+
+    fn images_sharing_format(&self, image: u32) -> &[u32] {
+        GpuTextureCache::images_sharing_format(self, image)
+    }
+
+    fn layer_textures(&self, image: u32) -> Vec<(u32, Vec<u32>)> {
+        GpuTextureCache::layer_textures(self, image)
+    }
 }

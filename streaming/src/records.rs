@@ -46,17 +46,19 @@ pub fn prepare(mut records: Vec<MeshMetaData>, tau: u32) -> Vec<MeshMetaData> {
     records
 }
 
+/// A record, for tests across the crate.
+#[cfg(test)]
+pub(crate) fn rec(mesh_id: u32, weight: u32, mip_level: u32) -> MeshMetaData {
+    MeshMetaData {
+        mip_level,
+        weight,
+        mesh_id,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn rec(mesh_id: u32, weight: u32, mip_level: u32) -> MeshMetaData {
-        MeshMetaData {
-            mip_level,
-            weight,
-            mesh_id,
-        }
-    }
 
     #[test]
     fn filters_below_tau_and_sorts_descending() {

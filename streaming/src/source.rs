@@ -1,13 +1,16 @@
 //! Where mip bytes come from ([`MipSource`]) and where staged mips go
 //! ([`MipSink`]), with in-memory implementations for tests and tools.
 //!
-//! The file-backed dataset reader implements [`MipSource`] with one
-//! positioned read per mip; the engine's uploader implements [`MipSink`]
+//! The file-backed dataset reader ([`DatasetSource`]) implements
+//! [`MipSource`] with one positioned read per mip; the engine's uploader implements [`MipSink`]
 //! (records the copy into the sparse image and the memory binding).
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
-use crate::dataset::TextureFormat;
+use citystream_cache::geometry::cacheable_mip_count;
+use citystream_cache::TexelFormat;
+
+use crate::dataset::{Dataset, DatasetError, TextureFormat};
 use crate::states::MipChain;
 
 /// Error reading a texture's header or a mip.
@@ -484,6 +487,113 @@ impl<S: MipSource> MipSource for FaultySource<S> {
             }
         }
         self.inner.read_mip(texture, level, buf)
+    }
+}
+
+/// The cache's texel format for a dataset format.
+pub fn texel_format(format: TextureFormat) -> TexelFormat {
+    match format {
+        TextureFormat::Bc1 => TexelFormat::BC1,
+        TextureFormat::Bc3 => TexelFormat::BC3,
+        TextureFormat::Bc7 => TexelFormat::BC7,
+        TextureFormat::Rgba8 => TexelFormat::RGBA8,
+    }
+}
+
+/// The dataset's texture pack as a [`MipSource`]. The chain it reports
+/// stops at the levels the cache can hold (both sides at least one texel
+/// block), so the loader never asks for a level the cache would refuse.
+#[derive(Debug, Clone)]
+pub struct DatasetSource {
+    dataset: Arc<Dataset>,
+}
+
+impl DatasetSource {
+    /// Reads from `dataset`.
+    pub fn new(dataset: Arc<Dataset>) -> Self {
+        Self { dataset }
+    }
+
+    /// The dataset read from.
+    pub fn dataset(&self) -> &Arc<Dataset> {
+        &self.dataset
+    }
+
+    fn chain(&self, texture: u32) -> Result<MipChain, SourceError> {
+        let info = self
+            .dataset
+            .textures
+            .info(texture)
+            .map_err(|_| SourceError::UnknownTexture { texture })?;
+        let cacheable = cacheable_mip_count(&texel_format(info.format()), info.width(), info.height());
+        Ok(MipChain {
+            width: info.width(),
+            height: info.height(),
+            mip_count: info.mip_count().min(cacheable).max(1),
+        })
+    }
+}
+
+fn source_error(texture: u32, level: u32, error: DatasetError) -> SourceError {
+    match error {
+        DatasetError::Io { path, source } => SourceError::File {
+            texture,
+            level,
+            path,
+            source,
+        },
+        other => SourceError::Other {
+            texture,
+            reason: other.to_string(),
+        },
+    }
+}
+
+impl MipSource for DatasetSource {
+    fn texture_count(&self) -> u32 {
+        self.dataset.textures.len()
+    }
+
+    fn texture_format(&self, texture: u32) -> Result<TextureFormat, SourceError> {
+        self.dataset
+            .textures
+            .info(texture)
+            .map(|info| info.format())
+            .map_err(|_| SourceError::UnknownTexture { texture })
+    }
+
+    fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError> {
+        self.chain(texture)
+    }
+
+    fn mip_len(&self, texture: u32, level: u32) -> Result<u64, SourceError> {
+        let chain = self.chain(texture)?;
+        if level >= chain.mip_count {
+            return Err(SourceError::UnknownLevel {
+                texture,
+                level,
+                mip_count: chain.mip_count,
+            });
+        }
+        let info = self
+            .dataset
+            .textures
+            .info(texture)
+            .map_err(|_| SourceError::UnknownTexture { texture })?;
+        Ok(info.mip_len(level))
+    }
+
+    fn prefetch(&self, mips: &[(u32, u32)]) {
+        self.dataset.textures.prefetch(mips);
+    }
+
+    fn read_mip(&self, texture: u32, level: u32, buf: &mut [u8]) -> Result<(), SourceError> {
+        self.check_buffer_len(texture, level, buf)?;
+        self.dataset
+            .textures
+            .read_mip_into(texture, level, buf)
+            .map(|_| ())
+            .map_err(|e| source_error(texture, level, e))
     }
 }
 

@@ -24,12 +24,11 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use citystream_engine::stream::DatasetSource;
 use citystream_streaming::controller::Decision;
 use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::{Loader, LoaderOptions};
 use citystream_streaming::records::MeshMetaData;
-use citystream_streaming::source::{MipSink, SinkError, StagedMip};
+use citystream_streaming::source::{DatasetSource, MipSink, SinkError, StagedMip};
 use rayon::prelude::*;
 
 /// Keeps which mips arrived, drops the bytes.

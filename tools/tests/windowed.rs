@@ -1,6 +1,6 @@
 //! `flythrough --window` on lavapipe under Xvfb (a virtual X server each test
-//! starts on a free display): presented frames against headless ones, a
-//! recorded path replayed headless, resizing and minimising, wall-clock
+//! starts on a free display): presented frames against headless ones (also with the
+//! atlas-tree strategy over aerial imagery), a recorded path replayed headless, resizing and minimising, wall-clock
 //! replay. Synchronization validation is on; the window exits non-zero on any
 //! validation message. The tests fail when Xvfb is missing after the setup
 //! script ran (`make setup`); before it, they say so and skip.
@@ -126,39 +126,42 @@ fn write_script(dir: &Path, json: &str) -> PathBuf {
     path
 }
 
-#[test]
-fn windowed_frames_are_the_headless_frames_of_the_same_camera_pose() {
-    let Some(x) = start_xvfb() else { return };
-    let dir = fresh_dir("windowed", "frames");
-    let city = tiny_city(&dir);
-    // The first 1.5 s of the standard path, presented, with the swapchain
-    // image read back at three frames.
+/// Flies the first 1.5 s of the standard path of `dataset` in the window (presented, the
+/// swapchain image read back at three frames) and headless, both with `extra` options, and
+/// checks that the window flew the same poses and presented the headless renders pixel
+/// for pixel (the fixed clock streams deterministically; the blit copies UNORM to UNORM).
+fn assert_window_presents_the_headless_frames(
+    x: &Xvfb,
+    dir: &Path,
+    dataset: &Path,
+    extra: &[(&str, &Path)],
+    flags: &[&str],
+) {
     let script = write_script(
-        &dir,
+        dir,
         r#"{"events": [{"frame": 30, "screenshot": true}, {"frame": 60, "screenshot": true},
                        {"frame": 89, "screenshot": true}]}"#,
     );
-    let common = [
+    let mut common = vec![
         "--clock", "fixed", "--path", "standard", "--frames", "90", "--width", "320", "--height", "180",
     ];
+    common.extend(flags);
+    let mut paths = vec![("--dataset", dataset)];
+    paths.extend(extra);
     let window_out = dir.join("window");
     let mut args = vec!["--window"];
-    args.extend(common);
-    let out = flythrough(
-        Some(&x),
-        &args,
-        &[
-            ("--dataset", &city),
-            ("--out", &window_out),
-            ("--input-script", &script),
-        ],
-    );
+    args.extend(&common);
+    let mut window_paths = paths.clone();
+    window_paths.extend([("--out", window_out.as_path()), ("--input-script", script.as_path())]);
+    let out = flythrough(Some(x), &args, &window_paths);
     assert_ok(&out, "the window");
     assert!(stderr(&out).contains("validation: 0 message(s)"), "{}", stderr(&out));
     let headless_out = dir.join("headless");
     let mut args = vec!["--frame-interval", "1", "--psnr-interval", "0"];
-    args.extend(common);
-    let out = flythrough(None, &args, &[("--dataset", &city), ("--out", &headless_out)]);
+    args.extend(&common);
+    let mut headless_paths = paths;
+    headless_paths.push(("--out", headless_out.as_path()));
+    let out = flythrough(None, &args, &headless_paths);
     assert_ok(&out, "the headless run");
 
     // Same poses frame by frame ...
@@ -168,8 +171,7 @@ fn windowed_frames_are_the_headless_frames_of_the_same_camera_pose() {
     );
     assert_eq!(window_poses.len(), 90);
     assert_eq!(window_poses, headless_poses);
-    // ... and the presented images are the headless renders, pixel for pixel
-    // (the fixed clock streams deterministically; the blit copies UNORM to UNORM).
+    // ... and the presented images are the headless renders, pixel for pixel.
     for frame in [30, 60, 89] {
         let name = format!("frame_{frame:05}.png");
         let presented = png(&window_out.join("frames").join(&name));
@@ -187,6 +189,61 @@ fn windowed_frames_are_the_headless_frames_of_the_same_camera_pose() {
             "{name}: {differing} pixels differ from the headless frame"
         );
     }
+}
+
+#[test]
+fn windowed_frames_are_the_headless_frames_of_the_same_camera_pose() {
+    let Some(x) = start_xvfb() else { return };
+    let dir = fresh_dir("windowed", "frames");
+    let city = tiny_city(&dir);
+    assert_window_presents_the_headless_frames(&x, &dir, &city, &[], &[]);
+}
+
+#[test]
+fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
+    let Some(x) = start_xvfb() else { return };
+    let dir = fresh_dir("windowed", "tree_ground");
+    let city = tiny_city(&dir);
+    let tree = dir.join("tree");
+    let s = |p: &Path| p.to_str().expect("utf-8 path").to_owned();
+    let out = citystream(&[
+        "atlas-tree",
+        &s(&city),
+        "--out",
+        &s(&tree),
+        "--atlas-extent",
+        "256",
+        "--quiet",
+    ]);
+    assert!(out.status.success(), "atlas-tree: {}", stderr(&out));
+    let image = dir.join("survey.png");
+    image::RgbaImage::from_fn(300, 200, |x, y| {
+        image::Rgba([(x % 256) as u8, (y % 256) as u8, 128, 255])
+    })
+    .save(&image)
+    .expect("write the survey image");
+    let patches = dir.join("patches");
+    let out = citystream(&[
+        "patches",
+        &s(&image),
+        "--dataset",
+        &s(&tree),
+        "--out",
+        &s(&patches),
+        "--count",
+        "6",
+        "--max-texels",
+        "256",
+        "--quiet",
+    ]);
+    assert!(out.status.success(), "patches: {}", stderr(&out));
+    assert_window_presents_the_headless_frames(
+        &x,
+        &dir,
+        &tree,
+        &[("--ground", &patches)],
+        &["--strategy", "atlas-tree"],
+    );
 }
 
 #[test]

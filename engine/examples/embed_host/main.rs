@@ -29,11 +29,11 @@ use citystream_engine::device::{check_physical_device, required_features, Device
 use citystream_engine::gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::pipeline::DescriptorResource;
-use citystream_engine::stream::{DatasetSource, StreamConfig, TextureStreamer};
+use citystream_engine::stream::{StreamConfig, TextureStreamer};
 use citystream_engine::target::{write_png, RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::dataset::{Dataset, TextureFormat};
-use citystream_streaming::source::{MipSource, SourceError};
+use citystream_streaming::source::{DatasetSource, MipSource, SourceError};
 use citystream_streaming::states::MipChain;
 use glam::{Mat4, Vec3};
 

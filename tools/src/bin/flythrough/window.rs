@@ -21,22 +21,19 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
-use citystream_engine::city::CityMesh;
-use citystream_engine::commands::{CommandContext, SemaphoreSignal, SemaphoreWait};
+use citystream_engine::commands::CommandContext;
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::target::write_png;
-use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::Device;
 use citystream_streaming::bench::path::{CameraPath, CameraPose, Keyframe};
-use citystream_streaming::bind_latency::BindLatencyModel;
 use citystream_streaming::dataset::Dataset;
-use citystream_streaming::rng::SplitMix64;
 
-use super::{
-    cache_layer_size, camera_path, city_targets, dataset_dir, flythrough_device, frame_interval, frame_latency,
-    frames_dir_path, open_city, pending_textures, pose_camera, streamed_city_gpu, write_csv_row, Args, CityGpu,
-    CityTargets, Clock, CsvRow, CSV_HEADER, FIXED_STEP_MS,
+use super::args::{frame_interval, frames_dir_path, Args, Clock, FIXED_STEP_MS};
+use super::flight::{
+    camera_path, city_targets, dataset_dir, flythrough_device, focal_px, lowest_eye_height, open_city, pose_camera,
+    Flight, FrameSettings, GroundSizing,
 };
+use super::output::{write_csv_row, CsvRow, CSV_HEADER};
 
 /// What a key (or a scripted event) does.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
@@ -333,12 +330,8 @@ impl Throughput {
 struct Viewer {
     window: Arc<Window>,
     device: Arc<Device>,
-    dataset: Arc<Dataset>,
-    meshes: Vec<CityMesh>,
-    extent: f32,
-    gpu: CityGpu,
-    targets: CityTargets,
-    frame_commands: Vec<CommandContext>,
+    /// The streamed city and its frame, shared with the headless run.
+    flight: Flight,
     presenter: Presenter,
     size: (u32, u32),
     needs_resize: bool,
@@ -368,17 +361,12 @@ struct Viewer {
     time_s: f64,
     frame: u32,
     frame_ms: f64,
-    clock: CpuFrameClock,
     last_frame_at: Option<Instant>,
-    latency: BindLatencyModel,
-    latency_rng: SplitMix64,
     throughput: Throughput,
     pending: usize,
-    last_feedback: Option<u64>,
     title_at: Instant,
     /// The live stats last shown in the title bar.
     title: String,
-    warned_over_budget: bool,
     csv: std::io::BufWriter<std::fs::File>,
     screenshots: Vec<String>,
 }
@@ -592,7 +580,7 @@ impl Viewer {
         event_loop: &ActiveEventLoop,
         screenshots: bool,
     ) -> Result<Self> {
-        let (dataset, city) = open_city(args, dir)?;
+        let opened = open_city(args, dir)?;
         let attributes = Window::default_attributes()
             .with_title(format!("citystream · {}", dir.display()))
             .with_inner_size(PhysicalSize::new(args.width, args.height));
@@ -618,28 +606,9 @@ impl Viewer {
             );
         }
         let size = presenter.extent();
-        let layer_size = cache_layer_size(&dataset, &device);
-        let mut commands = CommandContext::new(&device, "window setup")?;
-        let targets = city_targets(&device, size.0, size.1)?;
-        let gpu = streamed_city_gpu(
-            args,
-            &device,
-            &mut commands,
-            &dataset,
-            &city,
-            targets.fragment_area,
-            layer_size,
-            None,
-            0,
-        )?;
-        let frame_commands = (0..args.frames_in_flight)
-            .map(|i| CommandContext::new(&device, &format!("window frame (slot {i})")))
-            .collect::<std::result::Result<Vec<_>, _>>()?;
-        let bounds = dataset.scene.bounds;
-        let span = Vec3::from(bounds.max) - Vec3::from(bounds.min);
-        let extent = span.x.max(span.y).max(span.z).max(1.0);
+        let scene = &opened.0.scene;
         let path = match &args.path {
-            Some(name) => Some(camera_path(name, &dataset.scene)?),
+            Some(name) => Some(camera_path(name, scene)?),
             None => None,
         };
         let replay = path.as_ref().map(|path| {
@@ -652,8 +621,20 @@ impl Viewer {
         });
         let start = match &path {
             Some(path) => path.sample_between(None, 0.0),
-            None => overview_pose(&dataset),
+            None => overview_pose(&opened.0),
         };
+        let ground_y = scene.bounds.min[1];
+        let mut commands = CommandContext::new(&device, "window setup")?;
+        // The ground's levels: down to what the path's lowest eye needs, or every level
+        // the imagery has when the camera flies freely.
+        let flight = Flight::new(args, &device, &mut commands, dir, opened, size, |extent| GroundSizing {
+            focal_px: focal_px(size.1, &pose_camera(&start, extent)),
+            lowest_eye_m: path.as_ref().map(|path| {
+                let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
+                lowest_eye_height(path, duration_s, ground_y, extent)
+            }),
+        })?;
+        let extent = flight.extent;
         std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
         let csv_path = args.out.join("frames.csv");
         let mut csv = std::io::BufWriter::new(
@@ -663,8 +644,8 @@ impl Viewer {
         eprintln!(
             "scene: {} ({} meshes, {} textures), {}x{} window, {} presentation, {} frame(s) in flight",
             dir.display(),
-            dataset.scene.meshes.len(),
-            dataset.textures.len(),
+            flight.dataset.scene.meshes.len(),
+            flight.dataset.textures.len(),
             size.0,
             size.1,
             presenter.mode().name(),
@@ -674,16 +655,10 @@ impl Viewer {
             eprintln!("recording the camera path to {}", file.display());
             Recorder::new(file, 0.0)
         });
-        let meshes = city.1;
         Ok(Self {
             window,
             device,
-            dataset,
-            meshes,
-            extent,
-            gpu,
-            targets,
-            frame_commands,
+            flight,
             presenter,
             size,
             needs_resize: false,
@@ -705,16 +680,11 @@ impl Viewer {
             time_s: 0.0,
             frame: 0,
             frame_ms: FIXED_STEP_MS,
-            clock: CpuFrameClock::new(),
             last_frame_at: None,
-            latency: BindLatencyModel::preset(args.bind_latency),
-            latency_rng: SplitMix64::new(args.seed),
             throughput: Throughput::default(),
             pending: 0,
-            last_feedback: None,
             title_at: Instant::now(),
             title: String::new(),
-            warned_over_budget: false,
             csv,
             screenshots: Vec::new(),
         })
@@ -755,14 +725,14 @@ impl Viewer {
             Action::Overview => {
                 self.take_over();
                 let look_distance = self.camera.look_distance;
-                self.camera = FlyCamera::from_pose(&overview_pose(&self.dataset));
+                self.camera = FlyCamera::from_pose(&overview_pose(&self.flight.dataset));
                 self.camera.look_distance = look_distance;
                 self.jumped = true;
             }
             Action::Replay => {
                 let path = match &self.path {
                     Some(path) => path.clone(),
-                    None => camera_path("standard", &self.dataset.scene)?,
+                    None => camera_path("standard", &self.flight.dataset.scene)?,
                 };
                 path.restart();
                 self.replay = Some(Replay {
@@ -825,7 +795,8 @@ impl Viewer {
 
     fn scroll(&mut self, notches: f64) {
         let factor = 1.25f32.powf(notches.clamp(-20.0, 20.0) as f32);
-        self.speed = (self.speed * factor).clamp(self.extent * 1e-4, self.extent * 2.0);
+        let extent = self.flight.extent;
+        self.speed = (self.speed * factor).clamp(extent * 1e-4, extent * 2.0);
     }
 
     /// Moves the camera by the held keys over `dt_s` seconds, or along the
@@ -920,7 +891,7 @@ impl Viewer {
         if std::mem::take(&mut self.interrupted) {
             // Time hidden or waiting is neither frame latency for the
             // controller nor camera time (a path resumes where it was).
-            self.clock.tick();
+            self.flight.restart_latency_clock();
             self.last_frame_at = None;
         }
         // This frame's camera time: wall-clock time since the last frame (at
@@ -960,9 +931,10 @@ impl Viewer {
             return Ok(());
         }
         let (width, height) = self.presenter.extent();
-        if (width, height) != (self.targets.target.width(), self.targets.target.height()) {
+        let target = &self.flight.targets.target;
+        if (width, height) != (target.width(), target.height()) {
             // The presenter waited for the device: the old targets are unused.
-            self.targets = city_targets(&self.device, width, height)?;
+            self.flight.targets = city_targets(&self.device, width, height)?;
         }
         self.size = (width, height);
         Ok(())
@@ -973,50 +945,33 @@ impl Viewer {
         if let Some(recorder) = self.recorder.as_mut() {
             recorder.push(self.time_s, &pose, pose.jumped);
         }
-        let camera = pose_camera(&pose, self.extent);
-        let tau = self.gpu.streamer.gpu_tau();
-
-        let begun = self.gpu.streamer.begin_frame()?;
-        if begun.over_budget && !self.warned_over_budget {
-            self.warned_over_budget = true;
-            eprintln!("\nwarning: the view needs more texture memory than the budget holds; showing what fits");
+        let camera = pose_camera(&pose, self.flight.extent);
+        let recorded = self.flight.record(
+            self.frame,
+            &camera,
+            &FrameSettings {
+                time_s: self.time_s,
+                // Paused: no feedback, so the loader is handed nothing new (the atlas
+                // tree pages from the view and goes on).
+                feedback: !self.streaming_paused,
+                every_seen_mesh: false,
+                colormap_blend: self.colormap_blend,
+            },
+        )?;
+        if let Some(feedback) = recorded.feedback {
+            self.pending = feedback.pending;
         }
-        if let Some((from, entries)) = self.gpu.streamer.latest_feedback() {
-            if self.last_feedback != Some(from) {
-                self.last_feedback = Some(from);
-                self.pending = pending_textures(entries, tau, &self.meshes, self.gpu.streamer.cache());
-            }
-        }
+        let begun = &recorded.begun;
         let acquired = self.presenter.acquire(begun.slot)?;
-        let commands = &mut self.frame_commands[begun.slot as usize];
-        let cmd = commands.begin_completed()?;
-        let applied = self.gpu.streamer.record_uploads(cmd)?;
-        let CityTargets {
-            target,
-            feedback_target,
-            view,
-            ..
-        } = &self.targets;
-        if !self.streaming_paused {
-            self.gpu
-                .renderer
-                .record_feedback(cmd, feedback_target, &camera, view, target.height())?;
-            self.gpu.streamer.record_feedback_resolve(cmd)?;
-        }
-        self.gpu
-            .renderer
-            .record_visible(cmd, target, &camera, 1.0, self.colormap_blend);
         if let Some(image) = &acquired {
-            self.presenter.record_blit(cmd, image, target, screenshot)?;
+            self.presenter
+                .record_blit(recorded.cmd, image, &self.flight.targets.target, screenshot)?;
         }
-        let submit = self.gpu.streamer.end_frame(self.frame_ms)?;
-        let mut waits: Vec<SemaphoreWait> = submit.waits.clone();
-        let mut signals: Vec<SemaphoreSignal> = vec![submit.signal];
-        if let Some(image) = &acquired {
-            waits.push(image.wait);
-            signals.push(image.signal);
-        }
-        commands.submit_frame(&waits, &signals)?;
+        let (waits, signals) = match &acquired {
+            Some(image) => (vec![image.wait], vec![image.signal]),
+            None => (Vec::new(), Vec::new()),
+        };
+        self.flight.submit(&recorded, self.frame_ms, &waits, &signals)?;
         let presented = acquired.is_some();
         match acquired {
             Some(image) => {
@@ -1035,17 +990,17 @@ impl Viewer {
         if screenshot && presented {
             // The copy was recorded after the blit; a swapchain now out of
             // date still held this frame's image when it ran.
-            self.gpu.streamer.wait_for_frame(begun.index)?;
+            self.flight.gpu.streamer.wait_for_frame(begun.index)?;
             let path = frames_dir_path(args).join(format!("frame_{:05}.png", self.frame));
             write_png(&self.presenter.read_screenshot()?, &path)?;
             self.screenshots.push(path.display().to_string());
         }
 
-        self.frame_ms = frame_latency(args.clock, &applied, 0, &self.latency, &mut self.latency_rng, || {
-            self.clock.tick().as_secs_f64() * 1000.0
-        });
-        let resident = self.gpu.streamer.cache().utilisation().bound_bytes;
-        let telemetry = self.gpu.streamer.policy().telemetry();
+        self.frame_ms = self.flight.latency(&recorded);
+        let applied = &recorded.applied;
+        let streamer = &self.flight.gpu.streamer;
+        let resident = streamer.cache().utilisation().bound_bytes;
+        let telemetry = streamer.policy().telemetry();
         write_csv_row(
             &mut self.csv,
             &CsvRow {
@@ -1053,9 +1008,9 @@ impl Viewer {
                 time_s: self.time_s,
                 frame_ms: self.frame_ms,
                 telemetry: &telemetry,
-                applied: &applied,
+                applied,
                 resident,
-                deficit: None,
+                deficit: recorded.feedback.and_then(|f| f.deficit),
                 error: None,
                 ground_error: None,
                 camera: &camera,
@@ -1109,11 +1064,10 @@ impl Viewer {
             args.out.display(),
             self.title
         );
-        let failed = self.gpu.streamer.failed_textures();
+        let streamer = &self.flight.gpu.streamer;
+        let failed = streamer.failed_textures();
         if failed > 0 {
-            let first = self
-                .gpu
-                .streamer
+            let first = streamer
                 .load_failures()
                 .first()
                 .map(|f| format!("; the first: {}", f.reason))

@@ -28,6 +28,11 @@
 //!
 //! [`AdmissionGate`] carries the lowest density still resident to the
 //! loader, which then skips reads the cache would refuse.
+//!
+//! [`planner`] applies these rankings to a cache seen through the
+//! [`planner::ResidentCache`] trait: which levels to drop and which layers
+//! to evict for each load, and how hard the gate closes. It returns actions;
+//! the GPU cache carries them out.
 
 use std::cmp::Ordering as CmpOrdering;
 use std::collections::HashSet;
@@ -35,6 +40,30 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 
 use crate::records::MeshMetaData;
+
+pub mod planner;
+
+/// How the cache frees memory when the budget is reached.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Eviction {
+    /// The paper's §3.6: the oldest layer is evicted whole, in ring order,
+    /// whatever it holds.
+    Ring,
+    /// Nothing is evicted by the cache itself: the [`planner`] drops the
+    /// levels the view needs least, and evicts the layers worth least.
+    #[default]
+    View,
+}
+
+impl Eviction {
+    /// The name used on command lines and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Eviction::Ring => "ring",
+            Eviction::View => "view",
+        }
+    }
+}
 
 /// Why a resident level is (or is not) a good candidate to drop.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -295,14 +324,7 @@ impl AdmissionGate {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn rec(mesh_id: u32, weight: u32, mip_level: u32) -> MeshMetaData {
-        MeshMetaData {
-            mip_level,
-            weight,
-            mesh_id,
-        }
-    }
+    use crate::records::rec;
 
     #[test]
     fn classes_order_out_of_view_then_surplus_then_needed() {

@@ -1,0 +1,280 @@
+//! The flythrough's command line: options, their parsers, and the fixed clock's constants.
+
+use std::path::PathBuf;
+
+use clap::{Parser, ValueEnum};
+
+use citystream_engine::present::PresentMode;
+use citystream_engine::texture_cache::Eviction;
+use citystream_streaming::bind_latency::BindLatencyPreset;
+use citystream_streaming::controller::PolicyKind;
+use citystream_streaming::source::FaultPlan;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Clock {
+    /// The camera follows wall-clock time; frame latency is measured.
+    Real,
+    /// A fixed time step per frame; frame latency is modelled (a fixed
+    /// render cost plus the bind-latency model's cost of each batch and the
+    /// copy at 12 GB/s), so runs are reproducible.
+    Fixed,
+    /// Frame latency modelled as with `fixed`, and the camera advances by
+    /// each frame's modelled latency (at least the 60 Hz step), as it would
+    /// in real time on the modelled GPU: a stalled frame makes the camera
+    /// jump ahead and the next frames ask for more, as in the paper's
+    /// benchmark. Reproducible too.
+    Modelled,
+}
+
+impl Clock {
+    /// Whether frame latency comes from the model instead of being measured.
+    pub(crate) fn is_modelled(self) -> bool {
+        self != Clock::Real
+    }
+
+    /// The name written to summary.json.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Clock::Real => "real",
+            Clock::Fixed => "fixed",
+            Clock::Modelled => "modelled",
+        }
+    }
+}
+
+/// `--strategy`: how the run decides what to load and draws it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Strategy {
+    /// The paper's: a GPU feedback pass says which mip each visible mesh needs.
+    Feedback,
+    /// The texture-atlas tree's (docs/ATLAS_TREE.md): nodes chosen by distance draw their
+    /// atlases, blocks paged by §6's priorities; `--dataset` names a tree.
+    AtlasTree,
+}
+
+impl Strategy {
+    /// The name written to summary.json.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Strategy::Feedback => "feedback",
+            Strategy::AtlasTree => "atlas-tree",
+        }
+    }
+}
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "flythrough",
+    version,
+    about = "Stream and render a textured city headless along a camera path",
+    long_about = "Renders a city off-screen (no window) along a camera path and writes every N-th \
+                  frame as PNG plus summary.json.\n\n\
+                  It runs the adaptive streaming pipeline on a city dataset: a feedback pass tells \
+                  which mip each visible mesh needs, a loading task reads exactly those mips, \
+                  the sparse texture cache binds memory and copies them, and the frame blends \
+                  sampled colour with the City Colormap by mip level. Without --dataset it \
+                  streams the default city (data/city, created on first run); with \
+                  --placeholder it renders a small procedural city, fully resident."
+)]
+pub(crate) struct Args {
+    /// City dataset directory (written by `citystream gen`, `import` or `atlas`).
+    /// Default: the default city in data/city, created on first run (the
+    /// `small` generated city in 2048x2048 atlases, see docs/DATASET.md).
+    #[arg(long)]
+    pub(crate) dataset: Option<PathBuf>,
+    /// Render a procedural placeholder city, fully resident, instead of
+    /// streaming a dataset (no feedback, no streaming).
+    #[arg(long, conflicts_with_all = ["dataset", "pop_in"])]
+    pub(crate) placeholder: bool,
+    /// Output directory for frames/ and summary.json.
+    #[arg(long, default_value = "out/flythrough")]
+    pub(crate) out: PathBuf,
+    /// Camera path: `standard` (the benchmark path derived from the dataset,
+    /// see docs/PATHS.md) or a path file (`citystream path`, or recorded in
+    /// the window). Default: `standard`; with --window, free flight from the
+    /// overview.
+    #[arg(long)]
+    pub(crate) path: Option<String>,
+    /// Number of frames to render (default: as many as the path lasts; 240
+    /// with --placeholder).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub(crate) frames: Option<u32>,
+    /// Stop after this many seconds of camera time (default: the path's
+    /// length; at most a day).
+    #[arg(long, value_parser = parse_duration_s)]
+    pub(crate) duration_s: Option<f64>,
+    /// Write every N-th frame as PNG (0 writes none). Default: 20; with
+    /// --window, 0 (the PNGs are then what the window presented).
+    #[arg(long)]
+    pub(crate) frame_interval: Option<u32>,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 640, value_parser = clap::value_parser!(u32).range(16..=8192))]
+    pub(crate) width: u32,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 360, value_parser = clap::value_parser!(u32).range(16..=8192))]
+    pub(crate) height: u32,
+    /// Streaming strategy: `feedback` (the paper's GPU feedback) or `atlas-tree` (a
+    /// texture-atlas tree built by `citystream atlas-tree`, named by --dataset; see
+    /// docs/ATLAS_TREE.md). Both share the loader, the cache and the policy.
+    #[arg(long, value_enum, default_value_t = Strategy::Feedback)]
+    pub(crate) strategy: Strategy,
+    /// Streaming policy: adaptive (paper Eq. 4-7), baseline (s = s_max, b = 0) or fixed.
+    #[arg(long, default_value = "adaptive")]
+    pub(crate) policy: PolicyKind,
+    /// Target maximum frame latency α in ms (adaptive).
+    #[arg(long, default_value_t = 16.0)]
+    pub(crate) alpha: f64,
+    /// Maximum mip bias β (adaptive).
+    #[arg(long, default_value_t = 8.0)]
+    pub(crate) beta: f64,
+    /// Load size in MB (fixed policy).
+    #[arg(long, default_value_t = 4.0)]
+    pub(crate) load_size_mb: f64,
+    /// Mip bias (fixed policy).
+    #[arg(long, default_value_t = 0.0)]
+    pub(crate) mip_bias: f64,
+    /// Modelled cost of binding sparse memory: none, lavapipe or desktop.
+    #[arg(long, default_value = "none")]
+    pub(crate) bind_latency: BindLatencyPreset,
+    /// Clock: real (measured), fixed (reproducible, modelled latency, 60
+    /// frames per camera second) or modelled (reproducible, the camera
+    /// advancing by each frame's modelled latency).
+    #[arg(long, value_enum, default_value_t = Clock::Real)]
+    pub(crate) clock: Clock,
+    /// Memory budget of bound texture blocks in MB, or `unlimited`.
+    #[arg(long, default_value = "512", value_parser = parse_budget_mb)]
+    pub(crate) memory_budget_mb: BudgetMb,
+    /// How the cache frees memory at the budget: `view` (drop the levels the
+    /// view needs least, see ARCHITECTURE.md, "Eviction") or `ring` (the paper's
+    /// oldest-layer ring).
+    #[arg(long, default_value = "view", value_parser = parse_eviction)]
+    pub(crate) eviction: Eviction,
+    /// Layers per cache image (default: derived from the dataset, the
+    /// budget and the device).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65535))]
+    pub(crate) cache_layers: Option<u32>,
+    /// Pick the Vulkan device whose name contains this text (also CITYSTREAM_DEVICE).
+    #[arg(long)]
+    pub(crate) device: Option<String>,
+    /// Seed of the placeholder city and of the bind-latency model's spikes.
+    #[arg(long, default_value_t = 7)]
+    pub(crate) seed: u64,
+    /// Blocks per side of the placeholder city (with --placeholder).
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=200))]
+    pub(crate) blocks: u32,
+    /// Enable the Vulkan validation layer (default: on in debug builds).
+    #[arg(long)]
+    pub(crate) validation: Option<bool>,
+    /// Instead of a flythrough, measure pop-in (the paper's Fig. 7): a static
+    /// view that starts with nothing resident and whose textures then refine
+    /// one level per frame from the coarsest; the largest inter-frame MSE with
+    /// direct sampling (no City Colormap: unloaded reads as zero) and with
+    /// colormap blending (Eq. 8). Writes OUT/popin.json.
+    #[arg(long)]
+    pub(crate) pop_in: bool,
+    /// Frames the CPU may record ahead of the GPU (1 waits for every frame).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub(crate) frames_in_flight: u32,
+    /// Exit 0 even when textures failed to load (a read error, a truncated
+    /// pack); the failures are still counted in summary.json and warned about.
+    #[arg(long)]
+    pub(crate) allow_load_failures: bool,
+    /// Testing aid: make reads of the texture pack fail, `EVERY:TIMES`: one
+    /// mip in EVERY (chosen by its texture and level) fails its first TIMES
+    /// reads. The loader reads a mip up to 3 times, so TIMES of 2 or less
+    /// recover and 3 or more fail the texture.
+    #[arg(long, value_parser = FaultPlan::parse)]
+    pub(crate) inject_read_failures: Option<FaultPlan>,
+    /// Measure image error every N frames: render a reference of the same view
+    /// with every needed mip resident and report PSNR against it (0: never).
+    #[arg(long, default_value_t = 30)]
+    pub(crate) psnr_interval: u32,
+    /// Aerial imagery under the city (docs/GROUND.md): a patch set written by
+    /// `citystream patches`, draped on the ground through a flexible clipmap; each patch
+    /// is inserted when its arrival time comes, and ground tiles share the controller's
+    /// load size with the facades.
+    #[arg(long, conflicts_with_all = ["placeholder", "pop_in"])]
+    pub(crate) ground: Option<PathBuf>,
+    /// Open a window and fly through the city interactively (docs/WINDOW.md):
+    /// mouse and keys fly, --path replays a path at wall-clock speed, R
+    /// records. Needs a display (X11, or XWayland).
+    #[arg(long, conflicts_with_all = ["placeholder", "pop_in"])]
+    pub(crate) window: bool,
+    /// With --window: vsync (default), mailbox or immediate; vsync where the
+    /// display lacks the one asked for.
+    #[arg(long, default_value = "vsync", requires = "window")]
+    pub(crate) present_mode: PresentMode,
+    /// With --window: record the flown camera path from the first frame to
+    /// this path file (R stops and restarts it); written when recording stops
+    /// or the window closes, replacing the file atomically.
+    #[arg(long, requires = "window")]
+    pub(crate) record: Option<PathBuf>,
+    /// With --window: scripted input (docs/WINDOW.md), for demos and tests:
+    /// key presses, mouse looks, resizes, minimising and screenshots by frame.
+    #[arg(long, requires = "window")]
+    pub(crate) input_script: Option<PathBuf>,
+    #[command(flatten)]
+    pub(crate) remote: citystream_tools::RemoteArgs,
+    #[command(flatten)]
+    pub(crate) mip_cache: citystream_tools::MipCacheArgs,
+}
+
+/// `--memory-budget-mb`: whole MB, or `None` for `unlimited`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct BudgetMb(pub(crate) Option<u64>);
+
+impl BudgetMb {
+    pub(crate) fn bytes(self) -> Option<u64> {
+        self.0.map(|mb| mb << 20)
+    }
+}
+
+pub(crate) fn parse_budget_mb(text: &str) -> std::result::Result<BudgetMb, String> {
+    if text.eq_ignore_ascii_case("unlimited") {
+        return Ok(BudgetMb(None));
+    }
+    match text.parse::<u64>() {
+        Ok(0) => Err("the budget must be at least 1 MB (or `unlimited`)".into()),
+        Ok(mb) if mb > 1 << 30 => Err(format!("{mb} MB is beyond any device; use `unlimited`")),
+        Ok(mb) => Ok(BudgetMb(Some(mb))),
+        Err(_) => Err(format!("`{text}` is neither a whole number of MB nor `unlimited`")),
+    }
+}
+
+/// `--duration-s`: finite seconds from 0 to a day.
+pub(crate) fn parse_duration_s(text: &str) -> std::result::Result<f64, String> {
+    use citystream_streaming::bench::path::MAX_PATH_DURATION_S;
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && (0.0..=MAX_PATH_DURATION_S).contains(&s) => Ok(s),
+        Ok(s) => Err(format!("{s} s is not a duration from 0 to {MAX_PATH_DURATION_S} s")),
+        Err(_) => Err(format!("`{text}` is not a number of seconds")),
+    }
+}
+
+/// `--eviction`: `view` or `ring`.
+pub(crate) fn parse_eviction(text: &str) -> std::result::Result<Eviction, String> {
+    match text {
+        "view" => Ok(Eviction::View),
+        "ring" => Ok(Eviction::Ring),
+        other => Err(format!("`{other}` is not an eviction (view or ring)")),
+    }
+}
+
+/// The budget the cache gets for "unlimited": more than any dataset.
+pub(crate) const UNLIMITED_BUDGET_BYTES: u64 = u64::MAX / 4;
+
+/// Fixed clock: the time step and the modelled render cost of a frame.
+pub(crate) const FIXED_STEP_MS: f64 = 1000.0 / 60.0;
+pub(crate) const FIXED_RENDER_MS: f64 = 8.0;
+/// Fixed clock: host-to-device copy bandwidth of the modelled GPU, the same
+/// as the simulator's (`streaming::sim`), so copies cost time too.
+pub(crate) const FIXED_COPY_BYTES_PER_S: f64 = 12e9;
+
+/// `--frame-interval`: 20 by default headless, 0 in the window.
+pub(crate) fn frame_interval(args: &Args) -> u32 {
+    args.frame_interval.unwrap_or(if args.window { 0 } else { 20 })
+}
+
+pub(crate) fn frames_dir_path(args: &Args) -> PathBuf {
+    args.out.join("frames")
+}

@@ -1,0 +1,791 @@
+//! A flight: the device, the dataset, the camera path, the streamer and the city passes set up
+//! once ([`Flight::new`]), and the frame the headless run and the window share
+//! ([`Flight::record`], [`Flight::submit`], [`Flight::latency`]).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use glam::Vec3;
+
+use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
+use citystream_engine::commands::{CommandContext, SemaphoreSignal, SemaphoreWait};
+use citystream_engine::device::describe;
+use citystream_engine::gpu_types::Vertex;
+use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
+use citystream_engine::pipeline::Filtering;
+use citystream_engine::stream::{FrameBegin, StreamConfig, TextureStreamer};
+use citystream_engine::target::RenderTarget;
+use citystream_engine::texture_cache::{CycleReport, Eviction};
+use citystream_engine::timing::{CpuFrameClock, GpuTimer};
+use citystream_engine::{vk, Device, DeviceOptions};
+use citystream_streaming::atlas_tree::AtlasTree;
+use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
+use citystream_streaming::bench::stats::Stats;
+use citystream_streaming::bind_latency::BindLatencyModel;
+use citystream_streaming::controller::PolicyOptions;
+use citystream_streaming::dataset::Dataset;
+use citystream_streaming::loader::LoaderOptions;
+use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
+use citystream_streaming::rng::SplitMix64;
+use citystream_streaming::source::{DatasetSource, FaultPlan, FaultySource};
+use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
+
+use super::args::{
+    Args, Clock, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
+};
+use super::ground;
+use super::measure::{meshes_in_view, mip_deficit, pending_textures};
+use super::tree::TreeRun;
+
+/// The passes of a flythrough frame, in recording order, timed separately.
+pub(crate) const TIMED_PASSES: usize = 4;
+
+/// GPU milliseconds per frame of each timed pass.
+#[derive(Debug, serde::Serialize)]
+pub(crate) struct GpuPassMs {
+    /// Copies of the cycle's mips and the texture table into the cache.
+    pub(crate) uploads: Stats,
+    /// Depth pre-pass and feedback pass (paper §3.2).
+    pub(crate) feedback: Stats,
+    /// Compaction of the mesh feedback and its read-back copy (paper §3.3).
+    pub(crate) compaction: Stats,
+    /// The visible pass and its image copy.
+    pub(crate) visible: Stats,
+}
+
+/// Per-pass GPU timestamps of each frame slot, read once the slot's frame
+/// completed.
+pub(crate) struct PassTimes {
+    pub(crate) timer: GpuTimer,
+    /// Whether the slot's last frame wrote timestamps not yet read.
+    pub(crate) written: Vec<bool>,
+    pub(crate) samples: [Vec<f64>; TIMED_PASSES],
+}
+
+impl PassTimes {
+    pub(crate) fn new(device: &Arc<Device>, frames_in_flight: u32) -> Result<Self> {
+        Ok(Self {
+            timer: GpuTimer::new(device, frames_in_flight * TIMED_PASSES as u32)?,
+            written: vec![false; frames_in_flight as usize],
+            samples: Default::default(),
+        })
+    }
+
+    pub(crate) fn query(slot: u32, pass: usize) -> u32 {
+        slot * TIMED_PASSES as u32 + pass as u32
+    }
+
+    pub(crate) fn begin(&self, cmd: citystream_engine::vk::CommandBuffer, slot: u32, pass: usize) {
+        self.timer.begin(cmd, Self::query(slot, pass));
+    }
+
+    pub(crate) fn end(&mut self, cmd: citystream_engine::vk::CommandBuffer, slot: u32, pass: usize) {
+        self.timer.end(cmd, Self::query(slot, pass));
+        if pass + 1 == TIMED_PASSES {
+            self.written[slot as usize] = true;
+        }
+    }
+
+    /// Reads `slot`'s timestamps; its frame must have completed.
+    pub(crate) fn collect(&mut self, slot: u32) -> Result<()> {
+        if !std::mem::take(&mut self.written[slot as usize]) {
+            return Ok(());
+        }
+        for (pass, samples) in self.samples.iter_mut().enumerate() {
+            samples.extend(self.timer.read_ms(Self::query(slot, pass))?);
+        }
+        Ok(())
+    }
+
+    pub(crate) fn finish(&mut self) -> Result<Option<GpuPassMs>> {
+        for slot in 0..self.written.len() as u32 {
+            self.collect(slot)?;
+        }
+        if !self.timer.supported() {
+            return Ok(None);
+        }
+        let [uploads, feedback, compaction, visible] =
+            std::mem::take(&mut self.samples).map(|s| Stats::from_samples(&s));
+        Ok(Some(GpuPassMs {
+            uploads,
+            feedback,
+            compaction,
+            visible,
+        }))
+    }
+}
+
+/// The device the options ask for (`--device`, `--validation`, `CITYSTREAM_VALIDATION`),
+/// named on standard error; with `window` (its surface extensions), able to present.
+pub(crate) fn flythrough_device(
+    args: &Args,
+    app_name: &str,
+    window: Option<Vec<std::ffi::CString>>,
+) -> Result<Arc<Device>> {
+    let presentation = window.is_some();
+    let device = Arc::new(
+        Device::new(&DeviceOptions {
+            instance: InstanceOptions {
+                validation: args.validation.unwrap_or_else(default_validation),
+                synchronization: default_synchronization_validation(),
+                app_name: app_name.into(),
+                extensions: window.unwrap_or_default(),
+            },
+            device_name: args.device.clone(),
+            presentation,
+        })
+        .context("creating the Vulkan device")?,
+    );
+    eprintln!("device: {}", describe(&device));
+    Ok(device)
+}
+
+/// The camera path the run follows: the standard path of the dataset or a file.
+pub(crate) fn camera_path(name: &str, scene: &citystream_streaming::dataset::Scene) -> Result<CameraPath> {
+    if name == "standard" {
+        standard_path(scene, DEFAULT_STANDARD_DURATION_S).context("deriving the standard path of the dataset")
+    } else {
+        CameraPath::load(name).with_context(|| format!("reading the camera path {name}"))
+    }
+}
+
+/// The dataset directory: `--dataset`, or the default city (created on first run).
+pub(crate) fn dataset_dir(args: &Args) -> Result<PathBuf> {
+    match &args.dataset {
+        Some(dir) => Ok(dir.clone()),
+        None => {
+            let dir = PathBuf::from(DEFAULT_CITY_DIR);
+            ensure_default_city(&dir, false)?;
+            Ok(dir)
+        }
+    }
+}
+
+/// The streaming policy the options ask for.
+pub(crate) fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::controller::LoadPolicy>> {
+    args.policy
+        .build(&PolicyOptions {
+            alpha_ms: args.alpha,
+            beta: args.beta,
+            s_max_mb: 64.0,
+            s_min_bytes: 64 * 1024,
+            fixed_load_size_mb: args.load_size_mb,
+            fixed_mip_bias: args.mip_bias,
+        })
+        .context("building the streaming policy")
+}
+
+/// The latency (ms) of a frame the controller is given: measured with the
+/// real clock (after sleeping through the modelled bind cost, as a driver
+/// would stall), modelled with the others.
+pub(crate) fn frame_latency(
+    clock: Clock,
+    applied: &citystream_engine::texture_cache::CycleReport,
+    other_upload_bytes: u64,
+    latency: &BindLatencyModel,
+    rng: &mut SplitMix64,
+    measured_ms: impl FnOnce() -> f64,
+) -> f64 {
+    let mut bind_cost_ms = 0.0;
+    if applied.blocks_bound + applied.blocks_unbound > 0 {
+        let runs = u64::from(applied.bind_entries);
+        let blocks = u64::from(applied.blocks_bound + applied.blocks_unbound);
+        bind_cost_ms = latency.cost_s(blocks, runs, rng) * 1000.0;
+        if clock == Clock::Real && bind_cost_ms > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(bind_cost_ms / 1000.0));
+        }
+    }
+    match clock {
+        Clock::Real => measured_ms(),
+        Clock::Fixed | Clock::Modelled => {
+            let copied = applied.bytes_uploaded + other_upload_bytes;
+            FIXED_RENDER_MS + bind_cost_ms + copied as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
+        }
+    }
+}
+
+/// `camera`'s focal length in pixels for a view `height_px` tall.
+pub(crate) fn focal_px(height_px: u32, camera: &Camera) -> f64 {
+    f64::from(height_px) / (2.0 * f64::from(camera.fov_y * 0.5).tan())
+}
+
+/// The lowest the eye of `path` comes above the ground plane at `ground_y` within
+/// `duration_s` (sampled at the fixed clock's step), never below the near plane of
+/// [`pose_camera`] for a scene `extent` wide: nothing nearer is drawn.
+pub(crate) fn lowest_eye_height(path: &CameraPath, duration_s: f64, ground_y: f32, extent: f32) -> f64 {
+    let steps = (duration_s * 1000.0 / FIXED_STEP_MS).ceil().max(0.0) as u64;
+    let lowest = (0..=steps)
+        .map(|i| path.sample_between(None, i as f64 * FIXED_STEP_MS / 1000.0).position[1] - ground_y)
+        .fold(f32::INFINITY, f32::min);
+    let near = pose_camera(&path.sample_between(None, 0.0), extent).near;
+    f64::from(lowest.max(near))
+}
+
+/// A camera at `pose`, with a depth range scaled to the scene.
+pub(crate) fn pose_camera(pose: &CameraPose, extent: f32) -> Camera {
+    Camera {
+        eye: Vec3::from(pose.position),
+        target: Vec3::from(pose.look_at),
+        fov_y: 60f32.to_radians(),
+        near: (extent * 1e-4).max(0.01),
+        far: extent * 4.0,
+    }
+}
+
+/// A streamer over the dataset and the city passes that draw with it.
+pub(crate) struct CityGpu {
+    pub(crate) streamer: TextureStreamer<FaultySource<DatasetSource>>,
+    pub(crate) renderer: CityRenderer,
+}
+
+/// The streamer of references and measurements that load levels
+/// explicitly: no budget, one frame in flight, the fixed clock.
+pub(crate) fn reference_config(fragment_area: f32, layer_size: u32) -> StreamConfig {
+    stream_config(
+        UNLIMITED_BUDGET_BYTES,
+        1,
+        fragment_area,
+        Clock::Fixed,
+        Eviction::View,
+        None,
+        layer_size,
+    )
+}
+
+/// The cache layer size for `dataset`: 2048 texels, or the largest
+/// texture's extent where that is larger, up to what the device (and the
+/// cache) allow; a texture larger than that fails to load, reported.
+pub(crate) fn cache_layer_size(dataset: &Dataset, device: &Device) -> u32 {
+    const DEFAULT_LAYER_SIZE: u32 = 2048;
+    let largest = (0..dataset.textures.len())
+        .filter_map(|texture| dataset.textures.info(texture).ok())
+        .map(|info| info.width().max(info.height()))
+        .max()
+        .unwrap_or(1);
+    let device_limit = device
+        .properties()
+        .limits
+        .max_image_dimension2_d
+        .min(citystream_cache::MAX_LAYER_SIZE);
+    // Powers of two: the largest one the device allows.
+    let device_limit = 1u32 << device_limit.max(1).ilog2();
+    let size = largest
+        .next_power_of_two()
+        .clamp(DEFAULT_LAYER_SIZE.min(device_limit), device_limit);
+    if largest > device_limit {
+        eprintln!(
+            "warning: the dataset has textures of up to {largest} texels, beyond the device's {device_limit}; \
+             they fail to load (counted in summary.json)"
+        );
+    } else if size > DEFAULT_LAYER_SIZE {
+        eprintln!("cache layers of {size}² texels for textures of up to {largest} texels");
+    }
+    size
+}
+
+/// The streamer's cache and feedback settings shared by the streamed run,
+/// the error reference and the pop-in measurement.
+pub(crate) fn stream_config(
+    memory_budget_bytes: u64,
+    frames_in_flight: u32,
+    fragment_area: f32,
+    clock: Clock,
+    eviction: Eviction,
+    layer_count: Option<u32>,
+    layer_size: u32,
+) -> StreamConfig {
+    StreamConfig {
+        frames_in_flight,
+        layer_size,
+        layer_count,
+        max_layers: None,
+        eviction,
+        memory_budget_bytes,
+        blocks_per_chunk: 256,
+        staging_bytes: 16 << 20,
+        filtering: Filtering::BilinearNearestLevel,
+        feedback_capacity: None,
+        weight_cutoff: DEFAULT_WEIGHT_CUTOFF,
+        fragment_area,
+        // The fixed clock must not depend on how fast this machine reads:
+        // no wall-clock load-time limit there (the load size still bounds a cycle).
+        loader: match clock {
+            Clock::Real => LoaderOptions::default(),
+            Clock::Fixed | Clock::Modelled => LoaderOptions {
+                load_time: Duration::from_secs(3600),
+                ..LoaderOptions::default()
+            },
+        },
+        deterministic: clock.is_modelled(),
+    }
+}
+
+/// The streamer and renderer of a city; `faults` makes chosen reads of the
+/// dataset fail (`--inject-read-failures`).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn city_gpu(
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Arc<Dataset>,
+    city: &CityGeometry,
+    policy: Box<dyn citystream_streaming::controller::LoadPolicy>,
+    config: &StreamConfig,
+    faults: Option<FaultPlan>,
+    tree: Option<&AtlasTree>,
+) -> Result<CityGpu> {
+    let (vertices, meshes) = city;
+    let source = FaultySource::new(
+        DatasetSource::new(Arc::clone(dataset)),
+        faults,
+        dataset.textures.pack_path().to_path_buf(),
+    );
+    // A tree's loader also knows each node's atlas, as a mesh after the scene's.
+    let mesh_textures = match tree {
+        Some(tree) => tree.loader_mesh_textures(&dataset.scene),
+        None => dataset.scene.meshes.iter().map(|m| m.texture).collect(),
+    };
+    let streamer = TextureStreamer::new(
+        device,
+        source,
+        mesh_textures,
+        dataset.colormap.colours(),
+        policy,
+        config,
+    )?;
+    let renderer = CityRenderer::new(
+        device,
+        commands,
+        vertices,
+        &dataset.scene.indices,
+        meshes.to_vec(),
+        streamer.cache(),
+        streamer.compactor(),
+    )?;
+    Ok(CityGpu { streamer, renderer })
+}
+
+/// The streamer and renderer of the run the options ask for (policy,
+/// budget, eviction, clock, frames in flight, injected failures).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn streamed_city_gpu(
+    args: &Args,
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Arc<Dataset>,
+    city: &CityGeometry,
+    fragment_area: f32,
+    layer_size: u32,
+    tree: Option<&AtlasTree>,
+    reserved_bytes: u64,
+) -> Result<CityGpu> {
+    let budget = match args.memory_budget_mb.bytes() {
+        Some(budget) if budget <= reserved_bytes => bail!(
+            "the {} MB memory budget leaves nothing for textures beside the ground layer's {:.1} MB",
+            budget >> 20,
+            reserved_bytes as f64 / f64::from(1 << 20)
+        ),
+        Some(budget) => budget - reserved_bytes,
+        None => UNLIMITED_BUDGET_BYTES,
+    };
+    city_gpu(
+        device,
+        commands,
+        dataset,
+        city,
+        build_policy(args)?,
+        &stream_config(
+            budget,
+            args.frames_in_flight,
+            fragment_area,
+            args.clock,
+            args.eviction,
+            args.cache_layers,
+            layer_size,
+        ),
+        args.inject_read_failures,
+        tree,
+    )
+}
+
+/// The visible and feedback targets of the city passes and the feedback view.
+pub(crate) struct CityTargets {
+    pub(crate) target: RenderTarget,
+    /// A quarter of the visible resolution per axis.
+    pub(crate) feedback_target: RenderTarget,
+    pub(crate) view: FeedbackView,
+    /// Visible pixels one feedback fragment stands for.
+    pub(crate) fragment_area: f32,
+}
+
+pub(crate) fn city_targets(device: &Arc<Device>, width: u32, height: u32) -> Result<CityTargets> {
+    let target = RenderTarget::new(device, width, height)?;
+    let feedback_target = RenderTarget::new(device, (width / 4).max(16), (height / 4).max(16))?;
+    let view = FeedbackView::default();
+    let fragment_area = view.fragment_area(height, feedback_target.height());
+    Ok(CityTargets {
+        target,
+        feedback_target,
+        view,
+        fragment_area,
+    })
+}
+
+/// A dataset's vertices and meshes in the engine's layout.
+pub(crate) type CityGeometry = (Vec<Vertex>, Vec<CityMesh>);
+
+/// The dataset (with the remote settings of `args` where it is a URL) with its vertices and
+/// meshes in the engine's layout.
+pub(crate) fn open_city(args: &Args, dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGeometry)> {
+    let options = args.remote.options_with_cache(&args.mip_cache)?;
+    let dataset = Arc::new(citystream_tools::open_dataset_with(dir, &options)?);
+    let city = city_geometry(&dataset)?;
+    Ok((dataset, city))
+}
+
+/// The scene's largest side (at least 1): the scale of the camera's depth range.
+pub(crate) fn scene_extent(scene: &citystream_streaming::dataset::Scene) -> f32 {
+    let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
+    size.x.max(size.y).max(size.z).max(1.0)
+}
+
+/// The dataset, the city's streamer and passes, and the strategy and ground the options ask
+/// for: everything a flight renders with, set up once. Its frame is written once too
+/// ([`Flight::record`], [`Flight::submit`]): the headless run adds measurement and the CSV
+/// around it, the window presenting and input.
+pub(crate) struct Flight {
+    pub(crate) dataset: Arc<Dataset>,
+    pub(crate) city: CityGeometry,
+    /// The scene's largest side, which scales the camera's depth range.
+    pub(crate) extent: f32,
+    pub(crate) layer_size: u32,
+    pub(crate) targets: CityTargets,
+    // The ground and the tree draw with the city's streamer and passes: dropped first.
+    pub(crate) ground: Option<ground::GroundRun>,
+    pub(crate) tree: Option<TreeRun>,
+    pub(crate) gpu: CityGpu,
+    /// One command buffer per frame in flight: a frame's is reused only after the
+    /// streamer's throttle saw that frame complete.
+    frame_commands: Vec<CommandContext>,
+    pub(crate) pass_times: PassTimes,
+    clock: Clock,
+    latency: BindLatencyModel,
+    latency_rng: SplitMix64,
+    cpu_clock: CpuFrameClock,
+    /// τ in the feedback's fixed point: per feedback fragment, not per visible one.
+    pub(crate) tau: u32,
+    last_feedback: Option<u64>,
+    budget_mb: Option<u64>,
+    warned_over_budget: bool,
+    warned_failure: bool,
+}
+
+/// How the ground layer is sized: the view's focal length and the lowest the eye comes
+/// above the ground (`None`: anywhere, so every level of the imagery may be needed).
+pub(crate) struct GroundSizing {
+    pub(crate) focal_px: f64,
+    pub(crate) lowest_eye_m: Option<f64>,
+}
+
+/// What one frame of a flight does besides the standard sequence.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct FrameSettings {
+    /// Camera time, seconds: when ground patches arrive.
+    pub(crate) time_s: f64,
+    /// Record the feedback pass and its compaction (the window can pause streaming).
+    pub(crate) feedback: bool,
+    /// Compact every seen mesh (τ = 0): the error reference loads what this frame saw.
+    pub(crate) every_seen_mesh: bool,
+    /// City Colormap blending (Eq. 8).
+    pub(crate) colormap_blend: bool,
+}
+
+/// A frame recorded into its command buffer and not yet submitted.
+pub(crate) struct RecordedFrame {
+    pub(crate) begun: FrameBegin,
+    pub(crate) cmd: vk::CommandBuffer,
+    /// This frame's uploads into the cache.
+    pub(crate) applied: CycleReport,
+    /// Bytes of ground imagery uploaded in this frame.
+    pub(crate) ground_bytes: u64,
+    /// Draws of a renderer binding one texture per draw ([`super::output::Run`]'s `draw_calls`).
+    pub(crate) draw_calls: u32,
+    /// Nodes the atlas tree drew.
+    pub(crate) nodes_drawn: Option<u32>,
+    /// Where the frame consumed feedback not seen before: its mip deficit and the
+    /// textures still a level or more coarser than needed, against the cache as
+    /// `begin_frame` left it (this frame's evictions applied, its uploads not yet).
+    pub(crate) feedback: Option<FeedbackStatus>,
+}
+
+/// What streaming still owes the view, from one read-back.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct FeedbackStatus {
+    pub(crate) deficit: Option<f64>,
+    pub(crate) pending: usize,
+}
+
+impl Flight {
+    /// Sets up the streamed city of `dataset` (opened from `dir` by [`open_city`]) for
+    /// `width` × `height` frames: the strategy (`--strategy`), the ground (`--ground`,
+    /// sized by `sizing`, given the scene's extent) and the streamer the options ask for.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn new(
+        args: &Args,
+        device: &Arc<Device>,
+        commands: &mut CommandContext,
+        dir: &Path,
+        (dataset, city): (Arc<Dataset>, CityGeometry),
+        (width, height): (u32, u32),
+        sizing: impl FnOnce(f32) -> GroundSizing,
+    ) -> Result<Self> {
+        let tree = match args.strategy {
+            Strategy::AtlasTree => Some(citystream_tools::atlas_tree::open_tree(&dataset, dir)?),
+            Strategy::Feedback => None,
+        };
+        let scene = &dataset.scene;
+        let layer_size = cache_layer_size(&dataset, device);
+        let targets = city_targets(device, width, height)?;
+        let extent = scene_extent(scene);
+        let frames_in_flight = args.frames_in_flight;
+        let ground = match &args.ground {
+            Some(ground_dir) => {
+                let set = ground::GroundSet::open(ground_dir, &dataset)?;
+                let sizing = sizing(extent);
+                let (config, reference) = ground::ground_config(
+                    &set,
+                    scene,
+                    frames_in_flight,
+                    sizing.focal_px,
+                    sizing.lowest_eye_m.unwrap_or(f64::MIN_POSITIVE),
+                    args.memory_budget_mb.bytes(),
+                    device,
+                )?;
+                Some((set, config, reference))
+            }
+            None => None,
+        };
+        let gpu = streamed_city_gpu(
+            args,
+            device,
+            commands,
+            &dataset,
+            &city,
+            targets.fragment_area,
+            layer_size,
+            tree.as_ref(),
+            // The ground's tile array and staging come out of the same budget.
+            ground.as_ref().map_or(0, |(_, config, _)| config.memory_bytes()),
+        )?;
+        let ground = match ground {
+            Some((set, config, reference)) => Some(ground::GroundRun::new(
+                device,
+                set,
+                config,
+                // The window measures no error.
+                (!args.window && args.psnr_interval > 0).then_some(reference),
+            )?),
+            None => None,
+        };
+        let tree = match tree {
+            Some(tree) => Some(TreeRun::new(args, device, commands, &gpu, &dataset, tree)?),
+            None => None,
+        };
+        let frame_commands = (0..frames_in_flight)
+            .map(|i| CommandContext::new(device, &format!("flythrough frame (slot {i})")))
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let pass_times = PassTimes::new(device, frames_in_flight)?;
+        let tau = gpu.streamer.gpu_tau();
+        Ok(Self {
+            dataset,
+            city,
+            extent,
+            layer_size,
+            targets,
+            gpu,
+            ground,
+            tree,
+            frame_commands,
+            pass_times,
+            clock: args.clock,
+            latency: BindLatencyModel::preset(args.bind_latency),
+            latency_rng: SplitMix64::new(args.seed),
+            cpu_clock: CpuFrameClock::new(),
+            tau,
+            last_feedback: None,
+            budget_mb: args.memory_budget_mb.0,
+            warned_over_budget: false,
+            warned_failure: false,
+        })
+    }
+
+    /// The city's meshes in the engine's layout.
+    pub(crate) fn meshes(&self) -> &[CityMesh] {
+        &self.city.1
+    }
+
+    /// Records frame `frame` for `camera` into its slot's command buffer, in the order
+    /// the streamer asks for (module docs of `citystream_engine::stream`): `begin_frame`
+    /// (retire, hand feedback to the loader, pack and bind), the ground's arrivals and its
+    /// share of the load size, then the uploads, the feedback pass and its compaction, and
+    /// the visible pass of the strategy, each timed. The host may record more (a blit to
+    /// the swapchain) before [`Self::submit`].
+    pub(crate) fn record(&mut self, frame: u32, camera: &Camera, settings: &FrameSettings) -> Result<RecordedFrame> {
+        let begun = self.gpu.streamer.begin_frame()?;
+        self.warn_once(frame, begun.over_budget);
+        let feedback = match self.gpu.streamer.latest_feedback() {
+            Some((from, entries)) if self.last_feedback != Some(from) => {
+                self.last_feedback = Some(from);
+                let (meshes, cache) = (&self.city.1, self.gpu.streamer.cache());
+                Some(FeedbackStatus {
+                    deficit: mip_deficit(entries, self.tau, meshes, cache),
+                    pending: pending_textures(entries, self.tau, meshes, cache),
+                })
+            }
+            _ => None,
+        };
+        // The streamer's throttle saw this slot's last frame complete.
+        let slot = begun.slot;
+        // Patches that arrived, and the ground tiles this frame's share of the load size
+        // pays for; charged to the facades' next loading cycle.
+        let ground_bytes = match self.ground.as_mut() {
+            Some(run) => {
+                let load_size = self.gpu.streamer.decision().load_size_bytes;
+                let bytes = run.update(settings.time_s, slot, camera, load_size)?.bytes;
+                self.gpu.streamer.charge_host_uploads(bytes);
+                bytes
+            }
+            None => 0,
+        };
+        self.pass_times.collect(slot)?;
+        let cmd = self.frame_commands[slot as usize].begin_completed()?;
+        let passes = &mut self.pass_times;
+        passes.begin(cmd, slot, 0);
+        let applied = self.gpu.streamer.record_uploads(cmd)?;
+        if let Some(run) = self.ground.as_mut() {
+            run.layer.record_uploads(cmd, slot)?;
+        }
+        passes.end(cmd, slot, 0);
+        // The atlas tree has no feedback: its two passes stay empty (0 ms).
+        let feedback_pass = self.tree.is_none() && settings.feedback;
+        let CityTargets {
+            target,
+            feedback_target,
+            view,
+            ..
+        } = &self.targets;
+        passes.begin(cmd, slot, 1);
+        if feedback_pass {
+            self.gpu
+                .renderer
+                .record_feedback(cmd, feedback_target, camera, view, target.height())?;
+        }
+        passes.end(cmd, slot, 1);
+        passes.begin(cmd, slot, 2);
+        match (feedback_pass, settings.every_seen_mesh) {
+            (false, _) => {}
+            (true, true) => self.gpu.streamer.record_feedback_resolve_with_tau(cmd, 0)?,
+            (true, false) => self.gpu.streamer.record_feedback_resolve(cmd)?,
+        }
+        passes.end(cmd, slot, 2);
+        passes.begin(cmd, slot, 3);
+        let ground_layer = self.ground.as_ref().map(|g| (&g.layer, slot));
+        let (draw_calls, nodes_drawn) = match self.tree.as_mut() {
+            Some(run) => {
+                let drawn = run.record_frame(
+                    cmd,
+                    slot,
+                    &mut self.gpu,
+                    &self.dataset,
+                    target,
+                    camera,
+                    ground_layer.map(|(layer, _)| layer),
+                )?;
+                (drawn.draw_calls, Some(drawn.nodes_drawn))
+            }
+            None => {
+                let blend = settings.colormap_blend;
+                match ground_layer {
+                    Some(ground) => self
+                        .gpu
+                        .renderer
+                        .record_visible_on_ground(cmd, target, camera, blend, ground)?,
+                    None => self.gpu.renderer.record_visible(cmd, target, camera, 1.0, blend),
+                }
+                let in_view = meshes_in_view(&self.dataset.scene, camera, target.width(), target.height());
+                (in_view, None)
+            }
+        };
+        passes.end(cmd, slot, 3);
+        Ok(RecordedFrame {
+            begun,
+            cmd,
+            applied,
+            ground_bytes,
+            draw_calls,
+            nodes_drawn,
+            feedback,
+        })
+    }
+
+    /// Ends `frame` with the controller step on `frame_ms`, the latency of the frame
+    /// before (Eq. 4–7), and submits it with the streamer's waits and signal and the
+    /// host's own (`waits`, `signals`: a swapchain image's).
+    pub(crate) fn submit(
+        &mut self,
+        frame: &RecordedFrame,
+        frame_ms: f64,
+        waits: &[SemaphoreWait],
+        signals: &[SemaphoreSignal],
+    ) -> Result<()> {
+        let submit = self.gpu.streamer.end_frame(frame_ms)?;
+        let waits: Vec<SemaphoreWait> = submit.waits.iter().chain(waits).copied().collect();
+        let signals: Vec<SemaphoreSignal> = std::iter::once(submit.signal).chain(signals.iter().copied()).collect();
+        self.frame_commands[frame.begun.slot as usize].submit_frame(&waits, &signals)?;
+        Ok(())
+    }
+
+    /// The latency of `frame` the controller is given next: measured since the last call
+    /// with the real clock, modelled with the others ([`frame_latency`]).
+    pub(crate) fn latency(&mut self, frame: &RecordedFrame) -> f64 {
+        let cpu_clock = &mut self.cpu_clock;
+        frame_latency(
+            self.clock,
+            &frame.applied,
+            frame.ground_bytes,
+            &self.latency,
+            &mut self.latency_rng,
+            || cpu_clock.tick().as_secs_f64() * 1000.0,
+        )
+    }
+
+    /// Starts the latency clock afresh: time since the last frame (hidden, waiting) is not
+    /// the next frame's latency.
+    pub(crate) fn restart_latency_clock(&mut self) {
+        self.cpu_clock.tick();
+    }
+
+    /// The first frame over budget and the first failed load are worth a line each.
+    fn warn_once(&mut self, frame: u32, over_budget: bool) {
+        if over_budget && !self.warned_over_budget {
+            self.warned_over_budget = true;
+            eprintln!(
+                "\nwarning: from frame {frame} the view needs more texture memory than the {} MB budget holds; \
+                 showing the most important levels that fit (frames over budget are counted in summary.json)",
+                self.budget_mb.unwrap_or(0)
+            );
+        }
+        if !self.warned_failure && self.gpu.streamer.totals().failed > 0 {
+            self.warned_failure = true;
+            if let Some(first) = self.gpu.streamer.load_failures().first() {
+                eprintln!(
+                    "\nwarning: from frame {frame} textures fail to load; the first{}: {} \
+                     (counted in summary.json; the run will exit non-zero unless --allow-load-failures)",
+                    first.level.map(|l| format!(", at level {l}")).unwrap_or_default(),
+                    first.reason
+                );
+            }
+        }
+    }
+}

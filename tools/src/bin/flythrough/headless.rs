@@ -1,0 +1,422 @@
+//! The headless flythrough: the path flown frame by frame, measured, written to `frames.csv`
+//! and `summary.json`.
+
+use std::io::Write;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+
+use citystream_engine::commands::CommandContext;
+use citystream_engine::device::describe;
+use citystream_engine::gpu_types::FeedbackEntry;
+use citystream_engine::target::write_png;
+use citystream_engine::Device;
+use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
+use citystream_streaming::controller::{PolicyKind, PolicyOptions};
+use citystream_tools::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
+
+use super::args::{frame_interval, frames_dir_path, Args, Clock, FIXED_STEP_MS};
+use super::flight::{
+    camera_path, city_gpu, focal_px, lowest_eye_height, open_city, pose_camera, reference_config, scene_extent, Flight,
+    FrameSettings, GroundSizing,
+};
+use super::measure::{feedback_reaching, load_reference, reference_feedback};
+use super::output::{status, write_csv_row, CsvRow, MipCacheSummary, Run, CSV_HEADER};
+
+/// Flies the path (`--path`, the dataset's standard path by default) headless: every frame
+/// through [`Flight`], PNG frames and the error against the fully resident reference at
+/// their intervals, a `frames.csv` row per frame and `summary.json` at the end.
+pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
+    let opened = open_city(args, dir)?;
+    let scene = &opened.0.scene;
+    let extent = scene_extent(scene);
+    let path_name = args.path.as_deref().unwrap_or("standard");
+    let path = camera_path(path_name, scene)?;
+    path.restart();
+    let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
+    let ground_y = scene.bounds.min[1];
+    let mut commands = CommandContext::new(device, "flythrough setup and measurements")?;
+    let mut flight = Flight::new(
+        args,
+        device,
+        &mut commands,
+        dir,
+        opened,
+        (args.width, args.height),
+        |extent| GroundSizing {
+            focal_px: focal_px(args.height, &pose_camera(&path.sample_between(None, 0.0), extent)),
+            lowest_eye_m: Some(lowest_eye_height(&path, duration_s, ground_y, extent)),
+        },
+    )?;
+    let dataset = Arc::clone(&flight.dataset);
+    let scene = &dataset.scene;
+    // The error reference: every needed level resident, no budget, loaded
+    // synchronously between frames (its policy never runs).
+    let mut reference = if args.psnr_interval > 0 {
+        Some(city_gpu(
+            device,
+            &mut commands,
+            &dataset,
+            &flight.city,
+            PolicyKind::Baseline.build(&PolicyOptions::default())?,
+            &reference_config(flight.targets.fragment_area, flight.layer_size),
+            None,
+            None,
+        )?)
+    } else {
+        None
+    };
+
+    // With the fixed clock the frame count follows from the duration; with
+    // the modelled one it is at most that.
+    let frames = args
+        .frames
+        .unwrap_or_else(|| ((duration_s * 1000.0 / FIXED_STEP_MS).ceil() as u32).max(1));
+    eprintln!(
+        "path: {} ({:.1} s, pauses at {:?} s, jumps at {:?} s)",
+        path_name,
+        path.duration_s(),
+        path.pauses()
+            .iter()
+            .map(|p| (p.start_s * 10.0).round() / 10.0)
+            .collect::<Vec<_>>(),
+        path.jumps()
+            .iter()
+            .map(|t| (t * 10.0).round() / 10.0)
+            .collect::<Vec<_>>()
+    );
+    let tau = flight.tau;
+    eprintln!(
+        "scene: {} ({} meshes, {} textures), {} frame(s) in flight",
+        dir.display(),
+        scene.meshes.len(),
+        dataset.textures.len(),
+        args.frames_in_flight
+    );
+
+    let csv_path = args.out.join("frames.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path).with_context(|| format!("creating {}", csv_path.display()))?,
+    );
+    writeln!(csv, "{CSV_HEADER}")?;
+    let mut summary = SummaryBuilder::new();
+    let mut deficits = Vec::new();
+    let mut errors = ErrorSeries::new();
+    let started = std::time::Instant::now();
+    let mut written = Vec::new();
+    let mut sim_time_s = 0.0f64;
+    let mut frame_ms = FIXED_STEP_MS;
+    let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
+    let mut peak_device_memory = 0u64;
+    let mut reference_incomplete = 0u32;
+    let mut frames_run = 0;
+    let mut waits = WaitCounts::default();
+    let mut uploads_at: Vec<(f64, u64)> = Vec::new();
+    let (mut nodes_drawn, mut draw_call_samples) = (Vec::new(), Vec::new());
+    for frame in 0..frames {
+        let time_s = match args.clock {
+            Clock::Fixed | Clock::Modelled => sim_time_s,
+            Clock::Real => started.elapsed().as_secs_f64(),
+        };
+        let path_done = match args.clock {
+            Clock::Real => time_s > duration_s,
+            Clock::Modelled => time_s >= duration_s,
+            Clock::Fixed => false,
+        };
+        if args.frames.is_none() && path_done {
+            break;
+        }
+        frames_run += 1;
+        let camera = pose_camera(&path.sample(time_s), extent);
+        let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
+        let write_frame = frame_interval(args) > 0 && frame % frame_interval(args) == 0;
+
+        let recorded = flight.record(
+            frame,
+            &camera,
+            &FrameSettings {
+                time_s,
+                feedback: true,
+                // The error reference needs every seen mesh: τ = 0 then.
+                every_seen_mesh: measure_error,
+                colormap_blend: true,
+            },
+        )?;
+        let deficit = recorded.feedback.and_then(|f| f.deficit);
+        draw_call_samples.push(f64::from(recorded.draw_calls));
+        nodes_drawn.extend(recorded.nodes_drawn.map(f64::from));
+        // The controller step with the previous frame's latency.
+        flight.submit(&recorded, frame_ms, &[], &[])?;
+        let begun = &recorded.begun;
+        waits.count(begun.cpu_wait, false);
+
+        let (mut error, mut ground_error) = (None, None);
+        if write_frame || measure_error {
+            let target = &flight.targets.target;
+            // Reading this frame's image back is a wait outside the steady state.
+            waits.count(flight.gpu.streamer.wait_for_frame(begun.index)?, true);
+            let pixels = target.read_pixels()?;
+            if write_frame {
+                let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
+                write_png(&pixels, &path)?;
+                written.push(path.display().to_string());
+            }
+            if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
+                // The reference loads what the loader serves (entries
+                // reaching τ); lighter ones are read back for eviction only.
+                let entries: Vec<FeedbackEntry> = match flight.tree {
+                    Some(_) => reference_feedback(reference, &mut commands, &flight.targets, &camera, args.height)?,
+                    None => feedback_reaching(&flight.gpu.streamer, begun.index, tau)?,
+                };
+                reference_incomplete += load_reference(reference, &mut commands, &entries, flight.meshes())?;
+                let cmd = commands.begin()?;
+                // On the streamed ground, so that this error is the facades' alone
+                // (`ground_psnr_db` measures the ground's).
+                match flight.ground.as_ref() {
+                    Some(run) => reference.renderer.record_visible_on_ground(
+                        cmd,
+                        target,
+                        &camera,
+                        true,
+                        (&run.layer, begun.slot),
+                    )?,
+                    None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true),
+                }
+                commands.submit_and_wait(&[])?;
+                error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
+            }
+            if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {
+                ground_error = run.measure(&mut commands, &flight.gpu.renderer, target, &camera, begun.slot)?;
+            }
+        }
+
+        frame_ms = flight.latency(&recorded);
+        let applied = &recorded.applied;
+        let bytes = applied.bytes_uploaded;
+        let mips = u64::from(applied.mips_uploaded);
+        mips_total += mips;
+        blocks_total += u64::from(applied.blocks_bound);
+        let resident = flight.gpu.streamer.cache().utilisation().bound_bytes;
+        peak_resident = peak_resident.max(resident);
+        if frame % 30 == 0 {
+            peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
+        }
+
+        sim_time_s += match args.clock {
+            Clock::Modelled => frame_ms.max(FIXED_STEP_MS),
+            _ => FIXED_STEP_MS,
+        } / 1000.0;
+        let t = flight.gpu.streamer.policy().telemetry();
+        summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
+        deficits.extend(deficit);
+        if let Some(error) = error {
+            errors.push(error);
+        }
+        uploads_at.push((time_s, mips));
+        write_csv_row(
+            &mut csv,
+            &CsvRow {
+                frame,
+                time_s,
+                frame_ms,
+                telemetry: &t,
+                applied,
+                resident,
+                deficit,
+                error,
+                ground_error,
+                camera: &camera,
+            },
+        )?;
+        let mb_per_s = bytes as f64 / 1e6 / (frame_ms / 1000.0).max(1e-6);
+        status(
+            frame,
+            frames,
+            frame_ms,
+            t.load_size_mb,
+            t.mip_bias,
+            mb_per_s,
+            resident as f64 / 1e6,
+        );
+    }
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        eprintln!();
+    }
+    csv.flush()?;
+    device.wait_idle()?;
+    let gpu_pass_ms = flight.pass_times.finish()?;
+    let peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
+    if reference_incomplete > 0 {
+        eprintln!("warning: the error reference evicted {reference_incomplete} textures; PSNR is optimistic");
+    }
+    let validation_errors = device.validation_log().error_count();
+    let summary = summary.finish();
+    let residency = flight.gpu.streamer.residency_totals();
+    let pause_uploads_second_half = path
+        .pauses()
+        .iter()
+        .map(|pause| {
+            let from = pause.start_s + pause.duration_s / 2.0;
+            let to = pause.start_s + pause.duration_s;
+            uploads_at
+                .iter()
+                .filter(|(t, _)| *t >= from && *t < to)
+                .map(|(_, mips)| mips)
+                .sum()
+        })
+        .collect();
+    let run = Run {
+        device: describe(device),
+        scene: dir.display().to_string(),
+        strategy: args.strategy.name(),
+        draw_calls: Stats::from_samples(&draw_call_samples),
+        nodes_drawn: (!nodes_drawn.is_empty()).then(|| Stats::from_samples(&nodes_drawn)),
+        atlas_tree: flight
+            .tree
+            .as_ref()
+            .map(|run| run.summary(args.memory_budget_mb.bytes())),
+        policy: flight.gpu.streamer.policy().kind().name(),
+        alpha_ms: args.alpha,
+        mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
+        error: PrefixedErrorFigures {
+            prefix: "",
+            figures: errors.figures(),
+        },
+        ground_tiles_uploaded: flight.ground.as_ref().map(|g| g.layer.totals().tiles_uploaded),
+        ground_mb_streamed: flight
+            .ground
+            .as_ref()
+            .map(|g| g.layer.totals().bytes_uploaded as f64 / f64::from(1 << 20)),
+        ground_error: PrefixedErrorFigures {
+            prefix: "ground_",
+            figures: flight.ground.as_ref().and_then(|g| g.errors.figures()),
+        },
+        ground: flight
+            .ground
+            .as_ref()
+            .zip(args.ground.as_deref())
+            .map(|(g, dir)| g.summary(dir)),
+        clock: args.clock.name(),
+        bind_latency: args.bind_latency.name(),
+        width: args.width,
+        height: args.height,
+        duration_s: match args.clock {
+            Clock::Real => started.elapsed().as_secs_f64(),
+            Clock::Fixed | Clock::Modelled => sim_time_s,
+        },
+        wall_s: started.elapsed().as_secs_f64(),
+        wall_ms_per_frame: started.elapsed().as_secs_f64() * 1000.0 / f64::from(frames_run.max(1)),
+        frames_in_flight: args.frames_in_flight,
+        cpu_wait_frames: waits.throttle_frames,
+        cpu_wait_ms: waits.throttle_ms,
+        readback_wait_frames: waits.readback_frames,
+        mips_streamed: mips_total,
+        unique_bytes_streamed: residency.unique_bytes_uploaded,
+        blocks_bound: blocks_total,
+        peak_resident_bytes: peak_resident,
+        peak_device_memory_bytes: peak_device_memory,
+        memory_budget_bytes: args.memory_budget_mb.bytes(),
+        eviction: args.eviction.name(),
+        cache_layers: flight
+            .gpu
+            .streamer
+            .cache()
+            .packing()
+            .images()
+            .iter()
+            .map(|i| i.layer_count)
+            .collect(),
+        frames_over_budget: residency.frames_over_budget,
+        pause_uploads_second_half,
+        dropped_levels: residency.dropped_levels,
+        evicted_layers: residency.evicted_layers,
+        refused_for_room: residency.refused_for_room,
+        declined_loads: residency.declined_loads,
+        load_failures: flight.gpu.streamer.totals().failed,
+        read_retries: flight.gpu.streamer.totals().read_retries,
+        textures_failed: flight.gpu.streamer.failed_textures(),
+        cache_layer_size: flight.layer_size,
+        gpu_pass_ms,
+        validation_errors,
+        frames_written: written,
+        mip_cache: dataset.textures.mip_cache().map(|cache| MipCacheSummary {
+            dir: cache.dir().display().to_string(),
+            capacity_bytes: cache.capacity_bytes(),
+            stats: cache.stats(),
+        }),
+    };
+    let mut json = serde_json::to_value(summary)?;
+    if let (Some(object), serde_json::Value::Object(extra)) = (json.as_object_mut(), serde_json::to_value(&run)?) {
+        object.extend(extra);
+    }
+    let path = args.out.join("summary.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    eprintln!(
+        "{} frames, {} mips streamed, wrote {} frames, {} and {}; the CPU waited for the GPU in {} frame(s) \
+         ({:.1} ms) plus {} image read-back(s)",
+        frames_run,
+        mips_total,
+        run.frames_written.len(),
+        csv_path.display(),
+        path.display(),
+        waits.throttle_frames,
+        waits.throttle_ms,
+        waits.readback_frames,
+    );
+    if let Some(cache) = &run.mip_cache {
+        eprintln!(
+            "mip cache {}: {} hits, {} misses, {:.1} MB written, {} evicted, {} damaged (capacity {:.0} MB)",
+            cache.dir,
+            cache.stats.hits,
+            cache.stats.misses,
+            cache.stats.written_bytes as f64 / f64::from(1 << 20),
+            cache.stats.evicted,
+            cache.stats.damaged,
+            cache.capacity_bytes as f64 / f64::from(1 << 20)
+        );
+    }
+    let failures = flight.gpu.streamer.load_failures();
+    drop(reference);
+    drop(flight);
+    if validation_errors > 0 {
+        bail!("{validation_errors} Vulkan validation error(s) during the run");
+    }
+    if run.textures_failed > 0 {
+        let first = failures
+            .first()
+            .map(|f| format!("; the first: {}", f.reason))
+            .unwrap_or_default();
+        let message = format!(
+            "{} texture(s) failed to load ({} failure(s)){first}",
+            run.textures_failed, run.load_failures
+        );
+        if !args.allow_load_failures {
+            bail!("{message}; the frames show their colormap colour or coarser levels (--allow-load-failures exits 0)");
+        }
+        eprintln!("warning: {message}");
+    }
+    Ok(())
+}
+
+/// Frames in which the render thread blocked on the GPU.
+#[derive(Debug, Default)]
+pub(crate) struct WaitCounts {
+    /// Frames whose slot was still in use by the GPU (the throttle blocked).
+    pub(crate) throttle_frames: u32,
+    pub(crate) throttle_ms: f64,
+    /// Frames whose image was read back (PNG frames, PSNR), which waits.
+    pub(crate) readback_frames: u32,
+}
+
+impl WaitCounts {
+    pub(crate) fn count(&mut self, waited: Duration, readback: bool) {
+        if readback {
+            self.readback_frames += 1;
+        } else if !waited.is_zero() {
+            self.throttle_frames += 1;
+            self.throttle_ms += waited.as_secs_f64() * 1000.0;
+        }
+    }
+}

@@ -1,0 +1,196 @@
+//! What a run writes and shows: `frames.csv` rows, `summary.json` fields, the status line.
+
+use std::io::Write;
+
+use anyhow::Result;
+
+use citystream_engine::city::Camera;
+use citystream_streaming::bench::stats::Stats;
+use citystream_tools::image_error::{FrameError, PrefixedErrorFigures};
+
+use super::flight::GpuPassMs;
+use super::ground;
+use super::tree::TreeSummary;
+
+#[derive(Debug, serde::Serialize)]
+pub(crate) struct Run<'a> {
+    pub(crate) device: String,
+    pub(crate) scene: String,
+    /// `feedback` or `atlas-tree`.
+    pub(crate) strategy: &'a str,
+    /// Per frame: draws of a renderer binding one texture per draw (meshes in view, a
+    /// mesh having one texture; for the tree, atlases drawn plus the meshes in view of the
+    /// leaves drawn with their originals). citystream itself draws every mesh in one draw
+    /// whatever the strategy.
+    pub(crate) draw_calls: Stats,
+    /// Per frame: nodes drawn (the atlas tree only).
+    pub(crate) nodes_drawn: Option<Stats>,
+    /// The atlas tree and its paging (the atlas-tree strategy only).
+    pub(crate) atlas_tree: Option<TreeSummary>,
+    pub(crate) policy: &'a str,
+    pub(crate) alpha_ms: f64,
+    pub(crate) mip_deficit: Option<Stats>,
+    /// The facades' error against the fully resident reference: `psnr_db`,
+    /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured
+    /// frame counts, identical ones at the ceiling; `citystream_tools::image_error`).
+    #[serde(flatten)]
+    pub(crate) error: PrefixedErrorFigures,
+    /// With --ground: tiles of ground imagery composed and uploaded, their MB, and the
+    /// ground's error against a reference with every arrived patch resident (both drawn
+    /// alone behind the city), under the same keys prefixed `ground_`.
+    pub(crate) ground_tiles_uploaded: Option<u64>,
+    pub(crate) ground_mb_streamed: Option<f64>,
+    #[serde(flatten)]
+    pub(crate) ground_error: PrefixedErrorFigures,
+    pub(crate) ground: Option<ground::GroundSummary>,
+    pub(crate) clock: &'a str,
+    pub(crate) bind_latency: &'a str,
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    pub(crate) duration_s: f64,
+    pub(crate) wall_s: f64,
+    /// Wall time per frame (ms): compare runs with 1 and 2 frames in flight.
+    pub(crate) wall_ms_per_frame: f64,
+    pub(crate) frames_in_flight: u32,
+    /// Frames whose render thread blocked on the GPU to reuse a frame slot.
+    pub(crate) cpu_wait_frames: u32,
+    pub(crate) cpu_wait_ms: f64,
+    /// Frames whose image was read back (PNG, PSNR): waits outside the steady state.
+    pub(crate) readback_wait_frames: u32,
+    pub(crate) mips_streamed: u64,
+    /// Bytes of the distinct (texture, level) pairs the run uploaded, each once.
+    pub(crate) unique_bytes_streamed: u64,
+    pub(crate) blocks_bound: u64,
+    pub(crate) peak_resident_bytes: u64,
+    /// Most device memory the allocator held (geometry, cache blocks, table,
+    /// targets, staging), sampled every 30 frames and at the end.
+    pub(crate) peak_device_memory_bytes: u64,
+    /// The budget in bytes; null when unlimited.
+    pub(crate) memory_budget_bytes: Option<u64>,
+    pub(crate) eviction: &'a str,
+    /// Layers of each cache image, by format (BC1, RGBA8, BC3, BC7) of those the dataset has.
+    pub(crate) cache_layers: Vec<u32>,
+    /// Frames in which the view needed more than the budget holds.
+    pub(crate) frames_over_budget: u64,
+    /// Per pause of the path: mips uploaded in its second half (a settled
+    /// streamer uploads none while the camera holds still).
+    pub(crate) pause_uploads_second_half: Vec<u64>,
+    /// Failed reads and header errors, and the textures the loader gave up on.
+    pub(crate) load_failures: u64,
+    /// Failed reads that a retry then completed.
+    pub(crate) read_retries: u64,
+    pub(crate) textures_failed: usize,
+    /// Levels dropped, layers evicted, loads refused and declined for room.
+    pub(crate) dropped_levels: u64,
+    pub(crate) evicted_layers: u64,
+    pub(crate) refused_for_room: u64,
+    pub(crate) declined_loads: u64,
+    /// Side of the cache's array layers in texels.
+    pub(crate) cache_layer_size: u32,
+    /// GPU time of each pass per frame, from timestamps (null where the
+    /// queue has none).
+    pub(crate) gpu_pass_ms: Option<GpuPassMs>,
+    pub(crate) validation_errors: usize,
+    pub(crate) frames_written: Vec<String>,
+    /// The on-disk mip cache of a remote dataset read through one (`--mip-cache`).
+    pub(crate) mip_cache: Option<MipCacheSummary>,
+}
+
+/// `summary.json`'s `mip_cache`: where it lies, how big it may grow, what it did.
+#[derive(Debug, serde::Serialize)]
+pub(crate) struct MipCacheSummary {
+    pub(crate) dir: String,
+    pub(crate) capacity_bytes: u64,
+    #[serde(flatten)]
+    pub(crate) stats: citystream_streaming::dataset::MipCacheStats,
+}
+
+/// The live one-line status: rewritten in place on a terminal, a line every
+/// 30 frames otherwise (logs, CI).
+pub(crate) fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: f64, resident_mb: f64) {
+    use std::io::IsTerminal;
+    let line = format!(
+        "frame {:>6}/{frames}  dt {dt:7.2} ms  s {s_mb:7.2} MB  b {b:4.2}  {mb_s:7.2} MB/s  resident {resident_mb:8.1} MB",
+        frame + 1
+    );
+    if std::io::stderr().is_terminal() {
+        // The path's length is known, so a bar shows how far the run is.
+        const BAR: usize = 20;
+        let done = (f64::from(frame + 1) / f64::from(frames.max(1)) * BAR as f64).round() as usize;
+        let bar = format!("{}{}", "#".repeat(done.min(BAR)), "-".repeat(BAR - done.min(BAR)));
+        eprint!("\r[{bar}] {line}");
+        let _ = std::io::stderr().flush();
+    } else if frame.is_multiple_of(30) || frame + 1 == frames {
+        eprintln!("{line}");
+    }
+}
+
+pub(crate) const CSV_HEADER: &str =
+    "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
+                          blocks_bound,resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,\
+                          eye_x,eye_y,eye_z,look_x,look_y,look_z";
+
+/// One frame's line of frames.csv.
+pub(crate) struct CsvRow<'a> {
+    pub(crate) frame: u32,
+    pub(crate) time_s: f64,
+    pub(crate) frame_ms: f64,
+    pub(crate) telemetry: &'a citystream_streaming::controller::Telemetry,
+    pub(crate) applied: &'a citystream_engine::texture_cache::CycleReport,
+    pub(crate) resident: u64,
+    pub(crate) deficit: Option<f64>,
+    /// The facades' and the ground's error, on measured frames.
+    pub(crate) error: Option<FrameError>,
+    pub(crate) ground_error: Option<FrameError>,
+    pub(crate) camera: &'a Camera,
+}
+
+pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
+    let t = row.telemetry;
+    let (eye, look) = (row.camera.eye, row.camera.target);
+    // The pose exactly (shortest round-trip form): a replay is compared with it.
+    writeln!(
+        csv,
+        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+        row.frame,
+        row.time_s,
+        row.frame_ms,
+        t.tw_ms,
+        t.tm_ms,
+        t.tb_ms,
+        t.tbl_ms,
+        t.tbu_ms,
+        t.load_size_mb,
+        t.mip_bias,
+        row.applied.mips_uploaded,
+        row.applied.bytes_uploaded,
+        row.applied.blocks_bound,
+        row.resident,
+        optional(row.deficit),
+        // The error exactly (shortest round-trip form), so that figures recomputed from the
+        // CSV equal the summary's.
+        exact(row.error.map(|e| e.psnr_db)),
+        exact(row.error.map(|e| e.mse)),
+        exact(row.ground_error.map(|e| e.psnr_db)),
+        exact(row.ground_error.map(|e| e.mse)),
+        eye.x,
+        eye.y,
+        eye.z,
+        look.x,
+        look.y,
+        look.z,
+    )?;
+    Ok(())
+}
+
+pub(crate) fn optional(value: Option<f64>) -> String {
+    value
+        .filter(|v| v.is_finite())
+        .map(|v| format!("{v:.4}"))
+        .unwrap_or_default()
+}
+
+/// A measured value in shortest round-trip form; empty when not measured.
+pub(crate) fn exact(value: Option<f64>) -> String {
+    value.map(|v| v.to_string()).unwrap_or_default()
+}
