@@ -139,44 +139,27 @@ pub fn next_load<E>(
     mip_bias: f64,
     initial_level: impl FnOnce() -> Result<u32, E>,
 ) -> Result<Option<(u32, TextureStatus)>, E> {
+    // Loading `level` leaves the texture Active, or Final at level 0.
+    let load = |level: u32| {
+        let state = if level == 0 {
+            TextureState::Final
+        } else {
+            TextureState::Active
+        };
+        let status = TextureStatus {
+            state,
+            mip_level: level,
+            invalidated: false,
+        };
+        (level, status)
+    };
     match status.state {
-        TextureState::Initial => {
-            let level = initial_level()?;
-            let state = if level == 0 {
-                TextureState::Final
-            } else {
-                TextureState::Active
-            };
-            Ok(Some((
-                level,
-                TextureStatus {
-                    state,
-                    mip_level: level,
-                    invalidated: false,
-                },
-            )))
-        }
+        TextureState::Initial => Ok(Some(load(initial_level()?))),
         TextureState::Active => {
             let current = status.mip_level;
             // NaN bias compares false: nothing loads, which is the safe side.
-            if current > 0 && f64::from(sampled_mip) + mip_bias < f64::from(current) {
-                let level = current - 1;
-                let state = if level == 0 {
-                    TextureState::Final
-                } else {
-                    TextureState::Active
-                };
-                Ok(Some((
-                    level,
-                    TextureStatus {
-                        state,
-                        mip_level: level,
-                        invalidated: false,
-                    },
-                )))
-            } else {
-                Ok(None)
-            }
+            let finer_wanted = current > 0 && f64::from(sampled_mip) + mip_bias < f64::from(current);
+            Ok(finer_wanted.then(|| load(current - 1)))
         }
         TextureState::Final | TextureState::Failed => Ok(None),
     }

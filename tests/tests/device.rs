@@ -5,18 +5,23 @@ use citystream_engine::instance::InstanceOptions;
 use citystream_engine::{Device, DeviceOptions, EngineError};
 use citystream_tests::{assert_no_validation_errors, validated_device};
 
-#[test]
-fn unknown_device_name_lists_the_devices_present() -> Result<()> {
-    let options = DeviceOptions {
+/// Options for a validated device picked by (part of) its name.
+fn named_device_options(name: &str) -> DeviceOptions {
+    DeviceOptions {
         instance: InstanceOptions {
             validation: true,
             synchronization: false,
             app_name: "device name test".into(),
             extensions: Vec::new(),
         },
-        device_name: Some("no such gpu 9000".into()),
+        device_name: Some(name.into()),
         presentation: false,
-    };
+    }
+}
+
+#[test]
+fn unknown_device_name_lists_the_devices_present() -> Result<()> {
+    let options = named_device_options("no such gpu 9000");
     let error = Device::new(&options).expect_err("a device name nobody has must fail");
     let EngineError::NoSuchDevice { wanted, available } = &error else {
         anyhow::bail!("expected NoSuchDevice, got {error}");
@@ -41,16 +46,7 @@ fn unknown_device_name_lists_the_devices_present() -> Result<()> {
 fn device_is_picked_by_part_of_its_name() -> Result<()> {
     let any = validated_device()?;
     let fragment: String = any.name().chars().take(4).collect::<String>().to_uppercase();
-    let options = DeviceOptions {
-        instance: InstanceOptions {
-            validation: true,
-            synchronization: false,
-            app_name: "device name test".into(),
-            extensions: Vec::new(),
-        },
-        device_name: Some(fragment.clone()),
-        presentation: false,
-    };
+    let options = named_device_options(&fragment);
     let picked = Device::new(&options)?;
     ensure!(
         picked.name().to_uppercase().contains(&fragment),

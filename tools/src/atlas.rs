@@ -226,9 +226,7 @@ fn z_order(x: i64, z: i64) -> u128 {
 pub fn run(args: &AtlasArgs) -> Result<()> {
     let start = Instant::now();
     let extent = args.atlas_extent;
-    if !extent.is_power_of_two() || !(4..=16384).contains(&extent) {
-        bail!("--atlas-extent {extent} must be a power of two from 4 to 16384");
-    }
+    crate::gen::check_texture_extent("--atlas-extent", extent)?;
     if !(args.region.is_finite() && args.region > 0.0) {
         bail!("--region {} must be a positive number of metres", args.region);
     }

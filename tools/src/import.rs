@@ -128,12 +128,7 @@ fn transform_normal(n3: &[[f64; 3]; 3], det: f64, n: [f32; 3]) -> [f32; 3] {
 /// Runs `citystream import`.
 pub fn run(args: &ImportArgs) -> Result<()> {
     let start = Instant::now();
-    if !args.max_extent.is_power_of_two() || !(4..=16384).contains(&args.max_extent) {
-        bail!(
-            "--max-extent {} must be a power of two from 4 to 16384",
-            args.max_extent
-        );
-    }
+    crate::gen::check_texture_extent("--max-extent", args.max_extent)?;
     let format = args.format.texture_format();
     let input = &args.input;
     let mut imported = load(input, format, args.max_extent)?;

@@ -375,33 +375,16 @@ fn s3_requests_dropped_and_cut_short_are_retried_and_change_nothing() {
     assert_faults_retried(&proxy, &local_out, &remote_out);
 }
 
-/// Bytes in the files under `dir`.
-fn tree_bytes(dir: &Path) -> u64 {
+/// Bytes in the files under `dir` whose name `counts` accepts.
+fn tree_bytes_where(dir: &Path, counts: &dyn Fn(&std::ffi::OsStr) -> bool) -> u64 {
     std::fs::read_dir(dir).map_or(0, |entries| {
         entries
             .map(|e| e.expect("entry"))
             .map(|e| {
                 let meta = e.metadata().expect("metadata");
                 if meta.is_dir() {
-                    tree_bytes(&e.path())
-                } else {
-                    meta.len()
-                }
-            })
-            .sum()
-    })
-}
-
-/// Bytes in the files under `dir` with one of `names`.
-fn tree_bytes_named(dir: &Path, names: &[&str]) -> u64 {
-    std::fs::read_dir(dir).map_or(0, |entries| {
-        entries
-            .map(|e| e.expect("entry"))
-            .map(|e| {
-                let meta = e.metadata().expect("metadata");
-                if meta.is_dir() {
-                    tree_bytes_named(&e.path(), names)
-                } else if names.iter().any(|n| e.file_name() == *n) {
+                    tree_bytes_where(&e.path(), counts)
+                } else if counts(&e.file_name()) {
                     meta.len()
                 } else {
                     0
@@ -409,6 +392,16 @@ fn tree_bytes_named(dir: &Path, names: &[&str]) -> u64 {
             })
             .sum()
     })
+}
+
+/// Bytes in the files under `dir`.
+fn tree_bytes(dir: &Path) -> u64 {
+    tree_bytes_where(dir, &|_| true)
+}
+
+/// Bytes in the files under `dir` with one of `names`.
+fn tree_bytes_named(dir: &Path, names: &[&str]) -> u64 {
+    tree_bytes_where(dir, &|name| names.iter().any(|n| name == *n))
 }
 
 #[test]

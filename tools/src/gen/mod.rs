@@ -108,15 +108,19 @@ pub struct GenArgs {
     pub quiet: bool,
 }
 
+/// Refuses a texture or atlas extent (the value of `option`) that is not a
+/// power of two from 4 (one compressed block) to 16384 (a 2D image's common limit).
+pub fn check_texture_extent(option: &str, extent: u32) -> Result<()> {
+    if !extent.is_power_of_two() || !(4..=16384).contains(&extent) {
+        bail!("{option} {extent} must be a power of two from 4 to 16384");
+    }
+    Ok(())
+}
+
 /// Runs `citystream gen`.
 pub fn run(args: &GenArgs) -> Result<()> {
     let start = Instant::now();
-    if !args.max_extent.is_power_of_two() || !(4..=16384).contains(&args.max_extent) {
-        bail!(
-            "--max-extent {} must be a power of two from 4 to 16384",
-            args.max_extent
-        );
-    }
+    check_texture_extent("--max-extent", args.max_extent)?;
     let format = args.format.texture_format();
     let mut params = args.preset.params();
     params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);

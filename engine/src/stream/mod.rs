@@ -44,27 +44,28 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use ash::vk;
-use citystream_cache::geometry::cacheable_mip_count;
 use citystream_streaming::controller::{Decision, LoadPolicy};
 use citystream_streaming::dataset::TextureFormat;
 use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, TextureFailure};
 use citystream_streaming::records::{prepare, MeshMetaData};
-use citystream_streaming::residency::planner::{
-    admission_threshold, packing_order, Admission, BudgetPressure, LayerEviction, LevelDrop, PackingPass, RoomStep,
-};
-use citystream_streaming::residency::{AdmissionGate, KeepValue, NeedClass, NeedTable};
-use citystream_streaming::source::{texel_format, MipSink, MipSource, SinkError, SourceError, StagedMip};
+use citystream_streaming::residency::planner::BudgetPressure;
+use citystream_streaming::residency::{AdmissionGate, NeedTable};
+use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
 use citystream_streaming::states::{MipChain, TextureStates};
 
 use crate::commands::{CommandContext, SemaphoreSignal, SemaphoreWait, TimelineSemaphore};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::{CompactedFeedback, FeedbackCompactor};
-use crate::gpu_types::{FeedbackEntry, BINDING_FEEDBACK_MESHES, FEEDBACK_MIP_ONE, FEEDBACK_WEIGHT_ONE};
+use crate::gpu_types::{FeedbackEntry, BINDING_FEEDBACK_MESHES};
 use crate::pipeline::{DescriptorResource, Filtering};
-use crate::texture_cache::{
-    CacheLayers, CycleReport, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome, CACHE_FORMATS,
-};
+use crate::texture_cache::{CacheLayers, CycleReport, Eviction, GpuCacheConfig, GpuTextureCache, CACHE_FORMATS};
+
+mod feedback_records;
+mod immediate;
+mod residency;
+
+pub use feedback_records::{feedback_tau, records_from_feedback};
 
 /// Per cache format, how many textures of each extent the source holds.
 fn texture_extents<S: MipSource + ?Sized>(source: &S) -> Result<Vec<Vec<(u32, u64)>>> {
@@ -107,27 +108,6 @@ impl MipSink for QueueSink {
         // The cache already made the texture unsampleable when it evicted
         // it (before unbinding); nothing is left to do here.
     }
-}
-
-/// Converts compacted feedback entries to the loader's records: the level
-/// wanted is the finest whole level covering the fractional one; the weight
-/// is back in units of W per visible fragment (`fragment_area` visible pixels
-/// per feedback fragment, see [`crate::city::FeedbackView::fragment_area`]).
-pub fn records_from_feedback(entries: &[FeedbackEntry], fragment_area: f32) -> Vec<MeshMetaData> {
-    entries
-        .iter()
-        .map(|e| MeshMetaData {
-            mip_level: (e.mip as f32 / FEEDBACK_MIP_ONE).floor() as u32,
-            weight: (e.weight as f32 / FEEDBACK_WEIGHT_ONE * fragment_area).round() as u32,
-            mesh_id: e.mesh_id,
-        })
-        .collect()
-}
-
-/// The compaction threshold in the feedback's fixed-point units for a τ in
-/// W per visible fragment.
-pub fn feedback_tau(tau: u32, fragment_area: f32) -> u32 {
-    (tau as f32 * FEEDBACK_WEIGHT_ONE / fragment_area.max(1e-6)).floor() as u32
 }
 
 /// How a [`TextureStreamer`] is built.
@@ -730,189 +710,6 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.host_upload_bytes = self.host_upload_bytes.saturating_add(bytes);
     }
 
-    /// Whether this frame is over budget, and the gate's threshold for the
-    /// loader: while the cache is nearly full of levels the view needs,
-    /// loads not denser than the least dense of them would only be refused.
-    fn update_pressure(&mut self, cycle_ran: bool) -> bool {
-        let threshold = admission_threshold(&self.cache, &self.needs);
-        self.gate.set_threshold(threshold);
-        if threshold <= 0.0 {
-            self.gate.clear_refused();
-        }
-        let over = self.pressure.update(
-            self.last_cycle.refused_for_room,
-            self.gate.declined(),
-            threshold,
-            cycle_ran,
-        );
-        if over {
-            self.totals.frames_over_budget += 1;
-        }
-        over
-    }
-
-    /// Drops resident levels worth less than `load`, least worth first
-    /// (as `pass` plans), until `needed_blocks` blocks of the budget are
-    /// free. Each drop first moves the texture's streaming state back to the
-    /// level that stays resident (a texture the loader is working on is
-    /// skipped). Returns whether the room was made.
-    fn make_room(&mut self, pass: &mut PackingPass, needed_blocks: u64, load: KeepValue) -> Result<bool> {
-        loop {
-            let drop = match pass.next_drop(&self.cache, &self.needs, needed_blocks, load) {
-                RoomStep::Made => return Ok(true),
-                RoomStep::Refused => return Ok(false),
-                RoomStep::Drop(drop) => drop,
-            };
-            if self.drop_level(drop)? {
-                pass.level_dropped(&self.cache, &self.needs, drop);
-            }
-        }
-    }
-
-    /// Carries out `drop`; false if the texture's state or the cache no
-    /// longer allows it (nothing changed then).
-    fn drop_level(&mut self, drop: LevelDrop) -> Result<bool> {
-        let LevelDrop { texture, level, next } = drop;
-        let holding = TextureStates::resident_status(Some(level));
-        let after = TextureStates::resident_status(next);
-        if !self.states.try_transition(texture, holding, after).unwrap_or(false) {
-            return Ok(false);
-        }
-        if self.cache.drop_finest(texture)?.is_none() {
-            let _ = self.states.try_transition(texture, after, holding);
-            return Ok(false);
-        }
-        self.totals.dropped_levels += 1;
-        self.last_cycle.dropped.push((texture, level));
-        Ok(true)
-    }
-
-    /// Evicts the live layer worth least among the images of `image`'s
-    /// format, if `pass` finds one whose every texture is worth less than
-    /// `load`. Its textures are reloaded from their first level when the view
-    /// asks again.
-    fn free_layer(&mut self, pass: &mut PackingPass, image: u32, load: KeepValue) -> Result<bool> {
-        let Some(eviction) = pass.next_layer_eviction(&self.cache, &self.needs, image, load) else {
-            return Ok(false);
-        };
-        let LayerEviction { image, layer, .. } = eviction;
-        self.cache.evict_layer(image, layer)?;
-        self.totals.evicted_layers += 1;
-        self.last_cycle.evicted_layers += 1;
-        pass.layer_evicted(eviction);
-        Ok(true)
-    }
-
-    /// [`Eviction::View`] packing: loaded mips go in, densest first; when
-    /// the budget is full, levels worth less than the mip are dropped
-    /// ([`make_room`](Self::make_room)), and a mip that would displace
-    /// only levels worth as much or more is refused: its texture's state
-    /// returns to what is resident and the gate keeps the loader from
-    /// reading it again while the pressure lasts. Mips whose memory waits
-    /// for the next unbind batch are kept for the next frame.
-    fn stage_by_view(&mut self) -> Result<u32> {
-        self.last_cycle = ResidencyCycle::default();
-        let mut staged = std::mem::take(&mut self.deferred);
-        staged.extend(self.queue.take());
-        let mut refused = 0;
-        let mut pass = PackingPass::new();
-        for (value, mip) in packing_order(&self.needs, staged) {
-            let texture = mip.texture;
-            let finest = match pass.admit(&self.cache, texture, mip.level) {
-                Admission::AlreadyHeld => continue,
-                Admission::Refused { finest } => {
-                    refused += 1;
-                    let _ = self.states.settle(texture, TextureStates::resident_status(finest));
-                    continue;
-                }
-                Admission::Stage { finest } => finest,
-            };
-            let source = self.loader.source();
-            let (chain, format) = chain_and_format(source, texture)?;
-            let mut attempts = 0;
-            loop {
-                attempts += 1;
-                let outcome = self
-                    .cache
-                    .stage(texture, format, chain.width, chain.height, mip.level, &mip.bytes);
-                let room = match outcome {
-                    Ok(StageOutcome::Staged { .. }) => {
-                        self.last_cycle.staged.push((texture, mip.level));
-                        break;
-                    }
-                    Ok(StageOutcome::MemoryPending) => {
-                        self.deferred.push(mip);
-                        break;
-                    }
-                    Ok(StageOutcome::NoRoom { needed_blocks }) if attempts < 4 => {
-                        self.make_room(&mut pass, needed_blocks, value)?
-                    }
-                    Ok(StageOutcome::NoLayer { image, .. }) if attempts < 4 => {
-                        self.free_layer(&mut pass, image, value)?
-                    }
-                    Ok(StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. } | StageOutcome::EvictedItself) => {
-                        false
-                    }
-                    // The cache cannot hold this texture at all (a format
-                    // without an image, an extent above the layer): loading
-                    // it again would fail again.
-                    Err(error) => {
-                        refused += 1;
-                        self.loader.fail_texture(TextureFailure {
-                            texture,
-                            level: Some(mip.level),
-                            reason: error.to_string(),
-                        });
-                        break;
-                    }
-                };
-                if !room {
-                    refused += 1;
-                    self.last_cycle.refused_for_room += 1;
-                    self.totals.refused_for_room += 1;
-                    self.gate.refuse(texture, mip.level);
-                    let _ = self.states.settle(texture, TextureStates::resident_status(finest));
-                    break;
-                }
-            }
-        }
-        Ok(refused)
-    }
-
-    /// Moves every loaded mip into the cache. Mips the cache cannot take
-    /// now are invalidated in the streaming states so Algorithm 1 loads them
-    /// again later; textures it cannot take at all are failed.
-    fn stage_loaded(&mut self) -> Result<u32> {
-        let mut refused = 0;
-        // Loader workers stage in whatever order they finish; packing in a
-        // fixed order keeps cache placement, and so runs, reproducible.
-        let mut staged = self.queue.take();
-        staged.sort_unstable_by_key(|m| (m.texture, std::cmp::Reverse(m.level)));
-        for mip in staged {
-            let source = self.loader.source();
-            let (chain, format) = chain_and_format(source, mip.texture)?;
-            let outcome = self
-                .cache
-                .stage(mip.texture, format, chain.width, chain.height, mip.level, &mip.bytes);
-            match outcome {
-                Ok(StageOutcome::Staged { .. }) => {}
-                Ok(_) => {
-                    refused += 1;
-                    let _ = self.states.invalidate(mip.texture);
-                }
-                Err(error) => {
-                    refused += 1;
-                    self.loader.fail_texture(TextureFailure {
-                        texture: mip.texture,
-                        level: Some(mip.level),
-                        reason: error.to_string(),
-                    });
-                }
-            }
-        }
-        Ok(refused)
-    }
-
     /// Step 2: records the copies of this frame's new mips and the table
     /// update into `cmd`, outside any render pass and before every pass
     /// that samples streamed textures.
@@ -989,132 +786,6 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         }
     }
 
-    /// Loads now, bypassing the policy, every level of each `(texture,
-    /// finest level)` from that level up to the coarsest not yet resident,
-    /// and waits for the copies: for reference renders and measurements,
-    /// not for the steady state. Call between frames, after the last
-    /// ended frame was submitted (unbinds wait for it). Returns the textures
-    /// the cache had to evict meanwhile.
-    pub fn load_now(&mut self, requests: &[(u32, u32)], commands: &mut CommandContext) -> Result<Vec<u32>> {
-        self.check_between_frames("load_now")?;
-        let mut mips = Vec::new();
-        for &(texture, level) in requests {
-            let source = self.loader.source();
-            let (chain, format) = chain_and_format(source, texture)?;
-            // Sources may store levels below one texel block; the cache holds none of them.
-            let levels = chain
-                .mip_count
-                .min(cacheable_mip_count(&texel_format(format), chain.width, chain.height))
-                .max(1);
-            let resident = self.cache.resident_levels(texture);
-            let level = level.min(levels - 1);
-            mips.extend(
-                (level..levels)
-                    .rev()
-                    .filter(|l| resident & (1 << l) == 0)
-                    .map(|l| (texture, l)),
-            );
-        }
-        let report = self.load_mips_now(&mips, commands)?;
-        Ok(report.invalidated_textures)
-    }
-
-    /// Loads exactly the given `(texture, level)` mips now and waits for the
-    /// copies (pop-in measurements). Call as [`load_now`](Self::load_now).
-    pub fn load_levels_now(&mut self, mips: &[(u32, u32)], commands: &mut CommandContext) -> Result<CycleReport> {
-        self.check_between_frames("load_levels_now")?;
-        self.load_mips_now(mips, commands)
-    }
-
-    fn check_between_frames(&self, call: &str) -> Result<()> {
-        if self.in_frame {
-            return Err(EngineError::InvalidRequest(format!("{call} called inside a frame")));
-        }
-        Ok(())
-    }
-
-    /// Stages `mips` in order and runs cache cycles until all are copied:
-    /// when the budget's freed memory waits for a cycle's unbinds
-    /// (`MemoryPending`), that cycle runs first. Evicted textures are
-    /// invalidated for the loader; the reports of all cycles are summed.
-    fn load_mips_now(&mut self, mips: &[(u32, u32)], commands: &mut CommandContext) -> Result<CycleReport> {
-        let mut total = CycleReport::default();
-        let mut buffer = Vec::new();
-        for &(texture, level) in mips {
-            let source = self.loader.source();
-            let (chain, format) = chain_and_format(source, texture)?;
-            buffer.resize(source.mip_len(texture, level).map_err(source_failure)? as usize, 0);
-            source.read_mip(texture, level, &mut buffer).map_err(source_failure)?;
-            // A cycle at most for pending memory and one after making room.
-            let mut cycles_run = 0;
-            loop {
-                match self
-                    .cache
-                    .stage(texture, format, chain.width, chain.height, level, &buffer)?
-                {
-                    StageOutcome::Staged { .. } => break,
-                    // The next stage inserts the texture afresh, in a new ring layer.
-                    StageOutcome::EvictedItself if cycles_run < 2 => {
-                        cycles_run += 1;
-                    }
-                    StageOutcome::EvictedItself => {
-                        return Err(EngineError::InvalidRequest(format!(
-                            "texture {texture} level {level}: the cache's ring evicts the texture's own layer \
-                             to make room for it; the cache has too few layers for the budget"
-                        )))
-                    }
-                    StageOutcome::MemoryPending if cycles_run < 2 => {
-                        self.finish_cycle_now(commands, &mut total)?;
-                        cycles_run += 1;
-                    }
-                    StageOutcome::MemoryPending => {
-                        return Err(EngineError::InvalidRequest(format!(
-                            "texture {texture} level {level} does not fit the cache's memory budget even after a cycle"
-                        )))
-                    }
-                    outcome @ (StageOutcome::NoRoom { .. } | StageOutcome::NoLayer { .. }) => {
-                        // Asked for explicitly: worth more than anything resident.
-                        let load = KeepValue {
-                            class: NeedClass::Needed,
-                            rank: f64::INFINITY,
-                        };
-                        let mut pass = PackingPass::new();
-                        let room = match outcome {
-                            StageOutcome::NoRoom { needed_blocks } => self.make_room(&mut pass, needed_blocks, load)?,
-                            StageOutcome::NoLayer { image, .. } => self.free_layer(&mut pass, image, load)?,
-                            _ => false,
-                        };
-                        if !room || cycles_run >= 2 {
-                            return Err(EngineError::InvalidRequest(format!(
-                                "texture {texture} level {level} does not fit the cache's memory budget or layers"
-                            )));
-                        }
-                        // Freed memory is reusable once the unbinds went out.
-                        self.finish_cycle_now(commands, &mut total)?;
-                        cycles_run += 1;
-                    }
-                }
-            }
-        }
-        self.finish_cycle_now(commands, &mut total)?;
-        Ok(total)
-    }
-
-    fn finish_cycle_now(&mut self, commands: &mut CommandContext, total: &mut CycleReport) -> Result<()> {
-        // Frames already submitted may still sample what this cycle evicts.
-        let frames_before = (self.begun > 0).then(|| SemaphoreWait {
-            semaphore: self.frames.raw(),
-            stages: vk::PipelineStageFlags2::ALL_COMMANDS,
-            value: self.begun,
-        });
-        let report = self.cache.finish_cycle_after(commands, frames_before)?;
-        for &texture in &report.invalidated_textures {
-            let _ = self.states.invalidate(texture);
-        }
-        total.absorb(report);
-        Ok(())
-    }
-
     /// The device.
     pub fn device(&self) -> &Arc<Device> {
         &self.device
@@ -1139,35 +810,4 @@ fn chain_and_format<S: MipSource + ?Sized>(source: &S, texture: u32) -> Result<(
 
 fn source_failure(error: SourceError) -> EngineError {
     EngineError::InvalidRequest(format!("reading a texture: {error}"))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn feedback_weights_become_visible_fragment_weights() {
-        // One feedback fragment covers a 4x4 block of visible pixels (area 16).
-        // A weight of 10 W in fixed point (80) stands for 160 W of visible fragments.
-        let entries = [FeedbackEntry {
-            mip: 3 * 256 + 200, // level 3.78: the finest whole level covering it is 3
-            weight: 80,
-            mesh_id: 7,
-        }];
-        let records = records_from_feedback(&entries, 16.0);
-        assert_eq!(
-            records,
-            vec![MeshMetaData {
-                mip_level: 3,
-                weight: 160,
-                mesh_id: 7
-            }]
-        );
-        // τ = 150 W per visible fragment is 150 * 8 / 16 = 75 in feedback fixed point:
-        // the entry above (80) passes on the GPU and its record (160) on the host.
-        assert_eq!(feedback_tau(150, 16.0), 75);
-        assert_eq!(feedback_tau(150, 1.0), 1200);
-        // A degenerate area never divides by zero.
-        assert!(feedback_tau(150, 0.0) > 0);
-    }
 }

@@ -31,8 +31,8 @@ use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::{
-    derive_image_layers, BudgetUse, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, ImageDemand,
-    Placement, TexelFormat, TextureCache, Utilisation,
+    BudgetUse, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, Placement, TexelFormat, TextureCache,
+    Utilisation,
 };
 use citystream_streaming::dataset::TextureFormat;
 use citystream_streaming::residency::planner::ResidentCache;
@@ -40,18 +40,22 @@ use gpu_allocator::MemoryLocation;
 
 use crate::binder::VulkanBinder;
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::{CommandContext, SemaphoreWait};
+use crate::commands::CommandContext;
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
     TextureData, BINDING_CACHE_IMAGES, BINDING_COLORMAP, BINDING_TEXTURE_DATA, CACHE_IMAGE_SLOTS,
-    TEXTURE_NOT_SAMPLEABLE, TEXTURE_SAMPLEABLE,
+    TEXTURE_NOT_SAMPLEABLE,
 };
-use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorResource, Filtering, Sampler};
 use crate::scene::upload_buffer;
-use crate::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
+use crate::sparse::{SparseImage, SparseImageDesc, TexelUpload};
 use crate::staging::StagingRing;
+use layout::LayerProbe;
+
+mod cycle;
+mod layout;
+mod table;
 
 /// The formats the cache can hold. Each format of
 /// [`GpuCacheConfig::formats`] has one sparse image or more; the images fill
@@ -282,64 +286,18 @@ impl GpuTextureCache {
         let virtual_budget_bytes = config
             .virtual_budget_bytes
             .unwrap_or(device.sparse_support().address_space_size);
-        // Indices into CACHE_FORMATS of the formats held, in that order.
-        let held: Vec<usize> = (0..CACHE_FORMATS.len())
-            .filter(|&index| config.formats.contains(&CACHE_FORMATS[index].0))
-            .collect();
-        if held.is_empty() {
-            return Err(EngineError::InvalidRequest(format!(
-                "the cache must hold at least one of {:?}; {:?} were asked for",
-                CACHE_FORMATS.map(|(format, _, _)| format),
-                config.formats
-            )));
-        }
-        let mut layer_counts: Vec<Vec<u32>> = vec![Vec::new(); CACHE_FORMATS.len()];
-        match &config.layers {
-            CacheLayers::Fixed(count) => {
-                for &index in &held {
-                    layer_counts[index] = vec![*count];
-                }
-            }
-            CacheLayers::Derived { extents, max_layers } => {
-                let max_layers =
-                    max_layers.map_or(limits.max_image_array_layers, |m| m.min(limits.max_image_array_layers));
-                let probes = held
-                    .iter()
-                    .map(|&index| {
-                        let (_, vk_format, texel_format) = CACHE_FORMATS[index];
-                        probe_layer(device, config.layer_size, vk_format, texel_format)
-                    })
-                    .collect::<Result<Vec<_>>>()?;
-                let demands: Vec<ImageDemand> = held
-                    .iter()
-                    .zip(&probes)
-                    .map(|(&index, probe)| ImageDemand {
-                        extents: extents.get(index).cloned().unwrap_or_default(),
-                        layer_virtual_bytes: probe.virtual_bytes,
-                    })
-                    .collect();
-                // The images share one block size (checked once they exist).
-                let block_bytes = probes.first().map_or(1, |probe| probe.block_bytes.max(1));
-                let derived = derive_image_layers(
-                    config.layer_size,
-                    &demands,
-                    config.memory_budget_bytes / block_bytes,
-                    max_layers,
-                    CACHE_IMAGE_SLOTS,
-                    virtual_budget_bytes,
-                );
-                for (&index, counts) in held.iter().zip(derived) {
-                    layer_counts[index] = counts;
-                }
-            }
-        };
+        let held = layout::held_formats(config)?;
+        let layer_counts = layout::plan_layer_counts(
+            config,
+            &held,
+            limits.max_image_array_layers,
+            virtual_budget_bytes,
+            |index| {
+                let (_, vk_format, texel_format) = CACHE_FORMATS[index];
+                probe_layer(device, config.layer_size, vk_format, texel_format)
+            },
+        )?;
         let image_count: usize = layer_counts.iter().map(Vec::len).sum();
-        if image_count > CACHE_IMAGE_SLOTS as usize || held.iter().any(|&index| layer_counts[index].is_empty()) {
-            return Err(EngineError::InvalidRequest(format!(
-                "the cache needs 1 to {CACHE_IMAGE_SLOTS} images per format and {CACHE_IMAGE_SLOTS} in all; \
-                 {layer_counts:?} layers were asked for"
-            )));
-        }
         let mut images = Vec::with_capacity(image_count);
         let mut image_configs = Vec::with_capacity(image_count);
         let mut image_formats = Vec::with_capacity(image_count);
@@ -728,355 +686,6 @@ impl GpuTextureCache {
             new_blocks: upload.new_blocks,
         })
     }
-
-    /// Carries out a cycle in one submission and waits for it: for tools,
-    /// tests and reference renders. Must not be interleaved with a
-    /// [`prepare_cycle`](Self::prepare_cycle) whose commands are not yet
-    /// submitted.
-    pub fn finish_cycle(&mut self, commands: &mut CommandContext) -> Result<CycleReport> {
-        self.finish_cycle_after(commands, None)
-    }
-
-    /// As [`finish_cycle`](Self::finish_cycle), with the unbinds waiting for
-    /// `frames_before` (see [`prepare_cycle`](Self::prepare_cycle)), which
-    /// must already be submitted.
-    pub fn finish_cycle_after(
-        &mut self,
-        commands: &mut CommandContext,
-        frames_before: Option<SemaphoreWait>,
-    ) -> Result<CycleReport> {
-        let ticket = self.prepare_cycle(frames_before)?;
-        let cmd = commands.begin()?;
-        let report = self.record_cycle(cmd)?;
-        let waits: Vec<SemaphoreWait> = self.bind_wait().into_iter().collect();
-        commands.submit_and_wait(&waits)?;
-        // The fence covers every earlier submission on the queue too.
-        self.retire(ticket);
-        Ok(report)
-    }
-
-    /// First half of a cycle, before the caller records its frame: marks
-    /// evicted textures not sampleable, allocates new memory chunks,
-    /// submits all binds and unbinds in one `vkQueueBindSparse` and moves
-    /// the staged bytes to host-visible staging. Returns the cycle's ticket,
-    /// which names the submission that will carry its commands (see
-    /// [`retire`](Self::retire)); `frames_before` is the GPU progress
-    /// (semaphore and value) of the last submission that could still
-    /// sample an evicted texture, which the unbinds wait for.
-    pub fn prepare_cycle(&mut self, frames_before: Option<SemaphoreWait>) -> Result<u64> {
-        if self.prepared.is_some() {
-            return Err(EngineError::InvalidRequest(
-                "a cache cycle was prepared twice without recording it".into(),
-            ));
-        }
-        self.last_ticket += 1;
-        let ticket = self.last_ticket;
-        let batch = self.cache.take_batch();
-        let mut report = CycleReport::default();
-
-        // 1. Evicted textures stop being sampleable; the table copy that
-        // says so is recorded before this frame's passes.
-        for gone in &batch.invalidated {
-            let Ok(texture) = u32::try_from(gone.key) else { continue };
-            let Some(slot) = self.slots.get_mut(texture as usize) else {
-                continue;
-            };
-            if slot.placement.is_some_and(|p| same_place(&p, gone)) {
-                slot.placement = None;
-                slot.resident = 0;
-                slot.pending = 0;
-                self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
-                self.mark_dirty(texture);
-                report.textures_invalidated += 1;
-                report.invalidated_textures.push(texture);
-            }
-        }
-        // Mips staged for a place that was evicted in the same cycle must not be copied.
-        self.uploads
-            .retain(|u| !batch.invalidated.iter().any(|gone| same_place(&u.placement, gone)));
-
-        // 2. Memory for new pool chunks.
-        for chunk in &batch.new_chunks {
-            let blocks = chunk.bytes / self.block_size.max(1);
-            let memory = SparseMemoryChunk::with_requirements(
-                &self.device,
-                self.block_size,
-                self.memory_type_bits,
-                blocks,
-                &format!("cache block chunk {}", chunk.chunk),
-            )?;
-            let index = self.binder.add_chunk(memory);
-            if index != chunk.chunk {
-                return Err(EngineError::InvalidRequest(format!(
-                    "block pool chunk {} was created as engine chunk {index}",
-                    chunk.chunk
-                )));
-            }
-        }
-
-        // 3. One bind submission; unbinds wait for the frames that may still sample.
-        let unbinds = batch
-            .ops
-            .iter()
-            .any(|op| matches!(op, citystream_cache::BindOp::Unbind { .. }));
-        let frame_wait = if unbinds { frames_before } else { None };
-        let bind = self.binder.submit_after(&batch.ops, frame_wait)?;
-        report.bind_entries = bind.entries;
-        report.bind_seconds = bind.seconds;
-        for op in &batch.ops {
-            match op {
-                citystream_cache::BindOp::Bind { .. } => report.blocks_bound += 1,
-                citystream_cache::BindOp::Unbind { .. } => report.blocks_unbound += 1,
-            }
-        }
-
-        // 4. The bytes go to the staging ring (or, for a cycle larger than
-        // the ring, a one-off buffer released with the ticket).
-        let source = if self.uploads.is_empty() {
-            None
-        } else {
-            match self.staging.push(&self.upload_bytes, 16, ticket)? {
-                Some(range) => Some((self.staging.buffer(), range.offset)),
-                None => {
-                    let mut oversize = Buffer::new(
-                        &self.device,
-                        BufferDesc {
-                            size: self.upload_bytes.len() as u64,
-                            usage: vk::BufferUsageFlags::TRANSFER_SRC,
-                            location: MemoryLocation::CpuToGpu,
-                        },
-                        "cache upload staging (oversize cycle)",
-                    )?;
-                    oversize.write(0, &self.upload_bytes)?;
-                    let raw = oversize.raw();
-                    self.retiring.push_back((ticket, oversize));
-                    Some((raw, 0))
-                }
-            }
-        };
-        self.prepared = Some(PreparedCycle { ticket, source, report });
-        Ok(ticket)
-    }
-
-    /// Second half of a cycle: records into `cmd` the copies of the staged
-    /// mips (after the layout change the copies need) and then the table
-    /// update that publishes them and the evictions, with the barriers that
-    /// order them against earlier and later frames. The submission carrying
-    /// `cmd` must wait on [`bind_wait`](Self::bind_wait). Without a
-    /// prepared cycle, records only pending table changes.
-    pub fn record_cycle(&mut self, cmd: vk::CommandBuffer) -> Result<CycleReport> {
-        let Some(prepared) = self.prepared.take() else {
-            let ticket = self.last_ticket;
-            self.record_table_update(cmd, ticket)?;
-            return Ok(CycleReport::default());
-        };
-        let mut report = prepared.report;
-        if let Some((source, base)) = prepared.source {
-            for (index, image) in self.images.iter().enumerate() {
-                let uploads: Vec<TexelUpload> = self
-                    .uploads
-                    .iter()
-                    .filter(|u| u.image as usize == index)
-                    .map(|u| TexelUpload {
-                        buffer_offset: base + u.bytes.start as u64,
-                        ..u.upload
-                    })
-                    .collect();
-                if uploads.is_empty() {
-                    continue;
-                }
-                image.record_layout(
-                    cmd,
-                    vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-                    vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                );
-                image.record_copies(cmd, source, &uploads)?;
-                image.record_layout(
-                    cmd,
-                    vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                    vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-                );
-            }
-            // The copies precede the table update in this command buffer,
-            // so no frame sees a level as resident before its texels.
-            for u in &self.uploads {
-                let slot = &mut self.slots[u.texture as usize];
-                if slot.placement.is_some_and(|p| same_place(&p, &u.placement)) {
-                    slot.resident |= 1 << u.upload.mip;
-                }
-                slot.pending = 0;
-                let uploaded = &mut self.uploaded_levels[u.texture as usize];
-                if *uploaded & (1 << u.upload.mip) == 0 {
-                    *uploaded |= 1 << u.upload.mip;
-                    self.unique_bytes_uploaded += u.bytes.len() as u64;
-                }
-                report.mips_uploaded += 1;
-                report.bytes_uploaded += u.bytes.len() as u64;
-            }
-            let touched: Vec<u32> = self.uploads.iter().map(|u| u.texture).collect();
-            for texture in touched {
-                self.publish(texture);
-            }
-        }
-        self.uploads.clear();
-        self.upload_bytes.clear();
-        self.record_table_update(cmd, prepared.ticket)?;
-        Ok(report)
-    }
-
-    /// What the submission carrying [`record_cycle`](Self::record_cycle)'s
-    /// commands must wait on: the last sparse bind batch, at the copy stage.
-    pub fn bind_wait(&self) -> Option<SemaphoreWait> {
-        (self.binder.last_signalled() > 0).then(|| self.binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY))
-    }
-
-    /// Releases staging space and one-off buffers of every cycle whose
-    /// ticket is at most `completed` (their submissions have finished).
-    pub fn retire(&mut self, completed: u64) {
-        self.staging.retire(completed);
-        while self.retiring.front().is_some_and(|(ticket, _)| *ticket <= completed) {
-            self.retiring.pop_front();
-        }
-    }
-
-    fn mark_dirty(&mut self, texture: u32) {
-        if let Some(flag) = self.dirty_flags.get_mut(texture as usize) {
-            if !*flag {
-                *flag = true;
-                self.dirty.push(texture);
-            }
-        }
-    }
-
-    /// Records the copy of every changed table entry (runs of adjacent
-    /// textures merged) from staging into the device-local table.
-    fn record_table_update(&mut self, cmd: vk::CommandBuffer, ticket: u64) -> Result<()> {
-        if self.dirty.is_empty() {
-            return Ok(());
-        }
-        let mut dirty = std::mem::take(&mut self.dirty);
-        dirty.sort_unstable();
-        for &texture in &dirty {
-            self.dirty_flags[texture as usize] = false;
-        }
-        let entry = std::mem::size_of::<TextureData>() as u64;
-        // Runs of consecutive texture ids: (first id, count).
-        let mut runs: Vec<(u32, u32)> = Vec::new();
-        for &texture in &dirty {
-            match runs.last_mut() {
-                Some((first, count)) if *first + *count == texture => *count += 1,
-                _ => runs.push((texture, 1)),
-            }
-        }
-        let mut bytes: Vec<u8> = Vec::with_capacity(dirty.len() * entry as usize);
-        for &(first, count) in &runs {
-            bytes.extend_from_slice(bytemuck::cast_slice(
-                &self.table[first as usize..(first + count) as usize],
-            ));
-        }
-        let (source, base) = match self.staging.push(&bytes, 16, ticket)? {
-            Some(range) => (self.staging.buffer(), range.offset),
-            None => {
-                let mut oversize = Buffer::new(
-                    &self.device,
-                    BufferDesc {
-                        size: bytes.len() as u64,
-                        usage: vk::BufferUsageFlags::TRANSFER_SRC,
-                        location: MemoryLocation::CpuToGpu,
-                    },
-                    "texture table staging (oversize update)",
-                )?;
-                oversize.write(0, &bytes)?;
-                let raw = oversize.raw();
-                self.retiring.push_back((ticket, oversize));
-                (raw, 0)
-            }
-        };
-        let mut offset = base;
-        let regions: Vec<vk::BufferCopy> = runs
-            .iter()
-            .map(|&(first, count)| {
-                let region = vk::BufferCopy {
-                    src_offset: offset,
-                    dst_offset: u64::from(first) * entry,
-                    size: u64::from(count) * entry,
-                };
-                offset += region.size;
-                region
-            })
-            .collect();
-        let shader_stages = vk::PipelineStageFlags2::VERTEX_SHADER
-            | vk::PipelineStageFlags2::FRAGMENT_SHADER
-            | vk::PipelineStageFlags2::COMPUTE_SHADER;
-        // Earlier frames' reads of the table finish before it changes.
-        memory_barrier(
-            &self.device,
-            cmd,
-            (shader_stages, vk::AccessFlags2::SHADER_STORAGE_READ),
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-        );
-        // SAFETY: cmd is recording outside rendering; the regions lie inside
-        // the staging source and the table (ids come from the table's range).
-        unsafe {
-            self.device
-                .raw()
-                .cmd_copy_buffer(cmd, source, self.table_buffer.raw(), &regions)
-        };
-        memory_barrier(
-            &self.device,
-            cmd,
-            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-            (shader_stages, vk::AccessFlags2::SHADER_STORAGE_READ),
-        );
-        Ok(())
-    }
-
-    /// Writes a texture's table entry from its host state. The coarsest
-    /// resident level bounds sampling (the loader starts at the 4×4 level, so
-    /// coarser levels of uncompressed textures are never loaded), and the
-    /// finest level such that it and every level up to that one are resident
-    /// is the finest sampled.
-    fn publish(&mut self, texture: u32) {
-        self.mark_dirty(texture);
-        let slot = self.slots[texture as usize];
-        let entry = &mut self.table[texture as usize];
-        let Some(placement) = slot.placement else {
-            entry.state = TEXTURE_NOT_SAMPLEABLE;
-            return;
-        };
-        let resident = slot.resident & ((1u64 << placement.mip_count.min(32)) - 1) as u32;
-        if resident == 0 {
-            entry.state = TEXTURE_NOT_SAMPLEABLE;
-            return;
-        }
-        let coarsest = 31 - resident.leading_zeros();
-        let mut lowest = coarsest;
-        while lowest > 0 && resident & (1 << (lowest - 1)) != 0 {
-            lowest -= 1;
-        }
-        *entry = TextureData {
-            uv_transform: [
-                placement.uv.scale[0],
-                placement.uv.scale[1],
-                placement.uv.offset[0],
-                placement.uv.offset[1],
-            ],
-            image: placement.image,
-            layer: placement.layer,
-            lowest_mip: lowest,
-            state: TEXTURE_SAMPLEABLE,
-            mip_count: coarsest + 1,
-            ..TextureData::default()
-        };
-    }
-}
-
-/// What one layer of a cache image costs, from a one-layer probe image.
-struct LayerProbe {
-    /// The sparse block size.
-    block_bytes: u64,
-    /// Virtual bytes of one layer: its full mip chain in whole blocks.
-    virtual_bytes: u64,
 }
 
 /// Creates a one-layer sparse image of `format` and reads its block size
@@ -1113,6 +722,35 @@ fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel:
         block_bytes: probe.block_size(),
         virtual_bytes: desc.virtual_bytes(),
     })
+}
+
+/// Puts `bytes` into the staging ring for the submission `ticket` or, where
+/// the ring has no room, into a one-off buffer released with that ticket
+/// ([`GpuTextureCache::retire`]). Returns the buffer and the bytes' offset.
+fn stage_bytes(
+    device: &Arc<Device>,
+    staging: &mut StagingRing,
+    retiring: &mut std::collections::VecDeque<(u64, Buffer)>,
+    bytes: &[u8],
+    ticket: u64,
+    label: &str,
+) -> Result<(vk::Buffer, u64)> {
+    if let Some(range) = staging.push(bytes, 16, ticket)? {
+        return Ok((staging.buffer(), range.offset));
+    }
+    let mut oversize = Buffer::new(
+        device,
+        BufferDesc {
+            size: bytes.len() as u64,
+            usage: vk::BufferUsageFlags::TRANSFER_SRC,
+            location: MemoryLocation::CpuToGpu,
+        },
+        label,
+    )?;
+    oversize.write(0, bytes)?;
+    let raw = oversize.raw();
+    retiring.push_back((ticket, oversize));
+    Ok((raw, 0))
 }
 
 fn same_place(a: &Placement, b: &Placement) -> bool {

@@ -1,0 +1,190 @@
+//! How many images the cache has and how many layers each: from the formats
+//! it holds, the textures each must place, the budget and the device's
+//! limits. Pure: the sparse block size and layer footprint come in as
+//! [`LayerProbe`]s, which the caller measures on the device.
+
+use citystream_cache::{derive_image_layers, ImageDemand};
+
+use super::{CacheLayers, GpuCacheConfig, CACHE_FORMATS};
+use crate::error::{EngineError, Result};
+use crate::gpu_types::CACHE_IMAGE_SLOTS;
+
+/// What one layer of a cache image costs, from a one-layer probe image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct LayerProbe {
+    /// The sparse block size.
+    pub(super) block_bytes: u64,
+    /// Virtual bytes of one layer: its full mip chain in whole blocks.
+    pub(super) virtual_bytes: u64,
+}
+
+/// Indices into [`CACHE_FORMATS`] of the formats `config` holds, in that order.
+pub(super) fn held_formats(config: &GpuCacheConfig) -> Result<Vec<usize>> {
+    let held: Vec<usize> = (0..CACHE_FORMATS.len())
+        .filter(|&index| config.formats.contains(&CACHE_FORMATS[index].0))
+        .collect();
+    if held.is_empty() {
+        return Err(EngineError::InvalidRequest(format!(
+            "the cache must hold at least one of {:?}; {:?} were asked for",
+            CACHE_FORMATS.map(|(format, _, _)| format),
+            config.formats
+        )));
+    }
+    Ok(held)
+}
+
+/// Per format in [`CACHE_FORMATS`] order, the layer count of each of its
+/// images (none for a format not held). `device_max_layers` is the device's
+/// `maxImageArrayLayers`; `probe` measures a layer of the format at an index
+/// of [`CACHE_FORMATS`] (called only for derived layers).
+pub(super) fn plan_layer_counts(
+    config: &GpuCacheConfig,
+    held: &[usize],
+    device_max_layers: u32,
+    virtual_budget_bytes: u64,
+    mut probe: impl FnMut(usize) -> Result<LayerProbe>,
+) -> Result<Vec<Vec<u32>>> {
+    let mut layer_counts: Vec<Vec<u32>> = vec![Vec::new(); CACHE_FORMATS.len()];
+    match &config.layers {
+        CacheLayers::Fixed(count) => {
+            for &index in held {
+                layer_counts[index] = vec![*count];
+            }
+        }
+        CacheLayers::Derived { extents, max_layers } => {
+            let max_layers = max_layers.map_or(device_max_layers, |m| m.min(device_max_layers));
+            let probes = held.iter().map(|&index| probe(index)).collect::<Result<Vec<_>>>()?;
+            let demands: Vec<ImageDemand> = held
+                .iter()
+                .zip(&probes)
+                .map(|(&index, probe)| ImageDemand {
+                    extents: extents.get(index).cloned().unwrap_or_default(),
+                    layer_virtual_bytes: probe.virtual_bytes,
+                })
+                .collect();
+            // The images share one block size (checked once they exist).
+            let block_bytes = probes.first().map_or(1, |probe| probe.block_bytes.max(1));
+            let derived = derive_image_layers(
+                config.layer_size,
+                &demands,
+                config.memory_budget_bytes / block_bytes,
+                max_layers,
+                CACHE_IMAGE_SLOTS,
+                virtual_budget_bytes,
+            );
+            for (&index, counts) in held.iter().zip(derived) {
+                layer_counts[index] = counts;
+            }
+        }
+    };
+    let image_count: usize = layer_counts.iter().map(Vec::len).sum();
+    if image_count > CACHE_IMAGE_SLOTS as usize
+        || held.iter().any(|&index| layer_counts[index].is_empty())
+        || layer_counts.iter().flatten().any(|&layers| layers == 0)
+    {
+        return Err(EngineError::InvalidRequest(format!(
+            "the cache needs 1 to {CACHE_IMAGE_SLOTS} images per format and {CACHE_IMAGE_SLOTS} in all, \
+             each with at least one layer; {layer_counts:?} layers were asked for"
+        )));
+    }
+    Ok(layer_counts)
+}
+
+#[cfg(test)]
+mod tests {
+    use citystream_streaming::dataset::TextureFormat;
+
+    use super::*;
+    use crate::pipeline::Filtering;
+    use crate::texture_cache::Eviction;
+
+    const BLOCK: u64 = 64 * 1024;
+
+    fn config(formats: &[TextureFormat], layers: CacheLayers, budget_blocks: u64) -> GpuCacheConfig {
+        GpuCacheConfig {
+            layer_size: 1024,
+            layers,
+            formats: formats.to_vec(),
+            memory_budget_bytes: budget_blocks * BLOCK,
+            virtual_budget_bytes: None,
+            blocks_per_chunk: 16,
+            texture_count: 1,
+            filtering: Filtering::Nearest,
+            staging_bytes: 1 << 20,
+            eviction: Eviction::View,
+        }
+    }
+
+    fn probe(_: usize) -> Result<LayerProbe> {
+        Ok(LayerProbe {
+            block_bytes: BLOCK,
+            // A 1024² BC1 layer with its mip chain in whole 64 KiB blocks.
+            virtual_bytes: 10 * BLOCK,
+        })
+    }
+
+    fn never_probed(index: usize) -> Result<LayerProbe> {
+        panic!("fixed layers must not probe format {index}")
+    }
+
+    /// A BC1 cache deriving its layers for `textures` of `extent`, at most
+    /// `max_layers` per image, within `budget_blocks`.
+    fn bc1_derived(extent: u32, textures: u64, max_layers: Option<u32>, budget_blocks: u64) -> GpuCacheConfig {
+        let extents = vec![vec![(extent, textures)], vec![], vec![], vec![]];
+        config(
+            &[TextureFormat::Bc1],
+            CacheLayers::Derived { extents, max_layers },
+            budget_blocks,
+        )
+    }
+
+    #[test]
+    fn fixed_layers_give_each_held_format_one_image_in_cache_format_order() -> Result<()> {
+        let config = config(&[TextureFormat::Bc7, TextureFormat::Bc1], CacheLayers::Fixed(8), 100);
+        let held = held_formats(&config)?;
+        assert_eq!(held, vec![0, 3]);
+        let counts = plan_layer_counts(&config, &held, 2048, u64::MAX, never_probed)?;
+        assert_eq!(counts, vec![vec![8], vec![], vec![], vec![8]]);
+        Ok(())
+    }
+
+    #[test]
+    fn a_cache_holding_no_format_is_refused() {
+        let config = config(&[], CacheLayers::Fixed(8), 100);
+        assert!(matches!(held_formats(&config), Err(EngineError::InvalidRequest(_))));
+    }
+
+    #[test]
+    fn derived_layers_place_every_texture_within_the_budget() -> Result<()> {
+        // 256² textures pack 16 to a 1024² layer: 100 textures need 7 layers.
+        let counts = plan_layer_counts(&bc1_derived(256, 100, None, 1000), &[0], 2048, u64::MAX, probe)?;
+        assert_eq!(counts[0], vec![7]);
+        // A budget of 3 blocks can keep at most 3 layers live.
+        let tight = plan_layer_counts(&bc1_derived(256, 100, None, 3), &[0], 2048, u64::MAX, probe)?;
+        assert_eq!(tight[0], vec![3]);
+        Ok(())
+    }
+
+    #[test]
+    fn a_format_needing_more_than_the_device_s_layers_gets_more_images() -> Result<()> {
+        let counts = plan_layer_counts(&bc1_derived(1024, 10, None, 1000), &[0], 4, u64::MAX, probe)?;
+        assert_eq!(counts[0].iter().sum::<u32>(), 10);
+        assert!(
+            counts[0].len() >= 3 && counts[0].iter().all(|&layers| layers <= 4),
+            "{counts:?}"
+        );
+        // A lower limit than the device's applies the same way.
+        let counts = plan_layer_counts(&bc1_derived(1024, 10, Some(5), 1000), &[0], 2048, u64::MAX, probe)?;
+        assert_eq!(counts[0], vec![5, 5]);
+        Ok(())
+    }
+
+    #[test]
+    fn an_image_of_zero_layers_is_refused() {
+        let zero = config(&[TextureFormat::Bc1], CacheLayers::Fixed(0), 100);
+        assert!(matches!(
+            plan_layer_counts(&zero, &[0], 2048, u64::MAX, never_probed),
+            Err(EngineError::InvalidRequest(_))
+        ));
+    }
+}
