@@ -1,7 +1,9 @@
 //! Datasets streamed from an HTTP server: nginx from Debian, started by each test on
 //! loopback with a configuration the test writes (range requests are nginx's default for
-//! static files). The tests fail when nginx is missing after the setup script ran
-//! (`make setup`); before it, they say so and skip.
+//! static files); S3 from an emulator the setup script installs. Where nginx or the
+//! emulator is missing and the setup script (`make setup`) has not run, the tests that need
+//! it compile as ignored (`tools/build.rs`), so they are reported as skipped; after it, a
+//! missing tool fails them.
 
 mod cli_support;
 
@@ -14,27 +16,21 @@ use citystream_tools::nginx::Nginx;
 use citystream_tools::s3_emulator::S3Emulator;
 use cli_support::{citystream, fresh_dir, setup_ran, stderr};
 
-/// Starts nginx serving `root`; `None` (skip) only when it is missing and the setup
-/// script never ran.
-fn start_nginx(work: &Path, root: &Path) -> Option<Nginx> {
-    if citystream_tools::nginx::binary().is_none() {
-        assert!(
-            !setup_ran(),
-            "nginx is missing although the setup script ran: it should have installed nginx-light"
-        );
-        eprintln!("skipping: nginx is not installed and the setup script has not run; `make setup` installs it");
-        return None;
-    }
-    Some(Nginx::start(work, root).expect("start nginx"))
+/// Starts nginx serving `root`.
+fn start_nginx(work: &Path, root: &Path) -> Nginx {
+    assert!(
+        citystream_tools::nginx::binary().is_some() || !setup_ran(),
+        "nginx is missing although the setup script ran: it should have installed nginx-light"
+    );
+    Nginx::start(work, root).expect("start nginx (`make setup` installs nginx-light)")
 }
 
-/// A tiny city in the test's own directory, served by nginx (its parent as the root);
-/// `None` where the test skips.
-fn served_city(name: &str) -> Option<(PathBuf, PathBuf, Nginx)> {
+/// A tiny city in the test's own directory, served by nginx (its parent as the root).
+fn served_city(name: &str) -> (PathBuf, PathBuf, Nginx) {
     let dir = fresh_dir("remote_dataset", name);
     let city = tiny_city(&dir);
-    let nginx = start_nginx(&dir, &dir.join("www"))?;
-    Some((dir, city, nginx))
+    let nginx = start_nginx(&dir, &dir.join("www"));
+    (dir, city, nginx)
 }
 
 fn tiny_city(dir: &Path) -> PathBuf {
@@ -48,10 +44,12 @@ fn tiny_city(dir: &Path) -> PathBuf {
 const FRAMES_AND_ERROR: [&str; 6] = ["--frames", "90", "--frame-interval", "30", "--psnr-interval", "30"];
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
-    let Some((dir, city, nginx)) = served_city("http_frames") else {
-        return;
-    };
+    let (dir, city, nginx) = served_city("http_frames");
     let url = nginx.url("city/");
 
     let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &FRAMES_AND_ERROR, &[]);
@@ -76,10 +74,12 @@ fn a_city_streamed_from_http_renders_what_it_renders_from_disk() {
 }
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn info_and_verify_read_a_remote_dataset() {
-    let Some((_dir, city, nginx)) = served_city("info_verify") else {
-        return;
-    };
+    let (_dir, city, nginx) = served_city("info_verify");
     let url = nginx.url("city");
 
     let info = |location: &str| -> serde_json::Value {
@@ -119,12 +119,14 @@ fn info_and_verify_read_a_remote_dataset() {
 }
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn a_missing_remote_dataset_is_a_clear_error() {
     let dir = fresh_dir("remote_dataset", "missing");
     std::fs::create_dir_all(dir.join("www")).expect("www");
-    let Some(nginx) = start_nginx(&dir, &dir.join("www")) else {
-        return;
-    };
+    let nginx = start_nginx(&dir, &dir.join("www"));
     let url = nginx.url("nowhere/");
     let out = citystream(&["info", &url]);
     assert!(!out.status.success());
@@ -214,12 +216,11 @@ fn fixed_run(dataset: &str, out: &Path, extra: &[&str], env: &[(&str, &str)]) ->
     command
 }
 
-/// A tiny city served by nginx behind a fault proxy with `options`; `None` where the
-/// test skips (nginx missing before setup).
-fn city_behind_proxy(name: &str, options: FaultOptions) -> Option<(PathBuf, PathBuf, Nginx, FaultProxy)> {
-    let (dir, city, nginx) = served_city(name)?;
+/// A tiny city served by nginx behind a fault proxy with `options`.
+fn city_behind_proxy(name: &str, options: FaultOptions) -> (PathBuf, PathBuf, Nginx, FaultProxy) {
+    let (dir, city, nginx) = served_city(name);
     let proxy = FaultProxy::start(([127, 0, 0, 1], nginx.port()).into(), options).expect("proxy");
-    Some((dir, city, nginx, proxy))
+    (dir, city, nginx, proxy)
 }
 
 fn summary(out: &Path) -> serde_json::Value {
@@ -230,15 +231,17 @@ fn summary(out: &Path) -> serde_json::Value {
 const SHORT_RUN: [&str; 6] = ["--frames", "60", "--frame-interval", "0", "--psnr-interval", "0"];
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn dropped_connections_and_short_bodies_are_retried_and_change_nothing() {
     let options = FaultOptions {
         drop_every: 7,
         truncate_every: 5,
         ..FaultOptions::default()
     };
-    let Some((dir, city, _nginx, proxy)) = city_behind_proxy("faults_retried", options) else {
-        return;
-    };
+    let (dir, city, _nginx, proxy) = city_behind_proxy("faults_retried", options);
     let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
     let url = format!("http://{}/city", proxy.addr());
     let remote_out = run_ok(&dir, "remote", &url, &SHORT_RUN, &[]);
@@ -262,14 +265,16 @@ fn assert_faults_retried(proxy: &FaultProxy, local_out: &Path, remote_out: &Path
 }
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
     let options = FaultOptions {
         fail_mips: true,
         ..FaultOptions::default()
     };
-    let Some((dir, _city, _nginx, proxy)) = city_behind_proxy("faults_failing", options) else {
-        return;
-    };
+    let (dir, _city, _nginx, proxy) = city_behind_proxy("faults_failing", options);
     let out_dir = dir.join("remote");
     let url = format!("http://{}/city", proxy.addr());
     // One retry per request: the loader's own three attempts follow.
@@ -286,39 +291,34 @@ fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
     assert_eq!(run["mips_streamed"], 0, "{run}");
 }
 
-/// Starts the S3 emulator; `None` (skip) only when it is missing and the setup script never
-/// ran.
-fn start_s3(work: &Path) -> Option<S3Emulator> {
-    if citystream_tools::s3_emulator::binary().is_none() {
-        assert!(
-            !setup_ran(),
-            "the S3 emulator is missing although the setup script ran: it should have installed it"
-        );
-        eprintln!(
-            "skipping: the S3 emulator is not installed and the setup script has not run; `make setup` installs it"
-        );
-        return None;
-    }
-    Some(S3Emulator::start(work).expect("start the S3 emulator"))
+/// Starts the S3 emulator.
+fn start_s3(work: &Path) -> S3Emulator {
+    assert!(
+        citystream_tools::s3_emulator::binary().is_some() || !setup_ran(),
+        "the S3 emulator is missing although the setup script ran: it should have installed it"
+    );
+    S3Emulator::start(work).expect("start the S3 emulator (`make setup` installs it)")
 }
 
 /// A tiny city uploaded to `s3://citystream/cities/tiny/` of a fresh emulator.
-fn city_in_s3(name: &str) -> Option<(PathBuf, PathBuf, S3Emulator)> {
+fn city_in_s3(name: &str) -> (PathBuf, PathBuf, S3Emulator) {
     let dir = fresh_dir("remote_dataset", name);
     let city = tiny_city(&dir);
-    let s3 = start_s3(&dir)?;
+    let s3 = start_s3(&dir);
     let files = s3.upload_dir("citystream", "cities/tiny", &city).expect("upload");
     assert!(files >= 6, "{files} files uploaded");
-    Some((dir, city, s3))
+    (dir, city, s3)
 }
 
 const S3_CITY: &str = "s3://citystream/cities/tiny/";
 
 #[test]
+#[cfg_attr(
+    citystream_skip_s3,
+    ignore = "the S3 emulator is not installed and `make setup` has not run"
+)]
 fn a_city_streamed_from_s3_renders_what_it_renders_from_disk() {
-    let Some((dir, city, s3)) = city_in_s3("s3_frames") else {
-        return;
-    };
+    let (dir, city, s3) = city_in_s3("s3_frames");
     let env: Vec<(&str, String)> = s3.client_env();
     let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
 
@@ -356,10 +356,12 @@ fn summary_of_local_info(city: &Path) -> serde_json::Value {
 }
 
 #[test]
+#[cfg_attr(
+    citystream_skip_s3,
+    ignore = "the S3 emulator is not installed and `make setup` has not run"
+)]
 fn s3_requests_dropped_and_cut_short_are_retried_and_change_nothing() {
-    let Some((dir, city, s3)) = city_in_s3("s3_faults") else {
-        return;
-    };
+    let (dir, city, s3) = city_in_s3("s3_faults");
     let options = FaultOptions {
         drop_every: 7,
         truncate_every: 5,
@@ -405,10 +407,12 @@ fn tree_bytes_named(dir: &Path, names: &[&str]) -> u64 {
 }
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn a_second_flight_reads_its_mips_from_the_mip_cache() {
-    let Some((dir, city, nginx)) = served_city("mip_cache") else {
-        return;
-    };
+    let (dir, city, nginx) = served_city("mip_cache");
     let cache = dir.join("mip-cache");
     let cache_arg = cache.to_str().expect("utf-8");
     let url = nginx.url("city/");
@@ -497,10 +501,12 @@ fn a_second_flight_reads_its_mips_from_the_mip_cache() {
 }
 
 #[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
 fn a_texture_atlas_tree_is_read_and_checked_over_http() {
-    let Some((dir, city, nginx)) = served_city("atlas_tree") else {
-        return;
-    };
+    let (dir, city, nginx) = served_city("atlas_tree");
     let tree = dir.join("www").join("tree");
     let out = citystream(&[
         "atlas-tree",
