@@ -3,6 +3,7 @@
 //! example host's own shaders (`examples/embed_host/shaders/`, prefixed
 //! `embed_host_`), which include citystream's GLSL as any host's would. A
 //! compile error fails the build with glslang's message and the file name.
+//! Both tools must be on PATH (Debian: glslang-tools, spirv-tools).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -16,6 +17,10 @@ fn main() {
     let out_dir = PathBuf::from(std::env::var_os("OUT_DIR").expect("cargo sets OUT_DIR"));
     println!("cargo:rerun-if-changed={}", shader_dir.display());
     println!("cargo:rerun-if-changed={}", include_dir.display());
+    // Build metadata for the build scripts of crates that depend on this one
+    // (`links = "citystream"`): they read it as DEP_CITYSTREAM_INCLUDE.
+    let include_abs = include_dir.canonicalize().unwrap_or_else(|_| include_dir.clone());
+    println!("cargo:include={}", include_abs.display());
 
     let mut sources: Vec<PathBuf> = std::fs::read_dir(&shader_dir)
         .unwrap_or_else(|e| panic!("cannot read shader directory {}: {e}", shader_dir.display()))

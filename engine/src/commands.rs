@@ -127,6 +127,14 @@ impl SemaphoreWait {
             value: 0,
         }
     }
+
+    /// This wait as a `vkQueueSubmit2` wait info.
+    pub fn submit_info(&self) -> vk::SemaphoreSubmitInfo<'static> {
+        vk::SemaphoreSubmitInfo::default()
+            .semaphore(self.semaphore)
+            .stage_mask(self.stages)
+            .value(self.value)
+    }
 }
 
 /// A semaphore a submission signals: a binary one, or a timeline one with
@@ -137,6 +145,18 @@ pub struct SemaphoreSignal {
     pub semaphore: vk::Semaphore,
     /// The value for a timeline semaphore; ignored for binary ones.
     pub value: u64,
+}
+
+impl SemaphoreSignal {
+    /// This signal as a `vkQueueSubmit2` signal info, at `ALL_COMMANDS`: set
+    /// once every command of the submission has completed (the streamer
+    /// reads a frame's feedback and reuses its staging space after it).
+    pub fn submit_info(&self) -> vk::SemaphoreSubmitInfo<'static> {
+        vk::SemaphoreSubmitInfo::default()
+            .semaphore(self.semaphore)
+            .value(self.value)
+            .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+    }
 }
 
 /// A timeline semaphore owned by Rust: bind batches signal increasing
@@ -320,24 +340,8 @@ impl CommandContext {
     fn submit_with(&mut self, waits: &[SemaphoreWait], signal: &[SemaphoreSignal], fenced: bool) -> Result<()> {
         // SAFETY: the buffer is in the recording state (begin was called).
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
-        let wait_infos: Vec<_> = waits
-            .iter()
-            .map(|w| {
-                vk::SemaphoreSubmitInfo::default()
-                    .semaphore(w.semaphore)
-                    .stage_mask(w.stages)
-                    .value(w.value)
-            })
-            .collect();
-        let signal_infos: Vec<_> = signal
-            .iter()
-            .map(|s| {
-                vk::SemaphoreSubmitInfo::default()
-                    .semaphore(s.semaphore)
-                    .value(s.value)
-                    .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            })
-            .collect();
+        let wait_infos: Vec<_> = waits.iter().map(SemaphoreWait::submit_info).collect();
+        let signal_infos: Vec<_> = signal.iter().map(SemaphoreSignal::submit_info).collect();
         let cmd_infos = [vk::CommandBufferSubmitInfo::default().command_buffer(self.cmd)];
         let submit = vk::SubmitInfo2::default()
             .wait_semaphore_infos(&wait_infos)

@@ -50,6 +50,9 @@ pub enum EngineError {
     /// A request the engine cannot carry out as asked (bad size, range, format).
     #[error("{0}")]
     InvalidRequest(String),
+    /// The load policy could not be built from its options.
+    #[error("load policy: {0}")]
+    Policy(#[from] citystream_streaming::controller::PolicyError),
     /// Writing an image file failed.
     #[error("cannot write {path}: {source}")]
     ImageWrite { path: String, source: image::ImageError },

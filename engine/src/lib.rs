@@ -52,9 +52,10 @@ pub mod target;
 pub mod texture_cache;
 pub mod timing;
 
+pub use ash;
 pub use ash::vk;
 pub use error::{EngineError, Result};
 pub use gpu_allocator;
 
-pub use device::{Device, DeviceOptions};
+pub use device::{Device, DeviceOptions, HostAllocator, HostDevice};
 pub use instance::{ValidationLog, ValidationMessage};

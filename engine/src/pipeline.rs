@@ -448,55 +448,60 @@ impl DescriptorPool {
 
     /// Writes `resources` into `set`. The set must not be in use by the GPU.
     pub fn write(&self, set: vk::DescriptorSet, resources: &[(u32, DescriptorResource)]) {
-        let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = resources
-            .iter()
-            .map(|(_, r)| match *r {
-                DescriptorResource::StorageBuffer(b) | DescriptorResource::UniformBuffer(b) => {
-                    [vk::DescriptorBufferInfo {
-                        buffer: b,
-                        offset: 0,
-                        range: vk::WHOLE_SIZE,
-                    }]
-                }
-                _ => [vk::DescriptorBufferInfo::default()],
-            })
-            .collect();
-        let sampled = |sampler, image_view| vk::DescriptorImageInfo {
-            sampler,
-            image_view,
-            image_layout: vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        };
-        let image_infos: Vec<Vec<vk::DescriptorImageInfo>> = resources
-            .iter()
-            .map(|(_, r)| match *r {
-                DescriptorResource::SampledImage(view, sampler) => vec![sampled(sampler, view)],
-                DescriptorResource::SampledImageArray(views, sampler) => {
-                    views.iter().map(|&view| sampled(sampler, view)).collect()
-                }
-                _ => Vec::new(),
-            })
-            .collect();
-        let writes: Vec<_> = resources
-            .iter()
-            .enumerate()
-            .map(|(i, (binding, r))| {
-                let write = vk::WriteDescriptorSet::default()
-                    .dst_set(set)
-                    .dst_binding(*binding)
-                    .descriptor_type(r.descriptor_type());
-                match r {
-                    DescriptorResource::StorageBuffer(_) | DescriptorResource::UniformBuffer(_) => {
-                        write.buffer_info(&buffer_infos[i])
-                    }
-                    DescriptorResource::SampledImage(..) | DescriptorResource::SampledImageArray(..) => {
-                        write.image_info(&image_infos[i])
-                    }
-                }
-            })
-            .collect();
-        // SAFETY: every write refers to live objects; the set is not in use.
-        unsafe { self.device.raw.update_descriptor_sets(&writes, &[]) };
+        write_descriptor_set(&self.device, set, resources);
     }
+}
+
+/// Writes `resources` (binding, resource) into `set`, which must come from a
+/// live pool of `device` with a layout that has those bindings, and must not
+/// be in use by the GPU.
+pub(crate) fn write_descriptor_set(device: &Device, set: vk::DescriptorSet, resources: &[(u32, DescriptorResource)]) {
+    let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = resources
+        .iter()
+        .map(|(_, r)| match *r {
+            DescriptorResource::StorageBuffer(b) | DescriptorResource::UniformBuffer(b) => [vk::DescriptorBufferInfo {
+                buffer: b,
+                offset: 0,
+                range: vk::WHOLE_SIZE,
+            }],
+            _ => [vk::DescriptorBufferInfo::default()],
+        })
+        .collect();
+    let sampled = |sampler, image_view| vk::DescriptorImageInfo {
+        sampler,
+        image_view,
+        image_layout: vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    };
+    let image_infos: Vec<Vec<vk::DescriptorImageInfo>> = resources
+        .iter()
+        .map(|(_, r)| match *r {
+            DescriptorResource::SampledImage(view, sampler) => vec![sampled(sampler, view)],
+            DescriptorResource::SampledImageArray(views, sampler) => {
+                views.iter().map(|&view| sampled(sampler, view)).collect()
+            }
+            _ => Vec::new(),
+        })
+        .collect();
+    let writes: Vec<_> = resources
+        .iter()
+        .enumerate()
+        .map(|(i, (binding, r))| {
+            let write = vk::WriteDescriptorSet::default()
+                .dst_set(set)
+                .dst_binding(*binding)
+                .descriptor_type(r.descriptor_type());
+            match r {
+                DescriptorResource::StorageBuffer(_) | DescriptorResource::UniformBuffer(_) => {
+                    write.buffer_info(&buffer_infos[i])
+                }
+                DescriptorResource::SampledImage(..) | DescriptorResource::SampledImageArray(..) => {
+                    write.image_info(&image_infos[i])
+                }
+            }
+        })
+        .collect();
+    // SAFETY: every write refers to live objects; the set is not in use.
+    unsafe { device.raw.update_descriptor_sets(&writes, &[]) };
 }
 
 impl Drop for DescriptorPool {

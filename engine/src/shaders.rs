@@ -1,7 +1,9 @@
 //! SPIR-V compiled from `shaders/` at build time (see `build.rs`).
 
 /// citystream's GLSL include directory, for hosts that compile their own
-/// shaders against `citystream_host.glsl` (`glslangValidator -I`).
+/// shaders against `citystream_host.glsl` (`glslangValidator -I`) at run
+/// time. A host's build script gets the same path from cargo as the
+/// environment variable `DEP_CITYSTREAM_INCLUDE`.
 pub const INCLUDE_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shaders/include");
 
 /// One embedded shader.

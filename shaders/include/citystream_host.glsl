@@ -27,8 +27,8 @@ float citystream_max_level(uvec2 size) {
 // `texture_id`, `size` texels at full resolution, sampled at `uv`):
 // the mip level under anisotropic filtering (A_m) and the weight
 // W = 1 + 8 w_d + 8 w_m, combined per mesh with atomics. `lod_offset` is
-// log2 of visible pixels per pixel of this pass (0 when the feedback pass
-// renders at the visible resolution); `view_depth` is the distance along
+// log2 of the visible resolution over this pass's, per axis (2 at a quarter
+// of the width and height, 0 at the visible resolution); `view_depth` is the distance along
 // the view axis (1 / gl_FragCoord.w); fragments within
 // `foreground_distance` weigh more; `in_view` is false for fragments in a
 // widened feedback view's margin, which count with W = 1. Use with

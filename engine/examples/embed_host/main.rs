@@ -25,12 +25,12 @@ use anyhow::{bail, Context, Result};
 use ash::vk;
 use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::city::Camera;
-use citystream_engine::device::{check_physical_device, required_features, Device, HostAllocator, HostDevice};
+use citystream_engine::device::{check_physical_device, required_features};
 use citystream_engine::gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use citystream_engine::gpu_allocator::MemoryLocation;
-use citystream_engine::pipeline::DescriptorResource;
-use citystream_engine::stream::{StreamConfig, TextureStreamer};
+use citystream_engine::stream::{StreamConfig, StreamDescriptors, TextureStreamer};
 use citystream_engine::target::{write_png, RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
+use citystream_engine::{Device, HostAllocator, HostDevice};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::dataset::{Dataset, TextureFormat};
 use citystream_streaming::source::{DatasetSource, MipSource, SourceError};
@@ -391,53 +391,35 @@ impl Drop for HostVulkan {
     }
 }
 
-/// The host's two pipelines and their layout, descriptor sets and pool.
+/// The host's two pipelines and their layout; set 0 is the host's own (its
+/// mesh table), set 1 the streamer's.
 struct HostPipelines {
     device: ash::Device,
-    set_layouts: [vk::DescriptorSetLayout; 2],
+    host_set_layout: vk::DescriptorSetLayout,
     layout: vk::PipelineLayout,
     pool: vk::DescriptorPool,
-    sets: Vec<vk::DescriptorSet>,
+    sets: [vk::DescriptorSet; 2],
     feedback: vk::Pipeline,
     visible: vk::Pipeline,
 }
 
 impl HostPipelines {
-    fn new(
-        device: &ash::Device,
-        host_meshes: vk::Buffer,
-        streamed: &[(u32, vk::DescriptorType, DescriptorResource)],
-    ) -> Result<Self> {
+    fn new(device: &ash::Device, host_meshes: vk::Buffer, streamed: &StreamDescriptors) -> Result<Self> {
         let fragment = vk::ShaderStageFlags::FRAGMENT;
         let host_bindings = [vk::DescriptorSetLayoutBinding::default()
             .binding(0)
             .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
             .descriptor_count(1)
             .stage_flags(fragment)];
-        let stream_bindings: Vec<_> = streamed
-            .iter()
-            .map(|(binding, ty, resource)| {
-                vk::DescriptorSetLayoutBinding::default()
-                    .binding(*binding)
-                    .descriptor_type(*ty)
-                    .descriptor_count(resource.count())
-                    .stage_flags(fragment)
-            })
-            .collect();
         // SAFETY (this block and the ones below): every create info points at
         // live data for the call; handles come from `device`.
-        let set_layouts = unsafe {
-            [
-                device.create_descriptor_set_layout(
-                    &vk::DescriptorSetLayoutCreateInfo::default().bindings(&host_bindings),
-                    None,
-                )?,
-                device.create_descriptor_set_layout(
-                    &vk::DescriptorSetLayoutCreateInfo::default().bindings(&stream_bindings),
-                    None,
-                )?,
-            ]
+        let host_set_layout = unsafe {
+            device.create_descriptor_set_layout(
+                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&host_bindings),
+                None,
+            )?
         };
+        let set_layouts = [host_set_layout, streamed.layout()];
         let push = [vk::PushConstantRange::default()
             .stage_flags(vk::ShaderStageFlags::VERTEX | fragment)
             .size(80)];
@@ -449,84 +431,39 @@ impl HostPipelines {
                 None,
             )?
         };
-        let samplers: u32 = streamed
-            .iter()
-            .filter(|(_, ty, _)| *ty == vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
-            .map(|(_, _, resource)| resource.count())
-            .sum();
-        let sizes = [
-            vk::DescriptorPoolSize::default()
-                .ty(vk::DescriptorType::STORAGE_BUFFER)
-                .descriptor_count(8),
-            vk::DescriptorPoolSize::default()
-                .ty(vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
-                .descriptor_count(samplers.max(1)),
-        ];
+        let sizes = [vk::DescriptorPoolSize::default()
+            .ty(vk::DescriptorType::STORAGE_BUFFER)
+            .descriptor_count(1)];
         let pool = unsafe {
             device.create_descriptor_pool(
-                &vk::DescriptorPoolCreateInfo::default().max_sets(2).pool_sizes(&sizes),
+                &vk::DescriptorPoolCreateInfo::default().max_sets(1).pool_sizes(&sizes),
                 None,
             )?
         };
-        let sets = unsafe {
+        let host_set = unsafe {
             device.allocate_descriptor_sets(
                 &vk::DescriptorSetAllocateInfo::default()
                     .descriptor_pool(pool)
-                    .set_layouts(&set_layouts),
+                    .set_layouts(&[host_set_layout]),
             )?
-        };
-        // Descriptor writes: the host's mesh table, then the streamer's bindings.
-        let mut buffer_infos = vec![[vk::DescriptorBufferInfo::default()
+        }[0];
+        let mesh_table = [vk::DescriptorBufferInfo::default()
             .buffer(host_meshes)
-            .range(vk::WHOLE_SIZE)]];
-        let mut image_infos: Vec<Vec<vk::DescriptorImageInfo>> = Vec::new();
-        let sampled = |view, sampler| {
-            vk::DescriptorImageInfo::default()
-                .image_view(view)
-                .sampler(sampler)
-                .image_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)
-        };
-        let mut targets = vec![(sets[0], 0, vk::DescriptorType::STORAGE_BUFFER, false, 0)];
-        for (binding, ty, resource) in streamed {
-            match *resource {
-                DescriptorResource::SampledImage(view, sampler) => {
-                    targets.push((sets[1], *binding, *ty, true, image_infos.len()));
-                    image_infos.push(vec![sampled(view, sampler)]);
-                }
-                // The cache images: one element per sparse image.
-                DescriptorResource::SampledImageArray(views, sampler) => {
-                    targets.push((sets[1], *binding, *ty, true, image_infos.len()));
-                    image_infos.push(views.iter().map(|&view| sampled(view, sampler)).collect());
-                }
-                DescriptorResource::StorageBuffer(buffer) | DescriptorResource::UniformBuffer(buffer) => {
-                    targets.push((sets[1], *binding, *ty, false, buffer_infos.len()));
-                    buffer_infos.push([vk::DescriptorBufferInfo::default().buffer(buffer).range(vk::WHOLE_SIZE)]);
-                }
-            }
-        }
-        let writes: Vec<_> = targets
-            .iter()
-            .map(|&(set, binding, ty, image, i)| {
-                let write = vk::WriteDescriptorSet::default()
-                    .dst_set(set)
-                    .dst_binding(binding)
-                    .descriptor_type(ty);
-                if image {
-                    write.image_info(&image_infos[i])
-                } else {
-                    write.buffer_info(&buffer_infos[i])
-                }
-            })
-            .collect();
-        unsafe { device.update_descriptor_sets(&writes, &[]) };
+            .range(vk::WHOLE_SIZE)];
+        let write = vk::WriteDescriptorSet::default()
+            .dst_set(host_set)
+            .dst_binding(0)
+            .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+            .buffer_info(&mesh_table);
+        unsafe { device.update_descriptor_sets(&[write], &[]) };
         let feedback = graphics_pipeline(device, layout, FEEDBACK_FRAG)?;
         let visible = graphics_pipeline(device, layout, VISIBLE_FRAG)?;
         Ok(Self {
             device: device.clone(),
-            set_layouts,
+            host_set_layout,
             layout,
             pool,
-            sets,
+            sets: [host_set, streamed.set()],
             feedback,
             visible,
         })
@@ -560,9 +497,7 @@ impl Drop for HostPipelines {
             self.device.destroy_pipeline(self.visible, None);
             self.device.destroy_descriptor_pool(self.pool, None);
             self.device.destroy_pipeline_layout(self.layout, None);
-            for layout in self.set_layouts {
-                self.device.destroy_descriptor_set_layout(layout, None);
-            }
+            self.device.destroy_descriptor_set_layout(self.host_set_layout, None);
         }
     }
 }
@@ -842,7 +777,9 @@ fn render<S: MipSource + 'static>(
         vk::BufferUsageFlags::STORAGE_BUFFER,
         "host meshes",
     )?;
-    let pipelines = HostPipelines::new(raw, meshes.raw(), &streamer.descriptor_bindings())?;
+    // The streamer's bindings as one set, read by the host's fragment shaders.
+    let streamed = streamer.create_descriptors(vk::ShaderStageFlags::FRAGMENT)?;
+    let pipelines = HostPipelines::new(raw, meshes.raw(), &streamed)?;
     let commands = FrameCommands::new(raw, host.queue_family, FRAMES_IN_FLIGHT)?;
     // Dropped first, on success and on error alike: nothing above is
     // destroyed while a submitted frame may still use it.
@@ -897,20 +834,8 @@ fn render<S: MipSource + 'static>(
         // The host's measured frame latency would go here; a fixed 8 ms keeps
         // the run reproducible.
         let submit = streamer.end_frame(8.0)?;
-        let waits: Vec<_> = submit
-            .waits
-            .iter()
-            .map(|w| {
-                vk::SemaphoreSubmitInfo::default()
-                    .semaphore(w.semaphore)
-                    .value(w.value)
-                    .stage_mask(w.stages)
-            })
-            .collect();
-        let signals = [vk::SemaphoreSubmitInfo::default()
-            .semaphore(submit.signal.semaphore)
-            .value(submit.signal.value)
-            .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
+        let waits = submit.wait_infos();
+        let signals = [submit.signal_info()];
         let buffers = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
         let info = vk::SubmitInfo2::default()
             .wait_semaphore_infos(&waits)
@@ -940,8 +865,8 @@ impl Drop for WaitIdleOnDrop {
     }
 }
 
-/// The host's push constants: view-projection, then (log2 visible pixels
-/// per pixel of the pass, foreground distance, fog distance, 0).
+/// The host's push constants: view-projection, then (log2 of the visible
+/// resolution over the pass's, per axis; foreground distance; fog distance; 0).
 fn push(view_proj: Mat4, lod_offset: f32, foreground: f32, fog: f32) -> [f32; 20] {
     let mut values = [0.0; 20];
     values[..16].copy_from_slice(&view_proj.to_cols_array());

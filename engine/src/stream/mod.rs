@@ -61,10 +61,12 @@ use crate::gpu_types::{FeedbackEntry, BINDING_FEEDBACK_MESHES};
 use crate::pipeline::{DescriptorResource, Filtering};
 use crate::texture_cache::{CacheLayers, CycleReport, Eviction, GpuCacheConfig, GpuTextureCache, CACHE_FORMATS};
 
+mod descriptors;
 mod feedback_records;
 mod immediate;
 mod residency;
 
+pub use descriptors::StreamDescriptors;
 pub use feedback_records::{feedback_tau, records_from_feedback};
 
 /// Per cache format, how many textures of each extent the source holds.
@@ -225,10 +227,22 @@ pub struct ResidencyTotals {
 /// What the host's submission of a frame must carry.
 #[derive(Clone, Debug)]
 pub struct FrameSubmit {
-    /// Semaphores to wait on (the sparse binds the copies need).
+    /// Semaphores to wait on (the sparse binds the copies need, at the copy stage).
     pub waits: Vec<SemaphoreWait>,
     /// The frame timeline value to signal when the frame completes.
     pub signal: SemaphoreSignal,
+}
+
+impl FrameSubmit {
+    /// [`waits`](Self::waits) as `vkQueueSubmit2` wait infos.
+    pub fn wait_infos(&self) -> Vec<vk::SemaphoreSubmitInfo<'static>> {
+        self.waits.iter().map(SemaphoreWait::submit_info).collect()
+    }
+
+    /// [`signal`](Self::signal) as a `vkQueueSubmit2` signal info (at `ALL_COMMANDS`).
+    pub fn signal_info(&self) -> vk::SemaphoreSubmitInfo<'static> {
+        self.signal.submit_info()
+    }
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -470,6 +484,13 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             .into_iter()
             .map(|(binding, resource)| (binding, resource.descriptor_type(), resource))
             .collect()
+    }
+
+    /// [`descriptor_bindings`](Self::descriptor_bindings) as a ready descriptor
+    /// set for the host's pipelines, every binding visible to `stages` (those
+    /// whose shaders include `citystream_host.glsl`, usually `FRAGMENT`).
+    pub fn create_descriptors(&self, stages: vk::ShaderStageFlags) -> Result<StreamDescriptors> {
+        StreamDescriptors::new(&self.device, &self.descriptor_bindings(), stages)
     }
 
     /// The load policy, for telemetry.
