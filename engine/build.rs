@@ -22,33 +22,16 @@ fn main() {
     let include_abs = include_dir.canonicalize().unwrap_or_else(|_| include_dir.clone());
     println!("cargo:include={}", include_abs.display());
 
-    let mut sources: Vec<PathBuf> = std::fs::read_dir(&shader_dir)
-        .unwrap_or_else(|e| panic!("cannot read shader directory {}: {e}", shader_dir.display()))
-        .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| STAGES.contains(&e))
-        })
-        .collect();
-    sources.sort();
+    let sources = shader_sources(&shader_dir)
+        .unwrap_or_else(|e| panic!("cannot read shader directory {}: {e}", shader_dir.display()));
     for entry in std::fs::read_dir(&include_dir).into_iter().flatten().flatten() {
         println!("cargo:rerun-if-changed={}", entry.path().display());
     }
 
     let example_dir = manifest.join("examples/embed_host/shaders");
     println!("cargo:rerun-if-changed={}", example_dir.display());
-    let mut example_sources: Vec<PathBuf> = std::fs::read_dir(&example_dir)
-        .into_iter()
-        .flatten()
-        .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| STAGES.contains(&e))
-        })
-        .collect();
-    example_sources.sort();
+    // The example is optional in a packaged crate.
+    let example_sources = shader_sources(&example_dir).unwrap_or_default();
 
     let mut failures = Vec::new();
     let all = sources
@@ -73,6 +56,20 @@ fn main() {
     }
 }
 
+/// The shader sources (one of `STAGES` as extension) in `dir`, sorted.
+fn shader_sources(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+    let mut sources: Vec<PathBuf> = std::fs::read_dir(dir)?
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| STAGES.contains(&e))
+        })
+        .collect();
+    sources.sort();
+    Ok(sources)
+}
+
 fn spv_name(source: &Path, prefix: &str) -> String {
     let file = source
         .file_name()
@@ -83,46 +80,49 @@ fn spv_name(source: &Path, prefix: &str) -> String {
 
 fn compile(source: &Path, include_dir: &Path, out_dir: &Path, prefix: &str) -> Result<(), String> {
     let output_path = out_dir.join(spv_name(source, prefix));
-    let output = Command::new("glslangValidator")
+    let mut glslang = Command::new("glslangValidator");
+    glslang
         .arg("--target-env")
         .arg("vulkan1.2")
         .arg(format!("-I{}", include_dir.display()))
         .arg("-o")
         .arg(&output_path)
-        .arg(source)
-        .output()
-        .map_err(|e| {
-            format!(
-                "cannot run glslangValidator for {} ({e}); install it with `make setup` (Debian package glslang-tools)",
-                source.display()
-            )
-        })?;
+        .arg(source);
+    run_tool(&mut glslang, "glslang-tools", source, || {
+        format!("glslangValidator failed on {}", source.display())
+    })?;
+    let mut spirv_val = Command::new("spirv-val");
+    spirv_val.arg("--target-env").arg("vulkan1.2").arg(&output_path);
+    run_tool(&mut spirv_val, "spirv-tools", source, || {
+        format!(
+            "spirv-val rejected {} (from {})",
+            output_path.display(),
+            source.display()
+        )
+    })
+}
+
+/// Runs `command` (a tool from Debian package `package`) on `source`; on
+/// failure, `failed()` and everything the tool printed.
+fn run_tool(
+    command: &mut Command,
+    package: &str,
+    source: &Path,
+    failed: impl FnOnce() -> String,
+) -> Result<(), String> {
+    let tool = command.get_program().to_string_lossy().into_owned();
+    let output = command.output().map_err(|e| {
+        format!(
+            "cannot run {tool} for {} ({e}); install it with `make setup` (Debian package {package})",
+            source.display()
+        )
+    })?;
     if !output.status.success() {
         return Err(format!(
-            "glslangValidator failed on {}:\n{}{}",
-            source.display(),
+            "{}:\n{}{}",
+            failed(),
             String::from_utf8_lossy(&output.stdout),
             String::from_utf8_lossy(&output.stderr)
-        ));
-    }
-    let validation = Command::new("spirv-val")
-        .arg("--target-env")
-        .arg("vulkan1.2")
-        .arg(&output_path)
-        .output()
-        .map_err(|e| {
-            format!(
-                "cannot run spirv-val for {} ({e}); install Debian package spirv-tools",
-                source.display()
-            )
-        })?;
-    if !validation.status.success() {
-        return Err(format!(
-            "spirv-val rejected {} (from {}):\n{}{}",
-            output_path.display(),
-            source.display(),
-            String::from_utf8_lossy(&validation.stdout),
-            String::from_utf8_lossy(&validation.stderr)
         ));
     }
     Ok(())

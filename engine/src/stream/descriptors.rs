@@ -15,20 +15,12 @@ use crate::pipeline::{write_descriptor_set, DescriptorResource};
 /// put [`layout`](Self::layout) into your pipeline layout and bind
 /// [`set`](Self::set). Drop it after the last frame that bound the set
 /// completed and before the streamer (whose resources it names).
+#[derive(Debug)]
 pub struct StreamDescriptors {
     device: Arc<Device>,
     layout: vk::DescriptorSetLayout,
     pool: vk::DescriptorPool,
     set: vk::DescriptorSet,
-}
-
-impl std::fmt::Debug for StreamDescriptors {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("StreamDescriptors")
-            .field("layout", &self.layout)
-            .field("set", &self.set)
-            .finish()
-    }
 }
 
 impl StreamDescriptors {
