@@ -352,8 +352,7 @@ pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Re
                 Some(c) => c,
                 None => {
                     let why = if candidates.is_empty() {
-                        "the Vulkan loader found no device (is mesa-vulkan-drivers installed? run `make setup`)"
-                            .to_owned()
+                        "the Vulkan loader found no device (is mesa-vulkan-drivers installed?)".to_owned()
                     } else {
                         candidates
                             .iter()

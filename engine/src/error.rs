@@ -6,13 +6,13 @@ use ash::vk;
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
     /// The Vulkan loader library (libvulkan.so.1) could not be loaded.
-    #[error("cannot load the Vulkan loader (is libvulkan1 installed? run `make setup`): {0}")]
+    #[error("cannot load the Vulkan loader (is libvulkan1 installed?): {0}")]
     Loader(String),
     /// A Vulkan call returned an error code.
     #[error("{call} failed: {result}")]
     Vulkan { call: &'static str, result: vk::Result },
     /// A layer the caller asked for is not installed.
-    #[error("Vulkan layer {0} is not installed (Debian package vulkan-validationlayers; run `make setup`)")]
+    #[error("Vulkan layer {0} is not installed (Debian package vulkan-validationlayers)")]
     LayerMissing(String),
     /// An instance extension the caller asked for is not available.
     #[error(
@@ -53,9 +53,6 @@ pub enum EngineError {
     /// The load policy could not be built from its options.
     #[error("load policy: {0}")]
     Policy(#[from] citystream_streaming::controller::PolicyError),
-    /// Writing an image file failed.
-    #[error("cannot write {path}: {source}")]
-    ImageWrite { path: String, source: image::ImageError },
     /// A shader module could not be read.
     #[error("shader {name}: {source}")]
     Shader { name: &'static str, source: std::io::Error },

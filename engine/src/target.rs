@@ -1,6 +1,5 @@
 //! Headless off-screen colour + depth target and read-back to PNG.
 
-use std::path::Path;
 use std::sync::Arc;
 
 use ash::vk;
@@ -250,18 +249,4 @@ impl RenderTarget {
         image::RgbaImage::from_raw(self.width, self.height, bytes)
             .ok_or_else(|| EngineError::InvalidRequest("read-back buffer smaller than the target".into()))
     }
-}
-
-/// Writes `pixels` as a PNG, creating parent directories.
-pub fn write_png(pixels: &image::RgbaImage, path: &Path) -> Result<()> {
-    if let Some(parent) = path.parent() {
-        std::fs::create_dir_all(parent).map_err(|e| EngineError::ImageWrite {
-            path: path.display().to_string(),
-            source: image::ImageError::IoError(e),
-        })?;
-    }
-    pixels.save(path).map_err(|source| EngineError::ImageWrite {
-        path: path.display().to_string(),
-        source,
-    })
 }

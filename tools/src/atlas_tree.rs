@@ -35,6 +35,7 @@ use citystream_streaming::atlas_tree::{
 use citystream_streaming::dataset::{Aabb, Dataset, DatasetWriter, Scene, TextureFormat};
 use rayon::prelude::*;
 
+use crate::files::write_atomically;
 use crate::gen::{decode_level, downsample, mean_colour, print_stdout};
 
 /// Options of `citystream atlas-tree`.
@@ -542,19 +543,6 @@ impl TreeInfo {
             root_min_distance_m: tree.nodes.first().map_or(0.0, |n| n.min_distance),
         }
     }
-}
-
-/// Writes `bytes` to a temporary file beside `path`, syncs it and renames it into place.
-fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
-    use std::io::Write;
-    let temp = path.with_extension(format!("tmp-{}", std::process::id()));
-    let result = std::fs::File::create(&temp)
-        .and_then(|mut file| file.write_all(bytes).and_then(|()| file.sync_all()))
-        .and_then(|()| std::fs::rename(&temp, path));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&temp);
-    }
-    result.with_context(|| format!("writing {}", path.display()))
 }
 
 /// Every triangle of the scene, with what the build needs of it.

@@ -465,7 +465,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     if args.scenario == Scenario::Pressure {
         let path = args.out.join("pressure.md");
         let text = pressure_checks(&args.out, budget_mb)?;
-        std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+        crate::files::write_atomically(&path, text.as_bytes())?;
         eprint!("{text}");
         eprintln!("wrote {}", path.display());
     }
@@ -475,10 +475,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
 /// Writes a comparison's `OUT/NAME.md` and `OUT/NAME.json` and shows the table.
 fn write_table(out: &Path, name: &str, (text, json): (String, serde_json::Value)) -> Result<()> {
     let path = out.join(format!("{name}.md"));
-    std::fs::write(&path, &text).with_context(|| format!("writing {}", path.display()))?;
+    crate::files::write_atomically(&path, text.as_bytes())?;
     let json_path = out.join(format!("{name}.json"));
-    std::fs::write(&json_path, serde_json::to_string_pretty(&json)?)
-        .with_context(|| format!("writing {}", json_path.display()))?;
+    crate::files::write_atomically(&json_path, serde_json::to_string_pretty(&json)?.as_bytes())?;
     eprint!("{text}");
     eprintln!("wrote {} and {}", path.display(), json_path.display());
     Ok(())

@@ -8,6 +8,7 @@ pub mod bench;
 pub mod cache_report;
 pub mod default_city;
 pub mod fault_proxy;
+pub mod files;
 pub mod fuzz;
 pub mod gen;
 pub mod image_error;

@@ -184,7 +184,10 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
          passes run behind the 80 ms proxy at 32 in flight: `filling` also writes every mip into an empty \
          cache, `warm` reads them back from it (its files still in the page cache).\n",
     );
-    std::fs::write(out.join("remote.json"), serde_json::to_string_pretty(&passes)?)?;
-    std::fs::write(out.join("remote.md"), &md)?;
+    crate::files::write_atomically(
+        &out.join("remote.json"),
+        serde_json::to_string_pretty(&passes)?.as_bytes(),
+    )?;
+    crate::files::write_atomically(&out.join("remote.md"), md.as_bytes())?;
     Ok(md)
 }

@@ -298,7 +298,7 @@ pub fn write_report(inputs: &[RunInput], out: &Path) -> Result<ReportOutputs> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
 
     let table = out.join("table.md");
-    std::fs::write(&table, markdown_table(&runs)).with_context(|| format!("writing {}", table.display()))?;
+    crate::files::write_atomically(&table, markdown_table(&runs).as_bytes())?;
 
     let mut run_charts = Vec::with_capacity(runs.len());
     for run in &runs {

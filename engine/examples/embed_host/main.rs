@@ -29,7 +29,7 @@ use citystream_engine::device::{check_physical_device, required_features};
 use citystream_engine::gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::stream::{StreamConfig, StreamDescriptors, TextureStreamer};
-use citystream_engine::target::{write_png, RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
+use citystream_engine::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 use citystream_engine::{Device, HostAllocator, HostDevice};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::dataset::{Dataset, TextureFormat};
@@ -851,7 +851,9 @@ fn render<S: MipSource + 'static>(
     }
     streamer.wait_for_frame(last)?;
     let pixels = target.read_pixels()?;
-    write_png(&pixels, &options.out)?;
+    pixels
+        .save(&options.out)
+        .with_context(|| format!("writing {}", options.out.display()))?;
     Ok(())
 }
 

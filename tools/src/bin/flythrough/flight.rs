@@ -19,7 +19,7 @@ use citystream_engine::stream::{FrameBegin, StreamConfig, TextureStreamer};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CycleReport, Eviction};
 use citystream_engine::timing::{CpuFrameClock, GpuTimer};
-use citystream_engine::{vk, Device, DeviceOptions};
+use citystream_engine::{vk, Device, DeviceOptions, EngineError};
 use citystream_streaming::atlas_tree::AtlasTree;
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::bench::stats::Stats;
@@ -125,19 +125,29 @@ pub(crate) fn flythrough_device(
     window: Option<Vec<std::ffi::CString>>,
 ) -> Result<Arc<Device>> {
     let presentation = window.is_some();
-    let device = Arc::new(
-        Device::new(&DeviceOptions {
-            instance: InstanceOptions {
-                validation: args.validation.unwrap_or_else(default_validation),
-                synchronization: default_synchronization_validation(),
-                app_name: app_name.into(),
-                extensions: window.unwrap_or_default(),
-            },
-            device_name: args.device.clone(),
-            presentation,
-        })
-        .context("creating the Vulkan device")?,
-    );
+    let created = Device::new(&DeviceOptions {
+        instance: InstanceOptions {
+            validation: args.validation.unwrap_or_else(default_validation),
+            synchronization: default_synchronization_validation(),
+            app_name: app_name.into(),
+            extensions: window.unwrap_or_default(),
+        },
+        device_name: args.device.clone(),
+        presentation,
+    });
+    let device = Arc::new(created.map_err(|error| {
+        // What the setup script installs: the loader, lavapipe and the validation layers.
+        let installable = matches!(
+            error,
+            EngineError::Loader(_) | EngineError::LayerMissing(_) | EngineError::NoUsableDevice(_)
+        );
+        let context = if installable {
+            "creating the Vulkan device (`make setup` installs the Vulkan loader, lavapipe and the validation layers)"
+        } else {
+            "creating the Vulkan device"
+        };
+        anyhow::Error::new(error).context(context)
+    })?);
     eprintln!("device: {}", describe(&device));
     Ok(device)
 }

@@ -10,10 +10,10 @@ use anyhow::{bail, Context, Result};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::describe;
 use citystream_engine::gpu_types::FeedbackEntry;
-use citystream_engine::target::write_png;
 use citystream_engine::Device;
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
+use citystream_tools::files::{write_atomically, write_png};
 use citystream_tools::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, FIXED_STEP_MS};
@@ -351,8 +351,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         object.extend(extra);
     }
     let path = args.out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-        .with_context(|| format!("writing {}", path.display()))?;
+    write_atomically(&path, serde_json::to_string_pretty(&json)?.as_bytes())?;
     eprintln!(
         "{} frames, {} mips streamed, wrote {} frames, {} and {}; the CPU waited for the GPU in {} frame(s) \
          ({:.1} ms) plus {} image read-back(s)",

@@ -15,10 +15,11 @@ use citystream_engine::device::describe;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder;
 use citystream_engine::scene::MeshRenderer;
-use citystream_engine::target::{write_png, RenderTarget};
+use citystream_engine::target::RenderTarget;
 use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::Device;
 use citystream_streaming::bench::stats::SummaryBuilder;
+use citystream_tools::files::{write_atomically, write_png};
 
 use crate::args::{frame_interval, frames_dir_path, Args, Strategy};
 use crate::flight::{dataset_dir, flythrough_device};
@@ -130,8 +131,7 @@ fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
         object.insert("frames_written".into(), written.into());
     }
     let path = args.out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
-        .with_context(|| format!("writing {}", path.display()))?;
+    write_atomically(&path, serde_json::to_string_pretty(&json)?.as_bytes())?;
     eprintln!("wrote {}", path.display());
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");

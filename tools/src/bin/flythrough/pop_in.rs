@@ -8,10 +8,10 @@ use glam::Vec3;
 
 use citystream_engine::commands::CommandContext;
 use citystream_engine::gpu_types::FEEDBACK_MIP_ONE;
-use citystream_engine::target::write_png;
 use citystream_engine::Device;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MipSource;
+use citystream_tools::files::{write_atomically, write_png};
 use citystream_tools::image_error::mse;
 
 use super::args::{frame_interval, frames_dir_path, Args};
@@ -146,8 +146,7 @@ pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -
         paper_max_mse_blended: 62.0,
     };
     let path = args.out.join("popin.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&result)?)
-        .with_context(|| format!("writing {}", path.display()))?;
+    write_atomically(&path, serde_json::to_string_pretty(&result)?.as_bytes())?;
     println!(
         "pop-in over {} frames: max inter-frame MSE {:.1} with direct sampling, {:.1} with colormap blending \
          (paper: 438 -> 62); wrote {}",
