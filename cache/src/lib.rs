@@ -32,6 +32,7 @@
 //!   [`Granularity::from_device_report`]); nothing about them is assumed.
 #![forbid(unsafe_code)]
 
+pub mod bind_check;
 pub mod binder;
 pub mod cache;
 pub mod config;
@@ -41,6 +42,7 @@ pub mod format;
 pub mod geometry;
 pub mod pool;
 
+pub use bind_check::{BindChecker, BindViolation, ImageShape};
 pub use binder::{BindError, BindOp, BindReport, BlockKey, MemorySlot, SparseBinder};
 pub use cache::{
     BudgetUse, CacheStats, CycleBatch, EvictedLayer, EvictionReason, ImageId, MipUpload, Placement, TextureCache,

@@ -1,18 +1,36 @@
 //! The Vulkan implementation of the cache's [`SparseBinder`]: one
 //! `vkQueueBindSparse` per batch, adjacent blocks merged, a timeline
 //! semaphore value signalled that the copy submission waits on.
+//!
+//! With the bind checker on ([`checks_binds`]: `CITYSTREAM_CHECK_BINDS=1`,
+//! and by default in debug builds, so in the tests), every batch and every
+//! copy into the images is checked against a CPU shadow of their page tables
+//! and of the memory chunks ([`citystream_cache::BindChecker`]) before it
+//! reaches the driver; a violation fails the call, naming the image, layer,
+//! level and block. Chunks are freed only when the binder is dropped, after
+//! the device idles and after the images it binds (field order below).
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use ash::vk;
-use citystream_cache::{BindError, BindOp, BindReport, SparseBinder};
+use citystream_cache::{BindChecker, BindError, BindOp, BindReport, ImageShape, SparseBinder};
 
 use crate::commands::{SemaphoreWait, TimelineSemaphore};
 use crate::device::Device;
 use crate::error::EngineError;
 use crate::error::Result;
-use crate::sparse::{submit_bind_sparse_after, SparseBlockBind, SparseImage, SparseMemoryChunk};
+use crate::sparse::{submit_bind_sparse_after, SparseBlockBind, SparseImage, SparseMemoryChunk, TexelUpload};
+
+/// Whether binders check binds and copies: `CITYSTREAM_CHECK_BINDS` = `1` on,
+/// `0` off; unset, on in debug builds and off in release builds.
+pub fn checks_binds() -> bool {
+    match std::env::var("CITYSTREAM_CHECK_BINDS").as_deref() {
+        Ok("1") => true,
+        Ok("0") => false,
+        _ => cfg!(debug_assertions),
+    }
+}
 
 /// Binds cache blocks into sparse images from pooled memory chunks.
 ///
@@ -25,6 +43,7 @@ pub struct VulkanBinder {
     chunks: Vec<SparseMemoryChunk>,
     timeline: TimelineSemaphore,
     signalled: u64,
+    checker: Option<BindChecker>,
 }
 
 impl std::fmt::Debug for VulkanBinder {
@@ -33,26 +52,68 @@ impl std::fmt::Debug for VulkanBinder {
             .field("images", &self.images.len())
             .field("chunks", &self.chunks.len())
             .field("signalled", &self.signalled)
+            .field("checks_binds", &self.checker.is_some())
             .finish()
     }
 }
 
 impl VulkanBinder {
-    /// A binder for `images` with no memory chunks yet.
+    /// A binder for `images` with no memory chunks yet, checking its binds
+    /// where [`checks_binds`] says so.
     pub fn new(device: &Arc<Device>, images: Vec<Arc<SparseImage>>) -> Result<Self> {
+        Self::with_checks(device, images, checks_binds())
+    }
+
+    /// As [`new`](Self::new), with the bind checker on or off whatever the environment says.
+    pub fn with_checks(device: &Arc<Device>, images: Vec<Arc<SparseImage>>, check: bool) -> Result<Self> {
+        let checker = check.then(|| {
+            // The cache's images share one block size (it refuses others).
+            let mut checker = BindChecker::new(images.first().map_or(1, |image| image.block_size()));
+            for image in &images {
+                let desc = image.desc();
+                checker.add_image(ImageShape {
+                    layers: desc.layers,
+                    level_blocks: (0..desc.mips).map(|level| image.level_blocks(level)).collect(),
+                });
+            }
+            checker
+        });
         Ok(Self {
             device: Arc::clone(device),
             images,
             chunks: Vec::new(),
             timeline: TimelineSemaphore::new(device, 0, "sparse binds")?,
             signalled: 0,
+            checker,
         })
     }
 
     /// Adds a memory chunk; returns its index for `MemorySlot::chunk`.
     pub fn add_chunk(&mut self, chunk: SparseMemoryChunk) -> u32 {
+        if let Some(checker) = &mut self.checker {
+            checker.add_chunk(chunk.size());
+        }
         self.chunks.push(chunk);
         (self.chunks.len() - 1) as u32
+    }
+
+    /// Batches and block operations the checker passed so far; `None` with it off.
+    pub fn checked(&self) -> Option<(u64, u64)> {
+        self.checker.as_ref().map(BindChecker::checked)
+    }
+
+    /// With the checker on: refuses `upload` into image `image` unless every
+    /// block it writes is bound (after the batches submitted so far).
+    pub fn check_copy(&self, image: u32, upload: &TexelUpload) -> Result<()> {
+        let (Some(checker), Some(target)) = (&self.checker, self.images.get(image as usize)) else {
+            return Ok(());
+        };
+        let (gw, gh) = target.granularity();
+        let columns = upload.x / gw.max(1)..(upload.x + upload.width).div_ceil(gw.max(1));
+        let rows = upload.y / gh.max(1)..(upload.y + upload.height).div_ceil(gh.max(1));
+        checker
+            .check_copy(image, upload.layer, upload.mip, columns, rows)
+            .map_err(|violation| EngineError::InvalidRequest(format!("sparse bind check: {violation}")))
     }
 
     /// What a submission that reads the bound blocks must wait on: the
@@ -154,6 +215,16 @@ impl VulkanBinder {
                 })
             })?;
             entries.push((image.raw(), image_entries));
+        }
+        // Checked last, once the batch is well formed, so that it reaches the
+        // driver exactly when the shadow takes it.
+        if let Some(checker) = &mut self.checker {
+            checker.check_batch(batch).map_err(|violation| {
+                SubmitError::Batch(BindError::Rejected {
+                    blocks: batch.len() as u32,
+                    reason: format!("sparse bind check: {violation}"),
+                })
+            })?;
         }
         let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();

@@ -161,3 +161,67 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
     drop(image);
     assert_no_validation_errors(&device)
 }
+
+#[test]
+fn the_bind_checker_refuses_a_double_bind_and_a_copy_into_an_unbound_block() -> Result<()> {
+    let device = validated_device()?;
+    let image = Arc::new(SparseImage::new(
+        &device,
+        SparseImageDesc {
+            width: 1024,
+            height: 256,
+            layers: 1,
+            mips: 1,
+            format: vk::Format::R8G8B8A8_UNORM,
+        },
+        "bind check image",
+    )?);
+    let block_size = image.block_size();
+    let (gw, gh) = image.granularity();
+    let mut binder = VulkanBinder::with_checks(&device, vec![Arc::clone(&image)], true)?;
+    let chunk = binder.add_chunk(SparseMemoryChunk::new(&device, &image, 4, "bind check chunk")?);
+    let at = |x: u32, slot: u64| BindOp::Bind {
+        block: key(x),
+        memory: MemorySlot {
+            chunk,
+            offset: slot * block_size,
+        },
+    };
+    binder.submit(&[at(1, 0)])?;
+    // The same block again, on other memory, without an unbind: refused before the driver sees it.
+    let double = binder.submit(&[at(1, 1)]);
+    ensure!(
+        matches!(&double, Err(BindError::Rejected { reason, .. })
+            if reason.contains("image 0 layer 0 level 0 block (1, 0)") && reason.contains("without an unbind")),
+        "{double:?}"
+    );
+    ensure!(binder.last_signalled() == 1, "the refused batch was submitted");
+    ensure!(binder.checked() == Some((1, 1)), "{:?}", binder.checked());
+    // A copy covering block 1 passes; one reaching into block 2 (not bound) is refused.
+    let copy = |x: u32, width: u32| TexelUpload {
+        layer: 0,
+        mip: 0,
+        x,
+        y: 0,
+        width,
+        height: gh,
+        buffer_offset: 0,
+    };
+    binder.check_copy(0, &copy(gw, gw))?;
+    let into_unbound = binder.check_copy(0, &copy(gw, gw + 1));
+    ensure!(
+        matches!(&into_unbound, Err(e) if e.to_string().contains("image 0 layer 0 level 0 block (2, 0), which is not bound")),
+        "{into_unbound:?}"
+    );
+    // Unbinding it twice is refused too.
+    binder.submit(&[BindOp::Unbind { block: key(1) }])?;
+    let twice = binder.submit(&[BindOp::Unbind { block: key(1) }]);
+    ensure!(
+        matches!(&twice, Err(BindError::Rejected { reason, .. }) if reason.contains("is not bound")),
+        "{twice:?}"
+    );
+    device.wait_idle()?;
+    drop(binder);
+    drop(image);
+    assert_no_validation_errors(&device)
+}

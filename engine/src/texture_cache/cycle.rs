@@ -156,6 +156,9 @@ impl GpuTextureCache {
                 if uploads.is_empty() {
                     continue;
                 }
+                for upload in &uploads {
+                    self.binder.check_copy(index as u32, upload)?;
+                }
                 image.record_layout(
                     cmd,
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
