@@ -1,19 +1,31 @@
-//! citystream's Vulkan engine.
+//! citystream's Vulkan engine: the device half of what `citystream-streaming`
+//! decides, and the passes that render a streamed city.
 //!
-//! [`stream`] is the embeddable streaming module: [`stream::TextureStreamer`]
-//! runs the paper's Algorithm 1 inside a host's frame loop with frames in
-//! flight (see `docs/EMBEDDING.md`). Around it, one module per Vulkan
-//! concept: [`instance`] (loader, layers, debug messenger), [`device`]
-//! (physical-device choice, logical device, queue, allocator; or a host's
-//! own through [`Device::from_host`]), [`buffer`] and [`image`] (resources
-//! that own their memory), [`sparse`] (partially resident images and
-//! `vkQueueBindSparse`), [`commands`] (submissions), [`pipeline`] (shaders,
-//! pipelines, descriptors), [`target`] (off-screen colour + depth and
-//! read-back), `present` (feature `window`: surface, swapchain and
-//! screenshots of presented frames), [`staging`] (host-visible upload ring), [`timing`] (CPU and
-//! GPU frame timing), [`texture_cache`] and [`feedback`] (the GPU halves of
-//! the cache and of the feedback), [`city`] (the engine's own city passes),
-//! [`atlas_tree`] (the visible pass of the texture-atlas tree strategy).
+//! The embeddable module: [`stream`], whose [`stream::TextureStreamer`] runs
+//! the paper's Algorithm 1 inside a host's frame loop with frames in flight
+//! (see `docs/EMBEDDING.md`), over [`texture_cache`] (the GPU half of the
+//! cache: sparse images per format, the per-texture table, the City
+//! Colormap), [`binder`] (`vkQueueBindSparse` batches, checked against a CPU
+//! shadow of the page tables where asked) and [`feedback`] (the per-mesh
+//! feedback array, its compaction and read-back).
+//!
+//! The engine's own passes: [`city`] (depth pre-pass, feedback and visible
+//! pass of a streamed city), [`atlas_tree`] (the texture-atlas tree's visible
+//! pass), [`ground`] (the flexible clipmap's tile array and ground pass),
+//! [`scene`] and [`placeholder`] (fully resident meshes and the procedural
+//! city), [`probe`] (what the GPU reads from a sparse image, for tests).
+//!
+//! One module per Vulkan concept under them: [`instance`] (loader, layers,
+//! debug messenger), [`device`] (physical-device choice, logical device,
+//! queue, allocator; or a host's own through [`Device::from_host`]),
+//! [`buffer`] and [`image`] (resources that own their memory), [`sparse`]
+//! (partially resident images and `vkQueueBindSparse`), [`commands`]
+//! (submissions and semaphores), [`pipeline`] (pipelines and descriptors),
+//! [`shaders`] (the SPIR-V compiled from `shaders/` and the GLSL include
+//! directory), [`gpu_types`] (Rust mirrors of the GLSL structs), [`target`]
+//! (off-screen colour + depth and read-back), `present` (feature `window`:
+//! surface, swapchain and screenshots of presented frames), [`staging`]
+//! (host-visible upload ring), [`timing`] (CPU and GPU frame timing).
 //!
 //! Ownership contract: every Vulkan handle has exactly one owner, a Rust value
 //! whose `Drop` destroys it. Resources hold an `Arc<Device>`, so the device

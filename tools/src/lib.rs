@@ -1,6 +1,22 @@
 //! The `citystream` tool's commands as a library: the binary parses the
 //! command line, and cross-crate tests drive the same commands directly
 //! (for example, rendering a generated city and its atlas version).
+//!
+//! Datasets in: [`gen`] (synthetic cities), [`import`] (glTF 2.0),
+//! [`atlas`] (the paper's §3.1 texture atlases), [`atlas_tree`] (the
+//! texture-atlas tree), [`patches`] (a simulated aerial survey for the
+//! ground), [`upgrade`] (older dataset formats), [`default_city`] (the city
+//! the flythrough opens without `--dataset`, built on first use).
+//! Datasets checked: [`info`], [`verify`], [`cache_report`] (how one packs
+//! into the sparse cache), [`fuzz`] (mutation harnesses for every parser).
+//! Runs measured: [`simulate`] (the policy on the modelled clock), [`path`]
+//! (the standard camera path), [`report`] (Table 3 and Fig. 6 from
+//! flythrough runs), [`bench`](mod@bench) (the flythrough under several policies,
+//! strategies and scenarios), [`loader_bench`] and [`remote_bench`] (the
+//! loader from disk and over HTTP), [`image_error`] (the image-error
+//! convention every figure uses). Around them: [`files`] (output files
+//! replaced atomically), [`nginx`], [`s3_emulator`], [`fault_proxy`] and
+//! [`server_process`] (local servers for the remote tests and benchmarks).
 
 pub mod atlas;
 pub mod atlas_tree;
