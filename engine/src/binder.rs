@@ -9,7 +9,13 @@
 //! reaches the driver; a violation fails the call, naming the image, layer,
 //! level and block. Chunks are freed only when the binder is dropped, after
 //! the device idles and after the images it binds (field order below).
+//!
+//! With `CITYSTREAM_BIND_LOG=FILE` the binder also writes every image, chunk,
+//! batch and copy it is asked for to FILE, flushed as it goes, so that what
+//! led up to a driver fault can be replayed (`citystream bind-replay FILE`;
+//! format in [`bind_log`]).
 
+use std::io::Write;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -44,6 +50,13 @@ pub struct VulkanBinder {
     timeline: TimelineSemaphore,
     signalled: u64,
     checker: Option<BindChecker>,
+    log: Option<BindLog>,
+}
+
+/// The bind log being written (see [`bind_log`]).
+struct BindLog {
+    path: std::path::PathBuf,
+    out: std::io::BufWriter<std::fs::File>,
 }
 
 impl std::fmt::Debug for VulkanBinder {
@@ -64,7 +77,8 @@ impl VulkanBinder {
         Self::with_checks(device, images, checks_binds())
     }
 
-    /// As [`new`](Self::new), with the bind checker on or off whatever the environment says.
+    /// As [`new`](Self::new), with the bind checker on or off whatever the
+    /// environment says (the bind log still follows `CITYSTREAM_BIND_LOG`).
     pub fn with_checks(device: &Arc<Device>, images: Vec<Arc<SparseImage>>, check: bool) -> Result<Self> {
         let checker = check.then(|| {
             // The cache's images share one block size (it refuses others).
@@ -78,23 +92,71 @@ impl VulkanBinder {
             }
             checker
         });
-        Ok(Self {
+        let mut binder = Self {
             device: Arc::clone(device),
             images,
             chunks: Vec::new(),
             timeline: TimelineSemaphore::new(device, 0, "sparse binds")?,
             signalled: 0,
             checker,
-        })
+            log: None,
+        };
+        if let Some(path) = std::env::var_os("CITYSTREAM_BIND_LOG").filter(|p| !p.is_empty()) {
+            binder.start_log(path.into())?;
+        }
+        Ok(binder)
+    }
+
+    /// Writes the bind log to `path` from here on, starting with the images.
+    fn start_log(&mut self, path: std::path::PathBuf) -> Result<()> {
+        let file = std::fs::File::create(&path).map_err(|source| EngineError::BindLog {
+            path: path.display().to_string(),
+            source,
+        })?;
+        let mut text = format!("{}\n", bind_log::HEADER);
+        for (index, image) in self.images.iter().enumerate() {
+            let desc = image.desc();
+            let (gw, gh) = image.granularity();
+            text += &format!(
+                "image {index} {} {} {} {} {} {gw} {gh} {}\n",
+                desc.width,
+                desc.height,
+                desc.layers,
+                desc.mips,
+                desc.format.as_raw(),
+                image.block_size()
+            );
+        }
+        self.log = Some(BindLog {
+            path,
+            out: std::io::BufWriter::new(file),
+        });
+        self.write_log(&text)
+    }
+
+    /// Appends `text` to the bind log, if one is written, and flushes it.
+    fn write_log(&mut self, text: &str) -> Result<()> {
+        let Some(log) = &mut self.log else {
+            return Ok(());
+        };
+        log.out
+            .write_all(text.as_bytes())
+            .and_then(|()| log.out.flush())
+            .map_err(|source| EngineError::BindLog {
+                path: log.path.display().to_string(),
+                source,
+            })
     }
 
     /// Adds a memory chunk; returns its index for `MemorySlot::chunk`.
-    pub fn add_chunk(&mut self, chunk: SparseMemoryChunk) -> u32 {
+    pub fn add_chunk(&mut self, chunk: SparseMemoryChunk) -> Result<u32> {
         if let Some(checker) = &mut self.checker {
             checker.add_chunk(chunk.size());
         }
+        let index = self.chunks.len() as u32;
+        self.write_log(&format!("chunk {index} {}\n", chunk.size()))?;
         self.chunks.push(chunk);
-        (self.chunks.len() - 1) as u32
+        Ok(index)
     }
 
     /// Batches and block operations the checker passed so far; `None` with it off.
@@ -102,9 +164,14 @@ impl VulkanBinder {
         self.checker.as_ref().map(BindChecker::checked)
     }
 
-    /// With the checker on: refuses `upload` into image `image` unless every
-    /// block it writes is bound (after the batches submitted so far).
-    pub fn check_copy(&self, image: u32, upload: &TexelUpload) -> Result<()> {
+    /// Before `upload` is recorded into image `image`: logs it where a bind
+    /// log is written and, with the checker on, refuses it unless every block
+    /// it writes is bound (after the batches submitted so far).
+    pub fn check_copy(&mut self, image: u32, upload: &TexelUpload) -> Result<()> {
+        self.write_log(&format!(
+            "copy {image} {} {} {} {} {} {}\n",
+            upload.layer, upload.mip, upload.x, upload.y, upload.width, upload.height
+        ))?;
         let (Some(checker), Some(target)) = (&self.checker, self.images.get(image as usize)) else {
             return Ok(());
         };
@@ -228,6 +295,10 @@ impl VulkanBinder {
         }
         let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
+        if self.log.is_some() {
+            self.write_log(&bind_log::batch_text(batch, frames.is_some_and(|f| f.value > 0)))
+                .map_err(SubmitError::Device)?;
+        }
         let mut waits: Vec<(vk::Semaphore, u64)> = Vec::with_capacity(2);
         if self.signalled > 0 {
             waits.push((self.timeline.raw(), self.signalled));
@@ -278,5 +349,42 @@ impl Drop for VulkanBinder {
         // Chunks must outlive every bind that references them; the device
         // idles before the memory is returned.
         let _ = self.device.wait_idle();
+    }
+}
+
+/// The bind log's text format, one record per line, fields separated by
+/// spaces (all numbers decimal):
+///
+/// ```text
+/// citystream-bind-log 1
+/// image INDEX WIDTH HEIGHT LAYERS MIPS VK_FORMAT GRANULARITY_W GRANULARITY_H BLOCK_BYTES
+/// chunk INDEX BYTES
+/// batch OPERATIONS WAITS_FOR_FRAMES(0|1)
+/// bind IMAGE LAYER LEVEL X Y CHUNK OFFSET      (OPERATIONS lines of bind or unbind follow batch)
+/// unbind IMAGE LAYER LEVEL X Y
+/// copy IMAGE LAYER LEVEL X Y WIDTH HEIGHT      (texels; recorded after the batches before it)
+/// ```
+pub mod bind_log {
+    use citystream_cache::BindOp;
+
+    /// The first line of a bind log of this format.
+    pub const HEADER: &str = "citystream-bind-log 1";
+
+    /// A batch's lines.
+    pub fn batch_text(batch: &[BindOp], waits_for_frames: bool) -> String {
+        let mut text = format!("batch {} {}\n", batch.len(), u8::from(waits_for_frames));
+        for op in batch {
+            let b = op.block();
+            match op {
+                BindOp::Bind { memory, .. } => {
+                    text += &format!(
+                        "bind {} {} {} {} {} {} {}\n",
+                        b.image, b.layer, b.mip, b.x, b.y, memory.chunk, memory.offset
+                    )
+                }
+                BindOp::Unbind { .. } => text += &format!("unbind {} {} {} {} {}\n", b.image, b.layer, b.mip, b.x, b.y),
+            }
+        }
+        text
     }
 }

@@ -53,6 +53,9 @@ pub enum EngineError {
     /// The load policy could not be built from its options.
     #[error("load policy: {0}")]
     Policy(#[from] citystream_streaming::controller::PolicyError),
+    /// The bind log (`CITYSTREAM_BIND_LOG`) could not be written.
+    #[error("cannot write the bind log {path}: {source}")]
+    BindLog { path: String, source: std::io::Error },
     /// A shader module could not be read.
     #[error("shader {name}: {source}")]
     Shader { name: &'static str, source: std::io::Error },

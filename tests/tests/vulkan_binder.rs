@@ -49,7 +49,7 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
     let block_size = probe_image.block_size();
     let image = Arc::new(probe_image);
     let mut binder = VulkanBinder::new(&device, vec![Arc::clone(&image)])?;
-    let chunk = binder.add_chunk(SparseMemoryChunk::new(&device, &image, 4, "binder test chunk")?);
+    let chunk = binder.add_chunk(SparseMemoryChunk::new(&device, &image, 4, "binder test chunk")?)?;
 
     // Blocks 0..3 with consecutive memory: one merged entry.
     let batch: Vec<BindOp> = (0..3)
@@ -179,7 +179,7 @@ fn the_bind_checker_refuses_a_double_bind_and_a_copy_into_an_unbound_block() -> 
     let block_size = image.block_size();
     let (gw, gh) = image.granularity();
     let mut binder = VulkanBinder::with_checks(&device, vec![Arc::clone(&image)], true)?;
-    let chunk = binder.add_chunk(SparseMemoryChunk::new(&device, &image, 4, "bind check chunk")?);
+    let chunk = binder.add_chunk(SparseMemoryChunk::new(&device, &image, 4, "bind check chunk")?)?;
     let at = |x: u32, slot: u64| BindOp::Bind {
         block: key(x),
         memory: MemorySlot {

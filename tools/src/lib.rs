@@ -16,11 +16,14 @@
 //! loader from disk and over HTTP), [`image_error`] (the image-error
 //! convention every figure uses). Around them: [`files`] (output files
 //! replaced atomically), [`nginx`], [`s3_emulator`], [`fault_proxy`] and
-//! [`server_process`] (local servers for the remote tests and benchmarks).
+//! [`server_process`] (local servers for the remote tests and benchmarks),
+//! [`bind_replay`] (a run's sparse binds and copies, logged with
+//! `CITYSTREAM_BIND_LOG`, replayed on the device).
 
 pub mod atlas;
 pub mod atlas_tree;
 pub mod bench;
+pub mod bind_replay;
 pub mod cache_report;
 pub mod default_city;
 pub mod fault_proxy;

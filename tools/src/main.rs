@@ -4,7 +4,8 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 use citystream_tools::{
-    atlas, atlas_tree, bench, cache_report, gen, import, info, patches, path, report, simulate, upgrade, verify,
+    atlas, atlas_tree, bench, bind_replay, cache_report, gen, import, info, patches, path, report, simulate, upgrade,
+    verify,
 };
 
 #[derive(Debug, Parser)]
@@ -46,6 +47,8 @@ enum Command {
     Report(report::ReportArgs),
     /// Run the flythrough under each policy on one dataset and report the comparison.
     Bench(bench::BenchArgs),
+    /// Replay a bind log (`CITYSTREAM_BIND_LOG`) on this machine's device, with the bind checker.
+    BindReplay(bind_replay::BindReplayArgs),
 }
 
 fn main() -> Result<()> {
@@ -64,5 +67,6 @@ fn main() -> Result<()> {
         Command::Upgrade(args) => upgrade::run(&args),
         Command::Report(args) => report::run(&args),
         Command::Bench(args) => bench::run(&args),
+        Command::BindReplay(args) => bind_replay::run(&args),
     }
 }

@@ -86,7 +86,7 @@ impl GpuTextureCache {
                 blocks,
                 &format!("cache block chunk {}", chunk.chunk),
             )?;
-            let index = self.binder.add_chunk(memory);
+            let index = self.binder.add_chunk(memory)?;
             if index != chunk.chunk {
                 return Err(EngineError::InvalidRequest(format!(
                     "block pool chunk {} was created as engine chunk {index}",

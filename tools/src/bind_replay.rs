@@ -1,0 +1,391 @@
+//! `citystream bind-replay LOG`: replays a bind log (`CITYSTREAM_BIND_LOG`,
+//! format in `citystream_engine::binder::bind_log`) on this machine's device:
+//! the same sparse images, memory chunks, bind batches in the same order and
+//! copies into the same blocks (of zeros), with the bind checker on, so what
+//! led up to a driver fault can be run again without the city, the camera
+//! or the streaming that produced it.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use citystream_cache::{BindOp, BlockKey, MemorySlot};
+use citystream_engine::binder::{bind_log, VulkanBinder};
+use citystream_engine::buffer::{Buffer, BufferDesc};
+use citystream_engine::commands::CommandContext;
+use citystream_engine::gpu_allocator::MemoryLocation;
+use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
+use citystream_engine::sparse::{
+    bytes_per_texel_block, texel_block, SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload,
+};
+use citystream_engine::{vk, Device, DeviceOptions};
+
+/// Options of `citystream bind-replay`.
+#[derive(Debug, clap::Args)]
+pub struct BindReplayArgs {
+    /// The bind log a run wrote with `CITYSTREAM_BIND_LOG=FILE`.
+    pub log: PathBuf,
+    /// Replay without the bind checker (to see what the driver does with a log the checker refuses).
+    #[arg(long)]
+    pub no_check: bool,
+}
+
+/// One record of a bind log.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Record {
+    Image { index: u32, desc: SparseImageDesc },
+    Chunk { index: u32, bytes: u64 },
+    Batch(Vec<BindOp>),
+    Copy { image: u32, upload: TexelUpload },
+}
+
+/// Parses a bind log; errors name the line.
+pub fn parse(text: &str) -> Result<Vec<Record>> {
+    let mut lines = text.lines().enumerate().map(|(i, line)| (i + 1, line));
+    match lines.next() {
+        Some((_, header)) if header.trim() == bind_log::HEADER => {}
+        Some((_, header)) => bail!("line 1: {header:?} is not a bind log header ({:?})", bind_log::HEADER),
+        None => bail!("the log is empty"),
+    }
+    let mut records = Vec::new();
+    while let Some((number, line)) = lines.next() {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let Some((&kind, fields)) = words.split_first() else {
+            continue;
+        };
+        let numbers = |count: usize| -> Result<Vec<u64>> {
+            if fields.len() != count {
+                bail!("line {number}: `{kind}` takes {count} numbers, found {}", fields.len());
+            }
+            fields
+                .iter()
+                .map(|f| {
+                    f.parse::<u64>()
+                        .with_context(|| format!("line {number}: {f:?} is not a number"))
+                })
+                .collect()
+        };
+        let small = |value: u64| -> Result<u32> {
+            u32::try_from(value).with_context(|| format!("line {number}: {value} is out of range"))
+        };
+        match kind {
+            "image" => {
+                let n = numbers(9)?;
+                records.push(Record::Image {
+                    index: small(n[0])?,
+                    desc: SparseImageDesc {
+                        width: small(n[1])?,
+                        height: small(n[2])?,
+                        layers: small(n[3])?,
+                        mips: small(n[4])?,
+                        format: vk::Format::from_raw(
+                            i32::try_from(n[5]).with_context(|| format!("line {number}: format"))?,
+                        ),
+                    },
+                });
+            }
+            "chunk" => {
+                let n = numbers(2)?;
+                records.push(Record::Chunk {
+                    index: small(n[0])?,
+                    bytes: n[1],
+                });
+            }
+            "batch" => {
+                let n = numbers(2)?;
+                let mut ops = Vec::with_capacity(n[0].min(1 << 20) as usize);
+                for _ in 0..n[0] {
+                    let Some((op_number, op_line)) = lines.next() else {
+                        bail!(
+                            "line {number}: the batch announces {} operations; the log ends first",
+                            n[0]
+                        );
+                    };
+                    ops.push(parse_op(op_number, op_line)?);
+                }
+                records.push(Record::Batch(ops));
+            }
+            "copy" => {
+                let n = numbers(7)?;
+                records.push(Record::Copy {
+                    image: small(n[0])?,
+                    upload: TexelUpload {
+                        layer: small(n[1])?,
+                        mip: small(n[2])?,
+                        x: small(n[3])?,
+                        y: small(n[4])?,
+                        width: small(n[5])?,
+                        height: small(n[6])?,
+                        buffer_offset: 0,
+                    },
+                });
+            }
+            other => bail!("line {number}: unknown record `{other}`"),
+        }
+    }
+    Ok(records)
+}
+
+fn parse_op(number: usize, line: &str) -> Result<BindOp> {
+    let words: Vec<&str> = line.split_whitespace().collect();
+    let values = |from: &[&str]| -> Result<Vec<u64>> {
+        from.iter()
+            .map(|f| {
+                f.parse::<u64>()
+                    .with_context(|| format!("line {number}: {f:?} is not a number"))
+            })
+            .collect()
+    };
+    let block = |n: &[u64]| -> Result<BlockKey> {
+        let small = |v: u64| u32::try_from(v).with_context(|| format!("line {number}: {v} is out of range"));
+        Ok(BlockKey {
+            image: small(n[0])?,
+            layer: small(n[1])?,
+            mip: small(n[2])?,
+            x: small(n[3])?,
+            y: small(n[4])?,
+        })
+    };
+    match words.as_slice() {
+        ["bind", rest @ ..] if rest.len() == 7 => {
+            let n = values(rest)?;
+            Ok(BindOp::Bind {
+                block: block(&n)?,
+                memory: MemorySlot {
+                    chunk: u32::try_from(n[5]).with_context(|| format!("line {number}: chunk"))?,
+                    offset: n[6],
+                },
+            })
+        }
+        ["unbind", rest @ ..] if rest.len() == 5 => Ok(BindOp::Unbind {
+            block: block(&values(rest)?)?,
+        }),
+        _ => bail!("line {number}: {line:?} is not `bind` with 7 numbers or `unbind` with 5"),
+    }
+}
+
+/// What a replay did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Replayed {
+    pub images: u32,
+    pub chunks: u32,
+    pub batches: u64,
+    pub operations: u64,
+    pub copies: u64,
+}
+
+/// Replays `records` on `device`: images, chunks, each batch submitted and
+/// waited for, each run of copies recorded and submitted after the batch it
+/// follows.
+pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<Replayed> {
+    let mut done = Replayed::default();
+    let mut images = Vec::new();
+    let mut index = 0;
+    while let Some(Record::Image { index: expected, desc }) = records.get(index) {
+        if *expected as usize != images.len() {
+            bail!(
+                "image records out of order: image {expected} comes as number {}",
+                images.len()
+            );
+        }
+        images.push(Arc::new(SparseImage::new(
+            device,
+            *desc,
+            &format!("replayed image {expected}"),
+        )?));
+        index += 1;
+    }
+    let Some(first) = images.first() else {
+        bail!("the log names no image");
+    };
+    let (block_bytes, memory_type_bits) = (first.block_size(), first.memory_type_bits());
+    done.images = images.len() as u32;
+    let mut binder = VulkanBinder::with_checks(device, images.clone(), check)?;
+    let mut commands = CommandContext::new(device, "bind replay")?;
+    // Every image starts in the layout the cache keeps it in.
+    let cmd = commands.begin()?;
+    for image in &images {
+        image.record_layout(
+            cmd,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
+    }
+    commands.submit_and_wait(&[])?;
+    let mut copies: Vec<(u32, TexelUpload)> = Vec::new();
+    for record in &records[index..] {
+        if !matches!(record, Record::Copy { .. }) && !copies.is_empty() {
+            record_copies(device, &mut commands, &binder, &images, &std::mem::take(&mut copies))?;
+        }
+        match record {
+            Record::Image { index, .. } => bail!("image {index} comes after the first chunk, batch or copy"),
+            Record::Chunk { index, bytes } => {
+                let memory = SparseMemoryChunk::with_requirements(
+                    device,
+                    block_bytes,
+                    memory_type_bits,
+                    bytes / block_bytes.max(1),
+                    &format!("replayed chunk {index}"),
+                )?;
+                let added = binder.add_chunk(memory)?;
+                if added != *index {
+                    bail!("chunk {index} of the log was created as chunk {added}");
+                }
+                done.chunks += 1;
+            }
+            Record::Batch(ops) => {
+                binder
+                    .submit_after(ops, None)
+                    .with_context(|| format!("batch {} of the log", done.batches + 1))?;
+                done.batches += 1;
+                done.operations += ops.len() as u64;
+            }
+            Record::Copy { image, upload } => {
+                binder
+                    .check_copy(*image, upload)
+                    .with_context(|| format!("copy {} of the log", done.copies + 1))?;
+                copies.push((*image, *upload));
+                done.copies += 1;
+            }
+        }
+    }
+    if !copies.is_empty() {
+        record_copies(device, &mut commands, &binder, &images, &copies)?;
+    }
+    device.wait_idle()?;
+    Ok(done)
+}
+
+/// Records `copies` (of zeros) after the last batch and waits for them.
+fn record_copies(
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    binder: &VulkanBinder,
+    images: &[Arc<SparseImage>],
+    copies: &[(u32, TexelUpload)],
+) -> Result<()> {
+    let mut offset = 0u64;
+    let mut placed: Vec<(u32, TexelUpload)> = Vec::with_capacity(copies.len());
+    for &(image, upload) in copies {
+        let Some(target) = images.get(image as usize) else {
+            bail!("a copy names image {image}; the log has {}", images.len());
+        };
+        let format = target.desc().format;
+        let (bw, bh) = texel_block(format);
+        let bytes = u64::from(upload.width.div_ceil(bw))
+            * u64::from(upload.height.div_ceil(bh))
+            * bytes_per_texel_block(format);
+        placed.push((
+            image,
+            TexelUpload {
+                buffer_offset: offset,
+                ..upload
+            },
+        ));
+        offset += bytes.next_multiple_of(16);
+    }
+    let staging = Buffer::new(
+        device,
+        BufferDesc {
+            size: offset.max(16),
+            usage: vk::BufferUsageFlags::TRANSFER_SRC,
+            location: MemoryLocation::CpuToGpu,
+        },
+        "bind replay zeros",
+    )?;
+    let cmd = commands.begin()?;
+    for (index, image) in images.iter().enumerate() {
+        let uploads: Vec<TexelUpload> = placed
+            .iter()
+            .filter(|(i, _)| *i as usize == index)
+            .map(|(_, u)| *u)
+            .collect();
+        if uploads.is_empty() {
+            continue;
+        }
+        image.record_layout(
+            cmd,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        );
+        image.record_copies(cmd, staging.raw(), &uploads)?;
+        image.record_layout(
+            cmd,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
+    }
+    let waits: Vec<_> = (binder.last_signalled() > 0)
+        .then(|| binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY))
+        .into_iter()
+        .collect();
+    commands.submit_and_wait(&waits)?;
+    Ok(())
+}
+
+/// Runs `citystream bind-replay`.
+pub fn run(args: &BindReplayArgs) -> Result<()> {
+    let text = std::fs::read_to_string(&args.log).with_context(|| format!("reading {}", args.log.display()))?;
+    let records = parse(&text).with_context(|| format!("reading the bind log {}", args.log.display()))?;
+    let device = Arc::new(
+        Device::new(&DeviceOptions {
+            instance: InstanceOptions {
+                validation: default_validation(),
+                synchronization: default_synchronization_validation(),
+                app_name: "citystream bind-replay".into(),
+                extensions: Vec::new(),
+            },
+            device_name: None,
+            presentation: false,
+        })
+        .context("creating the Vulkan device")?,
+    );
+    let start = Instant::now();
+    let done =
+        replay(&device, &records, !args.no_check).with_context(|| format!("replaying {}", args.log.display()))?;
+    let errors = device.validation_log().errors().len();
+    println!(
+        "replayed {} images, {} chunks, {} batches ({} block operations) and {} copies in {:.2} s; {} validation errors",
+        done.images,
+        done.chunks,
+        done.batches,
+        done.operations,
+        done.copies,
+        start.elapsed().as_secs_f64(),
+        errors
+    );
+    if errors > 0 {
+        bail!("{errors} validation errors during the replay");
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_log_parses_into_its_records_and_bad_lines_are_named() {
+        let log = format!(
+            "{}\nimage 0 1024 1024 4 11 131 256 128 65536\nchunk 0 1048576\nbatch 2 1\nbind 0 1 2 3 4 0 65536\nunbind 0 1 2 3 5\ncopy 0 1 2 0 0 64 64\n",
+            bind_log::HEADER
+        );
+        let records = parse(&log).expect("a valid log");
+        assert_eq!(records.len(), 4);
+        assert!(matches!(&records[2], Record::Batch(ops) if ops.len() == 2));
+        assert!(matches!(&records[3], Record::Copy { image: 0, upload } if upload.width == 64 && upload.mip == 2));
+        for (bad, line) in [
+            ("batch 3 0\nbind 0 0 0 0 0 0 0\n", "line 2"),
+            ("chunk 0\n", "line 2"),
+            ("copy 0 1 2 x 0 64 64\n", "line 2"),
+            ("frobnicate 1\n", "line 2"),
+            ("batch 1 0\nbind 0 0 0\n", "line 3"),
+        ] {
+            let error = parse(&format!("{}\n{bad}", bind_log::HEADER)).expect_err(bad);
+            assert!(format!("{error:#}").contains(line), "{bad:?}: {error:#}");
+        }
+        assert!(parse("not a log\n").is_err());
+        assert!(parse("").is_err());
+    }
+}
