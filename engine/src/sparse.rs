@@ -15,6 +15,7 @@ use ash::vk;
 use gpu_allocator::vulkan::Allocation;
 use gpu_allocator::MemoryLocation;
 
+use crate::commands::CommandContext;
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::image::{create_view, ImageDesc};
@@ -33,6 +34,21 @@ pub struct SparseImageDesc {
     pub mips: u32,
     /// Texel format.
     pub format: vk::Format,
+}
+
+/// Moves freshly created `images` from `UNDEFINED` to
+/// `SHADER_READ_ONLY_OPTIMAL`, the layout a cache keeps them in between
+/// copies, in one submission on `commands`, and waits for it.
+pub fn make_sampleable(commands: &mut CommandContext, images: &[Arc<SparseImage>]) -> Result<()> {
+    let cmd = commands.begin()?;
+    for image in images {
+        image.record_layout(
+            cmd,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
+    }
+    commands.submit_and_wait(&[])
 }
 
 /// Texel-block dimensions of a format: 4×4 for BC, 1×1 otherwise.

@@ -26,20 +26,22 @@ fn key(x: u32) -> BlockKey {
     }
 }
 
+/// A one-level 1024 x 256 RGBA8 sparse image: four or more blocks across.
+fn test_image(device: &Arc<citystream_engine::Device>, name: &str) -> Result<SparseImage> {
+    let desc = SparseImageDesc {
+        width: 1024,
+        height: 256,
+        layers: 1,
+        mips: 1,
+        format: vk::Format::R8G8B8A8_UNORM,
+    };
+    Ok(SparseImage::new(device, desc, name)?)
+}
+
 #[test]
 fn batches_merge_bind_and_unbind() -> Result<()> {
     let device = validated_device()?;
-    let probe_image = SparseImage::new(
-        &device,
-        SparseImageDesc {
-            width: 1024,
-            height: 256,
-            layers: 1,
-            mips: 1,
-            format: vk::Format::R8G8B8A8_UNORM,
-        },
-        "binder test image",
-    )?;
+    let probe_image = test_image(&device, "binder test image")?;
     let (blocks_across, _) = probe_image.level_blocks(0);
     ensure!(
         blocks_across >= 4,
@@ -165,17 +167,7 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
 #[test]
 fn the_bind_checker_refuses_a_double_bind_and_a_copy_into_an_unbound_block() -> Result<()> {
     let device = validated_device()?;
-    let image = Arc::new(SparseImage::new(
-        &device,
-        SparseImageDesc {
-            width: 1024,
-            height: 256,
-            layers: 1,
-            mips: 1,
-            format: vk::Format::R8G8B8A8_UNORM,
-        },
-        "bind check image",
-    )?);
+    let image = Arc::new(test_image(&device, "bind check image")?);
     let block_size = image.block_size();
     let (gw, gh) = image.granularity();
     let mut binder = VulkanBinder::with_checks(&device, vec![Arc::clone(&image)], true)?;

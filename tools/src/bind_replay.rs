@@ -17,7 +17,7 @@ use citystream_engine::commands::CommandContext;
 use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::sparse::{
-    bytes_per_texel_block, texel_block, SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload,
+    bytes_per_texel_block, make_sampleable, texel_block, SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload,
 };
 use citystream_engine::{vk, Device, DeviceOptions};
 
@@ -34,10 +34,22 @@ pub struct BindReplayArgs {
 /// One record of a bind log.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Record {
-    Image { index: u32, desc: SparseImageDesc },
-    Chunk { index: u32, bytes: u64 },
+    Image {
+        index: u32,
+        desc: SparseImageDesc,
+        /// The sparse granularity (texels) and block size the logging device reported.
+        granularity: (u32, u32),
+        block_bytes: u32,
+    },
+    Chunk {
+        index: u32,
+        bytes: u64,
+    },
     Batch(Vec<BindOp>),
-    Copy { image: u32, upload: TexelUpload },
+    Copy {
+        image: u32,
+        upload: TexelUpload,
+    },
 }
 
 /// Parses a bind log; errors name the line.
@@ -69,20 +81,26 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
         let small = |value: u64| -> Result<u32> {
             u32::try_from(value).with_context(|| format!("line {number}: {value} is out of range"))
         };
+        let small_numbers = |count: usize| -> Result<Vec<u32>> { numbers(count)?.into_iter().map(small).collect() };
         match kind {
             "image" => {
-                let n = numbers(9)?;
+                let [index, width, height, layers, mips, format, gw, gh, block_bytes] = small_numbers(9)?[..] else {
+                    unreachable!("nine numbers were read");
+                };
+                let format = i32::try_from(format).with_context(|| format!("line {number}: format {format}"))?;
+                let format = vk::Format::from_raw(format);
+                let desc = SparseImageDesc {
+                    width,
+                    height,
+                    layers,
+                    mips,
+                    format,
+                };
                 records.push(Record::Image {
-                    index: small(n[0])?,
-                    desc: SparseImageDesc {
-                        width: small(n[1])?,
-                        height: small(n[2])?,
-                        layers: small(n[3])?,
-                        mips: small(n[4])?,
-                        format: vk::Format::from_raw(
-                            i32::try_from(n[5]).with_context(|| format!("line {number}: format"))?,
-                        ),
-                    },
+                    index,
+                    desc,
+                    granularity: (gw, gh),
+                    block_bytes,
                 });
             }
             "chunk" => {
@@ -107,19 +125,19 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
                 records.push(Record::Batch(ops));
             }
             "copy" => {
-                let n = numbers(7)?;
-                records.push(Record::Copy {
-                    image: small(n[0])?,
-                    upload: TexelUpload {
-                        layer: small(n[1])?,
-                        mip: small(n[2])?,
-                        x: small(n[3])?,
-                        y: small(n[4])?,
-                        width: small(n[5])?,
-                        height: small(n[6])?,
-                        buffer_offset: 0,
-                    },
-                });
+                let [image, layer, mip, x, y, width, height] = small_numbers(7)?[..] else {
+                    unreachable!("seven numbers were read");
+                };
+                let upload = TexelUpload {
+                    layer,
+                    mip,
+                    x,
+                    y,
+                    width,
+                    height,
+                    buffer_offset: 0,
+                };
+                records.push(Record::Copy { image, upload });
             }
             other => bail!("line {number}: unknown record `{other}`"),
         }
@@ -182,18 +200,31 @@ pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<R
     let mut done = Replayed::default();
     let mut images = Vec::new();
     let mut index = 0;
-    while let Some(Record::Image { index: expected, desc }) = records.get(index) {
+    while let Some(Record::Image {
+        index: expected,
+        desc,
+        granularity,
+        block_bytes,
+    }) = records.get(index)
+    {
         if *expected as usize != images.len() {
             bail!(
                 "image records out of order: image {expected} comes as number {}",
                 images.len()
             );
         }
-        images.push(Arc::new(SparseImage::new(
-            device,
-            *desc,
-            &format!("replayed image {expected}"),
-        )?));
+        let image = SparseImage::new(device, *desc, &format!("replayed image {expected}"))?;
+        // Block coordinates and memory offsets mean what the logging device made of them.
+        if image.granularity() != *granularity || image.block_size() != u64::from(*block_bytes) {
+            bail!(
+                "image {expected}: the log was written on a device with {granularity:?} texel blocks of {block_bytes} \
+                 bytes; {} has {:?} of {}",
+                device.name(),
+                image.granularity(),
+                image.block_size()
+            );
+        }
+        images.push(Arc::new(image));
         index += 1;
     }
     let Some(first) = images.first() else {
@@ -204,15 +235,7 @@ pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<R
     let mut binder = VulkanBinder::with_checks(device, images.clone(), check)?;
     let mut commands = CommandContext::new(device, "bind replay")?;
     // Every image starts in the layout the cache keeps it in.
-    let cmd = commands.begin()?;
-    for image in &images {
-        image.record_layout(
-            cmd,
-            vk::ImageLayout::UNDEFINED,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        );
-    }
-    commands.submit_and_wait(&[])?;
+    make_sampleable(&mut commands, &images)?;
     let mut copies: Vec<(u32, TexelUpload)> = Vec::new();
     for record in &records[index..] {
         if !matches!(record, Record::Copy { .. }) && !copies.is_empty() {

@@ -49,7 +49,7 @@ use crate::gpu_types::{
 };
 use crate::pipeline::{DescriptorResource, Filtering, Sampler};
 use crate::scene::upload_buffer;
-use crate::sparse::{SparseImage, SparseImageDesc, TexelUpload};
+use crate::sparse::{make_sampleable, SparseImage, SparseImageDesc, TexelUpload};
 use crate::staging::StagingRing;
 use layout::LayerProbe;
 
@@ -385,15 +385,7 @@ impl GpuTextureCache {
         let sampler = Sampler::new(device, config.filtering, "cache sampler")?;
         let staging = StagingRing::new(device, config.staging_bytes.max(64 * 1024))?;
 
-        let cmd = commands.begin()?;
-        for image in &images {
-            image.record_layout(
-                cmd,
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-            );
-        }
-        commands.submit_and_wait(&[])?;
+        make_sampleable(commands, &images)?;
 
         Ok(Self {
             device: Arc::clone(device),
