@@ -65,9 +65,11 @@ mod descriptors;
 mod feedback_records;
 mod immediate;
 mod residency;
+mod telemetry;
 
 pub use descriptors::StreamDescriptors;
 pub use feedback_records::{feedback_tau, records_from_feedback};
+pub use telemetry::ServedLevels;
 
 /// Per cache format, how many textures of each extent the source holds.
 fn texture_extents<S: MipSource + ?Sized>(source: &S) -> Result<Vec<Vec<(u32, u64)>>> {
@@ -458,14 +460,16 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.slots.len() as u32
     }
 
-    /// The texture cache (descriptors for the host's pipelines, the table's
-    /// host copy, utilisation).
+    /// The texture cache, for the engine's own passes ([`crate::city::CityRenderer`],
+    /// [`crate::atlas_tree::AtlasTreeRenderer`]) and tests; a host reads
+    /// [`served_levels`](Self::served_levels), [`texture_data`](Self::texture_data)
+    /// and [`bound_bytes`](Self::bound_bytes) instead.
     pub fn cache(&self) -> &GpuTextureCache {
         &self.cache
     }
 
-    /// The feedback buffers; the host's feedback pass writes
-    /// [`FeedbackCompactor::mesh_feedback_buffer`].
+    /// The feedback buffers, for the engine's own passes; a host's feedback
+    /// pass reaches them through [`descriptor_bindings`](Self::descriptor_bindings).
     pub fn compactor(&self) -> &FeedbackCompactor {
         &self.compactor
     }

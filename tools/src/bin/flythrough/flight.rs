@@ -36,7 +36,7 @@ use super::args::{
     Args, Clock, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
 };
 use super::ground;
-use super::measure::{meshes_in_view, mip_deficit, pending_textures};
+use super::measure::meshes_in_view;
 use super::tree::TreeRun;
 
 /// The passes of a flythrough frame, in recording order, timed separately.
@@ -647,10 +647,10 @@ impl Flight {
         let feedback = match self.gpu.streamer.latest_feedback() {
             Some((from, entries)) if self.last_feedback != Some(from) => {
                 self.last_feedback = Some(from);
-                let (meshes, cache) = (&self.city.1, self.gpu.streamer.cache());
+                let served = self.gpu.streamer.served_levels(entries)?;
                 Some(FeedbackStatus {
-                    deficit: mip_deficit(entries, self.tau, meshes, cache),
-                    pending: pending_textures(entries, self.tau, meshes, cache),
+                    deficit: served.mip_deficit,
+                    pending: served.pending_textures,
                 })
             }
             _ => None,

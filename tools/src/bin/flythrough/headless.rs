@@ -197,7 +197,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         let mips = u64::from(applied.mips_uploaded);
         mips_total += mips;
         blocks_total += u64::from(applied.blocks_bound);
-        let resident = flight.gpu.streamer.cache().utilisation().bound_bytes;
+        let resident = flight.gpu.streamer.bound_bytes();
         peak_resident = peak_resident.max(resident);
         if frame % 30 == 0 {
             peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
@@ -318,15 +318,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         peak_device_memory_bytes: peak_device_memory,
         memory_budget_bytes: args.memory_budget_mb.bytes(),
         eviction: args.eviction.name(),
-        cache_layers: flight
-            .gpu
-            .streamer
-            .cache()
-            .packing()
-            .images()
-            .iter()
-            .map(|i| i.layer_count)
-            .collect(),
+        cache_layers: flight.gpu.streamer.cache_layers(),
         frames_over_budget: residency.frames_over_budget,
         pause_uploads_second_half,
         dropped_levels: residency.dropped_levels,

@@ -1,78 +1,18 @@
-//! Measurements against the fully resident reference: mip deficit, pending textures, and the
-//! reference's own loading.
+//! Measurements against the fully resident reference: the reference's own loading, and the
+//! draws a renderer binding one texture per draw would issue.
 
 use anyhow::Result;
 
 use citystream_engine::city::{Camera, CityMesh, FeedbackView};
 use citystream_engine::commands::CommandContext;
-use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE, TEXTURE_SAMPLEABLE};
+use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE};
 use citystream_engine::stream::TextureStreamer;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_streaming::atlas_tree::{frustum_planes, intersects_frustum};
 use citystream_streaming::source::MipSource;
 
 use super::args::FIXED_STEP_MS;
 use super::flight::{CityGpu, CityTargets};
-
-/// The mip deficit of one frame: the weighted mean, over the meshes whose
-/// feedback weight reaches `tau` (those streaming serves), of displayed minus
-/// needed level; 0 when everything needed is shown.
-pub(crate) fn mip_deficit(
-    entries: &[FeedbackEntry],
-    tau: u32,
-    meshes: &[CityMesh],
-    cache: &GpuTextureCache,
-) -> Option<f64> {
-    let (mut weighted, mut total) = (0.0f64, 0.0f64);
-    for (entry, _, needed, displayed) in served_levels(entries, tau, meshes, cache) {
-        let weight = f64::from(entry.weight);
-        weighted += weight * (displayed - needed).max(0.0);
-        total += weight;
-    }
-    (total > 0.0).then(|| weighted / total)
-}
-
-/// Textures that feedback entries reaching `tau` show at least a whole
-/// level coarser than they need: what streaming has still to deliver.
-pub(crate) fn pending_textures(
-    entries: &[FeedbackEntry],
-    tau: u32,
-    meshes: &[CityMesh],
-    cache: &GpuTextureCache,
-) -> usize {
-    let mut pending: Vec<u32> = served_levels(entries, tau, meshes, cache)
-        .filter(|(_, _, needed, displayed)| displayed - needed >= 1.0)
-        .map(|(_, mesh, _, _)| mesh.texture)
-        .collect();
-    pending.sort_unstable();
-    pending.dedup();
-    pending.len()
-}
-
-/// For each entry reaching `tau`: its mesh, the level it needs and the level
-/// the cache displays (the coarsest when the texture is not sampleable).
-pub(crate) fn served_levels<'a>(
-    entries: &'a [FeedbackEntry],
-    tau: u32,
-    meshes: &'a [CityMesh],
-    cache: &'a GpuTextureCache,
-) -> impl Iterator<Item = (&'a FeedbackEntry, &'a CityMesh, f64, f64)> + 'a {
-    entries
-        .iter()
-        .filter(move |e| e.weight >= tau)
-        .filter_map(move |entry| {
-            let mesh = meshes.get(entry.mesh_id as usize)?;
-            let needed = f64::from(entry.mip) / f64::from(FEEDBACK_MIP_ONE);
-            let displayed = match cache.texture_data(mesh.texture) {
-                Some(d) if d.state == TEXTURE_SAMPLEABLE => needed
-                    .max(f64::from(d.lowest_mip))
-                    .min(f64::from(d.mip_count.saturating_sub(1))),
-                _ => f64::from(mesh.max_mip()),
-            };
-            Some((entry, mesh, needed, displayed))
-        })
-}
 
 /// Loads, into the reference streamer, every level from the one each seen
 /// mesh needs up to its coarsest, with no budget or load size; returns how

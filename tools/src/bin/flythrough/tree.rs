@@ -120,9 +120,9 @@ impl TreeRun {
     ) -> Result<TreeFrame> {
         let view = self.view(camera, target.width(), target.height());
         let tree = &self.tree;
-        let cache = gpu.streamer.cache();
+        let streamer = &gpu.streamer;
         let sampleable_from = |texture: u32, level: u32| {
-            cache
+            streamer
                 .texture_data(texture)
                 .is_some_and(|d| d.state == TEXTURE_SAMPLEABLE && d.lowest_mip <= level)
         };

@@ -999,7 +999,7 @@ impl Viewer {
         self.frame_ms = self.flight.latency(&recorded);
         let applied = &recorded.applied;
         let streamer = &self.flight.gpu.streamer;
-        let resident = streamer.cache().utilisation().bound_bytes;
+        let resident = streamer.bound_bytes();
         let telemetry = streamer.policy().telemetry();
         write_csv_row(
             &mut self.csv,
