@@ -20,6 +20,12 @@
 //! wrote since) passes the capacity, and rescans after writing 1/16 of the capacity, so a
 //! single process never leaves the cache above its capacity, and with `P` processes
 //! writing at once it exceeds it by at most about `(P - 1)/16` of it. Temporary files older than an hour (a crashed writer's) go when trimming.
+//!
+//! A shared directory is writable by others, so the cache touches only what it made: it
+//! opens an entry only as a regular file, not through a symlink and without blocking (a
+//! FIFO or device at an entry's name is a miss, left where it is), counts and removes only
+//! files named as its entries or temporary files, and neither reads nor writes through a
+//! dataset directory that is a symlink.
 
 use std::fs::{File, OpenOptions};
 use std::io::{ErrorKind, Read, Write};
@@ -160,6 +166,9 @@ impl MipCache {
         let mut total = 0;
         for namespace in std::fs::read_dir(&root).into_iter().flatten().flatten() {
             for file in std::fs::read_dir(namespace.path()).into_iter().flatten().flatten() {
+                if !is_entry_name(&file.file_name().to_string_lossy()) {
+                    continue;
+                }
                 if file.file_name() != "SOURCE" && !file.file_name().to_string_lossy().starts_with(TEMP_PREFIX) {
                     total += file.metadata().map_or(0, |m| if m.is_file() { m.len() } else { 0 });
                 }
@@ -215,7 +224,7 @@ impl MipCache {
         hasher.update(&(identity.len() as u64).to_le_bytes());
         let dir = self.root.join(format!("{:08x}{low:08x}", hasher.finalize()));
         let description_path = dir.join("SOURCE");
-        if !description_path.exists() && std::fs::create_dir_all(&dir).is_ok() {
+        if !description_path.exists() && std::fs::create_dir_all(&dir).is_ok() && is_real_dir(&dir) {
             // Informational only: a failure here costs nothing.
             let _ = Self::write_atomically(&dir, &description_path, format!("{description}\n").as_bytes());
         }
@@ -228,18 +237,25 @@ impl MipCache {
 
     /// Whether the cache holds an entry for the mip (unchecked: a read checks it).
     pub fn contains(&self, namespace: &CacheNamespace, texture: u32, level: u32, crc: u32) -> bool {
-        Self::entry_path(namespace, texture, level, crc).is_file()
+        is_real_dir(&namespace.dir)
+            && std::fs::symlink_metadata(Self::entry_path(namespace, texture, level, crc)).is_ok_and(|m| m.is_file())
     }
 
     /// Reads the mip into `dst` (exactly its length) if the cache holds it whole and its
     /// CRC-32 is `crc`; marks it used. A damaged entry is removed and reads as a miss.
     pub fn read(&self, namespace: &CacheNamespace, texture: u32, level: u32, crc: u32, dst: &mut [u8]) -> bool {
         let path = Self::entry_path(namespace, texture, level, crc);
-        let hit = match File::open(&path) {
-            Ok(mut file) => {
-                let whole = file.metadata().is_ok_and(|m| m.len() == dst.len() as u64)
-                    && file.read_exact(dst).is_ok()
-                    && crc32fast::hash(dst) == crc;
+        let opened = if is_real_dir(&namespace.dir) {
+            open_entry(&path).ok()
+        } else {
+            None
+        };
+        let hit = match opened {
+            // Not a regular file (a FIFO, a device, a directory): not the cache's; a miss.
+            Some((_, meta)) if !meta.is_file() => false,
+            Some((mut file, meta)) => {
+                let whole =
+                    meta.len() == dst.len() as u64 && file.read_exact(dst).is_ok() && crc32fast::hash(dst) == crc;
                 if whole {
                     // Least recently used goes first; a failed touch only ages the entry.
                     let _ = file.set_modified(SystemTime::now());
@@ -249,7 +265,7 @@ impl MipCache {
                 }
                 whole
             }
-            Err(_) => false,
+            None => false,
         };
         let counter = if hit { &self.hits } else { &self.misses };
         counter.fetch_add(1, Ordering::Relaxed);
@@ -266,8 +282,15 @@ impl MipCache {
             return;
         }
         let path = Self::entry_path(namespace, texture, level, crc);
-        let result =
-            std::fs::create_dir_all(&namespace.dir).and_then(|()| Self::write_atomically(&namespace.dir, &path, bytes));
+        let result = std::fs::create_dir_all(&namespace.dir).and_then(|()| {
+            if !is_real_dir(&namespace.dir) {
+                return Err(std::io::Error::new(
+                    ErrorKind::InvalidInput,
+                    "the dataset's cache directory is a symlink",
+                ));
+            }
+            Self::write_atomically(&namespace.dir, &path, bytes)
+        });
         if result.is_err() {
             self.write_errors.fetch_add(1, Ordering::Relaxed);
             return;
@@ -325,14 +348,19 @@ impl MipCache {
                 let Ok(meta) = file.metadata() else { continue };
                 let name = file.file_name();
                 let name = name.to_string_lossy();
-                if !meta.is_file() || name == "SOURCE" {
+                // The entry's own metadata (a symlink is not followed): only regular files
+                // named as the cache names its files are the cache's.
+                if !meta.is_file() {
                     continue;
                 }
                 let used = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
-                if name.starts_with(TEMP_PREFIX) {
+                if is_temp_name(&name) {
                     if now.duration_since(used).is_ok_and(|age| age > STALE_TEMP_AGE) {
                         let _ = std::fs::remove_file(file.path());
                     }
+                    continue;
+                }
+                if !is_entry_name(&name) {
                     continue;
                 }
                 entries.push(ScannedEntry {
@@ -401,8 +429,56 @@ impl MipCache {
     }
 }
 
+/// Whether `name` is one the cache gives an entry: `<texture>-<level>-<crc as 8 hex digits>`.
+fn is_entry_name(name: &str) -> bool {
+    let mut parts = name.split('-');
+    let (Some(texture), Some(level), Some(crc), None) = (parts.next(), parts.next(), parts.next(), parts.next()) else {
+        return false;
+    };
+    let decimal = |s: &str| !s.is_empty() && s.len() <= 10 && s.bytes().all(|b| b.is_ascii_digit());
+    decimal(texture) && decimal(level) && crc.len() == 8 && crc.bytes().all(|b| b.is_ascii_hexdigit())
+}
+
+/// Whether `name` is one the cache gives a temporary file: `.tmp-<pid>-<counter>-<nanos>`
+/// (or `.tmp-<pid>-<counter>`, as earlier versions named them).
+fn is_temp_name(name: &str) -> bool {
+    name.strip_prefix(TEMP_PREFIX).is_some_and(|rest| {
+        let parts: Vec<&str> = rest.split('-').collect();
+        (2..=3).contains(&parts.len())
+            && parts
+                .iter()
+                .all(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()))
+    })
+}
+
+/// Whether `dir` is a directory itself, not a symlink to one.
+fn is_real_dir(dir: &Path) -> bool {
+    std::fs::symlink_metadata(dir).is_ok_and(|m| m.is_dir())
+}
+
+/// Opens an entry for reading with its metadata: never through a symlink, and without
+/// blocking on a FIFO (whose metadata then says it is not a regular file).
+fn open_entry(path: &Path) -> std::io::Result<(File, std::fs::Metadata)> {
+    let mut options = OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK);
+    }
+    #[cfg(not(unix))]
+    if !std::fs::symlink_metadata(path)?.is_file() {
+        return Err(std::io::Error::new(ErrorKind::InvalidInput, "not a regular file"));
+    }
+    let file = options.open(path)?;
+    let meta = file.metadata()?;
+    Ok((file, meta))
+}
+
 #[cfg(test)]
 mod tests {
+    use std::sync::Arc;
+
     use super::*;
 
     fn fresh(name: &str) -> PathBuf {
@@ -566,5 +642,120 @@ mod tests {
         assert!(held <= 1 << 20, "{held} bytes held in a 1 MiB cache");
         assert!(cache.stats().evicted > 0);
         std::fs::remove_dir_all(&dir).expect("clean up");
+    }
+
+    #[test]
+    fn entry_and_temporary_names_are_only_the_cache_s_own() {
+        assert!(is_entry_name("12-3-0badf00d") && is_entry_name("0-0-00000000"));
+        for foreign in [
+            "notes.txt",
+            "12-3",
+            "12-3-0badf00",
+            "12-3-0badf00d-x",
+            "a-3-0badf00d",
+            "SOURCE",
+            "-3-0badf00d",
+        ] {
+            assert!(!is_entry_name(foreign), "{foreign}");
+        }
+        assert!(is_temp_name(".tmp-41-7-123456"));
+        assert!(is_temp_name(".tmp-41-7"));
+        assert!(!is_temp_name(".tmp-mine") && !is_temp_name(".tmp-1") && !is_temp_name("tmp-1-2-3"));
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_fifo_or_a_symlink_at_an_entry_s_name_is_a_miss_left_alone_without_blocking() {
+        let dir = fresh("fifo");
+        let cache = MipCache::open(&dir, 1 << 20).expect("open");
+        let ns = cache.namespace(b"fifo", "fifo");
+        std::fs::create_dir_all(&ns.dir).expect("namespace dir");
+        let (bytes, crc) = mip(3, 256);
+        let fifo = MipCache::entry_path(&ns, 1, 0, crc);
+        let made = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .expect("mkfifo");
+        assert!(made.success());
+        // A read that blocked would never send: the test fails instead of hanging.
+        let (sender, receiver) = std::sync::mpsc::channel();
+        let reader = {
+            let (cache, ns) = (Arc::new(cache), ns.clone());
+            let thread_cache = Arc::clone(&cache);
+            std::thread::spawn(move || {
+                let mut dst = vec![0; 256];
+                let _ = sender.send(thread_cache.read(&ns, 1, 0, crc, &mut dst));
+            });
+            cache
+        };
+        let hit = receiver
+            .recv_timeout(Duration::from_secs(10))
+            .expect("the read blocked on a FIFO");
+        assert!(!hit);
+        assert!(
+            std::fs::symlink_metadata(&fifo).is_ok(),
+            "the FIFO is not the cache's to remove"
+        );
+        // A symlink to a file elsewhere holding the very bytes: not followed, not removed.
+        let outside = dir.join("outside");
+        std::fs::write(&outside, &bytes).expect("outside file");
+        let link = MipCache::entry_path(&ns, 2, 0, crc);
+        std::os::unix::fs::symlink(&outside, &link).expect("symlink");
+        let mut dst = vec![0; 256];
+        assert!(!reader.read(&ns, 2, 0, crc, &mut dst));
+        assert!(!reader.contains(&ns, 2, 0, crc));
+        assert!(std::fs::symlink_metadata(&link).is_ok() && outside.exists());
+        std::fs::remove_dir_all(&dir).expect("clean up");
+    }
+
+    #[test]
+    fn trimming_never_touches_files_that_are_not_entries() {
+        let dir = fresh("foreign");
+        let cache = MipCache::open(&dir, 16 << 10).expect("open");
+        let ns = cache.namespace(b"foreign", "foreign");
+        std::fs::create_dir_all(&ns.dir).expect("namespace dir");
+        // Someone else's file, larger than the whole capacity, beside the entries.
+        let notes = ns.dir.join("notes.txt");
+        std::fs::write(&notes, vec![7u8; 64 << 10]).expect("notes");
+        for i in 0..12u8 {
+            let (bytes, crc) = mip(i, 4096);
+            cache.write(&ns, u32::from(i), 0, crc, &bytes);
+        }
+        assert!(cache.stats().evicted > 0, "entries beyond the capacity go");
+        let held: u64 = cache.scan().expect("scan").iter().map(|e| e.len).sum();
+        assert!(held <= 16 << 10, "{held} bytes of entries held");
+        assert_eq!(std::fs::metadata(&notes).expect("notes stays").len(), 64 << 10);
+        assert_eq!(MipCache::bytes_in(&dir), held, "only entries count");
+        std::fs::remove_dir_all(&dir).expect("clean up");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_dataset_directory_that_is_a_symlink_is_neither_read_nor_written_through() {
+        let dir = fresh("linked");
+        let elsewhere = fresh("linked-elsewhere");
+        std::fs::create_dir_all(&elsewhere).expect("elsewhere");
+        let cache = MipCache::open(&dir, 1 << 20).expect("open");
+        let ns = cache.namespace(b"linked", "linked");
+        let _ = std::fs::remove_dir_all(&ns.dir);
+        std::os::unix::fs::symlink(&elsewhere, &ns.dir).expect("symlink the dataset's directory");
+        for i in 0..8u8 {
+            let (bytes, crc) = mip(i, 1024);
+            cache.write(&ns, u32::from(i), 0, crc, &bytes);
+        }
+        assert_eq!(cache.stats().written, 0);
+        assert_eq!(cache.stats().write_errors, 8);
+        assert_eq!(
+            std::fs::read_dir(&elsewhere).expect("list").count(),
+            0,
+            "nothing written through"
+        );
+        // An entry placed there by someone else is not read through the link either.
+        let (bytes, crc) = mip(1, 1024);
+        std::fs::write(elsewhere.join(format!("1-0-{crc:08x}")), &bytes).expect("plant");
+        let mut dst = vec![0; 1024];
+        assert!(!cache.read(&ns, 1, 0, crc, &mut dst));
+        std::fs::remove_dir_all(&dir).expect("clean up");
+        std::fs::remove_dir_all(&elsewhere).expect("clean up");
     }
 }
