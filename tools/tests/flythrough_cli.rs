@@ -637,7 +637,8 @@ fn default_city() -> std::path::PathBuf {
 /// The paper's ring under a budget so small that making room for a mip evicts the ring's
 /// oldest layer, which at times holds the very texture being staged: that texture is no
 /// longer resident and loads again later; it has not failed (the run exits 0 and counts no
-/// failure; before, it was given up for good).
+/// failure; before, it was given up for good). The evictions are reported as evictions
+/// (before, `evicted_layers` and `frames_over_budget` stayed 0 under the ring).
 #[test]
 fn the_ring_evicting_a_textures_own_layer_does_not_fail_the_texture() {
     let city = default_city();
@@ -679,6 +680,15 @@ fn the_ring_evicting_a_textures_own_layer_does_not_fail_the_texture() {
         streamed > unique,
         "{streamed} bytes streamed, {unique} unique: nothing was evicted"
     );
+    // And the summary says so: the ring's evictions are counted as evictions, and the
+    // frames whose packing had to evict for the budget as over it.
+    let evicted = summary["evicted_layers"].as_u64().expect("evicted_layers");
+    let over = summary["frames_over_budget"].as_u64().expect("frames_over_budget");
+    assert!(
+        evicted > 0 && over > 0,
+        "{evicted} layers evicted, {over} frames over budget"
+    );
+    assert!(over <= 40, "{over} frames over budget in a 40-frame run");
 }
 
 /// The paper's central claim at the engine level, with the fixed clock and

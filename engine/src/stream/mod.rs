@@ -190,7 +190,8 @@ pub struct FrameBegin {
     /// Mips the cache could not take this frame (loaded again later).
     pub refused: u32,
     /// The view needs more than the memory budget holds: loads were refused
-    /// or declined for room ([`Eviction::View`]).
+    /// or declined for room ([`Eviction::View`]), or packing evicted a layer
+    /// to stay within the budget ([`Eviction::Ring`]).
     pub over_budget: bool,
 }
 
@@ -201,7 +202,8 @@ pub struct ResidencyCycle {
     pub staged: Vec<(u32, u32)>,
     /// `(texture, level)` dropped to make room.
     pub dropped: Vec<(u32, u32)>,
-    /// Layers evicted to place textures.
+    /// Layers evicted to place textures (with [`Eviction::Ring`], those the
+    /// ring reused or the budget took).
     pub evicted_layers: u32,
     /// Loaded mips refused because the budget had no room for them.
     pub refused_for_room: u32,
@@ -214,7 +216,8 @@ pub struct ResidencyTotals {
     pub dropped_levels: u64,
     /// Bytes of those levels.
     pub dropped_bytes: u64,
-    /// Layers evicted to place textures.
+    /// Layers evicted to place textures (with [`Eviction::Ring`], those the
+    /// ring reused or the budget took).
     pub evicted_layers: u64,
     /// Loaded mips refused for room.
     pub refused_for_room: u64,
@@ -445,6 +448,13 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         }
     }
 
+    /// Layers the cache's own ring eviction took so far: `(for the memory budget, for
+    /// reuse in ring order)`.
+    fn ring_evictions(&self) -> (u64, u64) {
+        let stats = self.cache.packing().stats();
+        (stats.budget_evictions, stats.ring_evictions)
+    }
+
     /// What the last `begin_frame` staged, dropped and refused.
     pub fn last_cycle(&self) -> &ResidencyCycle {
         &self.last_cycle
@@ -665,11 +675,28 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             self.latest_feedback = Some((feedback_value - 1, entries));
         }
         // Pack what the loader staged, then bind.
+        let ring_evictions_before = self.ring_evictions();
         let refused = match self.eviction {
             Eviction::Ring => self.stage_loaded()?,
             Eviction::View => self.stage_by_view()?,
         };
-        let over_budget = self.eviction == Eviction::View && self.update_pressure(loading_started);
+        let over_budget = match self.eviction {
+            Eviction::View => self.update_pressure(loading_started),
+            // The ring's budget: over it when packing had to evict a layer to stay within it.
+            Eviction::Ring => {
+                let (budget_before, _) = ring_evictions_before;
+                let (budget_now, ring_now) = self.ring_evictions();
+                let evicted = (budget_now + ring_now) - (budget_before + ring_evictions_before.1);
+                self.totals.evicted_layers += evicted;
+                self.last_cycle = ResidencyCycle {
+                    evicted_layers: evicted as u32,
+                    ..ResidencyCycle::default()
+                };
+                let over = budget_now > budget_before;
+                self.totals.frames_over_budget += u64::from(over);
+                over
+            }
+        };
         let ticket = self.cache.prepare_cycle(Some(SemaphoreWait {
             semaphore: self.frames.raw(),
             stages: vk::PipelineStageFlags2::ALL_COMMANDS,
