@@ -113,7 +113,7 @@ pub const TB_SAMPLES: usize = 5;
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum PolicyError {
     /// An option is out of its valid range.
-    #[error("policy option `{name}` = {value} is invalid: expected {expected}")]
+    #[error("policy option `{name}` = {value:?} is invalid: expected {expected}")]
     InvalidOption {
         /// Option name as the command line spells it.
         name: &'static str,
@@ -286,7 +286,7 @@ impl PolicyOptions {
     }
 
     /// Check the options of the `fixed` policy as well (its size must lie
-    /// in `[s_min, s_max]`, its bias be finite and `>= 0`).
+    /// in `[s_min, s_max]`, its bias in `[0, 16]` levels as `beta`'s).
     pub fn validate_fixed(&self) -> Result<(), PolicyError> {
         self.validate()?;
         let bad = |name, value, expected| PolicyError::InvalidOption { name, value, expected };
@@ -295,8 +295,10 @@ impl PolicyOptions {
         if !(fixed.is_finite() && fixed >= s_min && fixed <= self.s_max_bytes()) {
             return Err(bad("load-size-mb", self.fixed_load_size_mb, "a size in [s_min, s_max]"));
         }
-        if !(self.fixed_mip_bias.is_finite() && self.fixed_mip_bias >= 0.0) {
-            return Err(bad("mip-bias", self.fixed_mip_bias, "a finite bias >= 0"));
+        // Bounded as the adaptive policy's bias is (`beta`): a bias beyond every level of
+        // any texture means the same as the largest.
+        if !(self.fixed_mip_bias.is_finite() && (0.0..=MAX_BETA).contains(&self.fixed_mip_bias)) {
+            return Err(bad("mip-bias", self.fixed_mip_bias, "a bias in [0, 16] levels"));
         }
         Ok(())
     }
@@ -983,6 +985,20 @@ mod tests {
                     ..PolicyOptions::default()
                 },
                 "load-size-mb",
+            ),
+            (
+                PolicyOptions {
+                    fixed_mip_bias: 1e300,
+                    ..PolicyOptions::default()
+                },
+                "mip-bias",
+            ),
+            (
+                PolicyOptions {
+                    fixed_mip_bias: 16.5,
+                    ..PolicyOptions::default()
+                },
+                "mip-bias",
             ),
         ] {
             match FixedPolicy::new(&o) {
