@@ -487,6 +487,8 @@ pub(crate) struct Flight {
     pub(crate) tau: u32,
     last_feedback: Option<u64>,
     budget_mb: Option<u64>,
+    /// What the over-budget warning says the cache does about it.
+    eviction: Eviction,
     warned_over_budget: bool,
     warned_failure: bool,
 }
@@ -625,6 +627,7 @@ impl Flight {
             tau,
             last_feedback: None,
             budget_mb: args.memory_budget_mb.0,
+            eviction: args.eviction,
             warned_over_budget: false,
             warned_failure: false,
         })
@@ -780,9 +783,13 @@ impl Flight {
     fn warn_once(&mut self, frame: u32, over_budget: bool) {
         if over_budget && !self.warned_over_budget {
             self.warned_over_budget = true;
+            let response = match self.eviction {
+                Eviction::View => "showing the most important levels that fit",
+                Eviction::Ring => "the ring evicts its oldest layers, whatever the view shows",
+            };
             eprintln!(
                 "\nwarning: from frame {frame} the view needs more texture memory than the {} MB budget holds; \
-                 showing the most important levels that fit (frames over budget are counted in summary.json)",
+                 {response} (frames over budget are counted in summary.json)",
                 self.budget_mb.unwrap_or(0)
             );
         }
