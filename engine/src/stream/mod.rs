@@ -448,13 +448,6 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         }
     }
 
-    /// Layers the cache's own ring eviction took so far: `(for the memory budget, for
-    /// reuse in ring order)`.
-    fn ring_evictions(&self) -> (u64, u64) {
-        let stats = self.cache.packing().stats();
-        (stats.budget_evictions, stats.ring_evictions)
-    }
-
     /// What the last `begin_frame` staged, dropped and refused.
     pub fn last_cycle(&self) -> &ResidencyCycle {
         &self.last_cycle
@@ -675,26 +668,11 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             self.latest_feedback = Some((feedback_value - 1, entries));
         }
         // Pack what the loader staged, then bind.
-        let ring_evictions_before = self.ring_evictions();
-        let refused = match self.eviction {
-            Eviction::Ring => self.stage_loaded()?,
-            Eviction::View => self.stage_by_view()?,
-        };
-        let over_budget = match self.eviction {
-            Eviction::View => self.update_pressure(loading_started),
-            // The ring's budget: over it when packing had to evict a layer to stay within it.
-            Eviction::Ring => {
-                let (budget_before, _) = ring_evictions_before;
-                let (budget_now, ring_now) = self.ring_evictions();
-                let evicted = (budget_now + ring_now) - (budget_before + ring_evictions_before.1);
-                self.totals.evicted_layers += evicted;
-                self.last_cycle = ResidencyCycle {
-                    evicted_layers: evicted as u32,
-                    ..ResidencyCycle::default()
-                };
-                let over = budget_now > budget_before;
-                self.totals.frames_over_budget += u64::from(over);
-                over
+        let (refused, over_budget) = match self.eviction {
+            Eviction::Ring => self.stage_by_ring()?,
+            Eviction::View => {
+                let refused = self.stage_by_view()?;
+                (refused, self.update_pressure(loading_started))
             }
         };
         let ticket = self.cache.prepare_cycle(Some(SemaphoreWait {

@@ -165,10 +165,30 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         Ok(refused)
     }
 
+    /// [`Eviction::Ring`](crate::texture_cache::Eviction::Ring): stages every loaded mip
+    /// ([`stage_loaded`](Self::stage_loaded)) and counts the layers the cache's ring reused
+    /// or its budget took as evicted; the frame is over budget when the budget took one.
+    /// Returns the mips refused and whether the frame was over budget.
+    pub(super) fn stage_by_ring(&mut self) -> Result<(u32, bool)> {
+        let before = self.cache.packing().stats();
+        let refused = self.stage_loaded()?;
+        let after = self.cache.packing().stats();
+        let for_budget = after.budget_evictions - before.budget_evictions;
+        let evicted = for_budget + (after.ring_evictions - before.ring_evictions);
+        self.totals.evicted_layers += evicted;
+        self.last_cycle = ResidencyCycle {
+            evicted_layers: evicted as u32,
+            ..ResidencyCycle::default()
+        };
+        let over_budget = for_budget > 0;
+        self.totals.frames_over_budget += u64::from(over_budget);
+        Ok((refused, over_budget))
+    }
+
     /// Moves every loaded mip into the cache. Mips the cache cannot take
     /// now are invalidated in the streaming states so Algorithm 1 loads them
     /// again later; textures it cannot take at all are failed.
-    pub(super) fn stage_loaded(&mut self) -> Result<u32> {
+    fn stage_loaded(&mut self) -> Result<u32> {
         let mut refused = 0;
         // Loader workers stage in whatever order they finish; packing in a
         // fixed order keeps cache placement, and so runs, reproducible.
