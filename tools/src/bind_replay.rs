@@ -66,27 +66,16 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
         let Some((&kind, fields)) = words.split_first() else {
             continue;
         };
-        let numbers = |count: usize| -> Result<Vec<u64>> {
+        let expect = |count: usize| -> Result<()> {
             if fields.len() != count {
                 bail!("line {number}: `{kind}` takes {count} numbers, found {}", fields.len());
             }
-            fields
-                .iter()
-                .map(|f| {
-                    f.parse::<u64>()
-                        .with_context(|| format!("line {number}: {f:?} is not a number"))
-                })
-                .collect()
+            Ok(())
         };
-        let small = |value: u64| -> Result<u32> {
-            u32::try_from(value).with_context(|| format!("line {number}: {value} is out of range"))
-        };
-        let small_numbers = |count: usize| -> Result<Vec<u32>> { numbers(count)?.into_iter().map(small).collect() };
         match kind {
             "image" => {
-                let [index, width, height, layers, mips, format, gw, gh, block_bytes] = small_numbers(9)?[..] else {
-                    unreachable!("nine numbers were read");
-                };
+                expect(9)?;
+                let [index, width, height, layers, mips, format, gw, gh, block_bytes] = small_numbers(number, fields)?;
                 let format = i32::try_from(format).with_context(|| format!("line {number}: format {format}"))?;
                 let format = vk::Format::from_raw(format);
                 let desc = SparseImageDesc {
@@ -104,30 +93,28 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
                 });
             }
             "chunk" => {
-                let n = numbers(2)?;
+                expect(2)?;
+                let [index, bytes] = numbers(number, fields)?;
                 records.push(Record::Chunk {
-                    index: small(n[0])?,
-                    bytes: n[1],
+                    index: narrow(number, index)?,
+                    bytes,
                 });
             }
             "batch" => {
-                let n = numbers(2)?;
-                let mut ops = Vec::with_capacity(n[0].min(1 << 20) as usize);
-                for _ in 0..n[0] {
+                expect(2)?;
+                let [operations, _waits_for_frames] = numbers(number, fields)?;
+                let mut ops = Vec::with_capacity(operations.min(1 << 20) as usize);
+                for _ in 0..operations {
                     let Some((op_number, op_line)) = lines.next() else {
-                        bail!(
-                            "line {number}: the batch announces {} operations; the log ends first",
-                            n[0]
-                        );
+                        bail!("line {number}: the batch announces {operations} operations; the log ends first");
                     };
                     ops.push(parse_op(op_number, op_line)?);
                 }
                 records.push(Record::Batch(ops));
             }
             "copy" => {
-                let [image, layer, mip, x, y, width, height] = small_numbers(7)?[..] else {
-                    unreachable!("seven numbers were read");
-                };
+                expect(7)?;
+                let [image, layer, mip, x, y, width, height] = small_numbers(number, fields)?;
                 let upload = TexelUpload {
                     layer,
                     mip,
@@ -145,39 +132,55 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
     Ok(records)
 }
 
+/// The `N` numbers of line `number`'s `fields` (the caller checked there are `N`).
+fn numbers<const N: usize>(number: usize, fields: &[&str]) -> Result<[u64; N]> {
+    let values = fields
+        .iter()
+        .map(|f| {
+            f.parse::<u64>()
+                .with_context(|| format!("line {number}: {f:?} is not a number"))
+        })
+        .collect::<Result<Vec<u64>>>()?;
+    <[u64; N]>::try_from(values).map_err(|v| anyhow::anyhow!("line {number}: {} numbers, not {N}", v.len()))
+}
+
+/// `value` of line `number` as a `u32`.
+fn narrow(number: usize, value: u64) -> Result<u32> {
+    u32::try_from(value).with_context(|| format!("line {number}: {value} is out of range"))
+}
+
+/// [`numbers`], each narrowed to a `u32`.
+fn small_numbers<const N: usize>(number: usize, fields: &[&str]) -> Result<[u32; N]> {
+    let wide: [u64; N] = numbers(number, fields)?;
+    let mut small = [0u32; N];
+    for (to, from) in small.iter_mut().zip(wide) {
+        *to = narrow(number, from)?;
+    }
+    Ok(small)
+}
+
 fn parse_op(number: usize, line: &str) -> Result<BindOp> {
     let words: Vec<&str> = line.split_whitespace().collect();
-    let values = |from: &[&str]| -> Result<Vec<u64>> {
-        from.iter()
-            .map(|f| {
-                f.parse::<u64>()
-                    .with_context(|| format!("line {number}: {f:?} is not a number"))
-            })
-            .collect()
-    };
-    let block = |n: &[u64]| -> Result<BlockKey> {
-        let small = |v: u64| u32::try_from(v).with_context(|| format!("line {number}: {v} is out of range"));
-        Ok(BlockKey {
-            image: small(n[0])?,
-            layer: small(n[1])?,
-            mip: small(n[2])?,
-            x: small(n[3])?,
-            y: small(n[4])?,
-        })
+    let block = |[image, layer, mip, x, y]: [u32; 5]| BlockKey {
+        image,
+        layer,
+        mip,
+        x,
+        y,
     };
     match words.as_slice() {
         ["bind", rest @ ..] if rest.len() == 7 => {
-            let n = values(rest)?;
+            let [chunk, offset] = numbers(number, &rest[5..])?;
             Ok(BindOp::Bind {
-                block: block(&n)?,
+                block: block(small_numbers(number, &rest[..5])?),
                 memory: MemorySlot {
-                    chunk: u32::try_from(n[5]).with_context(|| format!("line {number}: chunk"))?,
-                    offset: n[6],
+                    chunk: narrow(number, chunk)?,
+                    offset,
                 },
             })
         }
         ["unbind", rest @ ..] if rest.len() == 5 => Ok(BindOp::Unbind {
-            block: block(&values(rest)?)?,
+            block: block(small_numbers(number, rest)?),
         }),
         _ => bail!("line {number}: {line:?} is not `bind` with 7 numbers or `unbind` with 5"),
     }
