@@ -109,7 +109,7 @@ fn main() -> Result<()> {
             compactor.record_compact(cmd, 1200, 0)?;
             timer.end(cmd, 2);
         }
-        renderer.record_visible(cmd, &target, camera, 1.0, true);
+        renderer.record_visible(cmd, &target, camera, 1.0, true)?;
         timer.end(cmd, 0);
         commands.submit_and_wait(&[])?;
         if with_feedback {

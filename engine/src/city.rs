@@ -19,6 +19,7 @@ use glam::{Mat4, Vec3};
 
 use crate::buffer::Buffer;
 use crate::commands::CommandContext;
+use crate::cull::{mesh_bounds, CityCulling, CullList, CullStats, CullView};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::FeedbackCompactor;
@@ -192,6 +193,10 @@ pub struct CityRenderer {
     /// Read by the shaders through the descriptor sets.
     _mesh_info: Buffer,
     meshes: Vec<CityMesh>,
+    /// GPU culling, once enabled ([`CityRenderer::enable_culling`]).
+    culling: Option<CityCulling>,
+    /// Whether the passes draw through `culling` (`--culling on`) or draw every mesh.
+    culling_on: bool,
 }
 
 pub(crate) fn city_pipeline(
@@ -422,7 +427,85 @@ impl CityRenderer {
             index_count,
             _mesh_info: mesh_info,
             meshes,
+            culling: None,
+            culling_on: false,
         })
+    }
+
+    /// Prepares GPU culling ([`crate::cull`]) for this renderer's city and turns it on:
+    /// `vertices` and `indices` as given to [`new`](Self::new), `slots` the frames in
+    /// flight whose statistics are kept apart. Fails with
+    /// [`EngineError::MissingFeature`] on a device without `multiDrawIndirect`.
+    pub fn enable_culling(
+        &mut self,
+        commands: &mut CommandContext,
+        vertices: &[Vertex],
+        indices: &[u32],
+        slots: u32,
+    ) -> Result<()> {
+        let positions = self.meshes.iter().enumerate().flat_map(|(id, mesh)| {
+            let first = mesh.first_index as usize;
+            let range = indices.get(first..first + mesh.index_count as usize).unwrap_or(&[]);
+            range.iter().filter_map(move |&i| {
+                let v = vertices.get(i as usize + mesh.vertex_offset as usize)?;
+                Some((id as u32, v.position))
+            })
+        });
+        let bounds = mesh_bounds(positions, self.meshes.len());
+        // Each mesh's indices follow the previous mesh's in the single draw's index buffer.
+        let mut next = 0u32;
+        let ranges: Vec<[u32; 2]> = self
+            .meshes
+            .iter()
+            .map(|mesh| {
+                let range = [next, mesh.index_count];
+                next += mesh.index_count;
+                range
+            })
+            .collect();
+        self.culling = Some(CityCulling::new(&self.device, commands, &bounds, &ranges, slots)?);
+        self.culling_on = true;
+        Ok(())
+    }
+
+    /// Turns culling on or off (off: every pass draws every mesh, the path without
+    /// culling). Turning it on needs [`enable_culling`](Self::enable_culling) first.
+    pub fn set_culling(&mut self, on: bool) -> Result<()> {
+        if on && self.culling.is_none() {
+            return Err(EngineError::InvalidRequest(
+                "culling turned on before enable_culling prepared it".into(),
+            ));
+        }
+        self.culling_on = on;
+        Ok(())
+    }
+
+    /// Whether the passes cull.
+    pub fn culling(&self) -> bool {
+        self.culling_on
+    }
+
+    fn active_culling(&self) -> Option<&CityCulling> {
+        self.culling.as_ref().filter(|_| self.culling_on)
+    }
+
+    /// Makes the culling recorded next write its statistics into frame slot `slot`
+    /// (below the `slots` given to [`enable_culling`](Self::enable_culling)); read them
+    /// with [`cull_stats`](Self::cull_stats) once that frame completed.
+    pub fn set_cull_slot(&self, slot: u32) -> Result<()> {
+        match &self.culling {
+            Some(culling) => culling.set_slot(slot),
+            None => Ok(()),
+        }
+    }
+
+    /// What the culling of the frame recorded into `slot` drew, once it completed;
+    /// `None` without culling.
+    pub fn cull_stats(&self, slot: u32) -> Result<Option<CullStats>> {
+        match self.active_culling() {
+            Some(culling) => culling.stats(slot).map(Some),
+            None => Ok(None),
+        }
     }
 
     /// The meshes drawn.
@@ -438,6 +521,18 @@ impl CityRenderer {
         set: vk::DescriptorSet,
         base: CityDrawPush,
     ) {
+        self.draw(cmd, pipeline, set, base, None);
+    }
+
+    /// Draws the meshes of a culled list (`Some`), or every mesh in one draw.
+    fn draw(
+        &self,
+        cmd: vk::CommandBuffer,
+        pipeline: &Pipeline,
+        set: vk::DescriptorSet,
+        base: CityDrawPush,
+        list: Option<(&CityCulling, CullView, CullList)>,
+    ) {
         pipeline.bind(cmd, set);
         // SAFETY: cmd is recording inside rendering; buffers are live.
         unsafe {
@@ -449,9 +544,12 @@ impl CityRenderer {
                 .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
         }
         pipeline.push(cmd, &base);
-        // SAFETY: the index buffer holds `index_count` indices, each below the
-        // vertex count (built by `single_draw_geometry`).
-        unsafe { self.device.raw().cmd_draw_indexed(cmd, self.index_count, 1, 0, 0, 0) };
+        match list {
+            Some((culling, view, list)) => culling.draw(cmd, view, list),
+            // SAFETY: the index buffer holds `index_count` indices, each below the
+            // vertex count (built by `single_draw_geometry`).
+            None => unsafe { self.device.raw().cmd_draw_indexed(cmd, self.index_count, 1, 0, 0, 0) },
+        }
     }
 
     /// Records the feedback pass into `feedback_target` for a visible view
@@ -483,9 +581,29 @@ impl CityRenderer {
                 0.0,
             ],
         };
-        feedback_target.begin(&self.device, cmd, [1.0, 0.0, 1.0, 1.0]);
-        self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);
-        self.draw_all(cmd, &self.feedback, self.feedback_set, base);
+        let clear = [1.0, 0.0, 1.0, 1.0];
+        match self.active_culling() {
+            Some(culling) => {
+                // Two phases over the pre-pass; the feedback pass draws what the late test kept.
+                let view_proj = camera.view_projection(aspect, view.margin);
+                let feedback = CullView::Feedback;
+                culling.prepare(feedback, feedback_target)?;
+                culling.record_early(cmd, &view_proj, feedback);
+                feedback_target.begin(&self.device, cmd, clear);
+                let early = Some((culling, feedback, CullList::Early));
+                self.draw(cmd, &self.depth_prepass, self.prepass_set, base, early);
+                culling.record_late(cmd, &view_proj, feedback, feedback_target);
+                let late = Some((culling, feedback, CullList::Late));
+                self.draw(cmd, &self.depth_prepass, self.prepass_set, base, late);
+                let unoccluded = Some((culling, feedback, CullList::Unoccluded));
+                self.draw(cmd, &self.feedback, self.feedback_set, base, unoccluded);
+            }
+            None => {
+                feedback_target.begin(&self.device, cmd, clear);
+                self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);
+                self.draw_all(cmd, &self.feedback, self.feedback_set, base);
+            }
+        }
         // SAFETY: rendering was begun above in the same command buffer.
         unsafe { self.device.raw().cmd_end_rendering(cmd) };
         Ok(())
@@ -501,9 +619,8 @@ impl CityRenderer {
         camera: &Camera,
         lighting: f32,
         colormap_blend: bool,
-    ) {
-        // Only the ground's draw can fail, and there is none.
-        let _ = self.record_visible_with(
+    ) -> Result<()> {
+        self.record_visible_with(
             cmd,
             target,
             camera,
@@ -512,7 +629,7 @@ impl CityRenderer {
             &self.visible,
             self.visible_set,
             None,
-        );
+        )
     }
 
     /// [`record_visible`](Self::record_visible) with the ground layer's frame slot
@@ -584,10 +701,25 @@ impl CityRenderer {
             viewport_light: [target.width() as f32, target.height() as f32, lighting, direct],
             ..CityDrawPush::default()
         };
-        target.begin(&self.device, cmd, [0.55, 0.7, 0.9, 1.0]);
+        let clear = [0.55, 0.7, 0.9, 1.0];
+        let culling = self.active_culling();
+        if let Some(culling) = culling {
+            culling.prepare(CullView::Visible, target)?;
+            culling.record_early(cmd, &view_proj, CullView::Visible);
+        }
+        target.begin(&self.device, cmd, clear);
         // Ground first: the city's fragments over it then win the depth test early.
         let drawn = ground.map_or(Ok(()), |(layer, slot)| layer.record_draw(cmd, slot, view_proj));
-        self.draw_all(cmd, pipeline, set, base);
+        match culling {
+            Some(culling) => {
+                // What was visible last frame, then what the depth so drawn does not hide.
+                let visible = CullView::Visible;
+                self.draw(cmd, pipeline, set, base, Some((culling, visible, CullList::Early)));
+                culling.record_late(cmd, &view_proj, visible, target);
+                self.draw(cmd, pipeline, set, base, Some((culling, visible, CullList::Late)));
+            }
+            None => self.draw_all(cmd, pipeline, set, base),
+        }
         target.end_and_copy(&self.device, cmd);
         drawn
     }

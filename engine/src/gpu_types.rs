@@ -70,6 +70,91 @@ pub struct CompactPush {
     pub pad0: u32,
 }
 
+/// Binding of the culling pass's mesh bounds ([`MeshBounds`], one per mesh).
+pub const BINDING_CULL_BOUNDS: u32 = 22;
+/// Binding of the culling pass's index ranges (first index and count per mesh).
+pub const BINDING_CULL_RANGES: u32 = 23;
+/// Binding of the culling pass's per-mesh flags (`CULL_*` bits).
+pub const BINDING_CULL_FLAGS: u32 = 24;
+/// Binding of the culling pass's per-workgroup run counts.
+pub const BINDING_CULL_GROUPS: u32 = 25;
+/// Binding of a culled list's indexed indirect draws.
+pub const BINDING_CULL_DRAWS: u32 = 26;
+/// Binding of a culled list's [`CullCounter`].
+pub const BINDING_CULL_COUNTER: u32 = 27;
+/// Binding of a view's depth pyramid (levels packed, farthest depth per texel).
+pub const BINDING_CULL_PYRAMID: u32 = 28;
+
+/// Culling phases (`CullPush::phase`), as in `city_cull.comp`.
+pub const CULL_PHASE_FRUSTUM: u32 = 0;
+/// Occlusion against the depth pyramid.
+pub const CULL_PHASE_OCCLUSION: u32 = 1;
+/// Runs per workgroup.
+pub const CULL_PHASE_COUNT: u32 = 2;
+/// First run per workgroup and the draw count.
+pub const CULL_PHASE_SCAN: u32 = 3;
+/// Draws of the runs.
+pub const CULL_PHASE_EMIT: u32 = 4;
+/// One level of the depth pyramid.
+pub const CULL_PHASE_PYRAMID: u32 = 5;
+
+/// Per-mesh flag: passed the occlusion test last frame.
+pub const CULL_PREVIOUS: u32 = 1;
+/// Per-mesh flag: its bounds meet the view frustum.
+pub const CULL_IN_FRUSTUM: u32 = 2;
+/// Per-mesh flag: in the frustum and not behind the early phase's depth.
+pub const CULL_UNOCCLUDED: u32 = 4;
+
+/// `MeshBounds`: a mesh's world-space box; `low[3] != 0` marks it unbounded (never culled).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct MeshBounds {
+    /// Smallest corner; w: 1 when the mesh has non-finite positions.
+    pub low: [f32; 4],
+    /// Largest corner; w unused.
+    pub high: [f32; 4],
+}
+
+/// `CullPush`: push constants of the culling pass.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct CullPush {
+    /// The view's view-projection, column-major.
+    pub view_proj: [[f32; 4]; 4],
+    /// Depth target width and height, pyramid levels, unused.
+    pub pyramid: [u32; 4],
+    /// Meshes culled.
+    pub mesh_count: u32,
+    /// `CULL_PHASE_*`.
+    pub phase: u32,
+    /// A mesh is listed when `flags & mask == want`.
+    pub mask: u32,
+    /// See `mask`; the level built by the pyramid phase.
+    pub want: u32,
+    /// Draws the list holds.
+    pub capacity: u32,
+    /// Workgroups of meshes.
+    pub group_count: u32,
+    /// Padding.
+    pub pad0: u32,
+    /// Padding.
+    pub pad1: u32,
+}
+
+/// `CullCounter`: a culled list's draw count and contents.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct CullCounter {
+    /// Draws recorded: min(runs, capacity).
+    pub draws: u32,
+    /// Runs of consecutive listed meshes.
+    pub runs: u32,
+    /// Meshes listed.
+    pub meshes: u32,
+    /// Padding.
+    pub pad0: u32,
+}
+
 /// Binding of the cache images in passes that sample city textures: an
 /// array of [`CACHE_IMAGE_SLOTS`] combined image samplers, indexed by
 /// [`TextureData::image`].
@@ -532,6 +617,13 @@ mod tests {
             ("BINDING_TREE_UV_TRANSFORMS", BINDING_TREE_UV_TRANSFORMS),
             ("BINDING_GROUND_TILES", BINDING_GROUND_TILES),
             ("BINDING_GROUND_TILE_MAP", BINDING_GROUND_TILE_MAP),
+            ("BINDING_CULL_BOUNDS", BINDING_CULL_BOUNDS),
+            ("BINDING_CULL_RANGES", BINDING_CULL_RANGES),
+            ("BINDING_CULL_FLAGS", BINDING_CULL_FLAGS),
+            ("BINDING_CULL_GROUPS", BINDING_CULL_GROUPS),
+            ("BINDING_CULL_DRAWS", BINDING_CULL_DRAWS),
+            ("BINDING_CULL_COUNTER", BINDING_CULL_COUNTER),
+            ("BINDING_CULL_PYRAMID", BINDING_CULL_PYRAMID),
         ];
         assert_eq!(
             defines.len(),
@@ -678,6 +770,62 @@ mod tests {
         ] {
             assert!(
                 header.contains(&format!("#define {name} {value:.1}")),
+                "{name} differs from the GLSL header"
+            );
+        }
+    }
+
+    #[test]
+    fn cull_layouts_and_constants_match_the_glsl_header() {
+        check(
+            "MeshBounds",
+            &[
+                ("low", offset_of!(MeshBounds, low)),
+                ("high", offset_of!(MeshBounds, high)),
+            ],
+            size_of::<MeshBounds>(),
+        );
+        check(
+            "CullPush",
+            &[
+                ("view_proj", offset_of!(CullPush, view_proj)),
+                ("pyramid", offset_of!(CullPush, pyramid)),
+                ("mesh_count", offset_of!(CullPush, mesh_count)),
+                ("phase", offset_of!(CullPush, phase)),
+                ("mask", offset_of!(CullPush, mask)),
+                ("want", offset_of!(CullPush, want)),
+                ("capacity", offset_of!(CullPush, capacity)),
+                ("group_count", offset_of!(CullPush, group_count)),
+                ("pad0", offset_of!(CullPush, pad0)),
+                ("pad1", offset_of!(CullPush, pad1)),
+            ],
+            size_of::<CullPush>(),
+        );
+        assert!(size_of::<CullPush>() <= 128, "the guaranteed push-constant size");
+        check(
+            "CullCounter",
+            &[
+                ("draws", offset_of!(CullCounter, draws)),
+                ("runs", offset_of!(CullCounter, runs)),
+                ("meshes", offset_of!(CullCounter, meshes)),
+                ("pad0", offset_of!(CullCounter, pad0)),
+            ],
+            size_of::<CullCounter>(),
+        );
+        let header = include_str!("../../shaders/include/citystream.glsl");
+        for (name, value) in [
+            ("CULL_PHASE_FRUSTUM", CULL_PHASE_FRUSTUM),
+            ("CULL_PHASE_OCCLUSION", CULL_PHASE_OCCLUSION),
+            ("CULL_PHASE_COUNT", CULL_PHASE_COUNT),
+            ("CULL_PHASE_SCAN", CULL_PHASE_SCAN),
+            ("CULL_PHASE_EMIT", CULL_PHASE_EMIT),
+            ("CULL_PHASE_PYRAMID", CULL_PHASE_PYRAMID),
+            ("CULL_PREVIOUS", CULL_PREVIOUS),
+            ("CULL_IN_FRUSTUM", CULL_IN_FRUSTUM),
+            ("CULL_UNOCCLUDED", CULL_UNOCCLUDED),
+        ] {
+            assert!(
+                header.contains(&format!("#define {name} {value}u")),
                 "{name} differs from the GLSL header"
             );
         }

@@ -42,6 +42,7 @@ pub mod binder;
 pub mod buffer;
 pub mod city;
 pub mod commands;
+pub mod cull;
 pub mod device;
 pub mod error;
 pub mod feedback;

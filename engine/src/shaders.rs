@@ -39,6 +39,7 @@ shader!(
     "feedback_compact.comp",
     "feedback_compact_comp.spv"
 );
+shader!(CITY_CULL_COMP, "city_cull.comp", "city_cull_comp.spv");
 shader!(TEXTURE_PROBE_COMP, "texture_probe.comp", "texture_probe_comp.spv");
 shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
 
@@ -54,6 +55,7 @@ pub const ALL: &[ShaderSource] = &[
     MESH_VERT,
     MESH_FRAG,
     FEEDBACK_COMPACT_COMP,
+    CITY_CULL_COMP,
     SPARSE_PROBE_COMP,
     TEXTURE_PROBE_COMP,
 ];

@@ -55,7 +55,8 @@ impl RenderTarget {
                 layers: 1,
                 mips: 1,
                 format: DEPTH_FORMAT,
-                usage: vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT,
+                // Copied out for GPU culling's depth pyramid.
+                usage: vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
                 view_type: vk::ImageViewType::TYPE_2D,
             },
             "render target depth",
@@ -133,19 +134,24 @@ impl RenderTarget {
                 vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
             ),
         );
+        self.begin_rendering(device, cmd, vk::AttachmentLoadOp::CLEAR, clear);
+    }
+
+    fn begin_rendering(&self, device: &Device, cmd: vk::CommandBuffer, load: vk::AttachmentLoadOp, clear: [f32; 4]) {
         let color_attachments = [vk::RenderingAttachmentInfo::default()
             .image_view(self.color.view())
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-            .load_op(vk::AttachmentLoadOp::CLEAR)
+            .load_op(load)
             .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue {
                 color: vk::ClearColorValue { float32: clear },
             })];
+        // Stored: a paused rendering resumes on it, and culling copies it out.
         let depth_attachment = vk::RenderingAttachmentInfo::default()
             .image_view(self.depth.view())
             .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
-            .load_op(vk::AttachmentLoadOp::CLEAR)
-            .store_op(vk::AttachmentStoreOp::DONT_CARE)
+            .load_op(load)
+            .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue {
                 depth_stencil: vk::ClearDepthStencilValue { depth: 1.0, stencil: 0 },
             });
@@ -175,6 +181,115 @@ impl RenderTarget {
             device.raw.cmd_set_viewport(cmd, 0, &[viewport]);
             device.raw.cmd_set_scissor(cmd, 0, &[area]);
         }
+    }
+
+    /// Bytes of the depth image copied by [`copy_depth`](Self::copy_depth): one 32-bit
+    /// float per pixel, row by row.
+    pub(crate) fn depth_bytes(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height) * 4
+    }
+
+    /// Ends the rendering begun by [`begin`](Self::begin) or [`resume`](Self::resume);
+    /// follow with [`copy_depth`](Self::copy_depth), then [`resume`](Self::resume).
+    pub(crate) fn pause(&self, device: &Device, cmd: vk::CommandBuffer) {
+        // SAFETY: cmd is recording inside the rendering begun by `begin` or `resume`.
+        unsafe { device.raw.cmd_end_rendering(cmd) };
+    }
+
+    /// After [`pause`](Self::pause): records the copy of the depth drawn so far into
+    /// `into` (at least [`depth_bytes`](Self::depth_bytes)), visible to compute shaders
+    /// after.
+    pub(crate) fn copy_depth(&self, device: &Device, cmd: vk::CommandBuffer, into: vk::Buffer) {
+        transition(
+            device,
+            cmd,
+            self.depth.raw(),
+            self.depth.desc().full_range(),
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+            (
+                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
+            ),
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+        );
+        // The last frame's culling read the buffer before this copy overwrites it.
+        crate::image::memory_barrier(
+            device,
+            cmd,
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+            ),
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+        );
+        let region = vk::BufferImageCopy {
+            buffer_offset: 0,
+            buffer_row_length: 0,
+            buffer_image_height: 0,
+            image_subresource: vk::ImageSubresourceLayers {
+                aspect_mask: vk::ImageAspectFlags::DEPTH,
+                mip_level: 0,
+                base_array_layer: 0,
+                layer_count: 1,
+            },
+            image_offset: vk::Offset3D::default(),
+            image_extent: vk::Extent3D {
+                width: self.width,
+                height: self.height,
+                depth: 1,
+            },
+        };
+        // SAFETY: the image is in TRANSFER_SRC_OPTIMAL; the caller's buffer holds the region.
+        unsafe {
+            device.raw.cmd_copy_image_to_buffer(
+                cmd,
+                self.depth.raw(),
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                into,
+                &[region],
+            )
+        };
+        crate::image::memory_barrier(
+            device,
+            cmd,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+            ),
+        );
+    }
+
+    /// Resumes rendering after [`copy_depth`](Self::copy_depth), keeping the colour and depth drawn so far.
+    pub(crate) fn resume(&self, device: &Device, cmd: vk::CommandBuffer) {
+        transition(
+            device,
+            cmd,
+            self.depth.raw(),
+            self.depth.desc().full_range(),
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
+            (
+                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
+                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
+            ),
+        );
+        // The colour drawn before the pause is loaded by the resumed rendering.
+        crate::image::memory_barrier(
+            device,
+            cmd,
+            (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
+            (
+                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+                vk::AccessFlags2::COLOR_ATTACHMENT_READ | vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+            ),
+        );
+        self.begin_rendering(device, cmd, vk::AttachmentLoadOp::LOAD, [0.0; 4]);
     }
 
     /// Ends rendering and records the copy of the colour image into the

@@ -42,6 +42,60 @@
 #define BINDING_GROUND_TILES 20       // sampler2DArray: clip-level tiles; layer = level slot * side² + tile slot
 #define BINDING_GROUND_TILE_MAP 21    // GroundTileEntry[], one per layer: the tile it holds, if resident
 
+// ---- GPU culling (engine/src/cull.rs): set 0 of the culling pass -----------
+#define BINDING_CULL_BOUNDS 22        // MeshBounds[], one per mesh, world space
+#define BINDING_CULL_RANGES 23        // uvec2[], one per mesh: first index and index count in the city's index buffer
+#define BINDING_CULL_FLAGS 24         // uint[], one per mesh and view: CULL_* bits
+#define BINDING_CULL_GROUPS 25        // uint[], one per chunk of CULL_CHUNK meshes: runs it starts, then its first run
+#define BINDING_CULL_DRAWS 26         // DrawIndexedIndirectCommand[] (5 uints each): one per run of drawn meshes
+#define BINDING_CULL_COUNTER 27       // CullCounter: the draw count the indirect-count draw reads, and statistics
+#define BINDING_CULL_PYRAMID 28       // float[]: the view's depth pyramid, levels packed from level 0 (the depth
+                                      // target itself, row by row); each level halves, rounding up, and holds the
+                                      // farthest depth of the texels below it
+
+// Per-mesh bits of BINDING_CULL_FLAGS.
+#define CULL_PREVIOUS 1u              // passed the occlusion test last frame (drawn in the early phase)
+#define CULL_IN_FRUSTUM 2u            // its bounds meet the view frustum
+#define CULL_UNOCCLUDED 4u            // in the frustum and not behind the early phase's depth
+#define CULL_NEXT 8u                  // CULL_UNOCCLUDED, kept for the next frame's CULL_PREVIOUS
+
+// Phases of the culling pass (CullPush.phase).
+#define CULL_PHASE_FRUSTUM 0u
+#define CULL_PHASE_OCCLUSION 1u
+#define CULL_PHASE_COUNT 2u
+#define CULL_PHASE_SCAN 3u
+#define CULL_PHASE_EMIT 4u
+#define CULL_CHUNK 64u                // meshes per invocation of the count and emit phases
+#define CULL_PHASE_PYRAMID 5u         // per texel of level `want` (>= 1): the farthest of the four below it
+
+// A mesh's world-space bounding box; low.w != 0: unbounded (non-finite positions), never culled.
+struct MeshBounds {
+    vec4 low;
+    vec4 high;
+};
+
+// Push constants of the culling pass.
+struct CullPush {
+    mat4 view_proj;
+    uvec4 pyramid;          // xy: depth target size in pixels, z: pyramid levels, w: unused
+    uint mesh_count;
+    uint phase;             // CULL_PHASE_*
+    uint mask;              // a mesh is in the list when (flags & mask) == want
+    uint want;
+    uint capacity;          // draws the list holds; runs past it merge into the last
+    uint group_count;       // chunks of CULL_CHUNK meshes
+    uint pad0;
+    uint pad1;
+};
+
+// One list's draw count (read by vkCmdDrawIndexedIndirectCount) and what it holds.
+struct CullCounter {
+    uint draws;             // min(runs, capacity)
+    uint runs;              // maximal runs of consecutive meshes in the list
+    uint meshes;            // meshes in the list
+    uint pad0;
+};
+
 // Push constants of the ground pass: one quad over the imagery's area.
 struct GroundPush {
     mat4 view_proj;

@@ -66,7 +66,7 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
     let target = RenderTarget::new(device, WIDTH, HEIGHT)?;
     let cmd = commands.begin()?;
     // Unlit, and without the colormap blend: the sampled texels as they are.
-    renderer.record_visible(cmd, &target, camera, 0.0, false);
+    renderer.record_visible(cmd, &target, camera, 0.0, false)?;
     commands.submit_and_wait(&[])?;
     Ok(target.read_pixels()?)
 }

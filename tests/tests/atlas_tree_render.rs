@@ -100,7 +100,7 @@ fn render_both(
     let mut images = Vec::new();
     for camera in cameras {
         let cmd = commands.begin()?;
-        renderer.record_visible(cmd, &target, camera, 1.0, false);
+        renderer.record_visible(cmd, &target, camera, 1.0, false)?;
         commands.submit_and_wait(&[])?;
         let originals = target.read_pixels()?;
         let cmd = commands.begin()?;

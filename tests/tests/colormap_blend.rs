@@ -159,7 +159,7 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
         far: 100.0,
     };
     let cmd = commands.begin()?;
-    renderer.record_visible(cmd, &target, &camera, 0.0, true);
+    renderer.record_visible(cmd, &target, &camera, 0.0, true)?;
     commands.submit_and_wait(&[])?;
     let actual = target.read_pixels()?;
 

@@ -146,7 +146,7 @@ fn run(
         let cycle = streamer.record_uploads(cmd)?;
         renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
         streamer.record_feedback_resolve(cmd)?;
-        renderer.record_visible(cmd, &target, &camera, 1.0, true);
+        renderer.record_visible(cmd, &target, &camera, 1.0, true)?;
         let submit = streamer.end_frame(16.0)?;
         commands.submit_frame(&submit.waits, &[submit.signal])?;
         unbound += cycle.blocks_unbound;
@@ -400,7 +400,7 @@ fn stream_fixed_view(
             renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
             streamer.record_feedback_resolve(cmd)?;
         }
-        renderer.record_visible(cmd, &target, &camera, 1.0, true);
+        renderer.record_visible(cmd, &target, &camera, 1.0, true)?;
         let submit = streamer.end_frame(16.0)?;
         commands.submit_frame(&submit.waits, &[submit.signal])?;
     }

@@ -101,6 +101,15 @@ impl StrategyArg {
     }
 }
 
+/// `--culling` of the flythrough runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CullingArg {
+    /// GPU culling against the frustum and a depth pyramid.
+    On,
+    /// Every pass draws every mesh.
+    Off,
+}
+
 /// Options of `citystream bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
@@ -113,6 +122,11 @@ pub struct BenchArgs {
     /// strategies` runs both.
     #[arg(long, value_enum)]
     strategy: Option<StrategyArg>,
+    /// GPU culling of every flythrough run (`on`, the flythrough's default, or `off`:
+    /// every pass draws every mesh); the summaries report `culling`, `meshes_drawn` and
+    /// the `cull` pass.
+    #[arg(long, value_enum, default_value = "on")]
+    culling: CullingArg,
     /// Dataset directory every run opens (default: the default city in
     /// data/city, created on first use; with `--scenario pressure`, the
     /// atlased `large` city under --data-dir).
@@ -409,6 +423,13 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         for run in &mut runs {
             run.args.extend(["--strategy".to_string(), strategy.name().to_string()]);
         }
+    }
+    let culling = match args.culling {
+        CullingArg::On => "on",
+        CullingArg::Off => "off",
+    };
+    for run in &mut runs {
+        run.args.extend(["--culling".to_string(), culling.to_string()]);
     }
     let settings = RunSettings::of(args);
     let total = runs.len();

@@ -62,6 +62,25 @@ impl Strategy {
     }
 }
 
+/// `--culling`: whether the city passes draw only what the view may show.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Culling {
+    /// GPU culling against the frustum and a depth pyramid (engine `cull` module).
+    On,
+    /// Every pass draws every mesh in one draw.
+    Off,
+}
+
+impl Culling {
+    /// The name written to summary.json.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Culling::On => "on",
+            Culling::Off => "off",
+        }
+    }
+}
+
 #[derive(Debug, Parser)]
 #[command(
     name = "flythrough",
@@ -118,6 +137,11 @@ pub(crate) struct Args {
     /// docs/ATLAS_TREE.md). Both share the loader, the cache and the policy.
     #[arg(long, value_enum, default_value_t = Strategy::Feedback)]
     pub(crate) strategy: Strategy,
+    /// GPU culling of the city passes: `on` draws only the meshes in the view's frustum
+    /// and not behind depth already drawn (two phases per pass, docs/ARCHITECTURE.md);
+    /// `off` draws every mesh in every pass. The images and the feedback are the same.
+    #[arg(long, value_enum, default_value_t = Culling::On)]
+    pub(crate) culling: Culling,
     /// Streaming policy: adaptive (paper Eq. 4-7), baseline (s = s_max, b = 0) or fixed.
     #[arg(long, default_value = "adaptive")]
     pub(crate) policy: PolicyKind,

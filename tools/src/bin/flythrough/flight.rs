@@ -11,6 +11,7 @@ use glam::Vec3;
 
 use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::{CommandContext, SemaphoreSignal, SemaphoreWait};
+use citystream_engine::cull::CullStats;
 use citystream_engine::device::describe;
 use citystream_engine::gpu_types::Vertex;
 use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
@@ -33,7 +34,7 @@ use citystream_streaming::source::{DatasetSource, FaultPlan, FaultySource};
 use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 use super::args::{
-    Args, Clock, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
+    Args, Clock, Culling, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
 };
 use super::ground;
 use super::measure::meshes_in_view;
@@ -47,21 +48,27 @@ pub(crate) const TIMED_PASSES: usize = 4;
 pub(crate) struct GpuPassMs {
     /// Copies of the cycle's mips and the texture table into the cache.
     pub(crate) uploads: Stats,
-    /// Depth pre-pass and feedback pass (paper §3.2).
+    /// Depth pre-pass and feedback pass (paper §3.2), without their culling.
     pub(crate) feedback: Stats,
     /// Compaction of the mesh feedback and its read-back copy (paper §3.3).
     pub(crate) compaction: Stats,
-    /// The visible pass and its image copy.
+    /// The visible pass and its image copy, without its culling.
     pub(crate) visible: Stats,
+    /// GPU culling for the feedback and visible passes (tests, draw compaction, depth
+    /// copies and pyramids); null with `--culling off`.
+    pub(crate) cull: Option<Stats>,
 }
 
-/// Per-pass GPU timestamps of each frame slot, read once the slot's frame
-/// completed.
+/// Per-pass GPU timestamps and culling statistics of each frame slot, read once the
+/// slot's frame completed.
 pub(crate) struct PassTimes {
     pub(crate) timer: GpuTimer,
     /// Whether the slot's last frame wrote timestamps not yet read.
     pub(crate) written: Vec<bool>,
     pub(crate) samples: [Vec<f64>; TIMED_PASSES],
+    cull_ms: Vec<f64>,
+    /// What each completed frame's culling drew (empty with `--culling off`).
+    pub(crate) culled: Vec<CullStats>,
 }
 
 impl PassTimes {
@@ -70,6 +77,8 @@ impl PassTimes {
             timer: GpuTimer::new(device, frames_in_flight * TIMED_PASSES as u32)?,
             written: vec![false; frames_in_flight as usize],
             samples: Default::default(),
+            cull_ms: Vec::new(),
+            culled: Vec::new(),
         })
     }
 
@@ -88,20 +97,34 @@ impl PassTimes {
         }
     }
 
-    /// Reads `slot`'s timestamps; its frame must have completed.
-    pub(crate) fn collect(&mut self, slot: u32) -> Result<()> {
+    /// Reads `slot`'s timestamps and `renderer`'s culling statistics; its frame must have
+    /// completed. The culling the feedback and visible passes record is moved out of
+    /// their times into `cull`.
+    pub(crate) fn collect(&mut self, slot: u32, renderer: &CityRenderer) -> Result<()> {
         if !std::mem::take(&mut self.written[slot as usize]) {
             return Ok(());
         }
-        for (pass, samples) in self.samples.iter_mut().enumerate() {
-            samples.extend(self.timer.read_ms(Self::query(slot, pass))?);
+        let mut times = [None; TIMED_PASSES];
+        for (pass, time) in times.iter_mut().enumerate() {
+            *time = self.timer.read_ms(Self::query(slot, pass))?;
+        }
+        if let Some(stats) = renderer.cull_stats(slot)? {
+            self.culled.push(stats);
+            if let Some([feedback, visible]) = stats.cull_ms {
+                times[1] = times[1].map(|t| (t - feedback).max(0.0));
+                times[3] = times[3].map(|t| (t - visible).max(0.0));
+                self.cull_ms.push(feedback + visible);
+            }
+        }
+        for (samples, time) in self.samples.iter_mut().zip(times) {
+            samples.extend(time);
         }
         Ok(())
     }
 
-    pub(crate) fn finish(&mut self) -> Result<Option<GpuPassMs>> {
+    pub(crate) fn finish(&mut self, renderer: &CityRenderer) -> Result<Option<GpuPassMs>> {
         for slot in 0..self.written.len() as u32 {
-            self.collect(slot)?;
+            self.collect(slot, renderer)?;
         }
         if !self.timer.supported() {
             return Ok(None);
@@ -113,6 +136,7 @@ impl PassTimes {
             feedback,
             compaction,
             visible,
+            cull: renderer.culling().then(|| Stats::from_samples(&self.cull_ms)),
         }))
     }
 }
@@ -344,6 +368,7 @@ pub(crate) fn city_gpu(
     config: &StreamConfig,
     faults: Option<FaultPlan>,
     tree: Option<&AtlasTree>,
+    culling: Culling,
 ) -> Result<CityGpu> {
     let (vertices, meshes) = city;
     let source = FaultySource::new(
@@ -364,7 +389,7 @@ pub(crate) fn city_gpu(
         policy,
         config,
     )?;
-    let renderer = CityRenderer::new(
+    let mut renderer = CityRenderer::new(
         device,
         commands,
         vertices,
@@ -373,6 +398,11 @@ pub(crate) fn city_gpu(
         streamer.cache(),
         streamer.compactor(),
     )?;
+    if culling == Culling::On {
+        renderer
+            .enable_culling(commands, vertices, &dataset.scene.indices, config.frames_in_flight)
+            .context("GPU culling (--culling off draws every mesh instead)")?;
+    }
     Ok(CityGpu { streamer, renderer })
 }
 
@@ -416,6 +446,7 @@ pub(crate) fn streamed_city_gpu(
         ),
         args.inject_read_failures,
         tree,
+        args.culling,
     )
 }
 
@@ -536,6 +567,8 @@ pub(crate) struct RecordedFrame {
 pub(crate) struct FeedbackStatus {
     pub(crate) deficit: Option<f64>,
     pub(crate) pending: usize,
+    /// Meshes the read-back lists (those whose weight reached τ).
+    pub(crate) meshes_seen: usize,
 }
 
 impl Flight {
@@ -654,6 +687,7 @@ impl Flight {
                 Some(FeedbackStatus {
                     deficit: served.mip_deficit,
                     pending: served.pending_textures,
+                    meshes_seen: entries.len(),
                 })
             }
             _ => None,
@@ -671,7 +705,8 @@ impl Flight {
             }
             None => 0,
         };
-        self.pass_times.collect(slot)?;
+        self.pass_times.collect(slot, &self.gpu.renderer)?;
+        self.gpu.renderer.set_cull_slot(slot)?;
         let cmd = self.frame_commands[slot as usize].begin_completed()?;
         let passes = &mut self.pass_times;
         passes.begin(cmd, slot, 0);
@@ -724,7 +759,7 @@ impl Flight {
                         .gpu
                         .renderer
                         .record_visible_on_ground(cmd, target, camera, blend, ground)?,
-                    None => self.gpu.renderer.record_visible(cmd, target, camera, 1.0, blend),
+                    None => self.gpu.renderer.record_visible(cmd, target, camera, 1.0, blend)?,
                 }
                 let in_view = meshes_in_view(&self.dataset.scene, camera, target.width(), target.height());
                 (in_view, None)

@@ -8,6 +8,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 
 use citystream_engine::commands::CommandContext;
+use citystream_engine::cull::CullStats;
 use citystream_engine::device::describe;
 use citystream_engine::gpu_types::FeedbackEntry;
 use citystream_engine::Device;
@@ -63,6 +64,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             &reference_config(flight.targets.fragment_area, flight.layer_size),
             None,
             None,
+            args.culling,
         )?)
     } else {
         None
@@ -110,10 +112,11 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
     let mut peak_device_memory = 0u64;
     let mut reference_incomplete = 0u32;
-    let mut frames_run = 0;
+    let mut frames_run = 0u32;
     let mut waits = WaitCounts::default();
     let mut uploads_at: Vec<(f64, u64)> = Vec::new();
     let (mut nodes_drawn, mut draw_call_samples) = (Vec::new(), Vec::new());
+    let mut meshes_seen = Vec::new();
     for frame in 0..frames {
         let time_s = match args.clock {
             Clock::Fixed | Clock::Modelled => sim_time_s,
@@ -144,6 +147,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             },
         )?;
         let deficit = recorded.feedback.and_then(|f| f.deficit);
+        meshes_seen.extend(recorded.feedback.map(|f| f.meshes_seen as f64));
         draw_call_samples.push(f64::from(recorded.draw_calls));
         nodes_drawn.extend(recorded.nodes_drawn.map(f64::from));
         // The controller step with the previous frame's latency.
@@ -181,7 +185,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                         true,
                         (&run.layer, begun.slot),
                     )?,
-                    None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true),
+                    None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true)?,
                 }
                 commands.submit_and_wait(&[])?;
                 error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
@@ -245,7 +249,24 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     }
     csv.flush()?;
     device.wait_idle()?;
-    let gpu_pass_ms = flight.pass_times.finish()?;
+    let gpu_pass_ms = flight.pass_times.finish(&flight.gpu.renderer)?;
+    let culled = &flight.pass_times.culled;
+    let city_meshes = flight.meshes().iter().filter(|m| m.index_count > 0).count() as f64;
+    let (meshes_drawn, meshes_culled) = if flight.gpu.renderer.culling() {
+        let drawn: Vec<f64> = culled.iter().map(|c| f64::from(c.meshes_drawn)).collect();
+        let skipped: Vec<f64> = culled.iter().map(|c| f64::from(c.meshes_culled)).collect();
+        (Stats::from_samples(&drawn), Stats::from_samples(&skipped))
+    } else {
+        // Every frame draws every mesh with geometry.
+        let frames = vec![city_meshes; frames_run as usize];
+        (
+            Stats::from_samples(&frames),
+            Stats::from_samples(&vec![0.0; frames_run as usize]),
+        )
+    };
+    let culled_stats = |f: fn(&CullStats) -> u32| {
+        (!culled.is_empty()).then(|| Stats::from_samples(&culled.iter().map(|c| f64::from(f(c))).collect::<Vec<_>>()))
+    };
     let peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
     if reference_incomplete > 0 {
         eprintln!("warning: the error reference evicted {reference_incomplete} textures; PSNR is optimistic");
@@ -270,6 +291,12 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         device: describe(device),
         scene: dir.display().to_string(),
         strategy: args.strategy.name(),
+        culling: args.culling.name(),
+        meshes_drawn,
+        meshes_culled,
+        feedback_meshes_drawn: culled_stats(|c| c.feedback_meshes_drawn),
+        cull_draws: culled_stats(|c| c.draws),
+        meshes_seen_by_feedback: Stats::from_samples(&meshes_seen),
         draw_calls: Stats::from_samples(&draw_call_samples),
         nodes_drawn: (!nodes_drawn.is_empty()).then(|| Stats::from_samples(&nodes_drawn)),
         atlas_tree: flight

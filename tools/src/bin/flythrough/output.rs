@@ -18,6 +18,20 @@ pub(crate) struct Run<'a> {
     pub(crate) scene: String,
     /// `feedback` or `atlas-tree`.
     pub(crate) strategy: &'a str,
+    /// `--culling`: `on` or `off`.
+    pub(crate) culling: &'a str,
+    /// Per frame: meshes the visible pass drew (with culling off, every mesh with geometry).
+    pub(crate) meshes_drawn: Stats,
+    /// Per frame: meshes of the city the visible pass skipped.
+    pub(crate) meshes_culled: Stats,
+    /// Per frame: meshes the feedback pass drew after its depth pre-pass (culling on).
+    pub(crate) feedback_meshes_drawn: Option<Stats>,
+    /// Per frame: indirect draws of the visible pass, one per run of consecutive meshes
+    /// (culling on; off, it is one draw).
+    pub(crate) cull_draws: Option<Stats>,
+    /// Per feedback read-back: meshes it listed (weight at least τ; τ = 0 on frames whose
+    /// error is measured).
+    pub(crate) meshes_seen_by_feedback: Stats,
     /// Per frame: draws of a renderer binding one texture per draw (meshes in view, a
     /// mesh having one texture; for the tree, atlases drawn plus the meshes in view of the
     /// leaves drawn with their originals). citystream itself draws every mesh in one draw

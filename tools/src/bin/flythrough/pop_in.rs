@@ -54,6 +54,7 @@ pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -
         &reference_config(fragment_area, layer_size),
         None,
         None,
+        args.culling,
     )?;
     // The view of the path's first pause: the static view a user replaying
     // the benchmark sees longest.
@@ -92,7 +93,7 @@ pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -
 
     let render = |gpu: &CityGpu, commands: &mut CommandContext, blend: bool| -> Result<image::RgbaImage> {
         let cmd = commands.begin()?;
-        gpu.renderer.record_visible(cmd, &target, &camera, 1.0, blend);
+        gpu.renderer.record_visible(cmd, &target, &camera, 1.0, blend)?;
         commands.submit_and_wait(&[])?;
         Ok(target.read_pixels()?)
     };

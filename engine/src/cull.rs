@@ -1,0 +1,725 @@
+//! GPU culling of the city passes: a frame costs what the view shows, not what the city holds.
+//!
+//! Each view (the feedback view and the visible view) keeps per-mesh flags and a depth
+//! pyramid, and draws in two phases (`shaders/city_cull.comp`):
+//!
+//! 1. **Early**: the meshes in the frustum that passed the occlusion test last frame are
+//!    drawn; the depth they leave is copied and reduced to a pyramid of farthest depths.
+//! 2. **Late**: every mesh in the frustum is tested against the pyramid; those in front of
+//!    it and not drawn early are drawn now. The test's result is next frame's early set.
+//!
+//! The depth after the late phase is the depth of the unculled draw: a mesh is skipped
+//! only when its bounds lie outside the frustum or behind depth already drawn, so it could
+//! not have contributed a fragment. The feedback pass, which tests for equal depth after
+//! the pre-pass, draws every mesh that passed the late test, and so reports what the
+//! unculled pass reports.
+//!
+//! A list is drawn as runs of consecutive meshes in mesh order: their indices are
+//! contiguous in the city's index buffer, so each run is one indexed draw, and the culled
+//! pass rasterises in the unculled order. The draws are compacted on the GPU, counted for
+//! `vkCmdDrawIndexedIndirectCount` where the device has it (a fixed count of draws,
+//! unused ones empty, where not). Culling a mesh costs a box test; runs are counted and
+//! written by one invocation per chunk of 64 meshes in order, without workgroup barriers
+//! (which a CPU rasteriser runs as coroutine switches), so the frame's culling cost grows
+//! with the city by a few words of memory traffic per mesh.
+
+use std::sync::{Arc, Mutex};
+
+use ash::vk;
+use glam::Mat4;
+use gpu_allocator::MemoryLocation;
+
+use crate::buffer::{Buffer, BufferDesc};
+use crate::commands::CommandContext;
+use crate::device::Device;
+use crate::error::{EngineError, Result};
+use crate::gpu_types::{
+    CullCounter, CullPush, MeshBounds, BINDING_CULL_BOUNDS, BINDING_CULL_COUNTER, BINDING_CULL_DRAWS,
+    BINDING_CULL_FLAGS, BINDING_CULL_GROUPS, BINDING_CULL_PYRAMID, BINDING_CULL_RANGES, CULL_IN_FRUSTUM,
+    CULL_PHASE_COUNT, CULL_PHASE_EMIT, CULL_PHASE_FRUSTUM, CULL_PHASE_OCCLUSION, CULL_PHASE_PYRAMID, CULL_PHASE_SCAN,
+    CULL_PREVIOUS, CULL_UNOCCLUDED,
+};
+use crate::image::memory_barrier;
+use crate::pipeline::{DescriptorPool, DescriptorResource, Pipeline};
+use crate::scene::upload_buffer;
+use crate::shaders;
+use crate::target::RenderTarget;
+use crate::timing::GpuTimer;
+
+const WORKGROUP: u32 = 256;
+/// Meshes per invocation of the count and emit phases (`CULL_CHUNK`).
+pub(crate) const CULL_CHUNK: u32 = 64;
+const MAX_GROUPS_X: u32 = 65_535;
+/// Bytes of one `VkDrawIndexedIndirectCommand`.
+const DRAW_STRIDE: u32 = 20;
+/// Draws one list holds at most; runs past it merge into the last draw (which then also
+/// draws the meshes between them: more work, never a missing mesh).
+const MAX_DRAWS: u32 = 1 << 16;
+
+/// The two views a frame culls for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CullView {
+    /// The feedback pass's wider view (depth pre-pass and feedback).
+    Feedback = 0,
+    /// The visible pass's view.
+    Visible = 1,
+}
+
+/// A view's lists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum CullList {
+    /// In the frustum and unoccluded last frame: drawn before the pyramid is built.
+    Early = 0,
+    /// In the frustum, unoccluded now, not drawn early.
+    Late = 1,
+    /// In the frustum and unoccluded now (the feedback pass after the pre-pass).
+    Unoccluded = 2,
+}
+
+impl CullList {
+    const ALL: [CullList; 3] = [CullList::Early, CullList::Late, CullList::Unoccluded];
+
+    /// (mask, want) of the flags of a listed mesh.
+    fn predicate(self) -> (u32, u32) {
+        match self {
+            CullList::Early => (CULL_PREVIOUS | CULL_IN_FRUSTUM, CULL_PREVIOUS | CULL_IN_FRUSTUM),
+            CullList::Late => (
+                CULL_PREVIOUS | CULL_IN_FRUSTUM | CULL_UNOCCLUDED,
+                CULL_IN_FRUSTUM | CULL_UNOCCLUDED,
+            ),
+            CullList::Unoccluded => (CULL_IN_FRUSTUM | CULL_UNOCCLUDED, CULL_IN_FRUSTUM | CULL_UNOCCLUDED),
+        }
+    }
+}
+
+/// What one frame's culling drew, read back once its submission completed.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CullStats {
+    /// Meshes the visible pass drew (early and late phases).
+    pub meshes_drawn: u32,
+    /// Meshes of the city the visible pass skipped.
+    pub meshes_culled: u32,
+    /// Meshes the feedback pass drew (after the pre-pass).
+    pub feedback_meshes_drawn: u32,
+    /// Indirect draws of the visible pass (runs of consecutive meshes).
+    pub draws: u32,
+    /// GPU milliseconds of the culling work (tests, compaction, depth copies and
+    /// pyramids) for the feedback view and for the visible view, when the queue has
+    /// timestamps; part of the passes that record them.
+    pub cull_ms: Option<[f64; 2]>,
+}
+
+struct ListBuffers {
+    groups: Buffer,
+    draws: Buffer,
+    counter: Buffer,
+    set: vk::DescriptorSet,
+}
+
+/// A view's depth pyramid, resized with its depth target.
+struct Pyramid {
+    buffer: Buffer,
+    /// Depth target width and height and pyramid levels it was made for.
+    shape: (u32, u32, u32),
+}
+
+struct ViewBuffers {
+    flags: Buffer,
+    pyramid: Mutex<Pyramid>,
+    lists: Vec<ListBuffers>,
+}
+
+/// Which slot's statistics and timestamps the next recordings write.
+#[derive(Debug, Default)]
+struct Recording {
+    slot: u32,
+}
+
+/// GPU culling state of a [`crate::city::CityRenderer`]: mesh bounds and index ranges,
+/// and per view its flags, depth pyramid and three compacted lists.
+pub(crate) struct CityCulling {
+    device: Arc<Device>,
+    pipeline: Pipeline,
+    pool: DescriptorPool,
+    bounds: Buffer,
+    ranges: Buffer,
+    views: Vec<ViewBuffers>,
+    mesh_count: u32,
+    /// Chunks of [`CULL_CHUNK`] meshes.
+    group_count: u32,
+    capacity: u32,
+    indirect_count: bool,
+    /// Per slot: the six lists' counters, copied for the host.
+    readback: Vec<Buffer>,
+    /// Per slot, two timed segments per view.
+    timer: GpuTimer,
+    recording: Mutex<Recording>,
+}
+
+impl std::fmt::Debug for CityCulling {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CityCulling")
+            .field("mesh_count", &self.mesh_count)
+            .field("capacity", &self.capacity)
+            .field("indirect_count", &self.indirect_count)
+            .finish()
+    }
+}
+
+/// World-space bounds of each mesh's drawn vertices; non-finite positions make the mesh
+/// unbounded (never culled) rather than wrongly culled.
+pub(crate) fn mesh_bounds(positions: impl Iterator<Item = (u32, [f32; 3])>, mesh_count: usize) -> Vec<MeshBounds> {
+    let empty = MeshBounds {
+        low: [f32::MAX, f32::MAX, f32::MAX, 0.0],
+        high: [f32::MIN, f32::MIN, f32::MIN, 0.0],
+    };
+    let mut bounds = vec![empty; mesh_count];
+    for (mesh, p) in positions {
+        let Some(b) = bounds.get_mut(mesh as usize) else {
+            continue;
+        };
+        if p.iter().any(|c| !c.is_finite()) {
+            b.low[3] = 1.0;
+            continue;
+        }
+        for (axis, &c) in p.iter().enumerate() {
+            b.low[axis] = b.low[axis].min(c);
+            b.high[axis] = b.high[axis].max(c);
+        }
+    }
+    bounds
+}
+
+impl CityCulling {
+    /// Culling for `bounds.len()` meshes whose indices lie at `ranges` (first, count) in
+    /// the city's index buffer, with `slots` read-back slots (frames in flight).
+    pub(crate) fn new(
+        device: &Arc<Device>,
+        commands: &mut CommandContext,
+        bounds: &[MeshBounds],
+        ranges: &[[u32; 2]],
+        slots: u32,
+    ) -> Result<Self> {
+        let indirect = device.indirect_draws();
+        if !indirect.multi_draw {
+            return Err(EngineError::MissingFeature {
+                device: device.name().to_owned(),
+                feature: "multiDrawIndirect (GPU culling's compacted draws)".to_owned(),
+            });
+        }
+        let mesh_count = u32::try_from(bounds.len())
+            .ok()
+            .filter(|&n| n > 0 && ranges.len() == bounds.len())
+            .ok_or_else(|| {
+                EngineError::InvalidRequest(format!(
+                    "culling {} meshes with {} index ranges",
+                    bounds.len(),
+                    ranges.len()
+                ))
+            })?;
+        if slots == 0 {
+            return Err(EngineError::InvalidRequest("culling with 0 read-back slots".into()));
+        }
+        let group_count = mesh_count.div_ceil(CULL_CHUNK);
+        // A run needs a listed mesh and an unlisted one after it.
+        let capacity = (mesh_count / 2 + 1)
+            .min(MAX_DRAWS)
+            .min(device.properties().limits.max_draw_indirect_count);
+        let stages = vk::ShaderStageFlags::COMPUTE;
+        let storage = vk::DescriptorType::STORAGE_BUFFER;
+        let pipeline = Pipeline::compute(
+            device,
+            &shaders::CITY_CULL_COMP,
+            &[
+                (BINDING_CULL_BOUNDS, storage, 1, stages),
+                (BINDING_CULL_RANGES, storage, 1, stages),
+                (BINDING_CULL_FLAGS, storage, 1, stages),
+                (BINDING_CULL_GROUPS, storage, 1, stages),
+                (BINDING_CULL_DRAWS, storage, 1, stages),
+                (BINDING_CULL_COUNTER, storage, 1, stages),
+                (BINDING_CULL_PYRAMID, storage, 1, stages),
+            ],
+            std::mem::size_of::<CullPush>() as u32,
+            "city culling",
+        )?;
+        let views_count = 2;
+        let pool = DescriptorPool::new(
+            device,
+            &pipeline,
+            views_count * CullList::ALL.len() as u32,
+            "city culling descriptors",
+        )?;
+        let bounds_buffer = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(bounds),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "city mesh bounds",
+        )?;
+        let ranges_buffer = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(ranges),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "city mesh index ranges",
+        )?;
+        let gpu = |size: u64, usage: vk::BufferUsageFlags, name: &str| {
+            Buffer::new(
+                device,
+                BufferDesc {
+                    size: size.max(4),
+                    usage,
+                    location: MemoryLocation::GpuOnly,
+                },
+                name,
+            )
+        };
+        let transfer = vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
+        let mut views = Vec::new();
+        for view in ["feedback", "visible"] {
+            let flags = gpu(
+                u64::from(mesh_count) * 4,
+                vk::BufferUsageFlags::STORAGE_BUFFER | transfer,
+                &format!("culling flags ({view})"),
+            )?;
+            // Sized at first use, for the view's depth target.
+            let pyramid = gpu(
+                4,
+                vk::BufferUsageFlags::STORAGE_BUFFER | transfer,
+                &format!("depth pyramid ({view})"),
+            )?;
+            let mut lists = Vec::new();
+            for list in CullList::ALL {
+                let name = format!("{view} {list:?}");
+                let groups = gpu(
+                    u64::from(group_count) * 4,
+                    vk::BufferUsageFlags::STORAGE_BUFFER,
+                    &format!("culling groups ({name})"),
+                )?;
+                let draws = gpu(
+                    u64::from(capacity) * u64::from(DRAW_STRIDE),
+                    vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::INDIRECT_BUFFER | transfer,
+                    &format!("culled draws ({name})"),
+                )?;
+                let counter = gpu(
+                    std::mem::size_of::<CullCounter>() as u64,
+                    vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::INDIRECT_BUFFER | transfer,
+                    &format!("culled draw count ({name})"),
+                )?;
+                let set = pool.allocate(&pipeline, &[])?;
+                lists.push(ListBuffers {
+                    groups,
+                    draws,
+                    counter,
+                    set,
+                });
+            }
+            views.push(ViewBuffers {
+                flags,
+                pyramid: Mutex::new(Pyramid {
+                    buffer: pyramid,
+                    shape: (0, 0, 0),
+                }),
+                lists,
+            });
+        }
+        let readback = (0..slots)
+            .map(|slot| {
+                Buffer::new(
+                    device,
+                    BufferDesc {
+                        size: (views.len() * CullList::ALL.len() * std::mem::size_of::<CullCounter>()) as u64,
+                        usage: vk::BufferUsageFlags::TRANSFER_DST,
+                        location: MemoryLocation::GpuToCpu,
+                    },
+                    &format!("culling statistics (slot {slot})"),
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let timer = GpuTimer::new(device, slots * 2 * views.len() as u32)?;
+        let culling = Self {
+            device: Arc::clone(device),
+            pipeline,
+            pool,
+            bounds: bounds_buffer,
+            ranges: ranges_buffer,
+            views,
+            mesh_count,
+            group_count,
+            capacity,
+            indirect_count: indirect.count,
+            readback,
+            timer,
+            recording: Mutex::new(Recording::default()),
+        };
+        for view in [CullView::Feedback, CullView::Visible] {
+            culling.write_sets(view);
+        }
+        // Flags start clear: nothing was visible before the first frame.
+        let cmd = commands.begin()?;
+        for view in &culling.views {
+            // SAFETY: cmd is recording outside rendering; the buffer allows transfers.
+            unsafe {
+                device
+                    .raw()
+                    .cmd_fill_buffer(cmd, view.flags.raw(), 0, vk::WHOLE_SIZE, 0)
+            };
+        }
+        commands.submit_and_wait(&[])?;
+        Ok(culling)
+    }
+
+    fn write_sets(&self, view: CullView) {
+        let v = &self.views[view as usize];
+        let pyramid = lock(&v.pyramid).buffer.raw();
+        for list in &v.lists {
+            self.pool.write(
+                list.set,
+                &[
+                    (
+                        BINDING_CULL_BOUNDS,
+                        DescriptorResource::StorageBuffer(self.bounds.raw()),
+                    ),
+                    (
+                        BINDING_CULL_RANGES,
+                        DescriptorResource::StorageBuffer(self.ranges.raw()),
+                    ),
+                    (BINDING_CULL_FLAGS, DescriptorResource::StorageBuffer(v.flags.raw())),
+                    (
+                        BINDING_CULL_GROUPS,
+                        DescriptorResource::StorageBuffer(list.groups.raw()),
+                    ),
+                    (BINDING_CULL_DRAWS, DescriptorResource::StorageBuffer(list.draws.raw())),
+                    (
+                        BINDING_CULL_COUNTER,
+                        DescriptorResource::StorageBuffer(list.counter.raw()),
+                    ),
+                    (BINDING_CULL_PYRAMID, DescriptorResource::StorageBuffer(pyramid)),
+                ],
+            );
+        }
+    }
+
+    /// Sizes `view`'s depth pyramid for `target`. A new size waits for the queue to idle
+    /// (the old pyramid may be in use by frames in flight): a window's resize, not a
+    /// per-frame cost.
+    pub(crate) fn prepare(&self, view: CullView, target: &RenderTarget) -> Result<()> {
+        let (width, height) = (target.width(), target.height());
+        let levels = 32 - width.max(height).leading_zeros();
+        let v = &self.views[view as usize];
+        if lock(&v.pyramid).shape == (width, height, levels) {
+            return Ok(());
+        }
+        let mut texels = 0u64;
+        let (mut w, mut h) = (width, height);
+        for _ in 0..levels {
+            texels += u64::from(w) * u64::from(h);
+            w = w.div_ceil(2);
+            h = h.div_ceil(2);
+        }
+        self.device.wait_idle()?;
+        let buffer = Buffer::new(
+            &self.device,
+            BufferDesc {
+                size: (texels * 4).max(target.depth_bytes()),
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
+                location: MemoryLocation::GpuOnly,
+            },
+            &format!("depth pyramid ({view:?})"),
+        )?;
+        *lock(&v.pyramid) = Pyramid {
+            buffer,
+            shape: (width, height, levels),
+        };
+        self.write_sets(view);
+        Ok(())
+    }
+
+    /// Makes the next recordings write statistics and timestamps into `slot` (the frame
+    /// slot of the command buffer being recorded).
+    pub(crate) fn set_slot(&self, slot: u32) -> Result<()> {
+        if slot as usize >= self.readback.len() {
+            return Err(EngineError::InvalidRequest(format!(
+                "culling slot {slot} of {} slots",
+                self.readback.len()
+            )));
+        }
+        lock(&self.recording).slot = slot;
+        Ok(())
+    }
+
+    fn slot(&self) -> u32 {
+        lock(&self.recording).slot
+    }
+
+    fn query(&self, view: CullView, segment: u32) -> u32 {
+        (self.slot() * 2 + view as u32) * 2 + segment
+    }
+
+    fn push(&self, view_proj: &Mat4, view: CullView, phase: u32, list: CullList) -> CullPush {
+        let (width, height, levels) = lock(&self.views[view as usize].pyramid).shape;
+        let (mask, want) = list.predicate();
+        CullPush {
+            view_proj: view_proj.to_cols_array_2d(),
+            pyramid: [width, height, levels, 0],
+            mesh_count: self.mesh_count,
+            phase,
+            mask,
+            want,
+            capacity: self.capacity,
+            group_count: self.group_count,
+            pad0: 0,
+            pad1: 0,
+        }
+    }
+
+    fn dispatch(&self, cmd: vk::CommandBuffer, set: vk::DescriptorSet, push: &CullPush, invocations: u32) {
+        self.pipeline.bind(cmd, set);
+        self.pipeline.push(cmd, push);
+        let groups = invocations.div_ceil(WORKGROUP).max(1);
+        let (x, y) = if groups <= MAX_GROUPS_X {
+            (groups, 1)
+        } else {
+            (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X))
+        };
+        // SAFETY: pipeline and set are bound; the shader bounds-checks its indices.
+        unsafe { self.device.raw().cmd_dispatch(cmd, x, y, 1) };
+    }
+
+    fn compute_barrier(&self, cmd: vk::CommandBuffer) {
+        memory_barrier(
+            &self.device,
+            cmd,
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::CLEAR,
+                vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
+            ),
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+            ),
+        );
+    }
+
+    /// Compacts `lists` of `view` from its flags into indirect draws (count, scan, emit).
+    fn emit(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView, lists: &[CullList]) {
+        let v = &self.views[view as usize];
+        let raw = self.device.raw();
+        // The last frame's draws read these buffers before they are cleared.
+        memory_barrier(
+            &self.device,
+            cmd,
+            (
+                vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::TRANSFER_READ,
+            ),
+            (vk::PipelineStageFlags2::CLEAR, vk::AccessFlags2::TRANSFER_WRITE),
+        );
+        for &list in lists {
+            let l = &v.lists[list as usize];
+            // SAFETY: cmd is recording outside rendering; the buffers allow transfers.
+            unsafe {
+                raw.cmd_fill_buffer(cmd, l.draws.raw(), 0, vk::WHOLE_SIZE, 0);
+                raw.cmd_fill_buffer(cmd, l.counter.raw(), 0, vk::WHOLE_SIZE, 0);
+            }
+        }
+        for phase in [CULL_PHASE_COUNT, CULL_PHASE_SCAN, CULL_PHASE_EMIT] {
+            self.compute_barrier(cmd);
+            let invocations = if phase == CULL_PHASE_SCAN { 1 } else { self.group_count };
+            for &list in lists {
+                let push = self.push(view_proj, view, phase, list);
+                self.dispatch(cmd, v.lists[list as usize].set, &push, invocations);
+            }
+        }
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
+            (
+                vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::TRANSFER_READ,
+            ),
+        );
+    }
+
+    /// The early phase of `view` (outside rendering): frustum flags, and the early list.
+    pub(crate) fn record_early(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView) {
+        let query = self.query(view, 0);
+        self.timer.begin(cmd, query);
+        // The last frame's passes over this view's flags finish before they change.
+        memory_barrier(
+            &self.device,
+            cmd,
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+            ),
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+            ),
+        );
+        let v = &self.views[view as usize];
+        let push = self.push(view_proj, view, CULL_PHASE_FRUSTUM, CullList::Early);
+        self.dispatch(cmd, v.lists[0].set, &push, self.mesh_count);
+        self.emit(cmd, view_proj, view, &[CullList::Early]);
+        self.timer.end(cmd, query);
+    }
+
+    /// The late phase of `view`, after its early draws: pyramid from `target`'s depth
+    /// (rendering is paused and resumed around it), occlusion flags, the late and
+    /// unoccluded lists, and the statistics copy.
+    pub(crate) fn record_late(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView, target: &RenderTarget) {
+        let v = &self.views[view as usize];
+        let query = self.query(view, 1);
+        let (pyramid, (mut width, mut height, levels)) = {
+            let p = lock(&v.pyramid);
+            (p.buffer.raw(), p.shape)
+        };
+        target.pause(&self.device, cmd);
+        self.timer.begin(cmd, query);
+        target.copy_depth(&self.device, cmd, pyramid);
+        for level in 1..levels {
+            width = width.div_ceil(2);
+            height = height.div_ceil(2);
+            self.compute_barrier(cmd);
+            let mut push = self.push(view_proj, view, CULL_PHASE_PYRAMID, CullList::Early);
+            push.want = level;
+            self.dispatch(cmd, v.lists[0].set, &push, width * height);
+        }
+        self.compute_barrier(cmd);
+        let push = self.push(view_proj, view, CULL_PHASE_OCCLUSION, CullList::Early);
+        self.dispatch(cmd, v.lists[0].set, &push, self.mesh_count);
+        self.emit(cmd, view_proj, view, &[CullList::Late, CullList::Unoccluded]);
+        self.copy_statistics(cmd, view);
+        self.timer.end(cmd, query);
+        target.resume(&self.device, cmd);
+    }
+
+    fn copy_statistics(&self, cmd: vk::CommandBuffer, view: CullView) {
+        let size = std::mem::size_of::<CullCounter>() as u64;
+        let readback = &self.readback[self.slot() as usize];
+        // The host read the slot's last statistics before its frame was recorded again.
+        for (l, list) in self.views[view as usize].lists.iter().enumerate() {
+            let region = vk::BufferCopy {
+                src_offset: 0,
+                dst_offset: (view as u64 * CullList::ALL.len() as u64 + l as u64) * size,
+                size,
+            };
+            // SAFETY: both buffers hold the region; cmd is recording outside rendering.
+            unsafe {
+                self.device
+                    .raw()
+                    .cmd_copy_buffer(cmd, list.counter.raw(), readback.raw(), &[region])
+            };
+        }
+        memory_barrier(
+            &self.device,
+            cmd,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+        );
+    }
+
+    /// Records `list` of `view`'s draws with the bound graphics pipeline, index and
+    /// vertex buffers (inside rendering).
+    pub(crate) fn draw(&self, cmd: vk::CommandBuffer, view: CullView, list: CullList) {
+        let l = &self.views[view as usize].lists[list as usize];
+        let raw = self.device.raw();
+        if self.indirect_count {
+            // SAFETY: the draws and the count were written by this frame's culling, behind a
+            // barrier to DRAW_INDIRECT; every draw indexes the bound city index buffer.
+            unsafe {
+                raw.cmd_draw_indexed_indirect_count(
+                    cmd,
+                    l.draws.raw(),
+                    0,
+                    l.counter.raw(),
+                    0,
+                    self.capacity,
+                    DRAW_STRIDE,
+                )
+            };
+        } else {
+            // SAFETY: as above; draws past the count were cleared to zero indices.
+            unsafe { raw.cmd_draw_indexed_indirect(cmd, l.draws.raw(), 0, self.capacity, DRAW_STRIDE) };
+        }
+    }
+
+    /// The statistics of the frame recorded into `slot`, once its submission completed.
+    pub(crate) fn stats(&self, slot: u32) -> Result<CullStats> {
+        let readback = self.readback.get(slot as usize).ok_or_else(|| {
+            EngineError::InvalidRequest(format!("culling slot {slot} of {} slots", self.readback.len()))
+        })?;
+        let counters = readback.read::<CullCounter>(0, self.views.len() * CullList::ALL.len())?;
+        let at = |view: CullView, list: CullList| counters[view as usize * CullList::ALL.len() + list as usize];
+        let early = at(CullView::Visible, CullList::Early);
+        let late = at(CullView::Visible, CullList::Late);
+        let meshes_drawn = early.meshes + late.meshes;
+        let mut cull_ms = None;
+        for view in [CullView::Feedback, CullView::Visible] {
+            for segment in 0..2 {
+                let query = (slot * 2 + view as u32) * 2 + segment;
+                if let Some(ms) = self.timer.read_ms(query)? {
+                    cull_ms.get_or_insert([0.0; 2])[view as usize] += ms;
+                }
+            }
+        }
+        Ok(CullStats {
+            meshes_drawn,
+            meshes_culled: self.mesh_count.saturating_sub(meshes_drawn),
+            feedback_meshes_drawn: at(CullView::Feedback, CullList::Unoccluded).meshes,
+            draws: early.draws + late.draws,
+            cull_ms,
+        })
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bounds_cover_each_meshs_positions_and_leave_non_finite_meshes_unbounded() {
+        let positions = [
+            (0, [1.0, 2.0, 3.0]),
+            (0, [-1.0, 5.0, 0.0]),
+            (1, [0.0, f32::NAN, 0.0]),
+            (1, [4.0, 4.0, 4.0]),
+            (7, [9.0, 9.0, 9.0]),
+        ];
+        let bounds = mesh_bounds(positions.into_iter(), 3);
+        assert_eq!(bounds[0].low, [-1.0, 2.0, 0.0, 0.0]);
+        assert_eq!(bounds[0].high, [1.0, 5.0, 3.0, 0.0]);
+        assert_eq!(bounds[1].low[3], 1.0, "a NaN position makes the mesh unbounded");
+        // A mesh with no vertex has an empty box; its index count (0) keeps it undrawn.
+        assert!(bounds[2].low[0] > bounds[2].high[0]);
+    }
+
+    #[test]
+    fn lists_partition_the_unoccluded_meshes_into_early_and_late() {
+        // Every combination of the three flags: early + late covers the unoccluded
+        // meshes exactly once, whatever was visible last frame.
+        for flags in 0..8u32 {
+            let listed = |list: CullList| {
+                let (mask, want) = list.predicate();
+                flags & mask == want
+            };
+            let in_frustum = flags & CULL_IN_FRUSTUM != 0;
+            let unoccluded = in_frustum && flags & CULL_UNOCCLUDED != 0;
+            assert_eq!(listed(CullList::Unoccluded), unoccluded, "flags {flags:03b}");
+            assert!(
+                !(listed(CullList::Early) && listed(CullList::Late)),
+                "flags {flags:03b}"
+            );
+            if unoccluded {
+                assert!(listed(CullList::Early) || listed(CullList::Late), "flags {flags:03b}");
+            }
+            assert!(!listed(CullList::Early) || in_frustum);
+        }
+    }
+}

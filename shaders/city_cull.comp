@@ -1,0 +1,262 @@
+#version 460
+#extension GL_GOOGLE_include_directive : require
+#include "citystream.glsl"
+
+// GPU culling of the city's meshes (engine/src/cull.rs), in phases chosen by
+// push.phase, one dispatch each:
+//   FRUSTUM    per mesh: CULL_IN_FRUSTUM from its bounds, CULL_PREVIOUS from last frame's CULL_NEXT;
+//   OCCLUSION  per mesh in the frustum: CULL_UNOCCLUDED (and CULL_NEXT) against the depth pyramid;
+//   COUNT      per chunk of CULL_CHUNK meshes: the runs of consecutive listed meshes it starts,
+//              and the meshes listed;
+//   SCAN       one workgroup: each chunk's first run (exclusive prefix sum), the draw count;
+//   EMIT       per chunk: a run's start writes its draw, its end completes the index count;
+//   PYRAMID    per texel of one level of the depth pyramid, from the level below.
+// A list is the meshes whose flags match (mask, want). Its draws follow mesh order, so the
+// culled passes rasterise in the order of the single unculled draw; a run of consecutive
+// listed meshes is one draw, since their indices are contiguous in the city's index buffer.
+layout(local_size_x = 256) in;
+
+layout(std430, set = 0, binding = BINDING_CULL_BOUNDS) readonly buffer Bounds { MeshBounds bounds[]; };
+layout(std430, set = 0, binding = BINDING_CULL_RANGES) readonly buffer Ranges { uvec2 ranges[]; };
+layout(std430, set = 0, binding = BINDING_CULL_FLAGS) buffer Flags { uint flags[]; };
+layout(std430, set = 0, binding = BINDING_CULL_GROUPS) buffer Groups { uint group_runs[]; };
+layout(std430, set = 0, binding = BINDING_CULL_DRAWS) buffer Draws { uint draws[]; };
+layout(std430, set = 0, binding = BINDING_CULL_COUNTER) buffer Counter { CullCounter counter; };
+layout(std430, set = 0, binding = BINDING_CULL_PYRAMID) buffer Pyramid { float pyramid[]; };
+layout(push_constant) uniform Push { CullPush push; };
+
+// Relative slack of the plane and depth tests: the vertex stage computes the same
+// products in another order, so a vertex on a boundary may land a rounding step outside.
+const float SLACK = 1.0 / 4096.0;
+// Absolute slack of the depth test: depth near 1 has ulps of 6e-8, and distant
+// buildings differ by 1e-5 in depth, so a relative slack would keep them all.
+const float DEPTH_SLACK = 1.0 / 262144.0;
+
+shared uint partial[256];
+
+uint group_index() {
+    return gl_WorkGroupID.x + gl_WorkGroupID.y * gl_NumWorkGroups.x;
+}
+
+uvec2 level_size(uint level) {
+    uvec2 size = push.pyramid.xy;
+    for (uint l = 0u; l < level; ++l) {
+        size = (size + 1u) >> 1u;
+    }
+    return size;
+}
+
+uint level_offset(uint level) {
+    uvec2 size = push.pyramid.xy;
+    uint offset = 0u;
+    for (uint l = 0u; l < level; ++l) {
+        offset += size.x * size.y;
+        size = (size + 1u) >> 1u;
+    }
+    return offset;
+}
+
+float pyramid_texel(uint offset, uvec2 size, uvec2 texel) {
+    return pyramid[offset + min(texel.y, size.y - 1u) * size.x + min(texel.x, size.x - 1u)];
+}
+
+vec4 corner(MeshBounds b, uint k) {
+    vec3 p = vec3((k & 1u) != 0u ? b.high.x : b.low.x,
+                  (k & 2u) != 0u ? b.high.y : b.low.y,
+                  (k & 4u) != 0u ? b.high.z : b.low.z);
+    return push.view_proj * vec4(p, 1.0);
+}
+
+// Whether the box can contribute a fragment: false only when every corner lies outside
+// one of the clip volume's six planes (Vulkan: -w <= x, y <= w, 0 <= z <= w).
+bool in_frustum(MeshBounds b) {
+    if (b.low.w != 0.0) {
+        return true;
+    }
+    bool left = true, right = true, bottom = true, top = true, near = true, far = true;
+    for (uint k = 0u; k < 8u; ++k) {
+        vec4 c = corner(b, k);
+        float slack = SLACK * (abs(c.x) + abs(c.y) + abs(c.z) + abs(c.w));
+        left = left && c.x < -c.w - slack;
+        right = right && c.x > c.w + slack;
+        bottom = bottom && c.y < -c.w - slack;
+        top = top && c.y > c.w + slack;
+        near = near && c.z < -slack;
+        far = far && c.z > c.w + slack;
+    }
+    return !(left || right || bottom || top || near || far);
+}
+
+// Whether the box may be in front of the depth the pyramid holds: false only when its
+// nearest point lies behind the farthest depth of every pixel its projection may cover.
+bool unoccluded(MeshBounds b) {
+    if (b.low.w != 0.0) {
+        return true;
+    }
+    vec2 low = vec2(1e30);
+    vec2 high = vec2(-1e30);
+    float nearest = 1.0;
+    for (uint k = 0u; k < 8u; ++k) {
+        vec4 c = corner(b, k);
+        // A corner at or behind the eye: the projection is unbounded, no test.
+        if (c.w <= 1e-6 * (abs(c.x) + abs(c.y) + abs(c.z)) || c.w <= 0.0) {
+            return true;
+        }
+        vec3 ndc = c.xyz / c.w;
+        low = min(low, ndc.xy);
+        high = max(high, ndc.xy);
+        nearest = min(nearest, ndc.z);
+    }
+    vec2 size = vec2(push.pyramid.xy);
+    // Pixels whose centres the projection may cover, a pixel wider each way for rounding.
+    uvec2 first = uvec2(clamp(floor((low * 0.5 + 0.5) * size) - 1.0, vec2(0.0), size - 1.0));
+    uvec2 last = uvec2(clamp(floor((high * 0.5 + 0.5) * size) + 1.0, vec2(0.0), size - 1.0));
+    // The finest level at which the rectangle spans at most 5 x 5 texels: coarser levels
+    // mix in the far depth (sky) beside a mesh and cull less.
+    uint level = 0u;
+    while (level + 1u < push.pyramid.z && (((last.x >> level) - (first.x >> level)) > 4u || ((last.y >> level) - (first.y >> level)) > 4u)) {
+        ++level;
+    }
+    uint offset = level_offset(level);
+    uvec2 texels = level_size(level);
+    float farthest = 0.0;
+    for (uint y = first.y >> level; y <= (last.y >> level); ++y) {
+        for (uint x = first.x >> level; x <= (last.x >> level); ++x) {
+            farthest = max(farthest, pyramid_texel(offset, texels, uvec2(x, y)));
+        }
+    }
+    return nearest - DEPTH_SLACK <= farthest;
+}
+
+bool listed(uint i) {
+    return i < push.mesh_count && (flags[i] & push.mask) == push.want;
+}
+
+// Inclusive prefix sum of partial[] over the workgroup (Hillis-Steele).
+void scan_partial(uint local) {
+    for (uint offset = 1u; offset < 256u; offset <<= 1u) {
+        barrier();
+        uint add = local >= offset ? partial[local - offset] : 0u;
+        barrier();
+        partial[local] += add;
+    }
+    barrier();
+}
+
+void main() {
+    uint local = gl_LocalInvocationID.x;
+    uint group = group_index();
+    uint i = group * 256u + local;
+    if (push.phase == CULL_PHASE_FRUSTUM) {
+        if (i < push.mesh_count) {
+            uint previous = (flags[i] & CULL_NEXT) != 0u ? CULL_PREVIOUS : 0u;
+            bool drawable = ranges[i].y != 0u && in_frustum(bounds[i]);
+            flags[i] = previous | (drawable ? CULL_IN_FRUSTUM : 0u);
+        }
+    } else if (push.phase == CULL_PHASE_OCCLUSION) {
+        if (i < push.mesh_count) {
+            uint f = flags[i] & (CULL_PREVIOUS | CULL_IN_FRUSTUM);
+            if ((f & CULL_IN_FRUSTUM) != 0u && unoccluded(bounds[i])) {
+                f |= CULL_UNOCCLUDED | CULL_NEXT;
+            }
+            flags[i] = f;
+        }
+    } else if (push.phase == CULL_PHASE_COUNT) {
+        // One invocation per chunk of CULL_CHUNK meshes, in order: no workgroup barriers,
+        // which a CPU rasteriser pays for dearly.
+        uint chunk = i;
+        uint begin = chunk * CULL_CHUNK;
+        if (chunk >= push.group_count || begin >= push.mesh_count) {
+            return;
+        }
+        uint end = min(begin + CULL_CHUNK, push.mesh_count);
+        bool previous = begin > 0u && listed(begin - 1u);
+        uint runs = 0u;
+        uint meshes = 0u;
+        for (uint m = begin; m < end; ++m) {
+            bool in_list = listed(m);
+            runs += (in_list && !previous) ? 1u : 0u;
+            meshes += in_list ? 1u : 0u;
+            previous = in_list;
+        }
+        group_runs[chunk] = runs;
+        if (meshes > 0u) {
+            atomicAdd(counter.meshes, meshes);
+        }
+    } else if (push.phase == CULL_PHASE_SCAN) {
+        // One workgroup: thread t sums a contiguous chunk of groups, the chunks' sums are
+        // scanned, and each thread rewrites its chunk as first runs.
+        uint chunk = (push.group_count + 255u) / 256u;
+        uint begin = min(local * chunk, push.group_count);
+        uint end = min(begin + chunk, push.group_count);
+        uint sum = 0u;
+        for (uint g = begin; g < end; ++g) {
+            sum += group_runs[g];
+        }
+        partial[local] = sum;
+        scan_partial(local);
+        uint run = partial[local] - sum;
+        for (uint g = begin; g < end; ++g) {
+            uint runs = group_runs[g];
+            group_runs[g] = run;
+            run += runs;
+        }
+        if (local == 255u) {
+            counter.runs = partial[255];
+            counter.draws = min(partial[255], push.capacity);
+        }
+    } else if (push.phase == CULL_PHASE_PYRAMID) {
+        uint level = push.want;
+        uvec2 size = level_size(level);
+        if (i < size.x * size.y) {
+            uvec2 texel = uvec2(i % size.x, i / size.x);
+            uvec2 below = level_size(level - 1u);
+            uint from = level_offset(level - 1u);
+            uvec2 base = texel * 2u;
+            // The texels below, clamped to their level: the odd edge reads its own texel twice.
+            float farthest = max(max(pyramid_texel(from, below, base),
+                                     pyramid_texel(from, below, base + uvec2(1u, 0u))),
+                                 max(pyramid_texel(from, below, base + uvec2(0u, 1u)),
+                                     pyramid_texel(from, below, base + uvec2(1u, 1u))));
+            pyramid[from + below.x * below.y + i] = farthest;
+        }
+    } else {
+        uint chunk = i;
+        uint begin = chunk * CULL_CHUNK;
+        if (chunk >= push.group_count || begin >= push.mesh_count) {
+            return;
+        }
+        uint end = min(begin + CULL_CHUNK, push.mesh_count);
+        uint last_slot = push.capacity - 1u;
+        uint total = counter.runs;
+        // Runs started before this chunk; a run continuing into it is the last of them.
+        uint started = group_runs[chunk];
+        bool previous = begin > 0u && listed(begin - 1u);
+        bool in_list = listed(begin);
+        for (uint m = begin; m < end; ++m) {
+            bool next = listed(m + 1u);
+            if (in_list) {
+                bool starts = !previous;
+                started += starts ? 1u : 0u;
+                uint run = started - 1u;
+                uvec2 range = ranges[m];
+                if (starts && run <= last_slot) {
+                    uint d = run * 5u;
+                    draws[d + 1u] = 1u;          // instanceCount
+                    draws[d + 2u] = range.x;     // firstIndex
+                    draws[d + 3u] = 0u;          // vertexOffset
+                    draws[d + 4u] = 0u;          // firstInstance
+                    atomicAdd(draws[d], 0u - range.x);
+                }
+                // indexCount = end - first, added by the run's two ends in either order.
+                // Runs past the capacity merge into the last draw: it ends where the
+                // list's last run ends.
+                if (!next && (run < last_slot || run + 1u == total)) {
+                    atomicAdd(draws[min(run, last_slot) * 5u], range.x + range.y);
+                }
+            }
+            previous = in_list;
+            in_list = next;
+        }
+    }
+}
