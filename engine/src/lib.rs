@@ -10,7 +10,8 @@
 //! feedback array, its compaction and read-back).
 //!
 //! The engine's own passes: [`city`] (depth pre-pass, feedback and visible
-//! pass of a streamed city), [`atlas_tree`] (the texture-atlas tree's visible
+//! pass of a streamed city), [`cull`] (GPU culling of those passes: frustum and
+//! depth-pyramid tests in two phases, draws compacted in mesh order), [`atlas_tree`] (the texture-atlas tree's visible
 //! pass), [`ground`] (the flexible clipmap's tile array and ground pass),
 //! [`scene`] and [`placeholder`] (fully resident meshes and the procedural
 //! city), [`probe`] (what the GPU reads from a sparse image, for tests).
