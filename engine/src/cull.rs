@@ -129,10 +129,14 @@ struct ViewBuffers {
     lists: Vec<ListBuffers>,
 }
 
-/// Which slot's statistics and timestamps the next recordings write.
+/// Which slot's statistics and timestamps the next recordings write, and what each
+/// slot's last frame wrote (a pass not recorded, such as the feedback view of a strategy
+/// without feedback, has no timestamps or statistics to read).
 #[derive(Debug, Default)]
 struct Recording {
     slot: u32,
+    /// Per slot: bit `view * 2 + segment` for timestamps, bit `4 + view` for statistics.
+    written: Vec<u8>,
 }
 
 /// GPU culling state of a [`crate::city::CityRenderer`]: mesh bounds and index ranges,
@@ -350,7 +354,10 @@ impl CityCulling {
             indirect_count: indirect.count,
             readback,
             timer,
-            recording: Mutex::new(Recording::default()),
+            recording: Mutex::new(Recording {
+                slot: 0,
+                written: vec![0; slots as usize],
+            }),
         };
         for view in [CullView::Feedback, CullView::Visible] {
             culling.write_sets(view);
@@ -444,8 +451,16 @@ impl CityCulling {
                 self.readback.len()
             )));
         }
-        lock(&self.recording).slot = slot;
+        let mut recording = lock(&self.recording);
+        recording.slot = slot;
+        recording.written[slot as usize] = 0;
         Ok(())
+    }
+
+    fn mark_written(&self, bit: u32) {
+        let mut recording = lock(&self.recording);
+        let slot = recording.slot as usize;
+        recording.written[slot] |= 1 << bit;
     }
 
     fn slot(&self) -> u32 {
@@ -490,8 +505,11 @@ impl CityCulling {
         memory_barrier(
             &self.device,
             cmd,
+            // Fills count as copies to the validation layer, as clears to the spec.
             (
-                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::CLEAR,
+                vk::PipelineStageFlags2::COMPUTE_SHADER
+                    | vk::PipelineStageFlags2::CLEAR
+                    | vk::PipelineStageFlags2::COPY,
                 vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
             ),
             (
@@ -505,15 +523,23 @@ impl CityCulling {
     fn emit(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView, lists: &[CullList]) {
         let v = &self.views[view as usize];
         let raw = self.device.raw();
-        // The last frame's draws read these buffers before they are cleared.
+        // The last frame's draws and copies read these buffers, and earlier dispatches
+        // bound them, before they are cleared.
         memory_barrier(
             &self.device,
             cmd,
             (
-                vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::TRANSFER_READ,
+                vk::PipelineStageFlags2::DRAW_INDIRECT
+                    | vk::PipelineStageFlags2::COPY
+                    | vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::INDIRECT_COMMAND_READ
+                    | vk::AccessFlags2::TRANSFER_READ
+                    | vk::AccessFlags2::SHADER_WRITE,
             ),
-            (vk::PipelineStageFlags2::CLEAR, vk::AccessFlags2::TRANSFER_WRITE),
+            (
+                vk::PipelineStageFlags2::CLEAR | vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::TRANSFER_WRITE,
+            ),
         );
         for &list in lists {
             let l = &v.lists[list as usize];
@@ -564,6 +590,7 @@ impl CityCulling {
         self.dispatch(cmd, v.lists[0].set, &push, self.mesh_count);
         self.emit(cmd, view_proj, view, &[CullList::Early]);
         self.timer.end(cmd, query);
+        self.mark_written(view as u32 * 2);
     }
 
     /// The late phase of `view`, after its early draws: pyramid from `target`'s depth
@@ -593,6 +620,8 @@ impl CityCulling {
         self.emit(cmd, view_proj, view, &[CullList::Late, CullList::Unoccluded]);
         self.copy_statistics(cmd, view);
         self.timer.end(cmd, query);
+        self.mark_written(view as u32 * 2 + 1);
+        self.mark_written(4 + view as u32);
         target.resume(&self.device, cmd);
     }
 
@@ -651,14 +680,26 @@ impl CityCulling {
         let readback = self.readback.get(slot as usize).ok_or_else(|| {
             EngineError::InvalidRequest(format!("culling slot {slot} of {} slots", self.readback.len()))
         })?;
+        let written = lock(&self.recording).written[slot as usize];
         let counters = readback.read::<CullCounter>(0, self.views.len() * CullList::ALL.len())?;
-        let at = |view: CullView, list: CullList| counters[view as usize * CullList::ALL.len() + list as usize];
+        let at = |view: CullView, list: CullList| {
+            let copied = written & (1 << (4 + view as u32)) != 0;
+            let counter = counters[view as usize * CullList::ALL.len() + list as usize];
+            if copied {
+                counter
+            } else {
+                CullCounter::default()
+            }
+        };
         let early = at(CullView::Visible, CullList::Early);
         let late = at(CullView::Visible, CullList::Late);
         let meshes_drawn = early.meshes + late.meshes;
         let mut cull_ms = None;
         for view in [CullView::Feedback, CullView::Visible] {
             for segment in 0..2 {
+                if written & (1 << (view as u32 * 2 + segment)) == 0 {
+                    continue;
+                }
                 let query = (slot * 2 + view as u32) * 2 + segment;
                 if let Some(ms) = self.timer.read_ms(query)? {
                     cull_ms.get_or_insert([0.0; 2])[view as usize] += ms;

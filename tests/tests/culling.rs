@@ -3,7 +3,8 @@
 //! equals the feedback without it (same meshes, same levels, same weights), and the
 //! visible images are identical but where two surfaces tie in depth (counted, under
 //! 0.01 % of pixels). Each culled view follows another view, so its early phase draws a
-//! stale set: the late phase must make up for it. Validation on; any message fails.
+//! stale set: the late phase must make up for it. Synchronization validation on; any
+//! message fails.
 
 use anyhow::{ensure, Result};
 use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
@@ -14,7 +15,7 @@ use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_streaming::dataset::TextureFormat;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_no_validation_errors, sync_validated_device};
 use glam::Vec3;
 
 const BLOCKS: u32 = 10;
@@ -153,7 +154,7 @@ struct Rendered {
 fn culling_keeps_the_feedback_and_the_image_of_104_views() -> Result<()> {
     let (vertices, indices, meshes, extents) = city();
     let mesh_count = meshes.len() as u32;
-    let device = validated_device()?;
+    let device = sync_validated_device()?;
     let mut commands = CommandContext::new(&device, "culling test")?;
     let colormap: Vec<[u8; 4]> = (0..TEXTURES)
         .map(|t| {

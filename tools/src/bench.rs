@@ -424,12 +424,11 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             run.args.extend(["--strategy".to_string(), strategy.name().to_string()]);
         }
     }
-    let culling = match args.culling {
-        CullingArg::On => "on",
-        CullingArg::Off => "off",
-    };
-    for run in &mut runs {
-        run.args.extend(["--culling".to_string(), culling.to_string()]);
+    // On is the flythrough's default: only off is passed.
+    if args.culling == CullingArg::Off {
+        for run in &mut runs {
+            run.args.extend(["--culling".to_string(), "off".to_string()]);
+        }
     }
     let settings = RunSettings::of(args);
     let total = runs.len();
