@@ -4,8 +4,10 @@
 
 // GPU culling of the city's meshes (engine/src/cull.rs), in phases chosen by
 // push.phase, one dispatch each:
-//   FRUSTUM    per mesh: CULL_IN_FRUSTUM from its bounds, CULL_PREVIOUS from last frame's CULL_NEXT;
-//   OCCLUSION  per mesh in the frustum: CULL_UNOCCLUDED (and CULL_NEXT) against the depth pyramid;
+//   FRUSTUM    per chunk of CULL_CHUNK meshes (its box, then each mesh's): CULL_IN_FRUSTUM,
+//              and CULL_PREVIOUS from last frame's CULL_NEXT;
+//   OCCLUSION  per chunk (its box, then each mesh's in the frustum): CULL_UNOCCLUDED and
+//              CULL_NEXT against the depth pyramid;
 //   COUNT      per chunk of CULL_CHUNK meshes: the runs of consecutive listed meshes it starts,
 //              and the meshes listed;
 //   SCAN       one workgroup: each chunk's first run (exclusive prefix sum), the draw count;
@@ -17,8 +19,10 @@
 layout(local_size_x = 256) in;
 
 layout(std430, set = 0, binding = BINDING_CULL_BOUNDS) readonly buffer Bounds { MeshBounds bounds[]; };
+layout(std430, set = 0, binding = BINDING_CULL_CHUNK_BOUNDS) readonly buffer ChunkBounds { MeshBounds chunk_bounds[]; };
 layout(std430, set = 0, binding = BINDING_CULL_RANGES) readonly buffer Ranges { uvec2 ranges[]; };
 layout(std430, set = 0, binding = BINDING_CULL_FLAGS) buffer Flags { uint flags[]; };
+layout(std430, set = 0, binding = BINDING_CULL_CHUNK_FLAGS) buffer ChunkFlags { uint chunk_in_frustum[]; };
 layout(std430, set = 0, binding = BINDING_CULL_GROUPS) buffer Groups { uint group_runs[]; };
 layout(std430, set = 0, binding = BINDING_CULL_DRAWS) buffer Draws { uint draws[]; };
 layout(std430, set = 0, binding = BINDING_CULL_COUNTER) buffer Counter { CullCounter counter; };
@@ -31,6 +35,8 @@ const float SLACK = 1.0 / 4096.0;
 // Absolute slack of the depth test: depth near 1 has ulps of 6e-8, and distant
 // buildings differ by 1e-5 in depth, so a relative slack would keep them all.
 const float DEPTH_SLACK = 1.0 / 262144.0;
+// Slack of the pixel footprint: rasterisers snap vertices to 1/256 pixel or finer.
+const float PIXEL_SLACK = 1.0 / 16.0;
 
 shared uint partial[256];
 
@@ -108,9 +114,15 @@ bool unoccluded(MeshBounds b) {
         nearest = min(nearest, ndc.z);
     }
     vec2 size = vec2(push.pyramid.xy);
-    // Pixels whose centres the projection may cover, a pixel wider each way for rounding.
-    uvec2 first = uvec2(clamp(floor((low * 0.5 + 0.5) * size) - 1.0, vec2(0.0), size - 1.0));
-    uvec2 last = uvec2(clamp(floor((high * 0.5 + 0.5) * size) + 1.0, vec2(0.0), size - 1.0));
+    // Pixels whose centres the projection may cover (a sixteenth of a pixel wider each
+    // way for rounding); none: the box cannot produce a fragment.
+    vec2 lowest = max(ceil((low * 0.5 + 0.5) * size - 0.5 - PIXEL_SLACK), vec2(0.0));
+    vec2 highest = min(floor((high * 0.5 + 0.5) * size - 0.5 + PIXEL_SLACK), size - 1.0);
+    if (any(greaterThan(lowest, highest))) {
+        return false;
+    }
+    uvec2 first = uvec2(lowest);
+    uvec2 last = uvec2(highest);
     // The finest level at which the rectangle spans at most 5 x 5 texels: coarser levels
     // mix in the far depth (sky) beside a mesh and cull less.
     uint level = 0u;
@@ -128,8 +140,10 @@ bool unoccluded(MeshBounds b) {
     return nearest - DEPTH_SLACK <= farthest;
 }
 
+// Every list requires CULL_IN_FRUSTUM, so a chunk outside the frustum lists nothing and
+// its meshes' flags (left as they were) are not read.
 bool listed(uint i) {
-    return i < push.mesh_count && (flags[i] & push.mask) == push.want;
+    return i < push.mesh_count && chunk_in_frustum[i / CULL_CHUNK] != 0u && (flags[i] & push.mask) == push.want;
 }
 
 // Inclusive prefix sum of partial[] over the workgroup (Hillis-Steele).
@@ -148,18 +162,48 @@ void main() {
     uint group = group_index();
     uint i = group * 256u + local;
     if (push.phase == CULL_PHASE_FRUSTUM) {
-        if (i < push.mesh_count) {
-            uint previous = (flags[i] & CULL_NEXT) != 0u ? CULL_PREVIOUS : 0u;
-            bool drawable = ranges[i].y != 0u && in_frustum(bounds[i]);
-            flags[i] = previous | (drawable ? CULL_IN_FRUSTUM : 0u);
+        // One invocation per chunk: the chunk's box first, so chunks outside the view
+        // cost one test instead of CULL_CHUNK.
+        uint chunk = i;
+        uint begin = chunk * CULL_CHUNK;
+        if (chunk >= push.group_count || begin >= push.mesh_count) {
+            return;
+        }
+        uint end = min(begin + CULL_CHUNK, push.mesh_count);
+        bool chunk_in = in_frustum(chunk_bounds[chunk]);
+        chunk_in_frustum[chunk] = chunk_in ? 1u : 0u;
+        if (!chunk_in) {
+            // Its meshes keep last frame's CULL_NEXT until the chunk returns to view: a
+            // stale early set costs draws, never correctness.
+            return;
+        }
+        for (uint m = begin; m < end; ++m) {
+            uint previous = (flags[m] & CULL_NEXT) != 0u ? CULL_PREVIOUS : 0u;
+            bool drawable = ranges[m].y != 0u && in_frustum(bounds[m]);
+            flags[m] = previous | (drawable ? CULL_IN_FRUSTUM : 0u);
         }
     } else if (push.phase == CULL_PHASE_OCCLUSION) {
-        if (i < push.mesh_count) {
-            uint f = flags[i] & (CULL_PREVIOUS | CULL_IN_FRUSTUM);
-            if ((f & CULL_IN_FRUSTUM) != 0u && unoccluded(bounds[i])) {
+        uint chunk = i;
+        uint begin = chunk * CULL_CHUNK;
+        if (chunk >= push.group_count || begin >= push.mesh_count) {
+            return;
+        }
+        if (chunk_in_frustum[chunk] == 0u) {
+            return;
+        }
+        uint end = min(begin + CULL_CHUNK, push.mesh_count);
+        bool any_in_frustum = false;
+        for (uint m = begin; m < end; ++m) {
+            any_in_frustum = any_in_frustum || (flags[m] & CULL_IN_FRUSTUM) != 0u;
+        }
+        // A chunk whose box is hidden hides every mesh box inside it.
+        bool chunk_visible = any_in_frustum && unoccluded(chunk_bounds[chunk]);
+        for (uint m = begin; m < end; ++m) {
+            uint f = flags[m] & (CULL_PREVIOUS | CULL_IN_FRUSTUM);
+            if (chunk_visible && (f & CULL_IN_FRUSTUM) != 0u && unoccluded(bounds[m])) {
                 f |= CULL_UNOCCLUDED | CULL_NEXT;
             }
-            flags[i] = f;
+            flags[m] = f;
         }
     } else if (push.phase == CULL_PHASE_COUNT) {
         // One invocation per chunk of CULL_CHUNK meshes, in order: no workgroup barriers,
@@ -167,6 +211,10 @@ void main() {
         uint chunk = i;
         uint begin = chunk * CULL_CHUNK;
         if (chunk >= push.group_count || begin >= push.mesh_count) {
+            return;
+        }
+        if (chunk_in_frustum[chunk] == 0u) {
+            group_runs[chunk] = 0u;
             return;
         }
         uint end = min(begin + CULL_CHUNK, push.mesh_count);
@@ -182,6 +230,7 @@ void main() {
         group_runs[chunk] = runs;
         if (meshes > 0u) {
             atomicAdd(counter.meshes, meshes);
+            atomicAdd(counter.drawn, meshes);
         }
     } else if (push.phase == CULL_PHASE_SCAN) {
         // One workgroup: thread t sums a contiguous chunk of groups, the chunks' sums are
@@ -223,7 +272,7 @@ void main() {
     } else {
         uint chunk = i;
         uint begin = chunk * CULL_CHUNK;
-        if (chunk >= push.group_count || begin >= push.mesh_count) {
+        if (chunk >= push.group_count || begin >= push.mesh_count || chunk_in_frustum[chunk] == 0u) {
             return;
         }
         uint end = min(begin + CULL_CHUNK, push.mesh_count);

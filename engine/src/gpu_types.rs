@@ -84,6 +84,10 @@ pub const BINDING_CULL_DRAWS: u32 = 26;
 pub const BINDING_CULL_COUNTER: u32 = 27;
 /// Binding of a view's depth pyramid (levels packed, farthest depth per texel).
 pub const BINDING_CULL_PYRAMID: u32 = 28;
+/// Binding of the culling pass's chunk bounds (one [`MeshBounds`] per 64 meshes).
+pub const BINDING_CULL_CHUNK_BOUNDS: u32 = 29;
+/// Binding of the culling pass's per-chunk frustum results (one per view).
+pub const BINDING_CULL_CHUNK_FLAGS: u32 = 30;
 
 /// Culling phases (`CullPush::phase`), as in `city_cull.comp`.
 pub const CULL_PHASE_FRUSTUM: u32 = 0;
@@ -151,8 +155,8 @@ pub struct CullCounter {
     pub runs: u32,
     /// Meshes listed.
     pub meshes: u32,
-    /// Padding.
-    pub pad0: u32,
+    /// Meshes the draws cover, but for the meshes between runs merged past the capacity.
+    pub drawn: u32,
 }
 
 /// Binding of the cache images in passes that sample city textures: an
@@ -624,6 +628,8 @@ mod tests {
             ("BINDING_CULL_DRAWS", BINDING_CULL_DRAWS),
             ("BINDING_CULL_COUNTER", BINDING_CULL_COUNTER),
             ("BINDING_CULL_PYRAMID", BINDING_CULL_PYRAMID),
+            ("BINDING_CULL_CHUNK_BOUNDS", BINDING_CULL_CHUNK_BOUNDS),
+            ("BINDING_CULL_CHUNK_FLAGS", BINDING_CULL_CHUNK_FLAGS),
         ];
         assert_eq!(
             defines.len(),
@@ -808,7 +814,7 @@ mod tests {
                 ("draws", offset_of!(CullCounter, draws)),
                 ("runs", offset_of!(CullCounter, runs)),
                 ("meshes", offset_of!(CullCounter, meshes)),
-                ("pad0", offset_of!(CullCounter, pad0)),
+                ("drawn", offset_of!(CullCounter, drawn)),
             ],
             size_of::<CullCounter>(),
         );

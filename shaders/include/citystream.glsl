@@ -52,6 +52,8 @@
 #define BINDING_CULL_PYRAMID 28       // float[]: the view's depth pyramid, levels packed from level 0 (the depth
                                       // target itself, row by row); each level halves, rounding up, and holds the
                                       // farthest depth of the texels below it
+#define BINDING_CULL_CHUNK_BOUNDS 29  // MeshBounds[], one per chunk of CULL_CHUNK meshes: the union of their boxes
+#define BINDING_CULL_CHUNK_FLAGS 30   // uint[], one per chunk and view: whether its box meets the frustum
 
 // Per-mesh bits of BINDING_CULL_FLAGS.
 #define CULL_PREVIOUS 1u              // passed the occlusion test last frame (drawn in the early phase)
@@ -93,7 +95,7 @@ struct CullCounter {
     uint draws;             // min(runs, capacity)
     uint runs;              // maximal runs of consecutive meshes in the list
     uint meshes;            // meshes in the list
-    uint pad0;
+    uint drawn;             // meshes its draws cover, but for the meshes between runs merged past the capacity
 };
 
 // Push constants of the ground pass: one quad over the imagery's area.

@@ -295,6 +295,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         meshes_drawn,
         meshes_culled,
         feedback_meshes_drawn: culled_stats(|c| c.feedback_meshes_drawn),
+        meshes_passed: culled_stats(|c| c.meshes_passed),
         cull_draws: culled_stats(|c| c.draws),
         meshes_seen_by_feedback: Stats::from_samples(&meshes_seen),
         draw_calls: Stats::from_samples(&draw_call_samples),

@@ -26,6 +26,9 @@ pub(crate) struct Run<'a> {
     pub(crate) meshes_culled: Stats,
     /// Per frame: meshes the feedback pass drew after its depth pre-pass (culling on).
     pub(crate) feedback_meshes_drawn: Option<Stats>,
+    /// Per frame: meshes that passed the visible view's frustum and occlusion tests
+    /// (culling on).
+    pub(crate) meshes_passed: Option<Stats>,
     /// Per frame: indirect draws of the visible pass, one per run of consecutive meshes
     /// (culling on; off, it is one draw).
     pub(crate) cull_draws: Option<Stats>,
