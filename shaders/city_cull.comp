@@ -8,14 +8,14 @@
 //              and CULL_PREVIOUS from last frame's CULL_NEXT;
 //   OCCLUSION  per chunk (its box, then each mesh's in the frustum): CULL_UNOCCLUDED and
 //              CULL_NEXT against the depth pyramid;
-//   COUNT      per chunk of CULL_CHUNK meshes: the runs of consecutive listed meshes it starts,
-//              and the meshes listed;
-//   SCAN       one workgroup: each chunk's first run (exclusive prefix sum), the draw count;
-//   EMIT       per chunk: a run's start writes its draw, its end completes the index count;
+//   COUNT      per chunk of CULL_CHUNK meshes: the indices of its listed meshes;
+//   SCAN       one workgroup: each chunk's first index (exclusive prefix sum), and the draws;
+//   EMIT       per chunk: its listed meshes' indices copied into the list's index buffer;
 //   PYRAMID    per texel of one level of the depth pyramid, from the level below.
-// A list is the meshes whose flags match (mask, want). Its draws follow mesh order, so the
-// culled passes rasterise in the order of the single unculled draw; a run of consecutive
-// listed meshes is one draw, since their indices are contiguous in the city's index buffer.
+// A list is the meshes whose flags match (mask, want). Their indices are copied in mesh
+// order into the list's own index buffer and drawn with one indexed draw, so the culled
+// passes rasterise in the order of the single unculled draw. A list whose indices do not
+// fit its buffer draws every mesh instead (the second draw, otherwise empty).
 layout(local_size_x = 256) in;
 
 layout(std430, set = 0, binding = BINDING_CULL_BOUNDS) readonly buffer Bounds { MeshBounds bounds[]; };
@@ -23,8 +23,10 @@ layout(std430, set = 0, binding = BINDING_CULL_CHUNK_BOUNDS) readonly buffer Chu
 layout(std430, set = 0, binding = BINDING_CULL_RANGES) readonly buffer Ranges { uvec2 ranges[]; };
 layout(std430, set = 0, binding = BINDING_CULL_FLAGS) buffer Flags { uint flags[]; };
 layout(std430, set = 0, binding = BINDING_CULL_CHUNK_FLAGS) buffer ChunkFlags { uint chunk_in_frustum[]; };
-layout(std430, set = 0, binding = BINDING_CULL_GROUPS) buffer Groups { uint group_runs[]; };
+layout(std430, set = 0, binding = BINDING_CULL_GROUPS) buffer Groups { uint group_indices[]; };
 layout(std430, set = 0, binding = BINDING_CULL_DRAWS) buffer Draws { uint draws[]; };
+layout(std430, set = 0, binding = BINDING_CULL_CITY_INDICES) readonly buffer CityIndices { uint city_indices[]; };
+layout(std430, set = 0, binding = BINDING_CULL_INDICES) writeonly buffer ListIndices { uint list_indices[]; };
 layout(std430, set = 0, binding = BINDING_CULL_COUNTER) buffer Counter { CullCounter counter; };
 layout(std430, set = 0, binding = BINDING_CULL_PYRAMID) buffer Pyramid { float pyramid[]; };
 layout(push_constant) uniform Push { CullPush push; };
@@ -214,45 +216,56 @@ void main() {
             return;
         }
         if (chunk_in_frustum[chunk] == 0u) {
-            group_runs[chunk] = 0u;
+            group_indices[chunk] = 0u;
             return;
         }
         uint end = min(begin + CULL_CHUNK, push.mesh_count);
-        bool previous = begin > 0u && listed(begin - 1u);
-        uint runs = 0u;
+        uint indices = 0u;
         uint meshes = 0u;
         for (uint m = begin; m < end; ++m) {
-            bool in_list = listed(m);
-            runs += (in_list && !previous) ? 1u : 0u;
-            meshes += in_list ? 1u : 0u;
-            previous = in_list;
+            if (listed(m)) {
+                indices += ranges[m].y;
+                meshes += 1u;
+            }
         }
-        group_runs[chunk] = runs;
+        group_indices[chunk] = indices;
         if (meshes > 0u) {
             atomicAdd(counter.meshes, meshes);
-            atomicAdd(counter.drawn, meshes);
         }
     } else if (push.phase == CULL_PHASE_SCAN) {
-        // One workgroup: thread t sums a contiguous chunk of groups, the chunks' sums are
-        // scanned, and each thread rewrites its chunk as first runs.
-        uint chunk = (push.group_count + 255u) / 256u;
-        uint begin = min(local * chunk, push.group_count);
-        uint end = min(begin + chunk, push.group_count);
+        // One workgroup: thread t sums a contiguous range of chunks, the ranges' sums are
+        // scanned, and each thread rewrites its range as the chunks' first index.
+        uint per_thread = (push.group_count + 255u) / 256u;
+        uint begin = min(local * per_thread, push.group_count);
+        uint end = min(begin + per_thread, push.group_count);
         uint sum = 0u;
         for (uint g = begin; g < end; ++g) {
-            sum += group_runs[g];
+            sum += group_indices[g];
         }
         partial[local] = sum;
         scan_partial(local);
-        uint run = partial[local] - sum;
+        uint first = partial[local] - sum;
         for (uint g = begin; g < end; ++g) {
-            uint runs = group_runs[g];
-            group_runs[g] = run;
-            run += runs;
+            uint indices = group_indices[g];
+            group_indices[g] = first;
+            first += indices;
         }
         if (local == 255u) {
-            counter.runs = partial[255];
-            counter.draws = min(partial[255], push.capacity);
+            uint total = partial[255];
+            bool overflowed = total > push.capacity;
+            counter.indices = total;
+            counter.overflowed = overflowed ? 1u : 0u;
+            // Draw 0: the compacted list; draw 1: every mesh, when the list did not fit.
+            draws[0] = overflowed ? 0u : total;          // indexCount
+            draws[1] = overflowed ? 0u : 1u;             // instanceCount
+            draws[2] = 0u;                               // firstIndex
+            draws[3] = 0u;                               // vertexOffset
+            draws[4] = 0u;                               // firstInstance
+            draws[5] = push.city_indices;
+            draws[6] = overflowed ? 1u : 0u;
+            draws[7] = 0u;
+            draws[8] = 0u;
+            draws[9] = 0u;
         }
     } else if (push.phase == CULL_PHASE_PYRAMID) {
         uint level = push.want;
@@ -270,42 +283,23 @@ void main() {
             pyramid[from + below.x * below.y + i] = farthest;
         }
     } else {
+        // Each listed mesh's indices, copied in mesh order to the chunk's first index.
         uint chunk = i;
         uint begin = chunk * CULL_CHUNK;
-        if (chunk >= push.group_count || begin >= push.mesh_count || chunk_in_frustum[chunk] == 0u) {
+        if (chunk >= push.group_count || begin >= push.mesh_count || chunk_in_frustum[chunk] == 0u
+            || counter.overflowed != 0u) {
             return;
         }
         uint end = min(begin + CULL_CHUNK, push.mesh_count);
-        uint last_slot = push.capacity - 1u;
-        uint total = counter.runs;
-        // Runs started before this chunk; a run continuing into it is the last of them.
-        uint started = group_runs[chunk];
-        bool previous = begin > 0u && listed(begin - 1u);
-        bool in_list = listed(begin);
+        uint to = group_indices[chunk];
         for (uint m = begin; m < end; ++m) {
-            bool next = listed(m + 1u);
-            if (in_list) {
-                bool starts = !previous;
-                started += starts ? 1u : 0u;
-                uint run = started - 1u;
+            if (listed(m)) {
                 uvec2 range = ranges[m];
-                if (starts && run <= last_slot) {
-                    uint d = run * 5u;
-                    draws[d + 1u] = 1u;          // instanceCount
-                    draws[d + 2u] = range.x;     // firstIndex
-                    draws[d + 3u] = 0u;          // vertexOffset
-                    draws[d + 4u] = 0u;          // firstInstance
-                    atomicAdd(draws[d], 0u - range.x);
+                for (uint k = 0u; k < range.y; ++k) {
+                    list_indices[to + k] = city_indices[range.x + k];
                 }
-                // indexCount = end - first, added by the run's two ends in either order.
-                // Runs past the capacity merge into the last draw: it ends where the
-                // list's last run ends.
-                if (!next && (run < last_slot || run + 1u == total)) {
-                    atomicAdd(draws[min(run, last_slot) * 5u], range.x + range.y);
-                }
+                to += range.y;
             }
-            previous = in_list;
-            in_list = next;
         }
     }
 }

@@ -406,11 +406,12 @@ impl CityRenderer {
             vk::BufferUsageFlags::VERTEX_BUFFER,
             "city vertices",
         )?;
+        // Also a storage buffer: culling copies the indices of the meshes a view shows.
         let indices = upload_buffer(
             device,
             commands,
             bytemuck::cast_slice(&city_indices),
-            vk::BufferUsageFlags::INDEX_BUFFER,
+            vk::BufferUsageFlags::INDEX_BUFFER | vk::BufferUsageFlags::STORAGE_BUFFER,
             "city indices",
         )?;
         Ok(Self {
@@ -434,8 +435,7 @@ impl CityRenderer {
 
     /// Prepares GPU culling ([`crate::cull`]) for this renderer's city and turns it on:
     /// `vertices` and `indices` as given to [`new`](Self::new), `slots` the frames in
-    /// flight whose statistics are kept apart. Fails with
-    /// [`EngineError::MissingFeature`] on a device without `multiDrawIndirect`.
+    /// flight whose statistics are kept apart.
     pub fn enable_culling(
         &mut self,
         commands: &mut CommandContext,
@@ -463,7 +463,14 @@ impl CityRenderer {
                 range
             })
             .collect();
-        self.culling = Some(CityCulling::new(&self.device, commands, &bounds, &ranges, slots)?);
+        self.culling = Some(CityCulling::new(
+            &self.device,
+            commands,
+            &bounds,
+            &ranges,
+            (self.indices.raw(), self.index_count),
+            slots,
+        )?);
         self.culling_on = true;
         Ok(())
     }

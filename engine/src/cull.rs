@@ -14,17 +14,19 @@
 //! the pre-pass, draws every mesh that passed the late test, and so reports what the
 //! unculled pass reports.
 //!
-//! A list is drawn as runs of consecutive meshes in mesh order: their indices are
-//! contiguous in the city's index buffer, so each run is one indexed draw, and the culled
-//! pass rasterises in the unculled order. (Drawing the culled meshes in short gaps with
-//! their neighbours, to save draws, was measured and lost: on `large` it cut the visible
-//! pass's draws from 2,005 to 511 a frame but made the passes 23 % and the culling 3x
-//! slower.) The draws are compacted on the GPU, counted for
-//! `vkCmdDrawIndexedIndirectCount` where the device has it (a fixed count of draws,
-//! unused ones empty, where not). Culling a mesh costs a box test; runs are counted and
-//! written by one invocation per chunk of 64 meshes in order, without workgroup barriers
-//! (which a CPU rasteriser runs as coroutine switches), so the frame's culling cost grows
-//! with the city by a few words of memory traffic per mesh.
+//! A list is drawn with one indexed draw of its own index buffer: the indices of its
+//! meshes, copied in mesh order, so the culled pass rasterises in the unculled order.
+//! (Drawing runs of consecutive meshes straight from the city's index buffer, one
+//! indirect draw each, was measured first: on `large` the visible pass then took as long
+//! for its 16,700 meshes in 2,005 draws as for all 105,570 in one, lavapipe paying each
+//! draw's setup; drawing the culled meshes in short gaps with the listed ones to save
+//! draws made the passes 23 % and the culling 3x slower.) A list holds a quarter of the
+//! city's indices (at least 2^18, at most 2^24); one that does not fit draws every mesh
+//! from the city's index buffer instead (a second draw, empty otherwise), so nothing is
+//! ever missing. No multi-draw or draw-count feature is needed. Per-mesh work runs one
+//! invocation per chunk of 64 meshes, the chunk's box tested first and chunks outside the
+//! frustum skipped by every later phase, without workgroup barriers (which a CPU
+//! rasteriser runs as coroutine switches).
 
 use std::sync::{Arc, Mutex};
 
@@ -38,8 +40,8 @@ use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
     CullCounter, CullPush, MeshBounds, BINDING_CULL_BOUNDS, BINDING_CULL_CHUNK_BOUNDS, BINDING_CULL_CHUNK_FLAGS,
-    BINDING_CULL_COUNTER, BINDING_CULL_DRAWS, BINDING_CULL_FLAGS, BINDING_CULL_GROUPS, BINDING_CULL_PYRAMID,
-    BINDING_CULL_RANGES, CULL_IN_FRUSTUM, CULL_PHASE_COUNT, CULL_PHASE_EMIT, CULL_PHASE_FRUSTUM, CULL_PHASE_OCCLUSION,
+    BINDING_CULL_CITY_INDICES, BINDING_CULL_COUNTER, BINDING_CULL_DRAWS, BINDING_CULL_FLAGS, BINDING_CULL_GROUPS,
+    BINDING_CULL_INDICES, BINDING_CULL_PYRAMID, BINDING_CULL_RANGES, CULL_IN_FRUSTUM, CULL_PHASE_COUNT, CULL_PHASE_EMIT, CULL_PHASE_FRUSTUM, CULL_PHASE_OCCLUSION,
     CULL_PHASE_PYRAMID, CULL_PHASE_SCAN, CULL_PREVIOUS, CULL_UNOCCLUDED,
 };
 use crate::image::memory_barrier;
@@ -54,10 +56,11 @@ const WORKGROUP: u32 = 256;
 pub(crate) const CULL_CHUNK: u32 = 64;
 const MAX_GROUPS_X: u32 = 65_535;
 /// Bytes of one `VkDrawIndexedIndirectCommand`.
-const DRAW_STRIDE: u32 = 20;
-/// Draws one list holds at most; runs past it merge into the last draw (which then also
-/// draws the meshes between them: more work, never a missing mesh).
-const MAX_DRAWS: u32 = 1 << 16;
+const DRAW_STRIDE: u64 = 20;
+/// Smallest index capacity of a list (or the whole city, if smaller).
+const MIN_LIST_INDICES: u64 = 1 << 18;
+/// Largest index capacity of a list: 64 MB of indices.
+const MAX_LIST_INDICES: u64 = 1 << 24;
 
 /// The two views a frame culls for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -98,8 +101,8 @@ impl CullList {
 /// What one frame's culling drew, read back once its submission completed.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CullStats {
-    /// Meshes the visible pass drew (early and late phases), but for the meshes between
-    /// runs merged past a list's capacity.
+    /// Meshes the visible pass drew (early and late phases; every mesh where a list
+    /// overflowed its buffer).
     pub meshes_drawn: u32,
     /// Meshes of the city the visible pass did not draw.
     pub meshes_culled: u32,
@@ -108,8 +111,9 @@ pub struct CullStats {
     pub meshes_passed: u32,
     /// Meshes the feedback pass drew (after the pre-pass).
     pub feedback_meshes_drawn: u32,
-    /// Indirect draws of the visible pass (runs of consecutive meshes).
-    pub draws: u32,
+    /// Whether a list of the visible pass held more indices than its buffer, so that the
+    /// pass drew every mesh instead.
+    pub overflowed: bool,
     /// GPU milliseconds of the culling work (tests, compaction, depth copies and
     /// pyramids) for the feedback view and for the visible view, when the queue has
     /// timestamps; part of the passes that record them.
@@ -118,6 +122,8 @@ pub struct CullStats {
 
 struct ListBuffers {
     groups: Buffer,
+    /// The list's meshes' indices, in mesh order.
+    indices: Buffer,
     draws: Buffer,
     counter: Buffer,
     set: vk::DescriptorSet,
@@ -162,8 +168,10 @@ pub(crate) struct CityCulling {
     mesh_count: u32,
     /// Chunks of [`CULL_CHUNK`] meshes.
     group_count: u32,
+    /// Indices each list's buffer holds.
     capacity: u32,
-    indirect_count: bool,
+    /// The city's index buffer (read by the emit phase, drawn on overflow) and its length.
+    city_indices: (vk::Buffer, u32),
     /// Per slot: the six lists' counters, copied for the host.
     readback: Vec<Buffer>,
     /// Per slot, two timed segments per view.
@@ -176,7 +184,6 @@ impl std::fmt::Debug for CityCulling {
         f.debug_struct("CityCulling")
             .field("mesh_count", &self.mesh_count)
             .field("capacity", &self.capacity)
-            .field("indirect_count", &self.indirect_count)
             .finish()
     }
 }
@@ -207,21 +214,16 @@ pub(crate) fn mesh_bounds(positions: impl Iterator<Item = (u32, [f32; 3])>, mesh
 
 impl CityCulling {
     /// Culling for `bounds.len()` meshes whose indices lie at `ranges` (first, count) in
-    /// the city's index buffer, with `slots` read-back slots (frames in flight).
+    /// `city_indices` (the city's index buffer, with storage-buffer usage, and its index
+    /// count), with `slots` read-back slots (frames in flight).
     pub(crate) fn new(
         device: &Arc<Device>,
         commands: &mut CommandContext,
         bounds: &[MeshBounds],
         ranges: &[[u32; 2]],
+        city_indices: (vk::Buffer, u32),
         slots: u32,
     ) -> Result<Self> {
-        let indirect = device.indirect_draws();
-        if !indirect.multi_draw {
-            return Err(EngineError::MissingFeature {
-                device: device.name().to_owned(),
-                feature: "multiDrawIndirect (GPU culling's compacted draws)".to_owned(),
-            });
-        }
         let mesh_count = u32::try_from(bounds.len())
             .ok()
             .filter(|&n| n > 0 && ranges.len() == bounds.len())
@@ -236,10 +238,15 @@ impl CityCulling {
             return Err(EngineError::InvalidRequest("culling with 0 read-back slots".into()));
         }
         let group_count = mesh_count.div_ceil(CULL_CHUNK);
-        // A run needs a listed mesh and an unlisted one after it.
-        let capacity = (mesh_count / 2 + 1)
-            .min(MAX_DRAWS)
-            .min(device.properties().limits.max_draw_indirect_count);
+        // A view shows a part of the city: a quarter of its indices per list, within bounds
+        // and what one storage buffer may address. A list that does not fit draws every mesh.
+        let city = u64::from(city_indices.1);
+        let addressable = u64::from(device.properties().limits.max_storage_buffer_range) / 4;
+        let capacity = (city / 4)
+            .max(city.min(MIN_LIST_INDICES))
+            .min(MAX_LIST_INDICES)
+            .min(addressable)
+            .max(1) as u32;
         let stages = vk::ShaderStageFlags::COMPUTE;
         let storage = vk::DescriptorType::STORAGE_BUFFER;
         let pipeline = Pipeline::compute(
@@ -255,6 +262,8 @@ impl CityCulling {
                 (BINDING_CULL_PYRAMID, storage, 1, stages),
                 (BINDING_CULL_CHUNK_BOUNDS, storage, 1, stages),
                 (BINDING_CULL_CHUNK_FLAGS, storage, 1, stages),
+                (BINDING_CULL_CITY_INDICES, storage, 1, stages),
+                (BINDING_CULL_INDICES, storage, 1, stages),
             ],
             std::mem::size_of::<CullPush>() as u32,
             "city culling",
@@ -325,8 +334,13 @@ impl CityCulling {
                     vk::BufferUsageFlags::STORAGE_BUFFER,
                     &format!("culling groups ({name})"),
                 )?;
+                let indices = gpu(
+                    u64::from(capacity) * 4,
+                    vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::INDEX_BUFFER,
+                    &format!("culled indices ({name})"),
+                )?;
                 let draws = gpu(
-                    u64::from(capacity) * u64::from(DRAW_STRIDE),
+                    2 * DRAW_STRIDE,
                     vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::INDIRECT_BUFFER | transfer,
                     &format!("culled draws ({name})"),
                 )?;
@@ -338,6 +352,7 @@ impl CityCulling {
                 let set = pool.allocate(&pipeline, &[])?;
                 lists.push(ListBuffers {
                     groups,
+                    indices,
                     draws,
                     counter,
                     set,
@@ -378,7 +393,7 @@ impl CityCulling {
             mesh_count,
             group_count,
             capacity,
-            indirect_count: indirect.count,
+            city_indices,
             readback,
             timer,
             recording: Mutex::new(Recording {
@@ -429,6 +444,8 @@ impl CityCulling {
                         DescriptorResource::StorageBuffer(list.counter.raw()),
                     ),
                     (BINDING_CULL_PYRAMID, DescriptorResource::StorageBuffer(pyramid)),
+                    (BINDING_CULL_CITY_INDICES, DescriptorResource::StorageBuffer(self.city_indices.0)),
+                    (BINDING_CULL_INDICES, DescriptorResource::StorageBuffer(list.indices.raw())),
                     (
                         BINDING_CULL_CHUNK_BOUNDS,
                         DescriptorResource::StorageBuffer(self.chunk_bounds.raw()),
@@ -518,8 +535,8 @@ impl CityCulling {
             want,
             capacity: self.capacity,
             group_count: self.group_count,
+            city_indices: self.city_indices.1,
             pad0: 0,
-            pad1: 0,
         }
     }
 
@@ -565,24 +582,25 @@ impl CityCulling {
             cmd,
             (
                 vk::PipelineStageFlags2::DRAW_INDIRECT
+                    | vk::PipelineStageFlags2::INDEX_INPUT
                     | vk::PipelineStageFlags2::COPY
                     | vk::PipelineStageFlags2::COMPUTE_SHADER,
                 vk::AccessFlags2::INDIRECT_COMMAND_READ
+                    | vk::AccessFlags2::INDEX_READ
                     | vk::AccessFlags2::TRANSFER_READ
                     | vk::AccessFlags2::SHADER_WRITE,
             ),
             (
-                vk::PipelineStageFlags2::CLEAR | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::TRANSFER_WRITE,
+                vk::PipelineStageFlags2::CLEAR
+                    | vk::PipelineStageFlags2::COPY
+                    | vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::TRANSFER_WRITE | vk::AccessFlags2::SHADER_WRITE,
             ),
         );
         for &list in lists {
             let l = &v.lists[list as usize];
-            // SAFETY: cmd is recording outside rendering; the buffers allow transfers.
-            unsafe {
-                raw.cmd_fill_buffer(cmd, l.draws.raw(), 0, vk::WHOLE_SIZE, 0);
-                raw.cmd_fill_buffer(cmd, l.counter.raw(), 0, vk::WHOLE_SIZE, 0);
-            }
+            // SAFETY: cmd is recording outside rendering; the buffer allows transfers.
+            unsafe { raw.cmd_fill_buffer(cmd, l.counter.raw(), 0, vk::WHOLE_SIZE, 0) };
         }
         for phase in [CULL_PHASE_COUNT, CULL_PHASE_SCAN, CULL_PHASE_EMIT] {
             self.compute_barrier(cmd);
@@ -597,8 +615,27 @@ impl CityCulling {
             cmd,
             (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
             (
-                vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::TRANSFER_READ,
+                vk::PipelineStageFlags2::DRAW_INDIRECT
+                    | vk::PipelineStageFlags2::INDEX_INPUT
+                    | vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::INDEX_READ | vk::AccessFlags2::TRANSFER_READ,
+            ),
+        );
+    }
+
+    /// Orders earlier draws' reads of the lists (indices, draw records) before the
+    /// dispatches that bind them.
+    fn draws_before_dispatch(&self, cmd: vk::CommandBuffer) {
+        memory_barrier(
+            &self.device,
+            cmd,
+            (
+                vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::INDEX_INPUT,
+                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::INDEX_READ,
+            ),
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
             ),
         );
     }
@@ -607,7 +644,9 @@ impl CityCulling {
     pub(crate) fn record_early(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView) {
         let query = self.query(view, 0);
         self.timer.begin(cmd, query);
-        // The last frame's passes over this view's flags finish before they change.
+        // The last frame's passes over this view's flags, and its draws of the lists the
+        // dispatches bind, finish before they change.
+        self.draws_before_dispatch(cmd);
         memory_barrier(
             &self.device,
             cmd,
@@ -629,8 +668,8 @@ impl CityCulling {
     }
 
     /// The late phase of `view`, after its early draws: pyramid from `target`'s depth
-    /// (rendering is paused and resumed around it), occlusion flags, the late and
-    /// unoccluded lists, and the statistics copy.
+    /// (rendering is paused and resumed around it), occlusion flags, the late list (and
+    /// for the feedback view the unoccluded one), and the statistics copy.
     pub(crate) fn record_late(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView, target: &RenderTarget) {
         let v = &self.views[view as usize];
         let query = self.query(view, 1);
@@ -640,6 +679,8 @@ impl CityCulling {
         };
         target.pause(&self.device, cmd);
         self.timer.begin(cmd, query);
+        // The early draws read the early list the dispatches bind.
+        self.draws_before_dispatch(cmd);
         target.copy_depth(&self.device, cmd, pyramid);
         for level in 1..levels {
             width = width.div_ceil(2);
@@ -652,7 +693,11 @@ impl CityCulling {
         self.compute_barrier(cmd);
         let push = self.push(view_proj, view, CULL_PHASE_OCCLUSION, CullList::Early);
         self.dispatch(cmd, v.lists[0].set, &push, self.group_count);
-        self.emit(cmd, view_proj, view, &[CullList::Late, CullList::Unoccluded]);
+        // Only the feedback view draws the unoccluded list (its feedback pass).
+        match view {
+            CullView::Feedback => self.emit(cmd, view_proj, view, &[CullList::Late, CullList::Unoccluded]),
+            CullView::Visible => self.emit(cmd, view_proj, view, &[CullList::Late]),
+        }
         self.copy_statistics(cmd, view);
         self.timer.end(cmd, query);
         self.mark_written(view as u32 * 2 + 1);
@@ -685,28 +730,20 @@ impl CityCulling {
         );
     }
 
-    /// Records `list` of `view`'s draws with the bound graphics pipeline, index and
-    /// vertex buffers (inside rendering).
+    /// Records `list` of `view`'s draws with the bound graphics pipeline and vertex buffer
+    /// (inside rendering): its own indices, or on overflow the city's. Binds index buffers.
     pub(crate) fn draw(&self, cmd: vk::CommandBuffer, view: CullView, list: CullList) {
         let l = &self.views[view as usize].lists[list as usize];
         let raw = self.device.raw();
-        if self.indirect_count {
-            // SAFETY: the draws and the count were written by this frame's culling, behind a
-            // barrier to DRAW_INDIRECT; every draw indexes the bound city index buffer.
-            unsafe {
-                raw.cmd_draw_indexed_indirect_count(
-                    cmd,
-                    l.draws.raw(),
-                    0,
-                    l.counter.raw(),
-                    0,
-                    self.capacity,
-                    DRAW_STRIDE,
-                )
-            };
-        } else {
-            // SAFETY: as above; draws past the count were cleared to zero indices.
-            unsafe { raw.cmd_draw_indexed_indirect(cmd, l.draws.raw(), 0, self.capacity, DRAW_STRIDE) };
+        // SAFETY: the draws were written by this frame's culling behind a barrier to
+        // DRAW_INDIRECT and INDEX_INPUT; the first draws the list's indices (each below the
+        // city's vertex count, copied from the city's), the second, on overflow only, the
+        // city's own index buffer; one draw each needs no multi-draw feature.
+        unsafe {
+            raw.cmd_bind_index_buffer(cmd, l.indices.raw(), 0, vk::IndexType::UINT32);
+            raw.cmd_draw_indexed_indirect(cmd, l.draws.raw(), 0, 1, DRAW_STRIDE as u32);
+            raw.cmd_bind_index_buffer(cmd, self.city_indices.0, 0, vk::IndexType::UINT32);
+            raw.cmd_draw_indexed_indirect(cmd, l.draws.raw(), DRAW_STRIDE, 1, DRAW_STRIDE as u32);
         }
     }
 
@@ -728,7 +765,15 @@ impl CityCulling {
         };
         let early = at(CullView::Visible, CullList::Early);
         let late = at(CullView::Visible, CullList::Late);
-        let meshes_drawn = (early.drawn + late.drawn).min(self.mesh_count);
+        // A list that overflowed drew every mesh.
+        let drawn = |counter: CullCounter| {
+            if counter.overflowed != 0 {
+                self.mesh_count
+            } else {
+                counter.meshes
+            }
+        };
+        let meshes_drawn = (drawn(early) + drawn(late)).min(self.mesh_count);
         let mut cull_ms = None;
         for view in [CullView::Feedback, CullView::Visible] {
             for segment in 0..2 {
@@ -745,8 +790,8 @@ impl CityCulling {
             meshes_drawn,
             meshes_culled: self.mesh_count - meshes_drawn,
             meshes_passed: early.meshes + late.meshes,
-            feedback_meshes_drawn: at(CullView::Feedback, CullList::Unoccluded).drawn,
-            draws: early.draws + late.draws,
+            feedback_meshes_drawn: drawn(at(CullView::Feedback, CullList::Unoccluded)),
+            overflowed: early.overflowed + late.overflowed != 0,
             cull_ms,
         })
     }

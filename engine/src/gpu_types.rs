@@ -76,9 +76,9 @@ pub const BINDING_CULL_BOUNDS: u32 = 22;
 pub const BINDING_CULL_RANGES: u32 = 23;
 /// Binding of the culling pass's per-mesh flags (`CULL_*` bits).
 pub const BINDING_CULL_FLAGS: u32 = 24;
-/// Binding of the culling pass's per-workgroup run counts.
+/// Binding of the culling pass's per-chunk index counts, then first indices.
 pub const BINDING_CULL_GROUPS: u32 = 25;
-/// Binding of a culled list's indexed indirect draws.
+/// Binding of a culled list's two indexed indirect draws (the list's; every mesh's on overflow).
 pub const BINDING_CULL_DRAWS: u32 = 26;
 /// Binding of a culled list's [`CullCounter`].
 pub const BINDING_CULL_COUNTER: u32 = 27;
@@ -88,16 +88,20 @@ pub const BINDING_CULL_PYRAMID: u32 = 28;
 pub const BINDING_CULL_CHUNK_BOUNDS: u32 = 29;
 /// Binding of the culling pass's per-chunk frustum results (one per view).
 pub const BINDING_CULL_CHUNK_FLAGS: u32 = 30;
+/// Binding of the city's index buffer, read by the culling pass.
+pub const BINDING_CULL_CITY_INDICES: u32 = 31;
+/// Binding of a culled list's index buffer.
+pub const BINDING_CULL_INDICES: u32 = 32;
 
 /// Culling phases (`CullPush::phase`), as in `city_cull.comp`.
 pub const CULL_PHASE_FRUSTUM: u32 = 0;
 /// Occlusion against the depth pyramid.
 pub const CULL_PHASE_OCCLUSION: u32 = 1;
-/// Runs per workgroup.
+/// Indices listed per chunk.
 pub const CULL_PHASE_COUNT: u32 = 2;
-/// First run per workgroup and the draw count.
+/// First index per chunk, and the draws.
 pub const CULL_PHASE_SCAN: u32 = 3;
-/// Draws of the runs.
+/// The listed meshes' indices copied into the list's buffer.
 pub const CULL_PHASE_EMIT: u32 = 4;
 /// One level of the depth pyramid.
 pub const CULL_PHASE_PYRAMID: u32 = 5;
@@ -135,28 +139,28 @@ pub struct CullPush {
     pub mask: u32,
     /// See `mask`; the level built by the pyramid phase.
     pub want: u32,
-    /// Draws the list holds.
+    /// Indices the list's buffer holds.
     pub capacity: u32,
-    /// Workgroups of meshes.
+    /// Chunks of 64 meshes.
     pub group_count: u32,
+    /// Indices of the whole city (the overflow draw).
+    pub city_indices: u32,
     /// Padding.
     pub pad0: u32,
-    /// Padding.
-    pub pad1: u32,
 }
 
-/// `CullCounter`: a culled list's draw count and contents.
+/// `CullCounter`: what a culled list holds.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
 pub struct CullCounter {
-    /// Draws recorded: min(runs, capacity).
-    pub draws: u32,
-    /// Runs of consecutive listed meshes.
-    pub runs: u32,
+    /// Indices of its meshes.
+    pub indices: u32,
+    /// 1 when they did not fit the list's buffer (every mesh is drawn instead).
+    pub overflowed: u32,
     /// Meshes listed.
     pub meshes: u32,
-    /// Meshes the draws cover, but for the meshes between runs merged past the capacity.
-    pub drawn: u32,
+    /// Padding.
+    pub pad0: u32,
 }
 
 /// Binding of the cache images in passes that sample city textures: an
@@ -630,6 +634,8 @@ mod tests {
             ("BINDING_CULL_PYRAMID", BINDING_CULL_PYRAMID),
             ("BINDING_CULL_CHUNK_BOUNDS", BINDING_CULL_CHUNK_BOUNDS),
             ("BINDING_CULL_CHUNK_FLAGS", BINDING_CULL_CHUNK_FLAGS),
+            ("BINDING_CULL_CITY_INDICES", BINDING_CULL_CITY_INDICES),
+            ("BINDING_CULL_INDICES", BINDING_CULL_INDICES),
         ];
         assert_eq!(
             defines.len(),
@@ -802,8 +808,8 @@ mod tests {
                 ("want", offset_of!(CullPush, want)),
                 ("capacity", offset_of!(CullPush, capacity)),
                 ("group_count", offset_of!(CullPush, group_count)),
+                ("city_indices", offset_of!(CullPush, city_indices)),
                 ("pad0", offset_of!(CullPush, pad0)),
-                ("pad1", offset_of!(CullPush, pad1)),
             ],
             size_of::<CullPush>(),
         );
@@ -811,10 +817,10 @@ mod tests {
         check(
             "CullCounter",
             &[
-                ("draws", offset_of!(CullCounter, draws)),
-                ("runs", offset_of!(CullCounter, runs)),
+                ("indices", offset_of!(CullCounter, indices)),
+                ("overflowed", offset_of!(CullCounter, overflowed)),
                 ("meshes", offset_of!(CullCounter, meshes)),
-                ("drawn", offset_of!(CullCounter, drawn)),
+                ("pad0", offset_of!(CullCounter, pad0)),
             ],
             size_of::<CullCounter>(),
         );

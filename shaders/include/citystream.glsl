@@ -46,14 +46,16 @@
 #define BINDING_CULL_BOUNDS 22        // MeshBounds[], one per mesh, world space
 #define BINDING_CULL_RANGES 23        // uvec2[], one per mesh: first index and index count in the city's index buffer
 #define BINDING_CULL_FLAGS 24         // uint[], one per mesh and view: CULL_* bits
-#define BINDING_CULL_GROUPS 25        // uint[], one per chunk of CULL_CHUNK meshes: runs it starts, then its first run
-#define BINDING_CULL_DRAWS 26         // DrawIndexedIndirectCommand[] (5 uints each): one per run of drawn meshes
-#define BINDING_CULL_COUNTER 27       // CullCounter: the draw count the indirect-count draw reads, and statistics
+#define BINDING_CULL_GROUPS 25        // uint[], one per chunk of CULL_CHUNK meshes: its listed indices, then its first index
+#define BINDING_CULL_DRAWS 26         // DrawIndexedIndirectCommand[2] (5 uints each): the list's, and every mesh's on overflow
+#define BINDING_CULL_COUNTER 27       // CullCounter: what the list holds
 #define BINDING_CULL_PYRAMID 28       // float[]: the view's depth pyramid, levels packed from level 0 (the depth
                                       // target itself, row by row); each level halves, rounding up, and holds the
                                       // farthest depth of the texels below it
 #define BINDING_CULL_CHUNK_BOUNDS 29  // MeshBounds[], one per chunk of CULL_CHUNK meshes: the union of their boxes
 #define BINDING_CULL_CHUNK_FLAGS 30   // uint[], one per chunk and view: whether its box meets the frustum
+#define BINDING_CULL_CITY_INDICES 31  // uint[]: the city's index buffer, every mesh's triangles in mesh order
+#define BINDING_CULL_INDICES 32       // uint[]: a list's index buffer, its meshes' indices in mesh order
 
 // Per-mesh bits of BINDING_CULL_FLAGS.
 #define CULL_PREVIOUS 1u              // passed the occlusion test last frame (drawn in the early phase)
@@ -84,18 +86,18 @@ struct CullPush {
     uint phase;             // CULL_PHASE_*
     uint mask;              // a mesh is in the list when (flags & mask) == want
     uint want;
-    uint capacity;          // draws the list holds; runs past it merge into the last
+    uint capacity;          // indices the list's buffer holds
     uint group_count;       // chunks of CULL_CHUNK meshes
+    uint city_indices;      // indices of the whole city (the overflow draw)
     uint pad0;
-    uint pad1;
 };
 
-// One list's draw count (read by vkCmdDrawIndexedIndirectCount) and what it holds.
+// What one list holds.
 struct CullCounter {
-    uint draws;             // min(runs, capacity)
-    uint runs;              // maximal runs of consecutive meshes in the list
+    uint indices;           // indices of its meshes
+    uint overflowed;        // 1: they did not fit its buffer, every mesh is drawn instead
     uint meshes;            // meshes in the list
-    uint drawn;             // meshes its draws cover, but for the meshes between runs merged past the capacity
+    uint pad0;
 };
 
 // Push constants of the ground pass: one quad over the imagery's area.

@@ -296,7 +296,11 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         meshes_culled,
         feedback_meshes_drawn: culled_stats(|c| c.feedback_meshes_drawn),
         meshes_passed: culled_stats(|c| c.meshes_passed),
-        cull_draws: culled_stats(|c| c.draws),
+        cull_overflow_frames: flight
+            .gpu
+            .renderer
+            .culling()
+            .then(|| culled.iter().filter(|c| c.overflowed).count()),
         meshes_seen_by_feedback: Stats::from_samples(&meshes_seen),
         draw_calls: Stats::from_samples(&draw_call_samples),
         nodes_drawn: (!nodes_drawn.is_empty()).then(|| Stats::from_samples(&nodes_drawn)),

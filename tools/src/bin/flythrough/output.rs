@@ -29,9 +29,9 @@ pub(crate) struct Run<'a> {
     /// Per frame: meshes that passed the visible view's frustum and occlusion tests
     /// (culling on).
     pub(crate) meshes_passed: Option<Stats>,
-    /// Per frame: indirect draws of the visible pass, one per run of consecutive meshes
-    /// (culling on; off, it is one draw).
-    pub(crate) cull_draws: Option<Stats>,
+    /// Frames whose visible pass listed more indices than a culled list holds, and so
+    /// drew every mesh (culling on).
+    pub(crate) cull_overflow_frames: Option<usize>,
     /// Per feedback read-back: meshes it listed (weight at least τ; τ = 0 on frames whose
     /// error is measured).
     pub(crate) meshes_seen_by_feedback: Stats,
