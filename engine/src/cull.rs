@@ -41,8 +41,9 @@ use crate::error::{EngineError, Result};
 use crate::gpu_types::{
     CullCounter, CullPush, MeshBounds, BINDING_CULL_BOUNDS, BINDING_CULL_CHUNK_BOUNDS, BINDING_CULL_CHUNK_FLAGS,
     BINDING_CULL_CITY_INDICES, BINDING_CULL_COUNTER, BINDING_CULL_DRAWS, BINDING_CULL_FLAGS, BINDING_CULL_GROUPS,
-    BINDING_CULL_INDICES, BINDING_CULL_PYRAMID, BINDING_CULL_RANGES, CULL_IN_FRUSTUM, CULL_PHASE_COUNT, CULL_PHASE_EMIT, CULL_PHASE_FRUSTUM, CULL_PHASE_OCCLUSION,
-    CULL_PHASE_PYRAMID, CULL_PHASE_SCAN, CULL_PREVIOUS, CULL_UNOCCLUDED,
+    BINDING_CULL_INDICES, BINDING_CULL_PYRAMID, BINDING_CULL_RANGES, CULL_IN_FRUSTUM, CULL_PHASE_COUNT,
+    CULL_PHASE_EMIT, CULL_PHASE_FRUSTUM, CULL_PHASE_OCCLUSION, CULL_PHASE_PYRAMID, CULL_PHASE_SCAN, CULL_PREVIOUS,
+    CULL_UNOCCLUDED,
 };
 use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorPool, DescriptorResource, Pipeline};
@@ -444,8 +445,14 @@ impl CityCulling {
                         DescriptorResource::StorageBuffer(list.counter.raw()),
                     ),
                     (BINDING_CULL_PYRAMID, DescriptorResource::StorageBuffer(pyramid)),
-                    (BINDING_CULL_CITY_INDICES, DescriptorResource::StorageBuffer(self.city_indices.0)),
-                    (BINDING_CULL_INDICES, DescriptorResource::StorageBuffer(list.indices.raw())),
+                    (
+                        BINDING_CULL_CITY_INDICES,
+                        DescriptorResource::StorageBuffer(self.city_indices.0),
+                    ),
+                    (
+                        BINDING_CULL_INDICES,
+                        DescriptorResource::StorageBuffer(list.indices.raw()),
+                    ),
                     (
                         BINDING_CULL_CHUNK_BOUNDS,
                         DescriptorResource::StorageBuffer(self.chunk_bounds.raw()),
@@ -618,7 +625,9 @@ impl CityCulling {
                 vk::PipelineStageFlags2::DRAW_INDIRECT
                     | vk::PipelineStageFlags2::INDEX_INPUT
                     | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::INDEX_READ | vk::AccessFlags2::TRANSFER_READ,
+                vk::AccessFlags2::INDIRECT_COMMAND_READ
+                    | vk::AccessFlags2::INDEX_READ
+                    | vk::AccessFlags2::TRANSFER_READ,
             ),
         );
     }
