@@ -43,16 +43,6 @@ pub struct SparseSupport {
     pub address_space_size: u64,
 }
 
-/// Indirect drawing the device was created with: what GPU culling's compacted
-/// draws need (`CityRenderer::enable_culling`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct IndirectDraws {
-    /// `multiDrawIndirect`: more than one draw per indirect call.
-    pub multi_draw: bool,
-    /// `drawIndirectCount`: the draw count read from a buffer.
-    pub count: bool,
-}
-
 /// A physical device that was looked at, with what it lacks.
 #[derive(Clone, Debug)]
 pub struct DeviceCandidate {
@@ -81,7 +71,6 @@ pub struct Device {
     properties: vk::PhysicalDeviceProperties,
     name: String,
     sparse: SparseSupport,
-    indirect_draws: IndirectDraws,
     instance_fns: ash::Instance,
     log: Arc<ValidationLog>,
     /// Whether `Drop` destroys the logical device (false for a host's device).
@@ -103,7 +92,6 @@ struct DeviceParts {
     log: Arc<ValidationLog>,
     owns_device: bool,
     instance: Option<Instance>,
-    indirect_draws: IndirectDraws,
 }
 
 /// The allocator the engine's resources come from.
@@ -421,15 +409,12 @@ impl Device {
             extensions.push(ash::khr::swapchain::NAME.as_ptr());
         }
         let required = required_features();
-        // Optional: GPU culling's compacted draws, enabled where the device has them.
-        let indirect_draws = supported_indirect_draws(&instance.raw, physical);
-        let core = required.core.multi_draw_indirect(indirect_draws.multi_draw);
-        let mut vk12 = required.vulkan12.draw_indirect_count(indirect_draws.count);
+        let mut vk12 = required.vulkan12;
         let mut vk13 = required.vulkan13;
         let create_info = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_infos)
             .enabled_extension_names(&extensions)
-            .enabled_features(&core)
+            .enabled_features(&required.core)
             .push_next(&mut vk12)
             .push_next(&mut vk13);
         // SAFETY: physical came from this instance; create_info points at live data.
@@ -455,7 +440,6 @@ impl Device {
             log: Arc::clone(instance.validation_log()),
             owns_device: true,
             instance: Some(instance),
-            indirect_draws,
         }))
     }
 
@@ -487,7 +471,6 @@ impl Device {
             properties,
             name,
             sparse,
-            indirect_draws: parts.indirect_draws,
             instance_fns: parts.instance_fns,
             log: parts.log,
             owns_device: parts.owns_device,
@@ -559,7 +542,6 @@ impl Device {
             log: Arc::new(ValidationLog::default()),
             owns_device: false,
             instance: None,
-            indirect_draws: IndirectDraws::default(),
         }))
     }
 
@@ -601,13 +583,6 @@ impl Device {
     /// Sparse-residency properties of the device.
     pub fn sparse_support(&self) -> SparseSupport {
         self.sparse
-    }
-
-    /// The indirect drawing enabled on the device: the engine's own device enables what
-    /// the physical device has; a host's device ([`Device::from_host`]) reports none,
-    /// since the engine cannot see which optional features the host enabled.
-    pub fn indirect_draws(&self) -> IndirectDraws {
-        self.indirect_draws
     }
 
     /// The family of the one queue the engine uses.
@@ -713,18 +688,6 @@ impl Device {
                 Err(_) => false,
             }
         }
-    }
-}
-
-fn supported_indirect_draws(instance: &ash::Instance, physical: vk::PhysicalDevice) -> IndirectDraws {
-    let mut vk12 = vk::PhysicalDeviceVulkan12Features::default();
-    let mut features2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut vk12);
-    // SAFETY: `physical` came from this instance; the chain is well formed.
-    unsafe { instance.get_physical_device_features2(physical, &mut features2) };
-    let multi_draw = features2.features.multi_draw_indirect == vk::TRUE;
-    IndirectDraws {
-        multi_draw,
-        count: vk12.draw_indirect_count == vk::TRUE,
     }
 }
 
