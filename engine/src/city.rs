@@ -578,8 +578,9 @@ impl CityRenderer {
         let aspect = feedback_target.width() as f32 / feedback_target.height() as f32;
         let widen = 1.0 + view.margin.max(0.0);
         let pixel_ratio = view.pixel_ratio(visible_height, feedback_target.height());
+        let view_proj = camera.view_projection(aspect, view.margin);
         let base = CityDrawPush {
-            view_proj: camera.view_projection(aspect, view.margin).to_cols_array_2d(),
+            view_proj: view_proj.to_cols_array_2d(),
             feedback: [pixel_ratio.log2(), view.foreground_distance.max(1e-6), widen, widen],
             viewport_light: [
                 feedback_target.width() as f32,
@@ -592,7 +593,6 @@ impl CityRenderer {
         match self.active_culling() {
             Some(culling) => {
                 // Two phases over the pre-pass; the feedback pass draws what the late test kept.
-                let view_proj = camera.view_projection(aspect, view.margin);
                 let feedback = CullView::Feedback;
                 culling.prepare(feedback, feedback_target)?;
                 culling.record_early(cmd, &view_proj, feedback);

@@ -55,7 +55,6 @@ use crate::timing::GpuTimer;
 const WORKGROUP: u32 = 256;
 /// Meshes per invocation of the count and emit phases (`CULL_CHUNK`).
 pub(crate) const CULL_CHUNK: u32 = 64;
-const MAX_GROUPS_X: u32 = 65_535;
 /// Bytes of one `VkDrawIndexedIndirectCommand`.
 const DRAW_STRIDE: u64 = 20;
 /// Smallest index capacity of a list (or the whole city, if smaller).
@@ -189,14 +188,16 @@ impl std::fmt::Debug for CityCulling {
     }
 }
 
+/// A box holding nothing: every point widens it.
+const EMPTY_BOUNDS: MeshBounds = MeshBounds {
+    low: [f32::MAX, f32::MAX, f32::MAX, 0.0],
+    high: [f32::MIN, f32::MIN, f32::MIN, 0.0],
+};
+
 /// World-space bounds of each mesh's drawn vertices; non-finite positions make the mesh
 /// unbounded (never culled) rather than wrongly culled.
 pub(crate) fn mesh_bounds(positions: impl Iterator<Item = (u32, [f32; 3])>, mesh_count: usize) -> Vec<MeshBounds> {
-    let empty = MeshBounds {
-        low: [f32::MAX, f32::MAX, f32::MAX, 0.0],
-        high: [f32::MIN, f32::MIN, f32::MIN, 0.0],
-    };
-    let mut bounds = vec![empty; mesh_count];
+    let mut bounds = vec![EMPTY_BOUNDS; mesh_count];
     for (mesh, p) in positions {
         let Some(b) = bounds.get_mut(mesh as usize) else {
             continue;
@@ -550,14 +551,7 @@ impl CityCulling {
     fn dispatch(&self, cmd: vk::CommandBuffer, set: vk::DescriptorSet, push: &CullPush, invocations: u32) {
         self.pipeline.bind(cmd, set);
         self.pipeline.push(cmd, push);
-        let groups = invocations.div_ceil(WORKGROUP).max(1);
-        let (x, y) = if groups <= MAX_GROUPS_X {
-            (groups, 1)
-        } else {
-            (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X))
-        };
-        // SAFETY: pipeline and set are bound; the shader bounds-checks its indices.
-        unsafe { self.device.raw().cmd_dispatch(cmd, x, y, 1) };
+        self.pipeline.dispatch_flat(cmd, invocations, WORKGROUP);
     }
 
     fn compute_barrier(&self, cmd: vk::CommandBuffer) {
@@ -811,22 +805,16 @@ pub(crate) fn chunk_bounds(bounds: &[MeshBounds]) -> Vec<MeshBounds> {
     bounds
         .chunks(CULL_CHUNK as usize)
         .map(|chunk| {
-            chunk.iter().fold(
-                MeshBounds {
-                    low: [f32::MAX, f32::MAX, f32::MAX, 0.0],
-                    high: [f32::MIN, f32::MIN, f32::MIN, 0.0],
-                },
-                |mut union, b| {
-                    if b.low[3] != 0.0 {
-                        union.low[3] = 1.0;
-                    }
-                    for axis in 0..3 {
-                        union.low[axis] = union.low[axis].min(b.low[axis]);
-                        union.high[axis] = union.high[axis].max(b.high[axis]);
-                    }
-                    union
-                },
-            )
+            chunk.iter().fold(EMPTY_BOUNDS, |mut union, b| {
+                if b.low[3] != 0.0 {
+                    union.low[3] = 1.0;
+                }
+                for axis in 0..3 {
+                    union.low[axis] = union.low[axis].min(b.low[axis]);
+                    union.high[axis] = union.high[axis].max(b.high[axis]);
+                }
+                union
+            })
         })
         .collect()
 }

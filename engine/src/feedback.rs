@@ -29,7 +29,6 @@ use crate::pipeline::{DescriptorPool, DescriptorResource, Pipeline};
 use crate::shaders;
 
 const WORKGROUP: u32 = 256;
-const MAX_GROUPS_X: u32 = 65_535;
 
 /// One frame's compaction output: the dense entries and their counter, in
 /// host-readable memory.
@@ -217,14 +216,7 @@ impl FeedbackCompactor {
                 pad0: 0,
             },
         );
-        let groups = self.mesh_count.div_ceil(WORKGROUP);
-        let (x, y) = if groups <= MAX_GROUPS_X {
-            (groups, 1)
-        } else {
-            (MAX_GROUPS_X, groups.div_ceil(MAX_GROUPS_X))
-        };
-        // SAFETY: pipeline and set are bound; the shader bounds-checks the index.
-        unsafe { raw.cmd_dispatch(cmd, x, y, 1) };
+        self.pipeline.dispatch_flat(cmd, self.mesh_count, WORKGROUP);
         memory_barrier(
             &self.device,
             cmd,

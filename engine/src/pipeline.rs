@@ -336,6 +336,24 @@ impl Pipeline {
         }
     }
 
+    /// Dispatches at least `invocations` invocations of this compute pipeline's
+    /// `workgroup_size`-wide workgroups, as many rows of workgroups as the device's
+    /// `maxComputeWorkGroupCount[0]` requires: the shader's flat index is
+    /// `gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * workgroup_size`,
+    /// and it bounds-checks it (the last row is padded).
+    pub fn dispatch_flat(&self, cmd: vk::CommandBuffer, invocations: u32, workgroup_size: u32) {
+        let groups = invocations.div_ceil(workgroup_size).max(1);
+        let row = self.device.properties().limits.max_compute_work_group_count[0].max(1);
+        let (x, y) = if groups <= row {
+            (groups, 1)
+        } else {
+            (row, groups.div_ceil(row))
+        };
+        // SAFETY: cmd is recording outside rendering with this pipeline bound; the shader
+        // bounds-checks its flat index.
+        unsafe { self.device.raw.cmd_dispatch(cmd, x, y, 1) };
+    }
+
     /// Pushes constants to every stage of the layout.
     pub fn push<T: bytemuck::Pod>(&self, cmd: vk::CommandBuffer, value: &T) {
         let stages = match self.bind_point {

@@ -183,6 +183,27 @@ impl RenderTarget {
         }
     }
 
+    /// A copy of the whole of one aspect of an attachment, tightly packed in a buffer.
+    fn whole_image_region(&self, aspect_mask: vk::ImageAspectFlags) -> vk::BufferImageCopy {
+        vk::BufferImageCopy {
+            buffer_offset: 0,
+            buffer_row_length: 0,
+            buffer_image_height: 0,
+            image_subresource: vk::ImageSubresourceLayers {
+                aspect_mask,
+                mip_level: 0,
+                base_array_layer: 0,
+                layer_count: 1,
+            },
+            image_offset: vk::Offset3D::default(),
+            image_extent: vk::Extent3D {
+                width: self.width,
+                height: self.height,
+                depth: 1,
+            },
+        }
+    }
+
     /// Bytes of the depth image copied by [`copy_depth`](Self::copy_depth): one 32-bit
     /// float per pixel, row by row.
     pub(crate) fn depth_bytes(&self) -> u64 {
@@ -223,23 +244,7 @@ impl RenderTarget {
             ),
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
         );
-        let region = vk::BufferImageCopy {
-            buffer_offset: 0,
-            buffer_row_length: 0,
-            buffer_image_height: 0,
-            image_subresource: vk::ImageSubresourceLayers {
-                aspect_mask: vk::ImageAspectFlags::DEPTH,
-                mip_level: 0,
-                base_array_layer: 0,
-                layer_count: 1,
-            },
-            image_offset: vk::Offset3D::default(),
-            image_extent: vk::Extent3D {
-                width: self.width,
-                height: self.height,
-                depth: 1,
-            },
-        };
+        let region = self.whole_image_region(vk::ImageAspectFlags::DEPTH);
         // SAFETY: the image is in TRANSFER_SRC_OPTIMAL; the caller's buffer holds the region.
         unsafe {
             device.raw.cmd_copy_image_to_buffer(
@@ -315,23 +320,7 @@ impl RenderTarget {
                 vk::AccessFlags2::TRANSFER_READ,
             ),
         );
-        let region = vk::BufferImageCopy {
-            buffer_offset: 0,
-            buffer_row_length: 0,
-            buffer_image_height: 0,
-            image_subresource: vk::ImageSubresourceLayers {
-                aspect_mask: vk::ImageAspectFlags::COLOR,
-                mip_level: 0,
-                base_array_layer: 0,
-                layer_count: 1,
-            },
-            image_offset: vk::Offset3D::default(),
-            image_extent: vk::Extent3D {
-                width: self.width,
-                height: self.height,
-                depth: 1,
-            },
-        };
+        let region = self.whole_image_region(vk::ImageAspectFlags::COLOR);
         // An earlier frame's copy into the read-back buffer finishes first.
         crate::image::memory_barrier(
             device,

@@ -15,6 +15,7 @@ use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_streaming::dataset::TextureFormat;
+use citystream_streaming::rng::hash_unit;
 use citystream_tests::{assert_no_validation_errors, sync_validated_device};
 use glam::Vec3;
 
@@ -25,12 +26,9 @@ const TEXTURES: u32 = 48;
 const WIDTH: u32 = 256;
 const HEIGHT: u32 = 144;
 
-fn hash(mut x: u32) -> u32 {
-    x ^= x >> 16;
-    x = x.wrapping_mul(0x7feb_352d);
-    x ^= x >> 15;
-    x = x.wrapping_mul(0x846c_a68b);
-    x ^ (x >> 16)
+/// A value in `0..n` drawn from `key`: the city and views are the same every run.
+fn pick(key: u32, n: u32) -> u32 {
+    (hash_unit(0x0C17, u64::from(key)) * f64::from(n)) as u32
 }
 
 /// Vertices, indices, meshes and each texture's extent.
@@ -74,11 +72,11 @@ fn city() -> City {
     for bx in 0..BLOCKS {
         for bz in 0..BLOCKS {
             let id = bx * BLOCKS + bz;
-            let h = 8.0 + (hash(id) % 53) as f32;
+            let h = 8.0 + (pick(id, 53)) as f32;
             let x0 = bx as f32 * (BLOCK + STREET) + STREET;
             let z0 = bz as f32 * (BLOCK + STREET) + STREET;
             let (x1, z1) = (x0 + BLOCK, z0 + BLOCK);
-            let texture = |k: u32| hash(id * 8 + k) % TEXTURES;
+            let texture = |k: u32| pick(id * 8 + k, TEXTURES);
             let up = |p: Vec3| p + Vec3::new(0.0, h, 0.0);
             let walls = [
                 (Vec3::new(x0, 0.0, z1), Vec3::new(x1, 0.0, z1), Vec3::Z),
@@ -119,8 +117,8 @@ fn views() -> Vec<Camera> {
     for i in 0..44u32 {
         // Street canyons: the middle of a street, looking along it or across a corner.
         let street = (i % BLOCKS) as f32 * (BLOCK + STREET) + STREET * 0.5;
-        let along = 20.0 + (hash(i) % 400) as f32;
-        let turn = ((hash(i + 100) % 90) as f32 - 45.0).to_radians();
+        let along = 20.0 + (pick(i, 400)) as f32;
+        let turn = ((pick(i + 100, 90)) as f32 - 45.0).to_radians();
         let (eye, dir) = if i % 2 == 0 {
             (Vec3::new(street, 1.7, along), Vec3::new(turn.sin(), 0.02, turn.cos()))
         } else {
@@ -135,8 +133,8 @@ fn views() -> Vec<Camera> {
         views.push(camera(eye, centre + Vec3::new(0.0, 10.0, 0.0)));
     }
     for i in 0..30u32 {
-        let x = (hash(i + 300) % 500) as f32;
-        let z = (hash(i + 400) % 500) as f32;
+        let x = (pick(i + 300, 500)) as f32;
+        let z = (pick(i + 400, 500)) as f32;
         let eye = Vec3::new(x, 250.0 + (i * 10) as f32, z);
         views.push(camera(eye, Vec3::new(x + 40.0, 0.0, z + 60.0)));
     }
@@ -158,7 +156,7 @@ fn culling_keeps_the_feedback_and_the_image_of_104_views() -> Result<()> {
     let mut commands = CommandContext::new(&device, "culling test")?;
     let colormap: Vec<[u8; 4]> = (0..TEXTURES)
         .map(|t| {
-            let h = hash(t + 7);
+            let h = pick(t + 7, 1 << 24);
             [h as u8, (h >> 8) as u8, (h >> 16) as u8, 255]
         })
         .collect();
