@@ -16,7 +16,7 @@ use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
 use crate::city::{city_pipeline, single_draw_layout, Camera, CityMesh, CityRenderer};
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS};
@@ -309,7 +309,7 @@ impl AtlasTreeRenderer {
     #[allow(clippy::too_many_arguments)]
     pub fn record_visible(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         slot: u32,
         city: &CityRenderer,
         target: &RenderTarget,
@@ -322,7 +322,7 @@ impl AtlasTreeRenderer {
             .get(slot as usize)
             .ok_or_else(|| EngineError::InvalidRequest(format!("atlas tree: frame slot {slot} out of range")))?;
         city.record_visible_with(
-            cmd,
+            rec,
             target,
             camera,
             1.0,

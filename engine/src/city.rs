@@ -18,7 +18,7 @@ use ash::vk;
 use glam::{Mat4, Vec3};
 
 use crate::buffer::Buffer;
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, Recording};
 use crate::cull::{mesh_bounds, CityCulling, CullList, CullStats, CullView};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
@@ -521,26 +521,21 @@ impl CityRenderer {
     }
 
     /// Draws every mesh in one draw with `pipeline` (whose vertex input is [`CityVertex`]).
-    pub(crate) fn draw_all(
-        &self,
-        cmd: vk::CommandBuffer,
-        pipeline: &Pipeline,
-        set: vk::DescriptorSet,
-        base: CityDrawPush,
-    ) {
-        self.draw(cmd, pipeline, set, base, None);
+    pub(crate) fn draw_all(&self, rec: Recording<'_>, pipeline: &Pipeline, set: vk::DescriptorSet, base: CityDrawPush) {
+        self.draw(rec, pipeline, set, base, None);
     }
 
     /// Draws the meshes of a culled list (`Some`), or every mesh in one draw.
     fn draw(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         pipeline: &Pipeline,
         set: vk::DescriptorSet,
         base: CityDrawPush,
         list: Option<(&CityCulling, CullView, CullList)>,
     ) {
-        pipeline.bind(cmd, set);
+        let cmd = rec.raw();
+        pipeline.bind(rec, set);
         // SAFETY: cmd is recording inside rendering; buffers are live.
         unsafe {
             self.device
@@ -550,9 +545,9 @@ impl CityRenderer {
                 .raw()
                 .cmd_bind_index_buffer(cmd, self.indices.raw(), 0, vk::IndexType::UINT32);
         }
-        pipeline.push(cmd, &base);
+        pipeline.push(rec, &base);
         match list {
-            Some((culling, view, list)) => culling.draw(cmd, view, list),
+            Some((culling, view, list)) => culling.draw(rec, view, list),
             // SAFETY: the index buffer holds `index_count` indices, each below the
             // vertex count (built by `single_draw_geometry`).
             None => unsafe { self.device.raw().cmd_draw_indexed(cmd, self.index_count, 1, 0, 0, 0) },
@@ -563,12 +558,13 @@ impl CityRenderer {
     /// of `visible_height` pixels. Follow it with the compactor's pass.
     pub fn record_feedback(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         feedback_target: &RenderTarget,
         camera: &Camera,
         view: &FeedbackView,
         visible_height: u32,
     ) -> Result<()> {
+        let cmd = rec.raw();
         let pixels = u64::from(feedback_target.width()) * u64::from(feedback_target.height());
         if pixels > FEEDBACK_MAX_PIXELS {
             return Err(EngineError::InvalidRequest(format!(
@@ -595,20 +591,20 @@ impl CityRenderer {
                 // Two phases over the pre-pass; the feedback pass draws what the late test kept.
                 let feedback = CullView::Feedback;
                 culling.prepare(feedback, feedback_target)?;
-                culling.record_early(cmd, &view_proj, feedback);
-                feedback_target.begin(&self.device, cmd, clear);
+                culling.record_early(rec, &view_proj, feedback);
+                feedback_target.begin(&self.device, rec, clear);
                 let early = Some((culling, feedback, CullList::Early));
-                self.draw(cmd, &self.depth_prepass, self.prepass_set, base, early);
-                culling.record_late(cmd, &view_proj, feedback, feedback_target);
+                self.draw(rec, &self.depth_prepass, self.prepass_set, base, early);
+                culling.record_late(rec, &view_proj, feedback, feedback_target);
                 let late = Some((culling, feedback, CullList::Late));
-                self.draw(cmd, &self.depth_prepass, self.prepass_set, base, late);
+                self.draw(rec, &self.depth_prepass, self.prepass_set, base, late);
                 let unoccluded = Some((culling, feedback, CullList::Unoccluded));
-                self.draw(cmd, &self.feedback, self.feedback_set, base, unoccluded);
+                self.draw(rec, &self.feedback, self.feedback_set, base, unoccluded);
             }
             None => {
-                feedback_target.begin(&self.device, cmd, clear);
-                self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);
-                self.draw_all(cmd, &self.feedback, self.feedback_set, base);
+                feedback_target.begin(&self.device, rec, clear);
+                self.draw_all(rec, &self.depth_prepass, self.prepass_set, base);
+                self.draw_all(rec, &self.feedback, self.feedback_set, base);
             }
         }
         // SAFETY: rendering was begun above in the same command buffer.
@@ -621,14 +617,14 @@ impl CityRenderer {
     /// directly (the pop-in comparison of the paper's Fig. 7).
     pub fn record_visible(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         target: &RenderTarget,
         camera: &Camera,
         lighting: f32,
         colormap_blend: bool,
     ) -> Result<()> {
         self.record_visible_with(
-            cmd,
+            rec,
             target,
             camera,
             lighting,
@@ -644,14 +640,14 @@ impl CityRenderer {
     /// imagery covers the city's own ground surfaces). Record the layer's uploads before.
     pub fn record_visible_on_ground(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         target: &RenderTarget,
         camera: &Camera,
         colormap_blend: bool,
         ground: (&GroundLayer, u32),
     ) -> Result<()> {
         self.record_visible_with(
-            cmd,
+            rec,
             target,
             camera,
             1.0,
@@ -667,7 +663,7 @@ impl CityRenderer {
     /// `target` with its read-back copy. Measures the ground's error apart from the city's.
     pub fn record_ground_only(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         target: &RenderTarget,
         camera: &Camera,
         ground: (&GroundLayer, u32),
@@ -679,10 +675,10 @@ impl CityRenderer {
             viewport_light: [target.width() as f32, target.height() as f32, 0.0, 1.0],
             ..CityDrawPush::default()
         };
-        target.begin(&self.device, cmd, [0.0, 0.0, 0.0, 1.0]);
-        self.draw_all(cmd, &self.depth_prepass, self.prepass_set, base);
-        let drawn = ground.0.record_draw(cmd, ground.1, view_proj);
-        target.end_and_copy(&self.device, cmd);
+        target.begin(&self.device, rec, [0.0, 0.0, 0.0, 1.0]);
+        self.draw_all(rec, &self.depth_prepass, self.prepass_set, base);
+        let drawn = ground.0.record_draw(rec, ground.1, view_proj);
+        target.end_and_copy(&self.device, rec);
         drawn
     }
 
@@ -691,7 +687,7 @@ impl CityRenderer {
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn record_visible_with(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         target: &RenderTarget,
         camera: &Camera,
         lighting: f32,
@@ -712,22 +708,22 @@ impl CityRenderer {
         let culling = self.active_culling();
         if let Some(culling) = culling {
             culling.prepare(CullView::Visible, target)?;
-            culling.record_early(cmd, &view_proj, CullView::Visible);
+            culling.record_early(rec, &view_proj, CullView::Visible);
         }
-        target.begin(&self.device, cmd, clear);
+        target.begin(&self.device, rec, clear);
         // Ground first: the city's fragments over it then win the depth test early.
-        let drawn = ground.map_or(Ok(()), |(layer, slot)| layer.record_draw(cmd, slot, view_proj));
+        let drawn = ground.map_or(Ok(()), |(layer, slot)| layer.record_draw(rec, slot, view_proj));
         match culling {
             Some(culling) => {
                 // What was visible last frame, then what the depth so drawn does not hide.
                 let visible = CullView::Visible;
-                self.draw(cmd, pipeline, set, base, Some((culling, visible, CullList::Early)));
-                culling.record_late(cmd, &view_proj, visible, target);
-                self.draw(cmd, pipeline, set, base, Some((culling, visible, CullList::Late)));
+                self.draw(rec, pipeline, set, base, Some((culling, visible, CullList::Early)));
+                culling.record_late(rec, &view_proj, visible, target);
+                self.draw(rec, pipeline, set, base, Some((culling, visible, CullList::Late)));
             }
-            None => self.draw_all(cmd, pipeline, set, base),
+            None => self.draw_all(rec, pipeline, set, base),
         }
-        target.end_and_copy(&self.device, cmd);
+        target.end_and_copy(&self.device, rec);
         drawn
     }
 }

@@ -1,6 +1,7 @@
 //! Command recording and submission: one-shot command contexts, fences and
 //! semaphores that own their handles.
 
+use std::marker::PhantomData;
 use std::sync::Arc;
 
 use ash::vk;
@@ -218,11 +219,73 @@ impl Drop for TimelineSemaphore {
     }
 }
 
+/// A command buffer in the recording state, lent for `'a` to the engine's recorders:
+/// every function of the engine that records commands takes one, so none of them can
+/// be handed a buffer that is not recording.
+///
+/// The engine's own buffers lend one from [`CommandContext::begin`] (or
+/// [`CommandContext::recording`]), borrowing the context so that it cannot submit,
+/// reset or free the buffer while the `Recording` lives. A host recording the engine's
+/// passes into a buffer of its own makes one with [`Recording::from_raw`], whose
+/// contract is the one every recorder relies on. Not `Send`: one thread records.
+///
+/// ```no_run
+/// # fn f(device: &std::sync::Arc<citystream_engine::Device>, target: &citystream_engine::target::RenderTarget) -> citystream_engine::Result<()> {
+/// let mut commands = citystream_engine::commands::CommandContext::new(device, "frame")?;
+/// let rec = commands.begin()?;
+/// target.end_and_copy(device, rec);
+/// commands.submit_and_wait(&[])?;
+/// # Ok(()) }
+/// ```
+///
+/// Recording into a buffer after it was submitted does not compile:
+///
+/// ```compile_fail,E0499
+/// # fn f(device: &std::sync::Arc<citystream_engine::Device>, target: &citystream_engine::target::RenderTarget) -> citystream_engine::Result<()> {
+/// let mut commands = citystream_engine::commands::CommandContext::new(device, "frame")?;
+/// let rec = commands.begin()?;
+/// commands.submit_and_wait(&[])?;
+/// target.end_and_copy(device, rec); // `rec` still borrows `commands`, which submitted
+/// # Ok(()) }
+/// ```
+#[derive(Clone, Copy, Debug)]
+pub struct Recording<'a> {
+    cmd: vk::CommandBuffer,
+    /// Borrows what keeps the buffer recording, and stays on its thread.
+    _recording: PhantomData<(&'a mut (), *const ())>,
+}
+
+impl Recording<'_> {
+    /// Lends the host's command buffer `cmd` to the engine's recorders.
+    ///
+    /// # Safety
+    /// Whenever the returned `Recording` or a copy of it is used, `cmd` must be a
+    /// primary command buffer of the device the recorders were created on, in the
+    /// recording state (begun, not yet ended), not reset, freed or recorded into by
+    /// another thread, and not inside a render pass or dynamic rendering instance
+    /// unless the recorder's documentation says it expects one.
+    pub unsafe fn from_raw(cmd: vk::CommandBuffer) -> Self {
+        Self {
+            cmd,
+            _recording: PhantomData,
+        }
+    }
+
+    /// The command buffer, for the host's own commands between the engine's.
+    pub fn raw(&self) -> vk::CommandBuffer {
+        self.cmd
+    }
+}
+
 /// Records `vkCmdFillBuffer` of the whole `buffer` with `value` (outside
 /// rendering; the buffer needs `TRANSFER_DST`).
-pub fn record_fill(device: &Device, cmd: vk::CommandBuffer, buffer: vk::Buffer, value: u32) {
-    // SAFETY: the caller passes a recording command buffer and a live buffer of this device.
-    unsafe { device.raw.cmd_fill_buffer(cmd, buffer, 0, vk::WHOLE_SIZE, value) };
+pub fn record_fill(device: &Device, rec: Recording<'_>, buffer: &crate::buffer::Buffer, value: u32) {
+    // SAFETY: rec is recording (its invariant); the buffer is live (owned by the caller).
+    unsafe {
+        device
+            .raw
+            .cmd_fill_buffer(rec.raw(), buffer.raw(), 0, vk::WHOLE_SIZE, value)
+    };
 }
 
 /// A command pool with one primary command buffer and a fence: record,
@@ -235,6 +298,8 @@ pub struct CommandContext {
     cmd: vk::CommandBuffer,
     fence: Fence,
     pending: bool,
+    /// Begun and not yet submitted: [`Recording`]s may be lent.
+    recording: bool,
     /// A submission without the fence may still run (its completion is
     /// tracked by the caller's timeline semaphore).
     untracked: bool,
@@ -281,12 +346,14 @@ impl CommandContext {
             cmd,
             fence,
             pending: false,
+            recording: false,
             untracked: false,
         })
     }
 
-    /// Waits for any previous submission, then begins recording.
-    pub fn begin(&mut self) -> Result<vk::CommandBuffer> {
+    /// Waits for any previous submission, then begins recording (what was recorded and
+    /// not submitted is discarded).
+    pub fn begin(&mut self) -> Result<Recording<'_>> {
         self.wait()?;
         if self.untracked {
             // The last submission had no fence: wait for the whole queue.
@@ -299,7 +366,7 @@ impl CommandContext {
     /// Begins recording without waiting on the fence: for a frame's command
     /// buffer whose last submission ([`submit_frame`](Self::submit_frame))
     /// the caller saw complete on its timeline semaphore.
-    pub fn begin_completed(&mut self) -> Result<vk::CommandBuffer> {
+    pub fn begin_completed(&mut self) -> Result<Recording<'_>> {
         self.wait()?;
         self.untracked = false;
         self.reset_and_begin()
@@ -307,7 +374,7 @@ impl CommandContext {
 
     /// Resets and begins the buffer; the callers made sure its last
     /// submission completed (fence, queue or the caller's timeline).
-    fn reset_and_begin(&mut self) -> Result<vk::CommandBuffer> {
+    fn reset_and_begin(&mut self) -> Result<Recording<'_>> {
         let info = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: the buffer is not pending (see the callers) and its pool allows reset.
         unsafe {
@@ -320,7 +387,26 @@ impl CommandContext {
                 .begin_command_buffer(self.cmd, &info)
                 .vk("vkBeginCommandBuffer")?;
         }
-        Ok(self.cmd)
+        self.recording = true;
+        Ok(self.lend())
+    }
+
+    /// The buffer begun and not yet submitted, lent again (for a host that records more
+    /// into a frame after the engine's passes); an error if it is not recording.
+    pub fn recording(&mut self) -> Result<Recording<'_>> {
+        if !self.recording {
+            return Err(crate::EngineError::InvalidRequest(
+                "the command buffer is not recording: begin it first".into(),
+            ));
+        }
+        Ok(self.lend())
+    }
+
+    fn lend(&mut self) -> Recording<'_> {
+        Recording {
+            cmd: self.cmd,
+            _recording: PhantomData,
+        }
     }
 
     /// Ends recording and submits without the fence; completion is tracked
@@ -338,7 +424,13 @@ impl CommandContext {
     }
 
     fn submit_with(&mut self, waits: &[SemaphoreWait], signal: &[SemaphoreSignal], fenced: bool) -> Result<()> {
-        // SAFETY: the buffer is in the recording state (begin was called).
+        if !self.recording {
+            return Err(crate::EngineError::InvalidRequest(
+                "submitting a command buffer that was not begun".into(),
+            ));
+        }
+        self.recording = false;
+        // SAFETY: the buffer is in the recording state (the flag above).
         unsafe { self.device.raw.end_command_buffer(self.cmd) }.vk("vkEndCommandBuffer")?;
         let wait_infos: Vec<_> = waits.iter().map(SemaphoreWait::submit_info).collect();
         let signal_infos: Vec<_> = signal.iter().map(SemaphoreSignal::submit_info).collect();

@@ -35,7 +35,7 @@ use glam::Mat4;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
@@ -148,7 +148,7 @@ struct ViewBuffers {
 /// slot's last frame wrote (a pass not recorded, such as the feedback view of a strategy
 /// without feedback, has no timestamps or statistics to read).
 #[derive(Debug, Default)]
-struct Recording {
+struct SlotRecords {
     slot: u32,
     /// Per slot: bit `view * 2 + segment` for timestamps, bit `4 + view` for statistics.
     written: Vec<u8>,
@@ -176,7 +176,7 @@ pub(crate) struct CityCulling {
     readback: Vec<Buffer>,
     /// Per slot, two timed segments per view.
     timer: GpuTimer,
-    recording: Mutex<Recording>,
+    recording: Mutex<SlotRecords>,
 }
 
 impl std::fmt::Debug for CityCulling {
@@ -398,7 +398,7 @@ impl CityCulling {
             city_indices,
             readback,
             timer,
-            recording: Mutex::new(Recording {
+            recording: Mutex::new(SlotRecords {
                 slot: 0,
                 written: vec![0; slots as usize],
             }),
@@ -413,7 +413,7 @@ impl CityCulling {
             unsafe {
                 device
                     .raw()
-                    .cmd_fill_buffer(cmd, view.flags.raw(), 0, vk::WHOLE_SIZE, 0)
+                    .cmd_fill_buffer(cmd.raw(), view.flags.raw(), 0, vk::WHOLE_SIZE, 0)
             };
         }
         commands.submit_and_wait(&[])?;
@@ -548,16 +548,16 @@ impl CityCulling {
         }
     }
 
-    fn dispatch(&self, cmd: vk::CommandBuffer, set: vk::DescriptorSet, push: &CullPush, invocations: u32) {
-        self.pipeline.bind(cmd, set);
-        self.pipeline.push(cmd, push);
-        self.pipeline.dispatch_flat(cmd, invocations, WORKGROUP);
+    fn dispatch(&self, rec: Recording<'_>, set: vk::DescriptorSet, push: &CullPush, invocations: u32) {
+        self.pipeline.bind(rec, set);
+        self.pipeline.push(rec, push);
+        self.pipeline.dispatch_flat(rec, invocations, WORKGROUP);
     }
 
-    fn compute_barrier(&self, cmd: vk::CommandBuffer) {
+    fn compute_barrier(&self, rec: Recording<'_>) {
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             // Fills count as copies to the validation layer, as clears to the spec.
             (
                 vk::PipelineStageFlags2::COMPUTE_SHADER
@@ -573,14 +573,15 @@ impl CityCulling {
     }
 
     /// Compacts `lists` of `view` from its flags into indirect draws (count, scan, emit).
-    fn emit(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView, lists: &[CullList]) {
+    fn emit(&self, rec: Recording<'_>, view_proj: &Mat4, view: CullView, lists: &[CullList]) {
+        let cmd = rec.raw();
         let v = &self.views[view as usize];
         let raw = self.device.raw();
         // The last frame's draws and copies read these buffers, and earlier dispatches
         // bound them, before they are cleared.
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (
                 vk::PipelineStageFlags2::DRAW_INDIRECT
                     | vk::PipelineStageFlags2::INDEX_INPUT
@@ -604,16 +605,16 @@ impl CityCulling {
             unsafe { raw.cmd_fill_buffer(cmd, l.counter.raw(), 0, vk::WHOLE_SIZE, 0) };
         }
         for phase in [CULL_PHASE_COUNT, CULL_PHASE_SCAN, CULL_PHASE_EMIT] {
-            self.compute_barrier(cmd);
+            self.compute_barrier(rec);
             let invocations = if phase == CULL_PHASE_SCAN { 1 } else { self.group_count };
             for &list in lists {
                 let push = self.push(view_proj, view, phase, list);
-                self.dispatch(cmd, v.lists[list as usize].set, &push, invocations);
+                self.dispatch(rec, v.lists[list as usize].set, &push, invocations);
             }
         }
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
             (
                 vk::PipelineStageFlags2::DRAW_INDIRECT
@@ -628,10 +629,10 @@ impl CityCulling {
 
     /// Orders earlier draws' reads of the lists (indices, draw records) before the
     /// dispatches that bind them.
-    fn draws_before_dispatch(&self, cmd: vk::CommandBuffer) {
+    fn draws_before_dispatch(&self, rec: Recording<'_>) {
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (
                 vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::INDEX_INPUT,
                 vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::INDEX_READ,
@@ -644,15 +645,15 @@ impl CityCulling {
     }
 
     /// The early phase of `view` (outside rendering): frustum flags, and the early list.
-    pub(crate) fn record_early(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView) {
+    pub(crate) fn record_early(&self, rec: Recording<'_>, view_proj: &Mat4, view: CullView) {
         let query = self.query(view, 0);
-        self.timer.begin(cmd, query);
+        self.timer.begin(rec, query);
         // The last frame's passes over this view's flags, and its draws of the lists the
         // dispatches bind, finish before they change.
-        self.draws_before_dispatch(cmd);
+        self.draws_before_dispatch(rec);
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (
                 vk::PipelineStageFlags2::COMPUTE_SHADER,
                 vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
@@ -664,51 +665,52 @@ impl CityCulling {
         );
         let v = &self.views[view as usize];
         let push = self.push(view_proj, view, CULL_PHASE_FRUSTUM, CullList::Early);
-        self.dispatch(cmd, v.lists[0].set, &push, self.group_count);
-        self.emit(cmd, view_proj, view, &[CullList::Early]);
-        self.timer.end(cmd, query);
+        self.dispatch(rec, v.lists[0].set, &push, self.group_count);
+        self.emit(rec, view_proj, view, &[CullList::Early]);
+        self.timer.end(rec, query);
         self.mark_written(view as u32 * 2);
     }
 
     /// The late phase of `view`, after its early draws: pyramid from `target`'s depth
     /// (rendering is paused and resumed around it), occlusion flags, the late list (and
     /// for the feedback view the unoccluded one), and the statistics copy.
-    pub(crate) fn record_late(&self, cmd: vk::CommandBuffer, view_proj: &Mat4, view: CullView, target: &RenderTarget) {
+    pub(crate) fn record_late(&self, rec: Recording<'_>, view_proj: &Mat4, view: CullView, target: &RenderTarget) {
         let v = &self.views[view as usize];
         let query = self.query(view, 1);
         let (pyramid, (mut width, mut height, levels)) = {
             let p = lock(&v.pyramid);
             (p.buffer.raw(), p.shape)
         };
-        target.pause(&self.device, cmd);
-        self.timer.begin(cmd, query);
+        target.pause(&self.device, rec);
+        self.timer.begin(rec, query);
         // The early draws read the early list the dispatches bind.
-        self.draws_before_dispatch(cmd);
-        target.copy_depth(&self.device, cmd, pyramid);
+        self.draws_before_dispatch(rec);
+        target.copy_depth(&self.device, rec, pyramid);
         for level in 1..levels {
             width = width.div_ceil(2);
             height = height.div_ceil(2);
-            self.compute_barrier(cmd);
+            self.compute_barrier(rec);
             let mut push = self.push(view_proj, view, CULL_PHASE_PYRAMID, CullList::Early);
             push.want = level;
-            self.dispatch(cmd, v.lists[0].set, &push, width * height);
+            self.dispatch(rec, v.lists[0].set, &push, width * height);
         }
-        self.compute_barrier(cmd);
+        self.compute_barrier(rec);
         let push = self.push(view_proj, view, CULL_PHASE_OCCLUSION, CullList::Early);
-        self.dispatch(cmd, v.lists[0].set, &push, self.group_count);
+        self.dispatch(rec, v.lists[0].set, &push, self.group_count);
         // Only the feedback view draws the unoccluded list (its feedback pass).
         match view {
-            CullView::Feedback => self.emit(cmd, view_proj, view, &[CullList::Late, CullList::Unoccluded]),
-            CullView::Visible => self.emit(cmd, view_proj, view, &[CullList::Late]),
+            CullView::Feedback => self.emit(rec, view_proj, view, &[CullList::Late, CullList::Unoccluded]),
+            CullView::Visible => self.emit(rec, view_proj, view, &[CullList::Late]),
         }
-        self.copy_statistics(cmd, view);
-        self.timer.end(cmd, query);
+        self.copy_statistics(rec, view);
+        self.timer.end(rec, query);
         self.mark_written(view as u32 * 2 + 1);
         self.mark_written(4 + view as u32);
-        target.resume(&self.device, cmd);
+        target.resume(&self.device, rec);
     }
 
-    fn copy_statistics(&self, cmd: vk::CommandBuffer, view: CullView) {
+    fn copy_statistics(&self, rec: Recording<'_>, view: CullView) {
+        let cmd = rec.raw();
         let size = std::mem::size_of::<CullCounter>() as u64;
         let readback = &self.readback[self.slot() as usize];
         // The host read the slot's last statistics before its frame was recorded again.
@@ -727,7 +729,7 @@ impl CityCulling {
         }
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
         );
@@ -735,7 +737,8 @@ impl CityCulling {
 
     /// Records `list` of `view`'s draws with the bound graphics pipeline and vertex buffer
     /// (inside rendering): its own indices, or on overflow the city's. Binds index buffers.
-    pub(crate) fn draw(&self, cmd: vk::CommandBuffer, view: CullView, list: CullList) {
+    pub(crate) fn draw(&self, rec: Recording<'_>, view: CullView, list: CullList) {
+        let cmd = rec.raw();
         let l = &self.views[view as usize].lists[list as usize];
         let raw = self.device.raw();
         // SAFETY: the draws were written by this frame's culling behind a barrier to

@@ -17,7 +17,7 @@ use ash::vk;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
@@ -154,7 +154,7 @@ impl FeedbackCompactor {
         unsafe {
             device
                 .raw()
-                .cmd_fill_buffer(cmd, compactor.sparse.raw(), 0, vk::WHOLE_SIZE, 0)
+                .cmd_fill_buffer(cmd.raw(), compactor.sparse.raw(), 0, vk::WHOLE_SIZE, 0)
         };
         compactor.record_compact(cmd, u32::MAX, 0)?;
         commands.submit_and_wait(&[])?;
@@ -187,14 +187,15 @@ impl FeedbackCompactor {
     /// the slot visible to the host. Must follow the fragment stage that
     /// wrote the array; the slot must not be read until this submission
     /// completed, nor recorded again while an earlier use is unread.
-    pub fn record_compact(&self, cmd: vk::CommandBuffer, tau: u32, slot: u32) -> Result<()> {
+    pub fn record_compact(&self, rec: Recording<'_>, tau: u32, slot: u32) -> Result<()> {
+        let cmd = rec.raw();
         let target = self.slot(slot)?;
         let raw = self.device.raw();
         // SAFETY: cmd is recording outside rendering; buffers are live.
         unsafe { raw.cmd_fill_buffer(cmd, target.counter.raw(), 0, vk::WHOLE_SIZE, 0) };
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (
                 vk::PipelineStageFlags2::FRAGMENT_SHADER
                     | vk::PipelineStageFlags2::CLEAR
@@ -206,9 +207,9 @@ impl FeedbackCompactor {
                 vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
             ),
         );
-        self.pipeline.bind(cmd, target.set);
+        self.pipeline.bind(rec, target.set);
         self.pipeline.push(
-            cmd,
+            rec,
             &CompactPush {
                 mesh_count: self.mesh_count,
                 tau,
@@ -216,10 +217,10 @@ impl FeedbackCompactor {
                 pad0: 0,
             },
         );
-        self.pipeline.dispatch_flat(cmd, self.mesh_count, WORKGROUP);
+        self.pipeline.dispatch_flat(rec, self.mesh_count, WORKGROUP);
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
             (
                 vk::PipelineStageFlags2::COPY
@@ -310,7 +311,7 @@ impl FeedbackCompactor {
             size,
         };
         // SAFETY: both buffers are `size` bytes.
-        unsafe { self.device.raw().cmd_copy_buffer(cmd, src, dst, &[region]) };
+        unsafe { self.device.raw().cmd_copy_buffer(cmd.raw(), src, dst, &[region]) };
         memory_barrier(
             &self.device,
             cmd,

@@ -27,6 +27,7 @@ use glam::Mat4;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
+use crate::commands::Recording;
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{GroundPush, GroundTileEntry, BINDING_GROUND_TILES, BINDING_GROUND_TILE_MAP};
@@ -577,7 +578,8 @@ impl GroundLayer {
     /// Records the copies of slot `slot`'s staged tiles into the tile array, outside any
     /// rendering and before the ground pass. Earlier frames still in flight may sample
     /// the array: the barrier before the copies orders them after those reads (same queue).
-    pub fn record_uploads(&mut self, cmd: vk::CommandBuffer, slot: u32) -> Result<()> {
+    pub fn record_uploads(&mut self, rec: Recording<'_>, slot: u32) -> Result<()> {
+        let cmd = rec.raw();
         let index = slot as usize;
         let Some(ground_slot) = self.slots.get(index) else {
             return Err(EngineError::InvalidRequest(format!(
@@ -601,7 +603,7 @@ impl GroundLayer {
         };
         transition(
             &self.device,
-            cmd,
+            rec,
             self.tiles.raw(),
             range,
             from,
@@ -648,7 +650,7 @@ impl GroundLayer {
         }
         transition(
             &self.device,
-            cmd,
+            rec,
             self.tiles.raw(),
             range,
             vk::ImageLayout::TRANSFER_DST_OPTIMAL,
@@ -663,7 +665,8 @@ impl GroundLayer {
     /// Records the ground pass of frame slot `slot` inside the caller's rendering (colour
     /// [`COLOR_FORMAT`], depth [`DEPTH_FORMAT`]), with `view_proj` (Vulkan clip space).
     /// Draws nothing before the first patch or before the first [`record_uploads`](Self::record_uploads).
-    pub fn record_draw(&self, cmd: vk::CommandBuffer, slot: u32, view_proj: Mat4) -> Result<()> {
+    pub fn record_draw(&self, rec: Recording<'_>, slot: u32, view_proj: Mat4) -> Result<()> {
+        let cmd = rec.raw();
         let ground_slot = self.slots.get(slot as usize).ok_or_else(|| {
             EngineError::InvalidRequest(format!("ground layer: frame slot {slot} of {}", self.slots.len()))
         })?;
@@ -690,8 +693,8 @@ impl GroundLayer {
             ],
             fallback: [r, g, b, 1.0],
         };
-        self.pipeline.bind(cmd, ground_slot.set);
-        self.pipeline.push(cmd, &push);
+        self.pipeline.bind(rec, ground_slot.set);
+        self.pipeline.push(rec, &push);
         // SAFETY: cmd is recording inside rendering with this pipeline's formats; the
         // vertex stage makes its six vertices from gl_VertexIndex.
         unsafe { self.device.raw().cmd_draw(cmd, 6, 1, 0, 0) };

@@ -6,6 +6,7 @@ use ash::vk;
 use gpu_allocator::vulkan::Allocation;
 use gpu_allocator::MemoryLocation;
 
+use crate::commands::Recording;
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::memory;
@@ -171,9 +172,9 @@ impl Drop for Image {
 
 /// Records a whole-image layout transition with synchronization2.
 #[allow(clippy::too_many_arguments, reason = "a barrier is exactly these eight facts")]
-pub fn transition(
+pub(crate) fn transition(
     device: &Device,
-    cmd: vk::CommandBuffer,
+    rec: Recording<'_>,
     image: vk::Image,
     range: vk::ImageSubresourceRange,
     from: vk::ImageLayout,
@@ -181,6 +182,7 @@ pub fn transition(
     src: (vk::PipelineStageFlags2, vk::AccessFlags2),
     dst: (vk::PipelineStageFlags2, vk::AccessFlags2),
 ) {
+    let cmd = rec.raw();
     let barrier = vk::ImageMemoryBarrier2::default()
         .src_stage_mask(src.0)
         .src_access_mask(src.1)
@@ -201,10 +203,11 @@ pub fn transition(
 /// Records a global memory barrier with synchronization2.
 pub fn memory_barrier(
     device: &Device,
-    cmd: vk::CommandBuffer,
+    rec: Recording<'_>,
     src: (vk::PipelineStageFlags2, vk::AccessFlags2),
     dst: (vk::PipelineStageFlags2, vk::AccessFlags2),
 ) {
+    let cmd = rec.raw();
     let barrier = vk::MemoryBarrier2::default()
         .src_stage_mask(src.0)
         .src_access_mask(src.1)

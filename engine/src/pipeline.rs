@@ -4,6 +4,7 @@ use std::sync::Arc;
 
 use ash::vk;
 
+use crate::commands::Recording;
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::gpu_types::CACHE_IMAGE_SLOTS;
@@ -326,7 +327,8 @@ impl Pipeline {
     }
 
     /// Binds the pipeline and `set` as set 0.
-    pub fn bind(&self, cmd: vk::CommandBuffer, set: vk::DescriptorSet) {
+    pub(crate) fn bind(&self, rec: Recording<'_>, set: vk::DescriptorSet) {
+        let cmd = rec.raw();
         // SAFETY: cmd is recording; pipeline and set are live and compatible.
         unsafe {
             self.device.raw.cmd_bind_pipeline(cmd, self.bind_point, self.raw);
@@ -341,7 +343,8 @@ impl Pipeline {
     /// `maxComputeWorkGroupCount[0]` requires: the shader's flat index is
     /// `gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * workgroup_size`,
     /// and it bounds-checks it (the last row is padded).
-    pub fn dispatch_flat(&self, cmd: vk::CommandBuffer, invocations: u32, workgroup_size: u32) {
+    pub(crate) fn dispatch_flat(&self, rec: Recording<'_>, invocations: u32, workgroup_size: u32) {
+        let cmd = rec.raw();
         let groups = invocations.div_ceil(workgroup_size).max(1);
         let row = self.device.properties().limits.max_compute_work_group_count[0].max(1);
         let (x, y) = if groups <= row {
@@ -355,7 +358,8 @@ impl Pipeline {
     }
 
     /// Pushes constants to every stage of the layout.
-    pub fn push<T: bytemuck::Pod>(&self, cmd: vk::CommandBuffer, value: &T) {
+    pub(crate) fn push<T: bytemuck::Pod>(&self, rec: Recording<'_>, value: &T) {
+        let cmd = rec.raw();
         let stages = match self.bind_point {
             vk::PipelineBindPoint::COMPUTE => vk::ShaderStageFlags::COMPUTE,
             _ => vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT,

@@ -18,7 +18,7 @@ use gpu_allocator::MemoryLocation;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle, RawDisplayHandle};
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::{Semaphore, SemaphoreSignal, SemaphoreWait};
+use crate::commands::{Recording, Semaphore, SemaphoreSignal, SemaphoreWait};
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::image::{memory_barrier, transition};
@@ -460,11 +460,12 @@ impl Presenter {
     /// presented image for [`read_screenshot`](Self::read_screenshot).
     pub fn record_blit(
         &self,
-        cmd: vk::CommandBuffer,
+        rec: Recording<'_>,
         acquired: &AcquiredImage,
         target: &RenderTarget,
         screenshot: bool,
     ) -> Result<()> {
+        let cmd = rec.raw();
         let image = self.images[acquired.index as usize];
         let range = vk::ImageSubresourceRange {
             aspect_mask: vk::ImageAspectFlags::COLOR,
@@ -477,7 +478,7 @@ impl Presenter {
         // Chained to the acquire semaphore's wait at the blit stage.
         transition(
             device,
-            cmd,
+            rec,
             image,
             range,
             vk::ImageLayout::UNDEFINED,
@@ -530,7 +531,7 @@ impl Presenter {
                 .ok_or_else(|| EngineError::InvalidRequest("the presenter was created without screenshots".into()))?;
             transition(
                 device,
-                cmd,
+                rec,
                 image,
                 range,
                 layout,
@@ -541,7 +542,7 @@ impl Presenter {
             // An earlier frame's screenshot copy finishes before this one overwrites the buffer.
             memory_barrier(
                 device,
-                cmd,
+                rec,
                 (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
                 (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             );
@@ -569,7 +570,7 @@ impl Presenter {
             };
             memory_barrier(
                 device,
-                cmd,
+                rec,
                 (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
                 (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
             );
@@ -580,7 +581,7 @@ impl Presenter {
         // (at all commands) makes the writes available; no access after it.
         transition(
             device,
-            cmd,
+            rec,
             image,
             range,
             layout,

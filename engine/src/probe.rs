@@ -220,7 +220,7 @@ fn dispatch_probe<P: bytemuck::Pod>(
     unsafe {
         device
             .raw()
-            .cmd_dispatch(cmd, (points.len() as u32).div_ceil(WORKGROUP), 1, 1)
+            .cmd_dispatch(cmd.raw(), (points.len() as u32).div_ceil(WORKGROUP), 1, 1)
     };
     memory_barrier(
         device,

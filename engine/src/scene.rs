@@ -9,7 +9,7 @@ use glam::Mat4;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{DrawPush, Vertex, BINDING_MESH_TEXTURES};
@@ -260,8 +260,9 @@ impl MeshRenderer {
     }
 
     /// Records draws of every mesh inside the target's rendering.
-    pub fn record(&self, cmd: vk::CommandBuffer, view_proj: Mat4, light: [f32; 4]) {
-        self.pipeline.bind(cmd, self.set);
+    pub fn record(&self, rec: Recording<'_>, view_proj: Mat4, light: [f32; 4]) {
+        let cmd = rec.raw();
+        self.pipeline.bind(rec, self.set);
         // SAFETY: cmd is recording inside dynamic rendering; buffers are live.
         unsafe {
             self.device
@@ -279,7 +280,7 @@ impl MeshRenderer {
                 layer: mesh.layer,
                 ..Default::default()
             };
-            self.pipeline.push(cmd, &push);
+            self.pipeline.push(rec, &push);
             // SAFETY: the index range was validated against the buffers.
             unsafe {
                 self.device.raw.cmd_draw_indexed(
@@ -347,7 +348,11 @@ pub fn upload_buffer(
         size,
     };
     // SAFETY: both buffers are live and large enough.
-    unsafe { device.raw.cmd_copy_buffer(cmd, staging.raw(), buffer.raw(), &[region]) };
+    unsafe {
+        device
+            .raw
+            .cmd_copy_buffer(cmd.raw(), staging.raw(), buffer.raw(), &[region])
+    };
     crate::image::memory_barrier(
         device,
         cmd,
@@ -442,7 +447,7 @@ pub fn upload_texture_array(
     // SAFETY: image in TRANSFER_DST_OPTIMAL; regions lie inside buffer and image.
     unsafe {
         device.raw.cmd_copy_buffer_to_image(
-            cmd,
+            cmd.raw(),
             staging.raw(),
             image.raw(),
             vk::ImageLayout::TRANSFER_DST_OPTIMAL,

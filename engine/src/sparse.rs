@@ -15,7 +15,7 @@ use ash::vk;
 use gpu_allocator::vulkan::Allocation;
 use gpu_allocator::MemoryLocation;
 
-use crate::commands::CommandContext;
+use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::image::{create_view, ImageDesc};
@@ -440,7 +440,8 @@ pub struct TexelUpload {
 impl SparseImage {
     /// Records copies from `source` into the image, which must be in
     /// TRANSFER_DST_OPTIMAL, and whose destination blocks must be bound.
-    pub fn record_copies(&self, cmd: vk::CommandBuffer, source: vk::Buffer, uploads: &[TexelUpload]) -> Result<()> {
+    pub fn record_copies(&self, rec: Recording<'_>, source: vk::Buffer, uploads: &[TexelUpload]) -> Result<()> {
+        let cmd = rec.raw();
         let (bw, bh) = texel_block(self.desc.format);
         let mut regions = Vec::with_capacity(uploads.len());
         for u in uploads {
@@ -496,7 +497,7 @@ impl SparseImage {
 
     /// Records a whole-image transition between UNDEFINED, TRANSFER_DST_OPTIMAL
     /// and SHADER_READ_ONLY_OPTIMAL with matching stages.
-    pub fn record_layout(&self, cmd: vk::CommandBuffer, from: vk::ImageLayout, to: vk::ImageLayout) {
+    pub fn record_layout(&self, rec: Recording<'_>, from: vk::ImageLayout, to: vk::ImageLayout) {
         let stage_of = |layout: vk::ImageLayout| match layout {
             vk::ImageLayout::TRANSFER_DST_OPTIMAL => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             // COPY too: the submission waits for the sparse binds at the copy
@@ -518,7 +519,7 @@ impl SparseImage {
         };
         crate::image::transition(
             &self.device,
-            cmd,
+            rec,
             self.raw,
             range,
             from,

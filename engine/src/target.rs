@@ -6,6 +6,7 @@ use ash::vk;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
+use crate::commands::Recording;
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::image::{transition, Image, ImageDesc};
@@ -97,10 +98,10 @@ impl RenderTarget {
 
     /// Records the transitions and `vkCmdBeginRendering` that clear colour to
     /// `clear` and depth to 1.
-    pub fn begin(&self, device: &Device, cmd: vk::CommandBuffer, clear: [f32; 4]) {
+    pub fn begin(&self, device: &Device, rec: Recording<'_>, clear: [f32; 4]) {
         transition(
             device,
-            cmd,
+            rec,
             self.color.raw(),
             self.color.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
@@ -120,7 +121,7 @@ impl RenderTarget {
         );
         transition(
             device,
-            cmd,
+            rec,
             self.depth.raw(),
             self.depth.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
@@ -134,10 +135,11 @@ impl RenderTarget {
                 vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
             ),
         );
-        self.begin_rendering(device, cmd, vk::AttachmentLoadOp::CLEAR, clear);
+        self.begin_rendering(device, rec, vk::AttachmentLoadOp::CLEAR, clear);
     }
 
-    fn begin_rendering(&self, device: &Device, cmd: vk::CommandBuffer, load: vk::AttachmentLoadOp, clear: [f32; 4]) {
+    fn begin_rendering(&self, device: &Device, rec: Recording<'_>, load: vk::AttachmentLoadOp, clear: [f32; 4]) {
+        let cmd = rec.raw();
         let color_attachments = [vk::RenderingAttachmentInfo::default()
             .image_view(self.color.view())
             .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
@@ -212,7 +214,8 @@ impl RenderTarget {
 
     /// Ends the rendering begun by [`begin`](Self::begin) or [`resume`](Self::resume);
     /// follow with [`copy_depth`](Self::copy_depth), then [`resume`](Self::resume).
-    pub(crate) fn pause(&self, device: &Device, cmd: vk::CommandBuffer) {
+    pub(crate) fn pause(&self, device: &Device, rec: Recording<'_>) {
+        let cmd = rec.raw();
         // SAFETY: cmd is recording inside the rendering begun by `begin` or `resume`.
         unsafe { device.raw.cmd_end_rendering(cmd) };
     }
@@ -220,10 +223,11 @@ impl RenderTarget {
     /// After [`pause`](Self::pause): records the copy of the depth drawn so far into
     /// `into` (at least [`depth_bytes`](Self::depth_bytes)), visible to compute shaders
     /// after.
-    pub(crate) fn copy_depth(&self, device: &Device, cmd: vk::CommandBuffer, into: vk::Buffer) {
+    pub(crate) fn copy_depth(&self, device: &Device, rec: Recording<'_>, into: vk::Buffer) {
+        let cmd = rec.raw();
         transition(
             device,
-            cmd,
+            rec,
             self.depth.raw(),
             self.depth.desc().full_range(),
             vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
@@ -237,7 +241,7 @@ impl RenderTarget {
         // The last frame's culling read the buffer before this copy overwrites it.
         crate::image::memory_barrier(
             device,
-            cmd,
+            rec,
             (
                 vk::PipelineStageFlags2::COMPUTE_SHADER,
                 vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
@@ -257,7 +261,7 @@ impl RenderTarget {
         };
         crate::image::memory_barrier(
             device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             (
                 vk::PipelineStageFlags2::COMPUTE_SHADER,
@@ -267,10 +271,10 @@ impl RenderTarget {
     }
 
     /// Resumes rendering after [`copy_depth`](Self::copy_depth), keeping the colour and depth drawn so far.
-    pub(crate) fn resume(&self, device: &Device, cmd: vk::CommandBuffer) {
+    pub(crate) fn resume(&self, device: &Device, rec: Recording<'_>) {
         transition(
             device,
-            cmd,
+            rec,
             self.depth.raw(),
             self.depth.desc().full_range(),
             vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
@@ -284,7 +288,7 @@ impl RenderTarget {
         // The colour drawn before the pause is loaded by the resumed rendering.
         crate::image::memory_barrier(
             device,
-            cmd,
+            rec,
             (
                 vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
                 vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -294,18 +298,19 @@ impl RenderTarget {
                 vk::AccessFlags2::COLOR_ATTACHMENT_READ | vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             ),
         );
-        self.begin_rendering(device, cmd, vk::AttachmentLoadOp::LOAD, [0.0; 4]);
+        self.begin_rendering(device, rec, vk::AttachmentLoadOp::LOAD, [0.0; 4]);
     }
 
     /// Ends rendering and records the copy of the colour image into the
     /// read-back buffer. Read it with [`RenderTarget::read_pixels`] after the
     /// submission's fence.
-    pub fn end_and_copy(&self, device: &Device, cmd: vk::CommandBuffer) {
+    pub fn end_and_copy(&self, device: &Device, rec: Recording<'_>) {
+        let cmd = rec.raw();
         // SAFETY: cmd is recording inside the rendering begun by `begin`.
         unsafe { device.raw.cmd_end_rendering(cmd) };
         transition(
             device,
-            cmd,
+            rec,
             self.color.raw(),
             self.color.desc().full_range(),
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
@@ -324,7 +329,7 @@ impl RenderTarget {
         // An earlier frame's copy into the read-back buffer finishes first.
         crate::image::memory_barrier(
             device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
         );
@@ -340,7 +345,7 @@ impl RenderTarget {
         };
         crate::image::memory_barrier(
             device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
         );

@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use ash::vk;
 
+use crate::commands::Recording;
 use crate::device::Device;
 use crate::error::{Result, VkResultExt};
 
@@ -86,7 +87,8 @@ impl GpuTimer {
     }
 
     /// Records the reset and the start timestamp of `slot` (outside rendering).
-    pub fn begin(&self, cmd: vk::CommandBuffer, slot: u32) {
+    pub fn begin(&self, rec: Recording<'_>, slot: u32) {
+        let cmd = rec.raw();
         let first = (slot % self.slots) * 2;
         // SAFETY: cmd is recording outside a render pass; queries lie in the pool.
         unsafe {
@@ -98,7 +100,8 @@ impl GpuTimer {
     }
 
     /// Records the end timestamp of `slot`.
-    pub fn end(&self, cmd: vk::CommandBuffer, slot: u32) {
+    pub fn end(&self, rec: Recording<'_>, slot: u32) {
+        let cmd = rec.raw();
         let first = (slot % self.slots) * 2;
         // SAFETY: cmd is recording; the query was reset by `begin` in the same buffer.
         unsafe {

@@ -140,14 +140,15 @@ fn run(
             near: 0.1,
             far: 100.0,
         };
-        let begun = streamer.begin_frame()?;
-        let commands = &mut frame_commands[begun.slot as usize];
-        let cmd = commands.begin_completed()?;
-        let cycle = streamer.record_uploads(cmd)?;
-        renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
-        streamer.record_feedback_resolve(cmd)?;
-        renderer.record_visible(cmd, &target, &camera, 1.0, true)?;
-        let submit = streamer.end_frame(16.0)?;
+        let mut begun = streamer.begin_frame()?;
+        let over_budget = begun.over_budget();
+        let commands = &mut frame_commands[begun.slot() as usize];
+        let rec = commands.begin_completed()?;
+        let cycle = streamer.record_uploads(&mut begun, rec)?;
+        renderer.record_feedback(rec, &feedback_target, &camera, &view, HEIGHT)?;
+        streamer.record_feedback_resolve(&mut begun, rec)?;
+        renderer.record_visible(rec, &target, &camera, 1.0, true)?;
+        let submit = streamer.end_frame(begun, 16.0)?;
         commands.submit_frame(&submit.waits, &[submit.signal])?;
         unbound += cycle.blocks_unbound;
         uploaded += cycle.mips_uploaded;
@@ -156,7 +157,7 @@ fn run(
             uploaded: cycle.mips_uploaded,
             staged: streamer.last_cycle().staged.clone(),
             dropped: streamer.last_cycle().dropped.clone(),
-            over_budget: begun.over_budget,
+            over_budget,
             bound_bytes: streamer.cache().utilisation().bound_bytes,
         });
 
@@ -267,16 +268,16 @@ fn synchronization_validation_reports_a_missing_barrier() -> Result<()> {
         "hazard canary",
     )?;
     let mut commands = CommandContext::new(&device, "hazard canary")?;
-    let cmd = commands.begin()?;
+    let rec = commands.begin()?;
     // Two writes of one range, with only a barrier that does not cover transfers.
-    citystream_engine::commands::record_fill(&device, cmd, buffer.raw(), 0);
+    citystream_engine::commands::record_fill(&device, rec, &buffer, 0);
     memory_barrier(
         &device,
-        cmd,
+        rec,
         (vk::PipelineStageFlags2::FRAGMENT_SHADER, vk::AccessFlags2::SHADER_READ),
         (vk::PipelineStageFlags2::FRAGMENT_SHADER, vk::AccessFlags2::SHADER_READ),
     );
-    citystream_engine::commands::record_fill(&device, cmd, buffer.raw(), 1);
+    citystream_engine::commands::record_fill(&device, rec, &buffer, 1);
     commands.submit_and_wait(&[])?;
     ensure!(
         device
@@ -292,48 +293,66 @@ fn synchronization_validation_reports_a_missing_barrier() -> Result<()> {
     Ok(())
 }
 
-/// Calls out of order are refused with an error naming the call.
+/// Calls the frame token's types cannot order are refused with an error naming the call
+/// (those they can order do not compile: see the `compile_fail` examples of
+/// `citystream_engine::stream::Frame` and `citystream_engine::commands::Recording`).
 #[test]
 fn calls_out_of_order_are_refused() -> Result<()> {
     let device = sync_validated_device()?;
-    let mut source = MemorySource::new();
-    source.push_bc1(64, 64);
-    let mut streamer = TextureStreamer::new(
-        &device,
-        source,
-        vec![0],
-        &[[255, 0, 0, 255]],
-        PolicyKind::Baseline.build(&PolicyOptions::default())?,
-        &StreamConfig {
-            layer_size: 256,
-            layer_count: Some(2),
-            memory_budget_bytes: 1 << 20,
-            staging_bytes: 1 << 16,
-            ..StreamConfig::default()
-        },
-    )?;
+    let new_streamer = || -> Result<TextureStreamer<MemorySource>> {
+        let mut source = MemorySource::new();
+        source.push_bc1(64, 64);
+        Ok(TextureStreamer::new(
+            &device,
+            source,
+            vec![0],
+            &[[255, 0, 0, 255]],
+            PolicyKind::Baseline.build(&PolicyOptions::default())?,
+            &StreamConfig {
+                layer_size: 256,
+                layer_count: Some(2),
+                memory_budget_bytes: 1 << 20,
+                staging_bytes: 1 << 16,
+                ..StreamConfig::default()
+            },
+        )?)
+    };
+    let mut streamer = new_streamer()?;
+    let mut other = new_streamer()?;
     let mut commands = CommandContext::new(&device, "order test")?;
-    let cmd = commands.begin()?;
     let refused = |result: citystream_engine::Result<()>, call: &str| -> Result<()> {
         match result {
             Err(citystream_engine::EngineError::InvalidRequest(message)) if message.contains(call) => Ok(()),
             other => anyhow::bail!("{call} out of order gave {other:?}"),
         }
     };
-    refused(streamer.record_uploads(cmd).map(|_| ()), "record_uploads")?;
-    refused(streamer.record_feedback_resolve(cmd), "record_feedback_resolve")?;
-    refused(streamer.end_frame(16.0).map(|_| ()), "end_frame")?;
-    streamer.begin_frame()?;
+    refused(commands.recording().map(|_| ()), "not recording")?;
+    refused(commands.submit(&[], &[]), "not begun")?;
+    let mut frame = streamer.begin_frame()?;
     refused(streamer.begin_frame().map(|_| ()), "begin_frame")?;
-    refused(streamer.end_frame(16.0).map(|_| ()), "record_uploads")?;
-    streamer.record_uploads(cmd)?;
-    refused(streamer.record_uploads(cmd).map(|_| ()), "record_uploads")?;
-    let submit = streamer.end_frame(16.0)?;
+    let mut others = other.begin_frame()?;
+    let rec = commands.begin()?;
+    refused(
+        streamer.record_uploads(&mut others, rec).map(|_| ()),
+        "another streamer",
+    )?;
+    refused(streamer.record_feedback_resolve(&mut others, rec), "another streamer")?;
+    streamer.record_uploads(&mut frame, rec)?;
+    refused(streamer.record_uploads(&mut frame, rec).map(|_| ()), "record_uploads")?;
+    refused(streamer.end_frame(others, 16.0).map(|_| ()), "another streamer")?;
+    refused(streamer.wait_for_frame(0).map(|_| ()), "frame 0")?;
+    let submit = streamer.end_frame(frame, 16.0)?;
     commands.submit(&submit.waits, &[submit.signal])?;
     streamer.wait_for_frame(0)?;
     refused(streamer.wait_for_frame(1).map(|_| ()), "frame 1")?;
+    // A frame ended without its uploads is refused (its bound cycle would never be copied).
+    let frame = other.begin_frame().err();
+    ensure!(frame.is_some(), "the other streamer's frame 0 was never ended");
+    let mut third = new_streamer()?;
+    let frame = third.begin_frame()?;
+    refused(third.end_frame(frame, 16.0).map(|_| ()), "record_uploads")?;
     commands.wait()?;
-    drop(streamer);
+    drop((streamer, other, third));
     assert_no_validation_errors(&device)
 }
 
@@ -392,16 +411,16 @@ fn stream_fixed_view(
         if let Some(records) = &host_records {
             streamer.set_host_records(records.clone())?;
         }
-        let begun = streamer.begin_frame()?;
-        let commands = &mut frame_commands[begun.slot as usize];
-        let cmd = commands.begin_completed()?;
-        streamer.record_uploads(cmd)?;
+        let mut begun = streamer.begin_frame()?;
+        let commands = &mut frame_commands[begun.slot() as usize];
+        let rec = commands.begin_completed()?;
+        streamer.record_uploads(&mut begun, rec)?;
         if host_records.is_none() {
-            renderer.record_feedback(cmd, &feedback_target, &camera, &view, HEIGHT)?;
-            streamer.record_feedback_resolve(cmd)?;
+            renderer.record_feedback(rec, &feedback_target, &camera, &view, HEIGHT)?;
+            streamer.record_feedback_resolve(&mut begun, rec)?;
         }
-        renderer.record_visible(cmd, &target, &camera, 1.0, true)?;
-        let submit = streamer.end_frame(16.0)?;
+        renderer.record_visible(rec, &target, &camera, 1.0, true)?;
+        let submit = streamer.end_frame(begun, 16.0)?;
         commands.submit_frame(&submit.waits, &[submit.signal])?;
     }
     device.wait_idle()?;

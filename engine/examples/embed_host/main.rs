@@ -25,6 +25,7 @@ use anyhow::{bail, Context, Result};
 use ash::vk;
 use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::city::Camera;
+use citystream_engine::commands::Recording;
 use citystream_engine::device::{check_physical_device, required_features};
 use citystream_engine::gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use citystream_engine::gpu_allocator::MemoryLocation;
@@ -804,9 +805,12 @@ fn render<S: MipSource + 'static>(
             target: from.target.lerp(to.target, t),
             ..from
         };
-        let begun = streamer.begin_frame()?;
-        let cmd = commands.begin(begun.slot)?;
-        streamer.record_uploads(cmd)?;
+        let mut begun = streamer.begin_frame()?;
+        let cmd = commands.begin(begun.slot())?;
+        // SAFETY: `cmd` was just begun on the engine's device; it stays recording, on this
+        // thread, until `end_command_buffer` below, after the last use of `rec`.
+        let rec = unsafe { Recording::from_raw(cmd) };
+        streamer.record_uploads(&mut begun, rec)?;
         // The host's feedback pass, a quarter of the resolution per axis.
         let feedback_push = push(
             camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
@@ -814,11 +818,11 @@ fn render<S: MipSource + 'static>(
             scene.foreground_distance,
             scene.fog_distance,
         );
-        feedback_target.begin(device, cmd, [0.0; 4]);
+        feedback_target.begin(device, rec, [0.0; 4]);
         pipelines.draw(cmd, pipelines.feedback, &feedback_push, &vertices, vertex_count);
         // SAFETY: rendering was begun by `feedback_target.begin` in this buffer.
         unsafe { raw.cmd_end_rendering(cmd) };
-        streamer.record_feedback_resolve(cmd)?;
+        streamer.record_feedback_resolve(&mut begun, rec)?;
         // The host's visible pass.
         let visible_push = push(
             camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
@@ -826,14 +830,15 @@ fn render<S: MipSource + 'static>(
             scene.foreground_distance,
             scene.fog_distance,
         );
-        target.begin(device, cmd, [0.55, 0.7, 0.9, 1.0]);
+        target.begin(device, rec, [0.55, 0.7, 0.9, 1.0]);
         pipelines.draw(cmd, pipelines.visible, &visible_push, &vertices, vertex_count);
-        target.end_and_copy(device, cmd);
+        target.end_and_copy(device, rec);
         // SAFETY: cmd is recording.
         unsafe { raw.end_command_buffer(cmd) }?;
         // The host's measured frame latency would go here; a fixed 8 ms keeps
         // the run reproducible.
-        let submit = streamer.end_frame(8.0)?;
+        last = begun.index();
+        let submit = streamer.end_frame(begun, 8.0)?;
         let waits = submit.wait_infos();
         let signals = [submit.signal_info()];
         let buffers = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
@@ -847,7 +852,6 @@ fn render<S: MipSource + 'static>(
             // SAFETY: the queue is locked; every handle in `info` is alive.
             unsafe { raw.queue_submit2(*queue, &[info], vk::Fence::null()) }?;
         }
-        last = begun.index;
     }
     streamer.wait_for_frame(last)?;
     let pixels = target.read_pixels()?;

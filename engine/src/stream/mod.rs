@@ -8,21 +8,22 @@
 //!
 //! 1. [`TextureStreamer::begin_frame`]: waits only if the frame that used
 //!    this frame's slot `frames_in_flight` frames ago is still running (the
-//!    usual frames-in-flight throttle; counted in [`FrameBegin::cpu_wait`]),
+//!    usual frames-in-flight throttle; counted in [`Frame::cpu_wait`]),
 //!    retires what the GPU finished (read-back slots, staging space,
 //!    one-off buffers), hands the newest completed feedback to the loader
 //!    when no loading task runs, packs what the loader staged into the
 //!    cache and submits the sparse binds (which wait on the GPU, not the
 //!    host, for frames that may still sample evicted blocks).
-//! 2. [`TextureStreamer::record_uploads`] into the frame's command buffer,
+//! 2. [`TextureStreamer::record_uploads`] into the frame's command buffer
+//!    (a [`Recording`], the frame's [`Frame`] token beside it),
 //!    before any pass that samples streamed textures: the copies of new mips
 //!    and the table update.
 //! 3. The host's feedback pass (writing [`TextureStreamer::compactor`]'s
 //!    per-mesh array), then [`TextureStreamer::record_feedback_resolve`]:
 //!    compaction into this frame's read-back slot.
 //! 4. The host's visible passes.
-//! 5. [`TextureStreamer::end_frame`] with the latency the host measured for
-//!    its previous frame: the controller step (Eq. 4–7). It returns the
+//! 5. [`TextureStreamer::end_frame`], consuming the token, with the latency the host
+//!    measured for its previous frame: the controller step (Eq. 4–7). It returns the
 //!    [`FrameSubmit`] waits and signal the host's submission of this frame
 //!    must carry.
 //!
@@ -53,7 +54,7 @@ use citystream_streaming::residency::{AdmissionGate, NeedTable};
 use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
 use citystream_streaming::states::{MipChain, TextureStates};
 
-use crate::commands::{CommandContext, SemaphoreSignal, SemaphoreWait, TimelineSemaphore};
+use crate::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait, TimelineSemaphore};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::{CompactedFeedback, FeedbackCompactor};
@@ -175,25 +176,92 @@ impl Default for StreamConfig {
     }
 }
 
-/// What [`TextureStreamer::begin_frame`] did.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct FrameBegin {
-    /// The frame's number, from 0.
-    pub index: u64,
-    /// Its read-back slot.
-    pub slot: u32,
-    /// Time the CPU blocked waiting for the GPU to finish the frame that
-    /// used this slot before; zero when it had already finished.
-    pub cpu_wait: Duration,
-    /// Feedback of a completed frame was handed to the loader.
-    pub loading_started: bool,
-    /// Mips the cache could not take this frame (loaded again later).
-    pub refused: u32,
-    /// The view needs more than the memory budget holds: loads were refused
-    /// or declined for room ([`Eviction::View`]), or packing evicted a layer
-    /// to stay within the budget ([`Eviction::Ring`]).
-    pub over_budget: bool,
+/// A frame between [`TextureStreamer::begin_frame`] and [`TextureStreamer::end_frame`],
+/// and what `begin_frame` did.
+///
+/// The token is the frame's proof of order: the recording calls take it by reference and
+/// `end_frame` consumes it, so a frame cannot be ended twice or recorded into after it
+/// ended, and a host cannot make one up. Calls the types cannot order (uploads recorded
+/// twice, a resolve without its frame's uploads, a token of another streamer) are refused
+/// with [`EngineError::InvalidRequest`].
+///
+/// ```no_run
+/// # use citystream_engine::{commands::CommandContext, stream::TextureStreamer};
+/// # use citystream_streaming::source::DatasetSource;
+/// # fn f(streamer: &mut TextureStreamer<DatasetSource>, commands: &mut CommandContext) -> citystream_engine::Result<()> {
+/// let mut frame = streamer.begin_frame()?;
+/// let rec = commands.begin()?;
+/// streamer.record_uploads(&mut frame, rec)?;
+/// let submit = streamer.end_frame(frame, 8.0)?;
+/// commands.submit_frame(&submit.waits, &[submit.signal])?;
+/// # Ok(()) }
+/// ```
+///
+/// Ending a frame twice, or recording into it after it ended, does not compile:
+///
+/// ```compile_fail,E0382
+/// # use citystream_engine::{commands::CommandContext, stream::TextureStreamer};
+/// # use citystream_streaming::source::DatasetSource;
+/// # fn f(streamer: &mut TextureStreamer<DatasetSource>, commands: &mut CommandContext) -> citystream_engine::Result<()> {
+/// let mut frame = streamer.begin_frame()?;
+/// let rec = commands.begin()?;
+/// streamer.record_uploads(&mut frame, rec)?;
+/// let submit = streamer.end_frame(frame, 8.0)?;
+/// streamer.record_uploads(&mut frame, rec)?; // `frame` was consumed by end_frame
+/// # Ok(()) }
+/// ```
+#[derive(Debug)]
+#[must_use = "a frame is ended with TextureStreamer::end_frame"]
+pub struct Frame {
+    index: u64,
+    slot: u32,
+    cpu_wait: Duration,
+    loading_started: bool,
+    refused: u32,
+    over_budget: bool,
+    /// The streamer that began it.
+    streamer: u64,
+    uploads_recorded: bool,
+    resolved: bool,
 }
+
+impl Frame {
+    /// The frame's number, from 0.
+    pub fn index(&self) -> u64 {
+        self.index
+    }
+
+    /// Its read-back slot (and frame-in-flight slot: `index % frames_in_flight`).
+    pub fn slot(&self) -> u32 {
+        self.slot
+    }
+
+    /// Time the CPU blocked waiting for the GPU to finish the frame that used this slot
+    /// before; zero when it had already finished.
+    pub fn cpu_wait(&self) -> Duration {
+        self.cpu_wait
+    }
+
+    /// Feedback of a completed frame (or the host's records) was handed to the loader.
+    pub fn loading_started(&self) -> bool {
+        self.loading_started
+    }
+
+    /// Mips the cache could not take this frame (loaded again later).
+    pub fn refused(&self) -> u32 {
+        self.refused
+    }
+
+    /// The view needs more than the memory budget holds: loads were refused or declined
+    /// for room ([`Eviction::View`]), or packing evicted a layer to stay within the
+    /// budget ([`Eviction::Ring`]).
+    pub fn over_budget(&self) -> bool {
+        self.over_budget
+    }
+}
+
+/// Distinguishes streamers, so that a frame token is used only with its own.
+static NEXT_STREAMER_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// What the last [`TextureStreamer::begin_frame`] did to residency.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -276,9 +344,10 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     slots: Vec<FrameSlot>,
     /// Frames begun so far; the frame being recorded has value `begun`.
     begun: u64,
+    /// A [`Frame`] was begun and not yet ended.
     in_frame: bool,
-    resolved_this_frame: bool,
-    uploads_recorded: bool,
+    /// Matches the [`Frame`]s this streamer hands out.
+    id: u64,
     tau: u32,
     gpu_tau: u32,
     /// The compaction's threshold: 0 (every seen mesh) when eviction ranks
@@ -414,8 +483,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             slots: vec![FrameSlot::default(); config.frames_in_flight as usize],
             begun: 0,
             in_frame: false,
-            resolved_this_frame: false,
-            uploads_recorded: false,
+            id: NEXT_STREAMER_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             tau: config.weight_cutoff,
             gpu_tau,
             compact_tau: if config.eviction == Eviction::View && feedback_capacity >= mesh_count {
@@ -596,10 +664,10 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     }
 
     /// Step 1 of a frame; see the module docs.
-    pub fn begin_frame(&mut self) -> Result<FrameBegin> {
+    pub fn begin_frame(&mut self) -> Result<Frame> {
         if self.in_frame {
             return Err(EngineError::InvalidRequest(
-                "begin_frame called twice without end_frame".into(),
+                "begin_frame called while the frame begun before was not ended with end_frame".into(),
             ));
         }
         let index = self.begun;
@@ -688,15 +756,16 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         };
         self.begun += 1;
         self.in_frame = true;
-        self.resolved_this_frame = false;
-        self.uploads_recorded = false;
-        Ok(FrameBegin {
+        Ok(Frame {
             index,
             slot: slot as u32,
             cpu_wait,
             loading_started,
             refused,
             over_budget,
+            streamer: self.id,
+            uploads_recorded: false,
+            resolved: false,
         })
     }
 
@@ -740,56 +809,61 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.host_upload_bytes = self.host_upload_bytes.saturating_add(bytes);
     }
 
-    /// Step 2: records the copies of this frame's new mips and the table
-    /// update into `cmd`, outside any render pass and before every pass
-    /// that samples streamed textures.
-    pub fn record_uploads(&mut self, cmd: vk::CommandBuffer) -> Result<CycleReport> {
-        self.check_in_frame("record_uploads")?;
-        if self.uploads_recorded {
+    /// Step 2: records the copies of `frame`'s new mips and the table update into `rec`,
+    /// outside any render pass and before every pass that samples streamed textures.
+    /// Once per frame.
+    pub fn record_uploads(&mut self, frame: &mut Frame, rec: Recording<'_>) -> Result<CycleReport> {
+        self.check_frame(frame, "record_uploads")?;
+        if frame.uploads_recorded {
             return Err(EngineError::InvalidRequest(
                 "record_uploads called twice in one frame".into(),
             ));
         }
-        let report = self.cache.record_cycle(cmd)?;
-        self.uploads_recorded = true;
+        let report = self.cache.record_cycle(rec)?;
+        frame.uploads_recorded = true;
         for &texture in &report.invalidated_textures {
             let _ = self.states.invalidate(texture);
         }
         Ok(report)
     }
 
-    /// Step 3: records the compaction of the per-mesh feedback the host's
-    /// feedback pass wrote into this frame's read-back slot (resetting the
-    /// array for the next frame). Must follow that pass; call once per frame.
-    pub fn record_feedback_resolve(&mut self, cmd: vk::CommandBuffer) -> Result<()> {
-        self.record_feedback_resolve_with_tau(cmd, self.compact_tau)
+    /// Step 3: records the compaction of the per-mesh feedback the host's feedback pass
+    /// wrote into `frame`'s read-back slot (resetting the array for the next frame). Must
+    /// follow that pass; at most once per frame.
+    pub fn record_feedback_resolve(&mut self, frame: &mut Frame, rec: Recording<'_>) -> Result<()> {
+        self.record_feedback_resolve_with_tau(frame, rec, self.compact_tau)
     }
 
     /// As [`record_feedback_resolve`](Self::record_feedback_resolve) with
     /// another compaction threshold (0 keeps every seen mesh, e.g. for an
     /// error reference); the loader still applies the streamer's τ.
-    pub fn record_feedback_resolve_with_tau(&mut self, cmd: vk::CommandBuffer, gpu_tau: u32) -> Result<()> {
-        self.check_in_frame("record_feedback_resolve")?;
-        if self.resolved_this_frame {
+    pub fn record_feedback_resolve_with_tau(
+        &mut self,
+        frame: &mut Frame,
+        rec: Recording<'_>,
+        gpu_tau: u32,
+    ) -> Result<()> {
+        self.check_frame(frame, "record_feedback_resolve")?;
+        if frame.resolved {
             return Err(EngineError::InvalidRequest(
                 "record_feedback_resolve called twice in one frame".into(),
             ));
         }
-        let slot = ((self.begun - 1) % self.slots.len() as u64) as usize;
-        self.compactor.record_compact(cmd, gpu_tau, slot as u32)?;
+        let slot = frame.slot as usize;
+        self.compactor.record_compact(rec, gpu_tau, frame.slot)?;
         // Algorithm 1's gate: feedback goes to the host only when no loading
         // task runs (deterministic runs load on this thread, so always).
         self.slots[slot].unread = self.deterministic || !self.loader.is_streaming();
         self.slots[slot].resolved = true;
-        self.resolved_this_frame = true;
+        frame.resolved = true;
         Ok(())
     }
 
-    /// Step 5: the controller step with the latency (ms) the host measured
-    /// for its previous frame; returns what this frame's submission carries.
-    pub fn end_frame(&mut self, frame_latency_ms: f64) -> Result<FrameSubmit> {
-        self.check_in_frame("end_frame")?;
-        if !self.uploads_recorded {
+    /// Step 5: ends `frame` with the controller step on the latency (ms) the host
+    /// measured for its previous frame; returns what this frame's submission carries.
+    pub fn end_frame(&mut self, frame: Frame, frame_latency_ms: f64) -> Result<FrameSubmit> {
+        self.check_frame(&frame, "end_frame")?;
+        if !frame.uploads_recorded {
             // The cycle begin_frame bound would never be copied or retired.
             return Err(EngineError::InvalidRequest(
                 "end_frame without record_uploads: every frame records its uploads".into(),
@@ -806,14 +880,16 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         })
     }
 
-    fn check_in_frame(&self, call: &str) -> Result<()> {
-        if self.in_frame {
-            Ok(())
-        } else {
-            Err(EngineError::InvalidRequest(format!(
-                "{call} called outside begin_frame/end_frame"
-            )))
+    /// `frame` is this streamer's frame in progress (a token is consumed when its frame
+    /// ends, so only another streamer's can fail here).
+    fn check_frame(&self, frame: &Frame, call: &str) -> Result<()> {
+        if frame.streamer != self.id || !self.in_frame || frame.index + 1 != self.begun {
+            return Err(EngineError::InvalidRequest(format!(
+                "{call} was given frame {} of another streamer",
+                frame.index
+            )));
         }
+        Ok(())
     }
 
     /// The device.

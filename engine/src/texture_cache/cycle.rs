@@ -4,7 +4,7 @@
 use ash::vk;
 
 use super::{same_place, stage_bytes, CycleReport, GpuTextureCache, PreparedCycle};
-use crate::commands::{CommandContext, SemaphoreWait};
+use crate::commands::{CommandContext, Recording, SemaphoreWait};
 use crate::error::{EngineError, Result};
 use crate::gpu_types::TEXTURE_NOT_SAMPLEABLE;
 use crate::sparse::{SparseMemoryChunk, TexelUpload};
@@ -135,10 +135,10 @@ impl GpuTextureCache {
     /// order them against earlier and later frames. The submission carrying
     /// `cmd` must wait on [`bind_wait`](Self::bind_wait). Without a
     /// prepared cycle, records only pending table changes.
-    pub fn record_cycle(&mut self, cmd: vk::CommandBuffer) -> Result<CycleReport> {
+    pub fn record_cycle(&mut self, rec: Recording<'_>) -> Result<CycleReport> {
         let Some(prepared) = self.prepared.take() else {
             let ticket = self.last_ticket;
-            self.record_table_update(cmd, ticket)?;
+            self.record_table_update(rec, ticket)?;
             return Ok(CycleReport::default());
         };
         let mut report = prepared.report;
@@ -160,13 +160,13 @@ impl GpuTextureCache {
                     self.binder.check_copy(index as u32, upload)?;
                 }
                 image.record_layout(
-                    cmd,
+                    rec,
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
                     vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                 );
-                image.record_copies(cmd, source, &uploads)?;
+                image.record_copies(rec, source, &uploads)?;
                 image.record_layout(
-                    cmd,
+                    rec,
                     vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
                 );
@@ -194,7 +194,7 @@ impl GpuTextureCache {
         }
         self.uploads.clear();
         self.upload_bytes.clear();
-        self.record_table_update(cmd, prepared.ticket)?;
+        self.record_table_update(rec, prepared.ticket)?;
         Ok(report)
     }
 

@@ -5,6 +5,7 @@ use ash::vk;
 use citystream_cache::Placement;
 
 use super::{stage_bytes, GpuTextureCache};
+use crate::commands::Recording;
 use crate::error::Result;
 use crate::gpu_types::{TextureData, TEXTURE_NOT_SAMPLEABLE, TEXTURE_SAMPLEABLE};
 use crate::image::memory_barrier;
@@ -21,7 +22,8 @@ impl GpuTextureCache {
 
     /// Records the copy of every changed table entry (runs of adjacent
     /// textures merged) from staging into the device-local table.
-    pub(super) fn record_table_update(&mut self, cmd: vk::CommandBuffer, ticket: u64) -> Result<()> {
+    pub(super) fn record_table_update(&mut self, rec: Recording<'_>, ticket: u64) -> Result<()> {
+        let cmd = rec.raw();
         if self.dirty.is_empty() {
             return Ok(());
         }
@@ -72,7 +74,7 @@ impl GpuTextureCache {
         // Earlier frames' reads of the table finish before it changes.
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (shader_stages, vk::AccessFlags2::SHADER_STORAGE_READ),
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
         );
@@ -85,7 +87,7 @@ impl GpuTextureCache {
         };
         memory_barrier(
             &self.device,
-            cmd,
+            rec,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             (shader_stages, vk::AccessFlags2::SHADER_STORAGE_READ),
         );

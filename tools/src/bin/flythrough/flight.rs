@@ -10,17 +10,17 @@ use anyhow::{bail, Context, Result};
 use glam::Vec3;
 
 use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
-use citystream_engine::commands::{CommandContext, SemaphoreSignal, SemaphoreWait};
+use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::cull::CullStats;
 use citystream_engine::device::describe;
 use citystream_engine::gpu_types::Vertex;
 use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
-use citystream_engine::stream::{FrameBegin, StreamConfig, TextureStreamer};
+use citystream_engine::stream::{Frame, StreamConfig, TextureStreamer};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CycleReport, Eviction};
 use citystream_engine::timing::{CpuFrameClock, GpuTimer};
-use citystream_engine::{vk, Device, DeviceOptions, EngineError};
+use citystream_engine::{Device, DeviceOptions, EngineError};
 use citystream_streaming::atlas_tree::AtlasTree;
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::bench::stats::Stats;
@@ -86,11 +86,11 @@ impl PassTimes {
         slot * TIMED_PASSES as u32 + pass as u32
     }
 
-    pub(crate) fn begin(&self, cmd: citystream_engine::vk::CommandBuffer, slot: u32, pass: usize) {
+    pub(crate) fn begin(&self, cmd: Recording<'_>, slot: u32, pass: usize) {
         self.timer.begin(cmd, Self::query(slot, pass));
     }
 
-    pub(crate) fn end(&mut self, cmd: citystream_engine::vk::CommandBuffer, slot: u32, pass: usize) {
+    pub(crate) fn end(&mut self, cmd: Recording<'_>, slot: u32, pass: usize) {
         self.timer.end(cmd, Self::query(slot, pass));
         if pass + 1 == TIMED_PASSES {
             self.written[slot as usize] = true;
@@ -546,8 +546,14 @@ pub(crate) struct FrameSettings {
 
 /// A frame recorded into its command buffer and not yet submitted.
 pub(crate) struct RecordedFrame {
-    pub(crate) begun: FrameBegin,
-    pub(crate) cmd: vk::CommandBuffer,
+    /// The frame's number, from 0 ([`Frame::index`]).
+    pub(crate) index: u64,
+    /// Its slot among the frames in flight.
+    pub(crate) slot: u32,
+    /// Time `begin_frame` blocked for the slot's previous frame.
+    pub(crate) cpu_wait: std::time::Duration,
+    /// The streamer's token, until [`Flight::submit`] ends the frame with it.
+    token: Option<Frame>,
     /// This frame's uploads into the cache.
     pub(crate) applied: CycleReport,
     /// Bytes of ground imagery uploaded in this frame.
@@ -678,8 +684,8 @@ impl Flight {
     /// the visible pass of the strategy, each timed. The host may record more (a blit to
     /// the swapchain) before [`Self::submit`].
     pub(crate) fn record(&mut self, frame: u32, camera: &Camera, settings: &FrameSettings) -> Result<RecordedFrame> {
-        let begun = self.gpu.streamer.begin_frame()?;
-        self.warn_once(frame, begun.over_budget);
+        let mut begun = self.gpu.streamer.begin_frame()?;
+        self.warn_once(frame, begun.over_budget());
         let feedback = match self.gpu.streamer.latest_feedback() {
             Some((from, entries)) if self.last_feedback != Some(from) => {
                 self.last_feedback = Some(from);
@@ -693,7 +699,7 @@ impl Flight {
             _ => None,
         };
         // The streamer's throttle saw this slot's last frame complete.
-        let slot = begun.slot;
+        let slot = begun.slot();
         // Patches that arrived, and the ground tiles this frame's share of the load size
         // pays for; charged to the facades' next loading cycle.
         let ground_bytes = match self.ground.as_mut() {
@@ -707,14 +713,14 @@ impl Flight {
         };
         self.pass_times.collect(slot, &self.gpu.renderer)?;
         self.gpu.renderer.set_cull_slot(slot)?;
-        let cmd = self.frame_commands[slot as usize].begin_completed()?;
+        let rec = self.frame_commands[slot as usize].begin_completed()?;
         let passes = &mut self.pass_times;
-        passes.begin(cmd, slot, 0);
-        let applied = self.gpu.streamer.record_uploads(cmd)?;
+        passes.begin(rec, slot, 0);
+        let applied = self.gpu.streamer.record_uploads(&mut begun, rec)?;
         if let Some(run) = self.ground.as_mut() {
-            run.layer.record_uploads(cmd, slot)?;
+            run.layer.record_uploads(rec, slot)?;
         }
-        passes.end(cmd, slot, 0);
+        passes.end(rec, slot, 0);
         // The atlas tree has no feedback: its two passes stay empty (0 ms).
         let feedback_pass = self.tree.is_none() && settings.feedback;
         let CityTargets {
@@ -723,26 +729,26 @@ impl Flight {
             view,
             ..
         } = &self.targets;
-        passes.begin(cmd, slot, 1);
+        passes.begin(rec, slot, 1);
         if feedback_pass {
             self.gpu
                 .renderer
-                .record_feedback(cmd, feedback_target, camera, view, target.height())?;
+                .record_feedback(rec, feedback_target, camera, view, target.height())?;
         }
-        passes.end(cmd, slot, 1);
-        passes.begin(cmd, slot, 2);
+        passes.end(rec, slot, 1);
+        passes.begin(rec, slot, 2);
         match (feedback_pass, settings.every_seen_mesh) {
             (false, _) => {}
-            (true, true) => self.gpu.streamer.record_feedback_resolve_with_tau(cmd, 0)?,
-            (true, false) => self.gpu.streamer.record_feedback_resolve(cmd)?,
+            (true, true) => self.gpu.streamer.record_feedback_resolve_with_tau(&mut begun, rec, 0)?,
+            (true, false) => self.gpu.streamer.record_feedback_resolve(&mut begun, rec)?,
         }
-        passes.end(cmd, slot, 2);
-        passes.begin(cmd, slot, 3);
+        passes.end(rec, slot, 2);
+        passes.begin(rec, slot, 3);
         let ground_layer = self.ground.as_ref().map(|g| (&g.layer, slot));
         let (draw_calls, nodes_drawn) = match self.tree.as_mut() {
             Some(run) => {
                 let drawn = run.record_frame(
-                    cmd,
+                    rec,
                     slot,
                     &mut self.gpu,
                     &self.dataset,
@@ -758,17 +764,19 @@ impl Flight {
                     Some(ground) => self
                         .gpu
                         .renderer
-                        .record_visible_on_ground(cmd, target, camera, blend, ground)?,
-                    None => self.gpu.renderer.record_visible(cmd, target, camera, 1.0, blend)?,
+                        .record_visible_on_ground(rec, target, camera, blend, ground)?,
+                    None => self.gpu.renderer.record_visible(rec, target, camera, 1.0, blend)?,
                 }
                 let in_view = meshes_in_view(&self.dataset.scene, camera, target.width(), target.height());
                 (in_view, None)
             }
         };
-        passes.end(cmd, slot, 3);
+        passes.end(rec, slot, 3);
         Ok(RecordedFrame {
-            begun,
-            cmd,
+            index: begun.index(),
+            slot,
+            cpu_wait: begun.cpu_wait(),
+            token: Some(begun),
             applied,
             ground_bytes,
             draw_calls,
@@ -782,16 +790,28 @@ impl Flight {
     /// host's own (`waits`, `signals`: a swapchain image's).
     pub(crate) fn submit(
         &mut self,
-        frame: &RecordedFrame,
+        frame: &mut RecordedFrame,
         frame_ms: f64,
         waits: &[SemaphoreWait],
         signals: &[SemaphoreSignal],
     ) -> Result<()> {
-        let submit = self.gpu.streamer.end_frame(frame_ms)?;
+        let token = frame
+            .token
+            .take()
+            .with_context(|| format!("frame {} was submitted twice", frame.index))?;
+        let submit = self.gpu.streamer.end_frame(token, frame_ms)?;
         let waits: Vec<SemaphoreWait> = submit.waits.iter().chain(waits).copied().collect();
         let signals: Vec<SemaphoreSignal> = std::iter::once(submit.signal).chain(signals.iter().copied()).collect();
-        self.frame_commands[frame.begun.slot as usize].submit_frame(&waits, &signals)?;
+        self.frame_commands[frame.slot as usize].submit_frame(&waits, &signals)?;
         Ok(())
+    }
+
+    /// `frame`'s command buffer, recorded and not yet submitted, for what the host records
+    /// after the flight's passes (the window's blit to the swapchain).
+    /// With it, the frame's render target.
+    pub(crate) fn recording(&mut self, frame: &RecordedFrame) -> Result<(Recording<'_>, &RenderTarget)> {
+        let rec = self.frame_commands[frame.slot as usize].recording()?;
+        Ok((rec, &self.targets.target))
     }
 
     /// The latency of `frame` the controller is given next: measured since the last call

@@ -135,7 +135,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
         let write_frame = frame_interval(args) > 0 && frame % frame_interval(args) == 0;
 
-        let recorded = flight.record(
+        let mut recorded = flight.record(
             frame,
             &camera,
             &FrameSettings {
@@ -151,15 +151,14 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         draw_call_samples.push(f64::from(recorded.draw_calls));
         nodes_drawn.extend(recorded.nodes_drawn.map(f64::from));
         // The controller step with the previous frame's latency.
-        flight.submit(&recorded, frame_ms, &[], &[])?;
-        let begun = &recorded.begun;
-        waits.count(begun.cpu_wait, false);
+        flight.submit(&mut recorded, frame_ms, &[], &[])?;
+        waits.count(recorded.cpu_wait, false);
 
         let (mut error, mut ground_error) = (None, None);
         if write_frame || measure_error {
             let target = &flight.targets.target;
             // Reading this frame's image back is a wait outside the steady state.
-            waits.count(flight.gpu.streamer.wait_for_frame(begun.index)?, true);
+            waits.count(flight.gpu.streamer.wait_for_frame(recorded.index)?, true);
             let pixels = target.read_pixels()?;
             if write_frame {
                 let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
@@ -171,7 +170,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 // reaching τ); lighter ones are read back for eviction only.
                 let entries: Vec<FeedbackEntry> = match flight.tree {
                     Some(_) => reference_feedback(reference, &mut commands, &flight.targets, &camera, args.height)?,
-                    None => feedback_reaching(&flight.gpu.streamer, begun.index, tau)?,
+                    None => feedback_reaching(&flight.gpu.streamer, recorded.index, tau)?,
                 };
                 reference_incomplete += load_reference(reference, &mut commands, &entries, flight.meshes())?;
                 let cmd = commands.begin()?;
@@ -183,7 +182,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                         target,
                         &camera,
                         true,
-                        (&run.layer, begun.slot),
+                        (&run.layer, recorded.slot),
                     )?,
                     None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true)?,
                 }
@@ -191,7 +190,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
             }
             if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {
-                ground_error = run.measure(&mut commands, &flight.gpu.renderer, target, &camera, begun.slot)?;
+                ground_error = run.measure(&mut commands, &flight.gpu.renderer, target, &camera, recorded.slot)?;
             }
         }
 

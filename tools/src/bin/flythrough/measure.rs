@@ -91,22 +91,23 @@ pub(crate) fn feedback_frame_now(
     visible_height: u32,
     compact_tau: Option<u32>,
 ) -> Result<u64> {
-    let begun = gpu.streamer.begin_frame()?;
-    let cmd = commands.begin()?;
-    gpu.streamer.record_uploads(cmd)?;
+    let mut frame = gpu.streamer.begin_frame()?;
+    let index = frame.index();
+    let rec = commands.begin()?;
+    gpu.streamer.record_uploads(&mut frame, rec)?;
     gpu.renderer
-        .record_feedback(cmd, feedback_target, camera, view, visible_height)?;
+        .record_feedback(rec, feedback_target, camera, view, visible_height)?;
     match compact_tau {
-        Some(tau) => gpu.streamer.record_feedback_resolve_with_tau(cmd, tau)?,
-        None => gpu.streamer.record_feedback_resolve(cmd)?,
+        Some(tau) => gpu.streamer.record_feedback_resolve_with_tau(&mut frame, rec, tau)?,
+        None => gpu.streamer.record_feedback_resolve(&mut frame, rec)?,
     }
-    let submit = gpu.streamer.end_frame(FIXED_STEP_MS)?;
+    let submit = gpu.streamer.end_frame(frame, FIXED_STEP_MS)?;
     commands.submit(&submit.waits, &[submit.signal])?;
     // The frame timeline says when the feedback is readable (a fence may
     // signal before the timeline value is visible).
-    gpu.streamer.wait_for_frame(begun.index)?;
+    gpu.streamer.wait_for_frame(index)?;
     commands.wait()?;
-    Ok(begun.index)
+    Ok(index)
 }
 
 /// The compacted feedback entries of completed frame `index` whose weight reaches `tau`.

@@ -6,7 +6,7 @@ use anyhow::Result;
 
 use citystream_engine::atlas_tree::AtlasTreeRenderer;
 use citystream_engine::city::Camera;
-use citystream_engine::commands::CommandContext;
+use citystream_engine::commands::{CommandContext, Recording};
 use citystream_engine::gpu_types::TEXTURE_SAMPLEABLE;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::Device;
@@ -110,7 +110,7 @@ impl TreeRun {
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn record_frame(
         &mut self,
-        cmd: citystream_engine::vk::CommandBuffer,
+        rec: Recording<'_>,
         slot: u32,
         gpu: &mut CityGpu,
         dataset: &Dataset,
@@ -179,7 +179,7 @@ impl TreeRun {
         self.ideal_blocks.push(paging.ideal.len() as f64);
         gpu.streamer.set_host_records(paging.records)?;
         self.renderer
-            .record_visible(cmd, slot, &gpu.renderer, target, camera, true, ground)?;
+            .record_visible(rec, slot, &gpu.renderer, target, camera, true, ground)?;
         let nodes_drawn = selection.draws.len() as u32;
         self.fallbacks.push(f64::from(selection.fallbacks));
         Ok(TreeFrame {

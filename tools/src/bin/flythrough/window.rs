@@ -946,7 +946,7 @@ impl Viewer {
             recorder.push(self.time_s, &pose, pose.jumped);
         }
         let camera = pose_camera(&pose, self.flight.extent);
-        let recorded = self.flight.record(
+        let mut recorded = self.flight.record(
             self.frame,
             &camera,
             &FrameSettings {
@@ -961,17 +961,16 @@ impl Viewer {
         if let Some(feedback) = recorded.feedback {
             self.pending = feedback.pending;
         }
-        let begun = &recorded.begun;
-        let acquired = self.presenter.acquire(begun.slot)?;
+        let acquired = self.presenter.acquire(recorded.slot)?;
         if let Some(image) = &acquired {
-            self.presenter
-                .record_blit(recorded.cmd, image, &self.flight.targets.target, screenshot)?;
+            let (rec, target) = self.flight.recording(&recorded)?;
+            self.presenter.record_blit(rec, image, target, screenshot)?;
         }
         let (waits, signals) = match &acquired {
             Some(image) => (vec![image.wait], vec![image.signal]),
             None => (Vec::new(), Vec::new()),
         };
-        self.flight.submit(&recorded, self.frame_ms, &waits, &signals)?;
+        self.flight.submit(&mut recorded, self.frame_ms, &waits, &signals)?;
         let presented = acquired.is_some();
         match acquired {
             Some(image) => {
@@ -990,7 +989,7 @@ impl Viewer {
         if screenshot && presented {
             // The copy was recorded after the blit; a swapchain now out of
             // date still held this frame's image when it ran.
-            self.flight.gpu.streamer.wait_for_frame(begun.index)?;
+            self.flight.gpu.streamer.wait_for_frame(recorded.index)?;
             let path = frames_dir_path(args).join(format!("frame_{:05}.png", self.frame));
             write_png(&self.presenter.read_screenshot()?, &path)?;
             self.screenshots.push(path.display().to_string());
