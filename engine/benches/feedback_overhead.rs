@@ -6,7 +6,7 @@
 //! Run: `cargo bench -p citystream-engine --bench feedback_overhead`.
 //! Prints a table; nothing is asserted (speed lives in benchmarks, not tests).
 
-use citystream_streaming::dataset::TextureFormat;
+use citystream_dataset::TextureFormat;
 use std::sync::Arc;
 use std::time::Instant;
 

@@ -7,11 +7,18 @@
 //! a per-mesh table (texture and texture matrix) written each frame into that frame slot's
 //! buffers. Atlas coordinates come per vertex from a buffer laid out like the vertex
 //! buffer, so the vertex format is the city passes' own.
+//!
+//! [`AtlasTreeStreamer`] is the whole strategy beside a [`TextureStreamer`]: per frame the
+//! traversal, the tables, the paging's records for the loader and the visible pass.
 
 use std::sync::Arc;
 
 use ash::vk;
-use citystream_streaming::atlas_tree::{AtlasTree, DrawWith, Selection};
+use citystream_dataset::Dataset;
+use citystream_streaming::atlas_tree::{
+    frustum_planes, intersects_frustum, AtlasTree, Block, DrawWith, Selection, TreeView,
+};
+use citystream_streaming::source::MipSource;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
@@ -19,11 +26,14 @@ use crate::city::{city_pipeline, single_draw_layout, Camera, CityMesh, CityRende
 use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
-use crate::gpu_types::{CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS};
+use crate::gpu_types::{
+    CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS, TEXTURE_SAMPLEABLE,
+};
 use crate::ground::GroundLayer;
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, Pipeline};
 use crate::scene::upload_buffer;
 use crate::shaders;
+use crate::stream::{Frame, TextureStreamer};
 use crate::target::RenderTarget;
 use crate::texture_cache::GpuTextureCache;
 
@@ -331,5 +341,190 @@ impl AtlasTreeRenderer {
             tables.set,
             ground.map(|layer| (layer, slot)),
         )
+    }
+}
+
+/// The texture-atlas tree as a streaming strategy (`docs/ATLAS_TREE.md`): the tree, its
+/// visible pass, and per frame the paper's traversal (§4: nodes chosen by distance among
+/// the resident blocks) and §6 paging (the ideal block set within a capacity, handed to a
+/// [`TextureStreamer`]'s loader as host records in place of feedback).
+///
+/// Contract of the records: those chosen for frame N's view are handed to the loader by
+/// frame N + 1's [`TextureStreamer::begin_frame`] (as feedback is, `frames_in_flight`
+/// frames later), so the strategy's loads trail its view by one frame.
+pub struct AtlasTreeStreamer {
+    tree: AtlasTree,
+    renderer: AtlasTreeRenderer,
+    dataset: Arc<Dataset>,
+    capacity_bytes: u64,
+    /// Levels of the atlases (one extent for the whole tree).
+    atlas_mips: u32,
+}
+
+impl std::fmt::Debug for AtlasTreeStreamer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AtlasTreeStreamer")
+            .field("renderer", &self.renderer)
+            .field("capacity_bytes", &self.capacity_bytes)
+            .finish()
+    }
+}
+
+/// What one frame of an [`AtlasTreeStreamer`] chose and drew.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TreeFrame {
+    /// Nodes drawn.
+    pub nodes_drawn: u32,
+    /// Draws of a renderer binding one texture per draw: one per atlas drawn, one per
+    /// original texture (mesh) in view of the leaves drawn with theirs.
+    pub draw_calls: u32,
+    /// Nodes drawn with an ancestor's atlas, their own not resident.
+    pub fallbacks: u32,
+    /// Blocks in the ideal set handed to the loader.
+    pub ideal_blocks: u32,
+    /// The ideal set did not all fit the capacity.
+    pub over_capacity: bool,
+}
+
+impl AtlasTreeStreamer {
+    /// The strategy for `tree`, built from `dataset` (whose scene `city` renders and whose
+    /// textures, atlases included, `streamer` streams), paging at most `capacity_bytes` of
+    /// blocks (the rest of the budget is room for blocks on their way in and out).
+    pub fn new<S: MipSource + 'static>(
+        commands: &mut CommandContext,
+        city: &CityRenderer,
+        streamer: &TextureStreamer<S>,
+        dataset: Arc<Dataset>,
+        tree: AtlasTree,
+        capacity_bytes: u64,
+    ) -> Result<Self> {
+        let renderer = AtlasTreeRenderer::new(
+            streamer.device(),
+            commands,
+            city,
+            &dataset.scene.indices,
+            &tree,
+            streamer.cache(),
+            streamer.frames_in_flight(),
+        )?;
+        let atlas_mips = dataset
+            .textures
+            .info(tree.nodes[0].atlas)
+            .map_err(|e| EngineError::InvalidRequest(format!("atlas tree: the root's atlas: {e}")))?
+            .mip_count();
+        Ok(Self {
+            tree,
+            renderer,
+            dataset,
+            capacity_bytes,
+            atlas_mips,
+        })
+    }
+
+    /// The tree.
+    pub fn tree(&self) -> &AtlasTree {
+        &self.tree
+    }
+
+    /// The bytes of blocks the paging keeps within.
+    pub fn capacity_bytes(&self) -> u64 {
+        self.capacity_bytes
+    }
+
+    /// The view the traversal sees: `camera`'s frustum, the screen height, the
+    /// texel-per-pixel ratio the tree was built for.
+    pub fn view(&self, camera: &Camera, width: u32, height: u32) -> TreeView {
+        let aspect = width as f32 / height as f32;
+        TreeView {
+            eye: camera.eye.to_array(),
+            planes: frustum_planes(camera.view_projection(aspect, 0.0).to_cols_array_2d()),
+            screen_height: height as f32,
+            fov_y: camera.fov_y,
+            texel_per_pixel: self.tree.params.texel_per_pixel,
+        }
+    }
+
+    /// One frame for `camera` into `target`: chooses nodes by distance among the blocks
+    /// `streamer` holds, writes the choice into `frame`'s tables, hands the loader the
+    /// ideal block set (loaded from the next frame on: see the type's docs) and records the
+    /// visible pass (over the ground layer's same frame slot where `ground` is given).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_frame<S: MipSource + 'static>(
+        &mut self,
+        rec: Recording<'_>,
+        frame: &Frame,
+        streamer: &mut TextureStreamer<S>,
+        city: &CityRenderer,
+        target: &RenderTarget,
+        camera: &Camera,
+        ground: Option<&GroundLayer>,
+    ) -> Result<TreeFrame> {
+        let view = self.view(camera, target.width(), target.height());
+        let tree = &self.tree;
+        let scene = &self.dataset.scene;
+        let textures = &self.dataset.textures;
+        let sampleable_from = |texture: u32, level: u32| {
+            streamer
+                .texture_data(texture)
+                .is_some_and(|d| d.state == TEXTURE_SAMPLEABLE && d.lowest_mip <= level)
+        };
+        // An atlas counts as resident once any level of it is: the cache holds atlases
+        // partially, refining from the coarsest level as the loader brings the finer ones
+        // (the paper pages whole atlases), and a node's own atlas at a coarser level than
+        // its distance needs still shows more than an ancestor's, which covers four times
+        // the ground per level up. A leaf's originals count once every one is whole.
+        let resident = |block: Block| match block {
+            Block::Atlas(n) => sampleable_from(tree.nodes[n as usize].atlas, u32::MAX),
+            Block::Originals(n) => {
+                let node = &tree.nodes[n as usize];
+                (node.first_mesh..node.first_mesh + node.mesh_count)
+                    .all(|m| sampleable_from(scene.meshes[m as usize].texture, 0))
+            }
+        };
+        let selection = tree.select(&view, resident);
+        let draws = self.renderer.write_selection(frame.slot(), &selection)?;
+        let original_draws = selection
+            .draws
+            .iter()
+            .filter(|(_, with)| *with == DrawWith::Originals)
+            .map(|&(n, _)| {
+                let node = &tree.nodes[n as usize];
+                (node.first_mesh..node.first_mesh + node.mesh_count)
+                    .filter(|&m| intersects_frustum(&scene.meshes[m as usize].bounds, &view.planes))
+                    .count() as u32
+            })
+            .sum::<u32>();
+        let block_bytes = |block: Block, level: u32| match block {
+            Block::Atlas(n) => textures
+                .info(tree.nodes[n as usize].atlas)
+                .map(|info| (level..info.mip_count()).map(|l| info.mip_len(l)).sum())
+                .unwrap_or(0),
+            Block::Originals(n) => {
+                let node = &tree.nodes[n as usize];
+                (node.first_mesh..node.first_mesh + node.mesh_count)
+                    .filter_map(|m| textures.info(scene.meshes[m as usize].texture).ok())
+                    .map(|info| info.chain_len())
+                    .sum()
+            }
+        };
+        let paging = tree.paging_within(
+            &view,
+            self.capacity_bytes,
+            block_bytes,
+            scene.meshes.len() as u32,
+            self.atlas_mips,
+        );
+        let ideal_blocks = paging.ideal.len() as u32;
+        let over_capacity = paging.over_capacity > 0;
+        streamer.set_host_records(paging.records)?;
+        self.renderer
+            .record_visible(rec, frame.slot(), city, target, camera, true, ground)?;
+        Ok(TreeFrame {
+            nodes_drawn: selection.draws.len() as u32,
+            draw_calls: draws.atlas_draws + original_draws,
+            fallbacks: selection.fallbacks,
+            ideal_blocks,
+            over_capacity,
+        })
     }
 }

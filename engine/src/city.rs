@@ -70,7 +70,7 @@ impl CityMesh {
 
 /// A dataset's vertices in the engine's layout and its meshes with their
 /// textures' full-resolution extents, as the city passes draw them.
-pub fn city_geometry(dataset: &citystream_streaming::dataset::Dataset) -> Result<(Vec<Vertex>, Vec<CityMesh>)> {
+pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Vertex>, Vec<CityMesh>)> {
     let scene = &dataset.scene;
     let vertices = scene
         .positions

@@ -12,10 +12,12 @@
 //! coarser one resident there, and blends toward the next coarser level
 //! (`shaders/ground.frag`).
 //!
-//! Per frame, after [`crate::stream::TextureStreamer::begin_frame`] returned the slot:
-//! [`GroundLayer::insert`] patches that arrived, [`GroundLayer::update`] with the eye and
-//! the controller's load size, [`GroundLayer::record_uploads`] before the passes, and
-//! [`GroundLayer::record_draw`] inside the visible pass's rendering.
+//! Per frame, after [`crate::stream::TextureStreamer::begin_frame`] returned the frame:
+//! [`GroundLayer::insert`] patches that arrived, [`GroundLayer::update_streamed`] with the
+//! streamer and the eye (its tiles share the controller's load size with the facades; a
+//! host without a streamer calls [`GroundLayer::update`] with an allowance of its own),
+//! [`GroundLayer::record_uploads`] before the passes, and [`GroundLayer::record_draw`]
+//! inside the visible pass's rendering.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -23,6 +25,7 @@ use std::sync::Arc;
 use ash::vk;
 use citystream_streaming::clipmap::{ClipmapOptions, Patch, TileKey};
 use citystream_streaming::ground::{GroundImagery, PatchImage};
+use citystream_streaming::source::MipSource;
 use glam::Mat4;
 use gpu_allocator::MemoryLocation;
 
@@ -36,6 +39,7 @@ use crate::pipeline::{
     BindingSpec, DepthMode, DescriptorPool, DescriptorResource, Filtering, GraphicsDesc, Pipeline, Sampler,
 };
 use crate::shaders;
+use crate::stream::{Frame, TextureStreamer};
 use crate::target::{COLOR_FORMAT, DEPTH_FORMAT};
 
 /// How a [`GroundLayer`] is built.
@@ -547,6 +551,24 @@ impl GroundLayer {
             bytes,
             pending: self.pending.len(),
         })
+    }
+
+    /// [`update`](Self::update) for a ground streamed beside a city: a second client of
+    /// `streamer`'s load size. Its allowance is the controller's current load size (the
+    /// layer earns half of it per frame, [`GroundAllowance::LoadSize`]) and what it stages
+    /// is charged to the streamer's next loading cycles
+    /// ([`TextureStreamer::charge_host_uploads`]), so that over a run everything streamed
+    /// stays within the adaptive load size; the slot is `frame`'s.
+    pub fn update_streamed<S: MipSource + 'static>(
+        &mut self,
+        streamer: &mut TextureStreamer<S>,
+        frame: &Frame,
+        eye: [f64; 2],
+    ) -> Result<GroundFrame> {
+        let load_size = streamer.decision().load_size_bytes;
+        let staged = self.update(frame.slot(), eye, GroundAllowance::LoadSize(load_size))?;
+        streamer.charge_host_uploads(staged.bytes);
+        Ok(staged)
     }
 
     fn write_tile_map(&mut self, index: usize) -> Result<()> {

@@ -35,31 +35,30 @@ impl RenderTarget {
                 "render target {width}x{height} is outside 1..={max} per side"
             )));
         }
-        let color = Image::new(
-            device,
-            ImageDesc {
-                width,
-                height,
-                layers: 1,
-                mips: 1,
-                format: COLOR_FORMAT,
-                usage: vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
-                view_type: vk::ImageViewType::TYPE_2D,
-            },
+        let attachment = |format, usage, name| {
+            Image::new(
+                device,
+                ImageDesc {
+                    width,
+                    height,
+                    layers: 1,
+                    mips: 1,
+                    format,
+                    usage,
+                    view_type: vk::ImageViewType::TYPE_2D,
+                },
+                name,
+            )
+        };
+        let color = attachment(
+            COLOR_FORMAT,
+            vk::ImageUsageFlags::COLOR_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
             "render target colour",
         )?;
-        let depth = Image::new(
-            device,
-            ImageDesc {
-                width,
-                height,
-                layers: 1,
-                mips: 1,
-                format: DEPTH_FORMAT,
-                // Copied out for GPU culling's depth pyramid.
-                usage: vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
-                view_type: vk::ImageViewType::TYPE_2D,
-            },
+        // Depth is copied out for GPU culling's depth pyramid.
+        let depth = attachment(
+            DEPTH_FORMAT,
+            vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT | vk::ImageUsageFlags::TRANSFER_SRC,
             "render target depth",
         )?;
         let readback = Buffer::new(

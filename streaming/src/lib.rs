@@ -1,8 +1,8 @@
 //! Everything of citystream's streaming that needs no GPU: the paper's policy
-//! (§3.4–3.5), the loader that carries it out, what is kept resident, the
-//! dataset format the loader reads, and the strategies and layers beside
-//! the paper's. Vulkan-free: the engine (`citystream-engine`) carries out on
-//! the device what these modules decide.
+//! (§3.4–3.5), the loader that carries it out, what is kept resident, and the
+//! strategies and layers beside the paper's. Vulkan-free: the engine
+//! (`citystream-engine`) carries out on the device what these modules decide;
+//! the dataset the loader reads is `citystream-dataset`'s.
 //!
 //! The paper's pipeline:
 //! - [`records`]: the feedback's per-mesh records, the τ cutoff and the sort
@@ -15,7 +15,7 @@
 //! - [`loader`]: the streaming task, planning each cycle within the load size
 //!   and reading exactly the mips planned on rayon's workers.
 //! - [`source`]: where mip bytes come from ([`source::MipSource`], with
-//!   [`source::DatasetSource`] over a dataset's pack) and where they go
+//!   [`source::DatasetSource`] over a `citystream-dataset` pack) and where they go
 //!   ([`source::MipSink`]).
 //! - [`residency`]: what stays resident when the view needs more than the
 //!   budget (the need table, keep values, the loader's admission gate) and
@@ -25,10 +25,7 @@
 //!   drivers, wrapping a binder, so tests exercise the controller
 //!   deterministically.
 //!
-//! Data and the other strategies:
-//! - [`dataset`]: the on-disk city (scene, texture pack with per-mip byte
-//!   ranges, colormap), written atomically and read with every mip checked;
-//!   `remote` (feature `remote`) the same over HTTP or S3.
+//! The other strategies:
 //! - [`atlas_tree`]: the texture-atlas tree (Buchholz & Döllner): its file,
 //!   the traversal that picks nodes by distance and its paging.
 //! - [`clipmap`] and [`ground`]: the flexible clipmap (Feldmann et al.) and
@@ -44,12 +41,9 @@ pub mod bench;
 pub mod bind_latency;
 pub mod clipmap;
 pub mod controller;
-pub mod dataset;
 pub mod ground;
 pub mod loader;
 pub mod records;
-#[cfg(feature = "remote")]
-pub mod remote;
 pub mod residency;
 pub mod rng;
 pub mod source;

@@ -10,8 +10,8 @@ use std::sync::{Arc, Mutex};
 use citystream_cache::geometry::cacheable_mip_count;
 use citystream_cache::TexelFormat;
 
-use crate::dataset::{Dataset, DatasetError, TextureFormat};
 use crate::states::MipChain;
+use citystream_dataset::{Dataset, DatasetError, TextureFormat};
 
 /// Error reading a texture's header or a mip.
 #[derive(Debug, thiserror::Error)]

@@ -400,7 +400,7 @@ impl citystream_streaming::source::MipSource for HintedSource {
     fn texture_format(
         &self,
         texture: u32,
-    ) -> Result<citystream_streaming::dataset::TextureFormat, citystream_streaming::source::SourceError> {
+    ) -> Result<citystream_dataset::TextureFormat, citystream_streaming::source::SourceError> {
         self.inner.texture_format(texture)
     }
     fn mip_chain(

@@ -1,10 +1,10 @@
 //! Camera paths: file format, validation, sampling, and the standard benchmark path.
 
+use citystream_dataset::{Aabb, Scene};
 use citystream_streaming::bench::path::{
     standard_path, CameraPath, CameraPose, Keyframe, PathError, Pause, MIN_STANDARD_DURATION_S, PATH_FORMAT_VERSION,
     STANDARD_JUMPS, STANDARD_PAUSES, STANDARD_PAUSE_S,
 };
-use citystream_streaming::dataset::{Aabb, Scene};
 
 /// A path with a pause at keyframe 1 and a jump at keyframe 3 (to a view 1 km away).
 fn sample_path() -> CameraPath {

@@ -3,11 +3,12 @@
 //! resident, so both renders sample exactly level 0 (the table's coarsest
 //! resident level bounds sampling), with nearest filtering.
 
-use citystream_streaming::dataset::TextureFormat;
+use citystream_dataset::TextureFormat;
 use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{ensure, Context, Result};
+use citystream_dataset::Dataset;
 use citystream_engine::city::{city_geometry, Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
@@ -15,7 +16,6 @@ use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
-use citystream_streaming::dataset::Dataset;
 use citystream_tests::{assert_no_validation_errors, validated_device};
 use citystream_tools::atlas::{self, AtlasArgs};
 use citystream_tools::gen::{self, FormatArg, GenArgs, Preset};

@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use anyhow::{ensure, Context, Result};
 use citystream_cache::geometry::cacheable_mip_count;
+use citystream_dataset::{Dataset, TextureFormat};
 use citystream_engine::atlas_tree::AtlasTreeRenderer;
 use citystream_engine::city::{city_geometry, Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
@@ -16,7 +17,6 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
 use citystream_streaming::atlas_tree::{distance_to, AtlasTree, DrawWith, Selection};
-use citystream_streaming::dataset::{Dataset, TextureFormat};
 use citystream_streaming::source::texel_format;
 use citystream_tests::{assert_no_validation_errors, validated_device};
 use citystream_tools::atlas_tree::{build, AtlasTreeArgs, LeafDistances};

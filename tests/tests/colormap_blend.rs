@@ -6,6 +6,7 @@
 //! blend) predicts every pixel.
 
 use anyhow::{ensure, Result};
+use citystream_dataset::TextureFormat;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
@@ -14,7 +15,6 @@ use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
-use citystream_streaming::dataset::TextureFormat;
 use citystream_tests::{assert_no_validation_errors, compare_images, validated_device};
 use glam::Vec3;
 

@@ -7,6 +7,7 @@
 //! message fails.
 
 use anyhow::{ensure, Result};
+use citystream_dataset::TextureFormat;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
@@ -14,7 +15,6 @@ use citystream_engine::gpu_types::{MeshFeedback, Vertex, FEEDBACK_UNSEEN};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
-use citystream_streaming::dataset::TextureFormat;
 use citystream_streaming::rng::hash_unit;
 use citystream_tests::{assert_no_validation_errors, sync_validated_device};
 use glam::Vec3;

@@ -10,6 +10,7 @@
 //! displayed level is M_max, so w_m = 1 inside the visible view.
 
 use anyhow::{ensure, Result};
+use citystream_dataset::TextureFormat;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
@@ -17,7 +18,6 @@ use citystream_engine::gpu_types::{Vertex, FEEDBACK_MIP_ONE, FEEDBACK_UNSEEN, FE
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
-use citystream_streaming::dataset::TextureFormat;
 use citystream_tests::{assert_no_validation_errors, validated_device};
 use glam::Vec3;
 

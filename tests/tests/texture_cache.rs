@@ -10,13 +10,13 @@ use std::collections::{HashMap, HashSet};
 use anyhow::{ensure, Result};
 use citystream_cache::geometry::cacheable_mip_count;
 use citystream_cache::TexelFormat;
+use citystream_dataset::TextureFormat;
 use citystream_engine::commands::CommandContext;
 use citystream_engine::gpu_types::{ProbeResult, TextureProbePoint};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::probe::TextureProbe;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome};
-use citystream_streaming::dataset::TextureFormat;
 use citystream_tests::{assert_no_validation_errors, bc1_texel, validated_device};
 
 const EXTENTS: [u32; 6] = [4, 8, 16, 32, 64, 128];

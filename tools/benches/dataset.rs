@@ -12,7 +12,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{ensure, Context, Result};
-use citystream_streaming::dataset::{Dataset, DatasetWriter, Scene, TextureFormat, SCENE_FILE};
+use citystream_dataset::{Dataset, DatasetWriter, Scene, TextureFormat, SCENE_FILE};
 
 const BERLIN_TEXTURES: u32 = 5_712_309;
 

@@ -26,7 +26,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use citystream_streaming::dataset::{Dataset, DatasetWriter, TextureFormat};
+use citystream_dataset::{Dataset, DatasetWriter, TextureFormat};
 use rayon::prelude::*;
 
 use crate::gen::print_stdout;

@@ -28,11 +28,11 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use citystream_dataset::{Aabb, Dataset, DatasetWriter, Scene, TextureFormat};
 use citystream_streaming::atlas_tree::{
     texels_per_metre_at_unit_distance, world_length_of_texture_axes, AtlasTree, TreeNode, TreeParams, NO_PARENT,
     TREE_FILE,
 };
-use citystream_streaming::dataset::{Aabb, Dataset, DatasetWriter, Scene, TextureFormat};
 use rayon::prelude::*;
 
 use crate::files::write_atomically;
@@ -608,7 +608,7 @@ fn required_areas(
     members: &[u32],
     triangles: &[Triangle],
     scene: &Scene,
-    infos: &[citystream_streaming::dataset::TextureInfo],
+    infos: &[citystream_dataset::TextureInfo],
     needed_per_metre: f64,
     extent: u32,
 ) -> Vec<Area> {
@@ -733,7 +733,7 @@ fn triangle_bounds(members: &[u32], triangles: &[Triangle], scene: &Scene) -> Aa
 }
 
 /// The atlas format: the dataset's most common of BC1 / RGBA8.
-fn atlas_format(infos: &[citystream_streaming::dataset::TextureInfo]) -> TextureFormat {
+fn atlas_format(infos: &[citystream_dataset::TextureInfo]) -> TextureFormat {
     let bc1 = infos.iter().filter(|t| t.format() == TextureFormat::Bc1).count();
     if bc1 * 2 >= infos.len() {
         TextureFormat::Bc1

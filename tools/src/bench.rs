@@ -363,7 +363,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         );
     }
     let dataset = match (&args.dataset, args.scenario) {
-        (Some(dir), _) if !dir.exists() && !citystream_streaming::remote::is_remote(&dir.to_string_lossy()) => {
+        (Some(dir), _) if !dir.exists() && !citystream_dataset::remote::is_remote(&dir.to_string_lossy()) => {
             bail!("dataset directory {} does not exist", dir.display())
         }
         (Some(dir), _) => dir.clone(),
@@ -573,7 +573,7 @@ fn ensure_default_patches(data_dir: &Path, dataset: &Path) -> Result<PathBuf> {
     let patches = data_dir.join(name);
     if patches.join(crate::patches::PATCHES_FILE).is_file() {
         let set = crate::patches::PatchSet::open(&patches)?;
-        let scene = &citystream_streaming::dataset::Dataset::open(dataset)
+        let scene = &citystream_dataset::Dataset::open(dataset)
             .with_context(|| format!("opening {}", dataset.display()))?
             .scene;
         if set.origin == scene.origin && set.check_frame(&patches, dataset, scene).is_ok() {
@@ -682,11 +682,11 @@ fn ground_table(out: &Path, dataset: &Path) -> Result<(String, serde_json::Value
 
 /// Refuses a dataset that is no texture-atlas tree, saying how to make one.
 fn check_tree(dataset: &Path) -> Result<()> {
-    if citystream_streaming::remote::is_remote(&dataset.to_string_lossy()) {
+    if citystream_dataset::remote::is_remote(&dataset.to_string_lossy()) {
         return Ok(()); // the flythrough opens it and says so
     }
-    let opened = citystream_streaming::dataset::Dataset::open(dataset)
-        .with_context(|| format!("opening {}", dataset.display()))?;
+    let opened =
+        citystream_dataset::Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
     crate::atlas_tree::open_tree(&opened, dataset).map(drop)
 }
 

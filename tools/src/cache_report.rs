@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use citystream_cache::{estimate_utilisation, DeviceLimits, Granularity, ImageConfig, ImageDesc, TexelFormat};
-use citystream_streaming::dataset::{Dataset, TextureFormat};
+use citystream_dataset::{Dataset, TextureFormat};
 use serde::Serialize;
 
 /// Options of `citystream cache-report`.

@@ -12,7 +12,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use citystream_streaming::dataset::{upgrade, DatasetError, DatasetFiles};
+use citystream_dataset::{upgrade, DatasetError, DatasetFiles};
 
 use crate::atlas::AtlasArgs;
 use crate::gen::{FormatArg, GenArgs, Preset};
@@ -161,10 +161,10 @@ pub fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
-    use citystream_streaming::dataset::MANIFEST_FILE;
+    use citystream_dataset::MANIFEST_FILE;
 
     fn empty_dataset(dir: &Path) -> Result<()> {
-        use citystream_streaming::dataset::{DatasetWriter, Scene};
+        use citystream_dataset::{DatasetWriter, Scene};
         DatasetWriter::create(dir)?.finish(&Scene::new([0.0; 3]))?;
         Ok(())
     }

@@ -14,11 +14,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use citystream_streaming::bench::path::{standard_path, CameraPath};
-use citystream_streaming::dataset::{
+use citystream_dataset::{
     verify, Dataset, DatasetFiles, DatasetWriter, Scene, TextureFormat, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE,
     META_FILE, PACK_FILE, SCENE_FILE,
 };
+use citystream_streaming::bench::path::{standard_path, CameraPath};
 use citystream_streaming::rng::SplitMix64;
 
 /// The parsers a harness drives.

@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use citystream_streaming::dataset::{Crs, DatasetWriter, Scene, TextureFormat};
+use citystream_dataset::{Crs, DatasetWriter, Scene, TextureFormat};
 use image::imageops::FilterType;
 use image::RgbaImage;
 use rayon::prelude::*;
@@ -168,7 +168,7 @@ pub struct ImportedScene {
 /// Reads the glTF or GLB file `input` (external files relative to its directory) and
 /// encodes its textures in `format`, at most `max_extent` on a side.
 pub fn load(input: &Path, format: TextureFormat, max_extent: u32) -> Result<ImportedScene> {
-    let bytes = citystream_streaming::dataset::ensure_regular_file(input)
+    let bytes = citystream_dataset::ensure_regular_file(input)
         .and_then(|()| std::fs::read(input))
         .with_context(|| format!("reading {}", input.display()))?;
     load_slice(
@@ -649,7 +649,7 @@ fn image_bytes(
                 base64_decode(payload).with_context(|| format!("image {index}: invalid base64 data URI"))
             } else {
                 let path = base.join(percent_decode(uri));
-                citystream_streaming::dataset::ensure_regular_file(&path)
+                citystream_dataset::ensure_regular_file(&path)
                     .and_then(|()| std::fs::read(&path))
                     .with_context(|| format!("image {index}: reading {}", path.display()))
             }

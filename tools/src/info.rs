@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use citystream_streaming::dataset::{Crs, Dataset, FORMAT_VERSION};
+use citystream_dataset::{Crs, Dataset, FORMAT_VERSION};
 use serde::Serialize;
 
 /// Options of `citystream info`.

@@ -49,11 +49,11 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::Context;
-use citystream_streaming::dataset::Dataset;
-use citystream_streaming::remote::{self, open_dataset as open_location, MipCacheOptions, RemoteOptions};
+use citystream_dataset::remote::{self, open_dataset as open_location, MipCacheOptions, RemoteOptions};
+use citystream_dataset::Dataset;
 
 /// Opens the dataset at `location`: a directory, or a URL (`http(s)://host/path/`,
-/// `s3://bucket/prefix/`; see `citystream_streaming::remote`), with the remote settings of
+/// `s3://bucket/prefix/`; see `citystream_dataset::remote`), with the remote settings of
 /// the environment ([`RemoteOptions::from_env`]).
 pub fn open_dataset(location: &Path) -> anyhow::Result<Dataset> {
     open_dataset_with(location, &RemoteOptions::from_env()?)

@@ -24,8 +24,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
+use citystream_dataset::Dataset;
 use citystream_streaming::controller::Decision;
-use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::{Loader, LoaderOptions};
 use citystream_streaming::records::MeshMetaData;
 use citystream_streaming::source::{DatasetSource, MipSink, SinkError, StagedMip};

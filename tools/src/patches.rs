@@ -14,7 +14,7 @@
 //! `patches.json` and one PNG per patch. `patches.json` (`format` "citystream-patches",
 //! `version` 2): the source image's name, size and CRC-32, the dataset directory, origin
 //! and `crs` (the dataset's, `null` for a local frame: the patches are georeferenced in
-//! it, see `citystream_streaming::dataset::Crs`), the ground extent (metres relative to the dataset's origin, x and z), the path
+//! it, see `citystream_dataset::Crs`), the ground extent (metres relative to the dataset's origin, x and z), the path
 //! duration, the seed, and per patch its `id`, `file`, `width`, `height`, `min` and `max`
 //! (x, z, metres relative to the origin), `metres_per_texel` and `arrival_s`. Version 1
 //! (no `crs`) is read as a set in a local frame.
@@ -22,8 +22,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use citystream_dataset::{Crs, Scene};
 use citystream_streaming::bench::path::DEFAULT_STANDARD_DURATION_S;
-use citystream_streaming::dataset::{Crs, Scene};
 use citystream_streaming::rng::SplitMix64;
 
 /// The file describing a patch set.

@@ -4,8 +4,8 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
+use citystream_dataset::{DatasetFiles, Scene, SCENE_FILE};
 use citystream_streaming::bench::path::{standard_path, DEFAULT_STANDARD_DURATION_S};
-use citystream_streaming::dataset::{DatasetFiles, Scene, SCENE_FILE};
 
 use crate::gen::print_stdout;
 

@@ -14,10 +14,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use citystream_streaming::dataset::Dataset;
-use citystream_streaming::remote::{open_dataset, RemoteOptions};
+use citystream_dataset::remote::{open_dataset, RemoteOptions};
+use citystream_dataset::Dataset;
 
-use citystream_streaming::remote::MipCacheOptions;
+use citystream_dataset::remote::MipCacheOptions;
 
 use crate::fault_proxy::{FaultOptions, FaultProxy};
 use crate::loader_bench::{drop_page_cache, loader_pass};

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use citystream_streaming::dataset::{upgrade, Crs, FORMAT_VERSION};
+use citystream_dataset::{upgrade, Crs, FORMAT_VERSION};
 
 /// Options of `citystream upgrade`.
 #[derive(Debug, clap::Args)]

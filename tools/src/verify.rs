@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use citystream_streaming::dataset::verify_dataset;
+use citystream_dataset::verify_dataset;
 
 /// Options of `citystream verify`.
 #[derive(Debug, clap::Args)]

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use citystream_streaming::dataset::{Dataset, TextureFormat};
+use citystream_dataset::{Dataset, TextureFormat};
 
 mod cli_support;
 use cli_support::citystream;

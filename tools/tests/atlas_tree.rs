@@ -8,10 +8,10 @@ mod cli_support;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use citystream_dataset::{Dataset, Scene};
 use citystream_streaming::atlas_tree::{
     texels_per_metre_at_unit_distance, world_length_of_texture_axes, AtlasTree, Block, DrawWith, TreeView, TREE_FILE,
 };
-use citystream_streaming::dataset::{Dataset, Scene};
 use citystream_tools::atlas_tree::{build, AtlasTreeArgs, LeafDistances, TreeSummary};
 use cli_support::{citystream, fresh_dir, stderr};
 

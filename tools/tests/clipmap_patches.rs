@@ -6,8 +6,8 @@ mod cli_support;
 
 use std::path::{Path, PathBuf};
 
+use citystream_dataset::Dataset;
 use citystream_streaming::clipmap::{Clipmap, ClipmapOptions, Patch};
-use citystream_streaming::dataset::Dataset;
 use citystream_tools::patches::PatchSet;
 use cli_support::{citystream, fresh_dir, stderr};
 

@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use citystream_streaming::dataset::{Dataset, DatasetFiles, META_FILE, PACK_FILE};
+use citystream_dataset::{Dataset, DatasetFiles, META_FILE, PACK_FILE};
 
 mod cli_support;
 use cli_support::{citystream, copy_tree, stderr};
@@ -402,8 +402,8 @@ fn cache_report_packs_every_texture_and_reports_utilisation() {
 
 /// Mean absolute difference per channel between a decoded block-compressed
 /// level and the RGBA8 level it was encoded from.
-fn block_error(format: citystream_streaming::dataset::TextureFormat, blocks: &[u8], rgba: &[u8], width: u32) -> f64 {
-    use citystream_streaming::dataset::TextureFormat;
+fn block_error(format: citystream_dataset::TextureFormat, blocks: &[u8], rgba: &[u8], width: u32) -> f64 {
+    use citystream_dataset::TextureFormat;
     let height = (rgba.len() / 4) as u32 / width;
     let mut total = 0u64;
     for by in 0..height.div_ceil(4) {
@@ -430,7 +430,7 @@ fn block_error(format: citystream_streaming::dataset::TextureFormat, blocks: &[u
 
 #[test]
 fn bc3_and_bc7_cities_encode_the_same_textures_as_rgba8() {
-    use citystream_streaming::dataset::TextureFormat;
+    use citystream_dataset::TextureFormat;
     let rgba = Dataset::open(gen("formats-rgba8", &["--format", "rgba8"])).expect("open rgba8");
     for (format, name, tolerance) in [(TextureFormat::Bc3, "bc3", 6.0), (TextureFormat::Bc7, "bc7", 3.0)] {
         let dir = gen(&format!("formats-{name}"), &["--format", name]);

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Instant;
 
-use citystream_streaming::dataset::{verify, Dataset, DatasetFiles, MANIFEST_FILE, SCENE_FILE};
+use citystream_dataset::{verify, Dataset, DatasetFiles, MANIFEST_FILE, SCENE_FILE};
 use citystream_tools::fuzz::quad_buffer;
 
 mod cli_support;

@@ -82,7 +82,7 @@ fn write_small_dataset(dir: &std::path::Path) {
 /// The small dataset; with `ground_side`, the ground's texture is a BC1
 /// texture of that side instead.
 fn write_dataset(dir: &std::path::Path, ground_side: Option<u32>) {
-    use citystream_streaming::dataset::{DatasetWriter, Scene, TextureFormat};
+    use citystream_dataset::{DatasetWriter, Scene, TextureFormat};
     let _ = std::fs::remove_dir_all(dir);
     let mut writer = DatasetWriter::create(dir).expect("dataset directory");
     let mut scene = Scene::new([1.0e6, 0.0, -2.0e6]);
@@ -511,8 +511,8 @@ fn every_measured_frame_counts_in_the_error_figures() {
 
 #[test]
 fn streaming_converges_during_the_first_pause_of_the_standard_path() {
+    use citystream_dataset::Dataset;
     use citystream_streaming::bench::path::standard_path;
-    use citystream_streaming::dataset::Dataset;
     let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_converge");
     let dataset = base.join("city");
     write_small_dataset(&dataset);
@@ -851,7 +851,7 @@ fn run_with_pack_cut_mid_run(name: &str, extra: &[&str]) -> (std::process::ExitS
             let pack = std::fs::OpenOptions::new()
                 .write(true)
                 .open(
-                    citystream_streaming::dataset::DatasetFiles::resolve(&dataset)
+                    citystream_dataset::DatasetFiles::resolve(&dataset)
                         .expect("manifest")
                         .path("textures.pack"),
                 )
@@ -979,7 +979,7 @@ fn damage_small_dataset(name: &str, file: &str, offsets: &[u64]) -> std::path::P
         .join(name)
         .join("city");
     write_small_dataset(&dataset);
-    let path = citystream_streaming::dataset::DatasetFiles::resolve(&dataset)
+    let path = citystream_dataset::DatasetFiles::resolve(&dataset)
         .expect("manifest")
         .path(file);
     let mut bytes = std::fs::read(&path).expect("read");
@@ -1008,7 +1008,7 @@ fn mips_that_fail_their_checksums_fail_their_textures_and_the_run() {
     // is retried, then fails the texture; the other textures stream.
     let scratch = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_mip_layout");
     write_small_dataset(&scratch);
-    let pack = citystream_streaming::dataset::TexturePack::open(&scratch).expect("open");
+    let pack = citystream_dataset::TexturePack::open(&scratch).expect("open");
     let offsets: Vec<u64> = (0..pack.textures()[3].mip_count())
         .map(|level| pack.mip_location(3, level).expect("mip").offset)
         .collect();

@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use citystream_streaming::dataset::Dataset;
+use citystream_dataset::Dataset;
 use citystream_tools::fuzz::{dds_file, ktx2_file, quad_buffer};
 use serde_json::json;
 
@@ -489,7 +489,7 @@ fn block_compressed_ktx2_and_dds_sources_keep_their_blocks() {
         }
         all
     };
-    use citystream_streaming::dataset::TextureFormat;
+    use citystream_dataset::TextureFormat;
     // Textures are numbered in traversal order; find each by its format.
     let id_of = |format: TextureFormat| -> u32 {
         let ids: Vec<usize> = (0..infos.len()).filter(|&i| infos[i].format() == format).collect();

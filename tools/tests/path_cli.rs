@@ -2,8 +2,8 @@
 
 use std::path::PathBuf;
 
+use citystream_dataset::Dataset;
 use citystream_streaming::bench::path::{standard_path, CameraPath, STANDARD_JUMPS, STANDARD_PAUSES};
-use citystream_streaming::dataset::Dataset;
 
 mod cli_support;
 use cli_support::citystream;

@@ -23,6 +23,7 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::{bail, Context, Result};
 use ash::vk;
+use citystream_dataset::{Dataset, TextureFormat};
 use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::city::Camera;
 use citystream_engine::commands::Recording;
@@ -33,7 +34,6 @@ use citystream_engine::stream::{StreamConfig, StreamDescriptors, TextureStreamer
 use citystream_engine::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 use citystream_engine::{Device, HostAllocator, HostDevice};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
-use citystream_streaming::dataset::{Dataset, TextureFormat};
 use citystream_streaming::source::{DatasetSource, MipSource, SourceError};
 use citystream_streaming::states::MipChain;
 use glam::{Mat4, Vec3};

@@ -45,8 +45,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use ash::vk;
+use citystream_dataset::TextureFormat;
 use citystream_streaming::controller::{Decision, LoadPolicy};
-use citystream_streaming::dataset::TextureFormat;
 use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, TextureFailure};
 use citystream_streaming::records::{prepare, MeshMetaData};
 use citystream_streaming::residency::planner::BudgetPressure;

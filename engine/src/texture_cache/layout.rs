@@ -92,7 +92,7 @@ pub(super) fn plan_layer_counts(
 
 #[cfg(test)]
 mod tests {
-    use citystream_streaming::dataset::TextureFormat;
+    use citystream_dataset::TextureFormat;
 
     use super::*;
     use crate::pipeline::Filtering;

@@ -34,7 +34,7 @@ use citystream_cache::{
     BudgetUse, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, Placement, TexelFormat, TextureCache,
     Utilisation,
 };
-use citystream_streaming::dataset::TextureFormat;
+use citystream_dataset::TextureFormat;
 use citystream_streaming::residency::planner::ResidentCache;
 use gpu_allocator::MemoryLocation;
 

@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use super::{AtlasTree, TreeNode, TreeParams, NO_PARENT};
-use crate::dataset::{Aabb, Dataset, DatasetError};
+use citystream_dataset::{Aabb, Dataset, DatasetError};
 
 /// The tree's file, in the dataset's write directory.
 pub const TREE_FILE: &str = "atlas-tree.bin";

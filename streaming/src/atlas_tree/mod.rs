@@ -25,7 +25,7 @@ pub use file::{TREE_FILE, TREE_VERSION};
 pub use paging::{Block, BlockPriority, Paging, Usage};
 pub use selection::{atlas_level_for, distance_to, frustum_planes, intersects_frustum, DrawWith, Selection, TreeView};
 
-use crate::dataset::Aabb;
+use citystream_dataset::Aabb;
 
 /// `parent` of the root.
 pub const NO_PARENT: u32 = u32::MAX;
@@ -228,8 +228,8 @@ impl AtlasTree {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::Scene;
     use crate::records::DEFAULT_WEIGHT_CUTOFF;
+    use citystream_dataset::Scene;
 
     fn aabb(min: [f32; 3], max: [f32; 3]) -> Aabb {
         Aabb { min, max }

@@ -2,8 +2,8 @@
 //! capacity, and the loader records that ask for it.
 
 use super::{atlas_level_for, distance_to, intersects_frustum, AtlasTree, TreeView, NO_PARENT};
-use crate::dataset::Scene;
 use crate::records::{MeshMetaData, DEFAULT_WEIGHT_CUTOFF};
+use citystream_dataset::Scene;
 
 /// A unit of paging (§6): a node's atlas, or a leaf's original textures.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]

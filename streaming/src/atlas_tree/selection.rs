@@ -2,7 +2,7 @@
 //! view draws, with which atlas, and the view geometry it needs.
 
 use super::{AtlasTree, Block};
-use crate::dataset::Aabb;
+use citystream_dataset::Aabb;
 
 /// The camera a traversal sees with.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -50,14 +50,14 @@
 //! - [`standard_path`] is deterministic: the same scene and duration give the same path.
 //! - No Vulkan, no I/O except [`CameraPath::load`] and [`CameraPath::save`].
 //!
-//! [`Scene::origin`]: crate::dataset::Scene::origin
+//! [`Scene::origin`]: citystream_dataset::Scene::origin
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::Scene;
+use citystream_dataset::Scene;
 
 /// The camera path file version this build reads and writes.
 pub const PATH_FORMAT_VERSION: u32 = 1;
@@ -582,7 +582,7 @@ impl CameraPath {
     /// Reads and validates a camera path file. Errors name the file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, PathError> {
         let path = path.as_ref();
-        let text = crate::dataset::ensure_regular_file(path)
+        let text = citystream_dataset::ensure_regular_file(path)
             .and_then(|()| std::fs::read_to_string(path))
             .map_err(|error| PathError::Io {
                 path: path.to_path_buf(),
@@ -876,7 +876,7 @@ pub fn standard_path(scene: &Scene, duration_s: f64) -> Result<CameraPath, PathE
     if !duration_s.is_finite() || !(MIN_STANDARD_DURATION_S..=MAX_PATH_DURATION_S).contains(&duration_s) {
         return Err(PathError::InvalidDuration { duration_s });
     }
-    let mut bounds = crate::dataset::Aabb::EMPTY;
+    let mut bounds = citystream_dataset::Aabb::EMPTY;
     for mesh in scene
         .meshes
         .iter()

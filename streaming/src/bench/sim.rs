@@ -350,8 +350,8 @@ impl MipSource for SimCity {
         self.textures
     }
 
-    fn texture_format(&self, texture: u32) -> Result<crate::dataset::TextureFormat, SourceError> {
-        self.check(texture, 0).map(|()| crate::dataset::TextureFormat::Bc1)
+    fn texture_format(&self, texture: u32) -> Result<citystream_dataset::TextureFormat, SourceError> {
+        self.check(texture, 0).map(|()| citystream_dataset::TextureFormat::Bc1)
     }
 
     fn mip_chain(&self, texture: u32) -> Result<MipChain, SourceError> {

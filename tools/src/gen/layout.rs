@@ -5,7 +5,7 @@
 //! seen from outside; UV (0,0) is the top-left of the texture as seen from the front.
 
 use anyhow::Result;
-use citystream_streaming::dataset::{Crs, Scene};
+use citystream_dataset::{Crs, Scene};
 
 use super::rng::{mix, Rng};
 

@@ -84,12 +84,12 @@ fn fit(path: &Path, image: RgbaImage, max_extent_log2: u8) -> UserImage {
 }
 
 fn decode(path: &Path) -> Result<RgbaImage> {
-    citystream_streaming::dataset::ensure_regular_file(path)?;
+    citystream_dataset::ensure_regular_file(path)?;
     decode_image_bytes(&std::fs::read(path)?)
 }
 
 /// Largest image side the tools decode: the dataset format's largest texture side.
-pub const MAX_IMAGE_SIDE: u32 = 1 << citystream_streaming::dataset::MAX_EXTENT_LOG2;
+pub const MAX_IMAGE_SIDE: u32 = 1 << citystream_dataset::MAX_EXTENT_LOG2;
 
 /// Decoded sizes below this are decoded whatever the file size.
 const MIN_SUSPICIOUS_DECODE: u64 = 64 << 20;

@@ -18,7 +18,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use citystream_streaming::dataset::{DatasetWriter, TextureFormat, WriteSummary};
+use citystream_dataset::{DatasetWriter, TextureFormat, WriteSummary};
 use rayon::prelude::*;
 
 use layout::LayoutParams;
@@ -292,7 +292,7 @@ mod tests {
             quiet: true,
         };
         let summary = generate(&args, Preset::Tiny.params(), TextureFormat::Bc1)?;
-        let dataset = citystream_streaming::dataset::Dataset::open(&out)?;
+        let dataset = citystream_dataset::Dataset::open(&out)?;
         let city = layout::layout(Preset::Tiny.params(), 3)?;
         assert_eq!(dataset.scene, city.scene);
         assert_eq!(summary.textures as usize, city.textures.len());

@@ -6,7 +6,7 @@
 //! meaningful to the streamer.
 
 use anyhow::Result;
-use citystream_streaming::dataset::TextureFormat;
+use citystream_dataset::TextureFormat;
 
 use super::layout::{Content, FacadeStyle, TextureSpec, WallMaterial};
 use super::rng::{hash2, value_noise};

@@ -9,6 +9,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use glam::Vec3;
 
+use citystream_dataset::Dataset;
 use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::cull::CullStats;
@@ -26,7 +27,6 @@ use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, D
 use citystream_streaming::bench::stats::Stats;
 use citystream_streaming::bind_latency::BindLatencyModel;
 use citystream_streaming::controller::PolicyOptions;
-use citystream_streaming::dataset::Dataset;
 use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::rng::SplitMix64;
@@ -177,7 +177,7 @@ pub(crate) fn flythrough_device(
 }
 
 /// The camera path the run follows: the standard path of the dataset or a file.
-pub(crate) fn camera_path(name: &str, scene: &citystream_streaming::dataset::Scene) -> Result<CameraPath> {
+pub(crate) fn camera_path(name: &str, scene: &citystream_dataset::Scene) -> Result<CameraPath> {
     if name == "standard" {
         standard_path(scene, DEFAULT_STANDARD_DURATION_S).context("deriving the standard path of the dataset")
     } else {
@@ -486,7 +486,7 @@ pub(crate) fn open_city(args: &Args, dir: &std::path::Path) -> Result<(Arc<Datas
 }
 
 /// The scene's largest side (at least 1): the scale of the camera's depth range.
-pub(crate) fn scene_extent(scene: &citystream_streaming::dataset::Scene) -> f32 {
+pub(crate) fn scene_extent(scene: &citystream_dataset::Scene) -> f32 {
     let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
     size.x.max(size.y).max(size.z).max(1.0)
 }
@@ -640,7 +640,7 @@ impl Flight {
             None => None,
         };
         let tree = match tree {
-            Some(tree) => Some(TreeRun::new(args, device, commands, &gpu, &dataset, tree)?),
+            Some(tree) => Some(TreeRun::new(args, commands, &gpu, &dataset, tree)?),
             None => None,
         };
         let frame_commands = (0..frames_in_flight)
@@ -701,13 +701,11 @@ impl Flight {
         // The streamer's throttle saw this slot's last frame complete.
         let slot = begun.slot();
         // Patches that arrived, and the ground tiles this frame's share of the load size
-        // pays for; charged to the facades' next loading cycle.
+        // pays for (charged to the facades' next loading cycle).
         let ground_bytes = match self.ground.as_mut() {
             Some(run) => {
-                let load_size = self.gpu.streamer.decision().load_size_bytes;
-                let bytes = run.update(settings.time_s, slot, camera, load_size)?.bytes;
-                self.gpu.streamer.charge_host_uploads(bytes);
-                bytes
+                run.update(settings.time_s, &mut self.gpu.streamer, &begun, camera)?
+                    .bytes
             }
             None => 0,
         };
@@ -749,11 +747,9 @@ impl Flight {
             Some(run) => {
                 let drawn = run.record_frame(
                     rec,
-                    slot,
+                    &begun,
                     &mut self.gpu,
-                    &self.dataset,
-                    target,
-                    camera,
+                    (target, camera),
                     ground_layer.map(|(layer, _)| layer),
                 )?;
                 (drawn.draw_calls, Some(drawn.nodes_drawn))

@@ -9,14 +9,16 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
+use citystream_dataset::{Dataset, Scene};
 use citystream_engine::city::{Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::ground::{GroundAllowance, GroundConfig, GroundFrame, GroundLayer, GroundView};
+use citystream_engine::stream::{Frame, TextureStreamer};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
-use citystream_streaming::dataset::{Dataset, Scene};
 use citystream_streaming::ground::PatchImage;
+use citystream_streaming::source::MipSource;
 use citystream_tools::image_error::{ErrorSeries, FrameError};
 use citystream_tools::patches::PatchSet;
 
@@ -224,9 +226,15 @@ impl GroundRun {
     }
 
     /// Inserts the patches whose arrival time is `time_s` or earlier; then recentres on the
-    /// eye and stages what the controller's load size `load_size_bytes` pays for into
-    /// frame slot `slot`.
-    pub fn update(&mut self, time_s: f64, slot: u32, camera: &Camera, load_size_bytes: u64) -> Result<GroundFrame> {
+    /// eye and stages what `streamer`'s load size pays for into `frame`'s slot (charged to
+    /// the streamer's next loading cycles).
+    pub fn update<S: MipSource + 'static>(
+        &mut self,
+        time_s: f64,
+        streamer: &mut TextureStreamer<S>,
+        frame: &Frame,
+        camera: &Camera,
+    ) -> Result<GroundFrame> {
         while let Some(next) = self.arrivals.get(self.arrived).filter(|a| a.arrival_s <= time_s) {
             self.layer
                 .insert(next.patch, Arc::clone(&next.image))
@@ -234,9 +242,7 @@ impl GroundRun {
             self.arrived += 1;
         }
         let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
-        Ok(self
-            .layer
-            .update(slot, eye, GroundAllowance::LoadSize(load_size_bytes))?)
+        Ok(self.layer.update_streamed(streamer, frame, eye)?)
     }
 
     /// Error of the streamed ground of frame slot `slot` (its frame complete) against the

@@ -39,12 +39,7 @@ pub(crate) fn load_reference(
 
 /// Draws of the feedback strategy's frame as a renderer binding one texture per draw
 /// issues them: one per mesh in view.
-pub(crate) fn meshes_in_view(
-    scene: &citystream_streaming::dataset::Scene,
-    camera: &Camera,
-    width: u32,
-    height: u32,
-) -> u32 {
+pub(crate) fn meshes_in_view(scene: &citystream_dataset::Scene, camera: &Camera, width: u32, height: u32) -> u32 {
     let planes = frustum_planes(
         camera
             .view_projection(width as f32 / height as f32, 0.0)

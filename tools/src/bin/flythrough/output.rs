@@ -119,7 +119,7 @@ pub(crate) struct MipCacheSummary {
     pub(crate) dir: String,
     pub(crate) capacity_bytes: u64,
     #[serde(flatten)]
-    pub(crate) stats: citystream_streaming::dataset::MipCacheStats,
+    pub(crate) stats: citystream_dataset::MipCacheStats,
 }
 
 /// The live one-line status: rewritten in place on a terminal, a line every

@@ -21,11 +21,11 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
+use citystream_dataset::Dataset;
 use citystream_engine::commands::CommandContext;
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::Device;
 use citystream_streaming::bench::path::{CameraPath, CameraPose, Keyframe};
-use citystream_streaming::dataset::Dataset;
 use citystream_tools::files::write_png;
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, FIXED_STEP_MS};

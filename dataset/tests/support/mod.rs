@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use citystream_streaming::dataset::{Crs, DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary};
+use citystream_dataset::{Crs, DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary};
 
 /// One texture of the fixture: what was written.
 #[derive(Debug, Clone)]

@@ -1,9 +1,9 @@
 //! A dataset written through the public writer reads back identically, mip by mip.
 
-mod dataset_support;
+mod support;
 
-use citystream_streaming::dataset::{verify, Dataset, DatasetError, TextureFormat, TexturePack, PACK_HEADER_BYTES};
-use dataset_support::{mip_extent, write_fixture, TEXTURES};
+use citystream_dataset::{verify, Dataset, DatasetError, TextureFormat, TexturePack, PACK_HEADER_BYTES};
+use support::{mip_extent, write_fixture, TEXTURES};
 
 #[test]
 fn every_mip_reads_back_byte_identical_with_one_positioned_read() -> Result<(), DatasetError> {

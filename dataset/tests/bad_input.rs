@@ -1,17 +1,15 @@
 //! Every kind of damaged dataset gives a typed error naming the file and the offset or index
 //! at fault, and nothing panics.
 
-mod dataset_support;
+mod support;
 
 use std::path::Path;
 
-use citystream_streaming::dataset::{
+use citystream_dataset::{
     verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, CHECKSUM_FILE, COLORMAP_FILE,
     FORMAT_VERSION, MANIFEST_FILE, MAX_CRS_BYTES, META_FILE, PACK_FILE, SCENE_FILE,
 };
-use dataset_support::{
-    copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES,
-};
+use support::{copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES};
 
 /// Byte offset of texture `i`'s record in `textures.meta`.
 fn record(i: usize) -> usize {
@@ -398,7 +396,7 @@ fn scene_counts_that_disagree_with_the_file_size_are_truncation() {
 
 #[test]
 fn writer_rejects_inconsistent_input() {
-    let dir = dataset_support::test_dir("writer-input");
+    let dir = support::test_dir("writer-input");
     let mut writer = DatasetWriter::create(&dir).expect("create");
     let too_short = vec![0u8; 10];
     let cases = [
@@ -413,13 +411,13 @@ fn writer_rejects_inconsistent_input() {
     }
     assert_eq!(writer.texture_count(), 0);
     // A scene referring to a texture that was never written is refused.
-    let scene = dataset_support::fixture_scene(1);
+    let scene = support::fixture_scene(1);
     assert!(matches!(writer.finish(&scene), Err(DatasetError::InvalidInput(_))));
 }
 
 #[test]
 fn empty_dataset_round_trips() -> Result<(), DatasetError> {
-    let dir = dataset_support::test_dir("empty");
+    let dir = support::test_dir("empty");
     DatasetWriter::create(&dir)?.finish(&Scene::new([0.0; 3]))?;
     let dataset = Dataset::open(&dir)?;
     assert!(dataset.textures.is_empty());
@@ -524,11 +522,11 @@ fn the_crs_round_trips_and_a_damaged_crs_record_is_refused() {
     let fixture = write_fixture("crs-src");
     let opened = Dataset::open(&fixture.dir).expect("open");
     let crs = opened.scene.crs.as_ref().expect("the fixture has a CRS");
-    assert_eq!(crs.as_str(), dataset_support::FIXTURE_CRS);
+    assert_eq!(crs.as_str(), support::FIXTURE_CRS);
     assert_eq!(crs.epsg_code(), Some(25833));
     let layout = scene_layout(&fixture.scene);
     let text_at = layout.crs + 4;
-    let text_len = dataset_support::FIXTURE_CRS.len();
+    let text_len = support::FIXTURE_CRS.len();
     assert_ne!(text_len % 4, 0, "the fixture exercises the padding");
     type Edit = Box<dyn Fn(&mut Vec<u8>)>;
     let cases: [(&str, Edit, &str, u64); 5] = [

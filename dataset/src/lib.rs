@@ -1,4 +1,14 @@
-//! On-disk city dataset format: scene file, texture pack with per-mip byte ranges, colormap.
+//! citystream's on-disk city: the dataset format (scene file, texture pack with per-mip byte
+//! ranges, colormap), its atomic writes and checked reads, upgrades from older formats, the
+//! on-disk mip cache, and (feature `remote`, module `remote`) the same datasets over HTTP or
+//! S3. No Vulkan and no streaming policy: `citystream-streaming`'s loader reads through it.
+//!
+//! Modules, private behind the re-exports below: `scene`, `pack`, `colormap` and `format`
+//! (the files and their records), `crs` (the coordinate reference system a scene names),
+//! `files` and `writer` (the manifest, write directories and atomic replacement), `store`
+//! (where a dataset's bytes live: a directory or a remote store), `verify` (every mip
+//! checked), `legacy` (upgrades from formats 1 and 2), `mip_cache` (remote mips kept on
+//! disk), `io_util` and `error`.
 //!
 //! A dataset is a directory holding a manifest, `dataset.manifest`, that names the current
 //! write, and that write's subdirectory `write-<id>/` with five files (format version
@@ -29,6 +39,8 @@
 //! - Textures are powers of two per side; block-compressed ones are at least 4×4 at level 0.
 //!   Mips of block formats smaller than 4 texels on a side still occupy whole 4×4 blocks.
 
+#![forbid(unsafe_code)]
+
 mod colormap;
 mod crs;
 mod error;
@@ -42,6 +54,9 @@ mod scene;
 mod store;
 mod verify;
 mod writer;
+
+#[cfg(feature = "remote")]
+pub mod remote;
 
 use std::path::Path;
 use std::sync::Arc;

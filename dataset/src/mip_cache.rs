@@ -48,7 +48,7 @@ static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 
 /// What a [`MipCache`] did since it was opened (this process only).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-#[cfg_attr(feature = "bench", derive(serde::Serialize))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct MipCacheStats {
     /// Mips read from the cache.
     pub hits: u64,

@@ -1,13 +1,13 @@
 //! Arbitrary damage to any dataset file never panics: opening, reading every mip and
 //! verifying either succeed or return an error.
 
-mod dataset_support;
+mod support;
 
-use citystream_streaming::dataset::{
+use citystream_dataset::{
     verify, Dataset, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
 };
-use dataset_support::{copy_dir, data_file, patch, write_fixture};
 use proptest::prelude::*;
+use support::{copy_dir, data_file, patch, write_fixture};
 
 const FILES: [&str; 6] = [
     SCENE_FILE,
@@ -45,11 +45,11 @@ proptest! {
             }
             // Also reach the checks behind the table checksums.
             if recompute_crc && b.len() >= 104 && name == SCENE_FILE {
-                dataset_support::fix_scene_crc(b);
+                support::fix_scene_crc(b);
             } else if recompute_crc && b.len() >= 44 && name == PACK_FILE {
-                dataset_support::fix_pack_header_crc(b);
+                support::fix_pack_header_crc(b);
             } else if recompute_crc && b.len() >= 40 && name != MANIFEST_FILE {
-                dataset_support::fix_table_crc(b);
+                support::fix_table_crc(b);
             }
         });
         if let Ok(dataset) = Dataset::open(&dir) {

@@ -4,7 +4,7 @@
 //! `https://…`, or `s3://bucket/prefix/`. A remote dataset is opened by fetching its small
 //! files once (manifest, scene, texture table, checksums, colormap) and the pack's header;
 //! every mip is then one HTTP range request (S3 `GetObject` with `Range`), checked against
-//! its stored CRC-32 like a local read ([`crate::dataset::DatasetStore`]).
+//! its stored CRC-32 like a local read ([`crate::DatasetStore`]).
 //!
 //! The client is `object_store` (one API for HTTP and S3; timeouts, and retries with
 //! exponential backoff of timeouts, 5xx answers and broken connections, built in). Its
@@ -40,7 +40,7 @@ use object_store::http::HttpBuilder;
 use object_store::path::Path as ObjectPath;
 use object_store::{BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, RetryConfig};
 
-use crate::dataset::{Dataset, DatasetError, DatasetStore, MipCache};
+use crate::{Dataset, DatasetError, DatasetStore, MipCache};
 
 /// How a remote dataset is reached.
 #[derive(Clone, Debug)]
