@@ -63,15 +63,11 @@ pub struct AtlasTreeRenderer {
     transforms: Vec<[f32; 4]>,
 }
 
-impl std::fmt::Debug for AtlasTreeRenderer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("AtlasTreeRenderer")
-            .field("meshes", &self.originals.len())
-            .field("nodes", &self.atlases.len())
-            .field("slots", &self.slots.len())
-            .finish()
-    }
-}
+debug_fields!(AtlasTreeRenderer {
+    meshes = |s| s.originals.len(),
+    nodes = |s| s.atlases.len(),
+    slots = |s| s.slots.len(),
+});
 
 /// What a selection draws, counted as a renderer that binds one texture per draw would
 /// draw it.
@@ -361,14 +357,10 @@ pub struct AtlasTreeStreamer {
     atlas_mips: u32,
 }
 
-impl std::fmt::Debug for AtlasTreeStreamer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("AtlasTreeStreamer")
-            .field("renderer", &self.renderer)
-            .field("capacity_bytes", &self.capacity_bytes)
-            .finish()
-    }
-}
+debug_fields!(AtlasTreeStreamer {
+    renderer,
+    capacity_bytes
+});
 
 /// What one frame of an [`AtlasTreeStreamer`] chose and drew.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

@@ -59,16 +59,12 @@ struct BindLog {
     out: std::io::BufWriter<std::fs::File>,
 }
 
-impl std::fmt::Debug for VulkanBinder {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("VulkanBinder")
-            .field("images", &self.images.len())
-            .field("chunks", &self.chunks.len())
-            .field("signalled", &self.signalled)
-            .field("checks_binds", &self.checker.is_some())
-            .finish()
-    }
-}
+debug_fields!(VulkanBinder {
+    images = |s| s.images.len(),
+    chunks = |s| s.chunks.len(),
+    signalled,
+    checks_binds = |s| s.checker.is_some(),
+});
 
 impl VulkanBinder {
     /// A binder for `images` with no memory chunks yet, checking its binds

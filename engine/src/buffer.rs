@@ -31,14 +31,7 @@ pub struct Buffer {
     name: String,
 }
 
-impl std::fmt::Debug for Buffer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Buffer")
-            .field("name", &self.name)
-            .field("desc", &self.desc)
-            .finish()
-    }
-}
+debug_fields!(Buffer { name, desc });
 
 impl Buffer {
     /// Creates a buffer and binds fresh memory to it.

@@ -15,11 +15,7 @@ pub struct Semaphore {
     raw: vk::Semaphore,
 }
 
-impl std::fmt::Debug for Semaphore {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("Semaphore").field(&self.raw).finish()
-    }
-}
+debug_fields!(Semaphore { raw });
 
 impl Semaphore {
     /// Creates a binary semaphore.
@@ -53,11 +49,7 @@ pub struct Fence {
     raw: vk::Fence,
 }
 
-impl std::fmt::Debug for Fence {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("Fence").field(&self.raw).finish()
-    }
-}
+debug_fields!(Fence { raw });
 
 impl Fence {
     /// Creates a fence, signalled or not.
@@ -167,11 +159,7 @@ pub struct TimelineSemaphore {
     raw: vk::Semaphore,
 }
 
-impl std::fmt::Debug for TimelineSemaphore {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("TimelineSemaphore").field(&self.raw).finish()
-    }
-}
+debug_fields!(TimelineSemaphore { raw });
 
 impl TimelineSemaphore {
     /// Creates a timeline semaphore starting at `initial`.
@@ -305,13 +293,7 @@ pub struct CommandContext {
     untracked: bool,
 }
 
-impl std::fmt::Debug for CommandContext {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("CommandContext")
-            .field("pending", &self.pending)
-            .finish()
-    }
-}
+debug_fields!(CommandContext { pending });
 
 impl CommandContext {
     /// Creates the pool, the command buffer and the fence.

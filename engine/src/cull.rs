@@ -179,14 +179,7 @@ pub(crate) struct CityCulling {
     recording: Mutex<SlotRecords>,
 }
 
-impl std::fmt::Debug for CityCulling {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("CityCulling")
-            .field("mesh_count", &self.mesh_count)
-            .field("capacity", &self.capacity)
-            .finish()
-    }
-}
+debug_fields!(CityCulling { mesh_count, capacity });
 
 /// A box holding nothing: every point widens it.
 const EMPTY_BOUNDS: MeshBounds = MeshBounds {

@@ -140,17 +140,13 @@ pub struct HostDevice {
     pub debug_utils: bool,
 }
 
-impl std::fmt::Debug for HostDevice {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("HostDevice")
-            .field("instance", &self.instance)
-            .field("physical_device", &self.physical_device)
-            .field("device", &self.device)
-            .field("queue_family", &self.queue_family)
-            .field("allocator", &self.allocator)
-            .finish()
-    }
-}
+debug_fields!(HostDevice {
+    instance,
+    physical_device,
+    device,
+    queue_family,
+    allocator
+});
 
 /// What a host must enable on its device for the engine.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -221,14 +217,7 @@ pub fn check_physical_device(instance: &ash::Instance, physical: vk::PhysicalDev
     (candidate.missing, candidate.queue_family)
 }
 
-impl std::fmt::Debug for Device {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Device")
-            .field("name", &self.name)
-            .field("queue_family", &self.queue_family)
-            .finish()
-    }
-}
+debug_fields!(Device { name, queue_family });
 
 fn rank(device_type: vk::PhysicalDeviceType) -> u32 {
     match device_type {

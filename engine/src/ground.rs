@@ -233,16 +233,7 @@ pub struct GroundLayer {
     entries: Vec<GroundTileEntry>,
 }
 
-impl std::fmt::Debug for GroundLayer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GroundLayer")
-            .field("imagery", &self.imagery)
-            .field("config", &self.config)
-            .field("pending", &self.pending.len())
-            .field("totals", &self.totals)
-            .finish()
-    }
-}
+debug_fields!(GroundLayer { imagery, config, pending = |s| s.pending.len(), totals });
 
 impl Drop for GroundLayer {
     fn drop(&mut self) {

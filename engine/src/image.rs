@@ -69,14 +69,7 @@ pub struct Image {
     name: String,
 }
 
-impl std::fmt::Debug for Image {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Image")
-            .field("name", &self.name)
-            .field("desc", &self.desc)
-            .finish()
-    }
-}
+debug_fields!(Image { name, desc });
 
 impl Image {
     /// Creates the image, binds device memory and creates its view.

@@ -126,14 +126,7 @@ unsafe impl Send for Instance {}
 // SAFETY: as above; `ValidationLog` is internally locked.
 unsafe impl Sync for Instance {}
 
-impl std::fmt::Debug for Instance {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Instance")
-            .field("raw", &self.raw.handle())
-            .field("validation", &self.validation)
-            .finish()
-    }
-}
+debug_fields!(Instance { raw = |s| s.raw.handle(), validation });
 
 impl Instance {
     /// Loads Vulkan and creates an instance (API 1.3).

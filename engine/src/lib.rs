@@ -38,6 +38,26 @@
 //! `// SAFETY:` line.
 #![warn(unsafe_op_in_unsafe_fn)]
 
+/// `Debug` for the engine's owners of Vulkan objects: the type's name and the fields that
+/// say what it is, the rest (handles' memory, tables, buffers) left out. A field may show
+/// a value derived from the owner: `images = |s| s.images.len()`.
+macro_rules! debug_fields {
+    ($ty:ident { $($name:ident $(= |$s:ident| $value:expr)?),* $(,)? }) => {
+        impl std::fmt::Debug for $ty {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.debug_struct(stringify!($ty))
+                    $(.field(stringify!($name), &debug_fields!(@value self, $name $(, |$s| $value)?)))*
+                    .finish_non_exhaustive()
+            }
+        }
+    };
+    (@value $owner:ident, $name:ident) => { $owner.$name };
+    (@value $owner:ident, $name:ident, |$s:ident| $value:expr) => {{
+        let $s = $owner;
+        $value
+    }};
+}
+
 pub mod atlas_tree;
 pub mod binder;
 pub mod buffer;

@@ -52,13 +52,7 @@ pub struct Pipeline {
     bindings: Vec<BindingSpec>,
 }
 
-impl std::fmt::Debug for Pipeline {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Pipeline")
-            .field("bind_point", &self.bind_point)
-            .finish()
-    }
-}
+debug_fields!(Pipeline { bind_point });
 
 /// Fixed-function choices of a graphics pipeline.
 #[derive(Clone, Debug)]
@@ -392,11 +386,7 @@ pub struct DescriptorPool {
     raw: vk::DescriptorPool,
 }
 
-impl std::fmt::Debug for DescriptorPool {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("DescriptorPool").field(&self.raw).finish()
-    }
-}
+debug_fields!(DescriptorPool { raw });
 
 /// What one descriptor write points at.
 #[derive(Clone, Copy, Debug)]
@@ -539,11 +529,7 @@ pub struct Sampler {
     raw: vk::Sampler,
 }
 
-impl std::fmt::Debug for Sampler {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("Sampler").field(&self.raw).finish()
-    }
-}
+debug_fields!(Sampler { raw });
 
 /// Sampler filtering choice.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -59,11 +59,7 @@ pub struct Surface {
     _window: Arc<dyn PresentWindow>,
 }
 
-impl std::fmt::Debug for Surface {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_tuple("Surface").field(&self.raw).finish()
-    }
-}
+debug_fields!(Surface { raw });
 
 impl Surface {
     /// Creates the surface of `window` on the engine's own device (created
@@ -200,17 +196,7 @@ pub struct Presenter {
     device: Arc<Device>,
 }
 
-impl std::fmt::Debug for Presenter {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Presenter")
-            .field("swapchain", &self.swapchain)
-            .field("images", &self.images.len())
-            .field("format", &self.format)
-            .field("extent", &self.extent)
-            .field("mode", &self.mode)
-            .finish()
-    }
-}
+debug_fields!(Presenter { swapchain, images = |s| s.images.len(), format, extent, mode });
 
 /// How long `acquire` waits for an image before the frame goes unpresented.
 const ACQUIRE_TIMEOUT_NS: u64 = 1_000_000_000;

@@ -94,15 +94,11 @@ pub struct SparseImage {
     memory_type_bits: u32,
 }
 
-impl std::fmt::Debug for SparseImage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SparseImage")
-            .field("desc", &self.desc)
-            .field("block_size", &self.block_size)
-            .field("granularity", &self.granularity)
-            .finish()
-    }
-}
+debug_fields!(SparseImage {
+    desc,
+    block_size,
+    granularity
+});
 
 const USAGE: vk::ImageUsageFlags =
     vk::ImageUsageFlags::from_raw(vk::ImageUsageFlags::SAMPLED.as_raw() | vk::ImageUsageFlags::TRANSFER_DST.as_raw());
@@ -566,11 +562,7 @@ pub struct SparseMemoryChunk {
     size: u64,
 }
 
-impl std::fmt::Debug for SparseMemoryChunk {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SparseMemoryChunk").field("size", &self.size).finish()
-    }
-}
+debug_fields!(SparseMemoryChunk { size });
 
 impl SparseMemoryChunk {
     /// Allocates `blocks` blocks usable by `image`.

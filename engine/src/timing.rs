@@ -48,11 +48,7 @@ pub struct GpuTimer {
     valid_bits: u32,
 }
 
-impl std::fmt::Debug for GpuTimer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GpuTimer").field("slots", &self.slots).finish()
-    }
-}
+debug_fields!(GpuTimer { slots });
 
 impl GpuTimer {
     /// Creates a timer with `slots` frame slots (one per frame in flight).

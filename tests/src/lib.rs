@@ -1,14 +1,35 @@
 //! Shared helpers for the lavapipe integration tests: a device with the
 //! validation layer forced on, a check that no validation error was
-//! reported, and image comparison that writes actual/expected/difference
-//! PNGs on failure.
+//! reported, a small cache's configuration, and image comparison that writes
+//! actual/expected/difference PNGs on failure.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
+use citystream_dataset::TextureFormat;
 use citystream_engine::instance::InstanceOptions;
+use citystream_engine::pipeline::Filtering;
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig};
 use citystream_engine::{Device, DeviceOptions};
+
+/// The tests' cache: `texture_count` textures of `formats` in two layers of 256² per image,
+/// ring eviction, nearest filtering, 16 MB of budget and of staging. Tests that need
+/// another shape change fields with `..test_cache_config(..)`.
+pub fn test_cache_config(formats: &[TextureFormat], texture_count: u32) -> GpuCacheConfig {
+    GpuCacheConfig {
+        layer_size: 256,
+        layers: CacheLayers::Fixed(2),
+        formats: formats.to_vec(),
+        eviction: Eviction::Ring,
+        memory_budget_bytes: 16 << 20,
+        virtual_budget_bytes: None,
+        blocks_per_chunk: 16,
+        texture_count,
+        filtering: Filtering::Nearest,
+        staging_bytes: 16 << 20,
+    }
+}
 
 /// Creates a device with `VK_LAYER_KHRONOS_validation` on, whatever the build.
 pub fn validated_device() -> Result<Arc<Device>> {

@@ -12,11 +12,10 @@ use citystream_dataset::Dataset;
 use citystream_engine::city::{city_geometry, Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
-use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 use citystream_tools::atlas::{self, AtlasArgs};
 use citystream_tools::gen::{self, FormatArg, GenArgs, Preset};
 use glam::Vec3;
@@ -35,14 +34,10 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
         &GpuCacheConfig {
             layer_size: 2048,
             layers: CacheLayers::Fixed(32),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
-            eviction: Eviction::Ring,
             memory_budget_bytes: 1 << 30,
-            virtual_budget_bytes: None,
             blocks_per_chunk: 64,
-            texture_count: dataset.textures.len(),
-            filtering: Filtering::Nearest,
             staging_bytes: 32 << 20,
+            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], dataset.textures.len())
         },
         dataset.colormap.colours(),
     )?;

@@ -14,11 +14,11 @@ use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
 use citystream_streaming::atlas_tree::{distance_to, AtlasTree, DrawWith, Selection};
 use citystream_streaming::source::texel_format;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 use citystream_tools::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
 use citystream_tools::gen::{self, FormatArg, GenArgs, Preset};
 use citystream_tools::image_error::psnr_db;
@@ -52,14 +52,11 @@ fn render_both(
         &GpuCacheConfig {
             layer_size: 2048,
             layers: CacheLayers::Fixed(64),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
-            eviction: Eviction::Ring,
             memory_budget_bytes: 1 << 30,
-            virtual_budget_bytes: None,
             blocks_per_chunk: 64,
-            texture_count: dataset.textures.len(),
             filtering: Filtering::BilinearNearestLevel,
             staging_bytes: 32 << 20,
+            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], dataset.textures.len())
         },
         dataset.colormap.colours(),
     )?;

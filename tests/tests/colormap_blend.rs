@@ -11,11 +11,10 @@ use citystream_engine::city::{Camera, CityMesh, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::Vertex;
-use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
-use citystream_tests::{assert_no_validation_errors, compare_images, validated_device};
+use citystream_engine::texture_cache::GpuTextureCache;
+use citystream_tests::{assert_no_validation_errors, compare_images, test_cache_config, validated_device};
 use glam::Vec3;
 
 const SIZE: u32 = 128;
@@ -91,18 +90,7 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
     let mut cache = GpuTextureCache::new(
         &device,
         &mut commands,
-        &GpuCacheConfig {
-            layer_size: 256,
-            layers: CacheLayers::Fixed(2),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
-            eviction: Eviction::Ring,
-            memory_budget_bytes: 16 << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 16,
-            texture_count: 4,
-            filtering: Filtering::Nearest,
-            staging_bytes: 16 << 20,
-        },
+        &test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], 4),
         &colormap,
     )?;
     for quad in &quads {

@@ -12,11 +12,10 @@ use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::{MeshFeedback, Vertex, FEEDBACK_UNSEEN};
-use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_streaming::rng::hash_unit;
-use citystream_tests::{assert_no_validation_errors, sync_validated_device};
+use citystream_tests::{assert_no_validation_errors, sync_validated_device, test_cache_config};
 use glam::Vec3;
 
 const BLOCKS: u32 = 10;
@@ -163,18 +162,7 @@ fn culling_keeps_the_feedback_and_the_image_of_104_views() -> Result<()> {
     let cache = GpuTextureCache::new(
         &device,
         &mut commands,
-        &GpuCacheConfig {
-            layer_size: 256,
-            layers: CacheLayers::Fixed(2),
-            formats: vec![TextureFormat::Bc1],
-            eviction: Eviction::Ring,
-            memory_budget_bytes: 16 << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 16,
-            texture_count: extents.len() as u32,
-            filtering: Filtering::Nearest,
-            staging_bytes: 16 << 20,
-        },
+        &test_cache_config(&[TextureFormat::Bc1], extents.len() as u32),
         &colormap,
     )?;
     let compactor = FeedbackCompactor::new(&device, &mut commands, mesh_count, mesh_count)?;

@@ -15,10 +15,9 @@ use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::{Vertex, FEEDBACK_MIP_ONE, FEEDBACK_UNSEEN, FEEDBACK_WEIGHT_ONE};
-use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_engine::texture_cache::GpuTextureCache;
+use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 use glam::Vec3;
 
 const SIZE: u32 = 128;
@@ -239,18 +238,7 @@ fn feedback_matches_cpu_reference() -> Result<()> {
     let cache = GpuTextureCache::new(
         &device,
         &mut commands,
-        &GpuCacheConfig {
-            layer_size: 256,
-            layers: CacheLayers::Fixed(2),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
-            eviction: Eviction::Ring,
-            memory_budget_bytes: 16 << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 16,
-            texture_count: extents.len() as u32,
-            filtering: Filtering::Nearest,
-            staging_bytes: 16 << 20,
-        },
+        &test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], extents.len() as u32),
         &[[128, 128, 128, 255]; 4],
     )?;
     let compactor = FeedbackCompactor::new(&device, &mut commands, planes.len() as u32, planes.len() as u32)?;

@@ -17,7 +17,7 @@ use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::probe::TextureProbe;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome};
-use citystream_tests::{assert_no_validation_errors, bc1_texel, validated_device};
+use citystream_tests::{assert_no_validation_errors, bc1_texel, test_cache_config, validated_device};
 
 const EXTENTS: [u32; 6] = [4, 8, 16, 32, 64, 128];
 const LAYER_SIZE: u32 = 256;
@@ -354,15 +354,9 @@ fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<
         &mut commands,
         &GpuCacheConfig {
             layer_size: 128,
-            layers: CacheLayers::Fixed(2),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
-            eviction: Eviction::Ring,
             memory_budget_bytes: 64 << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 16,
-            texture_count: 4,
             filtering: Filtering::BilinearNearestLevel,
-            staging_bytes: 16 << 20,
+            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], 4)
         },
         &[[0, 0, 0, 255]; 4],
     )?;
@@ -467,14 +461,8 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
         &GpuCacheConfig {
             layer_size: 128,
             layers: CacheLayers::Fixed(1),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
-            eviction: Eviction::Ring,
-            memory_budget_bytes: 16 << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 16,
-            texture_count: 1,
-            filtering: Filtering::Nearest,
             staging_bytes: 1 << 20,
+            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], 1)
         },
         &[[9, 9, 9, 255]],
     )?;
@@ -520,15 +508,9 @@ fn a_level_of_a_layer_evicted_in_the_same_cycle_is_not_dropped_again() -> Result
         &mut commands,
         &GpuCacheConfig {
             layer_size: 128,
-            layers: CacheLayers::Fixed(2),
-            formats: vec![TextureFormat::Bc1, TextureFormat::Rgba8],
             eviction: Eviction::View,
-            memory_budget_bytes: 16 << 20,
-            virtual_budget_bytes: None,
-            blocks_per_chunk: 16,
-            texture_count: 2,
-            filtering: Filtering::Nearest,
             staging_bytes: 1 << 20,
+            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], 2)
         },
         &[[9, 9, 9, 255], [9, 9, 9, 255]],
     )?;
@@ -701,14 +683,11 @@ fn bc3_and_bc7_textures_are_cached_and_sampled() -> Result<()> {
         &GpuCacheConfig {
             layer_size: LAYER_SIZE,
             layers: CacheLayers::Fixed(4),
-            formats: vec![TextureFormat::Bc3, TextureFormat::Bc7],
             eviction: Eviction::View,
             memory_budget_bytes: 64 << 20,
-            virtual_budget_bytes: None,
             blocks_per_chunk: 64,
-            texture_count: sources.len() as u32,
-            filtering: Filtering::Nearest,
             staging_bytes: 1 << 20,
+            ..test_cache_config(&[TextureFormat::Bc3, TextureFormat::Bc7], sources.len() as u32)
         },
         &vec![[0, 0, 0, 255]; sources.len()],
     )?;

@@ -64,12 +64,15 @@ use crate::texture_cache::{CacheLayers, CycleReport, Eviction, GpuCacheConfig, G
 
 mod descriptors;
 mod feedback_records;
+mod frame;
 mod immediate;
 mod residency;
 mod telemetry;
 
 pub use descriptors::StreamDescriptors;
 pub use feedback_records::{feedback_tau, records_from_feedback};
+use frame::NEXT_STREAMER_ID;
+pub use frame::{Frame, FrameSubmit};
 pub use telemetry::ServedLevels;
 
 /// Per cache format, how many textures of each extent the source holds.
@@ -176,93 +179,6 @@ impl Default for StreamConfig {
     }
 }
 
-/// A frame between [`TextureStreamer::begin_frame`] and [`TextureStreamer::end_frame`],
-/// and what `begin_frame` did.
-///
-/// The token is the frame's proof of order: the recording calls take it by reference and
-/// `end_frame` consumes it, so a frame cannot be ended twice or recorded into after it
-/// ended, and a host cannot make one up. Calls the types cannot order (uploads recorded
-/// twice, a resolve without its frame's uploads, a token of another streamer) are refused
-/// with [`EngineError::InvalidRequest`].
-///
-/// ```no_run
-/// # use citystream_engine::{commands::CommandContext, stream::TextureStreamer};
-/// # use citystream_streaming::source::DatasetSource;
-/// # fn f(streamer: &mut TextureStreamer<DatasetSource>, commands: &mut CommandContext) -> citystream_engine::Result<()> {
-/// let mut frame = streamer.begin_frame()?;
-/// let rec = commands.begin()?;
-/// streamer.record_uploads(&mut frame, rec)?;
-/// let submit = streamer.end_frame(frame, 8.0)?;
-/// commands.submit_frame(&submit.waits, &[submit.signal])?;
-/// # Ok(()) }
-/// ```
-///
-/// Ending a frame twice, or recording into it after it ended, does not compile:
-///
-/// ```compile_fail,E0382
-/// # use citystream_engine::{commands::CommandContext, stream::TextureStreamer};
-/// # use citystream_streaming::source::DatasetSource;
-/// # fn f(streamer: &mut TextureStreamer<DatasetSource>, commands: &mut CommandContext) -> citystream_engine::Result<()> {
-/// let mut frame = streamer.begin_frame()?;
-/// let rec = commands.begin()?;
-/// streamer.record_uploads(&mut frame, rec)?;
-/// let submit = streamer.end_frame(frame, 8.0)?;
-/// streamer.record_uploads(&mut frame, rec)?; // `frame` was consumed by end_frame
-/// # Ok(()) }
-/// ```
-#[derive(Debug)]
-#[must_use = "a frame is ended with TextureStreamer::end_frame"]
-pub struct Frame {
-    index: u64,
-    slot: u32,
-    cpu_wait: Duration,
-    loading_started: bool,
-    refused: u32,
-    over_budget: bool,
-    /// The streamer that began it.
-    streamer: u64,
-    uploads_recorded: bool,
-    resolved: bool,
-}
-
-impl Frame {
-    /// The frame's number, from 0.
-    pub fn index(&self) -> u64 {
-        self.index
-    }
-
-    /// Its read-back slot (and frame-in-flight slot: `index % frames_in_flight`).
-    pub fn slot(&self) -> u32 {
-        self.slot
-    }
-
-    /// Time the CPU blocked waiting for the GPU to finish the frame that used this slot
-    /// before; zero when it had already finished.
-    pub fn cpu_wait(&self) -> Duration {
-        self.cpu_wait
-    }
-
-    /// Feedback of a completed frame (or the host's records) was handed to the loader.
-    pub fn loading_started(&self) -> bool {
-        self.loading_started
-    }
-
-    /// Mips the cache could not take this frame (loaded again later).
-    pub fn refused(&self) -> u32 {
-        self.refused
-    }
-
-    /// The view needs more than the memory budget holds: loads were refused or declined
-    /// for room ([`Eviction::View`]), or packing evicted a layer to stay within the
-    /// budget ([`Eviction::Ring`]).
-    pub fn over_budget(&self) -> bool {
-        self.over_budget
-    }
-}
-
-/// Distinguishes streamers, so that a frame token is used only with its own.
-static NEXT_STREAMER_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
-
 /// What the last [`TextureStreamer::begin_frame`] did to residency.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ResidencyCycle {
@@ -295,27 +211,6 @@ pub struct ResidencyTotals {
     pub frames_over_budget: u64,
     /// Bytes of the distinct `(texture, level)` pairs uploaded, each once.
     pub unique_bytes_uploaded: u64,
-}
-
-/// What the host's submission of a frame must carry.
-#[derive(Clone, Debug)]
-pub struct FrameSubmit {
-    /// Semaphores to wait on (the sparse binds the copies need, at the copy stage).
-    pub waits: Vec<SemaphoreWait>,
-    /// The frame timeline value to signal when the frame completes.
-    pub signal: SemaphoreSignal,
-}
-
-impl FrameSubmit {
-    /// [`waits`](Self::waits) as `vkQueueSubmit2` wait infos.
-    pub fn wait_infos(&self) -> Vec<vk::SemaphoreSubmitInfo<'static>> {
-        self.waits.iter().map(SemaphoreWait::submit_info).collect()
-    }
-
-    /// [`signal`](Self::signal) as a `vkQueueSubmit2` signal info (at `ALL_COMMANDS`).
-    pub fn signal_info(&self) -> vk::SemaphoreSubmitInfo<'static> {
-        self.signal.submit_info()
-    }
 }
 
 #[derive(Clone, Copy, Debug, Default)]

@@ -251,15 +251,11 @@ struct PreparedCycle {
     report: CycleReport,
 }
 
-impl std::fmt::Debug for GpuTextureCache {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GpuTextureCache")
-            .field("images", &self.images.len())
-            .field("textures", &self.slots.len())
-            .field("pending_uploads", &self.uploads.len())
-            .finish()
-    }
-}
+debug_fields!(GpuTextureCache {
+    images = |s| s.images.len(),
+    textures = |s| s.slots.len(),
+    pending_uploads = |s| s.uploads.len(),
+});
 
 fn cache_error(texture: u32, mip: u32, error: CacheError) -> EngineError {
     EngineError::InvalidRequest(format!("texture {texture} mip {mip}: {error}"))
