@@ -81,7 +81,18 @@ impl DatasetFiles {
     /// Reads the manifest of the dataset at `root` of `store` (a remote dataset).
     pub fn resolve_in(store: &dyn DatasetStore, root: &Path) -> Result<Self, DatasetError> {
         let manifest_path = root.join(MANIFEST_FILE);
-        let write_id = decode_manifest(&manifest_path, &store.read_all(&manifest_path)?, FORMAT_VERSION)?;
+        // Exactly the manifest's bytes are asked for, so a store that answers with more
+        // (a server sending gigabytes for a 32-byte file) is refused, not buffered.
+        let len = store.len(&manifest_path)?;
+        if len != MANIFEST_BYTES as u64 {
+            return Err(DatasetError::InvalidInput(format!(
+                "{}: {len} bytes, a manifest is {MANIFEST_BYTES}",
+                manifest_path.display()
+            )));
+        }
+        let mut bytes = [0; MANIFEST_BYTES];
+        store.read_at(&manifest_path, 0, &mut bytes)?;
+        let write_id = decode_manifest(&manifest_path, &bytes, FORMAT_VERSION)?;
         Ok(Self {
             dir: root.to_path_buf(),
             data_dir: root.join(write_dir_name(write_id)),

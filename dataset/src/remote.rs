@@ -42,6 +42,8 @@ use object_store::{BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, Re
 
 use crate::{Dataset, DatasetError, DatasetStore, MipCache};
 
+mod guarded;
+
 /// How a remote dataset is reached.
 #[derive(Clone, Debug)]
 pub struct RemoteOptions {
@@ -66,6 +68,10 @@ pub struct RemoteOptions {
     pub mip_cache: Option<MipCacheOptions>,
     /// `CITYSTREAM_MIP_CACHE_MB` where set: the capacity a cache named later gets.
     pub mip_cache_capacity_bytes: Option<u64>,
+    /// Follow redirects to another origin (scheme, host and port) than the dataset URL's.
+    /// Off by default: the data of a URL the user named never silently comes from
+    /// elsewhere (redirects within the origin are followed, up to [`MAX_REDIRECTS`]).
+    pub follow_redirects: bool,
 }
 
 /// Where the on-disk mip cache lies and how much it holds.
@@ -104,6 +110,7 @@ impl Default for RemoteOptions {
             s3_region: None,
             mip_cache: None,
             mip_cache_capacity_bytes: None,
+            follow_redirects: false,
         }
     }
 }
@@ -113,7 +120,8 @@ impl RemoteOptions {
     /// `CITYSTREAM_REMOTE_IN_FLIGHT` (prefetch requests in flight) and
     /// `CITYSTREAM_REMOTE_TIMEOUT_S` (request timeout, seconds),
     /// `CITYSTREAM_REMOTE_PREFETCH_MB` (bytes held ahead, MB), `CITYSTREAM_MIP_CACHE`
-    /// (the mip cache's directory) and `CITYSTREAM_MIP_CACHE_MB` (its capacity) applied
+    /// (the mip cache's directory), `CITYSTREAM_MIP_CACHE_MB` (its capacity) and
+    /// `CITYSTREAM_REMOTE_FOLLOW_REDIRECTS` (`1` or `0`: redirects to another origin) applied
     /// where set; a value that does not parse is an error naming the variable.
     pub fn from_env() -> Result<Self, DatasetError> {
         let mut options = Self::default();
@@ -159,9 +167,23 @@ impl RemoteOptions {
                 cache.capacity_bytes = Some(bytes);
             }
         }
+        if let Ok(text) = std::env::var("CITYSTREAM_REMOTE_FOLLOW_REDIRECTS") {
+            options.follow_redirects = match text.trim() {
+                "1" => true,
+                "0" => false,
+                _ => {
+                    return Err(DatasetError::InvalidInput(format!(
+                        "CITYSTREAM_REMOTE_FOLLOW_REDIRECTS={text}: not 1 or 0"
+                    )))
+                }
+            };
+        }
         Ok(options)
     }
 }
+
+/// Redirects within the dataset URL's origin followed at most, per request.
+pub const MAX_REDIRECTS: usize = 10;
 
 /// Retries per request at most ([`RemoteOptions::retries`]).
 pub const MAX_RETRIES: usize = 100;
@@ -292,6 +314,11 @@ impl RemoteStore {
             .with_timeout(options.timeout)
             .with_connect_timeout(options.connect_timeout)
             .with_allow_http(true);
+        let connector = guarded::GuardedConnector {
+            timeout: options.timeout,
+            connect_timeout: options.connect_timeout,
+            follow_redirects: options.follow_redirects,
+        };
         let retry = RetryConfig {
             backoff: BackoffConfig {
                 init_backoff: options.initial_backoff,
@@ -306,6 +333,7 @@ impl RemoteStore {
                 HttpBuilder::new()
                     .with_url(format!("{scheme}://{authority}"))
                     .with_client_options(client)
+                    .with_http_connector(connector)
                     .with_retry(retry)
                     .build()
                     .map_err(|e| bad(e.to_string()))?,
@@ -314,6 +342,7 @@ impl RemoteStore {
                 let mut builder = AmazonS3Builder::from_env()
                     .with_bucket_name(authority)
                     .with_client_options(client)
+                    .with_http_connector(connector)
                     .with_retry(retry);
                 let endpoint = options
                     .s3_endpoint
@@ -494,14 +523,16 @@ impl RemoteStore {
 
 impl DatasetStore for RemoteStore {
     fn read_all(&self, path: &Path) -> Result<Vec<u8>, DatasetError> {
-        let key = self.key(path)?;
-        self.runtime
-            .block_on(async {
-                let result = self.store.get(&key).await?;
-                result.bytes().await
-            })
-            .map(|bytes| bytes.to_vec())
-            .map_err(|e| Self::error(path, e))
+        // The length the server declares, then exactly that range: an answer longer than
+        // it is refused as it arrives ([`guarded`]), never buffered whole.
+        let len = self.len(path)?;
+        let len =
+            usize::try_from(len).map_err(|_| DatasetError::InvalidInput(format!("{}: {len} bytes", path.display())))?;
+        let mut bytes = vec![0; len];
+        if len > 0 {
+            self.read_at(path, 0, &mut bytes)?;
+        }
+        Ok(bytes)
     }
 
     fn len(&self, path: &Path) -> Result<u64, DatasetError> {

@@ -85,6 +85,11 @@ pub struct RemoteArgs {
     /// CITYSTREAM_REMOTE_PREFETCH_MB).
     #[arg(long, value_parser = parse_megabytes_arg)]
     pub remote_prefetch_mb: Option<u64>,
+    /// Remote datasets: follow redirects to another origin (scheme, host, port) than the
+    /// dataset URL's; refused by default, so the data of the URL named never silently comes
+    /// from elsewhere (or CITYSTREAM_REMOTE_FOLLOW_REDIRECTS=1).
+    #[arg(long)]
+    pub remote_follow_redirects: bool,
 }
 
 /// The on-disk mip cache of a remote dataset, from the command line or the environment.
@@ -128,6 +133,7 @@ impl RemoteArgs {
         if let Some(bytes) = self.remote_prefetch_mb {
             options.prefetch_limit_bytes = bytes;
         }
+        options.follow_redirects |= self.remote_follow_redirects;
         Ok(options)
     }
 
