@@ -241,6 +241,93 @@ pub struct RemoteStore {
     prefetch_wait: Duration,
     prefetch_limit_bytes: u64,
     mip_cache: Option<Arc<MipCache>>,
+    /// Whether the server still answers.
+    liveness: Arc<Liveness>,
+}
+
+/// Whether the server still answers: a request that failed after waiting at least the
+/// request timeout means it did not, and until one succeeds again, reads fail at once
+/// instead of each waiting out its own timeouts and retries. One read tries again after
+/// `stall_limit`, the next after twice that, and so on (up to [`MAX_STALL_PROBE`]), so a
+/// server that stops answering fails the loads within about one retry chain, through the
+/// loader's failure lifecycle, in every clock mode, and one that comes back is used again.
+#[derive(Debug)]
+struct Liveness {
+    state: Mutex<Silence>,
+    request_timeout: Duration,
+    /// One request's whole retry chain.
+    stall_limit: Duration,
+    retries: usize,
+}
+
+/// Since when nothing was answered, and how many reads tried again in vain since.
+#[derive(Debug, Default)]
+struct Silence {
+    since: Option<Instant>,
+    last_try: Option<Instant>,
+    failed_tries: u32,
+}
+
+/// The longest a silent server goes without a read trying it again.
+const MAX_STALL_PROBE: Duration = Duration::from_secs(600);
+
+impl Liveness {
+    fn new(options: &RemoteOptions) -> Self {
+        Self {
+            state: Mutex::default(),
+            request_timeout: options.timeout,
+            stall_limit: options.timeout.saturating_mul(options.retries as u32 + 1),
+            retries: options.retries,
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Silence> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Records how a request that took `waited` ended.
+    fn record(&self, answered: bool, waited: Duration) {
+        let mut silence = self.lock();
+        if answered {
+            *silence = Silence::default();
+        } else if waited >= self.request_timeout && silence.since.is_none() {
+            let now = Instant::now();
+            *silence = Silence {
+                since: Some(now),
+                last_try: Some(now),
+                failed_tries: 0,
+            };
+        }
+    }
+
+    fn is_silent(&self) -> bool {
+        self.lock().since.is_some()
+    }
+
+    /// `Err` with what to report while the server is silent, unless this read is the one
+    /// that tries it again.
+    fn check(&self, host: &str) -> Result<(), String> {
+        let mut silence = self.lock();
+        let (Some(since), Some(last_try)) = (silence.since, silence.last_try) else {
+            return Ok(());
+        };
+        let wait = self
+            .stall_limit
+            .saturating_mul(1 << silence.failed_tries.min(16))
+            .min(MAX_STALL_PROBE);
+        if last_try.elapsed() >= wait {
+            silence.last_try = Some(Instant::now());
+            silence.failed_tries += 1;
+            return Ok(());
+        }
+        Err(format!(
+            "no answer from {host}: a request went unanswered for its timeout of {:.1} s through {} retries, \
+             and nothing has been answered in the {:.1} s since",
+            self.request_timeout.as_secs_f64(),
+            self.retries,
+            since.elapsed().as_secs_f64()
+        ))
+    }
 }
 
 /// Ranges fetched ahead of their reads.
@@ -396,6 +483,7 @@ impl RemoteStore {
             prefetch_wait: options.timeout.saturating_mul(options.retries as u32 + 1),
             prefetch_limit_bytes: options.prefetch_limit_bytes,
             mip_cache,
+            liveness: Arc::new(Liveness::new(options)),
         })
     }
 
@@ -473,11 +561,12 @@ impl RemoteStore {
             }
         }
         requests.sort_by_key(|r| r.priority);
-        let (store, semaphore, prefetched, path) = (
+        let (store, semaphore, prefetched, path, liveness) = (
             Arc::clone(&self.store),
             Arc::clone(&self.in_flight),
             Arc::clone(&self.prefetched),
             path.to_path_buf(),
+            Arc::clone(&self.liveness),
         );
         // One dispatcher per call: it starts the requests in priority order as permits free up.
         self.runtime.spawn(async move {
@@ -485,10 +574,17 @@ impl RemoteStore {
                 let Ok(permit) = Arc::clone(&semaphore).acquire_owned().await else {
                     return;
                 };
-                let (store, prefetched, key, path) =
-                    (Arc::clone(&store), Arc::clone(&prefetched), key.clone(), path.clone());
+                let (store, prefetched, key, path, liveness) = (
+                    Arc::clone(&store),
+                    Arc::clone(&prefetched),
+                    key.clone(),
+                    path.clone(),
+                    Arc::clone(&liveness),
+                );
                 tokio::spawn(async move {
+                    let started = Instant::now();
                     let result = store.get_range(&key, request.start..request.end).await;
+                    liveness.record(result.is_ok(), started.elapsed());
                     drop(permit);
                     let whole = matches!(&result, Ok(bytes) if bytes.len() as u64 == request.end - request.start);
                     let mut state = prefetched.lock();
@@ -599,7 +695,8 @@ impl DatasetStore for RemoteStore {
                     }
                     Some(Slot::Pending) => {
                         let now = Instant::now();
-                        if now >= deadline {
+                        // A server that stopped answering will not answer this one either.
+                        if now >= deadline || self.liveness.is_silent() {
                             break;
                         }
                         state = self
@@ -628,10 +725,15 @@ impl DatasetStore for RemoteStore {
         self.top_up(path);
         let key = self.key(path)?;
         let end = offset.saturating_add(dst.len() as u64);
-        let bytes = self
-            .runtime
-            .block_on(self.store.get_range(&key, offset..end))
-            .map_err(|e| Self::error(path, e))?;
+        let host = self.root.to_string_lossy();
+        let host = host.split('/').take(3).collect::<Vec<_>>().join("/");
+        self.liveness
+            .check(&host)
+            .map_err(|why| DatasetError::io(path, std::io::Error::new(std::io::ErrorKind::TimedOut, why)))?;
+        let started = Instant::now();
+        let result = self.runtime.block_on(self.store.get_range(&key, offset..end));
+        self.liveness.record(result.is_ok(), started.elapsed());
+        let bytes = result.map_err(|e| Self::error(path, e))?;
         if bytes.len() != dst.len() {
             return Err(DatasetError::Truncated {
                 path: path.to_path_buf(),

@@ -25,6 +25,8 @@ enum Behaviour {
     /// Answer GETs of ranges from this offset on with 206 and `Content-Length: 4 GiB`, then
     /// zeros until the client hangs up; serve the rest.
     HugeFrom(u64),
+    /// Never answer GETs of ranges from this offset on (keep the connection open).
+    SilentFrom(u64),
 }
 
 /// Serves `root` on a loopback port until the test ends; `rule` picks each request's answer.
@@ -91,6 +93,12 @@ fn answer(stream: TcpStream, root: &Path, rule: &dyn Fn(&str) -> Behaviour) -> s
                 for _ in 0..(1u64 << 16) {
                     out.write_all(&zeros)?;
                 }
+                return Ok(());
+            }
+            Behaviour::SilentFrom(from) if method == "GET" && range.is_some_and(|(start, _)| start >= from) => {
+                // Read what the client sends until it gives up.
+                let mut sink = [0u8; 4096];
+                while matches!(reader.read(&mut sink), Ok(n) if n > 0) {}
                 return Ok(());
             }
             _ => serve_file(&mut out, root, &method, &path, range)?,
@@ -238,5 +246,49 @@ fn a_huge_answer_to_a_mip_range_fails_that_read() {
         started.elapsed() < Duration::from_secs(10),
         "took {:?}",
         started.elapsed()
+    );
+}
+
+#[test]
+fn a_server_that_stops_answering_fails_reads_within_one_retry_chain() {
+    let fixture = support::write_fixture("remote-silent-mips");
+    let server = serve(fixture.dir.clone(), |path| {
+        if path.ends_with("textures.pack") {
+            Behaviour::SilentFrom(PACK_HEADER_BYTES)
+        } else {
+            Behaviour::Serve
+        }
+    });
+    let options = RemoteOptions {
+        retries: 1,
+        timeout: Duration::from_secs(1),
+        initial_backoff: Duration::from_millis(10),
+        ..RemoteOptions::default()
+    };
+    let dataset = open_dataset(&format!("{server}/"), &options).expect("the small files are served");
+    let mut bytes = Vec::new();
+    // The first read waits out its timeout and retry.
+    let started = Instant::now();
+    dataset.textures.read_mip(0, 0, &mut bytes).expect_err("no answer");
+    let first = started.elapsed();
+    assert!(
+        first >= Duration::from_secs(1) && first < Duration::from_secs(10),
+        "first read took {first:?}"
+    );
+    // Later reads fail at once, naming the silence.
+    let started = Instant::now();
+    let message = dataset
+        .textures
+        .read_mip(1, 0, &mut bytes)
+        .expect_err("no answer")
+        .to_string();
+    assert!(
+        started.elapsed() < Duration::from_millis(500),
+        "took {:?}",
+        started.elapsed()
+    );
+    assert!(
+        message.contains("no answer from") && message.contains("unanswered"),
+        "{message}"
     );
 }

@@ -7,7 +7,8 @@
 //! `drop_every`-th request closes the connection unanswered (a reset); every
 //! `truncate_every`-th forwards only the first bytes of its answer, then closes (a short
 //! body); with `fail_mips`, every request for a mip range of `textures.pack` (not its
-//! header at offset 0) is answered 503 (a server that keeps failing).
+//! header at offset 0) is answered 503 (a server that keeps failing); with `silent_mips`,
+//! never answered at all (a server that hangs).
 //!
 //! Plain threads and blocking sockets: a thread per connection, each direction copied by
 //! its own thread. [`FaultProxy`] stops accepting when dropped.
@@ -30,6 +31,9 @@ pub struct FaultOptions {
     pub truncate_every: u64,
     /// Requests for mip ranges of `textures.pack` are answered 503.
     pub fail_mips: bool,
+    /// Requests for mip ranges of `textures.pack` are never answered (the connection stays
+    /// open until the client gives up).
+    pub silent_mips: bool,
 }
 
 /// A running proxy; dropping it stops accepting connections.
@@ -162,6 +166,12 @@ fn serve(mut client: TcpStream, upstream: SocketAddr, options: FaultOptions, cou
             faults.fetch_add(1, Ordering::Relaxed);
             let _ =
                 client.write_all(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
+            break;
+        }
+        if options.silent_mips && is_mip_request(&buf[..n]) {
+            faults.fetch_add(1, Ordering::Relaxed);
+            // Swallow what the client sends until it hangs up.
+            while matches!(client.read(&mut buf), Ok(n) if n > 0) {}
             break;
         }
         if options.truncate_every > 0 && count.is_multiple_of(options.truncate_every) {

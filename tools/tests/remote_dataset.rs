@@ -196,11 +196,16 @@ fn run_ok(dir: &Path, name: &str, dataset: &str, args: &[&str], env: &[(&str, &s
 /// The flythrough on `dataset` with the fixed clock at 160×96 into `out`, with
 /// synchronization validation (frames overlap), `extra` options and `env` variables.
 fn fixed_run(dataset: &str, out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Command {
+    run_with_clock("fixed", dataset, out, extra, env)
+}
+
+/// A flythrough of `dataset` under `clock` (`fixed`, `real`, `modelled`), as [`fixed_run`].
+fn run_with_clock(clock: &str, dataset: &str, out: &Path, extra: &[&str], env: &[(&str, &str)]) -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_flythrough"));
     command
         .args([
             "--clock",
-            "fixed",
+            clock,
             "--width",
             "160",
             "--height",
@@ -289,6 +294,53 @@ fn mips_a_server_keeps_refusing_fail_their_textures_without_a_hang() {
     let failed = run["textures_failed"].as_u64().expect("textures_failed");
     assert!(failed > 0, "{run}");
     assert_eq!(run["mips_streamed"], 0, "{run}");
+}
+
+#[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
+fn mips_a_server_never_answers_fail_their_textures_within_their_timeouts_in_every_clock_mode() {
+    let options = FaultOptions {
+        silent_mips: true,
+        ..FaultOptions::default()
+    };
+    let (dir, _city, _nginx, proxy) = city_behind_proxy("faults_silent", options);
+    let url = format!("http://{}/city", proxy.addr());
+    for clock in ["fixed", "real"] {
+        let out_dir = dir.join(clock);
+        // Requests time out after 2 s and are retried once: the first mip goes unanswered for
+        // about 4 s, and every read after it fails at once until a later one is answered.
+        let started = Instant::now();
+        let out = output_within(
+            run_with_clock(
+                clock,
+                &url,
+                &out_dir,
+                &SHORT_RUN,
+                &[("CITYSTREAM_REMOTE_RETRIES", "1"), ("CITYSTREAM_REMOTE_TIMEOUT_S", "2")],
+            ),
+            Duration::from_secs(120),
+        );
+        assert!(!out.status.success(), "{clock}: a run that streamed nothing exited 0");
+        let text = stderr(&out);
+        assert!(
+            text.contains("failed to load") && text.contains("no answer from"),
+            "{clock}: {text}"
+        );
+        let run = summary(&out_dir);
+        assert!(
+            run["textures_failed"].as_u64().expect("textures_failed") > 0,
+            "{clock}: {run}"
+        );
+        assert_eq!(run["mips_streamed"], 0, "{clock}: {run}");
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "{clock}: took {:?}",
+            started.elapsed()
+        );
+    }
 }
 
 /// Starts the S3 emulator.

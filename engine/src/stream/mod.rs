@@ -494,6 +494,22 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.loader.is_streaming()
     }
 
+    /// Waits up to `timeout` for the loading task in flight to finish, so that what it
+    /// read or failed to read counts in [`totals`](Self::totals) and
+    /// [`load_failures`](Self::load_failures) (its mips are not uploaded). A host calls it
+    /// when a run ends: reads still waiting on a slow or silent source then end, as read or
+    /// as failures, instead of going unreported. Whether no task is left running.
+    pub fn finish_loading(&self, timeout: Duration) -> bool {
+        let until = Instant::now() + timeout;
+        while self.loader.is_streaming() {
+            if Instant::now() >= until {
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        true
+    }
+
     /// τ in the feedback's fixed point: entries at or above it are loaded.
     /// With [`Eviction::View`] the compaction keeps lighter entries too
     /// (eviction needs to know they are in view), so read-backs may list

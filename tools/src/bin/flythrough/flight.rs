@@ -491,6 +491,9 @@ pub(crate) fn scene_extent(scene: &citystream_dataset::Scene) -> f32 {
     size.x.max(size.y).max(size.z).max(1.0)
 }
 
+/// How long a run waits, after its last frame, for the loads in flight to end.
+const MAX_FINISH_LOADING: Duration = Duration::from_secs(600);
+
 /// The dataset, the city's streamer and passes, and the strategy and ground the options ask
 /// for: everything a flight renders with, set up once. Its frame is written once too
 /// ([`Flight::record`], [`Flight::submit`]): the headless run adds measurement and the CSV
@@ -828,6 +831,24 @@ impl Flight {
     /// the next frame's latency.
     pub(crate) fn restart_latency_clock(&mut self) {
         self.cpu_clock.tick();
+    }
+
+    /// Lets the loading task in flight end when the run does, so that its reads count as
+    /// read or failed (a remote source that stopped answering fails them within its
+    /// timeouts and retries) and a run never ends with reads silently outstanding.
+    pub(crate) fn finish_loading(&self) -> Result<()> {
+        let streamer = &self.gpu.streamer;
+        if streamer.finish_loading(Duration::from_secs(1)) {
+            return Ok(());
+        }
+        eprintln!("waiting for the loads in flight to end (a remote source may take up to its timeouts and retries)");
+        if !streamer.finish_loading(MAX_FINISH_LOADING) {
+            bail!(
+                "the loads in flight did not end within {} s of the last frame",
+                MAX_FINISH_LOADING.as_secs()
+            );
+        }
+        Ok(())
     }
 
     /// The first frame over budget and the first failed load are worth a line each.

@@ -247,6 +247,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         eprintln!();
     }
     csv.flush()?;
+    flight.finish_loading()?;
     device.wait_idle()?;
     let gpu_pass_ms = flight.pass_times.finish(&flight.gpu.renderer)?;
     let culled = &flight.pass_times.culled;

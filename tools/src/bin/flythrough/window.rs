@@ -1063,6 +1063,7 @@ impl Viewer {
             args.out.display(),
             self.title
         );
+        self.flight.finish_loading()?;
         let streamer = &self.flight.gpu.streamer;
         let failed = streamer.failed_textures();
         if failed > 0 {
