@@ -514,6 +514,23 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
         self.inner.failure_log().iter().cloned().collect()
     }
 
+    /// Reads one mip of `texture` into `bytes` outside a cycle (immediate loads of a
+    /// reference) with the cycles' failure lifecycle: retried as
+    /// [`LoaderOptions::read_attempts`] says; on the last failure the texture is marked
+    /// failed and the failure recorded (counted in [`Loader::totals`], listed by
+    /// [`Loader::failures`]) before the error is returned.
+    pub fn read_now(&self, texture: u32, level: u32, bytes: &mut [u8]) -> Result<(), TextureFailure> {
+        self.inner.read_with_retries(texture, level, bytes).map_err(|reason| {
+            let failure = TextureFailure {
+                texture,
+                level: Some(level),
+                reason,
+            };
+            self.fail_texture(failure.clone());
+            failure
+        })
+    }
+
     /// Gives up `failure.texture` for a reason found after loading (the
     /// cache cannot hold it): marks it failed, so it is not read again,
     /// and counts and logs the failure like a failed read.
@@ -634,7 +651,10 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
         report
     }
 
-    fn load(&self, item: &PlannedMip) -> Result<(), LoadFailure> {
+    /// Reads one mip into `bytes` as the failure lifecycle says: a failed read is retried
+    /// after `retry_backoff`, doubled each time, up to `read_attempts` reads in all; the
+    /// error, worded with the attempts made, if the last one fails.
+    fn read_with_retries(&self, texture: u32, level: u32, bytes: &mut [u8]) -> Result<(), String> {
         // A read that fails can succeed later (a file being replaced, a
         // network share, a device hiccup); a wrong request cannot.
         fn is_transient(error: &SourceError) -> bool {
@@ -645,13 +665,10 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
                     | SourceError::LengthMismatch { .. }
             )
         }
-        let len = usize::try_from(item.bytes)
-            .map_err(|_| LoadFailure::Failed(format!("mip of {} bytes does not fit in memory", item.bytes)))?;
-        let mut bytes = vec![0u8; len];
         let mut backoff = self.options.retry_backoff;
         for attempt in 1.. {
-            match self.source.read_mip(item.texture, item.level, &mut bytes) {
-                Ok(()) => break,
+            match self.source.read_mip(texture, level, bytes) {
+                Ok(()) => return Ok(()),
                 Err(e) if attempt < self.options.read_attempts && is_transient(&e) => {
                     self.counters.read_retries.fetch_add(1, Ordering::Relaxed);
                     std::thread::sleep(backoff);
@@ -663,10 +680,19 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
                     } else {
                         String::new()
                     };
-                    return Err(LoadFailure::Failed(format!("{e}{tries}")));
+                    return Err(format!("{e}{tries}"));
                 }
             }
         }
+        unreachable!("the attempts above end in a return")
+    }
+
+    fn load(&self, item: &PlannedMip) -> Result<(), LoadFailure> {
+        let len = usize::try_from(item.bytes)
+            .map_err(|_| LoadFailure::Failed(format!("mip of {} bytes does not fit in memory", item.bytes)))?;
+        let mut bytes = vec![0u8; len];
+        self.read_with_retries(item.texture, item.level, &mut bytes)
+            .map_err(LoadFailure::Failed)?;
         self.sink
             .stage(StagedMip {
                 texture: item.texture,

@@ -1002,16 +1002,68 @@ fn a_dataset_whose_scene_header_was_altered_is_refused() {
     assert!(stderr.contains("scene.bin") && stderr.contains("checksum"), "{stderr}");
 }
 
+/// The offsets of every level of texture 3 of the small dataset.
+fn texture_3_mip_offsets(scratch_name: &str) -> Vec<u64> {
+    let scratch = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(scratch_name);
+    write_small_dataset(&scratch);
+    let pack = citystream_dataset::TexturePack::open(&scratch).expect("open");
+    (0..pack.textures()[3].mip_count())
+        .map(|level| pack.mip_location(3, level).expect("mip").offset)
+        .collect()
+}
+
+#[test]
+fn with_the_error_reference_on_damaged_mips_go_through_the_failure_lifecycle() {
+    // Texture 3's levels fail their checksums for the reference's immediate loads too: they
+    // are retried, then the texture is given up in both, and the run goes on (it aborted at
+    // frame 0 with "reading a texture" before).
+    let offsets = texture_3_mip_offsets("flythrough_reference_mip_layout");
+    let dataset = damage_small_dataset("flythrough_reference_mip_checksum", "textures.pack", &offsets);
+    let run = |name: &str, extra: &[&str]| {
+        let out = dataset.with_file_name(name);
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args([
+                "--width", "160", "--height", "120", "--clock", "fixed", "--frames", "30",
+            ])
+            .args(["--psnr-interval", "10"])
+            .args(extra)
+            .arg("--dataset")
+            .arg(&dataset)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .expect("flythrough runs");
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap_or_default())
+                .unwrap_or(serde_json::Value::Null);
+        (output, summary)
+    };
+    let (output, summary) = run("out-allowed", &["--allow-load-failures"]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert_eq!(summary["frames"], 30, "{summary}");
+    assert_eq!(summary["textures_failed"], 1, "{summary}");
+    assert_eq!(summary["reference_textures_failed"], 1, "{summary}");
+    assert!(
+        summary["error_frames"]["measured"].as_u64().is_some_and(|n| n >= 3),
+        "{summary}"
+    );
+    assert!(stderr.contains("error reference could not load 1 texture"), "{stderr}");
+    let (output, summary) = run("out-refused", &[]);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "damaged mips were accepted: {stderr}");
+    assert!(
+        stderr.contains("checksum mismatch") && stderr.contains("texture 3 level"),
+        "{stderr}"
+    );
+    assert_eq!(summary["frames"], 30, "the run went on to its end: {summary}");
+}
+
 #[test]
 fn mips_that_fail_their_checksums_fail_their_textures_and_the_run() {
     // One byte of every level of texture 3 is flipped: each read of them fails its checksum,
     // is retried, then fails the texture; the other textures stream.
-    let scratch = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_mip_layout");
-    write_small_dataset(&scratch);
-    let pack = citystream_dataset::TexturePack::open(&scratch).expect("open");
-    let offsets: Vec<u64> = (0..pack.textures()[3].mip_count())
-        .map(|level| pack.mip_location(3, level).expect("mip").offset)
-        .collect();
+    let offsets = texture_3_mip_offsets("flythrough_mip_layout");
     let dataset = damage_small_dataset("flythrough_mip_checksum", "textures.pack", &offsets);
     let out = dataset.with_file_name("out");
     let (output, summary) = small_run(&dataset, &out, &["--frames", "30"]);

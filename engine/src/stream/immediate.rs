@@ -6,6 +6,7 @@ use citystream_cache::geometry::cacheable_mip_count;
 use citystream_streaming::residency::planner::PackingPass;
 use citystream_streaming::residency::{KeepValue, NeedClass};
 use citystream_streaming::source::{texel_format, MipSource};
+use citystream_streaming::states::TextureState;
 
 use super::{chain_and_format, source_failure, TextureStreamer};
 use crate::commands::{CommandContext, SemaphoreWait};
@@ -18,7 +19,9 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// and waits for the copies: for reference renders and measurements,
     /// not for the steady state. Call between frames, after the last
     /// ended frame was submitted (unbinds wait for it). Returns the textures
-    /// the cache had to evict meanwhile.
+    /// the cache had to evict meanwhile. A mip that cannot be read goes through
+    /// the loader's failure lifecycle (retried, then its texture given up with
+    /// the levels it has: [`failed_textures`](Self::failed_textures)), not an error.
     pub fn load_now(&mut self, requests: &[(u32, u32)], commands: &mut CommandContext) -> Result<Vec<u32>> {
         self.check_between_frames("load_now")?;
         let mut mips = Vec::new();
@@ -64,11 +67,23 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     fn load_mips_now(&mut self, mips: &[(u32, u32)], commands: &mut CommandContext) -> Result<CycleReport> {
         let mut total = CycleReport::default();
         let mut buffer = Vec::new();
+        let mut failed = std::collections::HashSet::new();
         for &(texture, level) in mips {
+            let given_up = self.states.get(texture).is_ok_and(|s| s.state == TextureState::Failed);
+            if given_up || failed.contains(&texture) {
+                // A failed texture is not read again, nor its finer levels after a coarser
+                // one failed, as in a cycle.
+                continue;
+            }
             let source = self.loader.source();
             let (chain, format) = chain_and_format(source, texture)?;
             buffer.resize(source.mip_len(texture, level).map_err(source_failure)? as usize, 0);
-            source.read_mip(texture, level, &mut buffer).map_err(source_failure)?;
+            // The failure lifecycle of the cycles: retried, then the texture is given up,
+            // keeping the levels it has (counted in `totals` and `load_failures`).
+            if self.loader.read_now(texture, level, &mut buffer).is_err() {
+                failed.insert(texture);
+                continue;
+            }
             // A cycle at most for pending memory and one after making room.
             let mut cycles_run = 0;
             loop {

@@ -360,6 +360,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         load_failures: flight.gpu.streamer.totals().failed,
         read_retries: flight.gpu.streamer.totals().read_retries,
         textures_failed: flight.gpu.streamer.failed_textures(),
+        reference_textures_failed: reference.as_ref().map(|r| r.streamer.failed_textures()),
         cache_layer_size: flight.layer_size,
         gpu_pass_ms,
         validation_errors,
@@ -401,6 +402,10 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         );
     }
     let failures = flight.gpu.streamer.load_failures();
+    let reference_failures = reference
+        .as_ref()
+        .map(|r| r.streamer.load_failures())
+        .unwrap_or_default();
     drop(reference);
     drop(flight);
     if validation_errors > 0 {
@@ -417,6 +422,18 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         );
         if !args.allow_load_failures {
             bail!("{message}; the frames show their colormap colour or coarser levels (--allow-load-failures exits 0)");
+        }
+        eprintln!("warning: {message}");
+    }
+    if let Some(first) = reference_failures.first() {
+        let message = format!(
+            "the error reference could not load {} texture(s); the first: {} (its frames show them at the levels it has, \
+             so the error measured there is against an incomplete reference)",
+            run.reference_textures_failed.unwrap_or(0),
+            first.reason
+        );
+        if !args.allow_load_failures {
+            bail!("{message} (--allow-load-failures exits 0)");
         }
         eprintln!("warning: {message}");
     }

@@ -97,6 +97,9 @@ pub(crate) struct Run<'a> {
     /// Failed reads that a retry then completed.
     pub(crate) read_retries: u64,
     pub(crate) textures_failed: usize,
+    /// Textures the error reference could not load (the same failure lifecycle: its frames
+    /// show them at the levels it has); `None` without a reference.
+    pub(crate) reference_textures_failed: Option<usize>,
     /// Levels dropped, layers evicted, loads refused and declined for room.
     pub(crate) dropped_levels: u64,
     pub(crate) evicted_layers: u64,
