@@ -331,12 +331,7 @@ impl PendingWrite {
         if let Some(previous) = self.previous {
             let _ = std::fs::remove_dir_all(self.dir.join(write_dir_name(previous)));
         }
-        for (name, magic) in LEGACY_FILES {
-            let path = self.dir.join(name);
-            if legacy_file(&path, magic) {
-                let _ = std::fs::remove_file(path);
-            }
-        }
+        let _ = remove_legacy_files(&self.dir);
         Ok(())
     }
 }
@@ -347,6 +342,27 @@ impl Drop for PendingWrite {
             let _ = std::fs::remove_dir_all(&self.data_dir);
         }
     }
+}
+
+/// Whether version-1 files lie in `dir`: beside a manifest of this version, what an upgrade
+/// that died after its commit left (they are never read again).
+pub(crate) fn has_legacy_files(dir: &Path) -> bool {
+    LEGACY_FILES
+        .iter()
+        .any(|(name, magic)| legacy_file(&dir.join(name), magic))
+}
+
+/// Removes the version-1 files beside a manifest of this version (see [`has_legacy_files`]).
+pub(crate) fn remove_legacy_files(dir: &Path) -> Result<usize, DatasetError> {
+    let mut removed = 0;
+    for (name, magic) in LEGACY_FILES {
+        let path = dir.join(name);
+        if legacy_file(&path, magic) {
+            std::fs::remove_file(&path).map_err(|e| DatasetError::io(&path, e))?;
+            removed += 1;
+        }
+    }
+    Ok(removed)
 }
 
 /// Removes write subdirectories other than `current` and temporary manifests: under the

@@ -31,15 +31,30 @@ pub struct UpgradeSummary {
     /// The new write, or `None` when the dataset already had the current version (and the
     /// CRS asked for, if any).
     pub written: Option<WriteSummary>,
+    /// Version-1 files an interrupted upgrade left beside the current write, removed.
+    pub leftovers_removed: usize,
 }
 
 impl UpgradeSummary {
-    fn nothing_to_do() -> Self {
+    fn nothing_to_do(leftovers_removed: usize) -> Self {
         Self {
             from_version: FORMAT_VERSION,
             written: None,
+            leftovers_removed,
         }
     }
+}
+
+/// Under the writer's lock, removes what an upgrade that died after its commit left: the
+/// version-1 files beside the current manifest (and, as every writer does, stale writes).
+fn finish_interrupted_upgrade(dir: &Path) -> Result<usize, DatasetError> {
+    if !crate::files::has_legacy_files(dir) {
+        return Ok(0);
+    }
+    let writer = DatasetWriter::create_waiting(dir)?;
+    let removed = crate::files::remove_legacy_files(dir)?;
+    drop(writer);
+    Ok(removed)
 }
 
 /// Rewrites the dataset in `dir` as the current version, atomically (through
@@ -53,13 +68,14 @@ impl UpgradeSummary {
 /// compute.
 pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetError> {
     if current_needs_nothing(dir, crs)? {
-        return Ok(UpgradeSummary::nothing_to_do());
+        return Ok(UpgradeSummary::nothing_to_do(finish_interrupted_upgrade(dir)?));
     }
     // Waits for a concurrent upgrade (two runs finding the same old city), then finds the
     // dataset already in the current version and leaves it.
     let mut writer = DatasetWriter::create_waiting(dir)?;
     if current_needs_nothing(dir, crs)? {
-        return Ok(UpgradeSummary::nothing_to_do());
+        drop(writer);
+        return Ok(UpgradeSummary::nothing_to_do(finish_interrupted_upgrade(dir)?));
     }
     let files = match DatasetFiles::resolve(dir) {
         Ok(files) => Some(files),
@@ -90,6 +106,7 @@ pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetE
     Ok(UpgradeSummary {
         from_version: files.version(),
         written: Some(written),
+        leftovers_removed: 0,
     })
 }
 
@@ -146,6 +163,7 @@ fn upgrade_legacy(dir: &Path, mut writer: DatasetWriter, crs: Option<&Crs>) -> R
     Ok(UpgradeSummary {
         from_version: LEGACY_VERSION,
         written: Some(written),
+        leftovers_removed: 0,
     })
 }
 

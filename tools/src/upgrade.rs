@@ -25,6 +25,12 @@ pub fn run(args: &UpgradeArgs) -> Result<()> {
     let summary = upgrade(&args.dir, args.crs.as_ref()).with_context(|| format!("upgrading {}", args.dir.display()))?;
     let crs = args.crs.as_ref().map_or(String::new(), |crs| format!(" in CRS {crs}"));
     let line = match summary.written {
+        None if summary.leftovers_removed > 0 => format!(
+            "{} already has format version {FORMAT_VERSION}{crs}; nothing to do but finish an interrupted \
+             upgrade's clean-up: removed {} version-1 files\n",
+            args.dir.display(),
+            summary.leftovers_removed
+        ),
         None => format!(
             "{} already has format version {FORMAT_VERSION}{crs}; nothing to do\n",
             args.dir.display()

@@ -344,3 +344,87 @@ fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
         assert!(text.contains(expected) && text.contains("EPSG:25833"), "{text}");
     }
 }
+
+#[test]
+fn clipmap_patches_are_decoded_as_they_arrive_within_the_memory_budget() {
+    let dir = fresh_dir("clipmap_patches", "memory");
+    let (city, image) = tiny_city_and_image(&dir);
+    let patches = dir.join("patches");
+    assert!(cut(&city, &image, &patches, "5").status.success());
+    let json = std::fs::read_to_string(patches.join("patches.json")).expect("json");
+    let value: serde_json::Value = serde_json::from_str(&json).expect("json");
+    let fly = |set: &Path, name: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .arg("--dataset")
+            .arg(&city)
+            .args(["--clock", "fixed", "--frames", "30", "--width", "160", "--height", "96"])
+            .args([
+                "--psnr-interval",
+                "0",
+                "--frame-interval",
+                "0",
+                "--memory-budget-mb",
+                "64",
+            ])
+            .arg("--ground")
+            .arg(set)
+            .arg("--out")
+            .arg(dir.join(name))
+            .output()
+            .expect("flythrough runs")
+    };
+    // One image listed 5,000 times is decoded once (it took 5,000 decodes before the flight).
+    let many = dir.join("one-image-many-times");
+    std::fs::create_dir_all(&many).expect("dir");
+    let mut set = value.clone();
+    let records = set["patches"].as_array().expect("patches").clone();
+    for record in &records[..2] {
+        let file = record["file"].as_str().expect("file");
+        std::fs::copy(patches.join(file), many.join(file)).expect("copy");
+    }
+    let mut listed = vec![records[0].clone()];
+    listed.extend((0..5000).map(|i| {
+        let mut record = records[1].clone();
+        record["id"] = serde_json::json!(i + 1);
+        record
+    }));
+    set["patches"] = serde_json::Value::Array(listed);
+    std::fs::write(many.join("patches.json"), set.to_string()).expect("write");
+    let run = fly(&many, "many");
+    assert!(run.status.success(), "{}", stderr(&run));
+    assert!(
+        stderr(&run).contains("5001 patches from") && stderr(&run).contains("(2 image files,"),
+        "{}",
+        stderr(&run)
+    );
+
+    // Twenty distinct 1024² images decode to 107 MB: more than the 64 MB budget holds.
+    let big = dir.join("big-images");
+    std::fs::create_dir_all(&big).expect("dir");
+    let mut set = value;
+    let listed: Vec<serde_json::Value> = (0..20)
+        .map(|i| {
+            let file = format!("big_{i:02}.png");
+            image::RgbaImage::from_fn(1024, 1024, |x, y| {
+                image::Rgba([(x % 256) as u8, (y % 256) as u8, i, 255])
+            })
+            .save(big.join(&file))
+            .expect("write image");
+            let mut record = records[i as usize % records.len()].clone();
+            record["id"] = serde_json::json!(i);
+            record["file"] = serde_json::json!(file);
+            record["width"] = serde_json::json!(1024);
+            record["height"] = serde_json::json!(1024);
+            record
+        })
+        .collect();
+    set["patches"] = serde_json::Value::Array(listed);
+    std::fs::write(big.join("patches.json"), set.to_string()).expect("write");
+    let run = fly(&big, "big");
+    assert!(!run.status.success(), "a set beyond the budget was accepted");
+    let text = stderr(&run);
+    assert!(
+        text.contains("20 patches (20 image files) decode to 107 MB") && text.contains("64 MB memory budget"),
+        "{text}"
+    );
+}

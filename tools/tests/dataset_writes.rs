@@ -402,6 +402,35 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
     assert!(out.status.success());
     assert!(String::from_utf8_lossy(&out.stdout).contains("nothing to do"));
     assert_eq!(write_id(&dir), id);
+
+    // An upgrade killed after its manifest rename, before its clean-up, leaves the version-1
+    // files beside the new write: the next upgrade removes them, and nothing else.
+    let fixture = v1_fixture("v1-leftovers-source");
+    let mut leftovers = Vec::new();
+    for entry in std::fs::read_dir(&fixture).expect("fixture") {
+        let entry = entry.expect("entry");
+        if entry.file_type().expect("type").is_file() {
+            std::fs::copy(entry.path(), dir.join(entry.file_name())).expect("copy");
+            leftovers.push(entry.file_name().to_string_lossy().into_owned());
+        }
+    }
+    assert!(leftovers.len() >= 5, "{leftovers:?}");
+    verify(&dir).expect("the current write is what a reader sees");
+    let out = citystream(&["upgrade", utf8(&dir)]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("nothing to do") && stdout.contains(&format!("removed {} version-1 files", leftovers.len())),
+        "{stdout}"
+    );
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .expect("dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|n| !n.starts_with("write-"))
+        .collect();
+    names.sort();
+    assert_eq!(names, [MANIFEST_FILE, "notes.txt"]);
+    assert_eq!(write_id(&dir), id);
 }
 
 /// A version-2 dataset written by the version-2 `gen --preset tiny --seed 3 --max-extent 16`.

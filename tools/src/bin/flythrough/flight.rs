@@ -639,6 +639,7 @@ impl Flight {
                 config,
                 // The window measures no error.
                 (!args.window && args.psnr_interval > 0).then_some(reference),
+                args.memory_budget_mb.bytes(),
             )?),
             None => None,
         };

@@ -5,6 +5,7 @@
 //! the reference the streamed ground is measured against (both drawn alone, behind the
 //! city's depth).
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -22,17 +23,44 @@ use citystream_streaming::source::MipSource;
 use citystream_tools::image_error::{ErrorSeries, FrameError};
 use citystream_tools::patches::PatchSet;
 
-/// One patch ready to insert: where, and its decoded image.
+/// One patch to insert when its time comes: where, and the PNG it is decoded from then.
 struct Arrival {
     patch: Patch,
-    /// Shared by the streamed layer and the reference: inserting clones no texels.
-    image: Arc<PatchImage>,
+    file: PathBuf,
     arrival_s: f64,
+}
+
+/// Patch images decoded so far, each file once: shared by every patch that lists it and by
+/// the streamed layer and the reference (inserting clones no texels).
+#[derive(Default)]
+struct DecodedImages(HashMap<PathBuf, Arc<PatchImage>>);
+
+impl DecodedImages {
+    fn get(&mut self, arrival: &Arrival) -> Result<Arc<PatchImage>> {
+        if let Some(image) = self.0.get(&arrival.file) {
+            return Ok(Arc::clone(image));
+        }
+        let (id, path) = (arrival.patch.id, arrival.file.display());
+        let decoded = image::open(&arrival.file)
+            .with_context(|| format!("decoding patch {id} ({path})"))?
+            .to_rgba8();
+        let image = PatchImage::from_rgba8(decoded.width(), decoded.height(), decoded.as_raw())
+            .map_err(|e| anyhow::anyhow!("patch {id} ({path}): {e}"))?;
+        let image = Arc::new(image);
+        self.0.insert(arrival.file.clone(), Arc::clone(&image));
+        Ok(image)
+    }
+}
+
+/// Host memory a decoded `width` × `height` patch takes: RGBA8 texels and their mip chain.
+fn decoded_bytes(width: u32, height: u32) -> u64 {
+    u64::from(width) * u64::from(height) * 4 * 4 / 3
 }
 
 /// The ground of one flythrough.
 pub struct GroundRun {
     arrivals: Vec<Arrival>,
+    images: DecodedImages,
     /// Patches inserted into the streamed layer so far (arrivals are sorted).
     arrived: usize,
     /// Patches inserted into the reference so far.
@@ -180,27 +208,45 @@ pub fn ground_config(
 }
 
 impl GroundRun {
-    /// Decodes every patch of `set` (before the flight: a patch's arrival inserts it, it
-    /// does not read it) and builds the streamed layer, and a reference layer of
-    /// `reference` (the second of [`ground_config`]) where given; patches are moved from the
-    /// set's origin into the dataset's.
+    /// Builds the streamed layer for `set`, and a reference layer of `reference` (the second
+    /// of [`ground_config`]) where given; patches are moved from the set's origin into the
+    /// dataset's. Patches are decoded when they arrive, each image file once; the images of
+    /// the whole set must fit `memory_bytes` of host memory (the run's memory budget), or the
+    /// set is refused before the flight, naming what it would take.
     pub fn new(
         device: &Arc<Device>,
         ground: GroundSet,
         config: GroundConfig,
         reference: Option<GroundConfig>,
+        memory_bytes: Option<u64>,
     ) -> Result<Self> {
         let GroundSet { dir, set, shift } = ground;
         let dir = dir.as_path();
-        eprintln!("ground: decoding {} patches from {}", set.patches.len(), dir.display());
+        let mut files: HashMap<&str, u64> = HashMap::new();
+        for record in &set.patches {
+            files.insert(&record.file, decoded_bytes(record.width, record.height));
+        }
+        let imagery_bytes: u64 = files.values().sum();
+        if let Some(limit) = memory_bytes.filter(|&limit| imagery_bytes > limit) {
+            bail!(
+                "{}: its {} patches ({} image files) decode to {:.0} MB of imagery, more than the {:.0} MB memory \
+                 budget (--memory-budget-mb): use fewer or smaller patches, or a larger budget",
+                dir.display(),
+                set.patches.len(),
+                files.len(),
+                imagery_bytes as f64 / f64::from(1 << 20),
+                limit as f64 / f64::from(1 << 20)
+            );
+        }
+        eprintln!(
+            "ground: {} patches from {} ({} image files, {:.0} MB decoded as they arrive)",
+            set.patches.len(),
+            dir.display(),
+            files.len(),
+            imagery_bytes as f64 / f64::from(1 << 20)
+        );
         let mut arrivals = Vec::with_capacity(set.patches.len());
         for record in &set.patches {
-            let path = dir.join(&record.file);
-            let decoded = image::open(&path)
-                .with_context(|| format!("decoding patch {} ({})", record.id, path.display()))?
-                .to_rgba8();
-            let image = PatchImage::from_rgba8(decoded.width(), decoded.height(), decoded.as_raw())
-                .map_err(|e| anyhow::anyhow!("patch {} ({}): {e}", record.id, path.display()))?;
             arrivals.push(Arrival {
                 patch: Patch {
                     id: record.id,
@@ -209,7 +255,7 @@ impl GroundRun {
                     metres_per_texel: record.metres_per_texel,
                     captured_s: record.arrival_s,
                 },
-                image: Arc::new(image),
+                file: dir.join(&record.file),
                 arrival_s: record.arrival_s,
             });
         }
@@ -217,6 +263,7 @@ impl GroundRun {
         let reference = reference.map(|config| GroundLayer::new(device, config)).transpose()?;
         Ok(Self {
             arrivals,
+            images: DecodedImages::default(),
             arrived: 0,
             reference_arrived: 0,
             layer: GroundLayer::new(device, config)?,
@@ -236,8 +283,9 @@ impl GroundRun {
         camera: &Camera,
     ) -> Result<GroundFrame> {
         while let Some(next) = self.arrivals.get(self.arrived).filter(|a| a.arrival_s <= time_s) {
+            let image = self.images.get(next)?;
             self.layer
-                .insert(next.patch, Arc::clone(&next.image))
+                .insert(next.patch, image)
                 .with_context(|| format!("inserting patch {}", next.patch.id))?;
             self.arrived += 1;
         }
@@ -267,7 +315,7 @@ impl GroundRun {
         let streamed = target.read_pixels()?;
         while self.reference_arrived < self.arrived {
             let next = &self.arrivals[self.reference_arrived];
-            reference.insert(next.patch, Arc::clone(&next.image))?;
+            reference.insert(next.patch, self.images.get(next)?)?;
             self.reference_arrived += 1;
         }
         let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
