@@ -1,5 +1,5 @@
 //! Fuzz harnesses for every parser of untrusted input: dataset files, camera paths, glTF/GLB
-//! import and KTX2/DDS/PNG texture input.
+//! import, KTX2/DDS/PNG texture input and ground patch sets.
 //!
 //! Coverage-guided fuzzers for Rust (`cargo fuzz`, libFuzzer) need a nightly compiler and
 //! AFL++ needs its own compiler toolchain, neither of which this project's stable toolchain
@@ -32,11 +32,20 @@ pub enum Target {
     Gltf,
     /// KTX2, DDS and PNG decoding (`decode_image_bytes`).
     Texture,
+    /// Ground patch sets: `patches.json` and the PNG headers `PatchSet::open` reads, then
+    /// the images decoded as the flythrough decodes them where their listed size is small.
+    Patches,
 }
 
 impl Target {
     /// Every target.
-    pub const ALL: [Target; 4] = [Target::Dataset, Target::Path, Target::Gltf, Target::Texture];
+    pub const ALL: [Target; 5] = [
+        Target::Dataset,
+        Target::Path,
+        Target::Gltf,
+        Target::Texture,
+        Target::Patches,
+    ];
 
     /// Lower-case name.
     pub fn name(self) -> &'static str {
@@ -45,6 +54,7 @@ impl Target {
             Target::Path => "path",
             Target::Gltf => "gltf",
             Target::Texture => "texture",
+            Target::Patches => "patches",
         }
     }
 }
@@ -83,6 +93,7 @@ impl Harness {
             Target::Path => path_seeds()?,
             Target::Gltf => gltf_seeds(work)?,
             Target::Texture => texture_seeds()?,
+            Target::Patches => patches_seeds(work)?,
         };
         Ok(Self {
             target,
@@ -103,7 +114,8 @@ impl Harness {
         let which = below(&mut rng, self.seeds.len());
         let original = &self.seeds[which];
         let donor = &self.seeds[below(&mut rng, self.seeds.len())].bytes;
-        let text = matches!(self.target, Target::Path) || original.name.ends_with(".gltf");
+        let text =
+            matches!(self.target, Target::Path) || original.name.ends_with(".gltf") || original.name.ends_with(".json");
         let mut bytes = mutate(&mut rng, &original.bytes, donor, text);
         if self.target == Target::Dataset && rng.next_u64().is_multiple_of(2) {
             fix_dataset_checksum(&original.name, &mut bytes);
@@ -120,7 +132,45 @@ impl Harness {
             Target::Path => run_path(bytes),
             Target::Gltf => self.run_gltf(name, bytes),
             Target::Texture => run_texture(bytes),
+            Target::Patches => self.run_patches(name, bytes),
         }
+    }
+
+    fn run_patches(&self, name: &str, bytes: &[u8]) -> Outcome {
+        let dir = self.work.join("patches");
+        let path = dir.join(name);
+        let outcome = if std::fs::write(&path, bytes).is_err() {
+            Outcome::Rejected
+        } else {
+            match crate::patches::PatchSet::open(&dir) {
+                Ok(set) => {
+                    let _ = set.crs();
+                    // What the flythrough decodes, where the set's listed sizes (checked
+                    // against the headers) stay small: it refuses larger sets by budget.
+                    for record in set
+                        .patches
+                        .iter()
+                        .filter(|r| u64::from(r.width) * u64::from(r.height) <= 1 << 16)
+                    {
+                        if let Ok(image) = image::open(dir.join(&record.file)) {
+                            let rgba = image.to_rgba8();
+                            let _ = citystream_streaming::ground::PatchImage::from_rgba8(
+                                rgba.width(),
+                                rgba.height(),
+                                rgba.as_raw(),
+                            );
+                        }
+                    }
+                    Outcome::Accepted
+                }
+                Err(_) => Outcome::Rejected,
+            }
+        };
+        // Restore the set's own file for the next input.
+        if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
+            let _ = std::fs::write(&path, &original.bytes);
+        }
+        outcome
     }
 
     fn dataset_dir(&self) -> PathBuf {
@@ -376,6 +426,62 @@ fn fix_dataset_checksum(name: &str, b: &mut [u8]) {
         crc_of(&[&b[..covered_to], &b[body_from..]])
     };
     b[crc_at..crc_at + 4].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// A patch set of three patches over two PNGs (one listed twice), written to `work/patches`;
+/// its `patches.json` and both PNGs are the seeds.
+fn patches_seeds(work: &Path) -> Result<Vec<Seed>> {
+    let dir = work.join("patches");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut seeds = Vec::new();
+    for (file, width, height) in [("patch_0000.png", 8u32, 8u32), ("patch_0001.png", 16, 4)] {
+        let image = image::RgbaImage::from_fn(width, height, |x, y| image::Rgba([x as u8 * 16, y as u8 * 16, 99, 255]));
+        let mut png = Vec::new();
+        image::DynamicImage::ImageRgba8(image)
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+        std::fs::write(dir.join(file), &png)?;
+        seeds.push(Seed {
+            name: file.to_owned(),
+            bytes: png,
+        });
+    }
+    let record =
+        |id: u64, file: &str, (width, height): (u32, u32), min: [f64; 2], arrival_s: f64| crate::patches::PatchRecord {
+            id,
+            file: file.to_owned(),
+            width,
+            height,
+            min,
+            max: [min[0] + f64::from(width) * 2.0, min[1] + f64::from(height) * 2.0],
+            metres_per_texel: 2.0,
+            arrival_s,
+        };
+    let set = crate::patches::PatchSet {
+        format: "citystream-patches".into(),
+        version: crate::patches::PATCHES_VERSION,
+        source_image: "source.png".into(),
+        source_size: [64, 64],
+        source_crc32: 0x1234_5678,
+        dataset: "city".into(),
+        origin: [391_250.0, 34.0, -5_819_500.0],
+        crs: Some("EPSG:25833".into()),
+        extent_min: [-64.0, -64.0],
+        extent_max: [64.0, 64.0],
+        duration_s: 60.0,
+        seed: 1,
+        patches: vec![
+            record(0, "patch_0000.png", (8, 8), [-64.0, -64.0], 0.0),
+            record(1, "patch_0001.png", (16, 4), [-10.0, 5.0], 12.5),
+            record(2, "patch_0000.png", (8, 8), [20.0, -30.0], 59.0),
+        ],
+    };
+    let json = serde_json::to_vec_pretty(&set)?;
+    std::fs::write(dir.join(crate::patches::PATCHES_FILE), &json)?;
+    seeds.push(Seed {
+        name: crate::patches::PATCHES_FILE.to_owned(),
+        bytes: json,
+    });
+    Ok(seeds)
 }
 
 /// A small dataset with every format, rectangular and partial chains, a second write to
