@@ -35,16 +35,21 @@ pub enum Target {
     /// Ground patch sets: `patches.json` and the PNG headers `PatchSet::open` reads, then
     /// the images decoded as the flythrough decodes them where their listed size is small.
     Patches,
+    /// A remote store's HTTP client against a scripted loopback server whose every answer
+    /// is the input (status line, headers, lengths, ranges, body): a file's length (HEAD)
+    /// and a 32-byte range read.
+    Remote,
 }
 
 impl Target {
     /// Every target.
-    pub const ALL: [Target; 5] = [
+    pub const ALL: [Target; 6] = [
         Target::Dataset,
         Target::Path,
         Target::Gltf,
         Target::Texture,
         Target::Patches,
+        Target::Remote,
     ];
 
     /// Lower-case name.
@@ -55,6 +60,7 @@ impl Target {
             Target::Gltf => "gltf",
             Target::Texture => "texture",
             Target::Patches => "patches",
+            Target::Remote => "remote",
         }
     }
 }
@@ -65,6 +71,8 @@ pub struct Harness {
     target: Target,
     seeds: Vec<Seed>,
     work: PathBuf,
+    /// The remote harness's server and store.
+    remote: Option<ScriptedServer>,
 }
 
 #[derive(Debug)]
@@ -94,11 +102,17 @@ impl Harness {
             Target::Gltf => gltf_seeds(work)?,
             Target::Texture => texture_seeds()?,
             Target::Patches => patches_seeds(work)?,
+            Target::Remote => remote_seeds(),
+        };
+        let remote = match target {
+            Target::Remote => Some(ScriptedServer::start()?),
+            _ => None,
         };
         Ok(Self {
             target,
             seeds,
             work: work.to_path_buf(),
+            remote,
         })
     }
 
@@ -133,6 +147,10 @@ impl Harness {
             Target::Gltf => self.run_gltf(name, bytes),
             Target::Texture => run_texture(bytes),
             Target::Patches => self.run_patches(name, bytes),
+            Target::Remote => match &self.remote {
+                Some(server) => server.run(bytes),
+                None => Outcome::Rejected,
+            },
         }
     }
 
@@ -426,6 +444,100 @@ fn fix_dataset_checksum(name: &str, b: &mut [u8]) {
         crc_of(&[&b[..covered_to], &b[body_from..]])
     };
     b[crc_at..crc_at + 4].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// A loopback HTTP server that answers every request with the current input and closes the
+/// connection, and a remote store reading from it.
+#[derive(Debug)]
+struct ScriptedServer {
+    answer: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
+    store: citystream_dataset::remote::RemoteStore,
+}
+
+impl ScriptedServer {
+    fn start() -> Result<Self> {
+        use std::io::{Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+        let url = format!("http://{}/city/", listener.local_addr()?);
+        let answer = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let served = std::sync::Arc::clone(&answer);
+        std::thread::Builder::new().name("fuzz-http".into()).spawn(move || {
+            for mut stream in listener.incoming().flatten() {
+                // The request (small) in one read; its content does not matter.
+                let mut request = [0u8; 4096];
+                let _ = stream.read(&mut request);
+                let bytes = served.lock().map(|a| a.clone()).unwrap_or_default();
+                let _ = stream.write_all(&bytes);
+                let _ = stream.shutdown(std::net::Shutdown::Both);
+            }
+        })?;
+        // No retries: every answer is the same input; a short timeout for answers that
+        // promise more than they send (the server closes at once anyway).
+        let options = citystream_dataset::remote::RemoteOptions {
+            retries: 0,
+            timeout: std::time::Duration::from_secs(2),
+            connect_timeout: std::time::Duration::from_secs(2),
+            ..Default::default()
+        };
+        let store = citystream_dataset::remote::RemoteStore::new(&url, &options)?;
+        Ok(Self { answer, store })
+    }
+
+    fn run(&self, bytes: &[u8]) -> Outcome {
+        use citystream_dataset::DatasetStore;
+        if let Ok(mut answer) = self.answer.lock() {
+            *answer = bytes.to_vec();
+        }
+        let path = self.store.root().join("file.bin");
+        let _ = self.store.len(&path);
+        let mut buf = [0u8; 32];
+        match self.store.read_at(&path, 0, &mut buf) {
+            Ok(()) => Outcome::Accepted,
+            Err(_) => Outcome::Rejected,
+        }
+    }
+}
+
+/// Answers a server may give to a length (HEAD) and a 32-byte range request: partial content
+/// with its range, and ones the client refuses (`refused-…`): the whole file for a range, a
+/// redirect to another origin, errors, a body without a length.
+fn remote_seeds() -> Vec<Seed> {
+    let body: Vec<u8> = (0..32u8).collect();
+    let answer = |head: &str, body: &[u8]| {
+        let mut bytes = head.replace('\n', "\r\n").into_bytes();
+        bytes.extend_from_slice(body);
+        bytes
+    };
+    let seeds = [
+        (
+            "partial.http",
+            answer(
+                "HTTP/1.1 206 Partial Content\nContent-Range: bytes 0-31/4096\nContent-Length: 32\nAccept-Ranges: bytes\n\n",
+                &body,
+            ),
+        ),
+        ("refused-whole-file-for-a-range.http", answer("HTTP/1.1 200 OK\nContent-Length: 32\n\n", &body)),
+        (
+            "refused-redirect-elsewhere.http",
+            answer("HTTP/1.1 302 Found\nLocation: http://127.0.0.1:9/city/file.bin\nContent-Length: 0\n\n", &[]),
+        ),
+        ("refused-unavailable.http", answer("HTTP/1.1 503 Service Unavailable\nContent-Length: 0\n\n", &[])),
+        ("refused-missing.http", answer("HTTP/1.1 404 Not Found\nContent-Length: 9\n\n", b"not found")),
+        (
+            "refused-chunked-without-length.http",
+            answer(
+                "HTTP/1.1 206 Partial Content\nContent-Range: bytes 0-31/32\nTransfer-Encoding: chunked\n\n",
+                b"20\r\n\x00\x01\x02\x03\x04\x05\x06\x07\x08\x09\x0a\x0b\x0c\x0d\x0e\x0f\x10\x11\x12\x13\x14\x15\x16\x17\x18\x19\x1a\x1b\x1c\x1d\x1e\x1f\r\n0\r\n\r\n",
+            ),
+        ),
+    ];
+    seeds
+        .into_iter()
+        .map(|(name, bytes)| Seed {
+            name: name.to_owned(),
+            bytes,
+        })
+        .collect()
 }
 
 /// A patch set of three patches over two PNGs (one listed twice), written to `work/patches`;
@@ -811,9 +923,10 @@ mod tests {
                 std::env::temp_dir().join(format!("citystream-fuzz-unit-{}-{}", target.name(), std::process::id()));
             let harness = Harness::new(target, &work).expect("harness");
             for (i, seed) in harness.seeds.iter().enumerate() {
-                // A dataset file of the other write is refused in place of the dataset's own.
+                // A dataset file of the other write is refused in place of the dataset's own;
+                // a remote answer named `refused-…` is one the client must refuse.
                 let from_other_write = harness.seeds[..i].iter().any(|s| s.name == seed.name);
-                let expected = if from_other_write {
+                let expected = if from_other_write || seed.name.starts_with("refused-") {
                     Outcome::Rejected
                 } else {
                     Outcome::Accepted

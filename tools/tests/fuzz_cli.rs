@@ -21,7 +21,11 @@ fn every_harness_survives_a_short_fixed_seed_campaign() {
         .map(|l| l.trim_matches('|').split('|').map(str::trim).collect())
         .collect();
     let targets: Vec<&str> = rows.iter().map(|r| r[0]).collect();
-    assert_eq!(targets, ["dataset", "path", "gltf", "texture", "patches"], "{stdout}");
+    assert_eq!(
+        targets,
+        ["dataset", "path", "gltf", "texture", "patches", "remote"],
+        "{stdout}"
+    );
     for row in &rows {
         let number = |i: usize| {
             row[i]
