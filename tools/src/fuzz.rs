@@ -451,8 +451,25 @@ fn fix_dataset_checksum(name: &str, b: &mut [u8]) {
 #[derive(Debug)]
 struct ScriptedServer {
     answer: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
-    store: citystream_dataset::remote::RemoteStore,
+    url: String,
+    /// Replaced after an input that waited out the timeout: a store that saw its server go
+    /// silent fails later reads at once, which would hide every later input's answer.
+    store: std::sync::Mutex<citystream_dataset::remote::RemoteStore>,
 }
+
+/// The scripted server's store: no retries (every answer is the same input), a short timeout
+/// for answers that promise more than they send (the server closes at once anyway).
+fn scripted_store(url: &str) -> Result<citystream_dataset::remote::RemoteStore> {
+    let options = citystream_dataset::remote::RemoteOptions {
+        retries: 0,
+        timeout: SCRIPTED_TIMEOUT,
+        connect_timeout: SCRIPTED_TIMEOUT,
+        ..Default::default()
+    };
+    Ok(citystream_dataset::remote::RemoteStore::new(url, &options)?)
+}
+
+const SCRIPTED_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(2);
 
 impl ScriptedServer {
     fn start() -> Result<Self> {
@@ -471,16 +488,8 @@ impl ScriptedServer {
                 let _ = stream.shutdown(std::net::Shutdown::Both);
             }
         })?;
-        // No retries: every answer is the same input; a short timeout for answers that
-        // promise more than they send (the server closes at once anyway).
-        let options = citystream_dataset::remote::RemoteOptions {
-            retries: 0,
-            timeout: std::time::Duration::from_secs(2),
-            connect_timeout: std::time::Duration::from_secs(2),
-            ..Default::default()
-        };
-        let store = citystream_dataset::remote::RemoteStore::new(&url, &options)?;
-        Ok(Self { answer, store })
+        let store = std::sync::Mutex::new(scripted_store(&url)?);
+        Ok(Self { answer, url, store })
     }
 
     fn run(&self, bytes: &[u8]) -> Outcome {
@@ -488,13 +497,23 @@ impl ScriptedServer {
         if let Ok(mut answer) = self.answer.lock() {
             *answer = bytes.to_vec();
         }
-        let path = self.store.root().join("file.bin");
-        let _ = self.store.len(&path);
+        let Ok(mut store) = self.store.lock() else {
+            return Outcome::Rejected;
+        };
+        let started = std::time::Instant::now();
+        let path = store.root().join("file.bin");
+        let _ = store.len(&path);
         let mut buf = [0u8; 32];
-        match self.store.read_at(&path, 0, &mut buf) {
+        let outcome = match store.read_at(&path, 0, &mut buf) {
             Ok(()) => Outcome::Accepted,
             Err(_) => Outcome::Rejected,
+        };
+        if started.elapsed() >= SCRIPTED_TIMEOUT {
+            if let Ok(fresh) = scripted_store(&self.url) {
+                *store = fresh;
+            }
         }
+        outcome
     }
 }
 
