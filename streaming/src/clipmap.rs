@@ -419,19 +419,35 @@ impl Clipmap {
     /// The patches whose interior overlaps the box `min..max` (a point where both are
     /// equal), best first as in [`patches_for`](Self::patches_for).
     pub fn patches_in(&self, min: [f64; 2], max: [f64; 2]) -> Vec<Patch> {
-        let mut found: Vec<Patch> = self
-            .patches
+        let mut found: Vec<Patch> = self.overlapping(min, max).collect();
+        found.sort_by(better_first);
+        found
+    }
+
+    /// The patches that can show in tile `key`, best first: [`patches_for`](Self::patches_for)
+    /// up to and including the best patch that covers the whole tile, which hides every
+    /// patch after it (a tile takes each texel from the first patch covering it). Without
+    /// sorting the hidden ones: a set of many patches over one place stays cheap.
+    pub fn shown_patches_for(&self, key: TileKey) -> Vec<Patch> {
+        let (min, max) = self.tile_bounds(key);
+        let covers = |p: &Patch| p.min[0] <= min[0] && p.min[1] <= min[1] && p.max[0] >= max[0] && p.max[1] >= max[1];
+        let cover = self.overlapping(min, max).filter(covers).min_by(better_first);
+        let mut shown: Vec<Patch> = match cover {
+            Some(cover) => self
+                .overlapping(min, max)
+                .filter(|p| better_first(p, &cover) != std::cmp::Ordering::Greater)
+                .collect(),
+            None => self.overlapping(min, max).collect(),
+        };
+        shown.sort_by(better_first);
+        shown
+    }
+
+    fn overlapping(&self, min: [f64; 2], max: [f64; 2]) -> impl Iterator<Item = Patch> + '_ {
+        self.patches
             .locate_in_envelope_intersecting(&AABB::from_corners(min, max))
             .map(|entry| entry.0)
-            .filter(|p| overlaps((min, max), (p.min, p.max)))
-            .collect();
-        found.sort_by(|a, b| {
-            a.metres_per_texel
-                .total_cmp(&b.metres_per_texel)
-                .then(b.captured_s.total_cmp(&a.captured_s))
-                .then(a.id.cmp(&b.id))
-        });
-        found
+            .filter(move |p| overlaps((min, max), (p.min, p.max)))
     }
 
     /// Every tile the caches hold, with its residency.
@@ -447,6 +463,14 @@ impl Clipmap {
 }
 
 /// Whether two open boxes overlap (touching edges do not).
+/// Finest resolution first, then latest capture, then id: the order patches are used in.
+fn better_first(a: &Patch, b: &Patch) -> std::cmp::Ordering {
+    a.metres_per_texel
+        .total_cmp(&b.metres_per_texel)
+        .then(b.captured_s.total_cmp(&a.captured_s))
+        .then(a.id.cmp(&b.id))
+}
+
 fn overlaps(a: ([f64; 2], [f64; 2]), b: ([f64; 2], [f64; 2])) -> bool {
     (0..2).all(|d| a.0[d] < b.1[d] && b.0[d] < a.1[d])
 }
@@ -599,6 +623,35 @@ mod tests {
         let tile = insertion.invalidated[0];
         let ids: Vec<u64> = map.patches_for(tile).iter().map(|p| p.id).collect();
         assert_eq!(ids, vec![2, 1]);
+    }
+
+    #[test]
+    fn clipmap_shows_patches_up_to_the_best_that_covers_the_tile() {
+        let mut map = Clipmap::new(options()).expect("options");
+        // A coarse base over everything, then a thousand copies of one patch over it all:
+        // only the best copy (the latest captured) can show; a finer small patch still shows
+        // first.
+        map.insert(patch(1, [0.0, -3000.0], [2000.0, -1000.0], 4.0))
+            .expect("base");
+        for id in 10..1010 {
+            map.insert(patch(id, [0.0, -3000.0], [2000.0, -1000.0], 2.0))
+                .expect("copy");
+        }
+        map.recentre([1000.0, -2000.0]);
+        let cell = map.tile_metres(map.scales().expect("levels").0);
+        let tile = map.tile_at(
+            map.scales().expect("levels").0,
+            [1000.0 + 0.1 * cell, -2000.0 + 0.1 * cell],
+        );
+        let (min, _) = map.tile_bounds(tile);
+        map.insert(patch(5, [min[0], min[1]], [min[0] + 1.0, min[1] + 1.0], 1.0))
+            .expect("small");
+        let shown: Vec<u64> = map.shown_patches_for(tile).iter().map(|p| p.id).collect();
+        assert_eq!(shown, vec![5, 1009]);
+        // The full list keeps every patch, best first; shown is its prefix through the cover.
+        let all: Vec<u64> = map.patches_for(tile).iter().map(|p| p.id).collect();
+        assert_eq!(all.len(), 1002);
+        assert_eq!(all[..2], shown[..]);
     }
 
     #[test]

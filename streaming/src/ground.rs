@@ -227,7 +227,7 @@ impl GroundImagery {
     /// the parent's texels (the coarsest level always counts). Tiles without are not
     /// uploaded; the tile map sends fragments there to the parent.
     pub fn tile_adds_detail(&self, key: TileKey) -> bool {
-        let patches = self.clipmap.patches_for(key);
+        let patches = self.clipmap.shown_patches_for(key);
         let Some(finest) = patches.first() else {
             return false;
         };
@@ -254,7 +254,7 @@ impl GroundImagery {
         let side = self.clipmap.options().tile_texels as usize;
         let (min, _) = self.clipmap.tile_bounds(key);
         let texel = self.texel_metres(key.scale);
-        let patches = self.clipmap.patches_for(key);
+        let patches = self.clipmap.shown_patches_for(key);
         for (i, rgba) in out.chunks_exact_mut(4).enumerate() {
             let (x, z) = (i % side, i / side);
             let p = [min[0] + (x as f64 + 0.5) * texel, min[1] + (z as f64 + 0.5) * texel];
