@@ -696,7 +696,13 @@ impl DatasetStore for RemoteStore {
                     Some(Slot::Pending) => {
                         let now = Instant::now();
                         // A server that stopped answering will not answer this one either.
-                        if now >= deadline || self.liveness.is_silent() {
+                        if self.liveness.is_silent() {
+                            break;
+                        }
+                        if now >= deadline {
+                            // A whole retry chain without the prefetch's answer: the server
+                            // is silent, and a direct read would wait out another chain.
+                            self.liveness.record(false, self.prefetch_wait);
                             break;
                         }
                         state = self
