@@ -3,7 +3,7 @@
 
 use citystream_streaming::controller::Decision;
 use citystream_streaming::controller::{
-    AdaptivePolicy, LoadPolicy, PolicyKind, PolicyOptions, BYTES_PER_MB, MAX_FRAME_LATENCY_MS,
+    AdaptivePolicy, HeadroomPolicy, LoadPolicy, PolicyKind, PolicyOptions, BYTES_PER_MB, MAX_FRAME_LATENCY_MS,
 };
 use citystream_streaming::loader::plan_cycle;
 use citystream_streaming::records::{prepare, MeshMetaData};
@@ -60,13 +60,32 @@ proptest! {
     }
 
     #[test]
-    fn every_policy_is_finite(kind in prop_oneof![Just(PolicyKind::Adaptive), Just(PolicyKind::Baseline), Just(PolicyKind::Fixed)],
+    fn every_policy_is_finite(kind in prop_oneof![Just(PolicyKind::Adaptive), Just(PolicyKind::Headroom), Just(PolicyKind::Baseline), Just(PolicyKind::Fixed)],
                               frames in prop::collection::vec(latency(), 1..100)) {
         let mut p = kind.build(&PolicyOptions::default()).expect("defaults are valid");
         for &ms in &frames {
             let d = p.update(ms);
             prop_assert!(d.mip_bias.is_finite());
             prop_assert!(d.load_size_bytes >= 65_536 && d.load_size_bytes <= 64 << 20);
+        }
+    }
+
+    #[test]
+    fn headroom_outputs_stay_in_range(o in options(),
+                                      frames in prop::collection::vec((latency(), 0u64..(256 << 20)), 1..400)) {
+        let mut p = HeadroomPolicy::new(&o).expect("generated options are valid");
+        let s_min = o.s_min_bytes;
+        let s_max = (o.s_max_mb * BYTES_PER_MB).round() as u64;
+        for &(ms, loaded) in &frames {
+            p.observe_load(loaded);
+            let d = p.update(ms);
+            let t = p.telemetry();
+            prop_assert!((s_min..=s_max).contains(&d.load_size_bytes), "{d:?} {t:?}");
+            prop_assert!(d.mip_bias >= 0.0 && d.mip_bias <= o.beta, "{d:?}");
+            prop_assert!((0.0..=1.0).contains(&t.load_factor));
+            for v in [t.frame_ms, t.tw_ms, t.tm_ms, t.twa_ms, t.tb_ms, t.load_size_mb] {
+                prop_assert!(v.is_finite() && v >= 0.0, "{t:?}");
+            }
         }
     }
 
@@ -152,4 +171,36 @@ fn a_million_frames_stay_finite_and_in_range() {
     assert!(max_s <= 64 << 20 && max_s > 65_536, "{max_s}");
     // After the last spike (frame 999 999) the load factor collapsed.
     assert_eq!(t.load_factor, 0.0);
+}
+
+#[test]
+fn a_million_frames_of_the_headroom_controller_stay_finite_and_in_range() {
+    // The same trace, with loads reported: no drift, no NaN, ranges hold, and the last
+    // spike cut the load size.
+    let mut p = HeadroomPolicy::new(&PolicyOptions::default()).expect("defaults are valid");
+    let mut max_s = 0;
+    let mut before_last_spike = 0;
+    for i in 0u64..1_000_000 {
+        let ms = if i % 100_000 == 99_999 {
+            1000.0
+        } else {
+            4.0 + (i.wrapping_mul(2_654_435_761) % 1000) as f64 / 250.0
+        };
+        p.observe_load(i.wrapping_mul(40_503) % (8 << 20));
+        if i == 999_999 {
+            before_last_spike = p.decision().load_size_bytes;
+        }
+        let d = p.update(ms);
+        max_s = max_s.max(d.load_size_bytes);
+        assert!(d.mip_bias.is_finite() && (0.0..=8.0).contains(&d.mip_bias));
+    }
+    let t = p.telemetry();
+    assert_eq!(t.frames, 1_000_000);
+    assert!(t.tw_ms.is_finite() && t.twa_ms.is_finite());
+    assert!(max_s <= 64 << 20 && max_s > 65_536, "{max_s}");
+    assert!(
+        p.decision().load_size_bytes * 8 <= before_last_spike,
+        "{} bytes after the spike, {before_last_spike} before",
+        p.decision().load_size_bytes
+    );
 }

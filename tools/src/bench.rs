@@ -51,6 +51,14 @@
 //! `ground.json`: frame latency of both runs, the ratio of their maximum latencies, and the
 //! ground's tiles, MB and PSNR (docs/GROUND.md).
 //!
+//! `--scenario controllers` compares the adaptive controllers (docs/CONTROLLER.md): the
+//! baseline, the paper's (`--controller paper`) and the headroom controller (`--controller
+//! headroom`), both at α = 12 ms, on the default city's bench (`OUT/default`: the standard
+//! scenario's settings, or `--dataset`) and on the pressure benchmark (`OUT/pressure`: its
+//! city, budget, clock and size), each with its report (tables and the speed-vs-error
+//! chart), then `controllers.md`: the worst frame, frames over 2α after the first second,
+//! mean PSNR and MB/s against the targets the controller was built to.
+//!
 //! `--strategy feedback|atlas-tree` passes the strategy to every run of the `standard` and
 //! `pressure` scenarios (`atlas-tree` needs a tree dataset).
 
@@ -81,6 +89,9 @@ pub enum Scenario {
     Strategies,
     /// The standard path without and with streamed ground imagery (a flexible clipmap).
     Ground,
+    /// The baseline and both adaptive controllers (the paper's, headroom) on the default
+    /// city's bench and on the pressure benchmark.
+    Controllers,
 }
 
 /// `--strategy` of the flythrough runs.
@@ -250,22 +261,55 @@ impl RunSettings {
                 width: args.width,
                 height: args.height,
             },
-            Scenario::Standard | Scenario::Loader | Scenario::Remote => RunSettings {
+            Scenario::Standard | Scenario::Loader | Scenario::Remote | Scenario::Controllers => RunSettings {
                 clock: "fixed",
                 frames: args.frames,
                 duration_s: None,
                 width: args.width,
                 height: args.height,
             },
-            Scenario::Pressure => RunSettings {
-                clock: "modelled",
-                frames: args.frames,
-                duration_s: args.frames.is_none().then_some(PRESSURE_DURATION_S),
-                width: Some(args.width.unwrap_or(PRESSURE_SIZE.0)),
-                height: Some(args.height.unwrap_or(PRESSURE_SIZE.1)),
-            },
+            Scenario::Pressure => Self::pressure(args),
         }
     }
+
+    fn pressure(args: &BenchArgs) -> Self {
+        RunSettings {
+            clock: "modelled",
+            frames: args.frames,
+            duration_s: args.frames.is_none().then_some(PRESSURE_DURATION_S),
+            width: Some(args.width.unwrap_or(PRESSURE_SIZE.0)),
+            height: Some(args.height.unwrap_or(PRESSURE_SIZE.1)),
+        }
+    }
+}
+
+/// The runs of `--scenario controllers` on each benchmark: the baseline and both
+/// controllers at α = 12 ms (the pressure benchmark's α), with `extra`.
+fn controller_runs(extra: &[String]) -> Vec<BenchRun> {
+    [
+        ("baseline", "baseline", &["--policy", "baseline"][..]),
+        (
+            "paper-a12",
+            "paper α=12 ms",
+            &["--policy", "adaptive", "--controller", "paper", "--alpha", "12"][..],
+        ),
+        (
+            "headroom-a12",
+            "headroom α=12 ms",
+            &["--policy", "adaptive", "--controller", "headroom", "--alpha", "12"][..],
+        ),
+    ]
+    .into_iter()
+    .map(|(dir, name, args)| BenchRun {
+        dir: dir.into(),
+        name: name.into(),
+        args: args
+            .iter()
+            .map(|a| a.to_string())
+            .chain(extra.iter().cloned())
+            .collect(),
+    })
+    .collect()
 }
 
 /// `--budget-mb` of `--scenario pressure` and `strategies` when not given.
@@ -362,12 +406,15 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             flythrough.display()
         );
     }
+    if args.scenario == Scenario::Controllers {
+        return run_controllers(args, &flythrough);
+    }
     let dataset = match (&args.dataset, args.scenario) {
         (Some(dir), _) if !dir.exists() && !citystream_dataset::remote::is_remote(&dir.to_string_lossy()) => {
             bail!("dataset directory {} does not exist", dir.display())
         }
         (Some(dir), _) => dir.clone(),
-        (None, Scenario::Standard | Scenario::Ground) => {
+        (None, Scenario::Standard | Scenario::Ground | Scenario::Controllers) => {
             let dir = PathBuf::from(DEFAULT_CITY_DIR);
             ensure_default_city(&dir, false)?;
             dir
@@ -404,6 +451,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),
         Scenario::Pressure => pressure_runs(budget_mb),
+        // Run by run_controllers above.
+        Scenario::Controllers => controller_runs(&[]),
         Scenario::Strategies => {
             check_tree(&dataset)?;
             strategy_runs(budget_mb)
@@ -430,12 +479,42 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             run.args.extend(["--culling".to_string(), "off".to_string()]);
         }
     }
-    let settings = RunSettings::of(args);
+    fly(args, &flythrough, &RunSettings::of(args), &dataset, &runs, &args.out)?;
+    if args.scenario == Scenario::Strategies {
+        write_table(
+            &args.out,
+            "strategies",
+            strategies_table(&args.out, &dataset, budget_mb)?,
+        )?;
+    }
+    if args.scenario == Scenario::Ground {
+        write_table(&args.out, "ground", ground_table(&args.out, &dataset)?)?;
+    }
+    if args.scenario == Scenario::Pressure {
+        let path = args.out.join("pressure.md");
+        let text = pressure_checks(&args.out, budget_mb)?;
+        crate::files::write_atomically(&path, text.as_bytes())?;
+        eprint!("{text}");
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+/// Flies `runs` on `dataset`, each into `out/<dir>`, then writes their report into `out`.
+fn fly(
+    args: &BenchArgs,
+    flythrough: &Path,
+    settings: &RunSettings,
+    dataset: &Path,
+    runs: &[BenchRun],
+    out: &Path,
+) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let total = runs.len();
     let mut inputs = Vec::with_capacity(total);
     for (i, policy) in runs.iter().enumerate() {
-        let run_dir = args.out.join(&policy.dir);
-        let run_args = flythrough_args(args, &settings, &dataset, policy, &run_dir);
+        let run_dir = out.join(&policy.dir);
+        let run_args = flythrough_args(args, settings, dataset, policy, &run_dir);
         eprintln!(
             "[{}/{total}] {}: {} {}",
             i + 1,
@@ -446,7 +525,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         let started = Instant::now();
         // The child inherits stdout/stderr so its own status line and
         // progress bar show.
-        let status = Command::new(&flythrough)
+        let status = Command::new(flythrough)
             .args(&run_args)
             .status()
             .with_context(|| format!("starting {}", flythrough.display()))?;
@@ -470,26 +549,177 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             name: policy.name.to_string(),
         });
     }
-    let outputs = report::write_report(&inputs, &args.out)?;
+    let outputs = report::write_report(&inputs, out)?;
     report::print_outputs(&outputs);
-    if args.scenario == Scenario::Strategies {
-        write_table(
-            &args.out,
-            "strategies",
-            strategies_table(&args.out, &dataset, budget_mb)?,
-        )?;
-    }
-    if args.scenario == Scenario::Ground {
-        write_table(&args.out, "ground", ground_table(&args.out, &dataset)?)?;
-    }
-    if args.scenario == Scenario::Pressure {
-        let path = args.out.join("pressure.md");
-        let text = pressure_checks(&args.out, budget_mb)?;
-        crate::files::write_atomically(&path, text.as_bytes())?;
-        eprint!("{text}");
-        eprintln!("wrote {}", path.display());
-    }
     Ok(())
+}
+
+/// `--scenario controllers`: the default city's bench (`OUT/default`, the standard
+/// scenario's settings, or `--dataset`) and the pressure benchmark (`OUT/pressure`), the
+/// baseline and both controllers on each, then `controllers.md` with the comparisons.
+fn run_controllers(args: &BenchArgs, flythrough: &Path) -> Result<()> {
+    let default_city = match &args.dataset {
+        Some(dir) => dir.clone(),
+        None => {
+            let dir = PathBuf::from(DEFAULT_CITY_DIR);
+            ensure_default_city(&dir, false)?;
+            dir
+        }
+    };
+    let pressure_city = ensure_pressure_city(&args.data_dir)?;
+    let budget_mb = args.budget_mb.unwrap_or(DEFAULT_BUDGET_MB);
+    fly(
+        args,
+        flythrough,
+        &RunSettings::of(args),
+        &default_city,
+        &controller_runs(&[]),
+        &args.out.join("default"),
+    )?;
+    let pressure_extra: Vec<String> = [
+        "--psnr-interval",
+        "60",
+        "--frame-interval",
+        "0",
+        "--memory-budget-mb",
+        &budget_mb.to_string(),
+    ]
+    .iter()
+    .map(|a| a.to_string())
+    .collect();
+    fly(
+        args,
+        flythrough,
+        &RunSettings::pressure(args),
+        &pressure_city,
+        &controller_runs(&pressure_extra),
+        &args.out.join("pressure"),
+    )?;
+    let text = controller_checks(&args.out)?;
+    let path = args.out.join("controllers.md");
+    crate::files::write_atomically(&path, text.as_bytes())?;
+    eprint!("{text}");
+    eprintln!("wrote {}", path.display());
+    Ok(())
+}
+
+/// Frames of a run over `limit_ms` after its first second, from its frames.csv.
+fn frames_over_after_first_second(run: &Path, limit_ms: f64) -> Result<u64> {
+    let path = run.join("frames.csv");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let column = |name: &str| {
+        header
+            .iter()
+            .position(|c| *c == name)
+            .with_context(|| format!("{} has no column {name}", path.display()))
+    };
+    let (time, latency) = (column("time_s")?, column("dt_ms")?);
+    let mut over = 0;
+    for (row, line) in lines.enumerate() {
+        let fields: Vec<&str> = line.split(',').collect();
+        let number = |at: usize| -> Result<f64> {
+            fields
+                .get(at)
+                .and_then(|v| v.parse::<f64>().ok())
+                .with_context(|| format!("{} row {}: column {at} is not a number", path.display(), row + 2))
+        };
+        if number(time)? > 1.0 && number(latency)? > limit_ms {
+            over += 1;
+        }
+    }
+    Ok(over)
+}
+
+/// The controllers scenario's comparisons (the targets), as a markdown table.
+fn controller_checks(out: &Path) -> Result<String> {
+    const ALPHA_MS: f64 = 12.0;
+    let pressure = out.join("pressure");
+    let default = out.join("default");
+    let [p_base, p_paper, p_head, d_paper, d_head] = [
+        pressure.join("baseline"),
+        pressure.join("paper-a12"),
+        pressure.join("headroom-a12"),
+        default.join("paper-a12"),
+        default.join("headroom-a12"),
+    ]
+    .map(|dir| summary_of(&dir));
+    let (p_base, p_paper, p_head, d_paper, d_head) = (p_base?, p_paper?, p_head?, d_paper?, d_head?);
+    let worst = |s: &serde_json::Value| stat(s, "frame_ms", "max");
+    let psnr = |s: &serde_json::Value| stat(s, "psnr_db", "mean");
+    let over_2a = |dir: &Path| frames_over_after_first_second(dir, 2.0 * ALPHA_MS).map(|n| n as f64);
+    type Check = (String, Option<f64>, &'static str, fn(f64) -> bool);
+    let checks: Vec<Check> = vec![
+        (
+            "pressure: worst frame, headroom / baseline".into(),
+            worst(&p_head).zip(worst(&p_base)).map(|(h, b)| h / b),
+            "≤ 0.05",
+            |v| v <= 0.05,
+        ),
+        (
+            format!(
+                "pressure: frames over 2α after the first second, headroom − paper (paper: {})",
+                over_2a(&pressure.join("paper-a12"))?
+            ),
+            Some(over_2a(&pressure.join("headroom-a12"))? - over_2a(&pressure.join("paper-a12"))?),
+            "≤ 0",
+            |v| v <= 0.0,
+        ),
+        (
+            "pressure: mean PSNR, baseline − headroom (dB)".into(),
+            psnr(&p_base).zip(psnr(&p_head)).map(|(b, h)| b - h),
+            "≤ 1.5",
+            |v| v <= 1.5,
+        ),
+        (
+            "pressure: mean PSNR, baseline − paper (dB), for comparison".into(),
+            psnr(&p_base).zip(psnr(&p_paper)).map(|(b, p)| b - p),
+            "—",
+            |_| true,
+        ),
+        (
+            "pressure: MB/s mean, headroom / baseline".into(),
+            stat(&p_head, "mb_per_s", "mean")
+                .zip(stat(&p_base, "mb_per_s", "mean"))
+                .map(|(h, b)| h / b),
+            "≥ 0.5",
+            |v| v >= 0.5,
+        ),
+        (
+            "default city: worst frame, headroom − paper (ms)".into(),
+            worst(&d_head).zip(worst(&d_paper)).map(|(h, p)| h - p),
+            "≤ 0",
+            |v| v <= 0.0,
+        ),
+        (
+            "default city: mean PSNR, headroom − paper (dB)".into(),
+            psnr(&d_head).zip(psnr(&d_paper)).map(|(h, p)| h - p),
+            "≥ 0",
+            |v| v >= 0.0,
+        ),
+    ];
+    let mut text = String::from(
+        "# Controllers: headroom against the paper's and the baseline\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n",
+    );
+    for (label, value, target, met) in checks {
+        let (shown, verdict) = match value {
+            Some(v) if v.is_finite() => (
+                format!("{v:.3}"),
+                if target == "—" {
+                    "—"
+                } else if met(v) {
+                    "yes"
+                } else {
+                    "no"
+                },
+            ),
+            _ => ("n/a".to_string(), "n/a"),
+        };
+        text.push_str(&format!("| {label} | {shown} | {target} | {verdict} |\n"));
+    }
+    text.push_str(&format!("\n{ERROR_NOTE}\n"));
+    Ok(text)
 }
 
 /// Writes a comparison's `OUT/NAME.md` and `OUT/NAME.json` and shows the table.

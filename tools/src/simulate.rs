@@ -13,7 +13,8 @@ use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 /// Options of `citystream simulate`.
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
-    /// Load policy: adaptive, baseline or fixed.
+    /// Load policy: adaptive (the paper's Eq. 4-7), headroom (docs/CONTROLLER.md), baseline or
+    /// fixed.
     #[arg(long, default_value = "adaptive")]
     policy: PolicyKind,
     /// Bind-latency preset: none, lavapipe or desktop.

@@ -732,6 +732,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         }
         let report = self.cache.record_cycle(rec)?;
         frame.uploads_recorded = true;
+        self.policy.observe_load(report.bytes_uploaded);
         for &texture in &report.invalidated_textures {
             let _ = self.states.invalidate(texture);
         }

@@ -623,6 +623,7 @@ pub fn run_traced(config: &SimConfig, mut observe: impl FnMut(&FrameSample)) -> 
             }
         }
         clock_s += frame_ms / 1000.0;
+        policy.observe_load(done_bytes);
         policy.update(frame_ms);
         let t = policy.telemetry();
         summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, done_mips, done_bytes);

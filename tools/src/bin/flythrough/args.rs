@@ -42,6 +42,36 @@ impl Clock {
     }
 }
 
+/// `--controller`: which adaptive controller `--policy adaptive` runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Controller {
+    /// The paper's Eq. 4-7, exactly.
+    Paper,
+    /// Spends the room left under α: docs/CONTROLLER.md.
+    Headroom,
+}
+
+impl Controller {
+    /// The policy `--policy policy --controller self` runs; `None` where a controller
+    /// other than the paper's is asked of a policy that has none.
+    pub(crate) fn policy(self, policy: PolicyKind) -> Option<PolicyKind> {
+        match (policy, self) {
+            (PolicyKind::Adaptive, Controller::Headroom) => Some(PolicyKind::Headroom),
+            (_, Controller::Paper) => Some(policy),
+            (PolicyKind::Headroom, Controller::Headroom) => Some(policy),
+            (PolicyKind::Baseline | PolicyKind::Fixed, Controller::Headroom) => None,
+        }
+    }
+
+    /// The name `--controller` takes.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Controller::Paper => "paper",
+            Controller::Headroom => "headroom",
+        }
+    }
+}
+
 /// `--strategy`: how the run decides what to load and draws it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum Strategy {
@@ -142,9 +172,14 @@ pub(crate) struct Args {
     /// `off` draws every mesh in every pass. The images and the feedback are the same.
     #[arg(long, value_enum, default_value_t = Culling::On)]
     pub(crate) culling: Culling,
-    /// Streaming policy: adaptive (paper Eq. 4-7), baseline (s = s_max, b = 0) or fixed.
+    /// Streaming policy: adaptive (the controller `--controller` names), baseline (s = s_max,
+    /// b = 0) or fixed; `headroom` is `adaptive --controller headroom`.
     #[arg(long, default_value = "adaptive")]
     pub(crate) policy: PolicyKind,
+    /// The adaptive policy's controller: `paper` (Eq. 4-7 exactly) or `headroom` (load
+    /// size and bias engage only as the frame nears α; docs/CONTROLLER.md).
+    #[arg(long, value_enum, default_value_t = Controller::Paper)]
+    pub(crate) controller: Controller,
     /// Target maximum frame latency α in ms (adaptive).
     #[arg(long, default_value_t = 16.0)]
     pub(crate) alpha: f64,

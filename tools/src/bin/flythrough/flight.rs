@@ -199,7 +199,14 @@ pub(crate) fn dataset_dir(args: &Args) -> Result<PathBuf> {
 
 /// The streaming policy the options ask for.
 pub(crate) fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::controller::LoadPolicy>> {
-    args.policy
+    let Some(policy) = args.controller.policy(args.policy) else {
+        bail!(
+            "--controller {} applies to --policy adaptive; --policy {} has no controller",
+            args.controller.name(),
+            args.policy
+        );
+    };
+    policy
         .build(&PolicyOptions {
             alpha_ms: args.alpha,
             beta: args.beta,

@@ -42,6 +42,8 @@ fn main() -> Result<()> {
     if args.strategy == Strategy::AtlasTree && (args.placeholder || args.pop_in) {
         bail!("--strategy atlas-tree streams a dataset; leave out --placeholder and --pop-in");
     }
+    // Refused before any device or dataset work.
+    flight::build_policy(&args)?;
     if args.window {
         return window::run(&args);
     }
