@@ -748,6 +748,82 @@ fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() 
     Ok(())
 }
 
+#[cfg(unix)]
+#[test]
+fn controllers_bench_flies_both_controllers_and_the_baseline_on_both_benchmarks() -> TestResult {
+    let dir = scratch("bench-controllers");
+    let (script, log) = fake_flythrough(&dir, "none");
+    let city = dir.join("city");
+    std::fs::create_dir_all(&city)?;
+    // The pressure city: any dataset in DATA/large-atlas is taken as it is.
+    let data = dir.join("data");
+    let pressure_city = data.join("large-atlas");
+    let generated = citystream(&["gen", "--preset", "tiny", "--out", &pressure_city.display().to_string()]);
+    assert!(
+        generated.status.success(),
+        "{}",
+        String::from_utf8_lossy(&generated.stderr)
+    );
+    let out = dir.join("out");
+    let (c, p, o) = (
+        city.display().to_string(),
+        pressure_city.display().to_string(),
+        out.display().to_string(),
+    );
+    let result = citystream(&[
+        "bench",
+        "--scenario",
+        "controllers",
+        "--dataset",
+        &c,
+        "--data-dir",
+        &data.display().to_string(),
+        "--out",
+        &o,
+        "--flythrough",
+        &script.display().to_string(),
+    ]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "bench failed: {stderr}");
+    let logged = std::fs::read_to_string(&log)?;
+    let lines: Vec<&str> = logged.lines().collect();
+    let policies = [
+        ("baseline", "--policy baseline"),
+        ("paper-a12", "--policy adaptive --controller paper --alpha 12"),
+        ("headroom-a12", "--policy adaptive --controller headroom --alpha 12"),
+    ];
+    let mut expected: Vec<String> = policies
+        .iter()
+        .map(|(name, args)| {
+            format!("--dataset {c} {args} --clock fixed --bind-latency desktop --out {o}/default/{name}")
+        })
+        .collect();
+    expected.extend(policies.iter().map(|(name, args)| {
+        format!(
+            "--dataset {p} {args} --psnr-interval 60 --frame-interval 0 --memory-budget-mb 256 --clock modelled \
+             --bind-latency desktop --duration-s 30 --width 1920 --height 1080 --out {o}/pressure/{name}"
+        )
+    }));
+    assert_eq!(lines, expected);
+    for report in ["default/table.md", "pressure/table.md"] {
+        assert!(out.join(report).is_file(), "{report} not written");
+    }
+    let checks = std::fs::read_to_string(out.join("controllers.md"))?;
+    // The fake renders both controllers at 12 ms (its α) and PSNR 48 dB, the baseline at
+    // 40 ms and 20 dB, every frame.
+    for row in [
+        "| pressure: worst frame, headroom / baseline | 0.300 | ≤ 0.05 | no |",
+        "| pressure: frames over 2α after the first second, headroom − paper (paper: 0) | 0.000 | ≤ 0 | yes |",
+        "| pressure: mean PSNR, baseline − headroom (dB) | -28.000 | ≤ 1.5 | yes |",
+        "| pressure: MB/s mean, headroom / baseline | 1.000 | ≥ 0.5 | yes |",
+        "| default city: worst frame, headroom − paper (ms) | 0.000 | ≤ 0 | yes |",
+        "| default city: mean PSNR, headroom − paper (dB) | 0.000 | ≥ 0 | yes |",
+    ] {
+        assert!(checks.contains(row), "{row} missing from:\n{checks}");
+    }
+    Ok(())
+}
+
 #[test]
 fn loader_bench_reads_the_same_mips_as_raw_reads() -> TestResult {
     let dir = scratch("bench-loader");
