@@ -56,7 +56,7 @@
 //! headroom`), both at α = 12 ms, on the default city's bench (`OUT/default`: the standard
 //! scenario's settings, or `--dataset`) and on the pressure benchmark (`OUT/pressure`: its
 //! city, budget, clock and size), each with its report (tables and the speed-vs-error
-//! chart), then `controllers.md`: the worst frame, frames over 2α after the first second,
+//! chart), then `speed_vs_error.png` with every run of both as a point and `controllers.md`: the worst frame, frames over 2α after the first second,
 //! mean PSNR and MB/s against the targets the controller was built to.
 //!
 //! `--strategy feedback|atlas-tree` passes the strategy to every run of the `standard` and
@@ -500,7 +500,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// Flies `runs` on `dataset`, each into `out/<dir>`, then writes their report into `out`.
+/// Flies `runs` on `dataset`, each into `out/<dir>`, then writes their report into `out`;
+/// the runs, as reported.
 fn fly(
     args: &BenchArgs,
     flythrough: &Path,
@@ -508,7 +509,7 @@ fn fly(
     dataset: &Path,
     runs: &[BenchRun],
     out: &Path,
-) -> Result<()> {
+) -> Result<Vec<RunInput>> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let total = runs.len();
     let mut inputs = Vec::with_capacity(total);
@@ -551,7 +552,7 @@ fn fly(
     }
     let outputs = report::write_report(&inputs, out)?;
     report::print_outputs(&outputs);
-    Ok(())
+    Ok(inputs)
 }
 
 /// `--scenario controllers`: the default city's bench (`OUT/default`, the standard
@@ -568,7 +569,7 @@ fn run_controllers(args: &BenchArgs, flythrough: &Path) -> Result<()> {
     };
     let pressure_city = ensure_pressure_city(&args.data_dir)?;
     let budget_mb = args.budget_mb.unwrap_or(DEFAULT_BUDGET_MB);
-    fly(
+    let mut every_run = fly(
         args,
         flythrough,
         &RunSettings::of(args),
@@ -587,7 +588,7 @@ fn run_controllers(args: &BenchArgs, flythrough: &Path) -> Result<()> {
     .iter()
     .map(|a| a.to_string())
     .collect();
-    fly(
+    let pressure_runs = fly(
         args,
         flythrough,
         &RunSettings::pressure(args),
@@ -595,6 +596,17 @@ fn run_controllers(args: &BenchArgs, flythrough: &Path) -> Result<()> {
         &controller_runs(&pressure_extra),
         &args.out.join("pressure"),
     )?;
+    // Every run of both benchmarks as a point of one chart, named by its benchmark.
+    for run in &mut every_run {
+        run.name = format!("default city: {}", run.name);
+    }
+    every_run.extend(pressure_runs.into_iter().map(|run| RunInput {
+        name: format!("pressure: {}", run.name),
+        ..run
+    }));
+    let chart = args.out.join("speed_vs_error.png");
+    report::write_speed_vs_error(&every_run, &chart)?;
+    eprintln!("wrote {} (every run of both benchmarks)", chart.display());
     let text = controller_checks(&args.out)?;
     let path = args.out.join("controllers.md");
     crate::files::write_atomically(&path, text.as_bytes())?;

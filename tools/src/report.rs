@@ -315,6 +315,18 @@ pub fn write_report(inputs: &[RunInput], out: &Path) -> Result<ReportOutputs> {
     })
 }
 
+/// One speed-against-error chart of runs from several reports, at `path`.
+pub fn write_speed_vs_error(inputs: &[RunInput], path: &Path) -> Result<()> {
+    if inputs.is_empty() {
+        bail!("no runs to chart");
+    }
+    let runs = inputs
+        .iter()
+        .map(|input| load_run(&input.dir, &input.name))
+        .collect::<Result<Vec<_>>>()?;
+    draw_speed_vs_error(&runs, path).with_context(|| format!("drawing {}", path.display()))
+}
+
 /// A name reduced to characters safe in a file name.
 fn file_slug(name: &str) -> String {
     // Each run of other characters becomes one `_`.

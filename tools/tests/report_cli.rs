@@ -805,7 +805,7 @@ fn controllers_bench_flies_both_controllers_and_the_baseline_on_both_benchmarks(
         )
     }));
     assert_eq!(lines, expected);
-    for report in ["default/table.md", "pressure/table.md"] {
+    for report in ["default/table.md", "pressure/table.md", "speed_vs_error.png"] {
         assert!(out.join(report).is_file(), "{report} not written");
     }
     let checks = std::fs::read_to_string(out.join("controllers.md"))?;
