@@ -63,6 +63,9 @@ fn bad_arguments_are_refused_clearly() {
         ("--duration-s", "1e300"),
         ("--inject-read-failures", "3"),
         ("--controller", "pid"),
+        ("--display-period-ms", "2000"),
+        ("--display-period-ms", "NaN"),
+        ("--controller-latency", "vsync"),
     ] {
         let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
             .args([option, value])
@@ -83,6 +86,14 @@ fn bad_arguments_are_refused_clearly() {
         stderr.contains("--controller headroom applies to --policy adaptive"),
         "{stderr}"
     );
+    // A display period models a display: only the modelled clock has one.
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--clock", "fixed", "--display-period-ms", "0"])
+        .output()
+        .expect("flythrough runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("need --clock modelled"), "{stderr}");
 }
 
 /// Writes a small dataset: a ground quad and a ring of facade quads, each
@@ -326,6 +337,68 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         streamed.push(bytes);
     }
     assert!(streamed.iter().all(|&bytes| bytes > 0), "{streamed:?}");
+}
+
+#[test]
+fn a_modelled_display_period_paces_the_camera_and_is_fed_to_the_controller_only_when_asked() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_display_period");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let run = |name: &str, extra: &[&str]| -> serde_json::Value {
+        let out = base.join(name);
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args(["--frames", "20", "--frame-interval", "0", "--psnr-interval", "0"])
+            .args(["--width", "160", "--height", "120", "--clock", "modelled"])
+            .args([
+                "--bind-latency",
+                "desktop",
+                "--policy",
+                "adaptive",
+                "--controller",
+                "headroom",
+            ])
+            .args(extra)
+            .arg("--dataset")
+            .arg(&dataset)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .expect("flythrough runs");
+        assert!(
+            output.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
+            .expect("summary.json is JSON")
+    };
+    let work = run("work", &["--display-period-ms", "25"]);
+    let period = run(
+        "period",
+        &["--display-period-ms", "25", "--controller-latency", "period"],
+    );
+    let uncapped = run("uncapped", &["--display-period-ms", "0"]);
+    for summary in [&work, &period, &uncapped] {
+        // The frames' own modelled work: 8 ms of render and a few small binds.
+        assert!(
+            summary["frame_ms"]["max"].as_f64().is_some_and(|ms| ms < 25.0),
+            "{summary}"
+        );
+    }
+    assert_eq!(work["display_period_ms"], 25.0);
+    assert_eq!(work["controller_latency"], "work");
+    assert_eq!(period["controller_latency"], "period");
+    // The controller's weighted latency follows what it is fed: under 25 ms when fed the
+    // work, at least the period when fed the period (after the first frame's 16.7 ms).
+    assert!(work["tw_ms"]["max"].as_f64().is_some_and(|ms| ms < 25.0), "{work}");
+    assert!(
+        period["tw_ms"]["median"].as_f64().is_some_and(|ms| ms >= 25.0),
+        "{period}"
+    );
+    // The camera moves on by the period: 20 frames cover 0.5 s of the path; uncapped, less.
+    let seconds = |s: &serde_json::Value| s["duration_s"].as_f64().expect("duration_s");
+    assert!((seconds(&work) - 0.5).abs() < 1e-6, "{work}");
+    assert!(seconds(&uncapped) < 0.25, "{uncapped}");
 }
 
 #[test]

@@ -42,6 +42,26 @@ impl Clock {
     }
 }
 
+/// `--controller-latency`: what the controller is fed under `--clock modelled`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum ControllerLatency {
+    /// The frame's modelled work.
+    Work,
+    /// The interval between frames: the work or the display period, whichever is longer.
+    Period,
+}
+
+/// `--display-period-ms`: finite, in [0, 1000].
+fn parse_display_period_ms(text: &str) -> Result<f64, String> {
+    let ms: f64 = text
+        .parse()
+        .map_err(|_| format!("`{text}` is not a number of milliseconds"))?;
+    if !(ms.is_finite() && (0.0..=1000.0).contains(&ms)) {
+        return Err(format!("{text} ms is not a display period in [0, 1000] ms"));
+    }
+    Ok(ms)
+}
+
 /// `--controller`: which adaptive controller `--policy adaptive` runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum Controller {
@@ -200,6 +220,16 @@ pub(crate) struct Args {
     /// advancing by each frame's modelled latency).
     #[arg(long, value_enum, default_value_t = Clock::Real)]
     pub(crate) clock: Clock,
+    /// With --clock modelled: the display period (ms) a frame lasts at the least, as under a
+    /// FIFO (vsync) swapchain; the camera advances by the longer of it and the frame's
+    /// modelled work. 16.67 (60 Hz) by default; 0: uncapped.
+    #[arg(long, default_value_t = FIXED_STEP_MS, value_parser = parse_display_period_ms)]
+    pub(crate) display_period_ms: f64,
+    /// With --clock modelled: the latency the controller is fed, `work` (the frame's
+    /// modelled work: render, binds, copies; the default) or `period` (the interval between
+    /// frames, as a host measuring start to start under vsync would).
+    #[arg(long, value_enum, default_value_t = ControllerLatency::Work)]
+    pub(crate) controller_latency: ControllerLatency,
     /// Memory budget of bound texture blocks in MB, or `unlimited`.
     #[arg(long, default_value = "512", value_parser = parse_budget_mb)]
     pub(crate) memory_budget_mb: BudgetMb,

@@ -17,7 +17,7 @@ use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_tools::files::{write_atomically, write_png};
 use citystream_tools::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
 
-use super::args::{frame_interval, frames_dir_path, Args, Clock, FIXED_STEP_MS};
+use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
 use super::flight::{
     camera_path, city_gpu, focal_px, lowest_eye_height, open_city, pose_camera, reference_config, scene_extent, Flight,
     FrameSettings, GroundSizing,
@@ -72,9 +72,14 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
 
     // With the fixed clock the frame count follows from the duration; with
     // the modelled one it is at most that.
+    let shortest_frame_ms = match args.clock {
+        // A modelled frame lasts its render cost at the least, and the display period.
+        Clock::Modelled => args.display_period_ms.max(FIXED_RENDER_MS),
+        _ => FIXED_STEP_MS,
+    };
     let frames = args
         .frames
-        .unwrap_or_else(|| ((duration_s * 1000.0 / FIXED_STEP_MS).ceil() as u32).max(1));
+        .unwrap_or_else(|| ((duration_s * 1000.0 / shortest_frame_ms).ceil() as u32).max(1));
     eprintln!(
         "path: {} ({:.1} s, pauses at {:?} s, jumps at {:?} s)",
         path_name,
@@ -151,7 +156,11 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         draw_call_samples.push(f64::from(recorded.draw_calls));
         nodes_drawn.extend(recorded.nodes_drawn.map(f64::from));
         // The controller step with the previous frame's latency.
-        flight.submit(&mut recorded, frame_ms, &[], &[])?;
+        let fed_ms = match (args.clock, args.controller_latency) {
+            (Clock::Modelled, ControllerLatency::Period) => frame_ms.max(args.display_period_ms),
+            _ => frame_ms,
+        };
+        flight.submit(&mut recorded, fed_ms, &[], &[])?;
         waits.count(recorded.cpu_wait, false);
 
         let (mut error, mut ground_error) = (None, None);
@@ -207,7 +216,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         }
 
         sim_time_s += match args.clock {
-            Clock::Modelled => frame_ms.max(FIXED_STEP_MS),
+            Clock::Modelled => frame_ms.max(args.display_period_ms),
             _ => FIXED_STEP_MS,
         } / 1000.0;
         let t = flight.gpu.streamer.policy().telemetry();
@@ -310,6 +319,11 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             .map(|run| run.summary(args.memory_budget_mb.bytes())),
         policy: flight.gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
+        display_period_ms: (args.clock == Clock::Modelled).then_some(args.display_period_ms),
+        controller_latency: (args.clock == Clock::Modelled).then_some(match args.controller_latency {
+            ControllerLatency::Work => "work",
+            ControllerLatency::Period => "period",
+        }),
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         error: PrefixedErrorFigures {
             prefix: "",

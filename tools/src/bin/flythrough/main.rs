@@ -21,7 +21,7 @@ use citystream_engine::Device;
 use citystream_streaming::bench::stats::SummaryBuilder;
 use citystream_tools::files::{write_atomically, write_png};
 
-use crate::args::{frame_interval, frames_dir_path, Args, Strategy};
+use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Strategy, FIXED_STEP_MS};
 use crate::flight::{dataset_dir, flythrough_device};
 use crate::headless::stream_city;
 use crate::output::status;
@@ -44,6 +44,11 @@ fn main() -> Result<()> {
     }
     // Refused before any device or dataset work.
     flight::build_policy(&args)?;
+    if args.clock != Clock::Modelled
+        && (args.display_period_ms != FIXED_STEP_MS || args.controller_latency != ControllerLatency::Work)
+    {
+        bail!("--display-period-ms and --controller-latency model a display: they need --clock modelled");
+    }
     if args.window {
         return window::run(&args);
     }

@@ -46,6 +46,10 @@ pub(crate) struct Run<'a> {
     pub(crate) atlas_tree: Option<TreeSummary>,
     pub(crate) policy: &'a str,
     pub(crate) alpha_ms: f64,
+    /// `--clock modelled`: the display period a frame lasts at the least (0: uncapped),
+    /// and what the controller was fed (`work` or `period`); absent with other clocks.
+    pub(crate) display_period_ms: Option<f64>,
+    pub(crate) controller_latency: Option<&'static str>,
     pub(crate) mip_deficit: Option<Stats>,
     /// The facades' error against the fully resident reference: `psnr_db`,
     /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured
