@@ -279,13 +279,7 @@ pub fn default_name(dir: &Path) -> String {
 /// file (and line for CSV), on a missing or malformed input, and on two
 /// runs whose names map to the same chart file.
 pub fn write_report(inputs: &[RunInput], out: &Path) -> Result<ReportOutputs> {
-    if inputs.is_empty() {
-        bail!("no runs to report");
-    }
-    let runs = inputs
-        .iter()
-        .map(|input| load_run(&input.dir, &input.name))
-        .collect::<Result<Vec<_>>>()?;
+    let runs = load_runs(inputs)?;
     let mut slugs = HashSet::new();
     for run in &runs {
         if !slugs.insert(file_slug(&run.name)) {
@@ -317,14 +311,16 @@ pub fn write_report(inputs: &[RunInput], out: &Path) -> Result<ReportOutputs> {
 
 /// One speed-against-error chart of runs from several reports, at `path`.
 pub fn write_speed_vs_error(inputs: &[RunInput], path: &Path) -> Result<()> {
-    if inputs.is_empty() {
-        bail!("no runs to chart");
-    }
-    let runs = inputs
-        .iter()
-        .map(|input| load_run(&input.dir, &input.name))
-        .collect::<Result<Vec<_>>>()?;
+    let runs = load_runs(inputs)?;
     draw_speed_vs_error(&runs, path).with_context(|| format!("drawing {}", path.display()))
+}
+
+/// Every run of `inputs`, read; an error for none.
+fn load_runs(inputs: &[RunInput]) -> Result<Vec<Run>> {
+    if inputs.is_empty() {
+        bail!("no runs to report");
+    }
+    inputs.iter().map(|input| load_run(&input.dir, &input.name)).collect()
 }
 
 /// A name reduced to characters safe in a file name.
