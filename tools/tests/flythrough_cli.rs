@@ -93,7 +93,18 @@ fn bad_arguments_are_refused_clearly() {
         .expect("flythrough runs");
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(stderr.contains("need --clock modelled"), "{stderr}");
+    assert!(stderr.contains("needs --clock modelled"), "{stderr}");
+    // Headless with the real clock there is no display to leave out of the latency.
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--clock", "real", "--controller-latency", "period"])
+        .output()
+        .expect("flythrough runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--controller-latency period needs a display"),
+        "{stderr}"
+    );
 }
 
 /// Writes a small dataset: a ground quad and a ring of facade quads, each

@@ -225,9 +225,10 @@ pub(crate) struct Args {
     /// modelled work. 16.67 (60 Hz) by default; 0: uncapped.
     #[arg(long, default_value_t = FIXED_STEP_MS, value_parser = parse_display_period_ms)]
     pub(crate) display_period_ms: f64,
-    /// With --clock modelled: the latency the controller is fed, `work` (the frame's
-    /// modelled work: render, binds, copies; the default) or `period` (the interval between
-    /// frames, as a host measuring start to start under vsync would).
+    /// The latency the controller is fed, `work` (the default: the frame's modelled work
+    /// with --clock modelled; in the window with --clock real, the interval between frames
+    /// less the waits for the display, acquiring an image and presenting) or `period` (the
+    /// interval between frames, as a host timing start to start under vsync would).
     #[arg(long, value_enum, default_value_t = ControllerLatency::Work)]
     pub(crate) controller_latency: ControllerLatency,
     /// Memory budget of bound texture blocks in MB, or `unlimited`.

@@ -44,10 +44,12 @@ fn main() -> Result<()> {
     }
     // Refused before any device or dataset work.
     flight::build_policy(&args)?;
-    if args.clock != Clock::Modelled
-        && (args.display_period_ms != FIXED_STEP_MS || args.controller_latency != ControllerLatency::Work)
-    {
-        bail!("--display-period-ms and --controller-latency model a display: they need --clock modelled");
+    if args.clock != Clock::Modelled && args.display_period_ms != FIXED_STEP_MS {
+        bail!("--display-period-ms models a display: it needs --clock modelled");
+    }
+    let has_display = args.clock == Clock::Modelled || (args.window && args.clock == Clock::Real);
+    if args.controller_latency != ControllerLatency::Work && !has_display {
+        bail!("--controller-latency period needs a display: --clock modelled, or --window with --clock real");
     }
     if args.window {
         return window::run(&args);

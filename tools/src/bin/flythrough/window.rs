@@ -28,7 +28,7 @@ use citystream_engine::Device;
 use citystream_streaming::bench::path::{CameraPath, CameraPose, Keyframe};
 use citystream_tools::files::write_png;
 
-use super::args::{frame_interval, frames_dir_path, Args, Clock, FIXED_STEP_MS};
+use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_STEP_MS};
 use super::flight::{
     camera_path, city_targets, dataset_dir, flythrough_device, focal_px, lowest_eye_height, open_city, pose_camera,
     Flight, FrameSettings, GroundSizing,
@@ -961,7 +961,12 @@ impl Viewer {
         if let Some(feedback) = recorded.feedback {
             self.pending = feedback.pending;
         }
+        // Time spent waiting for the display (an image to draw into, the present) is not the
+        // frame's work: under vsync it is the display period's, and a controller fed it sees
+        // no room (docs/CONTROLLER.md, "Under vsync").
+        let acquire_started = Instant::now();
         let acquired = self.presenter.acquire(recorded.slot)?;
+        let mut display_wait = acquire_started.elapsed();
         if let Some(image) = &acquired {
             let (rec, target) = self.flight.recording(&recorded)?;
             self.presenter.record_blit(rec, image, target, screenshot)?;
@@ -974,9 +979,11 @@ impl Viewer {
         let presented = acquired.is_some();
         match acquired {
             Some(image) => {
+                let present_started = Instant::now();
                 if !self.presenter.present(image)? {
                     self.needs_resize = true;
                 }
+                display_wait += present_started.elapsed();
             }
             None => self.needs_resize = true,
         }
@@ -995,7 +1002,11 @@ impl Viewer {
             self.screenshots.push(path.display().to_string());
         }
 
-        self.frame_ms = self.flight.latency(&recorded);
+        let interval_ms = self.flight.latency(&recorded);
+        self.frame_ms = match (args.clock, args.controller_latency) {
+            (Clock::Real, ControllerLatency::Work) => (interval_ms - display_wait.as_secs_f64() * 1000.0).max(0.0),
+            _ => interval_ms,
+        };
         let applied = &recorded.applied;
         let streamer = &self.flight.gpu.streamer;
         let resident = streamer.bound_bytes();
