@@ -59,6 +59,7 @@ pub enum ClipmapError {
     BadOptions(String),
 }
 
+#[derive(PartialEq)]
 struct PatchEntry(Patch);
 
 impl RTreeObject for PatchEntry {
@@ -329,9 +330,29 @@ impl Clipmap {
 
     /// Inserts a patch: it is indexed, the levels grow where it is finer than the finest
     /// level or reaches beyond the coarsest tile, and the resident tiles it overlaps (at
-    /// every level) are returned for recomposition.
+    /// every level) are returned for recomposition. A patch inside a better one (finer, or
+    /// as fine and captured later: the order tiles take texels in) can never show and is
+    /// not kept, nor are the patches a new one hides: a set listing one image many times
+    /// costs each tile what one copy does.
     pub fn insert(&mut self, patch: Patch) -> Result<Insertion, ClipmapError> {
         check_patch(&patch)?;
+        let envelope = AABB::from_corners(patch.min, patch.max);
+        let hidden = self
+            .patches
+            .locate_in_envelope_intersecting(&envelope)
+            .any(|entry| contains(&entry.0, &patch) && better_first(&entry.0, &patch).is_lt());
+        if hidden {
+            return Ok(Insertion::default());
+        }
+        let hides: Vec<Patch> = self
+            .patches
+            .locate_in_envelope(&envelope)
+            .map(|entry| entry.0)
+            .filter(|inner| better_first(&patch, inner).is_lt())
+            .collect();
+        for inner in hides {
+            self.patches.remove(&PatchEntry(inner));
+        }
         let mut insertion = Insertion::default();
         let needed_cell = patch.metres_per_texel * f64::from(self.options.tile_texels);
         let (mut finest, coarsest) = match self.scales {
@@ -469,6 +490,11 @@ fn better_first(a: &Patch, b: &Patch) -> std::cmp::Ordering {
         .total_cmp(&b.metres_per_texel)
         .then(b.captured_s.total_cmp(&a.captured_s))
         .then(a.id.cmp(&b.id))
+}
+
+/// Whether `outer` covers all of `inner`.
+fn contains(outer: &Patch, inner: &Patch) -> bool {
+    (0..2).all(|d| outer.min[d] <= inner.min[d] && inner.max[d] <= outer.max[d])
 }
 
 fn overlaps(a: ([f64; 2], [f64; 2]), b: ([f64; 2], [f64; 2])) -> bool {
@@ -648,10 +674,39 @@ mod tests {
             .expect("small");
         let shown: Vec<u64> = map.shown_patches_for(tile).iter().map(|p| p.id).collect();
         assert_eq!(shown, vec![5, 1009]);
-        // The full list keeps every patch, best first; shown is its prefix through the cover.
+        // Patches that can never show are not kept: the base lies inside the finer copies,
+        // each copy inside the later one.
         let all: Vec<u64> = map.patches_for(tile).iter().map(|p| p.id).collect();
-        assert_eq!(all.len(), 1002);
-        assert_eq!(all[..2], shown[..]);
+        assert_eq!(all, vec![5, 1009]);
+    }
+
+    #[test]
+    fn clipmap_keeps_no_patch_that_a_better_one_hides() {
+        let mut map = Clipmap::new(options()).expect("options");
+        let everywhere = |id, mpt| patch(id, [0.0, -3000.0], [2000.0, -1000.0], mpt);
+        map.insert(everywhere(1, 2.0)).expect("first");
+        // Coarser and inside it: hidden whenever it arrives.
+        assert_eq!(map.insert(everywhere(2, 4.0)), Ok(Insertion::default()));
+        map.insert(patch(3, [100.0, -2900.0], [200.0, -2800.0], 4.0))
+            .expect("inside");
+        // Finer and inside it: kept; partly outside: kept.
+        map.insert(patch(4, [100.0, -2900.0], [200.0, -2800.0], 1.0))
+            .expect("finer");
+        map.insert(patch(5, [1900.0, -1100.0], [2100.0, -900.0], 4.0))
+            .expect("partly out");
+        let ids = |map: &Clipmap| {
+            let mut ids: Vec<u64> = map.patches_in([-1e9, -1e9], [1e9, 1e9]).iter().map(|p| p.id).collect();
+            ids.sort_unstable();
+            ids
+        };
+        assert_eq!(ids(&map), vec![1, 4, 5]);
+        // A later capture of the same extent and resolution hides the first, which goes.
+        map.insert(Patch {
+            captured_s: 10.0,
+            ..everywhere(6, 2.0)
+        })
+        .expect("later");
+        assert_eq!(ids(&map), vec![4, 5, 6]);
     }
 
     #[test]
