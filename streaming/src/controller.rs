@@ -593,14 +593,15 @@ pub const HEADROOM_GAIN: f64 = 1.0;
 /// goes slowly.
 pub const PROBE_GAIN: f64 = 0.25;
 /// The most one frame grows the size past the size the latest cut left: with the cost of
-/// a batch seen three frames late and growing with its square, 5 % a frame shows as at
-/// most 1.05⁶ ≈ 1.34 times the cost that was measured.
+/// a batch seen up to four frames late and growing with its square, 3 % a frame shows as
+/// at most 1.03⁸ ≈ 1.27 times the cost that was measured (5 % saw-toothed over α on a
+/// square-law plant).
 pub const MAX_PROBE_STEP: f64 = 0.03;
 /// The share of the room left under α that a frame over α aims its next batches at.
 pub const OVERSHOOT_TARGET: f64 = 0.8;
 /// The share of that room at which growth stops: below the cut's aim, so that what the
-/// frames in flight still carry (up to 1.05⁶ of the cost measured, see [`MAX_PROBE_STEP`])
-/// lands under α.
+/// frames in flight still carry (up to 1.27 times the cost measured, see
+/// [`MAX_PROBE_STEP`]) lands under α.
 pub const GROWTH_TARGET: f64 = 0.7;
 /// The most one frame over α shrinks the load size by (a 1/64 step reaches `s_min` from
 /// `s_max` in under three frames).
