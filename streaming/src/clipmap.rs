@@ -340,7 +340,7 @@ impl Clipmap {
         let hidden = self
             .patches
             .locate_in_envelope_intersecting(&envelope)
-            .any(|entry| contains(&entry.0, &patch) && better_first(&entry.0, &patch).is_lt());
+            .any(|entry| covers(bounds(&entry.0), bounds(&patch)) && better_first(&entry.0, &patch).is_lt());
         if hidden {
             return Ok(Insertion::default());
         }
@@ -451,8 +451,10 @@ impl Clipmap {
     /// sorting the hidden ones: a set of many patches over one place stays cheap.
     pub fn shown_patches_for(&self, key: TileKey) -> Vec<Patch> {
         let (min, max) = self.tile_bounds(key);
-        let covers = |p: &Patch| p.min[0] <= min[0] && p.min[1] <= min[1] && p.max[0] >= max[0] && p.max[1] >= max[1];
-        let cover = self.overlapping(min, max).filter(covers).min_by(better_first);
+        let cover = self
+            .overlapping(min, max)
+            .filter(|p| covers(bounds(p), (min, max)))
+            .min_by(better_first);
         let mut shown: Vec<Patch> = match cover {
             Some(cover) => self
                 .overlapping(min, max)
@@ -492,9 +494,14 @@ fn better_first(a: &Patch, b: &Patch) -> std::cmp::Ordering {
         .then(a.id.cmp(&b.id))
 }
 
-/// Whether `outer` covers all of `inner`.
-fn contains(outer: &Patch, inner: &Patch) -> bool {
-    (0..2).all(|d| outer.min[d] <= inner.min[d] && inner.max[d] <= outer.max[d])
+/// A patch's ground box.
+fn bounds(patch: &Patch) -> ([f64; 2], [f64; 2]) {
+    (patch.min, patch.max)
+}
+
+/// Whether box `outer` covers all of box `inner`.
+fn covers(outer: ([f64; 2], [f64; 2]), inner: ([f64; 2], [f64; 2])) -> bool {
+    (0..2).all(|d| outer.0[d] <= inner.0[d] && inner.1[d] <= outer.1[d])
 }
 
 fn overlaps(a: ([f64; 2], [f64; 2]), b: ([f64; 2], [f64; 2])) -> bool {

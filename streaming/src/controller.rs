@@ -429,6 +429,8 @@ struct Estimator {
 #[derive(Clone, Copy, Debug, Default)]
 struct Estimate {
     dt: f64,
+    /// The frame was taken as a stall and kept out of the histories.
+    stall: bool,
     tw: f64,
     twa: f64,
     tm: f64,
@@ -482,6 +484,7 @@ impl Estimator {
         self.frames += 1;
         Some(Estimate {
             dt,
+            stall,
             tw,
             twa,
             tm,
@@ -704,16 +707,15 @@ pub fn headroom_load_size(
     base_ms: f64,
     alpha_ms: f64,
 ) -> f64 {
+    let aim = ((alpha_ms - base_ms) * OVERSHOOT_TARGET).max(0.0);
     if frame_ms > alpha_ms {
         // Bind cost grows with the batch at least linearly (the `desktop` model: with its
-        // square), so the square root of the ratio of the room to the excess is the cut
+        // square), so the square root of the ratio of the aim to the excess is the cut
         // that brings a square-law batch back under α; a linear one is cut again next frame.
-        let room = ((alpha_ms - base_ms) * OVERSHOOT_TARGET).max(0.0);
         let excess = (frame_ms - base_ms).max(f64::MIN_POSITIVE);
-        let ratio = (room / excess).clamp(MAX_SHRINK * MAX_SHRINK, 1.0);
+        let ratio = (aim / excess).clamp(MAX_SHRINK * MAX_SHRINK, 1.0);
         return load_bytes * ratio.sqrt();
     }
-    let aim = ((alpha_ms - base_ms) * OVERSHOOT_TARGET).max(0.0);
     let work_ms = frame_ms - base_ms;
     if work_ms > aim && aim > 0.0 {
         // Under α but past the aim (the batches in flight overshot it): ease back to it
@@ -744,20 +746,18 @@ pub fn headroom_load_size(
 
 impl LoadPolicy for HeadroomPolicy {
     fn update(&mut self, frame_latency_ms: f64) -> Decision {
-        let stalls_before = self.estimator.stalls;
         let Some(e) = self.estimator.step(frame_latency_ms) else {
             self.telemetry.rejected_samples = self.estimator.rejected;
             return self.decision;
         };
         let frame_ms = e.dt * 1000.0;
-        let stall = self.estimator.stalls > stalls_before;
-        if !stall {
+        if !e.stall {
             self.latencies.push(frame_ms);
         }
         let peak_ms = self
             .latencies
             .newest(HEADROOM_FRAMES)
-            .fold(if stall { frame_ms } else { 0.0 }, f64::max);
+            .fold(if e.stall { frame_ms } else { 0.0 }, f64::max);
         let base_ms = self.latencies.samples().iter().copied().fold(frame_ms, f64::min);
         let over = frame_ms > self.alpha_ms;
         let cut_pending = self.frames_since_cut < HEADROOM_FRAMES && frame_ms <= self.cut_for_ms;
@@ -786,12 +786,13 @@ impl LoadPolicy for HeadroomPolicy {
         } else {
             grown
         };
+        let next = capped.clamp(self.s_min_bytes, self.s_max_bytes);
         // A frame over α while the size was already the smallest says nothing of what
         // size is safe (the loads did not cause it).
         if over && !cut_pending && self.load_bytes > self.s_min_bytes {
-            self.safe_bytes = capped.clamp(self.s_min_bytes, self.s_max_bytes);
+            self.safe_bytes = next;
         }
-        self.load_bytes = capped.clamp(self.s_min_bytes, self.s_max_bytes);
+        self.load_bytes = next;
         // Sustained frames over α, not the first few: missing samples count as 0 ms.
         let recent_ms = self.latencies.newest(TB_SAMPLES).sum::<f64>() / TB_SAMPLES as f64;
         let bias = self.beta * smoothstep(self.alpha_ms, BIAS_FULL_AT * self.alpha_ms, recent_ms);
@@ -1393,7 +1394,6 @@ mod tests {
             let mut p = headroom_at(alpha);
             let latencies = square_law_run(&mut p, 8.0, delay, 600);
             let worst = latencies.iter().copied().fold(0.0, f64::max);
-
             assert!(
                 worst <= 2.0 * alpha,
                 "α = {alpha}, delay {delay}: worst frame {worst} ms"
