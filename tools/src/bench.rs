@@ -406,9 +406,6 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             flythrough.display()
         );
     }
-    if args.scenario == Scenario::Controllers {
-        return run_controllers(args, &flythrough);
-    }
     let dataset = match (&args.dataset, args.scenario) {
         (Some(dir), _) if !dir.exists() && !citystream_dataset::remote::is_remote(&dir.to_string_lossy()) => {
             bail!("dataset directory {} does not exist", dir.display())
@@ -451,8 +448,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),
         Scenario::Pressure => pressure_runs(budget_mb),
-        // Run by run_controllers above.
-        Scenario::Controllers => controller_runs(&[]),
+        Scenario::Controllers => return run_controllers(args, &flythrough, &dataset, budget_mb),
         Scenario::Strategies => {
             check_tree(&dataset)?;
             strategy_runs(budget_mb)
@@ -558,22 +554,13 @@ fn fly(
 /// `--scenario controllers`: the default city's bench (`OUT/default`, the standard
 /// scenario's settings, or `--dataset`) and the pressure benchmark (`OUT/pressure`), the
 /// baseline and both controllers on each, then `controllers.md` with the comparisons.
-fn run_controllers(args: &BenchArgs, flythrough: &Path) -> Result<()> {
-    let default_city = match &args.dataset {
-        Some(dir) => dir.clone(),
-        None => {
-            let dir = PathBuf::from(DEFAULT_CITY_DIR);
-            ensure_default_city(&dir, false)?;
-            dir
-        }
-    };
+fn run_controllers(args: &BenchArgs, flythrough: &Path, default_city: &Path, budget_mb: u64) -> Result<()> {
     let pressure_city = ensure_pressure_city(&args.data_dir)?;
-    let budget_mb = args.budget_mb.unwrap_or(DEFAULT_BUDGET_MB);
     let mut every_run = fly(
         args,
         flythrough,
         &RunSettings::of(args),
-        &default_city,
+        default_city,
         &controller_runs(&[]),
         &args.out.join("default"),
     )?;
@@ -615,35 +602,6 @@ fn run_controllers(args: &BenchArgs, flythrough: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Frames of a run over `limit_ms` after its first second, from its frames.csv.
-fn frames_over_after_first_second(run: &Path, limit_ms: f64) -> Result<u64> {
-    let path = run.join("frames.csv");
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    let column = |name: &str| {
-        header
-            .iter()
-            .position(|c| *c == name)
-            .with_context(|| format!("{} has no column {name}", path.display()))
-    };
-    let (time, latency) = (column("time_s")?, column("dt_ms")?);
-    let mut over = 0;
-    for (row, line) in lines.enumerate() {
-        let fields: Vec<&str> = line.split(',').collect();
-        let number = |at: usize| -> Result<f64> {
-            fields
-                .get(at)
-                .and_then(|v| v.parse::<f64>().ok())
-                .with_context(|| format!("{} row {}: column {at} is not a number", path.display(), row + 2))
-        };
-        if number(time)? > 1.0 && number(latency)? > limit_ms {
-            over += 1;
-        }
-    }
-    Ok(over)
-}
-
 /// The controllers scenario's comparisons (the targets), as a markdown table.
 fn controller_checks(out: &Path) -> Result<String> {
     const ALPHA_MS: f64 = 12.0;
@@ -660,8 +618,8 @@ fn controller_checks(out: &Path) -> Result<String> {
     let (p_base, p_paper, p_head, d_paper, d_head) = (p_base?, p_paper?, p_head?, d_paper?, d_head?);
     let worst = |s: &serde_json::Value| stat(s, "frame_ms", "max");
     let psnr = |s: &serde_json::Value| stat(s, "psnr_db", "mean");
-    let over_2a = |dir: &Path| frames_over_after_first_second(dir, 2.0 * ALPHA_MS).map(|n| n as f64);
-    type Check = (String, Option<f64>, &'static str, fn(f64) -> bool);
+    let over_2a = |run: &str| report::frames_over(&pressure.join(run), 1.0, 2.0 * ALPHA_MS).map(|n| n as f64);
+    let (paper_over_2a, headroom_over_2a) = (over_2a("paper-a12")?, over_2a("headroom-a12")?);
     let checks: Vec<Check> = vec![
         (
             "pressure: worst frame, headroom / baseline".into(),
@@ -670,11 +628,8 @@ fn controller_checks(out: &Path) -> Result<String> {
             |v| v <= 0.05,
         ),
         (
-            format!(
-                "pressure: frames over 2α after the first second, headroom − paper (paper: {})",
-                over_2a(&pressure.join("paper-a12"))?
-            ),
-            Some(over_2a(&pressure.join("headroom-a12"))? - over_2a(&pressure.join("paper-a12"))?),
+            format!("pressure: frames over 2α after the first second, headroom − paper (paper: {paper_over_2a})"),
+            Some(headroom_over_2a - paper_over_2a),
             "≤ 0",
             |v| v <= 0.0,
         ),
@@ -711,25 +666,7 @@ fn controller_checks(out: &Path) -> Result<String> {
             |v| v >= 0.0,
         ),
     ];
-    let mut text = String::from(
-        "# Controllers: headroom against the paper's and the baseline\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n",
-    );
-    for (label, value, target, met) in checks {
-        let (shown, verdict) = match value {
-            Some(v) if v.is_finite() => (
-                format!("{v:.3}"),
-                if target == "—" {
-                    "—"
-                } else if met(v) {
-                    "yes"
-                } else {
-                    "no"
-                },
-            ),
-            _ => ("n/a".to_string(), "n/a"),
-        };
-        text.push_str(&format!("| {label} | {shown} | {target} | {verdict} |\n"));
-    }
+    let mut text = checks_table("# Controllers: headroom against the paper's and the baseline", checks);
     text.push_str(&format!("\n{ERROR_NOTE}\n"));
     Ok(text)
 }
@@ -1088,10 +1025,9 @@ fn pressure_checks(out: &Path, budget_mb: u64) -> Result<String> {
         (Some(a), Some(b)) if b > 0.0 => Some(a / b),
         _ => None,
     };
-    type Check = (&'static str, Option<f64>, &'static str, fn(f64) -> bool);
-    let checks: [Check; 7] = [
+    let checks: Vec<Check> = vec![
         (
-            "PSNR of mean MSE: unbudgeted − adaptive α=12 (dB)",
+            "PSNR of mean MSE: unbudgeted − adaptive α=12 (dB)".into(),
             count(&unbudgeted, "psnr_of_mean_mse_db")
                 .zip(count(&adaptive, "psnr_of_mean_mse_db"))
                 .map(|(u, a)| u - a),
@@ -1099,19 +1035,19 @@ fn pressure_checks(out: &Path, budget_mb: u64) -> Result<String> {
             |v| v <= 3.0,
         ),
         (
-            "Mip deficit, adaptive α=12, mean (levels)",
+            "Mip deficit, adaptive α=12, mean (levels)".into(),
             stat(&adaptive, "mip_deficit", "mean"),
             "≤ 1",
             |v| v <= 1.0,
         ),
         (
-            "Peak resident / budget, adaptive α=12",
+            "Peak resident / budget, adaptive α=12".into(),
             count(&adaptive, "peak_resident_bytes").map(|p| p / budget),
             "≤ 1.1",
             |v| v <= 1.1,
         ),
         (
-            "Bytes streamed / unique bytes, adaptive α=12",
+            "Bytes streamed / unique bytes, adaptive α=12".into(),
             ratio(
                 count(&adaptive, "bytes_streamed"),
                 count(&adaptive, "unique_bytes_streamed"),
@@ -1120,35 +1056,54 @@ fn pressure_checks(out: &Path, budget_mb: u64) -> Result<String> {
             |v| v <= 2.0,
         ),
         (
-            "Max frame latency, adaptive / baseline",
+            "Max frame latency, adaptive / baseline".into(),
             ratio(stat(&adaptive, "frame_ms", "max"), stat(&baseline, "frame_ms", "max")),
             "≤ 0.05",
             |v| v <= 0.05,
         ),
         (
-            "Mean frame latency, adaptive / baseline",
+            "Mean frame latency, adaptive / baseline".into(),
             ratio(stat(&adaptive, "frame_ms", "mean"), stat(&baseline, "frame_ms", "mean")),
             "≤ 0.35",
             |v| v <= 0.35,
         ),
         (
-            "MB/s mean, adaptive / baseline",
+            "MB/s mean, adaptive / baseline".into(),
             ratio(stat(&adaptive, "mb_per_s", "mean"), stat(&baseline, "mb_per_s", "mean")),
             "≥ 0.5",
             |v| v >= 0.5,
         ),
     ];
-    let mut text = format!(
-        "# Pressure benchmark: budget {budget_mb} MB\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n"
-    );
+    Ok(checks_table(
+        &format!("# Pressure benchmark: budget {budget_mb} MB"),
+        checks,
+    ))
+}
+
+/// One measured figure against its target: label, value, target as shown, and whether a
+/// value meets it (a target shown as `—` is for comparison, not a check).
+type Check = (String, Option<f64>, &'static str, fn(f64) -> bool);
+
+/// `heading` and a markdown table of `checks`.
+fn checks_table(heading: &str, checks: Vec<Check>) -> String {
+    let mut text = format!("{heading}\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n");
     for (label, value, target, met) in checks {
         let (shown, verdict) = match value {
-            Some(v) if v.is_finite() => (format!("{v:.3}"), if met(v) { "yes" } else { "no" }),
+            Some(v) if v.is_finite() => (
+                format!("{v:.3}"),
+                if target == "—" {
+                    "—"
+                } else if met(v) {
+                    "yes"
+                } else {
+                    "no"
+                },
+            ),
             _ => ("n/a".to_string(), "n/a"),
         };
         text.push_str(&format!("| {label} | {shown} | {target} | {verdict} |\n"));
     }
-    Ok(text)
+    text
 }
 
 /// The flythrough command line of one run.

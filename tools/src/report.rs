@@ -172,6 +172,7 @@ struct SummaryJson {
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct FrameRow {
     time_s: f64,
+    dt_ms: f64,
     tw_ms: f64,
     tm_ms: f64,
     tb_ms: f64,
@@ -315,6 +316,16 @@ pub fn write_speed_vs_error(inputs: &[RunInput], path: &Path) -> Result<()> {
     draw_speed_vs_error(&runs, path).with_context(|| format!("drawing {}", path.display()))
 }
 
+/// Frames of the run in `dir` slower than `limit_ms` once `after_s` seconds of its path
+/// have passed, from its frames.csv.
+pub fn frames_over(dir: &Path, after_s: f64, limit_ms: f64) -> Result<u64> {
+    let frames = read_frames_csv(&dir.join("frames.csv"))?;
+    Ok(frames
+        .iter()
+        .filter(|f| f.time_s > after_s && f.dt_ms > limit_ms)
+        .count() as u64)
+}
+
 /// Every run of `inputs`, read; an error for none.
 fn load_runs(inputs: &[RunInput]) -> Result<Vec<Run>> {
     if inputs.is_empty() {
@@ -434,14 +445,14 @@ fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
                 float(c).map(Some)
             }
         };
-        // Indices into FRAME_COLUMNS; `frame`, `dt_ms`, `blocks_bound` and
-        // `resident_bytes` are validated but not charted.
+        // Indices into FRAME_COLUMNS; `frame`, `blocks_bound` and `resident_bytes` are
+        // validated but not charted.
         count(0)?;
-        float(2)?;
         count(12)?;
         count(13)?;
         rows.push(FrameRow {
             time_s: float(1)?,
+            dt_ms: float(2)?,
             tw_ms: float(3)?,
             tm_ms: float(4)?,
             tb_ms: float(5)?,

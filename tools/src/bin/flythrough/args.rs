@@ -51,6 +51,16 @@ pub(crate) enum ControllerLatency {
     Period,
 }
 
+impl ControllerLatency {
+    /// The name written to summary.json.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            ControllerLatency::Work => "work",
+            ControllerLatency::Period => "period",
+        }
+    }
+}
+
 /// `--display-period-ms`: finite, in [0, 1000].
 fn parse_display_period_ms(text: &str) -> Result<f64, String> {
     let ms: f64 = text

@@ -320,10 +320,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         policy: flight.gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
         display_period_ms: (args.clock == Clock::Modelled).then_some(args.display_period_ms),
-        controller_latency: (args.clock == Clock::Modelled).then_some(match args.controller_latency {
-            ControllerLatency::Work => "work",
-            ControllerLatency::Period => "period",
-        }),
+        controller_latency: (args.clock == Clock::Modelled).then_some(args.controller_latency.name()),
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         error: PrefixedErrorFigures {
             prefix: "",
