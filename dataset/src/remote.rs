@@ -237,8 +237,6 @@ pub struct RemoteStore {
     runtime: tokio::runtime::Runtime,
     prefetched: Arc<Prefetched>,
     in_flight: Arc<tokio::sync::Semaphore>,
-    /// How long `read_at` waits for a prefetched range before reading it directly.
-    prefetch_wait: Duration,
     prefetch_limit_bytes: u64,
     mip_cache: Option<Arc<MipCache>>,
     /// Whether the server still answers.
@@ -253,6 +251,8 @@ pub struct RemoteStore {
 /// loader's failure lifecycle, in every clock mode, and one that comes back is used again.
 #[derive(Debug)]
 struct Liveness {
+    /// `scheme://authority` of the server, for messages.
+    origin: String,
     state: Mutex<Silence>,
     request_timeout: Duration,
     /// One request's whole retry chain.
@@ -272,8 +272,9 @@ struct Silence {
 const MAX_STALL_PROBE: Duration = Duration::from_secs(600);
 
 impl Liveness {
-    fn new(options: &RemoteOptions) -> Self {
+    fn new(options: &RemoteOptions, origin: String) -> Self {
         Self {
+            origin,
             state: Mutex::default(),
             request_timeout: options.timeout,
             stall_limit: options.timeout.saturating_mul(options.retries as u32 + 1),
@@ -306,7 +307,7 @@ impl Liveness {
 
     /// `Err` with what to report while the server is silent, unless this read is the one
     /// that tries it again.
-    fn check(&self, host: &str) -> Result<(), String> {
+    fn check(&self) -> Result<(), String> {
         let mut silence = self.lock();
         let (Some(since), Some(last_try)) = (silence.since, silence.last_try) else {
             return Ok(());
@@ -321,8 +322,9 @@ impl Liveness {
             return Ok(());
         }
         Err(format!(
-            "no answer from {host}: a request went unanswered for its timeout of {:.1} s through {} retries, \
+            "no answer from {}: a request went unanswered for its timeout of {:.1} s through {} retries, \
              and nothing has been answered in the {:.1} s since",
+            self.origin,
             self.request_timeout.as_secs_f64(),
             self.retries,
             since.elapsed().as_secs_f64()
@@ -480,10 +482,9 @@ impl RemoteStore {
             runtime,
             prefetched: Arc::default(),
             in_flight: Arc::new(tokio::sync::Semaphore::new(options.requests_in_flight.max(1))),
-            prefetch_wait: options.timeout.saturating_mul(options.retries as u32 + 1),
             prefetch_limit_bytes: options.prefetch_limit_bytes,
             mip_cache,
-            liveness: Arc::new(Liveness::new(options)),
+            liveness: Arc::new(Liveness::new(options, format!("{scheme}://{authority}"))),
         })
     }
 
@@ -683,7 +684,8 @@ impl DatasetStore for RemoteStore {
         let slot_key = (path.to_path_buf(), offset, dst.len() as u64);
         {
             let mut state = self.prefetched.lock();
-            let deadline = Instant::now() + self.prefetch_wait;
+            // A prefetched range is waited for as long as one request's retry chain.
+            let deadline = Instant::now() + self.liveness.stall_limit;
             loop {
                 match state.slots.get(&slot_key) {
                     None => {
@@ -702,7 +704,7 @@ impl DatasetStore for RemoteStore {
                         if now >= deadline {
                             // A whole retry chain without the prefetch's answer: the server
                             // is silent, and a direct read would wait out another chain.
-                            self.liveness.record(false, self.prefetch_wait);
+                            self.liveness.record(false, self.liveness.stall_limit);
                             break;
                         }
                         state = self
@@ -731,10 +733,8 @@ impl DatasetStore for RemoteStore {
         self.top_up(path);
         let key = self.key(path)?;
         let end = offset.saturating_add(dst.len() as u64);
-        let host = self.root.to_string_lossy();
-        let host = host.split('/').take(3).collect::<Vec<_>>().join("/");
         self.liveness
-            .check(&host)
+            .check()
             .map_err(|why| DatasetError::io(path, std::io::Error::new(std::io::ErrorKind::TimedOut, why)))?;
         let started = Instant::now();
         let result = self.runtime.block_on(self.store.get_range(&key, offset..end));
