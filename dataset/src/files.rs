@@ -232,6 +232,11 @@ pub(crate) struct PendingWrite {
     write_id: u64,
     previous: Option<u64>,
     committed: bool,
+    /// A resumable write outlives an error or a crash: its subdirectory is kept for the next
+    /// writer of the same job to continue (or for any other writer to remove).
+    keep_on_drop: bool,
+    /// Whether this write continues one an earlier process left.
+    resumed: bool,
     // Held for the write's lifetime; the kernel drops the lock with the descriptor.
     _lock: File,
 }
@@ -241,6 +246,19 @@ impl PendingWrite {
     /// when `wait`, else failing with [`DatasetError::Locked`]), removes what earlier writers
     /// that died left behind, and creates the new write's subdirectory.
     pub(crate) fn begin(dir: &Path, wait: bool) -> Result<Self, DatasetError> {
+        Self::begin_adopting(dir, wait, &mut |_| false)
+    }
+
+    /// [`PendingWrite::begin`] for a resumable write: the first write subdirectory an
+    /// earlier writer left that `adopt` accepts becomes this write (kept on drop); every
+    /// other one is removed as usual.
+    pub(crate) fn begin_resumable(dir: &Path, adopt: &mut dyn FnMut(&Path) -> bool) -> Result<Self, DatasetError> {
+        let mut write = Self::begin_adopting(dir, false, adopt)?;
+        write.keep_on_drop = true;
+        Ok(write)
+    }
+
+    fn begin_adopting(dir: &Path, wait: bool, adopt: &mut dyn FnMut(&Path) -> bool) -> Result<Self, DatasetError> {
         std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
         let lock = File::open(dir).map_err(|e| DatasetError::io(dir, e))?;
         if wait {
@@ -266,7 +284,18 @@ impl PendingWrite {
             // A file of that name that is not our manifest is never replaced.
             Err(e) => return Err(e),
         };
-        remove_stale_writes(dir, previous)?;
+        if let Some(write_id) = remove_stale_writes(dir, previous, adopt)? {
+            return Ok(Self {
+                dir: dir.to_path_buf(),
+                data_dir: dir.join(write_dir_name(write_id)),
+                write_id,
+                previous,
+                committed: false,
+                keep_on_drop: false,
+                resumed: true,
+                _lock: lock,
+            });
+        }
         loop {
             let write_id = new_write_id();
             let data_dir = dir.join(write_dir_name(write_id));
@@ -278,6 +307,8 @@ impl PendingWrite {
                         write_id,
                         previous,
                         committed: false,
+                        keep_on_drop: false,
+                        resumed: false,
                         _lock: lock,
                     })
                 }
@@ -298,6 +329,12 @@ impl PendingWrite {
 
     pub(crate) fn path(&self, name: &str) -> PathBuf {
         self.data_dir.join(name)
+    }
+
+    /// Whether this write continues one an earlier process left (see
+    /// [`PendingWrite::begin_resumable`]).
+    pub(crate) fn resumed(&self) -> bool {
+        self.resumed
     }
 
     /// The files of this write as a reader will see them after the commit.
@@ -338,7 +375,7 @@ impl PendingWrite {
 
 impl Drop for PendingWrite {
     fn drop(&mut self) {
-        if !self.committed {
+        if !self.committed && !self.keep_on_drop {
             let _ = std::fs::remove_dir_all(&self.data_dir);
         }
     }
@@ -367,19 +404,32 @@ pub(crate) fn remove_legacy_files(dir: &Path) -> Result<usize, DatasetError> {
 
 /// Removes write subdirectories other than `current` and temporary manifests: under the
 /// lock, any such entry was left by a writer that died.
-fn remove_stale_writes(dir: &Path, current: Option<u64>) -> Result<(), DatasetError> {
+/// Removes what earlier writers left in `dir` (every write subdirectory but `current`'s,
+/// temporary manifests), except the first write subdirectory `adopt` accepts: its id is
+/// returned.
+fn remove_stale_writes(
+    dir: &Path,
+    current: Option<u64>,
+    adopt: &mut dyn FnMut(&Path) -> bool,
+) -> Result<Option<u64>, DatasetError> {
     let entries = std::fs::read_dir(dir).map_err(|e| DatasetError::io(dir, e))?;
+    let mut adopted = None;
     for entry in entries.flatten() {
         let name = entry.file_name();
         let Some(name) = name.to_str() else { continue };
         let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
-        if is_dir && parse_write_dir_name(name).is_some_and(|id| Some(id) != current) {
+        let stale = parse_write_dir_name(name).filter(|&id| is_dir && Some(id) != current);
+        if let Some(id) = stale {
+            if adopted.is_none() && adopt(&entry.path()) {
+                adopted = Some(id);
+                continue;
+            }
             std::fs::remove_dir_all(entry.path()).map_err(|e| DatasetError::io(entry.path(), e))?;
         } else if !is_dir && name.starts_with(TEMP_MANIFEST_PREFIX) && name.ends_with(".tmp") {
             std::fs::remove_file(entry.path()).map_err(|e| DatasetError::io(entry.path(), e))?;
         }
     }
-    Ok(())
+    Ok(adopted)
 }
 
 #[cfg(test)]

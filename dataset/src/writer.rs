@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use super::colormap::{write_checksums, Colormap};
 use super::error::DatasetError;
 use super::files::PendingWrite;
-use super::format::{TextureFormat, TextureInfo};
+use super::format::{TextureFormat, TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{encode_table, header_prefix, write_new_durably};
 use super::pack::{META_MAGIC, PACK_HEADER_BYTES, PACK_HEADER_CRC_AT, PACK_MAGIC};
 use super::scene::Scene;
@@ -54,6 +54,106 @@ pub struct DatasetWriter {
     colours: Vec<[u8; 4]>,
     mip_checksums: Vec<u32>,
     mips: u64,
+    /// Resumable writes only: the journal of checkpoints and how many textures it holds.
+    journal: Option<Journal>,
+}
+
+/// File in a resumable write's subdirectory that records its checkpoints.
+const JOURNAL_FILE: &str = "resume.journal";
+const JOURNAL_MAGIC: &[u8; 8] = b"CSRESUME";
+/// A journal's job description is at most this long (it is a command line, not data).
+const MAX_JOB_BYTES: usize = 4096;
+
+#[derive(Debug)]
+struct Journal {
+    path: PathBuf,
+    file: File,
+    /// Textures the journal holds (those appended since are lost if the process dies).
+    textures: usize,
+}
+
+/// What a journal says was written durably: the writer's state at its last checkpoint.
+#[derive(Debug, Default)]
+struct Checkpoint {
+    textures: Vec<TextureInfo>,
+    colours: Vec<[u8; 4]>,
+    mip_checksums: Vec<u32>,
+    pack_end: u64,
+    /// Bytes of the journal up to the end of the last whole record.
+    journal_len: u64,
+}
+
+fn journal_header(job: &str) -> Vec<u8> {
+    let mut header = JOURNAL_MAGIC.to_vec();
+    header.extend_from_slice(&(job.len() as u32).to_le_bytes());
+    header.extend_from_slice(job.as_bytes());
+    header.extend_from_slice(&crc32fast::hash(&header).to_le_bytes());
+    header
+}
+
+/// Reads the journal of the write in `write_dir` if it was started for `job` and its pack
+/// holds every byte the journal's records promise; `None` otherwise (the write is then not
+/// resumed but removed). A torn last record (the process died while writing it) is ignored.
+fn read_checkpoint(write_dir: &Path, job: &str) -> Option<Checkpoint> {
+    let bytes = std::fs::read(write_dir.join(JOURNAL_FILE)).ok()?;
+    let header = journal_header(job);
+    if !bytes.starts_with(&header) {
+        return None;
+    }
+    let mut at = header.len();
+    let mut state = Checkpoint {
+        pack_end: PACK_HEADER_BYTES,
+        journal_len: at as u64,
+        ..Checkpoint::default()
+    };
+    // Record: length of body (u32), body, CRC of body (u32); the body is texture count (u32),
+    // then per texture its table entry and colour, then mip count (u32) and the mips' CRCs.
+    while let Some(body) = bytes
+        .get(at..at + 4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+        .and_then(|len| bytes.get(at + 4..at + 4 + len + 4))
+    {
+        let (body, crc) = body.split_at(body.len() - 4);
+        if crc32fast::hash(body) != u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]) {
+            break;
+        }
+        // A whole record that does not continue the previous ones: not our write.
+        apply_record(&mut state, body)?;
+        at += 4 + body.len() + 4;
+        state.journal_len = at as u64;
+    }
+    let pack_len = std::fs::metadata(write_dir.join(PACK_FILE)).ok()?.len();
+    (pack_len >= state.pack_end).then_some(state)
+}
+
+/// Adds one record's textures to `state`; `None` when the record does not continue it.
+fn apply_record(state: &mut Checkpoint, body: &[u8]) -> Option<()> {
+    let count = u32::from_le_bytes(body.get(..4)?.try_into().ok()?) as usize;
+    let entries = body.get(4..4 + count * (TEXTURE_RECORD_BYTES + 4))?;
+    let rest = &body[4 + entries.len()..];
+    let mip_count = u32::from_le_bytes(rest.get(..4)?.try_into().ok()?) as usize;
+    let checksums = rest.get(4..4 + mip_count * 4).filter(|c| c.len() + 4 == rest.len())?;
+    let mut mips = 0usize;
+    for entry in entries.chunks_exact(TEXTURE_RECORD_BYTES + 4) {
+        let info = TextureInfo::decode(entry[..TEXTURE_RECORD_BYTES].try_into().ok()?).ok()?;
+        // Each texture starts where the previous one ended, as `add_texture` appends them.
+        if info.offset() != state.pack_end {
+            return None;
+        }
+        state.pack_end += info.chain_len();
+        mips += info.mip_count() as usize;
+        state.textures.push(info);
+        state.colours.push(entry[TEXTURE_RECORD_BYTES..].try_into().ok()?);
+    }
+    if mips != mip_count {
+        return None;
+    }
+    state.mip_checksums.extend(
+        checksums
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])),
+    );
+    Some(())
 }
 
 impl DatasetWriter {
@@ -74,6 +174,120 @@ impl DatasetWriter {
     /// Whether `dir` held a dataset (a manifest) when this writer took its lock.
     pub fn replaces_a_dataset(&self) -> bool {
         self.pending.previous().is_some()
+    }
+
+    /// Starts a write that survives the process: [`DatasetWriter::checkpoint`] makes every
+    /// texture appended so far durable, and a later `create_resumable` of the same `dir` and
+    /// `job` (a description of what is written: same job, same bytes) continues after the
+    /// last checkpoint instead of starting over; [`DatasetWriter::texture_count`] says where.
+    /// An error, a panic or a killed process keeps the partial write for that; any other
+    /// writer of `dir` removes it. For writes that take hours (`gen --preset berlin`).
+    pub fn create_resumable(dir: &Path, job: &str) -> Result<Self, DatasetError> {
+        if job.len() > MAX_JOB_BYTES {
+            return Err(DatasetError::InvalidInput(format!(
+                "resumable job description of {} bytes (at most {MAX_JOB_BYTES})",
+                job.len()
+            )));
+        }
+        let mut found = None;
+        let pending = PendingWrite::begin_resumable(dir, &mut |write_dir| {
+            found = read_checkpoint(write_dir, job);
+            found.is_some()
+        })?;
+        let journal_path = pending.path(JOURNAL_FILE);
+        let Some(state) = found.filter(|_| pending.resumed()) else {
+            let mut writer = Self::start(pending)?;
+            std::fs::write(&journal_path, journal_header(job)).map_err(|e| DatasetError::io(&journal_path, e))?;
+            let file = std::fs::OpenOptions::new()
+                .append(true)
+                .open(&journal_path)
+                .and_then(|f| f.sync_all().map(|()| f))
+                .map_err(|e| DatasetError::io(&journal_path, e))?;
+            writer.journal = Some(Journal {
+                path: journal_path,
+                file,
+                textures: 0,
+            });
+            return Ok(writer);
+        };
+        // Whatever follows the last checkpoint (a torn record, bytes of textures it does not
+        // list) is cut off, so that appending continues exactly after it.
+        fn io(path: &Path) -> impl Fn(std::io::Error) -> DatasetError + '_ {
+            move |e| DatasetError::io(path, e)
+        }
+        let journal = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&journal_path)
+            .map_err(io(&journal_path))?;
+        journal.set_len(state.journal_len).map_err(io(&journal_path))?;
+        let pack_path = pending.path(PACK_FILE);
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&pack_path)
+            .map_err(io(&pack_path))?;
+        file.set_len(state.pack_end)
+            .and_then(|()| file.seek(SeekFrom::End(0)).map(|_| ()))
+            .map_err(io(&pack_path))?;
+        let mut journal_file = journal;
+        journal_file.seek(SeekFrom::End(0)).map_err(io(&journal_path))?;
+        let textures = state.textures.len();
+        Ok(Self {
+            pending,
+            pack_path,
+            pack: BufWriter::with_capacity(1 << 20, file),
+            next_offset: state.pack_end,
+            mips: state.mip_checksums.len() as u64,
+            textures: state.textures,
+            colours: state.colours,
+            mip_checksums: state.mip_checksums,
+            journal: Some(Journal {
+                path: journal_path,
+                file: journal_file,
+                textures,
+            }),
+        })
+    }
+
+    /// Whether this writer continues a write an earlier process left (see
+    /// [`DatasetWriter::create_resumable`]).
+    pub fn resumed(&self) -> bool {
+        self.pending.resumed()
+    }
+
+    /// Makes every texture appended so far durable for a later
+    /// [`DatasetWriter::create_resumable`]: flushes the pack to the disk, then records the
+    /// new textures in the journal and flushes it. Does nothing for other writers.
+    pub fn checkpoint(&mut self) -> Result<(), DatasetError> {
+        let Some(journal) = &mut self.journal else {
+            return Ok(());
+        };
+        let new = journal.textures..self.textures.len();
+        if new.is_empty() {
+            return Ok(());
+        }
+        self.pack
+            .flush()
+            .and_then(|()| self.pack.get_ref().sync_data())
+            .map_err(|e| DatasetError::io(&self.pack_path, e))?;
+        let first_mip: usize = self.textures[..new.start].iter().map(|t| t.mip_count() as usize).sum();
+        let mut body = (new.len() as u32).to_le_bytes().to_vec();
+        for t in new.clone() {
+            body.extend_from_slice(&self.textures[t].encode());
+            body.extend_from_slice(&self.colours[t]);
+        }
+        let checksums = &self.mip_checksums[first_mip..];
+        body.extend_from_slice(&(checksums.len() as u32).to_le_bytes());
+        body.extend(checksums.iter().flat_map(|c| c.to_le_bytes()));
+        let mut record = (body.len() as u32).to_le_bytes().to_vec();
+        record.extend_from_slice(&body);
+        record.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
+        journal
+            .file
+            .write_all(&record)
+            .and_then(|()| journal.file.sync_data())
+            .map_err(|e| DatasetError::io(&journal.path, e))?;
+        journal.textures = new.end;
+        Ok(())
     }
 
     fn start(pending: PendingWrite) -> Result<Self, DatasetError> {
@@ -97,6 +311,7 @@ impl DatasetWriter {
             colours: Vec::new(),
             mip_checksums: Vec::new(),
             mips: 0,
+            journal: None,
         })
     }
 
@@ -197,7 +412,12 @@ impl DatasetWriter {
 
         // Reopen before switching: a write that does not read back never becomes the dataset.
         Dataset::open_files(&self.pending.files())?;
+        let journal = self.journal.map(|j| j.path);
         self.pending.commit()?;
+        if let Some(journal) = journal {
+            // The dataset is complete without it; a failure here leaves an unread file.
+            let _ = std::fs::remove_file(journal);
+        }
 
         Ok(WriteSummary {
             textures: count,

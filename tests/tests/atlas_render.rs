@@ -79,6 +79,7 @@ fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
         format: FormatArg::Rgba8,
         max_extent: 512,
         textures_from: None,
+        dry_run: false,
         quiet: true,
     })?;
     atlas::run(&AtlasArgs {

@@ -121,6 +121,7 @@ fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()>
         format: FormatArg::Rgba8,
         max_extent: 512,
         textures_from: None,
+        dry_run: false,
         quiet: true,
     })?;
     let summary = build(&AtlasTreeArgs {

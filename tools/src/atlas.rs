@@ -26,7 +26,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::{Dataset, DatasetWriter, TextureFormat};
+use citystream_dataset::{Dataset, DatasetWriter, Scene, TextureFormat};
 use rayon::prelude::*;
 
 use crate::gen::print_stdout;
@@ -222,6 +222,178 @@ fn z_order(x: i64, z: i64) -> u128 {
     spread(x) | (spread(z) << 1)
 }
 
+/// Where every texture goes: the output of the packing, before any texel is touched.
+#[derive(Debug)]
+pub(crate) struct AtlasPlan {
+    /// Per input texture: its place in an atlas, `None` when it is kept as it is.
+    pub placements: Vec<Option<Placement>>,
+    /// Per atlas: its member textures in id order.
+    pub members: Vec<Vec<usize>>,
+}
+
+impl AtlasPlan {
+    /// Atlases the plan fills.
+    pub fn atlas_count(&self) -> usize {
+        self.members.len()
+    }
+
+    /// Fraction of the atlases' texels that hold texture texels.
+    pub fn fill_ratio(&self, sizes: &[[u32; 2]], extent: u32) -> f64 {
+        let packed: u64 = sizes
+            .iter()
+            .zip(&self.placements)
+            .filter(|(_, p)| p.is_some())
+            .map(|(s, _)| u64::from(s[0]) * u64::from(s[1]))
+            .sum();
+        let capacity = self.atlas_count() as u64 * u64::from(extent) * u64::from(extent);
+        if capacity > 0 {
+            packed as f64 / capacity as f64
+        } else {
+            0.0
+        }
+    }
+}
+
+/// Plans the atlases of a scene whose textures have `sizes` (width, height); `eligible`
+/// says which textures may go into an atlas at all (format, extent). A texture also stays
+/// out when a mesh samples it outside `[0, 1]` or no mesh uses it.
+pub(crate) fn plan_atlases(
+    scene: &Scene,
+    sizes: &[[u32; 2]],
+    mut eligible: Vec<bool>,
+    region: f64,
+    extent: u32,
+    packing: Packing,
+) -> AtlasPlan {
+    let count = sizes.len();
+    let mut first_mesh: Vec<Option<usize>> = vec![None; count];
+    for (m, mesh) in scene.meshes.iter().enumerate() {
+        let t = mesh.texture as usize;
+        first_mesh[t].get_or_insert(m);
+        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
+        if scene.uvs[range].iter().flatten().any(|v| !(0.0..=1.0).contains(v)) {
+            eligible[t] = false;
+        }
+    }
+
+    // Group: region (in Z order) then orientation, textures in id order.
+    let mut groups: BTreeMap<(u128, i64, i64), [Vec<usize>; 6]> = BTreeMap::new();
+    for t in 0..count {
+        let Some(m) = first_mesh[t].filter(|_| eligible[t]) else {
+            continue;
+        };
+        let mesh = &scene.meshes[m];
+        let c = mesh.bounds.center();
+        let region_of = |a: usize| ((scene.origin[a] + f64::from(c[a])) / region).floor() as i64;
+        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
+        let mut n = [0.0f32; 3];
+        for v in &scene.normals[range] {
+            for a in 0..3 {
+                n[a] += v[a];
+            }
+        }
+        let (rx, rz) = (region_of(0), region_of(2));
+        groups.entry((z_order(rx, rz), rx, rz)).or_default()[closest_axis(n)].push(t);
+    }
+    let mut placements: Vec<Option<Placement>> = vec![None; count];
+    let mut atlas_count = 0usize;
+    match packing {
+        Packing::Shelves => {
+            let mut packer = ShelfPacker::new(extent);
+            for orientations in groups.values() {
+                for mut group in orientations.iter().cloned() {
+                    // Tallest, then widest first inside a group keeps shelves dense; groups
+                    // stay in axis order and regions in Z order.
+                    group.sort_by_key(|&t| (std::cmp::Reverse(sizes[t][1]), std::cmp::Reverse(sizes[t][0])));
+                    for t in group {
+                        placements[t] = Some(packer.place(sizes[t][0], sizes[t][1], &mut atlas_count));
+                    }
+                }
+            }
+        }
+        Packing::Regions => {
+            // Regions in coordinate order, then texture height, then orientation.
+            let mut by_height: BTreeMap<(i64, i64, u32), [Vec<usize>; 6]> = BTreeMap::new();
+            for (&(_, rx, rz), orientations) in &groups {
+                for (axis, group) in orientations.iter().enumerate() {
+                    for &t in group {
+                        by_height.entry((rx, rz, sizes[t][1])).or_default()[axis].push(t);
+                    }
+                }
+            }
+            for ((_, _, height), orientations) in &by_height {
+                let mut packer = RowPacker::new(extent, *height);
+                for mut group in orientations.iter().cloned() {
+                    group.sort_by_key(|&t| std::cmp::Reverse(sizes[t][0]));
+                    for t in group {
+                        placements[t] = Some(packer.place(sizes[t][0], &mut atlas_count));
+                    }
+                }
+            }
+        }
+    }
+    let mut members: Vec<Vec<usize>> = vec![Vec::new(); atlas_count];
+    for (t, p) in placements.iter().enumerate() {
+        if let Some(p) = p {
+            members[p.atlas].push(t);
+        }
+    }
+    AtlasPlan { placements, members }
+}
+
+/// Mip levels and chain bytes of one `extent²` atlas in `format`.
+pub(crate) fn atlas_chain(extent: u32, format: TextureFormat) -> (u32, u64) {
+    let levels = extent.trailing_zeros() + 1;
+    let bytes = (0..levels)
+        .map(|level| format.mip_bytes(extent >> level, extent >> level))
+        .sum();
+    (levels, bytes)
+}
+
+/// How many atlases to compose before writing them so that `buffer_mb` holds the batch and
+/// every thread's working images (at least one atlas).
+pub(crate) fn atlas_batch(extent: u32, format: TextureFormat, buffer_mb: u64) -> (usize, u64) {
+    let (_, chain_bytes) = atlas_chain(extent, format);
+    // Each thread composes one atlas at a time in RGBA (a level and the one above it);
+    // every atlas of a batch holds its finished chain until the batch is written.
+    let working = u64::from(extent) * u64::from(extent) * 4 * 2 * rayon::current_num_threads() as u64;
+    let batch = ((buffer_mb << 20).saturating_sub(working) / chain_bytes.max(1)).max(1) as usize;
+    (batch, working)
+}
+
+/// The scene with every placed texture's meshes pointed at their atlas (`new_id` maps every
+/// input texture to its output id) and their UVs rewritten into it.
+pub(crate) fn remap_scene(
+    scene: &Scene,
+    sizes: &[[u32; 2]],
+    placements: &[Option<Placement>],
+    new_id: &[u32],
+    extent: u32,
+) -> Result<Scene> {
+    let mut out_scene = scene.clone();
+    let mut remapped = vec![false; scene.uvs.len()];
+    for mesh in &mut out_scene.meshes {
+        let t = mesh.texture as usize;
+        mesh.texture = new_id[t];
+        let Some(p) = placements[t] else { continue };
+        let (w, h, a) = (sizes[t][0] as f32, sizes[t][1] as f32, extent as f32);
+        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
+        let rewritten = out_scene.uvs[range.clone()]
+            .iter_mut()
+            .zip(&mut remapped[range.clone()]);
+        for (v, (uv, done)) in rewritten.enumerate() {
+            if std::mem::replace(done, true) {
+                bail!(
+                    "vertex {} is shared by two meshes; its texture coordinates cannot be rewritten twice",
+                    range.start + v
+                );
+            }
+            *uv = [(p.x as f32 + uv[0] * w) / a, (p.y as f32 + uv[1] * h) / a];
+        }
+    }
+    Ok(out_scene)
+}
+
 /// Runs `citystream atlas`.
 pub fn run(args: &AtlasArgs) -> Result<()> {
     let start = Instant::now();
@@ -243,106 +415,45 @@ pub fn run(args: &AtlasArgs) -> Result<()> {
     } else {
         TextureFormat::Rgba8
     };
-
-    // Which textures can go into atlases, and the mesh that decides their group.
-    let mut first_mesh: Vec<Option<usize>> = vec![None; count];
-    let mut eligible: Vec<bool> = infos
+    let sizes: Vec<[u32; 2]> = infos.iter().map(|t| [t.width(), t.height()]).collect();
+    let eligible = infos
         .iter()
         .map(|t| t.format() == format && t.width() <= extent && t.height() <= extent)
         .collect();
-    for (m, mesh) in scene.meshes.iter().enumerate() {
-        let t = mesh.texture as usize;
-        first_mesh[t].get_or_insert(m);
-        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
-        if scene.uvs[range].iter().flatten().any(|v| !(0.0..=1.0).contains(v)) {
-            eligible[t] = false;
-        }
-    }
-
-    // Group: region (in Z order) then orientation, textures in id order.
-    let mut groups: BTreeMap<(u128, i64, i64), [Vec<usize>; 6]> = BTreeMap::new();
-    for t in 0..count {
-        let Some(m) = first_mesh[t].filter(|_| eligible[t]) else {
-            continue;
-        };
-        let mesh = &scene.meshes[m];
-        let c = mesh.bounds.center();
-        let region = |a: usize| ((scene.origin[a] + f64::from(c[a])) / args.region).floor() as i64;
-        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
-        let mut n = [0.0f32; 3];
-        for v in &scene.normals[range] {
-            for a in 0..3 {
-                n[a] += v[a];
-            }
-        }
-        let (rx, rz) = (region(0), region(2));
-        groups.entry((z_order(rx, rz), rx, rz)).or_default()[closest_axis(n)].push(t);
-    }
-    let mut placements: Vec<Option<Placement>> = vec![None; count];
-    let mut atlas_count = 0usize;
-    match args.packing {
-        Packing::Shelves => {
-            let mut packer = ShelfPacker::new(extent);
-            for orientations in groups.values() {
-                for mut group in orientations.iter().cloned() {
-                    // Tallest, then widest first inside a group keeps shelves dense; groups
-                    // stay in axis order and regions in Z order.
-                    group.sort_by_key(|&t| {
-                        (
-                            std::cmp::Reverse(infos[t].height()),
-                            std::cmp::Reverse(infos[t].width()),
-                        )
-                    });
-                    for t in group {
-                        placements[t] = Some(packer.place(infos[t].width(), infos[t].height(), &mut atlas_count));
-                    }
-                }
-            }
-        }
-        Packing::Regions => {
-            // Regions in coordinate order, then texture height, then orientation.
-            let mut by_height: BTreeMap<(i64, i64, u32), [Vec<usize>; 6]> = BTreeMap::new();
-            for (&(_, rx, rz), orientations) in &groups {
-                for (axis, group) in orientations.iter().enumerate() {
-                    for &t in group {
-                        by_height.entry((rx, rz, infos[t].height())).or_default()[axis].push(t);
-                    }
-                }
-            }
-            for ((_, _, height), orientations) in &by_height {
-                let mut packer = RowPacker::new(extent, *height);
-                for mut group in orientations.iter().cloned() {
-                    group.sort_by_key(|&t| std::cmp::Reverse(infos[t].width()));
-                    for t in group {
-                        placements[t] = Some(packer.place(infos[t].width(), &mut atlas_count));
-                    }
-                }
-            }
-        }
-    }
-    let mut members: Vec<Vec<usize>> = vec![Vec::new(); atlas_count];
-    for (t, p) in placements.iter().enumerate() {
-        if let Some(p) = p {
-            members[p.atlas].push(t);
-        }
-    }
+    let plan = plan_atlases(scene, &sizes, eligible, args.region, extent, args.packing);
+    let members = &plan.members;
 
     // Compose atlases in parallel, a batch that fits the buffer at a time, and write each
     // batch before the next: memory does not grow with the dataset.
-    let levels = extent.trailing_zeros() + 1;
-    let chain_bytes: u64 = (0..levels)
-        .map(|level| format.mip_bytes(extent >> level, extent >> level))
-        .sum();
-    // Each thread composes one atlas at a time in RGBA (a level and the one above it);
-    // every atlas of a batch holds its finished chain until the batch is written.
-    let working = u64::from(extent) * u64::from(extent) * 4 * 2 * rayon::current_num_threads() as u64;
-    let batch = ((args.buffer_mb << 20).saturating_sub(working) / chain_bytes.max(1)).max(1) as usize;
+    let (levels, chain_bytes) = atlas_chain(extent, format);
+    let (batch, working) = atlas_batch(extent, format, args.buffer_mb);
     let mut writer = DatasetWriter::create(&args.out)?;
     let mut peak_buffered = 0u64;
     for (index, chunk) in members.chunks(batch).enumerate() {
         let built: Vec<Result<(Vec<u8>, [u8; 4])>> = chunk
             .par_iter()
-            .map(|textures| build_atlas(&dataset, textures, &placements, extent, levels, format))
+            .map(|textures| {
+                let parts: Vec<AtlasPart> = textures
+                    .iter()
+                    .map(|&t| {
+                        let info = &infos[t];
+                        let p = plan.placements[t].context("atlas member without a placement")?;
+                        Ok(AtlasPart {
+                            x: p.x,
+                            y: p.y,
+                            width: info.width(),
+                            height: info.height(),
+                            mip_count: info.mip_count(),
+                            format: info.format(),
+                            colour: dataset.colormap.get(t as u32).unwrap_or([128, 128, 128, 255]),
+                        })
+                    })
+                    .collect::<Result<_>>()?;
+                compose_atlas(&parts, extent, levels, format, |part, level, buf| {
+                    dataset.textures.read_mip(textures[part] as u32, level, buf)?;
+                    Ok(())
+                })
+            })
             .collect();
         peak_buffered = peak_buffered.max(chunk.len() as u64 * chain_bytes + working);
         for atlas in built {
@@ -361,61 +472,29 @@ pub fn run(args: &AtlasArgs) -> Result<()> {
     let mut new_id: Vec<u32> = vec![0; count];
     let mut standalone = 0u32;
     let mut buf = Vec::new();
-    for t in 0..count {
-        match placements[t] {
-            Some(p) => new_id[t] = p.atlas as u32,
+    for (t, (id, placement)) in new_id.iter_mut().zip(&plan.placements).enumerate() {
+        match placement {
+            Some(p) => *id = p.atlas as u32,
             None => {
-                new_id[t] = copy_texture(&dataset, t as u32, &mut writer, &mut buf)?;
+                *id = copy_texture(&dataset, t as u32, &mut writer, &mut buf)?;
                 standalone += 1;
             }
         }
     }
 
-    let mut out_scene = scene.clone();
-    let mut remapped = vec![false; scene.uvs.len()];
-    for mesh in &mut out_scene.meshes {
-        let t = mesh.texture as usize;
-        mesh.texture = new_id[t];
-        let Some(p) = placements[t] else { continue };
-        let (w, h, a) = (infos[t].width() as f32, infos[t].height() as f32, extent as f32);
-        let range = mesh.first_vertex as usize..(mesh.first_vertex + mesh.vertex_count) as usize;
-        let rewritten = out_scene.uvs[range.clone()]
-            .iter_mut()
-            .zip(&mut remapped[range.clone()]);
-        for (v, (uv, done)) in rewritten.enumerate() {
-            if std::mem::replace(done, true) {
-                bail!(
-                    "vertex {} is shared by two meshes; its texture coordinates cannot be rewritten twice",
-                    range.start + v
-                );
-            }
-            *uv = [(p.x as f32 + uv[0] * w) / a, (p.y as f32 + uv[1] * h) / a];
-        }
-    }
+    let out_scene = remap_scene(scene, &sizes, &plan.placements, &new_id, extent)?;
     let summary = writer
         .finish(&out_scene)
         .with_context(|| format!("writing {}", args.out.display()))?;
 
-    let packed: u64 = infos
-        .iter()
-        .zip(&placements)
-        .filter(|(_, p)| p.is_some())
-        .map(|(t, _)| u64::from(t.width()) * u64::from(t.height()))
-        .sum();
-    let capacity = atlas_count as u64 * u64::from(extent) * u64::from(extent);
-    let fill = if capacity > 0 {
-        packed as f64 / capacity as f64
-    } else {
-        0.0
-    };
     if args.quiet {
         return Ok(());
     }
     print_stdout(&format!(
         "atlas: {} textures -> {} atlases of {extent}x{extent} (fill ratio {:.1}%) + {standalone} textures kept as they are = {} textures; {:.1} MB pack, {:.2} s; atlases composed {batch} at a time, peak buffer {:.1} MB of {} MB\n",
         count,
-        atlas_count,
-        100.0 * fill,
+        plan.atlas_count(),
+        100.0 * plan.fill_ratio(&sizes, extent),
         summary.textures,
         summary.pack_bytes as f64 / 1e6,
         start.elapsed().as_secs_f64(),
@@ -444,24 +523,34 @@ pub fn copy_texture(dataset: &Dataset, t: u32, writer: &mut DatasetWriter, buf: 
     )?)
 }
 
-/// Composes one atlas: its mip chain (full, finest first) and the area-weighted mean colour
-/// of its textures.
-fn build_atlas(
-    dataset: &Dataset,
-    textures: &[usize],
-    placements: &[Option<Placement>],
+/// One texture of an atlas: where it sits, its extent, levels, format and colormap colour.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct AtlasPart {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+    pub mip_count: u32,
+    pub format: TextureFormat,
+    pub colour: [u8; 4],
+}
+
+/// Composes one atlas of `parts`: its mip chain (full, finest first) and the area-weighted
+/// mean colour of its textures. `read(part, level, buf)` fills `buf` with a part's stored
+/// level.
+pub(crate) fn compose_atlas(
+    parts: &[AtlasPart],
     extent: u32,
     levels: u32,
     format: TextureFormat,
+    read: impl Fn(usize, u32, &mut Vec<u8>) -> Result<()>,
 ) -> Result<(Vec<u8>, [u8; 4])> {
-    let infos = dataset.textures.textures();
     let mut sum = [0u64; 4];
     let mut area = 0u64;
-    for &t in textures {
-        let a = u64::from(infos[t].width()) * u64::from(infos[t].height());
-        let c = dataset.colormap.get(t as u32).unwrap_or([128, 128, 128, 255]);
-        for k in 0..4 {
-            sum[k] += u64::from(c[k]) * a;
+    for part in parts {
+        let a = u64::from(part.width) * u64::from(part.height);
+        for (total, channel) in sum.iter_mut().zip(part.colour) {
+            *total += u64::from(channel) * a;
         }
         area += a;
     }
@@ -470,6 +559,10 @@ fn build_atlas(
     let mut chain = Vec::new();
     let mut previous: Option<Vec<u8>> = None;
     let mut buf = Vec::new();
+    let params = texpresso::Params {
+        algorithm: texpresso::Algorithm::RangeFit,
+        ..Default::default()
+    };
     for level in 0..levels {
         let side = (extent >> level) as usize;
         // Empty space: the mean colour at level 0, the box filter of the level above below it.
@@ -477,24 +570,29 @@ fn build_atlas(
             None => mean.repeat(side * side),
             Some(prev) => crate::gen::downsample(prev, side * 2, side * 2).0,
         };
+        let blocks_per_row = side.div_ceil(4);
+        // Blocks inside one part's own mip: their bytes are copied, not encoded.
+        let mut copied = vec![false; blocks_per_row * blocks_per_row];
         let mut copies = Vec::new();
-        for &t in textures {
-            let info = &infos[t];
-            let p = placements[t].context("atlas member without a placement")?;
-            let (w, h) = (info.width() >> level, info.height() >> level);
-            if w == 0 || h == 0 || level >= info.mip_count() {
+        for (index, part) in parts.iter().enumerate() {
+            let (w, h) = (part.width >> level, part.height >> level);
+            if w == 0 || h == 0 || level >= part.mip_count {
                 continue;
             }
-            dataset.textures.read_mip(t as u32, level, &mut buf)?;
-            let texels = crate::gen::decode_level(info.format(), &buf, w, h);
-            let (x0, y0) = ((p.x >> level) as usize, (p.y >> level) as usize);
+            read(index, level, &mut buf)?;
+            let texels = crate::gen::decode_level(part.format, &buf, w, h);
+            let (x0, y0) = ((part.x >> level) as usize, (part.y >> level) as usize);
             for row in 0..h as usize {
                 let dst = ((y0 + row) * side + x0) * 4;
                 let src = row * w as usize * 4;
                 rgba[dst..dst + w as usize * 4].copy_from_slice(&texels[src..src + w as usize * 4]);
             }
             if format == TextureFormat::Bc1 && w >= 4 && h >= 4 {
-                copies.push((x0 / 4, y0 / 4, (w / 4) as usize, (h / 4) as usize, buf.clone()));
+                let (bx, by, bw, bh) = (x0 / 4, y0 / 4, (w / 4) as usize, (h / 4) as usize);
+                for row in by..by + bh {
+                    copied[row * blocks_per_row + bx..row * blocks_per_row + bx + bw].fill(true);
+                }
+                copies.push((bx, by, bw, bh, std::mem::take(&mut buf)));
             }
         }
         match format {
@@ -502,13 +600,27 @@ fn build_atlas(
                 let start = chain.len();
                 chain.resize(start + format.mip_bytes(side as u32, side as u32) as usize, 0);
                 let level_bytes = &mut chain[start..];
-                let params = texpresso::Params {
-                    algorithm: texpresso::Algorithm::RangeFit,
-                    ..Default::default()
-                };
-                texpresso::Format::Bc1.compress(&rgba, side, side, params, level_bytes);
+                if side < 4 {
+                    texpresso::Format::Bc1.compress(&rgba, side, side, params, level_bytes);
+                } else {
+                    // Only the blocks no part covers are encoded (each block is encoded on
+                    // its own, so this equals encoding the level whole).
+                    for (block, _) in copied.iter().enumerate().filter(|(_, &c)| !c) {
+                        let (bx, by) = (block % blocks_per_row * 4, block / blocks_per_row * 4);
+                        let mut texels = [[0u8; 4]; 16];
+                        for (i, texel) in texels.iter_mut().enumerate() {
+                            let at = ((by + i / 4) * side + bx + i % 4) * 4;
+                            texel.copy_from_slice(&rgba[at..at + 4]);
+                        }
+                        texpresso::Format::Bc1.compress_block_masked(
+                            texels,
+                            u32::MAX >> 16,
+                            params,
+                            &mut level_bytes[block * 8..block * 8 + 8],
+                        );
+                    }
+                }
                 // Blocks inside one texture's own mip: the original bytes, exactly.
-                let blocks_per_row = side.div_ceil(4);
                 for (bx, by, bw, bh, bytes) in copies {
                     for row in 0..bh {
                         let dst = ((by + row) * blocks_per_row + bx) * 8;

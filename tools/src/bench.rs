@@ -59,6 +59,9 @@
 //! chart), then `speed_vs_error.png` with every run of both as a point and `controllers.md`: the worst frame, frames over 2α after the first second,
 //! mean PSNR and MB/s against the targets the controller was built to.
 //!
+//! `--scenario berlin` reproduces the paper's Table 3 on a city of its Berlin (atlas) size
+//! ([`crate::berlin_bench`], docs/BERLIN.md).
+//!
 //! `--strategy feedback|atlas-tree` passes the strategy to every run of the `standard` and
 //! `pressure` scenarios (`atlas-tree` needs a tree dataset).
 
@@ -68,6 +71,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 
+use crate::berlin_bench::{self, BERLIN_BUDGET_MB, BERLIN_SIZE};
 use crate::default_city::{build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR};
 use crate::report::{self, RunInput};
 
@@ -92,6 +96,9 @@ pub enum Scenario {
     /// The baseline and both adaptive controllers (the paper's, headroom) on the default
     /// city's bench and on the pressure benchmark.
     Controllers,
+    /// The paper's Table 3 on the Berlin-sized city (`gen --preset berlin`, built under
+    /// --data-dir on first use): baseline, fixed, adaptive α = 12, 14, 16, 18 ms.
+    Berlin,
 }
 
 /// `--strategy` of the flythrough runs.
@@ -147,11 +154,13 @@ pub struct BenchArgs {
     /// from DATA/imagery/bmng.jpg on first use).
     #[arg(long)]
     ground: Option<PathBuf>,
-    /// `--scenario pressure`: where `large` and `large-atlas` are generated.
+    /// `--scenario pressure` and `berlin`: where their cities (`large` and `large-atlas`,
+    /// `berlin`) are generated.
     #[arg(long, default_value = "data")]
     data_dir: PathBuf,
     /// Memory budget of the budgeted runs, MB: `--scenario pressure` and `strategies`
-    /// (default 256); `--scenario ground` passes it to both runs (default: the flythrough's).
+    /// (default 256), `berlin` (default 1024); `--scenario ground` passes it to both runs
+    /// (default: the flythrough's).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
     budget_mb: Option<u64>,
     /// Output directory: one subdirectory per run, plus table.md and the
@@ -220,10 +229,10 @@ pub const POLICY_RUNS: [PolicyRun; 4] = [
 
 /// One flythrough run of a benchmark.
 #[derive(Debug, Clone, PartialEq)]
-struct BenchRun {
-    dir: String,
-    name: String,
-    args: Vec<String>,
+pub(crate) struct BenchRun {
+    pub dir: String,
+    pub name: String,
+    pub args: Vec<String>,
 }
 
 impl BenchRun {
@@ -269,6 +278,13 @@ impl RunSettings {
                 height: args.height,
             },
             Scenario::Pressure => Self::pressure(args),
+            Scenario::Berlin => RunSettings {
+                clock: "modelled",
+                frames: args.frames,
+                duration_s: None,
+                width: Some(args.width.unwrap_or(BERLIN_SIZE.0)),
+                height: Some(args.height.unwrap_or(BERLIN_SIZE.1)),
+            },
         }
     }
 
@@ -370,6 +386,7 @@ fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
                     format: crate::gen::FormatArg::Bc1,
                     max_extent: 512,
                     textures_from: None,
+                    dry_run: false,
                     quiet: false,
                 })
             })?;
@@ -417,6 +434,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             dir
         }
         (None, Scenario::Pressure) => ensure_pressure_city(&args.data_dir)?,
+        (None, Scenario::Berlin) => berlin_bench::ensure_city(&args.data_dir)?,
         (None, Scenario::Strategies) => ensure_default_tree(&args.data_dir)?,
         (None, Scenario::Loader | Scenario::Remote) => {
             let dir = PathBuf::from(DEFAULT_CITY_DIR);
@@ -441,13 +459,18 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         return Ok(());
     }
 
-    let budget_mb = args.budget_mb.unwrap_or(DEFAULT_BUDGET_MB);
+    let budget_mb = args.budget_mb.unwrap_or(if args.scenario == Scenario::Berlin {
+        BERLIN_BUDGET_MB
+    } else {
+        DEFAULT_BUDGET_MB
+    });
     let mut runs = match args.scenario {
         Scenario::Standard | Scenario::Loader | Scenario::Remote => POLICY_RUNS
             .iter()
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),
         Scenario::Pressure => pressure_runs(budget_mb),
+        Scenario::Berlin => berlin_bench::runs(budget_mb, &berlin_bench::write_path(&dataset, &args.out)?),
         Scenario::Controllers => return run_controllers(args, &flythrough, &dataset, budget_mb),
         Scenario::Strategies => {
             check_tree(&dataset)?;
@@ -485,6 +508,18 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     }
     if args.scenario == Scenario::Ground {
         write_table(&args.out, "ground", ground_table(&args.out, &dataset)?)?;
+    }
+    if args.scenario == Scenario::Berlin {
+        let settings = RunSettings::of(args);
+        let size = (
+            settings.width.unwrap_or(BERLIN_SIZE.0),
+            settings.height.unwrap_or(BERLIN_SIZE.1),
+        );
+        let path = args.out.join("berlin.md");
+        let text = berlin_bench::table(&args.out, budget_mb, size)?;
+        crate::files::write_atomically(&path, text.as_bytes())?;
+        eprint!("{text}");
+        eprintln!("wrote {}", path.display());
     }
     if args.scenario == Scenario::Pressure {
         let path = args.out.join("pressure.md");
@@ -986,17 +1021,17 @@ fn strategies_table(out: &Path, dataset: &Path, budget_mb: u64) -> Result<(Strin
 }
 
 /// One run's summary.json.
-fn summary_of(dir: &Path) -> Result<serde_json::Value> {
+pub(crate) fn summary_of(dir: &Path) -> Result<serde_json::Value> {
     let path = dir.join("summary.json");
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
-fn stat(summary: &serde_json::Value, key: &str, field: &str) -> Option<f64> {
+pub(crate) fn stat(summary: &serde_json::Value, key: &str, field: &str) -> Option<f64> {
     summary.get(key)?.get(field)?.as_f64()
 }
 
-fn count(summary: &serde_json::Value, key: &str) -> Option<f64> {
+pub(crate) fn count(summary: &serde_json::Value, key: &str) -> Option<f64> {
     summary.get(key)?.as_f64()
 }
 
@@ -1082,10 +1117,10 @@ fn pressure_checks(out: &Path, budget_mb: u64) -> Result<String> {
 
 /// One measured figure against its target: label, value, target as shown, and whether a
 /// value meets it (a target shown as `—` is for comparison, not a check).
-type Check = (String, Option<f64>, &'static str, fn(f64) -> bool);
+pub(crate) type Check = (String, Option<f64>, &'static str, fn(f64) -> bool);
 
 /// `heading` and a markdown table of `checks`.
-fn checks_table(heading: &str, checks: Vec<Check>) -> String {
+pub(crate) fn checks_table(heading: &str, checks: Vec<Check>) -> String {
     let mut text = format!("{heading}\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n");
     for (label, value, target, met) in checks {
         let (shown, verdict) = match value {

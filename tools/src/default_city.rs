@@ -82,6 +82,7 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
                 format: FormatArg::Bc1,
                 max_extent: 512,
                 textures_from: None,
+                dry_run: false,
                 // The summaries would name the private build directories.
                 quiet: true,
             })

@@ -23,6 +23,7 @@
 pub mod atlas;
 pub mod atlas_tree;
 pub mod bench;
+pub mod berlin_bench;
 pub mod bind_replay;
 pub mod cache_report;
 pub mod default_city;

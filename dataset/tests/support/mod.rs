@@ -98,31 +98,48 @@ pub fn fixture_scene(textures: u32) -> Scene {
     scene
 }
 
+/// Texture `t` of [`TEXTURES`] with its deterministic bytes and colour.
+pub fn fixture_texture(t: usize) -> WrittenTexture {
+    let (format, width, height, mip_count) = TEXTURES[t];
+    let mips: Vec<Vec<u8>> = (0..mip_count)
+        .map(|level| {
+            let (w, h) = mip_extent(width, height, level);
+            bytes((t as u64) << 8 | u64::from(level), format.mip_bytes(w, h) as usize)
+        })
+        .collect();
+    WrittenTexture {
+        format,
+        width,
+        height,
+        mips,
+        colour: [t as u8 * 30, 255 - t as u8, 7, 255],
+    }
+}
+
+/// Appends `texture` to `writer`; returns its id.
+pub fn add_fixture_texture(writer: &mut DatasetWriter, texture: &WrittenTexture) -> u32 {
+    let chain: Vec<u8> = texture.mips.concat();
+    writer
+        .add_texture(
+            texture.format,
+            texture.width,
+            texture.height,
+            texture.mips.len() as u32,
+            &chain,
+            texture.colour,
+        )
+        .expect("add texture")
+}
+
 /// Writes the fixture dataset into a fresh directory `name`.
 pub fn write_fixture(name: &str) -> Fixture {
     let dir = test_dir(name);
     let mut writer = DatasetWriter::create(&dir).expect("create writer");
     let mut textures = Vec::new();
-    for (t, &(format, width, height, mip_count)) in TEXTURES.iter().enumerate() {
-        let mips: Vec<Vec<u8>> = (0..mip_count)
-            .map(|level| {
-                let (w, h) = mip_extent(width, height, level);
-                bytes((t as u64) << 8 | u64::from(level), format.mip_bytes(w, h) as usize)
-            })
-            .collect();
-        let chain: Vec<u8> = mips.concat();
-        let colour = [t as u8 * 30, 255 - t as u8, 7, 255];
-        let id = writer
-            .add_texture(format, width, height, mip_count, &chain, colour)
-            .expect("add texture");
-        assert_eq!(id as usize, t);
-        textures.push(WrittenTexture {
-            format,
-            width,
-            height,
-            mips,
-            colour,
-        });
+    for t in 0..TEXTURES.len() {
+        let texture = fixture_texture(t);
+        assert_eq!(add_fixture_texture(&mut writer, &texture) as usize, t);
+        textures.push(texture);
     }
     let scene = fixture_scene(TEXTURES.len() as u32);
     let summary = writer.finish(&scene).expect("finish");

@@ -5,6 +5,7 @@
 //! rayon, a chunk at a time, and appended to the pack in texture-id order so the output is
 //! byte-identical for a given seed whatever the thread count.
 
+pub(crate) mod berlin;
 mod layout;
 pub(crate) mod library;
 mod rng;
@@ -36,6 +37,9 @@ pub enum Preset {
     Large,
     /// More than 1 000 000 textures (Berlin-scale texture count).
     City,
+    /// The paper's Berlin (atlas): about 15.4 M triangles in about 233 K BC1 atlases of
+    /// 512² (about 41 GB), written straight into atlases; resumable (docs/BERLIN.md).
+    Berlin,
 }
 
 impl Preset {
@@ -46,6 +50,13 @@ impl Preset {
             Preset::Medium => (24, 9),
             Preset::Large => (48, 9),
             Preset::City => (156, 9),
+            Preset::Berlin => {
+                return LayoutParams {
+                    blocks: BERLIN_BLOCKS,
+                    max_extent_log2: 9,
+                    density_scale: BERLIN_DENSITY_SCALE,
+                }
+            }
         };
         LayoutParams {
             blocks,
@@ -54,6 +65,13 @@ impl Preset {
         }
     }
 }
+
+/// Blocks per side of the `berlin` preset: its triangle count is the paper's (Table 1,
+/// Berlin (atlas): 15,363,486) within a few per cent.
+const BERLIN_BLOCKS: u32 = 410;
+/// Texel density of the `berlin` preset (the other presets use 1.5): its atlas count and
+/// pack size are the paper's (233,110 atlases, 40.8 GB) within a few per cent.
+const BERLIN_DENSITY_SCALE: f32 = 1.4;
 
 /// Texture encodings the generator writes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -103,6 +121,10 @@ pub struct GenArgs {
     /// recursively), resized to powers of two. Each facade picks one image; meshes share them.
     #[arg(long)]
     pub textures_from: Option<PathBuf>,
+    /// Lay out the city and print what it holds and the disk the write needs, without
+    /// writing anything.
+    #[arg(long)]
+    pub dry_run: bool,
     /// Do not print progress or the summary.
     #[arg(long)]
     pub quiet: bool,
@@ -124,8 +146,12 @@ pub fn run(args: &GenArgs) -> Result<()> {
     let format = args.format.texture_format();
     let mut params = args.preset.params();
     params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);
-    let summary = generate(args, params, format)?;
-    if args.quiet {
+    let summary = if args.preset == Preset::Berlin {
+        berlin::generate(args, params, berlin::RunControl::default())?
+    } else {
+        generate(args, params, format)?
+    };
+    if args.quiet || args.dry_run {
         return Ok(());
     }
     let seconds = start.elapsed().as_secs_f64();
@@ -161,8 +187,58 @@ pub(crate) fn print_stdout(text: &str) -> Result<()> {
     }
 }
 
-fn generate(args: &GenArgs, params: LayoutParams, format: TextureFormat) -> Result<WriteSummary> {
+pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureFormat) -> Result<WriteSummary> {
     let mut city = layout::layout(params, args.seed)?;
+    // The procedural textures' chains; user images (`--textures-from`) come on top.
+    let pack_bytes: u64 = city
+        .textures
+        .iter()
+        .map(|t| {
+            let (w, h) = (1u32 << t.width_log2, 1u32 << t.height_log2);
+            let mips = u32::from(t.width_log2.max(t.height_log2)) + 1;
+            (0..mips)
+                .map(|l| format.mip_bytes((w >> l).max(1), (h >> l).max(1)))
+                .sum::<u64>()
+        })
+        .sum();
+    let scene_bytes = 4096
+        + city.scene.positions.len() as u64 * 32
+        + city.scene.indices.len() as u64 * 4
+        + city.scene.meshes.len() as u64 * 44;
+    let needed = pack_bytes + scene_bytes;
+    let free = berlin::free_bytes(&args.out)?;
+    if args.dry_run {
+        print_stdout(&format!(
+            "{} meshes, {} triangles, {} textures; needs {} of disk in {} (pack {}, scene {}); {} free\n",
+            city.scene.meshes.len(),
+            city.scene.triangle_count(),
+            city.textures.len(),
+            berlin::gb(needed),
+            args.out.display(),
+            berlin::gb(pack_bytes),
+            berlin::gb(scene_bytes),
+            berlin::gb(free)
+        ))?;
+        return Ok(WriteSummary {
+            textures: city.textures.len() as u32,
+            mips: 0,
+            meshes: city.scene.meshes.len() as u32,
+            triangles: city.scene.triangle_count(),
+            pack_bytes,
+            scene_bytes,
+            metadata_bytes: 0,
+        });
+    }
+    if needed > free {
+        bail!(
+            "{} needs {} of free disk (pack {}, scene {}), but only {} is free there",
+            args.out.display(),
+            berlin::gb(needed),
+            berlin::gb(pack_bytes),
+            berlin::gb(scene_bytes),
+            berlin::gb(free)
+        );
+    }
     let mut writer = DatasetWriter::create(&args.out)?;
 
     // User images become textures 0..n; facades pick one of them by a hash of their seed.
@@ -289,6 +365,7 @@ mod tests {
             format: FormatArg::Bc1,
             max_extent: 512,
             textures_from: None,
+            dry_run: false,
             quiet: true,
         };
         let summary = generate(&args, Preset::Tiny.params(), TextureFormat::Bc1)?;

@@ -1,0 +1,247 @@
+//! `citystream bench --scenario berlin`: the paper's Table 3 on a city of its Berlin
+//! (atlas) size (docs/BERLIN.md).
+//!
+//! The city (`gen --preset berlin --seed 1`, about 15.4 M triangles in about 233 K BC1
+//! atlases of 512², 40.8 GB) is generated under `--data-dir` on first use; the write is
+//! resumable, so an interrupted first run continues where it stopped. The runs fly the
+//! standard path derived from the city, made 68.6 s long as the paper's Berlin benchmark
+//! (written to `OUT/path.json`), with the `modelled` clock (the camera moves on by each
+//! frame's modelled latency, so a stalling policy sees fewer frames of the same path), the
+//! `desktop` bind-latency model and a `--budget-mb` cache (1024 MB by default): the baseline,
+//! a fixed load size, and the adaptive policy at α = 12, 14, 16 and 18 ms with β = 8 (the
+//! paper's Table 2; τ = 150 is the engine's mesh-weight cutoff). `berlin.md` sets each run
+//! beside the paper's row of Table 3 and checks the issue's targets; the report of every run
+//! (Table 3 layout, Fig. 6 charts) goes to `OUT` as in the other scenarios.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use citystream_dataset::Dataset;
+use citystream_streaming::bench::path::standard_path;
+
+use crate::bench::{checks_table, count, stat, summary_of, BenchRun, Check};
+use crate::default_city::{is_dataset, upgrade_if_old};
+
+/// Camera seconds of the paper's Berlin benchmark (§4.1).
+pub const BERLIN_PATH_S: f64 = 68.6;
+/// Cache budget of the runs when `--budget-mb` is not given, MB.
+pub const BERLIN_BUDGET_MB: u64 = 1024;
+/// Image size of the runs when not given (the paper renders 3840×2160).
+pub const BERLIN_SIZE: (u32, u32) = (1920, 1080);
+
+/// One policy's row of the paper's Table 3 (Berlin (atlas), β = 8): frame latency median,
+/// mean and max (ms), MB/s mean, Mip/s mean.
+struct PaperRow {
+    frame_ms: [f64; 3],
+    mb_per_s: f64,
+    mips_per_s: f64,
+}
+
+const PAPER_BASELINE: PaperRow = PaperRow {
+    frame_ms: [6.8, 42.5, 471.16],
+    mb_per_s: 79.95,
+    mips_per_s: 9628.0,
+};
+
+/// One run of the scenario: directory, name, policy arguments, the paper's row (`None`:
+/// the paper has no such run).
+struct BerlinRun {
+    dir: &'static str,
+    name: &'static str,
+    args: &'static [&'static str],
+    paper: Option<PaperRow>,
+}
+
+const RUNS: [BerlinRun; 6] = [
+    BerlinRun {
+        dir: "baseline",
+        name: "baseline",
+        args: &["--policy", "baseline"],
+        paper: Some(PAPER_BASELINE),
+    },
+    BerlinRun {
+        dir: "fixed-s4-b0",
+        name: "fixed s=4 MB b=0",
+        args: &["--policy", "fixed", "--load-size-mb", "4", "--mip-bias", "0"],
+        paper: None,
+    },
+    BerlinRun {
+        dir: "adaptive-a12",
+        name: "adaptive α=12 ms",
+        args: &["--policy", "adaptive", "--alpha", "12", "--beta", "8"],
+        paper: Some(PaperRow {
+            frame_ms: [4.55, 5.3, 15.98],
+            mb_per_s: 42.0,
+            mips_per_s: 9297.1,
+        }),
+    },
+    BerlinRun {
+        dir: "adaptive-a14",
+        name: "adaptive α=14 ms",
+        args: &["--policy", "adaptive", "--alpha", "14", "--beta", "8"],
+        paper: Some(PaperRow {
+            frame_ms: [4.58, 6.1, 24.59],
+            mb_per_s: 47.38,
+            mips_per_s: 9574.7,
+        }),
+    },
+    BerlinRun {
+        dir: "adaptive-a16",
+        name: "adaptive α=16 ms",
+        args: &["--policy", "adaptive", "--alpha", "16", "--beta", "8"],
+        paper: Some(PaperRow {
+            frame_ms: [4.52, 6.47, 26.16],
+            mb_per_s: 51.94,
+            mips_per_s: 9788.26,
+        }),
+    },
+    BerlinRun {
+        dir: "adaptive-a18",
+        name: "adaptive α=18 ms",
+        args: &["--policy", "adaptive", "--alpha", "18", "--beta", "8"],
+        paper: Some(PaperRow {
+            frame_ms: [4.61, 7.18, 29.51],
+            mb_per_s: 53.02,
+            mips_per_s: 9815.76,
+        }),
+    },
+];
+
+/// The scenario's flythrough runs: every policy with the budget, the path and a PSNR
+/// measurement every 60 frames.
+pub(crate) fn runs(budget_mb: u64, path: &Path) -> Vec<BenchRun> {
+    let shared = [
+        "--memory-budget-mb".to_string(),
+        budget_mb.to_string(),
+        "--path".to_string(),
+        path.display().to_string(),
+        "--psnr-interval".to_string(),
+        "60".to_string(),
+        "--frame-interval".to_string(),
+        "0".to_string(),
+    ];
+    RUNS.iter()
+        .map(|run| BenchRun {
+            dir: run.dir.into(),
+            name: run.name.into(),
+            args: run
+                .args
+                .iter()
+                .map(|a| a.to_string())
+                .chain(shared.iter().cloned())
+                .collect(),
+        })
+        .collect()
+}
+
+/// The Berlin-sized city under `data_dir`, generated first if missing (about 40 minutes and
+/// 42 GB here; resumable: an interrupted generation continues on the next call).
+pub(crate) fn ensure_city(data_dir: &Path) -> Result<PathBuf> {
+    let dir = data_dir.join("berlin");
+    upgrade_if_old(&dir, false)?;
+    if !is_dataset(&dir) {
+        eprintln!(
+            "generating the Berlin-sized city (about 40 minutes and 42 GB of disk here; rerunning continues an interrupted write): \
+             `citystream gen --preset berlin --seed 1 --out {}`",
+            dir.display()
+        );
+        crate::gen::run(&crate::gen::GenArgs {
+            preset: crate::gen::Preset::Berlin,
+            seed: 1,
+            out: dir.clone(),
+            format: crate::gen::FormatArg::Bc1,
+            max_extent: 512,
+            textures_from: None,
+            dry_run: false,
+            quiet: false,
+        })?;
+    }
+    Ok(dir)
+}
+
+/// Writes the standard path of `dataset`, [`BERLIN_PATH_S`] long, to `out`.
+pub(crate) fn write_path(dataset: &Path, out: &Path) -> Result<PathBuf> {
+    let scene = Dataset::open(dataset)
+        .with_context(|| format!("opening {}", dataset.display()))?
+        .scene;
+    let path = standard_path(&scene, BERLIN_PATH_S)
+        .with_context(|| format!("deriving the standard path of {}", dataset.display()))?;
+    let file = out.join("path.json");
+    path.save(&file)?;
+    Ok(file)
+}
+
+/// `berlin.md`: every run beside the paper's row of Table 3, then the issue's checks.
+pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<String> {
+    let mut text = format!(
+        "# Table 3 on the Berlin-sized city\n\n\
+         Standard path of {BERLIN_PATH_S} s, {}×{}, cache budget {budget_mb} MB, `desktop` bind-latency \
+         model, modelled clock; β = 8, τ = 150. Paper: Berlin (atlas) at 3840×2160 on an RTX 2080 Ti \
+         (Table 3). Frame latency in ms; MB/s and Mip/s are means over 0.10423 s windows.\n\n\
+         | Run | Frames | Frame median | Frame mean | Frame max | MB/s | Mip/s | Mean PSNR (dB) | PSNR of mean MSE (dB) | Paper: median / mean / max | Paper: MB/s | Paper: Mip/s |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        size.0, size.1
+    );
+    let number = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.2}"));
+    let mut summaries = Vec::new();
+    for run in &RUNS {
+        let s = summary_of(&out.join(run.dir))?;
+        let paper = run.paper.as_ref().map_or(("—".into(), "—".into(), "—".into()), |p| {
+            (
+                format!("{} / {} / {}", p.frame_ms[0], p.frame_ms[1], p.frame_ms[2]),
+                format!("{}", p.mb_per_s),
+                format!("{}", p.mips_per_s),
+            )
+        });
+        text.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            run.name,
+            number(count(&s, "frames")),
+            number(stat(&s, "frame_ms", "median")),
+            number(stat(&s, "frame_ms", "mean")),
+            number(stat(&s, "frame_ms", "max")),
+            number(stat(&s, "mb_per_s", "mean")),
+            number(stat(&s, "mips_per_s", "mean")),
+            number(stat(&s, "psnr_db", "mean")),
+            number(count(&s, "psnr_of_mean_mse_db")),
+            paper.0,
+            paper.1,
+            paper.2
+        ));
+        summaries.push(s);
+    }
+    let (baseline, adaptive) = (&summaries[0], &summaries[2]);
+    let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
+        (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+        _ => None,
+    };
+    let checks: Vec<Check> = vec![
+        (
+            "Baseline: mean / median frame latency (it stalls throughout; paper 6.25)".into(),
+            ratio(stat(baseline, "frame_ms", "mean"), stat(baseline, "frame_ms", "median")),
+            "≥ 2",
+            |v| v >= 2.0,
+        ),
+        (
+            "Mean frame latency, adaptive α=12 / baseline (paper 0.125)".into(),
+            ratio(stat(adaptive, "frame_ms", "mean"), stat(baseline, "frame_ms", "mean")),
+            "≤ 0.35",
+            |v| v <= 0.35,
+        ),
+        (
+            "Max frame latency, adaptive α=12 / baseline (paper 0.034)".into(),
+            ratio(stat(adaptive, "frame_ms", "max"), stat(baseline, "frame_ms", "max")),
+            "≤ 0.05",
+            |v| v <= 0.05,
+        ),
+        (
+            "MB/s mean, adaptive α=12 / baseline (paper 0.53)".into(),
+            ratio(stat(adaptive, "mb_per_s", "mean"), stat(baseline, "mb_per_s", "mean")),
+            "≥ 0.5",
+            |v| v >= 0.5,
+        ),
+    ];
+    text.push('\n');
+    text.push_str(&checks_table("## The issue's targets", checks));
+    Ok(text)
+}
