@@ -750,6 +750,77 @@ fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() 
 
 #[cfg(unix)]
 #[test]
+fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows() -> TestResult {
+    let dir = scratch("bench-berlin");
+    let (script, log) = fake_flythrough(&dir, "none");
+    // Any dataset in DATA/berlin is taken as it is (the real one takes 40 minutes to build).
+    let data = dir.join("data");
+    let city = data.join("berlin");
+    let generated = citystream(&["gen", "--preset", "tiny", "--out", &city.display().to_string()]);
+    assert!(
+        generated.status.success(),
+        "{}",
+        String::from_utf8_lossy(&generated.stderr)
+    );
+    let out = dir.join("out");
+    let (c, o) = (city.display().to_string(), out.display().to_string());
+    let result = citystream(&[
+        "bench",
+        "--scenario",
+        "berlin",
+        "--data-dir",
+        &data.display().to_string(),
+        "--out",
+        &o,
+        "--flythrough",
+        &script.display().to_string(),
+    ]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "bench failed: {stderr}");
+    let logged = std::fs::read_to_string(&log)?;
+    let lines: Vec<&str> = logged.lines().collect();
+    let shared = format!("--memory-budget-mb 1024 --path {o}/path.json --psnr-interval 60 --frame-interval 0");
+    let tail =
+        |name: &str| format!("--clock modelled --bind-latency desktop --width 1920 --height 1080 --out {o}/{name}");
+    let policy = |args: &str, name: &str| format!("--dataset {c} {args} {shared} {}", tail(name));
+    let expected = [
+        policy("--policy baseline", "baseline"),
+        policy("--policy fixed --load-size-mb 4 --mip-bias 0", "fixed-s4-b0"),
+        policy("--policy adaptive --alpha 12 --beta 8", "adaptive-a12"),
+        policy("--policy adaptive --alpha 14 --beta 8", "adaptive-a14"),
+        policy("--policy adaptive --alpha 16 --beta 8", "adaptive-a16"),
+        policy("--policy adaptive --alpha 18 --beta 8", "adaptive-a18"),
+    ];
+    assert_eq!(lines, expected);
+    // The path: the city's standard path, as long as the paper's Berlin benchmark.
+    let path: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("path.json"))?)?;
+    let last = path["keyframes"]
+        .as_array()
+        .and_then(|k| k.last())
+        .and_then(|k| k["t"].as_f64())
+        .expect("keyframe times");
+    assert!((last - 68.6).abs() < 1e-9, "path ends at {last} s");
+    let table = std::fs::read_to_string(out.join("berlin.md"))?;
+    // Each run beside the paper's row; the fake's baseline runs at 40 ms, α at α ms.
+    assert!(table.contains("| baseline | 20 | 40.00 | 40.00 | 40.00 |"), "{table}");
+    assert!(table.contains("| 6.8 / 42.5 / 471.16 | 79.95 | 9628 |"), "{table}");
+    assert!(table.contains("| adaptive α=18 ms | 20 | 18.00 |"), "{table}");
+    assert!(
+        table.contains(
+            "| Baseline: mean / median frame latency (it stalls throughout; paper 6.25) | 1.000 | ≥ 2 | no |"
+        ),
+        "{table}"
+    );
+    assert!(
+        table.contains("| Mean frame latency, adaptive α=12 / baseline (paper 0.125) | 0.300 | ≤ 0.35 | yes |"),
+        "{table}"
+    );
+    assert!(out.join("table.md").is_file(), "the report of every run");
+    Ok(())
+}
+
+#[cfg(unix)]
+#[test]
 fn controllers_bench_flies_both_controllers_and_the_baseline_on_both_benchmarks() -> TestResult {
     let dir = scratch("bench-controllers");
     let (script, log) = fake_flythrough(&dir, "none");
