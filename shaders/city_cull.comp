@@ -18,14 +18,16 @@
 // fit its buffer draws every mesh instead (the second draw, otherwise empty).
 layout(local_size_x = 256) in;
 
-layout(std430, set = 0, binding = BINDING_CULL_BOUNDS) readonly buffer Bounds { MeshBounds bounds[]; };
+// The mesh bounds and the city's indices may be larger than one binding addresses
+// (maxStorageBufferRange): each is an array of windows, element k its k-th window.
+layout(std430, set = 0, binding = BINDING_CULL_BOUNDS) readonly buffer Bounds { MeshBounds b[]; } bounds_windows[CULL_WINDOWS];
 layout(std430, set = 0, binding = BINDING_CULL_CHUNK_BOUNDS) readonly buffer ChunkBounds { MeshBounds chunk_bounds[]; };
 layout(std430, set = 0, binding = BINDING_CULL_RANGES) readonly buffer Ranges { uvec2 ranges[]; };
 layout(std430, set = 0, binding = BINDING_CULL_FLAGS) buffer Flags { uint flags[]; };
 layout(std430, set = 0, binding = BINDING_CULL_CHUNK_FLAGS) buffer ChunkFlags { uint chunk_in_frustum[]; };
 layout(std430, set = 0, binding = BINDING_CULL_GROUPS) buffer Groups { uint group_indices[]; };
 layout(std430, set = 0, binding = BINDING_CULL_DRAWS) buffer Draws { uint draws[]; };
-layout(std430, set = 0, binding = BINDING_CULL_CITY_INDICES) readonly buffer CityIndices { uint city_indices[]; };
+layout(std430, set = 0, binding = BINDING_CULL_CITY_INDICES) readonly buffer CityIndices { uint i[]; } index_windows[CULL_WINDOWS];
 layout(std430, set = 0, binding = BINDING_CULL_INDICES) writeonly buffer ListIndices { uint list_indices[]; };
 layout(std430, set = 0, binding = BINDING_CULL_COUNTER) buffer Counter { CullCounter counter; };
 layout(std430, set = 0, binding = BINDING_CULL_PYRAMID) buffer Pyramid { float pyramid[]; };
@@ -41,6 +43,32 @@ const float DEPTH_SLACK = 1.0 / 262144.0;
 const float PIXEL_SLACK = 1.0 / 16.0;
 
 shared uint partial[256];
+
+// Element `i` of a windowed array whose windows hold 2^shift elements each. The window is
+// picked by a switch: indexing the array directly with a value that differs between
+// invocations would need the non-uniform indexing feature.
+#define WINDOWED(windows, member, i, shift, T)                                                   \
+    T value;                                                                                      \
+    uint at = (i) & ((1u << (shift)) - 1u);                                                       \
+    switch ((i) >> (shift)) {                                                                     \
+        case 0u: value = windows[0].member[at]; break;                                           \
+        case 1u: value = windows[1].member[at]; break;                                           \
+        case 2u: value = windows[2].member[at]; break;                                           \
+        case 3u: value = windows[3].member[at]; break;                                           \
+        case 4u: value = windows[4].member[at]; break;                                           \
+        case 5u: value = windows[5].member[at]; break;                                           \
+        case 6u: value = windows[6].member[at]; break;                                           \
+        default: value = windows[7].member[at]; break;                                           \
+    }                                                                                             \
+    return value;
+
+MeshBounds mesh_bounds(uint m) {
+    WINDOWED(bounds_windows, b, m, push.window_shifts & 0xffu, MeshBounds)
+}
+
+uint city_index(uint k) {
+    WINDOWED(index_windows, i, k, (push.window_shifts >> 8) & 0xffu, uint)
+}
 
 uint group_index() {
     return gl_WorkGroupID.x + gl_WorkGroupID.y * gl_NumWorkGroups.x;
@@ -181,7 +209,7 @@ void main() {
         }
         for (uint m = begin; m < end; ++m) {
             uint previous = (flags[m] & CULL_NEXT) != 0u ? CULL_PREVIOUS : 0u;
-            bool drawable = ranges[m].y != 0u && in_frustum(bounds[m]);
+            bool drawable = ranges[m].y != 0u && in_frustum(mesh_bounds(m));
             flags[m] = previous | (drawable ? CULL_IN_FRUSTUM : 0u);
         }
     } else if (push.phase == CULL_PHASE_OCCLUSION) {
@@ -202,7 +230,7 @@ void main() {
         bool chunk_visible = any_in_frustum && unoccluded(chunk_bounds[chunk]);
         for (uint m = begin; m < end; ++m) {
             uint f = flags[m] & (CULL_PREVIOUS | CULL_IN_FRUSTUM);
-            if (chunk_visible && (f & CULL_IN_FRUSTUM) != 0u && unoccluded(bounds[m])) {
+            if (chunk_visible && (f & CULL_IN_FRUSTUM) != 0u && unoccluded(mesh_bounds(m))) {
                 f |= CULL_UNOCCLUDED | CULL_NEXT;
             }
             flags[m] = f;
@@ -296,7 +324,7 @@ void main() {
             if (listed(m)) {
                 uvec2 range = ranges[m];
                 for (uint k = 0u; k < range.y; ++k) {
-                    list_indices[to + k] = city_indices[range.x + k];
+                    list_indices[to + k] = city_index(range.x + k);
                 }
                 to += range.y;
             }

@@ -43,7 +43,7 @@ use crate::gpu_types::{
     BINDING_CULL_CITY_INDICES, BINDING_CULL_COUNTER, BINDING_CULL_DRAWS, BINDING_CULL_FLAGS, BINDING_CULL_GROUPS,
     BINDING_CULL_INDICES, BINDING_CULL_PYRAMID, BINDING_CULL_RANGES, CULL_IN_FRUSTUM, CULL_PHASE_COUNT,
     CULL_PHASE_EMIT, CULL_PHASE_FRUSTUM, CULL_PHASE_OCCLUSION, CULL_PHASE_PYRAMID, CULL_PHASE_SCAN, CULL_PREVIOUS,
-    CULL_UNOCCLUDED,
+    CULL_UNOCCLUDED, CULL_WINDOWS,
 };
 use crate::image::memory_barrier;
 use crate::pipeline::{DescriptorPool, DescriptorResource, Pipeline};
@@ -172,6 +172,10 @@ pub(crate) struct CityCulling {
     capacity: u32,
     /// The city's index buffer (read by the emit phase, drawn on overflow) and its length.
     city_indices: (vk::Buffer, u32),
+    /// How the shader views the bounds and the city's indices: windows of a size a
+    /// storage binding may address.
+    bounds_windows: StorageWindows,
+    index_windows: StorageWindows,
     /// Per slot: the six lists' counters, copied for the host.
     readback: Vec<Buffer>,
     /// Per slot, two timed segments per view.
@@ -180,6 +184,53 @@ pub(crate) struct CityCulling {
 }
 
 debug_fields!(CityCulling { mesh_count, capacity });
+
+/// A buffer of `size` bytes seen through [`CULL_WINDOWS`] windows of `2^shift` elements.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct StorageWindows {
+    size: u64,
+    window_bytes: u64,
+    shift: u32,
+}
+
+/// Testing aid: a smaller window than the device allows (bytes), so that a small city
+/// exercises several windows.
+pub const WINDOW_BYTES_ENV: &str = "CITYSTREAM_CULL_WINDOW_BYTES";
+
+impl StorageWindows {
+    /// Windows of `element`-byte elements (a power of two) over `size` bytes, each at most
+    /// `max_range` bytes (the device's `maxStorageBufferRange`) and at least `alignment`
+    /// (its `minStorageBufferOffsetAlignment`). `what` names the buffer in the error when
+    /// [`CULL_WINDOWS`] windows do not hold it.
+    pub(crate) fn new(size: u64, element: u64, max_range: u64, alignment: u64, what: &str) -> Result<Self> {
+        // The largest power of two in range: window offsets stay aligned and element
+        // indices split by a shift.
+        let window_bytes = (1u64 << (63 - max_range.max(1).leading_zeros()))
+            .max(element)
+            .max(alignment.next_power_of_two());
+        let windows = size.div_ceil(window_bytes);
+        if windows > u64::from(CULL_WINDOWS) {
+            return Err(EngineError::InvalidRequest(format!(
+                "culling {what} of {size} bytes needs {windows} storage windows of {window_bytes} bytes \
+                 (the device's maxStorageBufferRange is {max_range}); at most {CULL_WINDOWS} are supported"
+            )));
+        }
+        Ok(Self {
+            size: size.max(element),
+            window_bytes,
+            shift: (window_bytes / element).trailing_zeros(),
+        })
+    }
+
+    fn resource(&self, buffer: vk::Buffer) -> DescriptorResource {
+        DescriptorResource::StorageBufferWindows {
+            buffer,
+            size: self.size,
+            window: self.window_bytes,
+            count: CULL_WINDOWS,
+        }
+    }
+}
 
 /// A box holding nothing: every point widens it.
 const EMPTY_BOUNDS: MeshBounds = MeshBounds {
@@ -242,13 +293,29 @@ impl CityCulling {
             .min(MAX_LIST_INDICES)
             .min(addressable)
             .max(1) as u32;
+        let limits = device.properties().limits;
+        let max_range = std::env::var(WINDOW_BYTES_ENV)
+            .ok()
+            .and_then(|v| v.parse::<u64>().ok())
+            .map_or(u64::from(limits.max_storage_buffer_range), |v| {
+                v.min(u64::from(limits.max_storage_buffer_range))
+            });
+        let alignment = limits.min_storage_buffer_offset_alignment;
+        let bounds_windows = StorageWindows::new(
+            std::mem::size_of_val(bounds) as u64,
+            std::mem::size_of::<MeshBounds>() as u64,
+            max_range,
+            alignment,
+            "the mesh bounds",
+        )?;
+        let index_windows = StorageWindows::new(city * 4, 4, max_range, alignment, "the city's index buffer")?;
         let stages = vk::ShaderStageFlags::COMPUTE;
         let storage = vk::DescriptorType::STORAGE_BUFFER;
         let pipeline = Pipeline::compute(
             device,
             &shaders::CITY_CULL_COMP,
             &[
-                (BINDING_CULL_BOUNDS, storage, 1, stages),
+                (BINDING_CULL_BOUNDS, storage, CULL_WINDOWS, stages),
                 (BINDING_CULL_RANGES, storage, 1, stages),
                 (BINDING_CULL_FLAGS, storage, 1, stages),
                 (BINDING_CULL_GROUPS, storage, 1, stages),
@@ -257,7 +324,7 @@ impl CityCulling {
                 (BINDING_CULL_PYRAMID, storage, 1, stages),
                 (BINDING_CULL_CHUNK_BOUNDS, storage, 1, stages),
                 (BINDING_CULL_CHUNK_FLAGS, storage, 1, stages),
-                (BINDING_CULL_CITY_INDICES, storage, 1, stages),
+                (BINDING_CULL_CITY_INDICES, storage, CULL_WINDOWS, stages),
                 (BINDING_CULL_INDICES, storage, 1, stages),
             ],
             std::mem::size_of::<CullPush>() as u32,
@@ -389,6 +456,8 @@ impl CityCulling {
             group_count,
             capacity,
             city_indices,
+            bounds_windows,
+            index_windows,
             readback,
             timer,
             recording: Mutex::new(SlotRecords {
@@ -420,10 +489,7 @@ impl CityCulling {
             self.pool.write(
                 list.set,
                 &[
-                    (
-                        BINDING_CULL_BOUNDS,
-                        DescriptorResource::StorageBuffer(self.bounds.raw()),
-                    ),
+                    (BINDING_CULL_BOUNDS, self.bounds_windows.resource(self.bounds.raw())),
                     (
                         BINDING_CULL_RANGES,
                         DescriptorResource::StorageBuffer(self.ranges.raw()),
@@ -441,7 +507,7 @@ impl CityCulling {
                     (BINDING_CULL_PYRAMID, DescriptorResource::StorageBuffer(pyramid)),
                     (
                         BINDING_CULL_CITY_INDICES,
-                        DescriptorResource::StorageBuffer(self.city_indices.0),
+                        self.index_windows.resource(self.city_indices.0),
                     ),
                     (
                         BINDING_CULL_INDICES,
@@ -537,7 +603,7 @@ impl CityCulling {
             capacity: self.capacity,
             group_count: self.group_count,
             city_indices: self.city_indices.1,
-            pad0: 0,
+            window_shifts: self.bounds_windows.shift | (self.index_windows.shift << 8),
         }
     }
 
@@ -822,6 +888,24 @@ fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn storage_windows_fit_the_device_range_and_refuse_what_eight_do_not_hold() -> Result<()> {
+        // lavapipe: 128 MiB; 7.7 M meshes of 32-byte bounds need two windows.
+        let w = StorageWindows::new(7_685_318 * 32, 32, 1 << 27, 16, "bounds")?;
+        assert_eq!((w.window_bytes, w.shift), (1 << 27, 22));
+        // A range that is no power of two rounds down; the shift counts elements.
+        let w = StorageWindows::new(1000, 4, 300, 16, "indices")?;
+        assert_eq!((w.window_bytes, w.shift), (256, 6));
+        let windows: Vec<_> = crate::pipeline::storage_windows(w.size, w.window_bytes, CULL_WINDOWS).collect();
+        assert_eq!(&windows[..5], &[(0, 256), (256, 256), (512, 256), (768, 232), (0, 256)]);
+        // Nine windows' worth is refused, naming the buffer.
+        let err = StorageWindows::new(9 * 256, 4, 256, 16, "the city's index buffer").expect_err("too large");
+        assert!(err.to_string().contains("the city's index buffer"), "{err}");
+        // An empty buffer still binds one element's worth.
+        assert_eq!(StorageWindows::new(0, 32, 1 << 27, 16, "bounds")?.size, 32);
+        Ok(())
+    }
 
     #[test]
     fn bounds_cover_each_meshs_positions_and_leave_non_finite_meshes_unbounded() {

@@ -145,9 +145,16 @@ pub struct CullPush {
     pub group_count: u32,
     /// Indices of the whole city (the overflow draw).
     pub city_indices: u32,
-    /// Padding.
-    pub pad0: u32,
+    /// log2 of the meshes per window of the bounds (bits 0..8) and of the indices per
+    /// window of the city's index buffer (bits 8..16); see [`CULL_WINDOWS`].
+    pub window_shifts: u32,
 }
+
+/// Windows the culling pass views the mesh bounds and the city's index buffer through
+/// (array bindings of [`BINDING_CULL_BOUNDS`] and [`BINDING_CULL_CITY_INDICES`]): each
+/// window at most the device's `maxStorageBufferRange` (128 MiB on lavapipe), so a city of
+/// up to 8 such windows of either (33 M meshes, 268 M indices on lavapipe) is culled.
+pub const CULL_WINDOWS: u32 = 8;
 
 /// `CullCounter`: what a culled list holds.
 #[repr(C)]
@@ -650,6 +657,17 @@ mod tests {
             .find_map(|line| line.strip_prefix("#define CACHE_IMAGE_SLOTS "))
             .and_then(|rest| rest.split_whitespace().next()?.parse::<u32>().ok());
         assert_eq!(slots, Some(CACHE_IMAGE_SLOTS));
+        let windows = header
+            .lines()
+            .find_map(|line| line.strip_prefix("#define CULL_WINDOWS "))
+            .and_then(|rest| {
+                rest.split_whitespace()
+                    .next()?
+                    .trim_end_matches('u')
+                    .parse::<u32>()
+                    .ok()
+            });
+        assert_eq!(windows, Some(CULL_WINDOWS));
     }
 
     #[test]
@@ -809,7 +827,7 @@ mod tests {
                 ("capacity", offset_of!(CullPush, capacity)),
                 ("group_count", offset_of!(CullPush, group_count)),
                 ("city_indices", offset_of!(CullPush, city_indices)),
-                ("pad0", offset_of!(CullPush, pad0)),
+                ("window_shifts", offset_of!(CullPush, window_shifts)),
             ],
             size_of::<CullPush>(),
         );

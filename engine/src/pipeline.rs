@@ -393,6 +393,17 @@ debug_fields!(DescriptorPool { raw });
 pub enum DescriptorResource {
     /// A storage buffer range (whole buffer).
     StorageBuffer(vk::Buffer),
+    /// An array binding of storage buffers that views one buffer of `size` bytes through
+    /// windows of `window` bytes (a power of two no larger than the device's
+    /// `maxStorageBufferRange`): element `k` is bytes `k * window ..` of it, so a shader
+    /// reaches a buffer larger than one binding may address. Elements past the end repeat
+    /// the first window.
+    StorageBufferWindows {
+        buffer: vk::Buffer,
+        size: u64,
+        window: u64,
+        count: u32,
+    },
     /// A uniform buffer (whole buffer).
     UniformBuffer(vk::Buffer),
     /// A combined image sampler in SHADER_READ_ONLY_OPTIMAL.
@@ -406,7 +417,9 @@ impl DescriptorResource {
     /// The descriptor type a binding of this resource has.
     pub fn descriptor_type(&self) -> vk::DescriptorType {
         match self {
-            DescriptorResource::StorageBuffer(_) => vk::DescriptorType::STORAGE_BUFFER,
+            DescriptorResource::StorageBuffer(_) | DescriptorResource::StorageBufferWindows { .. } => {
+                vk::DescriptorType::STORAGE_BUFFER
+            }
             DescriptorResource::UniformBuffer(_) => vk::DescriptorType::UNIFORM_BUFFER,
             DescriptorResource::SampledImage(..) | DescriptorResource::SampledImageArray(..) => {
                 vk::DescriptorType::COMBINED_IMAGE_SAMPLER
@@ -464,19 +477,38 @@ impl DescriptorPool {
     }
 }
 
+/// (offset, range) of each of `count` windows of `window` bytes over a buffer of `size`
+/// bytes; windows past the end repeat the first.
+pub(crate) fn storage_windows(size: u64, window: u64, count: u32) -> impl Iterator<Item = (u64, u64)> {
+    (0..u64::from(count)).map(move |k| {
+        let offset = k.checked_mul(window).filter(|&o| o < size).unwrap_or(0);
+        (offset, window.min(size - offset).max(1))
+    })
+}
+
 /// Writes `resources` (binding, resource) into `set`, which must come from a
 /// live pool of `device` with a layout that has those bindings, and must not
 /// be in use by the GPU.
 pub(crate) fn write_descriptor_set(device: &Device, set: vk::DescriptorSet, resources: &[(u32, DescriptorResource)]) {
-    let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = resources
+    let buffer_infos: Vec<Vec<vk::DescriptorBufferInfo>> = resources
         .iter()
         .map(|(_, r)| match *r {
-            DescriptorResource::StorageBuffer(b) | DescriptorResource::UniformBuffer(b) => [vk::DescriptorBufferInfo {
-                buffer: b,
-                offset: 0,
-                range: vk::WHOLE_SIZE,
-            }],
-            _ => [vk::DescriptorBufferInfo::default()],
+            DescriptorResource::StorageBuffer(b) | DescriptorResource::UniformBuffer(b) => {
+                vec![vk::DescriptorBufferInfo {
+                    buffer: b,
+                    offset: 0,
+                    range: vk::WHOLE_SIZE,
+                }]
+            }
+            DescriptorResource::StorageBufferWindows {
+                buffer,
+                size,
+                window,
+                count,
+            } => storage_windows(size, window, count)
+                .map(|(offset, range)| vk::DescriptorBufferInfo { buffer, offset, range })
+                .collect(),
+            _ => Vec::new(),
         })
         .collect();
     let sampled = |sampler, image_view| vk::DescriptorImageInfo {
@@ -503,9 +535,9 @@ pub(crate) fn write_descriptor_set(device: &Device, set: vk::DescriptorSet, reso
                 .dst_binding(*binding)
                 .descriptor_type(r.descriptor_type());
             match r {
-                DescriptorResource::StorageBuffer(_) | DescriptorResource::UniformBuffer(_) => {
-                    write.buffer_info(&buffer_infos[i])
-                }
+                DescriptorResource::StorageBuffer(_)
+                | DescriptorResource::UniformBuffer(_)
+                | DescriptorResource::StorageBufferWindows { .. } => write.buffer_info(&buffer_infos[i]),
                 DescriptorResource::SampledImage(..) | DescriptorResource::SampledImageArray(..) => {
                     write.image_info(&image_infos[i])
                 }

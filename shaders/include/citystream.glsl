@@ -70,6 +70,7 @@
 #define CULL_PHASE_SCAN 3u
 #define CULL_PHASE_EMIT 4u
 #define CULL_CHUNK 64u                // meshes per invocation of the count and emit phases
+#define CULL_WINDOWS 8                // array elements of BINDING_CULL_BOUNDS and BINDING_CULL_CITY_INDICES
 #define CULL_PHASE_PYRAMID 5u         // per texel of level `want` (>= 1): the farthest of the four below it
 
 // A mesh's world-space bounding box; low.w != 0: unbounded (non-finite positions), never culled.
@@ -89,7 +90,7 @@ struct CullPush {
     uint capacity;          // indices the list's buffer holds
     uint group_count;       // chunks of CULL_CHUNK meshes
     uint city_indices;      // indices of the whole city (the overflow draw)
-    uint pad0;
+    uint window_shifts;     // log2 of meshes per bounds window (bits 0..8), of indices per index window (8..16)
 };
 
 // What one list holds.

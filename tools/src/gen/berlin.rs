@@ -223,8 +223,18 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
     let planned = plan(params, args.seed, format)?;
     let scene = &planned.city.scene;
     let disk = planned.disk;
+    // A building (or a setback tower on one) has one roof.
+    let buildings = planned
+        .city
+        .textures
+        .iter()
+        .filter(|t| matches!(t.content, layout::Content::Roof { .. }))
+        .count();
+    let extent_km = |a: usize| f64::from(scene.bounds.max[a] - scene.bounds.min[a]) / 1000.0;
     say(format!(
-        "laid out {} meshes, {} triangles; {} textures into {} atlases of {ATLAS_EXTENT}x{ATLAS_EXTENT} (fill ratio {:.1}%){}; {:.0} s",
+        "laid out {buildings} buildings over {:.1} x {:.1} km: {} meshes, {} triangles; {} textures into {} atlases of {ATLAS_EXTENT}x{ATLAS_EXTENT} (fill ratio {:.1}%){}; {:.0} s",
+        extent_km(0),
+        extent_km(2),
         scene.meshes.len(),
         scene.triangle_count(),
         planned.sizes.len(),
