@@ -37,7 +37,7 @@ use super::args::{
     Args, Clock, Culling, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
 };
 use super::ground;
-use super::measure::meshes_in_view;
+use super::measure::MeshesInView;
 use super::tree::TreeRun;
 
 /// The passes of a flythrough frame, in recording order, timed separately.
@@ -507,6 +507,7 @@ const MAX_FINISH_LOADING: Duration = Duration::from_secs(600);
 /// around it, the window presenting and input.
 pub(crate) struct Flight {
     pub(crate) dataset: Arc<Dataset>,
+    meshes_in_view: MeshesInView,
     pub(crate) city: CityGeometry,
     /// The scene's largest side, which scales the camera's depth range.
     pub(crate) extent: f32,
@@ -660,6 +661,7 @@ impl Flight {
         let pass_times = PassTimes::new(device, frames_in_flight)?;
         let tau = gpu.streamer.gpu_tau();
         Ok(Self {
+            meshes_in_view: MeshesInView::new(&dataset.scene),
             dataset,
             city,
             extent,
@@ -774,7 +776,9 @@ impl Flight {
                         .record_visible_on_ground(rec, target, camera, blend, ground)?,
                     None => self.gpu.renderer.record_visible(rec, target, camera, 1.0, blend)?,
                 }
-                let in_view = meshes_in_view(&self.dataset.scene, camera, target.width(), target.height());
+                let in_view = self
+                    .meshes_in_view
+                    .count(&self.dataset.scene, camera, target.width(), target.height());
                 (in_view, None)
             }
         };

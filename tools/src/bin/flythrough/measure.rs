@@ -2,6 +2,7 @@
 //! draws a renderer binding one texture per draw would issue.
 
 use anyhow::Result;
+use citystream_dataset::Aabb;
 
 use citystream_engine::city::{Camera, CityMesh, FeedbackView};
 use citystream_engine::commands::CommandContext;
@@ -38,18 +39,53 @@ pub(crate) fn load_reference(
 }
 
 /// Draws of the feedback strategy's frame as a renderer binding one texture per draw
-/// issues them: one per mesh in view.
-pub(crate) fn meshes_in_view(scene: &citystream_dataset::Scene, camera: &Camera, width: u32, height: u32) -> u32 {
-    let planes = frustum_planes(
-        camera
-            .view_projection(width as f32 / height as f32, 0.0)
-            .to_cols_array_2d(),
-    );
-    scene
-        .meshes
-        .iter()
-        .filter(|mesh| mesh.index_count > 0 && intersects_frustum(&mesh.bounds, &planes))
-        .count() as u32
+/// issues them: one per mesh in view. Counted every frame on the host, so meshes are
+/// grouped into runs of consecutive ones (neighbours in a city's mesh order) whose boxes
+/// are tested first: a frame tests the runs plus the meshes of the runs in view, not
+/// every mesh (7.7 M on the Berlin-sized city).
+pub(crate) struct MeshesInView {
+    /// Per run of [`MeshesInView::RUN`] meshes: the union of its drawable meshes' boxes
+    /// (`None`: none is drawable).
+    runs: Vec<Option<Aabb>>,
+}
+
+impl MeshesInView {
+    const RUN: usize = 64;
+
+    pub(crate) fn new(scene: &citystream_dataset::Scene) -> Self {
+        let runs = scene
+            .meshes
+            .chunks(Self::RUN)
+            .map(|run| {
+                run.iter()
+                    .filter(|m| m.index_count > 0)
+                    .fold(None, |union: Option<Aabb>, m| {
+                        let mut b = union.unwrap_or(m.bounds);
+                        b.union(&m.bounds);
+                        Some(b)
+                    })
+            })
+            .collect();
+        Self { runs }
+    }
+
+    /// The meshes of `scene` (the one given to `new`) whose boxes meet the frustum.
+    pub(crate) fn count(&self, scene: &citystream_dataset::Scene, camera: &Camera, width: u32, height: u32) -> u32 {
+        let planes = frustum_planes(
+            camera
+                .view_projection(width as f32 / height as f32, 0.0)
+                .to_cols_array_2d(),
+        );
+        // A box inside another meets the frustum only if the outer one does.
+        let visible =
+            |mesh: &citystream_dataset::Mesh| mesh.index_count > 0 && intersects_frustum(&mesh.bounds, &planes);
+        self.runs
+            .iter()
+            .zip(scene.meshes.chunks(Self::RUN))
+            .filter(|(union, _)| union.is_some_and(|b| intersects_frustum(&b, &planes)))
+            .map(|(_, run)| run.iter().filter(|m| visible(m)).count() as u32)
+            .sum()
+    }
 }
 
 /// The feedback entries (reaching `tau`) of the fully resident reference's own feedback
@@ -118,4 +154,60 @@ pub(crate) fn feedback_reaching<S: MipSource + 'static>(
         .into_iter()
         .filter(|e| e.weight >= tau)
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// The run-first count equals testing every mesh, over views that see all, part and
+    /// none of a grid of buildings (and a mesh without triangles, never counted).
+    #[test]
+    fn meshes_in_view_counts_what_testing_every_mesh_counts() {
+        let mut scene = citystream_dataset::Scene::new([391_250.0, 34.0, -5_819_500.0]);
+        for i in 0..1000u32 {
+            let (x, z) = ((i % 40) as f32 * 12.0, (i / 40) as f32 * 12.0);
+            let h = 5.0 + (i % 7) as f32 * 6.0;
+            let indices: &[u32] = if i == 500 { &[] } else { &[0, 1, 2, 0, 2, 3] };
+            scene
+                .push_mesh(
+                    i,
+                    &[[x, 0.0, z], [x + 8.0, 0.0, z], [x + 8.0, h, z], [x, h, z]],
+                    &[[0.0, 0.0, 1.0]; 4],
+                    &[[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]],
+                    indices,
+                )
+                .expect("mesh");
+        }
+        let counter = MeshesInView::new(&scene);
+        let views = [
+            (Vec3::new(240.0, 400.0, -200.0), Vec3::new(240.0, 0.0, 150.0)),
+            (Vec3::new(10.0, 2.0, 100.0), Vec3::new(200.0, 2.0, 110.0)),
+            (Vec3::new(-50.0, 30.0, -50.0), Vec3::new(-200.0, 30.0, -200.0)),
+            (Vec3::new(100.0, 60.0, 300.0), Vec3::new(300.0, 0.0, 0.0)),
+        ];
+        let mut counts = Vec::new();
+        for (eye, target) in views {
+            let camera = Camera {
+                eye,
+                target,
+                fov_y: 1.0,
+                near: 0.5,
+                far: 2000.0,
+            };
+            let planes = frustum_planes(camera.view_projection(16.0 / 9.0, 0.0).to_cols_array_2d());
+            let every = scene
+                .meshes
+                .iter()
+                .filter(|m| m.index_count > 0 && intersects_frustum(&m.bounds, &planes))
+                .count() as u32;
+            assert_eq!(counter.count(&scene, &camera, 1600, 900), every);
+            counts.push(every);
+        }
+        // The views see everything, part of the city, nothing.
+        assert_eq!(counts[0], 999, "{counts:?}");
+        assert!(counts[1] > 0 && counts[1] < 999, "{counts:?}");
+        assert_eq!(counts[2], 0, "{counts:?}");
+    }
 }
