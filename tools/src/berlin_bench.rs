@@ -60,12 +60,6 @@ const RUNS: [BerlinRun; 6] = [
         paper: Some(PAPER_BASELINE),
     },
     BerlinRun {
-        dir: "fixed-s4-b0",
-        name: "fixed s=4 MB b=0",
-        args: &["--policy", "fixed", "--load-size-mb", "4", "--mip-bias", "0"],
-        paper: None,
-    },
-    BerlinRun {
         dir: "adaptive-a12",
         name: "adaptive α=12 ms",
         args: &["--policy", "adaptive", "--alpha", "12", "--beta", "8"],
@@ -104,6 +98,12 @@ const RUNS: [BerlinRun; 6] = [
             mb_per_s: 53.02,
             mips_per_s: 9815.76,
         }),
+    },
+    BerlinRun {
+        dir: "fixed-s4-b0",
+        name: "fixed s=4 MB b=0",
+        args: &["--policy", "fixed", "--load-size-mb", "4", "--mip-bias", "0"],
+        paper: None,
     },
 ];
 
@@ -212,7 +212,7 @@ pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<Stri
         ));
         summaries.push(s);
     }
-    let (baseline, adaptive) = (&summaries[0], &summaries[2]);
+    let (baseline, adaptive) = (&summaries[0], &summaries[1]);
     let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
         (Some(a), Some(b)) if b > 0.0 => Some(a / b),
         _ => None,

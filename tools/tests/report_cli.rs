@@ -785,11 +785,11 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
     let policy = |args: &str, name: &str| format!("--dataset {c} {args} {shared} {}", tail(name));
     let expected = [
         policy("--policy baseline", "baseline"),
-        policy("--policy fixed --load-size-mb 4 --mip-bias 0", "fixed-s4-b0"),
         policy("--policy adaptive --alpha 12 --beta 8", "adaptive-a12"),
         policy("--policy adaptive --alpha 14 --beta 8", "adaptive-a14"),
         policy("--policy adaptive --alpha 16 --beta 8", "adaptive-a16"),
         policy("--policy adaptive --alpha 18 --beta 8", "adaptive-a18"),
+        policy("--policy fixed --load-size-mb 4 --mip-bias 0", "fixed-s4-b0"),
     ];
     assert_eq!(lines, expected);
     // The path: the city's standard path, as long as the paper's Berlin benchmark.
