@@ -171,6 +171,11 @@ pub struct BenchArgs {
     /// `--scenario pressure`, the frames 30 s of the path take).
     #[arg(long)]
     frames: Option<u64>,
+    /// `--scenario berlin`: only these runs (directory names, comma-separated: `baseline`,
+    /// `adaptive-a12`, `adaptive-a14`, `adaptive-a16`, `adaptive-a18`, `fixed-s4-b0`); the
+    /// tables show the others as not run.
+    #[arg(long, value_delimiter = ',')]
+    runs: Option<Vec<String>>,
     /// Image width of every run (default: the flythrough's own; 1920 with
     /// `--scenario pressure`).
     #[arg(long, value_parser = clap::value_parser!(u32).range(16..=8192))]
@@ -443,6 +448,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         }
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    if args.runs.is_some() && args.scenario != Scenario::Berlin {
+        bail!("--runs selects runs of `--scenario berlin` only");
+    }
     if args.strategy.is_some() && matches!(args.scenario, Scenario::Loader | Scenario::Remote) {
         bail!("--strategy applies to flythrough runs; `--scenario loader` and `remote` measure the loader alone");
     }
@@ -470,7 +478,10 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             .map(|p| BenchRun::of_policy(p, &[]))
             .collect::<Vec<_>>(),
         Scenario::Pressure => pressure_runs(budget_mb),
-        Scenario::Berlin => berlin_bench::runs(budget_mb, &berlin_bench::write_path(&dataset, &args.out)?),
+        Scenario::Berlin => {
+            let runs = berlin_bench::runs(budget_mb, &berlin_bench::write_path(&dataset, &args.out)?);
+            berlin_bench::select(runs, args.runs.as_deref())?
+        }
         Scenario::Controllers => return run_controllers(args, &flythrough, &dataset, budget_mb),
         Scenario::Strategies => {
             check_tree(&dataset)?;
@@ -531,6 +542,10 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// The flythrough arguments a run was started with, one per line (`--scenario berlin`
+/// keeps a finished run whose file matches).
+const RUN_COMMAND_FILE: &str = "bench-command.txt";
+
 /// Flies `runs` on `dataset`, each into `out/<dir>`, then writes their report into `out`;
 /// the runs, as reported.
 fn fly(
@@ -544,9 +559,37 @@ fn fly(
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let total = runs.len();
     let mut inputs = Vec::with_capacity(total);
+    // The Berlin-sized city's runs take about half an hour each here: a rerun keeps the
+    // ones that finished with the same command.
+    let keep_finished = args.scenario == Scenario::Berlin;
     for (i, policy) in runs.iter().enumerate() {
         let run_dir = out.join(&policy.dir);
         let run_args = flythrough_args(args, settings, dataset, policy, &run_dir);
+        let command_file = run_dir.join(RUN_COMMAND_FILE);
+        let command = run_args.join("\n");
+        let summary = run_dir.join("summary.json");
+        if keep_finished && summary.is_file() && std::fs::read_to_string(&command_file).is_ok_and(|c| c == command) {
+            eprintln!(
+                "[{}/{total}] {}: kept, finished earlier with the same command: {}",
+                i + 1,
+                policy.name,
+                report::run_headline(&run_dir)?
+            );
+            inputs.push(RunInput {
+                dir: run_dir,
+                name: policy.name.to_string(),
+            });
+            continue;
+        }
+        std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
+        // A summary of another command must not pass for this run's if it stops early.
+        match std::fs::remove_file(&summary) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(e).with_context(|| format!("removing {}", summary.display()))
+            }
+            _ => {}
+        }
+        crate::files::write_atomically(&command_file, command.as_bytes())?;
         eprintln!(
             "[{}/{total}] {}: {} {}",
             i + 1,

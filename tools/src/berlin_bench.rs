@@ -134,6 +134,21 @@ pub(crate) fn runs(budget_mb: u64, path: &Path) -> Vec<BenchRun> {
         .collect()
 }
 
+/// The runs `names` names (all when `None`), in the scenario's order.
+pub(crate) fn select(runs: Vec<BenchRun>, names: Option<&[String]>) -> Result<Vec<BenchRun>> {
+    let Some(names) = names else {
+        return Ok(runs);
+    };
+    if let Some(unknown) = names.iter().find(|n| !runs.iter().any(|r| &r.dir == *n)) {
+        let known: Vec<&str> = runs.iter().map(|r| r.dir.as_str()).collect();
+        anyhow::bail!(
+            "--runs: no run `{unknown}` in --scenario berlin (its runs: {})",
+            known.join(", ")
+        );
+    }
+    Ok(runs.into_iter().filter(|r| names.contains(&r.dir)).collect())
+}
+
 /// The Berlin-sized city under `data_dir`, generated first if missing (about 40 minutes and
 /// 42 GB here; resumable: an interrupted generation continues on the next call).
 pub(crate) fn ensure_city(data_dir: &Path) -> Result<PathBuf> {
@@ -185,7 +200,13 @@ pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<Stri
     let number = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.2}"));
     let mut summaries = Vec::new();
     for run in &RUNS {
-        let s = summary_of(&out.join(run.dir))?;
+        let dir = out.join(run.dir);
+        if !dir.join("summary.json").is_file() {
+            text.push_str(&format!("| {} | not run | | | | | | | | | | |\n", run.name));
+            summaries.push(serde_json::Value::Null);
+            continue;
+        }
+        let s = summary_of(&dir)?;
         let paper = run.paper.as_ref().map_or(("—".into(), "—".into(), "—".into()), |p| {
             (
                 format!("{} / {} / {}", p.frame_ms[0], p.frame_ms[1], p.frame_ms[2]),

@@ -764,19 +764,56 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
     );
     let out = dir.join("out");
     let (c, o) = (city.display().to_string(), out.display().to_string());
-    let result = citystream(&[
+    let (data_dir, fake) = (data.display().to_string(), script.display().to_string());
+    let bench = |runs: &[&str]| {
+        let mut command = vec![
+            "bench",
+            "--scenario",
+            "berlin",
+            "--data-dir",
+            &data_dir,
+            "--out",
+            &o,
+            "--flythrough",
+            &fake,
+        ];
+        command.extend_from_slice(runs);
+        let result = citystream(&command);
+        let stderr = String::from_utf8_lossy(&result.stderr).to_string();
+        assert!(result.status.success(), "bench failed: {stderr}");
+        stderr
+    };
+    // Two runs first: the table has the others as not run.
+    bench(&["--runs", "baseline,adaptive-a12"]);
+    let table = std::fs::read_to_string(out.join("berlin.md"))?;
+    assert!(table.contains("| adaptive α=14 ms | not run |"), "{table}");
+    assert!(
+        table.contains("| Mean frame latency, adaptive α=12 / baseline (paper 0.125) | 0.300 | ≤ 0.35 | yes |"),
+        "{table}"
+    );
+    // Then all of them: the two that finished with the same command are kept.
+    let stderr = bench(&[]);
+    assert!(
+        stderr.contains("baseline: kept, finished earlier with the same command"),
+        "{stderr}"
+    );
+    let unknown = citystream(&[
         "bench",
         "--scenario",
         "berlin",
         "--data-dir",
-        &data.display().to_string(),
+        &data_dir,
         "--out",
         &o,
-        "--flythrough",
-        &script.display().to_string(),
+        "--runs",
+        "adaptive-a13",
     ]);
-    let stderr = String::from_utf8_lossy(&result.stderr);
-    assert!(result.status.success(), "bench failed: {stderr}");
+    assert!(!unknown.status.success());
+    assert!(
+        String::from_utf8_lossy(&unknown.stderr).contains("no run `adaptive-a13`"),
+        "{}",
+        String::from_utf8_lossy(&unknown.stderr)
+    );
     let logged = std::fs::read_to_string(&log)?;
     let lines: Vec<&str> = logged.lines().collect();
     let shared = format!("--memory-budget-mb 1024 --path {o}/path.json --psnr-interval 60 --frame-interval 0");
