@@ -266,5 +266,32 @@ pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<Stri
     ];
     text.push('\n');
     text.push_str(&checks_table("## The issue's targets", checks));
+    text.push_str(
+        "\n## What the cycles loaded\n\n\
+         Why a run stalls or not: its demand per cycle against the load size `s` (the baseline's \
+         64 MB) and the blocks each cycle binds (the `desktop` model charges 0.45 µs × n² for a \
+         batch of n contiguous blocks: 1,024 blocks, 64 MB, cost 470 ms; 64 blocks 1.9 ms).\n\n\
+         | Run | MB per frame, mean / max | Frames that loaded ≥ 90 % of s | Blocks bound per frame, mean / max | Frames over 2 × median | Their share of the path's time |\n\
+         |---|---:|---:|---:|---:|---:|\n",
+    );
+    for run in &RUNS {
+        let dir = out.join(run.dir);
+        if !dir.join("frames.csv").is_file() {
+            continue;
+        }
+        let p = crate::report::load_profile(&dir)?;
+        text.push_str(&format!(
+            "| {} | {:.2} / {:.2} | {} of {} | {:.1} / {:.0} | {} | {:.1} % |\n",
+            run.name,
+            p.mb_per_frame[0],
+            p.mb_per_frame[1],
+            p.frames_at_load_size,
+            p.frames,
+            p.blocks_per_frame[0],
+            p.blocks_per_frame[1],
+            p.frames_over_twice_median,
+            100.0 * p.time_share_over_twice_median
+        ));
+    }
     Ok(text)
 }

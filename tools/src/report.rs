@@ -182,6 +182,7 @@ struct FrameRow {
     mip_bias: f64,
     mips: u64,
     bytes: u64,
+    blocks_bound: u64,
     mip_deficit: Option<f64>,
     psnr_db: Option<f64>,
     /// Absent from older CSVs.
@@ -326,6 +327,48 @@ pub fn frames_over(dir: &Path, after_s: f64, limit_ms: f64) -> Result<u64> {
         .count() as u64)
 }
 
+/// What a run's cycles loaded and bound, from its frames.csv: the demand side of its
+/// frame latency.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoadProfile {
+    pub frames: u64,
+    /// MB (2^20 bytes) loaded per frame: mean and max.
+    pub mb_per_frame: [f64; 2],
+    /// Frames whose load reached 90 % of their load size `s` (the cycle was cut by `s`).
+    pub frames_at_load_size: u64,
+    /// Sparse blocks bound per frame: mean and max.
+    pub blocks_per_frame: [f64; 2],
+    /// Frames longer than twice the median frame, and the share of the path's time they
+    /// take.
+    pub frames_over_twice_median: u64,
+    pub time_share_over_twice_median: f64,
+}
+
+/// The [`LoadProfile`] of the run in `dir`.
+pub fn load_profile(dir: &Path) -> Result<LoadProfile> {
+    let frames = read_frames_csv(&dir.join("frames.csv"))?;
+    let n = frames.len() as f64;
+    let mb: Vec<f64> = frames.iter().map(|f| f.bytes as f64 / BYTES_PER_MB).collect();
+    let blocks: Vec<f64> = frames.iter().map(|f| f.blocks_bound as f64).collect();
+    let mut dt: Vec<f64> = frames.iter().map(|f| f.dt_ms).collect();
+    dt.sort_by(f64::total_cmp);
+    let median = dt[dt.len() / 2];
+    let slow: Vec<f64> = dt.iter().copied().filter(|&d| d > 2.0 * median).collect();
+    let mean_max = |v: &[f64]| [v.iter().sum::<f64>() / n, v.iter().copied().fold(0.0, f64::max)];
+    Ok(LoadProfile {
+        frames: frames.len() as u64,
+        mb_per_frame: mean_max(&mb),
+        frames_at_load_size: frames
+            .iter()
+            .filter(|f| f.load_size_mb > 0.0 && f.bytes as f64 / BYTES_PER_MB >= 0.9 * f.load_size_mb)
+            .count() as u64,
+        blocks_per_frame: mean_max(&blocks),
+        frames_over_twice_median: slow.len() as u64,
+        time_share_over_twice_median: slow.iter().fold(0.0, |a, b| a + b)
+            / dt.iter().sum::<f64>().max(f64::MIN_POSITIVE),
+    })
+}
+
 /// Every run of `inputs`, read; an error for none.
 fn load_runs(inputs: &[RunInput]) -> Result<Vec<Run>> {
     if inputs.is_empty() {
@@ -445,10 +488,9 @@ fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
                 float(c).map(Some)
             }
         };
-        // Indices into FRAME_COLUMNS; `frame`, `blocks_bound` and `resident_bytes` are
-        // validated but not charted.
+        // Indices into FRAME_COLUMNS; `frame` and `resident_bytes` are validated but not
+        // charted.
         count(0)?;
-        count(12)?;
         count(13)?;
         rows.push(FrameRow {
             time_s: float(1)?,
@@ -461,6 +503,7 @@ fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
             load_size_mb: float(8)?,
             mip_bias: float(9)?,
             mips: count(10)?,
+            blocks_bound: count(12)?,
             bytes: count(11)?,
             mip_deficit: optional(14)?,
             psnr_db: optional(15)?,
@@ -979,4 +1022,42 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn load_profile_counts_cycles_cut_by_the_load_size_and_slow_frames() -> Result<()> {
+        let dir = std::env::temp_dir().join(format!("citystream-load-profile-{}", std::process::id()));
+        std::fs::create_dir_all(&dir)?;
+        let mut csv = format!("{}\n", FRAME_COLUMNS.join(","));
+        // (dt ms, load size MB, MB loaded, blocks): two frames cut by s (64 of 64, 58 of 64
+        // MB), two at half of theirs; two of the five slower than twice the 10 ms median.
+        let frames = [
+            (10.0, 64.0, 64.0, 1024),
+            (30.0, 64.0, 58.0, 928),
+            (10.0, 64.0, 32.0, 512),
+            (8.0, 1.0, 0.0, 0),
+            (25.0, 1.0, 0.5, 8),
+        ];
+        for (i, (dt, s, mb, blocks)) in frames.iter().enumerate() {
+            let bytes = (mb * BYTES_PER_MB) as u64;
+            csv.push_str(&format!("{i},{i},{dt},{dt},{dt},0,0,0,{s},0,1,{bytes},{blocks},0,,\n"));
+        }
+        std::fs::write(dir.join("frames.csv"), csv)?;
+        let p = load_profile(&dir)?;
+        assert_eq!(p.frames, 5);
+        assert!(
+            (p.mb_per_frame[0] - 154.5 / 5.0).abs() < 1e-9 && p.mb_per_frame[1] == 64.0,
+            "{p:?}"
+        );
+        assert_eq!(p.frames_at_load_size, 2, "{p:?}");
+        assert_eq!((p.blocks_per_frame[0], p.blocks_per_frame[1]), (2472.0 / 5.0, 1024.0));
+        assert_eq!(p.frames_over_twice_median, 2);
+        assert!((p.time_share_over_twice_median - 55.0 / 83.0).abs() < 1e-12, "{p:?}");
+        std::fs::remove_dir_all(dir)?;
+        Ok(())
+    }
 }

@@ -852,6 +852,11 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
         table.contains("| Mean frame latency, adaptive α=12 / baseline (paper 0.125) | 0.300 | ≤ 0.35 | yes |"),
         "{table}"
     );
+    // The fake loads 64 KiB a frame in one block, under its 1 MB load size.
+    assert!(
+        table.contains("| baseline | 0.06 / 0.06 | 0 of 20 | 1.0 / 1 | 0 | 0.0 % |"),
+        "{table}"
+    );
     assert!(out.join("table.md").is_file(), "the report of every run");
     Ok(())
 }
