@@ -818,7 +818,7 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
     let lines: Vec<&str> = logged.lines().collect();
     let shared = format!("--memory-budget-mb 1024 --path {o}/path.json --psnr-interval 60 --frame-interval 0");
     let tail =
-        |name: &str| format!("--clock modelled --bind-latency desktop --width 1920 --height 1080 --out {o}/{name}");
+        |name: &str| format!("--clock modelled --bind-latency desktop --width 3840 --height 2160 --out {o}/{name}");
     let policy = |args: &str, name: &str| format!("--dataset {c} {args} {shared} {}", tail(name));
     let expected = [
         policy("--policy baseline", "baseline"),
