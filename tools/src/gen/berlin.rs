@@ -309,7 +309,7 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
         .batch
         .unwrap_or_else(|| atlas::atlas_batch(ATLAS_EXTENT, format, BUFFER_MB).0)
         .max(1);
-    let mut progress = AtlasProgress::new(disk.atlases, done, args.quiet);
+    let mut progress = super::Progress::resumed(disk.atlases, done, "atlases", 1, args.quiet);
     let mut batches = 0usize;
     let mut next = done.min(disk.atlases);
     while next < disk.atlases {
@@ -351,77 +351,6 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
     writer
         .finish(&out_scene)
         .with_context(|| format!("writing {}", args.out.display()))
-}
-
-/// Progress of the atlas writes on stderr: redrawn in place on a terminal, every 1 %
-/// otherwise, with the rate and the time left.
-struct AtlasProgress {
-    total: usize,
-    done: usize,
-    start_done: usize,
-    start: Instant,
-    last_percent: usize,
-    enabled: bool,
-    terminal: bool,
-}
-
-impl AtlasProgress {
-    fn new(total: usize, done: usize, quiet: bool) -> Self {
-        use std::io::IsTerminal;
-        Self {
-            total,
-            done,
-            start_done: done,
-            start: Instant::now(),
-            last_percent: done * 100 / total.max(1),
-            enabled: !quiet,
-            terminal: std::io::stderr().is_terminal(),
-        }
-    }
-
-    fn advance(&mut self, n: usize) {
-        use std::io::Write;
-        self.done += n;
-        let percent = self.done * 100 / self.total.max(1);
-        if !self.enabled || (!self.terminal && percent == self.last_percent) {
-            return;
-        }
-        self.last_percent = percent;
-        let elapsed = self.start.elapsed().as_secs_f64();
-        let rate = (self.done - self.start_done) as f64 / elapsed.max(1e-9);
-        let left = (self.total - self.done) as f64 / rate.max(1e-9);
-        let line = format!(
-            "gen: {}/{} atlases ({percent}%), {rate:.1}/s, {} elapsed, about {} left",
-            self.done,
-            self.total,
-            duration(elapsed),
-            duration(left)
-        );
-        let mut err = std::io::stderr().lock();
-        // Progress is best effort: a closed stderr must not stop the write.
-        let _ = if self.terminal {
-            write!(err, "\r{line}\x1b[K")
-        } else {
-            writeln!(err, "{line}")
-        };
-    }
-
-    fn finish(&self) {
-        if self.enabled && self.terminal {
-            eprintln!();
-        }
-    }
-}
-
-fn duration(seconds: f64) -> String {
-    let s = seconds.max(0.0).round() as u64;
-    if s >= 3600 {
-        format!("{} h {:02} min", s / 3600, s % 3600 / 60)
-    } else if s >= 60 {
-        format!("{} min {:02} s", s / 60, s % 60)
-    } else {
-        format!("{s} s")
-    }
 }
 
 #[cfg(test)]

@@ -289,48 +289,59 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
 }
 
 /// A one-line progress report on stderr, redrawn in place on a terminal and printed every
-/// 10 % otherwise.
-struct Progress {
+/// `step` per cent otherwise, with the rate and the time left.
+pub(crate) struct Progress {
     total: usize,
     done: usize,
+    /// Items done before this run (a resumed write): not part of the rate.
+    start_done: usize,
+    unit: &'static str,
+    step: usize,
     start: Instant,
-    last_tenth: usize,
+    last_step: usize,
     enabled: bool,
     terminal: bool,
 }
 
 impl Progress {
+    /// Progress of `total` textures, every 10 %; silent for fewer than 10,000.
     fn new(total: usize, quiet: bool) -> Self {
+        Self::resumed(total, 0, "textures", 10, quiet || total < 10_000)
+    }
+
+    /// Progress of `total` items of `unit`, `done` of them before this run, every `step` %.
+    pub(crate) fn resumed(total: usize, done: usize, unit: &'static str, step: usize, quiet: bool) -> Self {
+        let step = step.max(1);
         Self {
             total,
-            done: 0,
+            done,
+            start_done: done,
+            unit,
+            step,
             start: Instant::now(),
-            last_tenth: 0,
-            enabled: !quiet && total >= 10_000,
+            last_step: done * 100 / total.max(1) / step,
+            enabled: !quiet,
             terminal: std::io::stderr().is_terminal(),
         }
     }
 
-    fn advance(&mut self, n: usize) {
+    pub(crate) fn advance(&mut self, n: usize) {
         self.done += n;
-        if !self.enabled {
+        let percent = self.done * 100 / self.total.max(1);
+        if !self.enabled || (!self.terminal && percent / self.step == self.last_step) {
             return;
         }
-        let tenth = self.done * 10 / self.total.max(1);
-        if !self.terminal && tenth == self.last_tenth {
-            return;
-        }
-        self.last_tenth = tenth;
+        self.last_step = percent / self.step;
         let elapsed = self.start.elapsed().as_secs_f64();
-        let rate = self.done as f64 / elapsed.max(1e-9);
-        let eta = (self.total - self.done) as f64 / rate.max(1e-9);
+        let rate = (self.done - self.start_done) as f64 / elapsed.max(1e-9);
+        let left = (self.total - self.done) as f64 / rate.max(1e-9);
         let line = format!(
-            "gen: {}/{} textures ({:.0}%), {:.0}/s, {:.0} s left",
+            "gen: {}/{} {} ({percent}%), {rate:.1}/s, {} elapsed, about {} left",
             self.done,
             self.total,
-            100.0 * self.done as f64 / self.total.max(1) as f64,
-            rate,
-            eta
+            self.unit,
+            duration(elapsed),
+            duration(left)
         );
         let mut err = std::io::stderr().lock();
         // Progress output is best effort: a closed stderr must not stop generation.
@@ -341,10 +352,22 @@ impl Progress {
         };
     }
 
-    fn finish(&self) {
+    pub(crate) fn finish(&self) {
         if self.enabled && self.terminal {
             let _ = writeln!(std::io::stderr());
         }
+    }
+}
+
+/// Seconds as `1 h 02 min`, `3 min 07 s` or `42 s`.
+fn duration(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    if s >= 3600 {
+        format!("{} h {:02} min", s / 3600, s % 3600 / 60)
+    } else if s >= 60 {
+        format!("{} min {:02} s", s / 60, s % 60)
+    } else {
+        format!("{s} s")
     }
 }
 
