@@ -114,8 +114,9 @@ pub struct EvictedLayer {
 /// [`crate::SparseBinder`]; then record the copies of the staged mips.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct CycleBatch {
-    /// Unbinds first (blocks of evicted layers), then binds (blocks newly
-    /// needed by staged mips), each sorted by block key. Every block appears
+    /// Unbinds first (parked blocks whose memory staging needs: see
+    /// [`TextureCache::take_batch`]), then binds (blocks newly needed by
+    /// staged mips), each sorted by block key. Every block appears
     /// at most once; a memory slot freed by an unbind in this batch is never
     /// rebound in the same batch.
     pub ops: Vec<BindOp>,
@@ -150,8 +151,8 @@ pub struct MipUpload {
     /// Bytes of the mip's texel data in the image's format.
     pub bytes: u64,
     /// Blocks this request added to its layer's bound set: new binds plus
-    /// blocks of an evicted layer reclaimed before their unbind was handed
-    /// out (those keep their memory and need no bind). Zero when every block
+    /// parked blocks taken back (those keep their memory and binding and
+    /// need no bind). Zero when every block
     /// was already bound.
     pub new_blocks: u32,
     /// The mip had been staged before in this placement.
@@ -171,9 +172,19 @@ pub struct Utilisation {
     pub live_textures: u64,
     /// Layers holding an assignment.
     pub live_layers: u64,
+    /// Blocks still bound, with their memory, that no live texture uses
+    /// (see [`TextureCache::take_batch`]).
+    pub parked_blocks: u64,
+    /// Bytes of those blocks.
+    pub parked_bytes: u64,
 }
 
 impl Utilisation {
+    /// Device memory bound to the cache's images: live and parked blocks.
+    pub fn held_bytes(&self) -> u64 {
+        self.bound_bytes + self.parked_bytes
+    }
+
     /// `texture_bytes / bound_bytes`, 0 when nothing is bound.
     pub fn ratio(&self) -> f64 {
         if self.bound_bytes == 0 {
@@ -318,9 +329,18 @@ struct Shared {
     live_blocks: u64,
     /// Binds not yet handed out in a batch.
     pending_binds: HashMap<BlockKey, MemorySlot>,
-    /// Blocks of evicted layers that were submitted bound and now await an
-    /// unbind; their slots return to the pool when the batch is taken.
-    released: HashMap<BlockKey, MemorySlot>,
+    /// Blocks no live texture uses any more (of evicted layers, or dropped
+    /// levels) whose bind was submitted: they stay bound, holding their
+    /// memory, until a batch needs the memory ([`TextureCache::take_batch`]
+    /// unbinds the oldest first) or a mip staged on the same block takes
+    /// them back without a bind.
+    parked: HashMap<BlockKey, ParkedBlock>,
+    /// Order in which blocks were parked, for oldest-first unbinding.
+    next_park: u64,
+    /// Blocks that staging found no memory for since the last batch
+    /// ([`CacheError::MemoryPending`]): the next batch unbinds that many
+    /// parked blocks.
+    memory_shortfall: u64,
     invalidated: Vec<Placement>,
     evicted: Vec<EvictedLayer>,
     new_chunks: Vec<ChunkInfo>,
@@ -377,7 +397,9 @@ impl TextureCache {
             budget_blocks,
             live_blocks: 0,
             pending_binds: HashMap::new(),
-            released: HashMap::new(),
+            parked: HashMap::new(),
+            next_park: 0,
+            memory_shortfall: 0,
             invalidated: Vec::new(),
             evicted: Vec::new(),
             new_chunks: Vec::new(),
@@ -683,7 +705,10 @@ impl TextureCache {
                 })
             })
             .collect();
-        let blocks: Vec<_> = layer.blocks.drain().collect();
+        let mut blocks: Vec<_> = layer.blocks.drain().collect();
+        // Parked in key order, so which of them a later batch unbinds
+        // first does not depend on hashing.
+        blocks.sort_unstable_by_key(|(key, _)| *key);
         layer.texture_bytes = 0;
         layer.texture_count = 0;
         drop(layer);
@@ -825,9 +850,10 @@ impl TextureCache {
                 .collect();
             let needed_count = needed.len() as u64;
             if shared.live_blocks + needed_count <= shared.budget_blocks {
-                let reclaimed = needed.iter().filter(|key| shared.released.contains_key(key)).count() as u64;
+                let reclaimed = needed.iter().filter(|key| shared.parked.contains_key(key)).count() as u64;
                 let fresh = needed_count - reclaimed;
                 if fresh > shared.pool.available() {
+                    shared.memory_shortfall += fresh - shared.pool.available();
                     return Err(CacheError::MemoryPending {
                         needed_blocks: fresh,
                         free_blocks: shared.pool.available(),
@@ -835,10 +861,10 @@ impl TextureCache {
                 }
                 let shared = &mut *shared;
                 for key in &needed {
-                    // A block evicted and needed again before the batch
-                    // keeps its memory: no unbind, no bind.
-                    let memory = match shared.released.remove(key) {
-                        Some(memory) => memory,
+                    // A parked block needed again keeps its memory and
+                    // its binding: no unbind, no bind.
+                    let memory = match shared.parked.remove(key) {
+                        Some(parked) => parked.memory,
                         None => match shared.pool.allocate(&mut shared.new_chunks) {
                             Some(memory) => {
                                 shared.pending_binds.insert(*key, memory);
@@ -911,10 +937,25 @@ impl TextureCache {
     /// chunks (see [`CycleBatch`] for what the engine does with them). After
     /// this call the cache assumes the batch will be submitted; memory of
     /// unbound blocks becomes reusable for later batches.
+    ///
+    /// Blocks no live texture uses are unbound only as far as staging
+    /// lacked memory since the last batch, oldest parked first; the rest
+    /// stay bound. Binding is what stalls a frame (paper §3.2), so an
+    /// eviction costs nothing until its memory is wanted, and then only as
+    /// many unbinds as the binds that want it.
     pub fn take_batch(&self) -> CycleBatch {
         let mut shared = lock(&self.shared);
         let shared = &mut *shared;
-        let mut unbinds: Vec<(BlockKey, MemorySlot)> = shared.released.drain().collect();
+        let wanted = std::mem::take(&mut shared.memory_shortfall).min(shared.parked.len() as u64) as usize;
+        let mut oldest: Vec<(u64, BlockKey)> = shared.parked.iter().map(|(key, p)| (p.since, *key)).collect();
+        if wanted < oldest.len() {
+            oldest.select_nth_unstable(wanted);
+            oldest.truncate(wanted);
+        }
+        let mut unbinds: Vec<(BlockKey, MemorySlot)> = oldest
+            .into_iter()
+            .filter_map(|(_, key)| shared.parked.remove(&key).map(|p| (key, p.memory)))
+            .collect();
         unbinds.sort_by_key(|(key, _)| *key);
         let mut binds: Vec<(BlockKey, MemorySlot)> = shared.pending_binds.drain().collect();
         binds.sort_by_key(|(key, _)| *key);
@@ -969,6 +1010,15 @@ impl TextureCache {
         all
     }
 
+    /// Every parked block (bound, holding memory, used by no live texture;
+    /// see [`take_batch`](Self::take_batch)) with its memory, in key order.
+    pub fn parked_blocks(&self) -> Vec<(BlockKey, MemorySlot)> {
+        let shared = lock(&self.shared);
+        let mut all: Vec<_> = shared.parked.iter().map(|(key, p)| (*key, p.memory)).collect();
+        all.sort_by_key(|(key, _)| *key);
+        all
+    }
+
     /// Texture bytes of staged mips versus bytes of bound blocks, over
     /// live layers.
     pub fn utilisation(&self) -> Utilisation {
@@ -985,6 +1035,10 @@ impl TextureCache {
                     report.bound_bytes += layer.blocks.len() as u64 * state.desc.block_bytes;
                 }
             }
+        }
+        for key in shared.parked.keys() {
+            report.parked_blocks += 1;
+            report.parked_bytes += self.images.get(key.image as usize).map_or(0, |s| s.desc.block_bytes);
         }
         drop(shared);
         report
@@ -1114,14 +1168,24 @@ fn make_live(shared: &mut Shared, state: &ImageState, layer_index: u32, assignme
     layer.extent = extent;
 }
 
+/// A block bound for no live texture, still holding its memory.
+#[derive(Clone, Copy, Debug)]
+struct ParkedBlock {
+    memory: MemorySlot,
+    /// When it was parked ([`Shared::next_park`]).
+    since: u64,
+}
+
 /// Returns a block's memory: to the pool at once if its bind was never
-/// handed out, else after the next batch's unbind.
+/// handed out, else it parks, bound, until a batch needs its memory.
 fn release_block(shared: &mut Shared, key: BlockKey, memory: MemorySlot) {
     if shared.pending_binds.remove(&key).is_some() {
         // Never submitted: nothing to unbind.
         shared.pool.free(memory);
     } else {
-        shared.released.insert(key, memory);
+        let since = shared.next_park;
+        shared.next_park += 1;
+        shared.parked.insert(key, ParkedBlock { memory, since });
     }
 }
 

@@ -15,10 +15,12 @@
 //! - [`TextureCache::stage_mip`] binds, once per block, every sparse block a
 //!   staged mip touches (levels down to 1×1 are ordinary blocks: no mip
 //!   tail is assumed), within a memory budget of bound bytes; reaching the
-//!   budget evicts the oldest layer first.
+//!   budget evicts the oldest layer first. Blocks no live texture uses any
+//!   more stay bound ("parked") until staging needs their memory.
 //! - [`TextureCache::take_batch`] hands the engine one [`CycleBatch`] per
 //!   streaming cycle: at most one [`BindOp`] per block, unbinds before
-//!   binds, the invalidated textures, and the pool chunks to allocate.
+//!   binds, the invalidated textures, and the pool chunks to allocate;
+//!   it unbinds parked blocks only as far as staging lacked memory.
 //! - The paper's concurrent map extent → (layer, index) is a dense array
 //!   indexed by `log2(extent)` of atomics packing (assignment, next region);
 //!   `nextLayer` is the per-image assignment counter, and layer =

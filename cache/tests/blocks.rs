@@ -9,8 +9,8 @@ mod common;
 use std::collections::{BTreeSet, HashMap, HashSet};
 
 use citystream_cache::{
-    BlockKey, CacheConfig, CacheError, DeviceLimits, Granularity, GranularityUnit, ImageConfig, MemorySlot, Placement,
-    SparseBinder, TexelFormat, TextureCache,
+    BindOp, BlockKey, CacheConfig, CacheError, DeviceLimits, Granularity, GranularityUnit, ImageConfig, MemorySlot,
+    Placement, SparseBinder, TexelFormat, TextureCache,
 };
 use common::{brute_force_blocks, model_origin, rgba_config, FakeBinder};
 use proptest::prelude::*;
@@ -136,8 +136,19 @@ impl Harness {
         self.binder
             .submit(&batch.ops)
             .map_err(|error| TestCaseError::fail(error.to_string()))?;
-        let accounted: HashMap<BlockKey, MemorySlot> = self.cache.bound_blocks().into_iter().collect();
+        // Parked blocks stay bound until their memory is wanted.
+        let live: HashMap<BlockKey, MemorySlot> = self.cache.bound_blocks().into_iter().collect();
+        let parked: HashMap<BlockKey, MemorySlot> = self.cache.parked_blocks().into_iter().collect();
+        prop_assert!(
+            live.keys().all(|key| !parked.contains_key(key)),
+            "a block both live and parked"
+        );
+        let mut accounted = live;
+        accounted.extend(parked);
         prop_assert_eq!(&self.binder.bound, &accounted, "binder state vs cache accounting");
+        let memory: HashSet<MemorySlot> = accounted.values().copied().collect();
+        prop_assert_eq!(memory.len(), accounted.len(), "one memory slot bound twice");
+        prop_assert!(accounted.len() as u64 <= BUDGET_BLOCKS, "held memory over the budget");
         for memory in self.binder.bound.values() {
             let bytes = self.chunks.get(&memory.chunk).copied();
             prop_assert!(
@@ -224,8 +235,9 @@ proptest! {
         }
         harness.batch()?;
         let utilisation = harness.cache.utilisation();
-        prop_assert_eq!(utilisation.bound_blocks, harness.binder.bound.len() as u64);
+        prop_assert_eq!(utilisation.bound_blocks + utilisation.parked_blocks, harness.binder.bound.len() as u64);
         prop_assert_eq!(utilisation.bound_bytes, utilisation.bound_blocks * BLOCK_BYTES);
+        prop_assert_eq!(utilisation.held_bytes(), harness.binder.bound.len() as u64 * BLOCK_BYTES);
     }
 }
 
@@ -306,16 +318,42 @@ fn budget_eviction_takes_the_oldest_layer_and_reuses_its_memory() {
         batch.evicted_layers[0].reason,
         citystream_cache::EvictionReason::MemoryBudget
     );
-    assert_eq!(batch.ops.len(), 10);
+    // Only the two blocks staging lacked are unbound, those parked first
+    // (level 0's, in key order); the other eight stay bound.
+    let mut level_0 = cache.blocks_for_mip(&first, 0).unwrap();
+    level_0.sort_unstable();
+    let parked_first = &level_0[..2];
+    let unbound: Vec<BlockKey> = batch
+        .ops
+        .iter()
+        .map(|op| match op {
+            BindOp::Unbind { block } => *block,
+            BindOp::Bind { .. } => panic!("a bind in an unbind-only batch: {op:?}"),
+        })
+        .collect();
+    assert_eq!(unbound, parked_first);
+    let before_unbind = binder.bound.clone();
     binder.submit(&batch.ops).unwrap();
-    assert!(binder.bound.is_empty());
+    assert_eq!(binder.bound.len(), 8);
+    assert_eq!(cache.utilisation().parked_blocks, 8);
 
     cache.stage_mip(&second, 0).unwrap();
     let batch = cache.take_batch();
     assert!(batch.new_chunks.is_empty(), "freed slots are reused, no new chunk");
     binder.submit(&batch.ops).unwrap();
-    assert_eq!(binder.bound.len(), 4);
-    assert!(binder.bound.values().all(|memory| first_memory.contains(memory)));
+    assert_eq!(binder.bound.len(), 12, "4 live and 8 parked: the whole budget");
+    assert_eq!(cache.budget_use().live_blocks, 4);
+    let freed: Vec<MemorySlot> = parked_first.iter().map(|key| before_unbind[key]).collect();
+    let second_memory: HashSet<MemorySlot> = cache.bound_blocks().into_iter().map(|(_, memory)| memory).collect();
+    assert!(
+        freed.iter().all(|memory| second_memory.contains(memory)),
+        "the unbound slots back the new blocks"
+    );
+    assert_eq!(
+        second_memory.difference(&first_memory).count(),
+        2,
+        "and two never used before"
+    );
     // A mip larger than the whole budget is refused.
     let tiny_budget = TextureCache::new(&rgba_config(64, 2, 32, 2)).unwrap();
     let big = tiny_budget.insert(0, 3, 64, 64).unwrap();

@@ -35,14 +35,11 @@ fn dropping_a_level_frees_only_blocks_no_other_texture_uses() {
     ));
     assert_eq!(cache.exclusive_blocks(&b, 1), 1, "b is now the block's only user");
     assert_eq!(cache.drop_mip(&b, 1).unwrap(), 1);
-    let unbinds: Vec<_> = cache
-        .take_batch()
-        .ops
-        .into_iter()
-        .filter(|op| matches!(op, BindOp::Unbind { .. }))
-        .collect();
-    assert_eq!(unbinds.len(), 2);
+    // The budget has room: the freed blocks stay bound (parked) and no
+    // unbind is handed out.
+    assert!(cache.take_batch().ops.is_empty());
     assert_eq!(cache.budget_use().live_blocks, 1);
+    assert_eq!(cache.utilisation().parked_blocks, 2);
     assert!(
         cache.is_live(&a) && cache.is_live(&b),
         "dropping levels keeps the places"
@@ -106,4 +103,60 @@ fn layers_are_freed_only_when_the_caller_chooses() {
         cache.evict_layer(0, 7),
         Err(CacheError::LayerNotLive { image: 0, layer: 7 })
     ));
+}
+
+#[test]
+fn an_evicted_layer_costs_no_unbind_until_its_memory_is_wanted() {
+    // 64² RGBA8 layers, 16² blocks: a 64² texture's chain is 16+4+1+1+1+1+1
+    // = 25 blocks. Two layers, budget 30 blocks.
+    let cache = TextureCache::new(&rgba_config(64, 2, 16, 30)).unwrap();
+    let a = cache.try_insert(0, 1, 64, 64).unwrap();
+    for mip in (0..a.mip_count).rev() {
+        cache.try_stage_mip(&a, mip).unwrap();
+    }
+    let binds = cache.take_batch().ops.len();
+    assert_eq!(binds, 25);
+    let c = cache.try_insert(0, 3, 64, 64).unwrap();
+    assert_ne!(c.layer, a.layer);
+    cache.evict_layer(0, a.layer).unwrap();
+    let batch = cache.take_batch();
+    assert_eq!(batch.invalidated.len(), 1);
+    assert!(batch.ops.is_empty(), "eviction alone unbinds nothing: {:?}", batch.ops);
+    assert_eq!(cache.utilisation().parked_blocks, 25);
+
+    // A texture placed in the same layer takes the parked blocks back: its
+    // coarse levels need no bind.
+    let b = cache.try_insert(0, 2, 64, 64).unwrap();
+    assert_eq!(b.layer, a.layer, "the free layer is reused");
+    for mip in (2..b.mip_count).rev() {
+        assert_eq!(cache.try_stage_mip(&b, mip).unwrap().new_blocks, 1);
+    }
+    assert!(cache.take_batch().ops.is_empty(), "no unbind and no rebind");
+    assert_eq!(cache.utilisation().parked_blocks, 20);
+
+    // The texture in the other layer wants 16 blocks for its level 0: 5 are
+    // free, so 11 parked blocks are unbound (the oldest parked first) and
+    // the level waits one batch for their memory.
+    assert!(matches!(
+        cache.try_stage_mip(&c, 0),
+        Err(CacheError::MemoryPending {
+            needed_blocks: 16,
+            free_blocks: 5
+        })
+    ));
+    let unbinds = cache.take_batch().ops;
+    assert_eq!(unbinds.len(), 11);
+    assert!(unbinds
+        .iter()
+        .all(|op| matches!(op, BindOp::Unbind { block } if block.layer == a.layer && block.mip == 0)));
+    assert_eq!(cache.try_stage_mip(&c, 0).unwrap().new_blocks, 16);
+    let batch = cache.take_batch();
+    assert_eq!(batch.ops.len(), 16);
+    assert!(batch.ops.iter().all(|op| matches!(op, BindOp::Bind { .. })));
+    assert_eq!(cache.utilisation().parked_blocks, 9);
+    assert_eq!(
+        cache.utilisation().held_bytes(),
+        30 * 16 * 16 * 4,
+        "the whole budget, never more"
+    );
 }

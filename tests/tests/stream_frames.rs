@@ -158,7 +158,7 @@ fn run(
             staged: streamer.last_cycle().staged.clone(),
             dropped: streamer.last_cycle().dropped.clone(),
             over_budget,
-            bound_bytes: streamer.cache().utilisation().bound_bytes,
+            bound_bytes: streamer.cache().utilisation().held_bytes(),
         });
 
         // Every level the table lets shaders sample has all its blocks bound.

@@ -74,8 +74,9 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             .collect()
     }
 
-    /// Bytes of sparse blocks bound now (what the memory budget limits).
+    /// Bytes of sparse blocks bound now, parked ones included: the device
+    /// memory the cache holds, which the memory budget limits.
     pub fn bound_bytes(&self) -> u64 {
-        self.cache.utilisation().bound_bytes
+        self.cache.utilisation().held_bytes()
     }
 }
