@@ -247,17 +247,27 @@ impl Scene {
         Ok(mesh_index)
     }
 
+    /// Bytes of the scene file [`encode`](Self::encode) writes (what a writer must find free
+    /// on disk), without encoding it.
+    pub fn encoded_len(&self) -> u64 {
+        let layout = SceneLayout::CURRENT;
+        (layout.header_len + self.body_len(layout)) as u64
+    }
+
+    fn body_len(&self, layout: SceneLayout) -> usize {
+        layout.crs_record_len(self.crs.as_ref())
+            + self.meshes.len() * MESH_RECORD_BYTES
+            + (self.positions.len() + self.normals.len()) * 12
+            + self.uvs.len() * 8
+            + self.indices.len() * 4
+    }
+
     /// Encodes the scene file of write `write_id`. Validates first, so a written scene always
     /// reads back.
     pub fn encode(&self, path_for_errors: &Path, write_id: u64) -> Result<Vec<u8>, DatasetError> {
         let layout = SceneLayout::CURRENT;
         self.validate_with(path_for_errors, layout)?;
-        let mut body = Vec::with_capacity(
-            layout.crs_record_len(self.crs.as_ref())
-                + self.meshes.len() * MESH_RECORD_BYTES
-                + self.positions.len() * 32
-                + self.indices.len() * 4,
-        );
+        let mut body = Vec::with_capacity(self.body_len(layout));
         let crs_text = self.crs.as_ref().map_or("", Crs::as_str).as_bytes();
         body.extend_from_slice(&(crs_text.len() as u32).to_le_bytes());
         body.extend_from_slice(crs_text);
@@ -300,6 +310,7 @@ impl Scene {
         out.extend_from_slice(&0u32.to_le_bytes());
         debug_assert_eq!(out.len(), layout.header_len);
         out.extend_from_slice(&body);
+        debug_assert_eq!(out.len() as u64, self.encoded_len());
         Ok(out)
     }
 

@@ -384,16 +384,11 @@ fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
                 source.display()
             );
             build_then_move(&source, |partial| {
-                crate::gen::run(&crate::gen::GenArgs {
-                    preset: crate::gen::Preset::Large,
-                    seed: 1,
-                    out: partial.to_path_buf(),
-                    format: crate::gen::FormatArg::Bc1,
-                    max_extent: 512,
-                    textures_from: None,
-                    dry_run: false,
-                    quiet: false,
-                })
+                crate::gen::run(&crate::gen::GenArgs::new(
+                    crate::gen::Preset::Large,
+                    1,
+                    partial.to_path_buf(),
+                ))
             })?;
         }
         eprintln!(

@@ -162,16 +162,7 @@ pub(crate) fn ensure_city(data_dir: &Path) -> Result<PathBuf> {
              `citystream gen --preset berlin --seed 1 --out {}`",
             dir.display()
         );
-        crate::gen::run(&crate::gen::GenArgs {
-            preset: crate::gen::Preset::Berlin,
-            seed: 1,
-            out: dir.clone(),
-            format: crate::gen::FormatArg::Bc1,
-            max_extent: 512,
-            textures_from: None,
-            dry_run: false,
-            quiet: false,
-        })?;
+        crate::gen::run(&crate::gen::GenArgs::new(crate::gen::Preset::Berlin, 1, dir.clone()))?;
     }
     Ok(dir)
 }

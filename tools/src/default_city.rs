@@ -15,7 +15,7 @@ use anyhow::{Context, Result};
 use citystream_dataset::{upgrade, DatasetError, DatasetFiles};
 
 use crate::atlas::AtlasArgs;
-use crate::gen::{FormatArg, GenArgs, Preset};
+use crate::gen::{GenArgs, Preset};
 
 /// Where the default city is created, relative to the working directory.
 pub const DEFAULT_CITY_DIR: &str = "data/city";
@@ -76,15 +76,9 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
     if !is_dataset(&source) && !upgrade_if_old(&source, quiet)? {
         build_then_move(&source, |partial| {
             crate::gen::run(&GenArgs {
-                preset: Preset::Small,
-                seed: 1,
-                out: partial.to_path_buf(),
-                format: FormatArg::Bc1,
-                max_extent: 512,
-                textures_from: None,
-                dry_run: false,
                 // The summaries would name the private build directories.
                 quiet: true,
+                ..GenArgs::new(Preset::Small, 1, partial.to_path_buf())
             })
             .with_context(|| format!("generating the default city's textures for {}", source.display()))
         })?;

@@ -12,7 +12,6 @@
 //! [`DatasetWriter::create_resumable`]). The disk it needs is computed from the plan and
 //! checked before any texel is synthesised.
 
-use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -20,7 +19,7 @@ use citystream_dataset::{DatasetWriter, TextureFormat, WriteSummary};
 use rayon::prelude::*;
 
 use super::layout::{self, City, LayoutParams};
-use super::{texture, GenArgs};
+use super::{free_bytes, gb, texture, GenArgs};
 use crate::atlas::{self, AtlasPart, AtlasPlan, Packing};
 
 /// Atlas side of the paper's Berlin (atlas) dataset.
@@ -93,11 +92,7 @@ fn plan(params: LayoutParams, seed: u64, format: TextureFormat) -> Result<Planne
         atlases,
         standalone: standalone.len(),
         pack_bytes: citystream_dataset::PACK_HEADER_BYTES + atlases as u64 * chain_bytes + standalone_bytes,
-        // Header and CRS record, then the records and arrays `Scene::encode` writes.
-        scene_bytes: 4096
-            + scene.meshes.len() as u64 * 44
-            + scene.positions.len() as u64 * 32
-            + scene.indices.len() as u64 * 4,
+        scene_bytes: scene.encoded_len(),
         // Texture table, colormap, mip checksums, the resume journal's copy of them.
         metadata_bytes: 2 * (textures * (10 + 4) + mips * 4) + 4096,
     };
@@ -109,31 +104,6 @@ fn plan(params: LayoutParams, seed: u64, format: TextureFormat) -> Result<Planne
         disk,
         format,
     })
-}
-
-/// Bytes free to an unprivileged writer on the file system holding `dir` (or the nearest
-/// ancestor that exists).
-pub(crate) fn free_bytes(dir: &Path) -> Result<u64> {
-    let absolute = std::path::absolute(dir).with_context(|| format!("resolving {}", dir.display()))?;
-    let existing = absolute
-        .ancestors()
-        .find(|p| p.exists())
-        .context("no existing ancestor directory")?;
-    #[cfg(target_os = "linux")]
-    {
-        let stat = rustix::fs::statvfs(existing)
-            .with_context(|| format!("reading the free space of {}", existing.display()))?;
-        Ok(stat.f_bavail.saturating_mul(stat.f_frsize))
-    }
-    #[cfg(not(target_os = "linux"))]
-    {
-        let _ = existing;
-        Ok(u64::MAX)
-    }
-}
-
-pub(crate) fn gb(bytes: u64) -> String {
-    format!("{:.1} GB", bytes as f64 / 1e9)
 }
 
 /// A fingerprint of the layout and the plan, part of the resume job: a rerun continues only
@@ -356,8 +326,9 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gen::{FormatArg, Preset};
+    use crate::gen::Preset;
     use citystream_dataset::Dataset;
+    use std::path::Path;
 
     /// A few blocks with textures up to 256²: a handful of atlases in a second.
     const PARAMS: LayoutParams = LayoutParams {
@@ -368,14 +339,8 @@ mod tests {
 
     fn args(out: &Path) -> GenArgs {
         GenArgs {
-            preset: Preset::Berlin,
-            seed: 7,
-            out: out.to_path_buf(),
-            format: FormatArg::Bc1,
-            max_extent: 512,
-            textures_from: None,
-            dry_run: false,
             quiet: true,
+            ..GenArgs::new(Preset::Berlin, 7, out.to_path_buf())
         }
     }
 

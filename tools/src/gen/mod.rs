@@ -15,7 +15,7 @@ pub use texture::EncodedTexture;
 pub(crate) use texture::{decode_level, downsample, encode_chain, mean_colour};
 
 use std::io::{IsTerminal, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -130,6 +130,48 @@ pub struct GenArgs {
     pub quiet: bool,
 }
 
+impl GenArgs {
+    /// `citystream gen --preset PRESET --seed SEED --out OUT` with every other option at
+    /// its default (BC1, 512 texels at most, progress printed).
+    pub fn new(preset: Preset, seed: u64, out: PathBuf) -> Self {
+        GenArgs {
+            preset,
+            seed,
+            out,
+            format: FormatArg::Bc1,
+            max_extent: 512,
+            textures_from: None,
+            dry_run: false,
+            quiet: false,
+        }
+    }
+}
+
+/// Bytes free to an unprivileged writer on the file system holding `dir` (or the nearest
+/// ancestor that exists).
+pub(crate) fn free_bytes(dir: &Path) -> Result<u64> {
+    let absolute = std::path::absolute(dir).with_context(|| format!("resolving {}", dir.display()))?;
+    let existing = absolute
+        .ancestors()
+        .find(|p| p.exists())
+        .context("no existing ancestor directory")?;
+    #[cfg(target_os = "linux")]
+    {
+        let stat = rustix::fs::statvfs(existing)
+            .with_context(|| format!("reading the free space of {}", existing.display()))?;
+        Ok(stat.f_bavail.saturating_mul(stat.f_frsize))
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = existing;
+        Ok(u64::MAX)
+    }
+}
+
+pub(crate) fn gb(bytes: u64) -> String {
+    format!("{:.1} GB", bytes as f64 / 1e9)
+}
+
 /// Refuses a texture or atlas extent (the value of `option`) that is not a
 /// power of two from 4 (one compressed block) to 16384 (a 2D image's common limit).
 pub fn check_texture_extent(option: &str, extent: u32) -> Result<()> {
@@ -201,23 +243,20 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
                 .sum::<u64>()
         })
         .sum();
-    let scene_bytes = 4096
-        + city.scene.positions.len() as u64 * 32
-        + city.scene.indices.len() as u64 * 4
-        + city.scene.meshes.len() as u64 * 44;
+    let scene_bytes = city.scene.encoded_len();
     let needed = pack_bytes + scene_bytes;
-    let free = berlin::free_bytes(&args.out)?;
+    let free = free_bytes(&args.out)?;
     if args.dry_run {
         print_stdout(&format!(
             "{} meshes, {} triangles, {} textures; needs {} of disk in {} (pack {}, scene {}); {} free\n",
             city.scene.meshes.len(),
             city.scene.triangle_count(),
             city.textures.len(),
-            berlin::gb(needed),
+            gb(needed),
             args.out.display(),
-            berlin::gb(pack_bytes),
-            berlin::gb(scene_bytes),
-            berlin::gb(free)
+            gb(pack_bytes),
+            gb(scene_bytes),
+            gb(free)
         ))?;
         return Ok(WriteSummary {
             textures: city.textures.len() as u32,
@@ -233,10 +272,10 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
         bail!(
             "{} needs {} of free disk (pack {}, scene {}), but only {} is free there",
             args.out.display(),
-            berlin::gb(needed),
-            berlin::gb(pack_bytes),
-            berlin::gb(scene_bytes),
-            berlin::gb(free)
+            gb(needed),
+            gb(pack_bytes),
+            gb(scene_bytes),
+            gb(free)
         );
     }
     let mut writer = DatasetWriter::create(&args.out)?;
@@ -382,14 +421,8 @@ mod tests {
     fn tiny_city_round_trips_every_mip() -> Result<()> {
         let out = std::env::temp_dir().join(format!("citystream-gen-roundtrip-{}", std::process::id()));
         let args = GenArgs {
-            preset: Preset::Tiny,
-            seed: 3,
-            out: out.clone(),
-            format: FormatArg::Bc1,
-            max_extent: 512,
-            textures_from: None,
-            dry_run: false,
             quiet: true,
+            ..GenArgs::new(Preset::Tiny, 3, out.clone())
         };
         let summary = generate(&args, Preset::Tiny.params(), TextureFormat::Bc1)?;
         let dataset = citystream_dataset::Dataset::open(&out)?;
