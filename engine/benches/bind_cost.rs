@@ -98,7 +98,12 @@ fn setup() -> Result<Setup> {
     );
     let mut binder = VulkanBinder::with_checks(&device, vec![Arc::clone(&image)], false)?;
     let memory_blocks = u64::from(*SIZES.iter().max().unwrap_or(&1));
-    binder.add_chunk(SparseMemoryChunk::new(&device, &image, memory_blocks, "bind cost memory")?)?;
+    binder.add_chunk(SparseMemoryChunk::new(
+        &device,
+        &image,
+        memory_blocks,
+        "bind cost memory",
+    )?)?;
     let blocks = (0..layers)
         .flat_map(|layer| {
             (0..down).flat_map(move |y| {
