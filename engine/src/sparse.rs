@@ -6,8 +6,10 @@
 //! never from constants: lavapipe reports 64 KiB blocks and, for BC formats,
 //! a granularity in compressed blocks, which [`SparseImage::granularity`]
 //! converts to texels. Lavapipe has no mip tail: every level down to 1×1 is
-//! bound as ordinary blocks; where a device does report a tail, the levels
-//! from `mip_tail_first_lod` on are bound as one opaque range per layer.
+//! bound as ordinary blocks. Binding a mip tail (one opaque range per layer)
+//! is not implemented: [`SparseImage::bind_entries`] refuses tail levels and
+//! the texture cache refuses a device whose images have a tail (an NVIDIA
+//! H200 reports one from level 3 of BC1 2048² layers).
 
 use std::sync::Arc;
 
