@@ -59,6 +59,7 @@ fn setup() -> Result<Setup> {
         presentation: false,
     })?);
     println!("device: {}", citystream_engine::device::describe(&device));
+    print_sparse_shapes(&device)?;
     let probe = SparseImage::new(
         &device,
         SparseImageDesc {
@@ -123,6 +124,43 @@ fn setup() -> Result<Setup> {
         blocks,
         block_bytes,
     })
+}
+
+/// What the device reports for the cache's formats and layer sizes: block
+/// bytes, granularity and the mip tail (what binding a tail would need).
+fn print_sparse_shapes(device: &Arc<Device>) -> Result<()> {
+    let support = device.sparse_support();
+    println!(
+        "sparseAddressSpaceSize {} bytes, residencyNonResidentStrict {}",
+        support.address_space_size, support.non_resident_strict
+    );
+    for format in [
+        vk::Format::BC1_RGB_UNORM_BLOCK,
+        vk::Format::BC3_UNORM_BLOCK,
+        vk::Format::BC7_UNORM_BLOCK,
+        vk::Format::R8G8B8A8_UNORM,
+    ] {
+        for size in [512u32, 2048] {
+            let image = SparseImage::new(
+                device,
+                SparseImageDesc {
+                    width: size,
+                    height: size,
+                    layers: 4,
+                    mips: size.ilog2() + 1,
+                    format,
+                },
+                "sparse shape probe",
+            )?;
+            let (gw, gh) = image.granularity();
+            println!(
+                "{format:?} {size}² x4 layers: block {} B, granularity {gw}x{gh} texels, {:?}",
+                image.block_size(),
+                image.mip_tail()
+            );
+        }
+    }
+    Ok(())
 }
 
 /// The batch binding `n` blocks: adjacent ones on adjacent memory, or every

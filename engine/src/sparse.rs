@@ -93,7 +93,25 @@ pub struct SparseImage {
     block_size: u64,
     granularity: (u32, u32),
     mip_tail_first_lod: u32,
+    mip_tail: MipTail,
     memory_type_bits: u32,
+}
+
+/// Where a device keeps the levels of a sparse image's mip tail, as
+/// `vkGetImageSparseMemoryRequirements` reports it (bytes of the opaque
+/// range each layer's tail takes; all zero without a tail).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MipTail {
+    /// First level in the tail (the image's level count when there is none).
+    pub first_lod: u32,
+    /// Bytes of one tail (`imageMipTailSize`).
+    pub size: u64,
+    /// Opaque offset of layer 0's tail (`imageMipTailOffset`).
+    pub offset: u64,
+    /// Opaque bytes between the tails of adjacent layers (`imageMipTailStride`).
+    pub stride: u64,
+    /// One tail for all layers (`VK_SPARSE_IMAGE_FORMAT_SINGLE_MIPTAIL_BIT`).
+    pub single: bool,
 }
 
 debug_fields!(SparseImage {
@@ -172,6 +190,7 @@ impl SparseImage {
             block_size: 0,
             granularity: (0, 0),
             mip_tail_first_lod: desc.mips,
+            mip_tail: MipTail::default(),
             memory_type_bits: 0,
         };
         // SAFETY: raw is a live sparse image.
@@ -202,6 +221,16 @@ impl SparseImage {
         };
         image.block_size = requirements.alignment;
         image.mip_tail_first_lod = color.image_mip_tail_first_lod.min(desc.mips);
+        image.mip_tail = MipTail {
+            first_lod: image.mip_tail_first_lod,
+            size: color.image_mip_tail_size,
+            offset: color.image_mip_tail_offset,
+            stride: color.image_mip_tail_stride,
+            single: color
+                .format_properties
+                .flags
+                .contains(vk::SparseImageFormatFlags::SINGLE_MIPTAIL),
+        };
         image.memory_type_bits = requirements.memory_type_bits;
         image.view = create_view(
             device,
@@ -250,6 +279,11 @@ impl SparseImage {
     /// First level of the mip tail; equals the mip count when there is none.
     pub fn mip_tail_first_lod(&self) -> u32 {
         self.mip_tail_first_lod
+    }
+
+    /// The mip tail as the device reports it.
+    pub fn mip_tail(&self) -> MipTail {
+        self.mip_tail
     }
 
     /// Memory types the blocks may come from.
