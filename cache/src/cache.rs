@@ -947,15 +947,19 @@ impl TextureCache {
         let mut shared = lock(&self.shared);
         let shared = &mut *shared;
         let wanted = std::mem::take(&mut shared.memory_shortfall).min(shared.parked.len() as u64) as usize;
-        let mut oldest: Vec<(u64, BlockKey)> = shared.parked.iter().map(|(key, p)| (p.since, *key)).collect();
-        if wanted < oldest.len() {
-            oldest.select_nth_unstable(wanted);
-            oldest.truncate(wanted);
+        // Most batches want none: the parked set is looked at only when some are.
+        let mut unbinds: Vec<(BlockKey, MemorySlot)> = Vec::new();
+        if wanted > 0 {
+            let mut oldest: Vec<(u64, BlockKey)> = shared.parked.iter().map(|(key, p)| (p.since, *key)).collect();
+            if wanted < oldest.len() {
+                oldest.select_nth_unstable(wanted);
+                oldest.truncate(wanted);
+            }
+            unbinds = oldest
+                .into_iter()
+                .filter_map(|(_, key)| shared.parked.remove(&key).map(|p| (key, p.memory)))
+                .collect();
         }
-        let mut unbinds: Vec<(BlockKey, MemorySlot)> = oldest
-            .into_iter()
-            .filter_map(|(_, key)| shared.parked.remove(&key).map(|p| (key, p.memory)))
-            .collect();
         unbinds.sort_by_key(|(key, _)| *key);
         let mut binds: Vec<(BlockKey, MemorySlot)> = shared.pending_binds.drain().collect();
         binds.sort_by_key(|(key, _)| *key);
