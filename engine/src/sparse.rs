@@ -92,7 +92,6 @@ pub struct SparseImage {
     desc: SparseImageDesc,
     block_size: u64,
     granularity: (u32, u32),
-    mip_tail_first_lod: u32,
     mip_tail: MipTail,
     memory_type_bits: u32,
 }
@@ -189,8 +188,10 @@ impl SparseImage {
             desc,
             block_size: 0,
             granularity: (0, 0),
-            mip_tail_first_lod: desc.mips,
-            mip_tail: MipTail::default(),
+            mip_tail: MipTail {
+                first_lod: desc.mips,
+                ..MipTail::default()
+            },
             memory_type_bits: 0,
         };
         // SAFETY: raw is a live sparse image.
@@ -220,9 +221,8 @@ impl SparseImage {
             (reported.width, reported.height)
         };
         image.block_size = requirements.alignment;
-        image.mip_tail_first_lod = color.image_mip_tail_first_lod.min(desc.mips);
         image.mip_tail = MipTail {
-            first_lod: image.mip_tail_first_lod,
+            first_lod: color.image_mip_tail_first_lod.min(desc.mips),
             size: color.image_mip_tail_size,
             offset: color.image_mip_tail_offset,
             stride: color.image_mip_tail_stride,
@@ -278,7 +278,7 @@ impl SparseImage {
 
     /// First level of the mip tail; equals the mip count when there is none.
     pub fn mip_tail_first_lod(&self) -> u32 {
-        self.mip_tail_first_lod
+        self.mip_tail.first_lod
     }
 
     /// The mip tail as the device reports it.
@@ -338,10 +338,10 @@ impl SparseImage {
     /// Turns blocks into bind entries: runs of blocks adjacent in a row whose
     /// memory is contiguous (or which are all unbound) become one entry.
     pub fn bind_entries(&self, blocks: &[SparseBlockBind]) -> Result<Vec<vk::SparseImageMemoryBind>> {
-        if self.mip_tail_first_lod < self.desc.mips && blocks.iter().any(|b| b.mip >= self.mip_tail_first_lod) {
+        let first_tail_lod = self.mip_tail.first_lod;
+        if first_tail_lod < self.desc.mips && blocks.iter().any(|b| b.mip >= first_tail_lod) {
             return Err(EngineError::InvalidRequest(format!(
-                "levels from {} on are in the mip tail and are bound as a whole, not per block",
-                self.mip_tail_first_lod
+                "levels from {first_tail_lod} on are in the mip tail and are bound as a whole, not per block"
             )));
         }
         let mut sorted = blocks.to_vec();
