@@ -6,7 +6,7 @@ use ash::vk;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::commands::Recording;
+use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::image::{transition, Image, ImageDesc};
@@ -348,6 +348,32 @@ impl RenderTarget {
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
             (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
         );
+    }
+
+    /// The depth drawn by the last rendering, once its submission has completed: one
+    /// float per pixel, row by row, copied out through a submission of its own on
+    /// `commands` (a test's check, not a per-frame path).
+    pub fn read_depth(&self, device: &Arc<Device>, commands: &mut CommandContext) -> Result<Vec<f32>> {
+        let buffer = Buffer::new(
+            device,
+            BufferDesc {
+                size: self.depth_bytes(),
+                usage: vk::BufferUsageFlags::TRANSFER_DST,
+                location: MemoryLocation::GpuToCpu,
+            },
+            "render target depth read-back",
+        )?;
+        let rec = commands.begin()?;
+        // The next `begin` takes the depth from UNDEFINED, so it may stay in TRANSFER_SRC.
+        self.copy_depth(device, rec, buffer.raw());
+        crate::image::memory_barrier(
+            device,
+            rec,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+        );
+        commands.submit_and_wait(&[])?;
+        buffer.read::<f32>(0, (self.width * self.height) as usize)
     }
 
     /// The pixels copied by the last [`RenderTarget::end_and_copy`], once its

@@ -1,12 +1,13 @@
 //! GPU culling changes what is drawn, never what is seen: over 104 views of a generated
 //! city (street canyons, oblique views, from above), the per-mesh feedback with culling
-//! equals the feedback without it (same meshes, same levels, same weights), and the
-//! visible images are identical but where two surfaces tie in depth (counted, under
-//! 0.01 % of pixels). Each culled view follows another view, so its early phase draws a
-//! stale set: the late phase must make up for it. Synchronization validation on; any
-//! message fails.
+//! equals the feedback without it (same meshes, same levels, same weights), the depth
+//! images are identical bit for bit, and the visible images are identical but where two
+//! surfaces tie in depth (counted, under 0.01 % of pixels: with the depth equal, a pixel
+//! whose colour differs shows another surface at that depth). Each culled view follows
+//! another view, so its early phase draws a stale set: the late phase must make up for
+//! it. Synchronization validation on; any message fails.
 
-use anyhow::{ensure, Result};
+use anyhow::{bail, ensure, Result};
 use citystream_dataset::TextureFormat;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
@@ -144,6 +145,7 @@ fn views() -> Vec<Camera> {
 struct Rendered {
     feedback: Vec<MeshFeedback>,
     pixels: image::RgbaImage,
+    depth: Vec<f32>,
     meshes_passed: Option<u32>,
 }
 
@@ -213,6 +215,7 @@ fn culling_keeps_the_feedback_and_the_image_of_104_views() -> Result<()> {
         Ok(Rendered {
             feedback,
             pixels: target.read_pixels()?,
+            depth: target.read_depth(&device, &mut commands)?,
             meshes_passed: renderer.cull_stats(0)?.map(|s| s.meshes_passed),
         })
     };
@@ -225,6 +228,19 @@ fn culling_keeps_the_feedback_and_the_image_of_104_views() -> Result<()> {
             ensure!(
                 a == b,
                 "view {v} ({camera:?}): mesh {mesh}'s feedback is {a:?} unculled but {b:?} culled"
+            );
+        }
+        let depth_differs = full
+            .depth
+            .iter()
+            .zip(&culled.depth)
+            .position(|(a, b)| a.to_bits() != b.to_bits());
+        if let Some(pixel) = depth_differs {
+            let (x, y) = (pixel as u32 % WIDTH, pixel as u32 / WIDTH);
+            bail!(
+                "view {v} ({camera:?}): depth at pixel ({x}, {y}) is {} unculled but {} culled",
+                full.depth[pixel],
+                culled.depth[pixel]
             );
         }
         let differing = full
