@@ -39,17 +39,21 @@ pub enum Target {
     /// is the input (status line, headers, lengths, ranges, body): a file's length (HEAD)
     /// and a 32-byte range read.
     Remote,
+    /// 3D Tiles import (`tiles::load`, every level) of a small tileset with an external
+    /// tileset, b3dm and glb content, one mutated file at a time, without writing a dataset.
+    Tileset,
 }
 
 impl Target {
     /// Every target.
-    pub const ALL: [Target; 6] = [
+    pub const ALL: [Target; 7] = [
         Target::Dataset,
         Target::Path,
         Target::Gltf,
         Target::Texture,
         Target::Patches,
         Target::Remote,
+        Target::Tileset,
     ];
 
     /// Lower-case name.
@@ -61,6 +65,7 @@ impl Target {
             Target::Texture => "texture",
             Target::Patches => "patches",
             Target::Remote => "remote",
+            Target::Tileset => "tileset",
         }
     }
 }
@@ -103,6 +108,7 @@ impl Harness {
             Target::Texture => texture_seeds()?,
             Target::Patches => patches_seeds(work)?,
             Target::Remote => remote_seeds(),
+            Target::Tileset => tileset_seeds(work)?,
         };
         let remote = match target {
             Target::Remote => Some(ScriptedServer::start()?),
@@ -147,6 +153,7 @@ impl Harness {
             Target::Gltf => self.run_gltf(name, bytes),
             Target::Texture => run_texture(bytes),
             Target::Patches => self.run_patches(name, bytes),
+            Target::Tileset => self.run_tileset(name, bytes),
             Target::Remote => match &self.remote {
                 Some(server) => server.run(bytes),
                 None => Outcome::Rejected,
@@ -185,6 +192,26 @@ impl Harness {
             }
         };
         // Restore the set's own file for the next input.
+        if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
+            let _ = std::fs::write(&path, &original.bytes);
+        }
+        outcome
+    }
+
+    fn run_tileset(&self, name: &str, bytes: &[u8]) -> Outcome {
+        let dir = self.work.join("tileset");
+        let path = dir.join(name);
+        let outcome = if std::fs::write(&path, bytes).is_err() {
+            Outcome::Rejected
+        } else {
+            // RGBA8 and a small extent: the harness is about parsing, not encoding.
+            let tileset = dir.join("tileset.json");
+            match crate::tiles::load(&tileset, TextureFormat::Rgba8, 64, crate::tiles::Lod::All, false, false) {
+                Ok(_) => Outcome::Accepted,
+                Err(_) => Outcome::Rejected,
+            }
+        };
+        // Restore the tileset's own file for the next input.
         if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
             let _ = std::fs::write(&path, &original.bytes);
         }
@@ -557,6 +584,102 @@ fn remote_seeds() -> Vec<Seed> {
             bytes,
         })
         .collect()
+}
+
+/// A tileset at Berlin written to `work/tileset` (`tileset.json` with a transform, REPLACE
+/// refinement and an external `ext.json` under ADD; a glb with CESIUM_RTC and node
+/// transforms, a b3dm with RTC_CENTER and a batch table): each file is a seed.
+fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
+    use crate::tiles::write;
+    use serde_json::json;
+    let dir = work.join("tileset");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    // East-north-up at 52.5 N, 13.4 E on the ellipsoid, as a column-major transform.
+    let (lat, lon) = (52.5f64.to_radians(), 13.4f64.to_radians());
+    let origin = crate::tiles::geodesy::to_ecef(crate::tiles::geodesy::Geodetic {
+        latitude: lat,
+        longitude: lon,
+        height: 34.0,
+    });
+    let (sl, cl, so, co) = (lat.sin(), lat.cos(), lon.sin(), lon.cos());
+    let enu = [
+        -so,
+        co,
+        0.0,
+        0.0,
+        -sl * co,
+        -sl * so,
+        cl,
+        0.0,
+        cl * co,
+        cl * so,
+        sl,
+        0.0,
+        origin[0],
+        origin[1],
+        origin[2],
+        1.0,
+    ];
+    let quad = [[0.0f32, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 3.0, 0.0], [0.0, 3.0, 0.0]];
+    let (gltf, bin) = write::textured_quad(
+        quad,
+        &write::gradient_png(8, 4, 1),
+        json!({"translation": [1.0, 0.0, -2.0], "scale": [2.0, 2.0, 2.0]}),
+        Some(json!({"CESIUM_RTC": {"center": [1.0, 2.0, 3.0]}})),
+    );
+    let glb = write::glb(&gltf, &bin);
+    let (gltf, bin) = write::textured_quad(quad, &write::gradient_png(4, 8, 2), json!({}), None);
+    let b3dm = write::b3dm(
+        &write::glb(&gltf, &bin),
+        &json!({"BATCH_LENGTH": 1, "RTC_CENTER": [10.0, 0.0, 0.0]}),
+        Some(&json!({"height": [3.0]})),
+        &[],
+    );
+    let volume = json!({"sphere": [0.0, 0.0, 0.0, 100.0]});
+    let external = json!({
+        "asset": {"version": "1.1"},
+        "geometricError": 10.0,
+        "root": {"boundingVolume": volume, "geometricError": 5.0, "refine": "ADD", "content": {"uri": "a.glb"},
+                 "children": [{"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "b.b3dm"}}]}
+    });
+    let tileset = json!({
+        "asset": {"version": "1.0"},
+        "geometricError": 100.0,
+        "root": {
+            "boundingVolume": {"region": [0.23, 0.91, 0.24, 0.92, 0.0, 100.0]},
+            "geometricError": 50.0,
+            "refine": "REPLACE",
+            "transform": enu,
+            "content": {"uri": "b.b3dm"},
+            "children": [
+                {"boundingVolume": volume, "geometricError": 1.0, "transform": [1,0,0,0, 0,1,0,0, 0,0,1,0, 20,0,0,1],
+                 "content": {"uri": "a.glb"}},
+                {"boundingVolume": volume, "geometricError": 1.0, "content": {"uri": "ext.json"}}
+            ]
+        }
+    });
+    let seeds = vec![
+        Seed {
+            name: "tileset.json".into(),
+            bytes: serde_json::to_vec_pretty(&tileset)?,
+        },
+        Seed {
+            name: "ext.json".into(),
+            bytes: serde_json::to_vec_pretty(&external)?,
+        },
+        Seed {
+            name: "a.glb".into(),
+            bytes: glb,
+        },
+        Seed {
+            name: "b.b3dm".into(),
+            bytes: b3dm,
+        },
+    ];
+    for seed in &seeds {
+        std::fs::write(dir.join(&seed.name), &seed.bytes).with_context(|| format!("writing {}", seed.name))?;
+    }
+    Ok(seeds)
 }
 
 /// A patch set of three patches over two PNGs (one listed twice), written to `work/patches`;

@@ -42,7 +42,8 @@ pub const MAX_IMPORTED_VERTICES: usize = 20_000_000;
 /// Options of `citystream import`.
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
-    /// glTF 2.0 file: `.gltf` (external files, data URIs) or `.glb`.
+    /// glTF 2.0 file (`.gltf` with external files or data URIs, or `.glb`), or an OGC 3D
+    /// Tiles tileset (`tileset.json`, 1.0 and 1.1: b3dm and glTF content).
     pub input: PathBuf,
     /// Output dataset directory.
     #[arg(long)]
@@ -58,6 +59,14 @@ pub struct ImportArgs {
     /// CRS; without this option the dataset has a local frame.
     #[arg(long, value_parser = parse_crs)]
     pub crs: Option<Crs>,
+    /// Tilesets: which tiles' content to import (`finest`: tiles not refined further under
+    /// REPLACE refinement, every tile under ADD; `all`: every level).
+    #[arg(long, value_enum)]
+    pub lod: Option<crate::tiles::Lod>,
+    /// Tilesets: content citystream does not import (point clouds, instanced and composite
+    /// tiles, implicit tiling) is an error instead of a warning.
+    #[arg(long)]
+    pub strict: bool,
 }
 
 /// Parses a `--crs` value.
@@ -73,17 +82,19 @@ struct TextureKey {
     factor: [u8; 4],
 }
 
-struct PendingMesh {
-    texture: usize,
-    positions: Vec<[f64; 3]>,
-    normals: Vec<[f32; 3]>,
-    uvs: Vec<[f32; 2]>,
-    indices: Vec<u32>,
+/// A primitive read from a document: positions placed in f64, its texture by index.
+pub(crate) struct PendingMesh {
+    pub(crate) texture: usize,
+    pub(crate) positions: Vec<[f64; 3]>,
+    pub(crate) normals: Vec<[f32; 3]>,
+    pub(crate) uvs: Vec<[f32; 2]>,
+    pub(crate) indices: Vec<u32>,
 }
 
-type Mat4 = [[f64; 4]; 4];
+/// A column-major 4×4 matrix (`m[column][row]`), as glTF and 3D Tiles store them.
+pub(crate) type Mat4 = [[f64; 4]; 4];
 
-fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
+pub(crate) fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
     // Column-major like glTF: m[column][row].
     let mut out = [[0.0; 4]; 4];
     for (c, column) in out.iter_mut().enumerate() {
@@ -131,6 +142,23 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     crate::gen::check_texture_extent("--max-extent", args.max_extent)?;
     let format = args.format.texture_format();
     let input = &args.input;
+    if crate::tiles::is_tileset(input) {
+        if let Some(crs) = &args.crs {
+            bail!(
+                "--crs {}: reprojecting a tileset's Earth-centred coordinates (EPSG:4978) is not implemented; \
+                 without --crs the dataset gets a local east-north-up frame at the tileset's centre",
+                crs.as_str()
+            );
+        }
+        let lod = args.lod.unwrap_or(crate::tiles::Lod::Finest);
+        return crate::tiles::import(input, &args.out, format, args.max_extent, lod, args.strict);
+    }
+    if args.lod.is_some() || args.strict {
+        bail!(
+            "--lod and --strict apply to 3D Tiles tilesets (a .json input), not to {}",
+            input.display()
+        );
+    }
     let mut imported = load(input, format, args.max_extent)?;
     imported.scene.crs = args.crs.clone();
     let kept = imported.kept_blocks;
@@ -190,6 +218,55 @@ pub fn load_slice(
     format: TextureFormat,
     max_extent: u32,
 ) -> Result<ImportedScene> {
+    let content = read_gltf(bytes, base, input, &IDENTITY, MAX_IMPORTED_VERTICES)?;
+    if content.meshes.is_empty() {
+        bail!("{}: no triangle meshes to import", input.display());
+    }
+    // Textures: decode and encode in parallel, in first-use order.
+    let textures = (0..content.texture_count())
+        .into_par_iter()
+        .map(|k| content.encode_texture(k, format, max_extent))
+        .collect::<Result<Vec<_>>>()?;
+    let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
+    let textures = textures.into_iter().map(|(texture, _)| texture).collect();
+    let scene = centred_scene(&content.meshes, input)?;
+    Ok(ImportedScene {
+        scene,
+        textures,
+        kept_blocks,
+    })
+}
+
+/// The identity transform.
+pub(crate) const IDENTITY: Mat4 = [
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0, 0.0],
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
+/// The triangle primitives of one glTF document, placed in f64 by a root transform and
+/// the node transforms, and what their textures are made of.
+pub(crate) struct GltfContent {
+    document: gltf::Document,
+    buffers: Vec<gltf::buffer::Data>,
+    base: PathBuf,
+    input: PathBuf,
+    keys: Vec<TextureKey>,
+    /// Every triangle primitive; `texture` indexes the document's textures.
+    pub(crate) meshes: Vec<PendingMesh>,
+}
+
+/// Reads glTF or GLB `bytes` (external files in `base`, errors naming `input`): every
+/// triangle primitive placed by `root` × its node's transform, at most `vertex_budget`
+/// vertices in all. Checks what the `gltf` crate would panic on first.
+pub(crate) fn read_gltf(
+    bytes: &[u8],
+    base: &Path,
+    input: &Path,
+    root: &Mat4,
+    vertex_budget: usize,
+) -> Result<GltfContent> {
     let invalid = |e: gltf::Error| anyhow!("{}: not a valid glTF 2.0 file: {e}", input.display());
     if bytes.starts_with(b"glTF") {
         // The `gltf` crate subtracts the 12-byte header from the declared length unchecked.
@@ -236,13 +313,7 @@ pub fn load_slice(
         Some(s) => s.nodes().collect(),
         None => bail!("{}: the glTF has no scene", input.display()),
     };
-    let identity: Mat4 = [
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0, 0.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
-    let mut stack: Vec<(gltf::Node, Mat4, usize)> = roots.into_iter().map(|n| (n, identity, 0)).collect();
+    let mut stack: Vec<(gltf::Node, Mat4, usize)> = roots.into_iter().map(|n| (n, *root, 0)).collect();
     // Nodes listed as children of several parents are instanced once per
     // path (glTF requires trees, some exporters share); the caps keep a
     // graph with exponentially many paths from exhausting memory.
@@ -295,7 +366,7 @@ pub fn load_slice(
                 let mesh =
                     read_primitive(&primitive, &buffers, &world, uv_set, texture).with_context(|| what.clone())?;
                 vertices += mesh.positions.len();
-                if vertices > MAX_IMPORTED_VERTICES {
+                if vertices > vertex_budget {
                     bail!(
                         "{what}: the scene has more than {MAX_IMPORTED_VERTICES} vertices once its instances are \
                          placed; split it or share fewer nodes"
@@ -306,27 +377,70 @@ pub fn load_slice(
         }
         stack.extend(node.children().map(|c| (c, world, depth + 1)));
     }
-    if meshes.is_empty() {
-        bail!("{}: no triangle meshes to import", input.display());
+
+    Ok(GltfContent {
+        document: gltf.document,
+        buffers,
+        base: base.to_path_buf(),
+        input: input.to_path_buf(),
+        keys,
+        meshes,
+    })
+}
+
+impl GltfContent {
+    /// Distinct (image, factor) textures the meshes use.
+    pub(crate) fn texture_count(&self) -> usize {
+        self.keys.len()
     }
 
-    // Textures: decode and encode in parallel, in first-use order.
-    let max_log2 = max_extent.trailing_zeros();
-    let textures = keys
-        .par_iter()
-        .map(|key| -> Result<_> {
-            if let Some(kept) = kept_blocks(document, &buffers, base, key, max_log2) {
-                return Ok((kept, true));
+    /// What texture `k` is made of, as bytes that are equal exactly when two textures are
+    /// the same (for sharing one across documents): its candidate images' bytes and the
+    /// factor, hashed to 128 bits.
+    pub(crate) fn texture_identity(&self, k: usize) -> Result<u128> {
+        use std::hash::{Hash, Hasher};
+        let key = &self.keys[k];
+        let mut halves = [0u64; 2];
+        for (seed, half) in halves.iter_mut().enumerate() {
+            let mut hasher = std::collections::hash_map::DefaultHasher::new();
+            seed.hash(&mut hasher);
+            key.factor.hash(&mut hasher);
+            for index in key.images {
+                match index {
+                    Some(index) => image_bytes(&self.document, &self.buffers, &self.base, index)
+                        .with_context(|| self.input.display().to_string())?
+                        .hash(&mut hasher),
+                    None => 0u8.hash(&mut hasher),
+                }
             }
-            let image = texture_image(document, &buffers, base, key, input)?;
-            let image = fit_power_of_two(image, max_log2, input);
-            let (w, h) = image.dimensions();
-            Ok((encode_chain(image.into_raw(), w, h, format)?, false))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
-    let textures = textures.into_iter().map(|(texture, _)| texture).collect();
+            *half = hasher.finish();
+        }
+        Ok((u128::from(halves[0]) << 64) | u128::from(halves[1]))
+    }
 
+    /// Texture `k` encoded in `format` at most `max_extent` a side, and whether its
+    /// source's BC blocks were kept as they are.
+    pub(crate) fn encode_texture(
+        &self,
+        k: usize,
+        format: TextureFormat,
+        max_extent: u32,
+    ) -> Result<(EncodedTexture, bool)> {
+        let key = &self.keys[k];
+        let max_log2 = max_extent.trailing_zeros();
+        if let Some(kept) = kept_blocks(&self.document, &self.buffers, &self.base, key, max_log2) {
+            return Ok((kept, true));
+        }
+        let image = texture_image(&self.document, &self.buffers, &self.base, key, &self.input)?;
+        let image = fit_power_of_two(image, max_log2, &self.input);
+        let (w, h) = image.dimensions();
+        Ok((encode_chain(image.into_raw(), w, h, format)?, false))
+    }
+}
+
+/// `meshes` as a scene whose origin is the centre of their bounds (rounded to metres), so
+/// that f32 positions relative to it stay precise; checked as a dataset's scene is.
+pub(crate) fn centred_scene(meshes: &[PendingMesh], input: &Path) -> Result<Scene> {
     // Origin at the centre of the world-space bounds keeps f32 positions precise.
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
@@ -344,7 +458,7 @@ pub fn load_slice(
         }
     });
     let mut scene = Scene::new(origin);
-    for m in &meshes {
+    for m in meshes {
         let positions: Vec<[f32; 3]> = m
             .positions
             .iter()
@@ -355,11 +469,7 @@ pub fn load_slice(
     scene
         .validate(input)
         .with_context(|| format!("{}: the imported scene", input.display()))?;
-    Ok(ImportedScene {
-        scene,
-        textures,
-        kept_blocks,
-    })
+    Ok(scene)
 }
 
 /// Fails where the `gltf` crate would panic: a mesh primitive referring to an accessor that
@@ -657,7 +767,7 @@ fn image_bytes(
     }
 }
 
-fn percent_decode(s: &str) -> String {
+pub(crate) fn percent_decode(s: &str) -> String {
     let bytes = s.as_bytes();
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;

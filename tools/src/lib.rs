@@ -43,6 +43,7 @@ pub mod report;
 pub mod s3_emulator;
 pub mod server_process;
 pub mod simulate;
+pub mod tiles;
 pub mod upgrade;
 pub mod verify;
 

@@ -29,7 +29,7 @@ enum Command {
     AtlasTree(atlas_tree::AtlasTreeArgs),
     /// Report how a dataset's textures pack into the sparse cache (utilisation).
     CacheReport(cache_report::CacheReportArgs),
-    /// Import a glTF 2.0 scene as a dataset.
+    /// Import a glTF 2.0 scene or an OGC 3D Tiles tileset as a dataset.
     Import(import::ImportArgs),
     /// Print totals of a dataset.
     Info(info::InfoArgs),

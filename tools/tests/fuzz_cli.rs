@@ -23,7 +23,7 @@ fn every_harness_survives_a_short_fixed_seed_campaign() {
     let targets: Vec<&str> = rows.iter().map(|r| r[0]).collect();
     assert_eq!(
         targets,
-        ["dataset", "path", "gltf", "texture", "patches", "remote"],
+        ["dataset", "path", "gltf", "texture", "patches", "remote", "tileset"],
         "{stdout}"
     );
     for row in &rows {

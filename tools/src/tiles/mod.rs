@@ -1,0 +1,669 @@
+//! `citystream import TILESET_JSON`: an OGC 3D Tiles tileset (1.0 and 1.1) as a dataset.
+//!
+//! The tile hierarchy is walked from `tileset.json`, following external tilesets (content
+//! URIs ending in `.json`) and composing each tile's `transform` down the tree. Content is
+//! read from b3dm (3D Tiles 1.0: feature and batch tables skipped, `RTC_CENTER` applied)
+//! and glTF 2.0 (`.glb`, `.gltf`; 1.1 content, `CESIUM_RTC` applied), with glTF's y-up axis
+//! turned to the tiles' z-up as the specification says; every triangle primitive becomes a
+//! mesh and its textures go through the glTF import's path (BCn blocks kept, the rest
+//! encoded), a texture shared by several tiles imported once.
+//!
+//! Which tiles: `--lod finest` (the default) takes the content of tiles that are not
+//! refined further under `REPLACE` refinement and every tile's content under `ADD`;
+//! `--lod all` keeps every level. Point clouds, instanced and composite tiles and
+//! implicit tiling are not imported: they are counted and named in a warning
+//! (`--strict` makes them an error).
+//!
+//! Coordinates: the tileset's Earth-centred coordinates (EPSG:4978) become a local
+//! east-north-up frame at the centre of the imported geometry (up along the WGS 84
+//! ellipsoid's normal there, as CesiumJS's `eastNorthUpToFixedFrame`), which the dataset
+//! names as its CRS; positions stay in f64 until they are made relative to the dataset's
+//! origin.
+//!
+//! Input is untrusted: tilesets that refer to themselves through external tilesets, URIs
+//! that leave the tileset's directory, non-finite transforms or bounding volumes,
+//! negative geometric errors and b3dm lengths that disagree with the file are refused,
+//! naming the tile; file sizes, tile counts and nesting are bounded.
+
+pub mod content;
+pub mod geodesy;
+pub mod write;
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use citystream_dataset::{Crs, DatasetWriter, Scene, TextureFormat};
+use rayon::prelude::*;
+use serde::Deserialize;
+use serde_json::Value;
+
+use crate::gen::EncodedTexture;
+use crate::import::{
+    centred_scene, mul, percent_decode, read_gltf, Mat4, PendingMesh, IDENTITY, MAX_IMPORTED_VERTICES,
+};
+use geodesy::{to_geodetic, EastNorthUp};
+
+/// Largest `tileset.json` read (external ones too).
+pub const MAX_TILESET_BYTES: u64 = 64 << 20;
+/// Largest content file read.
+pub const MAX_CONTENT_BYTES: u64 = 1 << 30;
+/// Most tiles a tileset may have, external tilesets included.
+pub const MAX_TILES: usize = 4_000_000;
+/// Most external tilesets read (one referred to twice counts twice).
+pub const MAX_TILESETS: usize = 100_000;
+/// Deepest tile nesting, across external tilesets.
+pub const MAX_DEPTH: usize = 256;
+/// Distances from the Earth's centre (metres) a city's geometry lies between: the WGS 84
+/// ellipsoid is 6,356.8 to 6,378.1 km, and city heights are within a few km of it.
+const EARTH_SHELL_M: (f64, f64) = (6_300_000.0, 6_450_000.0);
+
+/// Which tiles' content is imported.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Lod {
+    /// The finest level: tiles not refined further (`REPLACE`), every tile under `ADD`.
+    Finest,
+    /// Every tile's content, all levels overlapping (for inspection).
+    All,
+}
+
+/// How a tile's children refine it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Refine {
+    Replace,
+    Add,
+}
+
+#[derive(Deserialize)]
+struct TilesetJson {
+    asset: AssetJson,
+    root: TileJson,
+    #[serde(default, rename = "extensionsRequired")]
+    extensions_required: Vec<String>,
+}
+
+#[derive(Deserialize)]
+struct AssetJson {
+    version: String,
+    #[serde(default, rename = "gltfUpAxis")]
+    gltf_up_axis: Option<String>,
+}
+
+#[derive(Deserialize)]
+struct TileJson {
+    #[serde(default, rename = "boundingVolume")]
+    bounding_volume: Option<BoundingVolumeJson>,
+    #[serde(default, rename = "geometricError")]
+    geometric_error: Option<f64>,
+    #[serde(default)]
+    refine: Option<String>,
+    #[serde(default)]
+    transform: Option<Vec<f64>>,
+    #[serde(default)]
+    content: Option<ContentJson>,
+    #[serde(default)]
+    contents: Vec<ContentJson>,
+    #[serde(default)]
+    children: Vec<TileJson>,
+    #[serde(default, rename = "implicitTiling")]
+    implicit_tiling: Option<Value>,
+}
+
+#[derive(Deserialize)]
+struct BoundingVolumeJson {
+    #[serde(default, rename = "box")]
+    oriented_box: Option<Vec<f64>>,
+    #[serde(default)]
+    region: Option<Vec<f64>>,
+    #[serde(default)]
+    sphere: Option<Vec<f64>>,
+}
+
+#[derive(Deserialize)]
+struct ContentJson {
+    #[serde(default)]
+    uri: Option<String>,
+    /// The name 3D Tiles used before 1.0.
+    #[serde(default)]
+    url: Option<String>,
+}
+
+/// A content file to import and the transform that places it in Earth-centred coordinates.
+struct ContentRef {
+    path: PathBuf,
+    transform: Mat4,
+    /// Whether its glTF is y-up (the tileset's `asset.gltfUpAxis`, y unless it says z).
+    y_up: bool,
+    tile: String,
+}
+
+/// The walk over a tileset and its external tilesets.
+struct Walk {
+    /// The top tileset's directory: no URI may leave it.
+    root_dir: PathBuf,
+    lod: Lod,
+    tiles: usize,
+    tilesets: usize,
+    contents: Vec<ContentRef>,
+    /// Content not imported, by kind.
+    skipped: BTreeMap<String, usize>,
+}
+
+/// A tileset read into memory: what `import` writes as a dataset.
+#[derive(Debug)]
+pub struct ImportedTileset {
+    /// Meshes in dataset form, in the local east-north-up frame.
+    pub scene: Scene,
+    /// Textures in first-use order.
+    pub textures: Vec<EncodedTexture>,
+    /// How many keep their source's BC blocks as they are.
+    pub kept_blocks: usize,
+    /// The frame the scene's coordinates are in.
+    pub frame: EastNorthUp,
+    /// Content files imported.
+    pub contents: usize,
+    /// Tiles walked (external tilesets' included).
+    pub tiles: usize,
+    /// Content not imported, by kind, and how many of each.
+    pub skipped: BTreeMap<String, usize>,
+}
+
+/// Whether `input` names a tileset rather than a glTF file.
+pub fn is_tileset(input: &Path) -> bool {
+    input
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+}
+
+/// Reads the tileset `input` and its content, encoding textures in `format` at most
+/// `max_extent` a side. With `strict`, content that is not imported is an error; with
+/// `report`, it is a warning on standard error, as is progress over many contents.
+pub fn load(
+    input: &Path,
+    format: TextureFormat,
+    max_extent: u32,
+    lod: Lod,
+    strict: bool,
+    report: bool,
+) -> Result<ImportedTileset> {
+    let canonical = input
+        .canonicalize()
+        .with_context(|| format!("reading tileset {}", input.display()))?;
+    let root_dir = canonical.parent().unwrap_or(Path::new("/")).to_path_buf();
+    let mut walk = Walk {
+        root_dir,
+        lod,
+        tiles: 0,
+        tilesets: 0,
+        contents: Vec::new(),
+        skipped: BTreeMap::new(),
+    };
+    walk.tileset(&canonical, &IDENTITY, Refine::Replace, &mut Vec::new(), 0)?;
+    if strict && !walk.skipped.is_empty() {
+        bail!("{}: {} (--strict)", input.display(), skipped_text(&walk.skipped));
+    }
+    if report && !walk.skipped.is_empty() {
+        eprintln!(
+            "warning: {}: {} (not imported; --strict makes this an error)",
+            input.display(),
+            skipped_text(&walk.skipped)
+        );
+    }
+    if walk.contents.is_empty() {
+        bail!(
+            "{}: no b3dm or glTF content to import in {} tiles{}",
+            input.display(),
+            walk.tiles,
+            if walk.skipped.is_empty() {
+                String::new()
+            } else {
+                format!("; {}", skipped_text(&walk.skipped))
+            }
+        );
+    }
+
+    let started = Instant::now();
+    let mut meshes: Vec<PendingMesh> = Vec::new();
+    let mut textures: Vec<(EncodedTexture, bool)> = Vec::new();
+    let mut texture_ids: HashMap<u128, usize> = HashMap::new();
+    let mut vertices = 0usize;
+    let count = walk.contents.len();
+    for (n, content) in walk.contents.iter().enumerate() {
+        let what = || format!("{} (tile {})", content.path.display(), content.tile);
+        let mut read = read_content(content, MAX_IMPORTED_VERTICES - vertices).with_context(what)?;
+        // Textures new to the import are encoded (in parallel); shared ones map to the first.
+        let mut local_to_global = Vec::with_capacity(read.texture_count());
+        let mut fresh = Vec::new();
+        for k in 0..read.texture_count() {
+            let identity = read.texture_identity(k).with_context(what)?;
+            let next = textures.len() + fresh.len();
+            let id = *texture_ids.entry(identity).or_insert_with(|| {
+                fresh.push(k);
+                next
+            });
+            local_to_global.push(id);
+        }
+        let encoded = fresh
+            .par_iter()
+            .map(|&k| read.encode_texture(k, format, max_extent))
+            .collect::<Result<Vec<_>>>()
+            .with_context(what)?;
+        textures.extend(encoded);
+        for mesh in &mut read.meshes {
+            mesh.texture = local_to_global[mesh.texture];
+            vertices += mesh.positions.len();
+        }
+        meshes.append(&mut read.meshes);
+        if report && count >= 100 && (n + 1) % (count / 20).max(1) == 0 {
+            eprintln!(
+                "import: {}/{count} contents, {} meshes, {} textures, {:.0} s",
+                n + 1,
+                meshes.len(),
+                textures.len(),
+                started.elapsed().as_secs_f64()
+            );
+        }
+    }
+    if meshes.is_empty() {
+        bail!(
+            "{}: the tileset's {count} contents hold no triangle meshes",
+            input.display()
+        );
+    }
+
+    let frame = local_frame(&meshes).with_context(|| format!("{}: placing the tileset", input.display()))?;
+    for mesh in &mut meshes {
+        for p in &mut mesh.positions {
+            let [e, n, u] = frame.local(*p);
+            *p = [e, u, -n];
+        }
+        for normal in &mut mesh.normals {
+            let [e, n, u] = frame.local_direction(normal.map(f64::from));
+            *normal = [e as f32, u as f32, -n as f32];
+        }
+    }
+    let mut scene = centred_scene(&meshes, input)?;
+    scene.crs = Some(enu_crs(&frame)?);
+    let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
+    Ok(ImportedTileset {
+        scene,
+        textures: textures.into_iter().map(|(t, _)| t).collect(),
+        kept_blocks,
+        frame,
+        contents: count,
+        tiles: walk.tiles,
+        skipped: walk.skipped,
+    })
+}
+
+/// Writes the tileset `input` as the dataset `out` (see [`load`]).
+pub fn import(input: &Path, out: &Path, format: TextureFormat, max_extent: u32, lod: Lod, strict: bool) -> Result<()> {
+    let start = Instant::now();
+    let imported = load(input, format, max_extent, lod, strict, true)?;
+    let mut writer = DatasetWriter::create(out)?;
+    for t in &imported.textures {
+        writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
+    }
+    let summary = writer
+        .finish(&imported.scene)
+        .with_context(|| format!("writing {}", out.display()))?;
+    let origin = to_geodetic(imported.frame.origin);
+    crate::gen::print_stdout(&format!(
+        "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\nframe: east-north-up at {}\n",
+        input.display(),
+        out.display(),
+        imported.tiles,
+        imported.contents,
+        summary.meshes,
+        summary.triangles,
+        summary.textures,
+        imported.kept_blocks,
+        format.name(),
+        summary.pack_bytes as f64 / 1e6,
+        start.elapsed().as_secs_f64(),
+        origin.map_or_else(|| "?".to_owned(), |g| format!(
+            "latitude {:.7}°, longitude {:.7}°, height {:.3} m (WGS 84)",
+            g.latitude.to_degrees(),
+            g.longitude.to_degrees(),
+            g.height
+        ))
+    ))
+}
+
+fn skipped_text(skipped: &BTreeMap<String, usize>) -> String {
+    let list: Vec<String> = skipped.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
+    format!(
+        "skipped content of kinds citystream does not import: {}",
+        list.join(", ")
+    )
+}
+
+impl Walk {
+    fn tileset(
+        &mut self,
+        path: &Path,
+        parent: &Mat4,
+        inherited: Refine,
+        chain: &mut Vec<PathBuf>,
+        depth: usize,
+    ) -> Result<()> {
+        if let Some(at) = chain.iter().position(|p| p == path) {
+            let cycle: Vec<String> = chain[at..]
+                .iter()
+                .chain(std::iter::once(&path.to_path_buf()))
+                .map(|p| p.display().to_string())
+                .collect();
+            bail!(
+                "external tilesets refer to each other in a cycle: {}",
+                cycle.join(" -> ")
+            );
+        }
+        self.tilesets += 1;
+        if self.tilesets > MAX_TILESETS {
+            bail!(
+                "more than {MAX_TILESETS} external tilesets are read (at {})",
+                path.display()
+            );
+        }
+        let tileset = read_tileset(path)?;
+        let unsupported: Vec<&String> = tileset
+            .extensions_required
+            .iter()
+            .filter(|e| e.as_str() != "3DTILES_content_gltf")
+            .collect();
+        if !unsupported.is_empty() {
+            bail!(
+                "{}: the tileset requires extensions citystream does not read: {unsupported:?}",
+                path.display()
+            );
+        }
+        let y_up = match tileset
+            .asset
+            .gltf_up_axis
+            .as_deref()
+            .map(str::to_ascii_uppercase)
+            .as_deref()
+        {
+            None | Some("Y") => true,
+            Some("Z") => false,
+            Some(other) => bail!("{}: asset.gltfUpAxis {other:?} (Y or Z)", path.display()),
+        };
+        let dir = path.parent().unwrap_or(Path::new("/")).to_path_buf();
+        chain.push(path.to_path_buf());
+        let walked = self.tile(
+            &tileset.root,
+            &dir,
+            parent,
+            inherited,
+            y_up,
+            chain,
+            depth,
+            &format!("{}#root", file_name(path)),
+        );
+        chain.pop();
+        walked.with_context(|| format!("in tileset {}", path.display()))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn tile(
+        &mut self,
+        tile: &TileJson,
+        dir: &Path,
+        parent: &Mat4,
+        inherited: Refine,
+        y_up: bool,
+        chain: &mut Vec<PathBuf>,
+        depth: usize,
+        name: &str,
+    ) -> Result<()> {
+        if depth > MAX_DEPTH {
+            bail!("tile {name}: tiles nest deeper than {MAX_DEPTH} levels");
+        }
+        self.tiles += 1;
+        if self.tiles > MAX_TILES {
+            bail!("tile {name}: the tileset has more than {MAX_TILES} tiles");
+        }
+        check_tile(tile).with_context(|| format!("tile {name}"))?;
+        let world = match &tile.transform {
+            Some(t) => mul(parent, &matrix(t).with_context(|| format!("tile {name}: transform"))?),
+            None => *parent,
+        };
+        if world.iter().flatten().any(|v| !v.is_finite()) {
+            bail!("tile {name}: its transform composed with its ancestors' is not finite");
+        }
+        let refine = match tile.refine.as_deref().map(str::to_ascii_uppercase).as_deref() {
+            None => inherited,
+            Some("REPLACE") => Refine::Replace,
+            Some("ADD") => Refine::Add,
+            Some(other) => bail!("tile {name}: refine {other:?} (REPLACE or ADD)"),
+        };
+        if tile.implicit_tiling.is_some() {
+            *self.skipped.entry("implicitly tiled subtrees".to_owned()).or_default() += 1;
+        }
+        let keep = self.lod == Lod::All || refine == Refine::Add || tile.children.is_empty();
+        for content in tile.content.iter().chain(&tile.contents) {
+            let Some(uri) = content.uri.as_deref().or(content.url.as_deref()) else {
+                bail!("tile {name}: content without a uri");
+            };
+            let path = self
+                .resolve(dir, uri)
+                .with_context(|| format!("tile {name}: content {uri:?}"))?;
+            let kind = content_kind(&path);
+            match kind.as_str() {
+                "json" => self.tileset(&path, &world, refine, chain, depth + 1)?,
+                "b3dm" | "glb" | "gltf" if keep => self.contents.push(ContentRef {
+                    path,
+                    transform: world,
+                    y_up,
+                    tile: name.to_owned(),
+                }),
+                "b3dm" | "glb" | "gltf" => {}
+                "pnts" => *self.skipped.entry("point clouds (pnts)".to_owned()).or_default() += 1,
+                "i3dm" => *self.skipped.entry("instanced models (i3dm)".to_owned()).or_default() += 1,
+                "cmpt" => *self.skipped.entry("composite tiles (cmpt)".to_owned()).or_default() += 1,
+                "subtree" => *self.skipped.entry("implicit tiling subtrees".to_owned()).or_default() += 1,
+                _ => *self.skipped.entry(format!("unknown content (.{kind})")).or_default() += 1,
+            }
+        }
+        for (i, child) in tile.children.iter().enumerate() {
+            self.tile(
+                child,
+                dir,
+                &world,
+                refine,
+                y_up,
+                chain,
+                depth + 1,
+                &format!("{name}/{i}"),
+            )?;
+        }
+        Ok(())
+    }
+
+    /// A content URI as a file inside the top tileset's directory.
+    fn resolve(&self, dir: &Path, uri: &str) -> Result<PathBuf> {
+        let relative = uri.split(['?', '#']).next().unwrap_or("");
+        if relative.is_empty() || uri.contains("://") || uri.starts_with("data:") || relative.starts_with(['/', '\\']) {
+            bail!("not a relative path (citystream imports a tileset's files from its own directory)");
+        }
+        let path = dir.join(percent_decode(relative));
+        let canonical = path
+            .canonicalize()
+            .with_context(|| format!("{} does not exist", path.display()))?;
+        if !canonical.starts_with(&self.root_dir) {
+            bail!(
+                "{} lies outside the tileset's directory {}",
+                canonical.display(),
+                self.root_dir.display()
+            );
+        }
+        Ok(canonical)
+    }
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name()
+        .map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned())
+}
+
+/// A content file's kind by its extension, lower case.
+fn content_kind(path: &Path) -> String {
+    path.extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default()
+}
+
+fn read_bounded(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
+    citystream_dataset::ensure_regular_file(path).with_context(|| format!("reading {}", path.display()))?;
+    let len = std::fs::metadata(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .len();
+    if len > limit {
+        bail!("{}: a {what} of {len} bytes (at most {limit} are read)", path.display());
+    }
+    std::fs::read(path).with_context(|| format!("reading {}", path.display()))
+}
+
+fn read_tileset(path: &Path) -> Result<TilesetJson> {
+    let bytes = read_bounded(path, MAX_TILESET_BYTES, "tileset")?;
+    let tileset: TilesetJson =
+        serde_json::from_slice(&bytes).with_context(|| format!("{}: not a 3D Tiles tileset", path.display()))?;
+    if !matches!(tileset.asset.version.as_str(), "0.0" | "1.0" | "1.1") {
+        bail!(
+            "{}: 3D Tiles version {:?} (citystream reads 1.0 and 1.1)",
+            path.display(),
+            tileset.asset.version
+        );
+    }
+    Ok(tileset)
+}
+
+/// A tile's numbers: a finite, non-negative geometric error; bounding volumes of the
+/// right length, finite, with non-negative extents.
+fn check_tile(tile: &TileJson) -> Result<()> {
+    if let Some(error) = tile.geometric_error {
+        if !(error.is_finite() && error >= 0.0) {
+            bail!("geometricError {error} (a finite, non-negative number)");
+        }
+    }
+    if let Some(volume) = &tile.bounding_volume {
+        let check = |name: &str, values: &Option<Vec<f64>>, len: usize| -> Result<()> {
+            if let Some(values) = values {
+                if values.len() != len || values.iter().any(|v| !v.is_finite()) {
+                    bail!("boundingVolume.{name} must be {len} finite numbers, not {values:?}");
+                }
+            }
+            Ok(())
+        };
+        check("box", &volume.oriented_box, 12)?;
+        check("region", &volume.region, 6)?;
+        check("sphere", &volume.sphere, 4)?;
+        if let Some(sphere) = &volume.sphere {
+            if sphere[3] < 0.0 {
+                bail!("boundingVolume.sphere has a negative radius {}", sphere[3]);
+            }
+        }
+        if let Some(region) = &volume.region {
+            if region[4] > region[5] || region[1] > region[3] {
+                bail!("boundingVolume.region {region:?} has its south above its north or its floor above its ceiling");
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A 3D Tiles transform (16 numbers, column-major).
+fn matrix(values: &[f64]) -> Result<Mat4> {
+    if values.len() != 16 || values.iter().any(|v| !v.is_finite()) {
+        bail!("16 finite numbers expected, found {values:?}");
+    }
+    Ok(std::array::from_fn(|c| std::array::from_fn(|r| values[c * 4 + r])))
+}
+
+fn translation(t: [f64; 3]) -> Mat4 {
+    let mut m = IDENTITY;
+    m[3] = [t[0], t[1], t[2], 1.0];
+    m
+}
+
+/// glTF's y-up to the tiles' z-up: (x, y, z) → (x, −z, y).
+const Y_UP_TO_Z_UP: Mat4 = [
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, -1.0, 0.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
+/// One content file read: its glTF's primitives placed in Earth-centred coordinates.
+fn read_content(content: &ContentRef, vertex_budget: usize) -> Result<crate::import::GltfContent> {
+    let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
+    let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
+        let batched = content::parse_b3dm(&bytes)?;
+        (batched.glb, batched.rtc_center)
+    } else {
+        (&bytes[..], None)
+    };
+    let json = content::gltf_json(glb)?;
+    content::check_gltf_extensions(&json)?;
+    let gltf_rtc = content::cesium_rtc(&json)?;
+    // Cesium's order: the tile's transform, the centre, then the axis correction and the
+    // glTF's own node transforms.
+    let mut transform = content.transform;
+    for center in [batch_rtc, gltf_rtc].into_iter().flatten() {
+        transform = mul(&transform, &translation(center));
+    }
+    if content.y_up {
+        transform = mul(&transform, &Y_UP_TO_Z_UP);
+    }
+    let base = content.path.parent().unwrap_or(Path::new("/"));
+    read_gltf(glb, base, &content.path, &transform, vertex_budget)
+}
+
+/// The east-north-up frame at the centre of the meshes' Earth-centred bounds.
+fn local_frame(meshes: &[PendingMesh]) -> Result<EastNorthUp> {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in meshes.iter().flat_map(|m| &m.positions) {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let centre = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
+    let radius = centre[0].hypot(centre[1]).hypot(centre[2]);
+    if !(EARTH_SHELL_M.0..=EARTH_SHELL_M.1).contains(&radius) {
+        bail!(
+            "the content's Earth-centred bounds are centred {:.1} km from the Earth's centre, not near its surface \
+             ({:.0} to {:.0} km): is the tileset really in EPSG:4978 (a root transform missing)?",
+            radius / 1e3,
+            EARTH_SHELL_M.0 / 1e3,
+            EARTH_SHELL_M.1 / 1e3
+        );
+    }
+    EastNorthUp::at(centre).with_context(|| {
+        format!(
+            "the content's Earth-centred bounds are centred at {centre:?}, where no east-north-up frame exists \
+             (on the Earth's axis, or not finite): is it really in EPSG:4978?"
+        )
+    })
+}
+
+/// The dataset's CRS for `frame`: an engineering CRS naming the frame's origin.
+fn enu_crs(frame: &EastNorthUp) -> Result<Crs> {
+    let g = to_geodetic(frame.origin).context("the frame's origin has no geodetic position")?;
+    let [x, y, z] = frame.origin;
+    let text = format!(
+        "ENGCRS[\"citystream local east-north-up at latitude {lat:.9}, longitude {lon:.9}, height {h:.4} m (WGS 84)\",\
+         EDATUM[\"Topocentric origin at EPSG:4978 ({x:.4}, {y:.4}, {z:.4})\"],\
+         CS[Cartesian,3],\
+         AXIS[\"easting (E)\",east,ORDER[1],LENGTHUNIT[\"metre\",1]],\
+         AXIS[\"northing (N)\",north,ORDER[2],LENGTHUNIT[\"metre\",1]],\
+         AXIS[\"ellipsoidal height (U)\",up,ORDER[3],LENGTHUNIT[\"metre\",1]]]",
+        lat = g.latitude.to_degrees(),
+        lon = g.longitude.to_degrees(),
+        h = g.height,
+    );
+    Crs::parse(&text).map_err(|e| anyhow::anyhow!("the local frame's CRS: {e}"))
+}

@@ -1,0 +1,523 @@
+//! `citystream import TILESET_JSON` on tilesets written here: b3dm and glb content, an
+//! external tileset, nested transforms, RTC_CENTER and CESIUM_RTC, REPLACE and ADD
+//! refinement and a texture two tiles share, placed at Berlin; positions are checked
+//! against an east-north-up computation independent of the importer's.
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use citystream_dataset::Dataset;
+use citystream_tools::tiles::write;
+use serde_json::{json, Value};
+
+mod cli_support;
+use cli_support::{citystream, stderr};
+
+fn fresh_dir(name: &str) -> PathBuf {
+    cli_support::fresh_dir("import-tiles", name)
+}
+
+type Mat4 = [[f64; 4]; 4];
+
+/// Column-major product a × b.
+fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
+    std::array::from_fn(|c| std::array::from_fn(|r| (0..4).map(|k| a[k][r] * b[c][k]).sum()))
+}
+
+fn apply(m: &Mat4, p: [f64; 3]) -> [f64; 3] {
+    std::array::from_fn(|r| m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r])
+}
+
+fn translation(t: [f64; 3]) -> Mat4 {
+    [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [t[0], t[1], t[2], 1.0],
+    ]
+}
+
+fn flat(m: &Mat4) -> Vec<f64> {
+    m.iter().flatten().copied().collect()
+}
+
+/// WGS 84, written out here rather than taken from the importer.
+const A: f64 = 6_378_137.0;
+const F: f64 = 1.0 / 298.257_223_563;
+
+fn ecef(lat_deg: f64, lon_deg: f64, h: f64) -> [f64; 3] {
+    let e2 = F * (2.0 - F);
+    let (lat, lon) = (lat_deg.to_radians(), lon_deg.to_radians());
+    let n = A / (1.0 - e2 * lat.sin().powi(2)).sqrt();
+    [
+        (n + h) * lat.cos() * lon.cos(),
+        (n + h) * lat.cos() * lon.sin(),
+        (n * (1.0 - e2) + h) * lat.sin(),
+    ]
+}
+
+/// Geodetic latitude and longitude (radians) by fixed-point iteration on the latitude.
+fn geodetic(p: [f64; 3]) -> (f64, f64) {
+    let e2 = F * (2.0 - F);
+    let r = p[0].hypot(p[1]);
+    let mut lat = (p[2] / r).atan();
+    for _ in 0..20 {
+        let n = A / (1.0 - e2 * lat.sin().powi(2)).sqrt();
+        lat = ((p[2] + e2 * n * lat.sin()) / r).atan();
+    }
+    (lat, p[1].atan2(p[0]))
+}
+
+/// The textbook east-north-up rotation at geodetic (lat, lon) as rows east, north, up.
+fn enu_rows(lat: f64, lon: f64) -> [[f64; 3]; 3] {
+    let (sl, cl) = lat.sin_cos();
+    let (so, co) = lon.sin_cos();
+    [[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]]
+}
+
+/// The ENU → ECEF transform at (lat, lon, h), as a tileset's root transform.
+fn enu_to_ecef(lat_deg: f64, lon_deg: f64, h: f64) -> Mat4 {
+    let [e, n, u] = enu_rows(lat_deg.to_radians(), lon_deg.to_radians());
+    let o = ecef(lat_deg, lon_deg, h);
+    [
+        [e[0], e[1], e[2], 0.0],
+        [n[0], n[1], n[2], 0.0],
+        [u[0], u[1], u[2], 0.0],
+        [o[0], o[1], o[2], 1.0],
+    ]
+}
+
+/// glTF y-up to the tiles' z-up, as the 3D Tiles specification gives it.
+const Y_UP_TO_Z_UP: Mat4 = [
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, -1.0, 0.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
+/// A quad in glTF coordinates (y up): `size` metres wide and high, standing at `at`.
+fn wall(at: [f32; 3], size: f32) -> [[f32; 3]; 4] {
+    let [x, y, z] = at;
+    [[x, y, z], [x + size, y, z], [x + size, y + size, z], [x, y + size, z]]
+}
+
+/// One tile's content as written and where its corners must land (Earth-centred).
+struct Written {
+    file: String,
+    corners_ecef: Vec<[f64; 3]>,
+    png: Vec<u8>,
+}
+
+/// Writes a glb (`b3dm` wraps it) of one textured wall into `dir/file`.
+#[allow(clippy::too_many_arguments)]
+fn write_content(
+    dir: &Path,
+    file: &str,
+    corners: [[f32; 3]; 4],
+    png: Vec<u8>,
+    node: Value,
+    node_matrix: &Mat4,
+    extensions: Option<Value>,
+    b3dm_rtc: Option<[f64; 3]>,
+    placed_by: &Mat4,
+) -> Written {
+    let (gltf, bin) = write::textured_quad(corners, &png, node, extensions);
+    let glb = write::glb(&gltf, &bin);
+    let bytes = match b3dm_rtc {
+        Some(rtc) => write::b3dm(
+            &glb,
+            &json!({"BATCH_LENGTH": 1, "RTC_CENTER": rtc}),
+            Some(&json!({"height": [12.5]})),
+            &[],
+        ),
+        None if file.ends_with(".b3dm") => write::b3dm(&glb, &json!({"BATCH_LENGTH": 0}), None, &[]),
+        None => glb,
+    };
+    std::fs::write(dir.join(file), bytes).expect("write content");
+    let m = mul(placed_by, &mul(&Y_UP_TO_Z_UP, node_matrix));
+    Written {
+        file: file.to_owned(),
+        corners_ecef: corners.iter().map(|c| apply(&m, c.map(f64::from))).collect(),
+        png,
+    }
+}
+
+/// Berlin (Brandenburg Gate), 34 m above the ellipsoid.
+const BERLIN: (f64, f64, f64) = (52.516_275, 13.377_704, 34.0);
+
+/// The test tileset; returns its path and, in walk order, every content with the level
+/// flag `finest` (whether `--lod finest` imports it).
+fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
+    let (lat, lon, h) = BERLIN;
+    let frame = enu_to_ecef(lat, lon, h);
+    let shared_png = write::gradient_png(64, 32, 1);
+    let identity = translation([0.0; 3]);
+    // Root (REPLACE, no transform): a coarse wall as b3dm with RTC_CENTER at the gate.
+    let coarse = write_content(
+        dir,
+        "coarse.b3dm",
+        wall([-50.0, 0.0, 0.0], 100.0),
+        write::gradient_png(16, 16, 4),
+        json!({}),
+        &identity,
+        None,
+        Some(ecef(lat, lon, h)),
+        &translation(ecef(lat, lon, h)),
+    );
+    // Tile 1: the east-north-up frame at the gate; its glb has a node translation.
+    let node_t = translation([10.0, 0.0, -5.0]);
+    let a = write_content(
+        dir,
+        "a.glb",
+        wall([0.0, 0.0, 0.0], 20.0),
+        shared_png.clone(),
+        json!({"translation": [10.0, 0.0, -5.0]}),
+        &node_t,
+        None,
+        None,
+        &frame,
+    );
+    // Tile 1a: 300 m east and 1.5 m up of tile 1, nested transforms.
+    let nested = translation([300.0, 0.0, 1.5]);
+    let a2 = write_content(
+        dir,
+        "a2.glb",
+        wall([0.0, 0.0, 0.0], 8.0),
+        write::gradient_png(32, 32, 2),
+        json!({}),
+        &identity,
+        None,
+        None,
+        &mul(&frame, &nested),
+    );
+    // External tileset (ADD): a glb with CESIUM_RTC 400 m north of the gate, and a child
+    // b3dm with the first texture again.
+    std::fs::create_dir_all(dir.join("ext")).expect("mkdir");
+    let north = apply(&frame, [0.0, 400.0, 0.0]);
+    let rtc = write_content(
+        &dir.join("ext"),
+        "rtc.glb",
+        wall([0.0, 0.0, 0.0], 12.0),
+        write::gradient_png(16, 64, 3),
+        json!({}),
+        &identity,
+        Some(json!({"CESIUM_RTC": {"center": north}})),
+        None,
+        &translation(north),
+    );
+    let shared = write_content(
+        &dir.join("ext"),
+        "shared.b3dm",
+        wall([5.0, 0.0, 5.0], 6.0),
+        shared_png,
+        json!({}),
+        &identity,
+        None,
+        None,
+        &mul(&frame, &translation([-200.0, -100.0, 0.0])),
+    );
+    let external = json!({
+        "asset": {"version": "1.1"},
+        "geometricError": 10.0,
+        "root": {
+            "boundingVolume": {"sphere": [north[0], north[1], north[2], 50.0]},
+            "geometricError": 5.0,
+            "refine": "ADD",
+            "content": {"uri": "rtc.glb"},
+            "children": [{
+                "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
+                "geometricError": 0.0,
+                "transform": flat(&mul(&frame, &translation([-200.0, -100.0, 0.0]))),
+                "content": {"uri": "shared.b3dm"}
+            }]
+        }
+    });
+    std::fs::write(
+        dir.join("ext/tileset.json"),
+        serde_json::to_vec_pretty(&external).expect("json"),
+    )
+    .expect("write external");
+    let tileset = json!({
+        "asset": {"version": "1.0"},
+        "geometricError": 500.0,
+        "root": {
+            "boundingVolume": {"region": [0.23, 0.91, 0.24, 0.92, 0.0, 100.0]},
+            "geometricError": 100.0,
+            "refine": "REPLACE",
+            "content": {"uri": "coarse.b3dm"},
+            "children": [
+                {
+                    "boundingVolume": {"box": [0.0, 0.0, 0.0, 500.0, 0.0, 0.0, 0.0, 500.0, 0.0, 0.0, 0.0, 50.0]},
+                    "geometricError": 20.0,
+                    "transform": flat(&frame),
+                    "content": {"uri": "a.glb"},
+                    "children": [{
+                        "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 20.0]},
+                        "geometricError": 0.0,
+                        "transform": flat(&nested),
+                        "content": {"uri": "a2.glb"}
+                    }]
+                },
+                {
+                    "boundingVolume": {"sphere": [north[0], north[1], north[2], 50.0]},
+                    "geometricError": 10.0,
+                    "content": {"uri": "ext/tileset.json"}
+                }
+            ]
+        }
+    });
+    let path = dir.join("tileset.json");
+    std::fs::write(&path, serde_json::to_vec_pretty(&tileset).expect("json")).expect("write tileset");
+    let contents = vec![(coarse, false), (a, false), (a2, true), (rtc, true), (shared, true)];
+    (path, contents)
+}
+
+fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "import",
+        input.to_str().expect("utf-8"),
+        "--out",
+        out.to_str().expect("utf-8"),
+    ];
+    args.extend_from_slice(extra);
+    citystream(&args)
+}
+
+fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, PathBuf) {
+    let out_dir = fresh_dir(name);
+    let out = import(input, &out_dir, extra);
+    assert!(
+        out.status.success(),
+        "import of {} failed: {}",
+        input.display(),
+        stderr(&out)
+    );
+    let verify = citystream(&["verify", out_dir.to_str().expect("utf-8")]);
+    assert!(verify.status.success(), "verify failed: {}", stderr(&verify));
+    (Dataset::open(&out_dir).expect("open imported dataset"), out_dir)
+}
+
+/// Checks every imported vertex against the independent placement: the dataset's absolute
+/// scene coordinates are (east, up, −north) of an east-north-up frame at the centre of the
+/// imported contents' Earth-centred bounds.
+fn check_positions(dataset: &Dataset, imported: &[&Written]) {
+    let corners: Vec<[f64; 3]> = imported.iter().flat_map(|w| w.corners_ecef.clone()).collect();
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in &corners {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let centre: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+    let (lat, lon) = geodetic(centre);
+    let rows = enu_rows(lat, lon);
+    let scene = &dataset.scene;
+    assert_eq!(scene.meshes.len(), imported.len());
+    let mut worst = 0.0f64;
+    for (mesh, written) in scene.meshes.iter().zip(imported) {
+        assert_eq!(mesh.vertex_count, 4, "{}", written.file);
+        for (v, p) in written.corners_ecef.iter().enumerate() {
+            let d: [f64; 3] = std::array::from_fn(|a| p[a] - centre[a]);
+            let [e, n, u] = rows.map(|r| r[0] * d[0] + r[1] * d[1] + r[2] * d[2]);
+            let expected = [e, u, -n];
+            let stored = scene.positions[mesh.first_vertex as usize + v];
+            for a in 0..3 {
+                let got = scene.origin[a] + f64::from(stored[a]);
+                worst = worst.max((got - expected[a]).abs());
+            }
+        }
+    }
+    assert!(
+        worst < 0.01,
+        "a vertex lies {worst} m from where the independent ENU computation puts it"
+    );
+    let crs = scene
+        .crs
+        .as_ref()
+        .expect("the dataset names its frame")
+        .as_str()
+        .to_owned();
+    assert!(crs.starts_with("ENGCRS["), "{crs}");
+    assert!(crs.contains(&format!("latitude {:.6}", lat.to_degrees())), "{crs}");
+}
+
+#[test]
+fn a_tileset_at_berlin_imports_at_the_finest_level_within_a_centimetre() {
+    let src = fresh_dir("berlin-src");
+    let (tileset, contents) = write_tileset(&src);
+    let (dataset, _) = import_ok(&tileset, "berlin-finest", &["--format", "rgba8"]);
+    let finest: Vec<&Written> = contents.iter().filter(|(_, f)| *f).map(|(w, _)| w).collect();
+    check_positions(&dataset, &finest);
+    // a2, rtc and shared: three images, and the shared one is a.glb's too.
+    assert_eq!(dataset.textures.len(), 3);
+    for (mesh, written) in dataset.scene.meshes.iter().zip(&finest) {
+        let png = image::load_from_memory(&written.png).expect("png").to_rgba8();
+        let mut level = Vec::new();
+        dataset.textures.read_mip(mesh.texture, 0, &mut level).expect("mip 0");
+        assert_eq!(level, png.into_raw(), "{}: texture bytes", written.file);
+    }
+}
+
+#[test]
+fn every_level_shares_the_texture_two_tiles_use() {
+    let src = fresh_dir("all-src");
+    let (tileset, contents) = write_tileset(&src);
+    let (dataset, _) = import_ok(&tileset, "berlin-all", &["--format", "rgba8", "--lod", "all"]);
+    let all: Vec<&Written> = contents.iter().map(|(w, _)| w).collect();
+    check_positions(&dataset, &all);
+    // Five walls, four images: a.glb and ext/shared.b3dm share one.
+    assert_eq!(dataset.scene.meshes.len(), 5);
+    assert_eq!(dataset.textures.len(), 4);
+    assert_eq!(dataset.scene.meshes[1].texture, dataset.scene.meshes[4].texture);
+}
+
+fn error_of(tileset: &Value, dir: &Path, name: &str) -> String {
+    std::fs::write(dir.join(name), serde_json::to_vec(tileset).expect("json")).expect("write");
+    let out = import(&dir.join(name), &fresh_dir(&format!("bad-{name}")), &[]);
+    assert!(!out.status.success(), "{name} was imported");
+    stderr(&out)
+}
+
+#[test]
+fn hostile_tilesets_are_refused_naming_the_tile() {
+    let dir = fresh_dir("hostile");
+    let (_, _) = write_tileset(&dir);
+    let tile = |extra: Value| {
+        let mut root =
+            json!({"boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0]}, "geometricError": 1.0, "refine": "ADD"});
+        root.as_object_mut()
+            .expect("object")
+            .extend(extra.as_object().expect("object").clone());
+        json!({"asset": {"version": "1.1"}, "geometricError": 1.0, "root": root})
+    };
+    // External tilesets in a cycle.
+    std::fs::write(
+        dir.join("loop-b.json"),
+        serde_json::to_vec(&tile(json!({"content": {"uri": "loop-a.json"}}))).expect("json"),
+    )
+    .expect("write");
+    let e = error_of(&tile(json!({"content": {"uri": "loop-b.json"}})), &dir, "loop-a.json");
+    assert!(e.contains("cycle"), "{e}");
+    // A URI leaving the tileset's directory.
+    std::fs::write(dir.parent().expect("parent").join("outside.glb"), b"glTF").expect("write");
+    let e = error_of(
+        &tile(json!({"content": {"uri": "../outside.glb"}})),
+        &dir,
+        "escape.json",
+    );
+    assert!(e.contains("outside the tileset's directory"), "{e}");
+    let e = error_of(
+        &tile(json!({"content": {"uri": "https://example.com/a.glb"}})),
+        &dir,
+        "url.json",
+    );
+    assert!(e.contains("not a relative path"), "{e}");
+    // Numbers.
+    let e = error_of(&tile(json!({"geometricError": -1.0})), &dir, "negative.json");
+    assert!(e.contains("geometricError -1") && e.contains("#root"), "{e}");
+    let e = error_of(&tile(json!({"transform": [1.0, 0.0, 0.0]})), &dir, "short.json");
+    assert!(e.contains("transform") && e.contains("16 finite numbers"), "{e}");
+    let e = error_of(
+        &tile(json!({"children": [{"geometricError": 0.0, "boundingVolume": {"sphere": [0.0, 0.0, 0.0, -5.0]}}]})),
+        &dir,
+        "radius.json",
+    );
+    assert!(e.contains("negative radius") && e.contains("#root/0"), "{e}");
+    let e = error_of(&tile(json!({"refine": "MERGE"})), &dir, "refine.json");
+    assert!(e.contains("MERGE"), "{e}");
+    // A b3dm whose header disagrees with the file, named with its tile.
+    let mut b3dm = std::fs::read(dir.join("coarse.b3dm")).expect("read");
+    b3dm.truncate(b3dm.len() - 3);
+    std::fs::write(dir.join("cut.b3dm"), b3dm).expect("write");
+    let e = error_of(&tile(json!({"content": {"uri": "cut.b3dm"}})), &dir, "cut.json");
+    assert!(e.contains("cut.b3dm") && e.contains("declares"), "{e}");
+    // Compressed geometry is refused by extension name.
+    let (mut gltf, bin) = write::textured_quad(wall([0.0; 3], 1.0), &write::gradient_png(4, 4, 9), json!({}), None);
+    gltf["extensionsRequired"] = json!(["KHR_draco_mesh_compression"]);
+    std::fs::write(dir.join("draco.glb"), write::glb(&gltf, &bin)).expect("write");
+    let e = error_of(&tile(json!({"content": {"uri": "draco.glb"}})), &dir, "draco.json");
+    assert!(
+        e.contains("KHR_draco_mesh_compression") && e.contains("draco.glb"),
+        "{e}"
+    );
+    // --crs cannot reproject yet: said, not ignored.
+    let out = import(&dir.join("tileset.json"), &fresh_dir("crs"), &["--crs", "EPSG:25833"]);
+    assert!(
+        !out.status.success() && stderr(&out).contains("not implemented"),
+        "{}",
+        stderr(&out)
+    );
+}
+
+#[test]
+fn content_that_is_not_imported_is_counted_and_strict_refuses_it() {
+    let dir = fresh_dir("skipped");
+    let (_, _) = write_tileset(&dir);
+    std::fs::write(dir.join("cloud.pnts"), b"pnts").expect("write");
+    let (lat, lon, h) = BERLIN;
+    let tileset = json!({
+        "asset": {"version": "1.0"},
+        "geometricError": 1.0,
+        "root": {
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0]},
+            "geometricError": 1.0,
+            "refine": "ADD",
+            "transform": flat(&enu_to_ecef(lat, lon, h)),
+            "content": {"uri": "a.glb"},
+            "children": [
+                {"geometricError": 0.0, "content": {"uri": "cloud.pnts"}},
+                {"geometricError": 0.0, "content": {"uri": "cloud.pnts"}}
+            ]
+        }
+    });
+    std::fs::write(dir.join("mixed.json"), serde_json::to_vec(&tileset).expect("json")).expect("write");
+    let out = import(&dir.join("mixed.json"), &fresh_dir("mixed"), &[]);
+    let e = stderr(&out);
+    assert!(out.status.success(), "{e}");
+    assert!(e.contains("warning") && e.contains("2 point clouds (pnts)"), "{e}");
+    // Without the root transform the content is in a local frame, not Earth-centred.
+    let mut local = tileset.clone();
+    local["root"].as_object_mut().expect("object").remove("transform");
+    let e = error_of(&local, &dir, "local.json");
+    assert!(e.contains("EPSG:4978"), "{e}");
+    let strict = import(&dir.join("mixed.json"), &fresh_dir("mixed-strict"), &["--strict"]);
+    assert!(!strict.status.success());
+    assert!(stderr(&strict).contains("--strict"), "{}", stderr(&strict));
+}
+
+#[test]
+fn the_imported_tileset_flies_with_its_error_measured() {
+    let src = fresh_dir("fly-src");
+    let (tileset, _) = write_tileset(&src);
+    let (_, dataset) = import_ok(&tileset, "fly", &["--lod", "all"]);
+    let out = fresh_dir("fly-out");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .arg("--dataset")
+        .arg(&dataset)
+        .args([
+            "--frames",
+            "90",
+            "--clock",
+            "fixed",
+            "--psnr-interval",
+            "30",
+            "--frame-interval",
+            "0",
+        ])
+        .args(["--width", "160", "--height", "90", "--validation=true"])
+        .arg("--out")
+        .arg(&out)
+        .status()
+        .expect("flythrough runs");
+    assert!(status.success(), "flythrough failed: {status}");
+    let summary: Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json")).expect("JSON");
+    assert_eq!(summary["frames"], 90);
+    assert_eq!(summary["validation_errors"], 0);
+    assert_eq!(summary["load_failures"], 0);
+    // Three measured frames, each against the fully resident reference.
+    let psnr = summary["psnr_of_mean_mse_db"].as_f64().expect("PSNR measured");
+    assert!(psnr > 20.0, "PSNR of the mean MSE {psnr} dB");
+}
