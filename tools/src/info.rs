@@ -22,6 +22,30 @@ pub struct InfoArgs {
 }
 
 /// Textures of one extent.
+/// The origin of a local east-north-up frame a dataset's CRS names.
+#[derive(Debug, Serialize)]
+struct LocalFrame {
+    /// Earth-centred (EPSG:4978) metres.
+    ecef: [f64; 3],
+    latitude_deg: f64,
+    longitude_deg: f64,
+    /// Above the WGS 84 ellipsoid.
+    height_m: f64,
+}
+
+impl LocalFrame {
+    fn of(crs: &Crs) -> Option<Self> {
+        let ecef = crate::tiles::local_frame_origin(crs)?;
+        let g = crate::tiles::geodesy::to_geodetic(ecef)?;
+        Some(Self {
+            ecef,
+            latitude_deg: g.latitude.to_degrees(),
+            longitude_deg: g.longitude.to_degrees(),
+            height_m: g.height,
+        })
+    }
+}
+
 #[derive(Debug, Serialize)]
 struct ExtentTotals {
     width: u32,
@@ -50,6 +74,8 @@ struct Info {
     crs: Option<String>,
     /// The origin in the CRS's axes: easting, northing, height (with a CRS only).
     origin_crs: Option<[f64; 3]>,
+    /// Where the CRS is a local east-north-up frame (a 3D Tiles import): its origin.
+    local_frame: Option<LocalFrame>,
     bounds_min: [f32; 3],
     bounds_max: [f32; 3],
     host_bytes_per_texture: usize,
@@ -113,6 +139,7 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         origin: scene.origin,
         crs: scene.crs.as_ref().map(|crs| crs.to_string()),
         origin_crs: scene.crs.as_ref().map(|_| Crs::from_scene(scene.origin)),
+        local_frame: scene.crs.as_ref().and_then(LocalFrame::of),
         bounds_min: scene.bounds.min,
         bounds_max: scene.bounds.max,
         host_bytes_per_texture: Dataset::metadata_bytes_per_texture(),
@@ -175,6 +202,13 @@ fn print_text(out: &mut impl Write, info: &Info) -> std::io::Result<()> {
             )?;
         }
         _ => writeln!(out, "crs        none (a local frame, not georeferenced)")?,
+    }
+    if let Some(frame) = &info.local_frame {
+        writeln!(
+            out,
+            "frame      east-north-up at latitude {:.7}°, longitude {:.7}°, height {:.3} m (WGS 84); EPSG:4978 ({:.3}, {:.3}, {:.3})",
+            frame.latitude_deg, frame.longitude_deg, frame.height_m, frame.ecef[0], frame.ecef[1], frame.ecef[2]
+        )?;
     }
     writeln!(
         out,

@@ -299,8 +299,8 @@ fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, PathBuf) {
 
 /// Checks every imported vertex against the independent placement: the dataset's absolute
 /// scene coordinates are (east, up, −north) of an east-north-up frame at the centre of the
-/// imported contents' Earth-centred bounds.
-fn check_positions(dataset: &Dataset, imported: &[&Written]) {
+/// imported contents' Earth-centred bounds. Returns that centre's latitude and longitude.
+fn check_positions(dataset: &Dataset, imported: &[&Written]) -> (f64, f64) {
     let corners: Vec<[f64; 3]> = imported.iter().flat_map(|w| w.corners_ecef.clone()).collect();
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
@@ -341,15 +341,24 @@ fn check_positions(dataset: &Dataset, imported: &[&Written]) {
         .to_owned();
     assert!(crs.starts_with("ENGCRS["), "{crs}");
     assert!(crs.contains(&format!("latitude {:.6}", lat.to_degrees())), "{crs}");
+    (lat, lon)
 }
 
 #[test]
 fn a_tileset_at_berlin_imports_at_the_finest_level_within_a_centimetre() {
     let src = fresh_dir("berlin-src");
     let (tileset, contents) = write_tileset(&src);
-    let (dataset, _) = import_ok(&tileset, "berlin-finest", &["--format", "rgba8"]);
+    let (dataset, out) = import_ok(&tileset, "berlin-finest", &["--format", "rgba8"]);
     let finest: Vec<&Written> = contents.iter().filter(|(_, f)| *f).map(|(w, _)| w).collect();
-    check_positions(&dataset, &finest);
+    let (lat, lon) = check_positions(&dataset, &finest);
+    // `info --json` reports the frame's centre.
+    let info = citystream(&["info", out.to_str().expect("utf-8"), "--json"]);
+    assert!(info.status.success(), "{}", stderr(&info));
+    let info: Value = serde_json::from_slice(&info.stdout).expect("info JSON");
+    let frame = &info["local_frame"];
+    let degrees = |key: &str| frame[key].as_f64().unwrap_or_else(|| panic!("{key} in {frame}"));
+    assert!((degrees("latitude_deg") - lat.to_degrees()).abs() < 1e-7, "{frame}");
+    assert!((degrees("longitude_deg") - lon.to_degrees()).abs() < 1e-7, "{frame}");
     // a2, rtc and shared: three images, and the shared one is a.glb's too.
     assert_eq!(dataset.textures.len(), 3);
     for (mesh, written) in dataset.scene.meshes.iter().zip(&finest) {

@@ -650,13 +650,32 @@ fn local_frame(meshes: &[PendingMesh]) -> Result<EastNorthUp> {
     })
 }
 
+/// Marks the frame's Earth-centred origin in [`enu_crs`]'s text.
+const ORIGIN_MARK: &str = "Topocentric origin at EPSG:4978 (";
+
+/// The Earth-centred origin of a local east-north-up CRS written by this import, read
+/// back from its text; `None` for any other CRS.
+pub fn local_frame_origin(crs: &Crs) -> Option<[f64; 3]> {
+    let text = crs.as_str();
+    let start = text.find(ORIGIN_MARK)? + ORIGIN_MARK.len();
+    let numbers = &text[start..start + text[start..].find(')')?];
+    let values: Vec<f64> = numbers
+        .split(',')
+        .map(|v| v.trim().parse().ok())
+        .collect::<Option<_>>()?;
+    match values[..] {
+        [x, y, z] if values.iter().all(|v| v.is_finite()) => Some([x, y, z]),
+        _ => None,
+    }
+}
+
 /// The dataset's CRS for `frame`: an engineering CRS naming the frame's origin.
 fn enu_crs(frame: &EastNorthUp) -> Result<Crs> {
     let g = to_geodetic(frame.origin).context("the frame's origin has no geodetic position")?;
     let [x, y, z] = frame.origin;
     let text = format!(
         "ENGCRS[\"citystream local east-north-up at latitude {lat:.9}, longitude {lon:.9}, height {h:.4} m (WGS 84)\",\
-         EDATUM[\"Topocentric origin at EPSG:4978 ({x:.4}, {y:.4}, {z:.4})\"],\
+         EDATUM[\"{ORIGIN_MARK}{x:.4}, {y:.4}, {z:.4})\"],\
          CS[Cartesian,3],\
          AXIS[\"easting (E)\",east,ORDER[1],LENGTHUNIT[\"metre\",1]],\
          AXIS[\"northing (N)\",north,ORDER[2],LENGTHUNIT[\"metre\",1]],\
@@ -666,4 +685,24 @@ fn enu_crs(frame: &EastNorthUp) -> Result<Crs> {
         h = g.height,
     );
     Crs::parse(&text).map_err(|e| anyhow::anyhow!("the local frame's CRS: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_frame_origin_reads_back_from_the_crs_text() {
+        let origin = geodesy::to_ecef(geodesy::Geodetic {
+            latitude: 52.5f64.to_radians(),
+            longitude: 13.4f64.to_radians(),
+            height: 34.0,
+        });
+        let crs = enu_crs(&EastNorthUp::at(origin).expect("frame")).expect("crs");
+        let back = local_frame_origin(&crs).expect("origin");
+        for a in 0..3 {
+            assert!((back[a] - origin[a]).abs() < 1e-4, "{back:?} vs {origin:?}");
+        }
+        assert_eq!(local_frame_origin(&Crs::epsg(25833)), None);
+    }
 }
