@@ -43,7 +43,8 @@ pub const MAX_IMPORTED_VERTICES: usize = 20_000_000;
 #[derive(Debug, clap::Args)]
 pub struct ImportArgs {
     /// glTF 2.0 file (`.gltf` with external files or data URIs, or `.glb`), or an OGC 3D
-    /// Tiles tileset (`tileset.json`, 1.0 and 1.1: b3dm and glTF content).
+    /// Tiles tileset (`tileset.json`, 1.0 and 1.1: b3dm and glTF content; a path or an
+    /// `http(s)://` or `s3://` URL).
     pub input: PathBuf,
     /// Output dataset directory.
     #[arg(long)]

@@ -530,3 +530,84 @@ fn the_imported_tileset_flies_with_its_error_measured() {
     let psnr = summary["psnr_of_mean_mse_db"].as_f64().expect("PSNR measured");
     assert!(psnr > 20.0, "PSNR of the mean MSE {psnr} dB");
 }
+
+/// The scene and every mip of two datasets are the same.
+fn assert_same_dataset(a: &Dataset, b: &Dataset) {
+    let (sa, sb) = (&a.scene, &b.scene);
+    assert_eq!(sa.origin, sb.origin);
+    assert_eq!(sa.crs, sb.crs);
+    assert_eq!(sa.positions, sb.positions);
+    assert_eq!(sa.normals, sb.normals);
+    assert_eq!(sa.uvs, sb.uvs);
+    assert_eq!(sa.indices, sb.indices);
+    assert_eq!(sa.meshes.len(), sb.meshes.len());
+    for (ma, mb) in sa.meshes.iter().zip(&sb.meshes) {
+        assert_eq!(
+            (
+                ma.first_vertex,
+                ma.vertex_count,
+                ma.first_index,
+                ma.index_count,
+                ma.texture
+            ),
+            (
+                mb.first_vertex,
+                mb.vertex_count,
+                mb.first_index,
+                mb.index_count,
+                mb.texture
+            )
+        );
+    }
+    assert_eq!(a.textures.len(), b.textures.len());
+    let (mut la, mut lb) = (Vec::new(), Vec::new());
+    for (id, info) in a.textures.textures().iter().enumerate() {
+        for level in 0..info.mip_count() {
+            a.textures.read_mip(id as u32, level, &mut la).expect("mip");
+            b.textures.read_mip(id as u32, level, &mut lb).expect("mip");
+            assert_eq!(la, lb, "texture {id} level {level}");
+        }
+    }
+}
+
+#[test]
+#[cfg_attr(
+    citystream_skip_nginx,
+    ignore = "nginx is not installed and `make setup` has not run"
+)]
+fn a_tileset_served_over_http_imports_as_it_does_from_disk() {
+    let work = fresh_dir("http");
+    let served = work.join("www/city3d");
+    std::fs::create_dir_all(&served).expect("mkdir");
+    let (tileset, _) = write_tileset(&served);
+    assert!(
+        citystream_tools::nginx::binary().is_some() || !cli_support::setup_ran(),
+        "nginx is missing although the setup script ran: it should have installed nginx-light"
+    );
+    let nginx = citystream_tools::nginx::Nginx::start(&work, &work.join("www")).expect("start nginx");
+    let (local, _) = import_ok(&tileset, "http-local", &["--lod", "all"]);
+    let url = nginx.url("city3d/tileset.json");
+    let out = fresh_dir("http-remote");
+    let imported = import(Path::new(&url), &out, &["--lod", "all"]);
+    assert!(
+        imported.status.success(),
+        "import of {url} failed: {}",
+        stderr(&imported)
+    );
+    assert!(
+        String::from_utf8_lossy(&imported.stdout).contains(&url),
+        "{}",
+        String::from_utf8_lossy(&imported.stdout)
+    );
+    let remote = Dataset::open(&out).expect("open");
+    assert_same_dataset(&local, &remote);
+    // The scratch copy is gone, and a missing file is named by its URL.
+    let mut scratch = out.as_os_str().to_owned();
+    scratch.push(".tileset-download");
+    assert!(!Path::new(&scratch).exists());
+    std::fs::remove_file(served.join("ext/shared.b3dm")).expect("remove");
+    let broken = import(Path::new(&url), &fresh_dir("http-broken"), &[]);
+    assert!(!broken.status.success());
+    let e = stderr(&broken);
+    assert!(e.contains("ext/shared.b3dm") && e.contains("http://"), "{e}");
+}

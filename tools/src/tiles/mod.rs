@@ -1,4 +1,5 @@
-//! `citystream import TILESET_JSON`: an OGC 3D Tiles tileset (1.0 and 1.1) as a dataset.
+//! `citystream import TILESET_JSON`: an OGC 3D Tiles tileset (1.0 and 1.1) as a dataset,
+//! from a directory or a URL ([`remote`]).
 //!
 //! The tile hierarchy is walked from `tileset.json`, following external tilesets (content
 //! URIs ending in `.json`) and composing each tile's `transform` down the tree. Content is
@@ -27,6 +28,7 @@
 
 pub mod content;
 pub mod geodesy;
+pub mod remote;
 pub mod write;
 
 use std::collections::{BTreeMap, HashMap};
@@ -298,8 +300,43 @@ pub fn load(
     })
 }
 
-/// Writes the tileset `input` as the dataset `out` (see [`load`]).
+/// Writes the tileset `input` (a path, or an `http(s)://` or `s3://` URL: see [`remote`])
+/// as the dataset `out` (see [`load`]).
 pub fn import(input: &Path, out: &Path, format: TextureFormat, max_extent: u32, lod: Lod, strict: bool) -> Result<()> {
+    let location = input.to_string_lossy();
+    if !citystream_dataset::remote::is_remote(&location) {
+        return import_local(input, &location, out, format, max_extent, lod, strict);
+    }
+    let mut scratch = out.as_os_str().to_owned();
+    scratch.push(".tileset-download");
+    let scratch = PathBuf::from(scratch);
+    if scratch.exists() {
+        bail!(
+            "{} exists (left by an import that was interrupted?): remove it, the import fetches the tileset there",
+            scratch.display()
+        );
+    }
+    let imported = remote::fetch(&location, &scratch).and_then(|local| {
+        import_local(&local, &location, out, format, max_extent, lod, strict)
+            .with_context(|| format!("importing {location} as fetched into {}", scratch.display()))
+    });
+    // The scratch copy goes whatever happened; a failure to remove it is only reported.
+    if let Err(e) = std::fs::remove_dir_all(&scratch) {
+        eprintln!("warning: could not remove {}: {e}", scratch.display());
+    }
+    imported
+}
+
+#[allow(clippy::too_many_arguments)]
+fn import_local(
+    input: &Path,
+    shown: &str,
+    out: &Path,
+    format: TextureFormat,
+    max_extent: u32,
+    lod: Lod,
+    strict: bool,
+) -> Result<()> {
     let start = Instant::now();
     let imported = load(input, format, max_extent, lod, strict, true)?;
     let mut writer = DatasetWriter::create(out)?;
@@ -312,7 +349,7 @@ pub fn import(input: &Path, out: &Path, format: TextureFormat, max_extent: u32, 
     let origin = to_geodetic(imported.frame.origin);
     crate::gen::print_stdout(&format!(
         "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\nframe: east-north-up at {}\n",
-        input.display(),
+        shown,
         out.display(),
         imported.tiles,
         imported.contents,

@@ -1,0 +1,213 @@
+//! Tilesets behind an HTTP server or in S3 (`http(s)://…/tileset.json`, `s3://…`): every
+//! file the tileset refers to (its external tilesets, content, and the files a glTF's
+//! buffers and images name) is fetched through the remote dataset store into a scratch
+//! directory with the same layout, which is then imported as a local tileset, so a URL
+//! gives exactly the dataset its files give on disk. Every level is fetched whatever
+//! `--lod` says; content that is not imported (point clouds and the like) is not
+//! fetched, only counted.
+
+use std::collections::HashSet;
+use std::path::{Component, Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use citystream_dataset::remote::{RemoteOptions, RemoteStore};
+use citystream_dataset::DatasetStore;
+use serde_json::Value;
+
+use super::{content, content_kind, TileJson, TilesetJson, MAX_CONTENT_BYTES, MAX_TILESETS, MAX_TILESET_BYTES};
+
+/// Most files fetched for one tileset.
+const MAX_FILES: usize = 4_000_000;
+
+/// Fetches the tileset at `url` and what it refers to into `scratch` (created; must not
+/// exist); returns the local path of the top tileset.
+pub fn fetch(url: &str, scratch: &Path) -> Result<PathBuf> {
+    let Some((dir_url, file)) = url.rsplit_once('/').filter(|(_, f)| !f.is_empty()) else {
+        bail!("{url}: expected the URL of a tileset JSON (…/tileset.json)");
+    };
+    let store: Arc<dyn DatasetStore> = Arc::new(
+        RemoteStore::new(&format!("{dir_url}/"), &RemoteOptions::from_env()?)
+            .with_context(|| format!("opening {url}"))?,
+    );
+    let root = PathBuf::from(dir_url);
+    std::fs::create_dir(scratch).with_context(|| format!("creating the scratch directory {}", scratch.display()))?;
+    let mut fetcher = Fetcher {
+        store,
+        root,
+        scratch: scratch.to_path_buf(),
+        fetched: HashSet::new(),
+    };
+    let top = PathBuf::from(file);
+    let mut tilesets = vec![top.clone()];
+    let mut read = 0usize;
+    while let Some(relative) = tilesets.pop() {
+        if !fetcher.fetched.insert(relative.clone()) {
+            continue;
+        }
+        read += 1;
+        if read > MAX_TILESETS {
+            bail!("{url}: more than {MAX_TILESETS} external tilesets");
+        }
+        let bytes = fetcher.get(&relative, MAX_TILESET_BYTES)?;
+        let tileset: TilesetJson = serde_json::from_slice(&bytes)
+            .with_context(|| format!("{}: not a 3D Tiles tileset", fetcher.url(&relative)))?;
+        let dir = relative.parent().unwrap_or(Path::new("")).to_path_buf();
+        let mut stack: Vec<&TileJson> = vec![&tileset.root];
+        while let Some(tile) = stack.pop() {
+            stack.extend(&tile.children);
+            for uri in tile
+                .content
+                .iter()
+                .chain(&tile.contents)
+                .filter_map(|c| c.uri.as_deref().or(c.url.as_deref()))
+            {
+                let path =
+                    normalise(&dir, uri).with_context(|| format!("{}: content {uri:?}", fetcher.url(&relative)))?;
+                match content_kind(&path).as_str() {
+                    "json" => tilesets.push(path),
+                    "b3dm" | "glb" | "gltf" => fetcher.content(&path)?,
+                    // Counted by the import, never parsed: an empty stand-in will do.
+                    _ => fetcher.placeholder(&path)?,
+                }
+            }
+        }
+    }
+    Ok(scratch.join(top))
+}
+
+struct Fetcher {
+    store: Arc<dyn DatasetStore>,
+    /// The top tileset's directory URL.
+    root: PathBuf,
+    scratch: PathBuf,
+    fetched: HashSet<PathBuf>,
+}
+
+impl Fetcher {
+    fn url(&self, relative: &Path) -> String {
+        self.root.join(relative).display().to_string()
+    }
+
+    /// The file at `relative` (at most `limit` bytes), also written into the scratch copy.
+    fn get(&self, relative: &Path, limit: u64) -> Result<Vec<u8>> {
+        if self.fetched.len() > MAX_FILES {
+            bail!("the tileset refers to more than {MAX_FILES} files");
+        }
+        let remote = self.root.join(relative);
+        let len = self
+            .store
+            .len(&remote)
+            .with_context(|| format!("fetching {}", self.url(relative)))?;
+        if len > limit {
+            bail!("{}: {len} bytes (at most {limit} are read)", self.url(relative));
+        }
+        let bytes = self
+            .store
+            .read_all(&remote)
+            .with_context(|| format!("fetching {}", self.url(relative)))?;
+        let local = self.scratch.join(relative);
+        if let Some(parent) = local.parent() {
+            std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+        }
+        std::fs::write(&local, &bytes).with_context(|| format!("writing {}", local.display()))?;
+        Ok(bytes)
+    }
+
+    /// A content file and the external files its glTF names.
+    fn content(&mut self, relative: &Path) -> Result<()> {
+        if !self.fetched.insert(relative.to_path_buf()) {
+            return Ok(());
+        }
+        let bytes = self.get(relative, MAX_CONTENT_BYTES)?;
+        let what = || self.url(relative);
+        let glb = if content_kind(relative) == "b3dm" {
+            content::parse_b3dm(&bytes).with_context(what)?.glb
+        } else {
+            &bytes[..]
+        };
+        let json = content::gltf_json(glb).with_context(what)?;
+        let dir = relative.parent().unwrap_or(Path::new("")).to_path_buf();
+        let mut external = Vec::new();
+        for key in ["buffers", "images"] {
+            for item in json.get(key).and_then(Value::as_array).into_iter().flatten() {
+                if let Some(uri) = item
+                    .get("uri")
+                    .and_then(Value::as_str)
+                    .filter(|u| !u.starts_with("data:"))
+                {
+                    external.push(normalise(&dir, uri).with_context(|| format!("{}: {key} uri {uri:?}", what()))?);
+                }
+            }
+        }
+        for path in external {
+            if self.fetched.insert(path.clone()) {
+                self.get(&path, MAX_CONTENT_BYTES)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn placeholder(&mut self, relative: &Path) -> Result<()> {
+        if self.fetched.insert(relative.to_path_buf()) {
+            let local = self.scratch.join(relative);
+            if let Some(parent) = local.parent() {
+                std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+            }
+            std::fs::write(&local, b"").with_context(|| format!("writing {}", local.display()))?;
+        }
+        Ok(())
+    }
+}
+
+/// `uri` relative to `dir` (both inside the tileset's directory) as a clean relative
+/// path: no scheme, no absolute path, no `..` above the tileset's directory.
+fn normalise(dir: &Path, uri: &str) -> Result<PathBuf> {
+    let relative = uri.split(['?', '#']).next().unwrap_or("");
+    if relative.is_empty() || uri.contains("://") || uri.starts_with("data:") || relative.starts_with(['/', '\\']) {
+        bail!("not a relative path (citystream imports a tileset's files from its own directory)");
+    }
+    let decoded = crate::import::percent_decode(relative);
+    let mut parts: Vec<std::ffi::OsString> = Vec::new();
+    for component in dir.join(&decoded).components() {
+        match component {
+            Component::Normal(part) => parts.push(part.to_os_string()),
+            Component::CurDir => {}
+            Component::ParentDir => {
+                if parts.pop().is_none() {
+                    bail!("{decoded} leads outside the tileset's directory");
+                }
+            }
+            Component::RootDir | Component::Prefix(_) => bail!("{decoded} is not a relative path"),
+        }
+    }
+    if parts.is_empty() {
+        bail!("{decoded:?} names no file");
+    }
+    Ok(parts.iter().collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uris_stay_inside_the_tileset_directory() {
+        let dir = Path::new("ext/sub");
+        assert_eq!(normalise(dir, "../a.glb").expect("inside"), PathBuf::from("ext/a.glb"));
+        assert_eq!(
+            normalise(dir, "./b%20c.b3dm?v=2").expect("inside"),
+            PathBuf::from("ext/sub/b c.b3dm")
+        );
+        for bad in [
+            "../../../x.glb",
+            "/etc/passwd",
+            "https://elsewhere/a.glb",
+            "data:,x",
+            "",
+        ] {
+            assert!(normalise(dir, bad).is_err(), "{bad}");
+        }
+        assert!(normalise(Path::new(""), "..").is_err());
+    }
+}
