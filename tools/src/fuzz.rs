@@ -206,7 +206,15 @@ impl Harness {
         } else {
             // RGBA8 and a small extent: the harness is about parsing, not encoding.
             let tileset = dir.join("tileset.json");
-            match crate::tiles::load(&tileset, TextureFormat::Rgba8, 64, crate::tiles::Lod::All, false, false) {
+            match crate::tiles::load(
+                &tileset,
+                TextureFormat::Rgba8,
+                64,
+                crate::tiles::Lod::All,
+                false,
+                false,
+                None,
+            ) {
                 Ok(_) => Outcome::Accepted,
                 Err(_) => Outcome::Rejected,
             }

@@ -55,9 +55,11 @@ pub struct ImportArgs {
     /// Largest texture side in texels (a power of two, 4 to 16384); larger images are downscaled.
     #[arg(long, default_value_t = 512)]
     pub max_extent: u32,
-    /// The coordinate reference system the model's coordinates are in (`EPSG:<code>` or WKT),
-    /// axes as the scene frame maps them: x easting, y height, −z northing. glTF carries no
-    /// CRS; without this option the dataset has a local frame.
+    /// glTF: the coordinate reference system the model's coordinates are in (`EPSG:<code>`
+    /// or WKT), axes as the scene frame maps them: x easting, y height, −z northing (glTF
+    /// carries no CRS; without this option the dataset has a local frame). Tilesets: the
+    /// UTM projection to place the city in (EPSG:326xx, 327xx, 258xx); without it, a local
+    /// east-north-up frame at the tileset's centre.
     #[arg(long, value_parser = parse_crs)]
     pub crs: Option<Crs>,
     /// Tilesets: which tiles' content to import (`finest`: tiles not refined further under
@@ -144,15 +146,16 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     let format = args.format.texture_format();
     let input = &args.input;
     if crate::tiles::is_tileset(input) {
-        if let Some(crs) = &args.crs {
-            bail!(
-                "--crs {}: reprojecting a tileset's Earth-centred coordinates (EPSG:4978) is not implemented; \
-                 without --crs the dataset gets a local east-north-up frame at the tileset's centre",
-                crs.as_str()
-            );
-        }
         let lod = args.lod.unwrap_or(crate::tiles::Lod::Finest);
-        return crate::tiles::import(input, &args.out, format, args.max_extent, lod, args.strict);
+        return crate::tiles::import(
+            input,
+            &args.out,
+            format,
+            args.max_extent,
+            lod,
+            args.strict,
+            args.crs.as_ref(),
+        );
     }
     if args.lod.is_some() || args.strict {
         bail!(

@@ -451,8 +451,8 @@ fn hostile_tilesets_are_refused_naming_the_tile() {
         e.contains("KHR_draco_mesh_compression") && e.contains("draco.glb"),
         "{e}"
     );
-    // --crs cannot reproject yet: said, not ignored.
-    let out = import(&dir.join("tileset.json"), &fresh_dir("crs"), &["--crs", "EPSG:25833"]);
+    // A --crs other than UTM cannot be projected into: said, not ignored.
+    let out = import(&dir.join("tileset.json"), &fresh_dir("crs"), &["--crs", "EPSG:3857"]);
     assert!(
         !out.status.success() && stderr(&out).contains("not implemented"),
         "{}",
@@ -610,4 +610,50 @@ fn a_tileset_served_over_http_imports_as_it_does_from_disk() {
     assert!(!broken.status.success());
     let e = stderr(&broken);
     assert!(e.contains("ext/shared.b3dm") && e.contains("http://"), "{e}");
+}
+
+#[test]
+fn a_tileset_projected_into_utm_lands_where_proj_puts_it() {
+    // One wall standing at the Brandenburg Gate: its first corner is the frame's origin.
+    let dir = fresh_dir("utm-src");
+    let (lat, lon, h) = BERLIN;
+    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, 5), json!({}), None);
+    std::fs::write(dir.join("gate.glb"), write::glb(&gltf, &bin)).expect("write");
+    let tileset = json!({
+        "asset": {"version": "1.1"},
+        "geometricError": 1.0,
+        "root": {
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 20.0]},
+            "geometricError": 0.0,
+            "refine": "REPLACE",
+            "transform": flat(&enu_to_ecef(lat, lon, h)),
+            "content": {"uri": "gate.glb"}
+        }
+    });
+    std::fs::write(dir.join("tileset.json"), serde_json::to_vec(&tileset).expect("json")).expect("write");
+    let (dataset, _) = import_ok(&dir.join("tileset.json"), "utm", &["--crs", "EPSG:25833"]);
+    let scene = &dataset.scene;
+    assert_eq!(scene.crs.as_ref().map(|c| c.as_str()), Some("EPSG:25833"));
+    let absolute = |v: usize| -> [f64; 3] {
+        let p = scene.positions[v];
+        let s: [f64; 3] = std::array::from_fn(|a| scene.origin[a] + f64::from(p[a]));
+        // Scene axes to (easting, northing, height).
+        [s[0], -s[2], s[1]]
+    };
+    // PROJ 9.5.1 (pyproj 3.7.2): EPSG:4326 (52.516275, 13.377704) to UTM 33N is
+    // (389918.0416, 5819699.1324); UTM is conformal, so the wall's top-left corner, 8 m
+    // up, lies over it.
+    for (vertex, height) in [(0, 34.0), (3, 42.0)] {
+        let [e, n, up] = absolute(vertex);
+        assert!(
+            (e - 389_918.0416).abs() < 0.01 && (n - 5_819_699.1324).abs() < 0.01 && (up - height).abs() < 0.01,
+            "vertex {vertex}: ({e}, {n}, {up})"
+        );
+    }
+    // 8 m east along the ground: 8 m times the scale there (PROJ: 0.9997487).
+    let [e0, n0, _] = absolute(0);
+    let [e1, n1, h1] = absolute(1);
+    let distance = (e1 - e0).hypot(n1 - n0);
+    assert!((distance - 8.0 * 0.999_748_7).abs() < 2e-4, "{distance}");
+    assert!((h1 - 34.0).abs() < 0.01, "{h1}");
 }

@@ -180,8 +180,9 @@ pub fn is_tileset(input: &Path) -> bool {
 }
 
 /// Reads the tileset `input` and its content, encoding textures in `format` at most
-/// `max_extent` a side. With `strict`, content that is not imported is an error; with
-/// `report`, it is a warning on standard error, as is progress over many contents.
+/// `max_extent` a side, in the local east-north-up frame or, with `crs`, in that UTM
+/// projection. With `strict`, content that is not imported is an error; with `report`,
+/// it is a warning on standard error, as is progress over many contents.
 pub fn load(
     input: &Path,
     format: TextureFormat,
@@ -189,6 +190,7 @@ pub fn load(
     lod: Lod,
     strict: bool,
     report: bool,
+    crs: Option<&Crs>,
 ) -> Result<ImportedTileset> {
     let canonical = input
         .canonicalize()
@@ -276,18 +278,27 @@ pub fn load(
     }
 
     let frame = local_frame(&meshes).with_context(|| format!("{}: placing the tileset", input.display()))?;
-    for mesh in &mut meshes {
-        for p in &mut mesh.positions {
-            let [e, n, u] = frame.local(*p);
-            *p = [e, u, -n];
+    let scene_crs = match crs {
+        None => {
+            for mesh in &mut meshes {
+                for p in &mut mesh.positions {
+                    let [e, n, u] = frame.local(*p);
+                    *p = [e, u, -n];
+                }
+                for normal in &mut mesh.normals {
+                    let [e, n, u] = frame.local_direction(normal.map(f64::from));
+                    *normal = [e as f32, u as f32, -n as f32];
+                }
+            }
+            enu_crs(&frame)?
         }
-        for normal in &mut mesh.normals {
-            let [e, n, u] = frame.local_direction(normal.map(f64::from));
-            *normal = [e as f32, u as f32, -n as f32];
+        Some(crs) => {
+            project_utm(&mut meshes, &frame, crs).with_context(|| format!("{}: --crs {crs}", input.display()))?;
+            crs.clone()
         }
-    }
+    };
     let mut scene = centred_scene(&meshes, input)?;
-    scene.crs = Some(enu_crs(&frame)?);
+    scene.crs = Some(scene_crs);
     let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
     Ok(ImportedTileset {
         scene,
@@ -302,10 +313,19 @@ pub fn load(
 
 /// Writes the tileset `input` (a path, or an `http(s)://` or `s3://` URL: see [`remote`])
 /// as the dataset `out` (see [`load`]).
-pub fn import(input: &Path, out: &Path, format: TextureFormat, max_extent: u32, lod: Lod, strict: bool) -> Result<()> {
+#[allow(clippy::too_many_arguments)]
+pub fn import(
+    input: &Path,
+    out: &Path,
+    format: TextureFormat,
+    max_extent: u32,
+    lod: Lod,
+    strict: bool,
+    crs: Option<&Crs>,
+) -> Result<()> {
     let location = input.to_string_lossy();
     if !citystream_dataset::remote::is_remote(&location) {
-        return import_local(input, &location, out, format, max_extent, lod, strict);
+        return import_local(input, &location, out, format, max_extent, lod, strict, crs);
     }
     let mut scratch = out.as_os_str().to_owned();
     scratch.push(".tileset-download");
@@ -317,7 +337,7 @@ pub fn import(input: &Path, out: &Path, format: TextureFormat, max_extent: u32, 
         );
     }
     let imported = remote::fetch(&location, &scratch).and_then(|local| {
-        import_local(&local, &location, out, format, max_extent, lod, strict)
+        import_local(&local, &location, out, format, max_extent, lod, strict, crs)
             .with_context(|| format!("importing {location} as fetched into {}", scratch.display()))
     });
     // The scratch copy goes whatever happened; a failure to remove it is only reported.
@@ -336,9 +356,10 @@ fn import_local(
     max_extent: u32,
     lod: Lod,
     strict: bool,
+    crs: Option<&Crs>,
 ) -> Result<()> {
     let start = Instant::now();
-    let imported = load(input, format, max_extent, lod, strict, true)?;
+    let imported = load(input, format, max_extent, lod, strict, true, crs)?;
     let mut writer = DatasetWriter::create(out)?;
     for t in &imported.textures {
         writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
@@ -656,6 +677,40 @@ fn read_content(content: &ContentRef, vertex_budget: usize) -> Result<crate::imp
     }
     let base = content.path.parent().unwrap_or(Path::new("/"));
     read_gltf(glb, base, &content.path, &transform, vertex_budget)
+}
+
+/// Projects Earth-centred `meshes` into the UTM projection `crs` names (x easting, y
+/// ellipsoidal height, −z northing), each vertex through its geodetic position; normals
+/// are turned by the grid's rotation from true north at `frame`'s origin (under a
+/// hundredth of a degree across a city). WGS 84 coordinates are taken as ETRS89 for the
+/// ETRS89 zones: in Europe they differ by under a metre (the plates' drift since 1989).
+fn project_utm(meshes: &mut [PendingMesh], frame: &EastNorthUp, crs: &Crs) -> Result<()> {
+    let Some((tm, _datum)) = crs.epsg_code().and_then(geodesy::utm_of_epsg) else {
+        bail!(
+            "a tileset can be projected into UTM (EPSG:32601-32660, 32701-32760, 25828-25838) or, without --crs, \
+             kept in a local east-north-up frame; reprojecting into another CRS is not implemented"
+        );
+    };
+    let centre = to_geodetic(frame.origin).context("the tileset's centre has no geodetic position")?;
+    let [e0, n0] = tm.project(centre.latitude, centre.longitude);
+    let [e1, n1] = tm.project(centre.latitude + 1e-7, centre.longitude);
+    let length = (e1 - e0).hypot(n1 - n0);
+    let north = [(e1 - e0) / length, (n1 - n0) / length];
+    let east = [north[1], -north[0]];
+    for mesh in meshes {
+        for p in &mut mesh.positions {
+            let g = to_geodetic(*p).with_context(|| format!("vertex {p:?} has no geodetic position"))?;
+            let [e, n] = tm.project(g.latitude, g.longitude);
+            *p = Crs::to_scene([e, n, g.height]);
+        }
+        for normal in &mut mesh.normals {
+            let [de, dn, du] = frame.local_direction(normal.map(f64::from));
+            let grid_e = de * east[0] + dn * north[0];
+            let grid_n = de * east[1] + dn * north[1];
+            *normal = [grid_e as f32, du as f32, -grid_n as f32];
+        }
+    }
+    Ok(())
 }
 
 /// The east-north-up frame at the centre of the meshes' Earth-centred bounds.
