@@ -646,7 +646,7 @@ fn a_tileset_projected_into_utm_lands_where_proj_puts_it() {
     for (vertex, height) in [(0, 34.0), (3, 42.0)] {
         let [e, n, up] = absolute(vertex);
         assert!(
-            (e - 389_918.0416).abs() < 0.01 && (n - 5_819_699.1324).abs() < 0.01 && (up - height).abs() < 0.01,
+            (e - 389_918.041_6).abs() < 0.01 && (n - 5_819_699.132_4).abs() < 0.01 && (up - height).abs() < 0.01,
             "vertex {vertex}: ({e}, {n}, {up})"
         );
     }
