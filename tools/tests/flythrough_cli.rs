@@ -1171,3 +1171,40 @@ fn mips_that_fail_their_checksums_fail_their_textures_and_the_run() {
     assert!(summary["mips_streamed"].as_u64().is_some_and(|n| n > 10), "{summary}");
     assert_eq!(summary["validation_errors"], 0);
 }
+
+#[test]
+fn an_error_with_frames_in_flight_ends_the_run_cleanly() {
+    // An error mid-run (here injected after frame 20 was submitted, two frames in flight)
+    // is reported with exit status 1, no abort and no validation message (the engine of
+    // f967389 ended such a run in a heap corruption inside the driver, README).
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_fail_at");
+    let _ = std::fs::remove_dir_all(&base);
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    let out = base.join("out");
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .arg("--dataset")
+        .arg(&dataset)
+        .env("CITYSTREAM_FAIL_AT_FRAME", "20")
+        .env("CITYSTREAM_VALIDATION", "sync")
+        .env("RUST_BACKTRACE", "0")
+        .args([
+            "--frames",
+            "60",
+            "--width",
+            "160",
+            "--height",
+            "90",
+            "--frames-in-flight",
+            "2",
+        ])
+        .arg("--validation=true")
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("flythrough runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("failing at frame 20"), "{stderr}");
+    assert!(!stderr.contains("validation error"), "{stderr}");
+}

@@ -535,6 +535,15 @@ pub(crate) struct Flight {
     warned_failure: bool,
 }
 
+impl Drop for Flight {
+    fn drop(&mut self) {
+        // The targets, the ground's and the tree's resources and the command buffers go
+        // before the streamer (field order), and frames may still be in flight on an error
+        // path, which skips `finish_loading`: the GPU finishes with them first.
+        let _ = self.gpu.streamer.device().wait_idle();
+    }
+}
+
 /// How the ground layer is sized: the view's focal length and the lowest the eye comes
 /// above the ground (`None`: anywhere, so every level of the imagery may be needed).
 pub(crate) struct GroundSizing {

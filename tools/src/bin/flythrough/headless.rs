@@ -25,6 +25,10 @@ use super::flight::{
 use super::measure::{feedback_reaching, load_reference, reference_feedback};
 use super::output::{status, write_csv_row, CsvRow, MipCacheSummary, Run, CSV_HEADER};
 
+/// Environment variable naming a frame at which the headless flight fails after submitting
+/// it (a testing aid for error paths with frames in flight).
+pub(crate) const FAIL_AT_FRAME_ENV: &str = "CITYSTREAM_FAIL_AT_FRAME";
+
 /// Flies the path (`--path`, the dataset's standard path by default) headless: every frame
 /// through [`Flight`], PNG frames and the error against the fully resident reference at
 /// their intervals, a `frames.csv` row per frame and `summary.json` at the end.
@@ -118,6 +122,9 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     let mut peak_device_memory = 0u64;
     let mut reference_incomplete = 0u32;
     let mut frames_run = 0u32;
+    let fail_at_frame = std::env::var(FAIL_AT_FRAME_ENV)
+        .ok()
+        .and_then(|v| v.parse::<u32>().ok());
     let mut waits = WaitCounts::default();
     let mut uploads_at: Vec<(f64, u64)> = Vec::new();
     let (mut nodes_drawn, mut draw_call_samples) = (Vec::new(), Vec::new());
@@ -161,6 +168,11 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             _ => frame_ms,
         };
         flight.submit(&mut recorded, fed_ms, &[], &[])?;
+        if fail_at_frame == Some(frame) {
+            // A testing aid: an error while frames are in flight, as a driver or dataset
+            // error mid-run would be, so the teardown on error paths is exercised.
+            anyhow::bail!("failing at frame {frame} as {FAIL_AT_FRAME_ENV} asks");
+        }
         waits.count(recorded.cpu_wait, false);
 
         let (mut error, mut ground_error) = (None, None);
