@@ -206,15 +206,15 @@ impl Harness {
         } else {
             // RGBA8 and a small extent: the harness is about parsing, not encoding.
             let tileset = dir.join("tileset.json");
-            match crate::tiles::load(
-                &tileset,
-                TextureFormat::Rgba8,
-                64,
-                crate::tiles::Lod::All,
-                false,
-                false,
-                None,
-            ) {
+            let options = crate::tiles::LoadOptions {
+                format: TextureFormat::Rgba8,
+                max_extent: 64,
+                lod: crate::tiles::Lod::All,
+                strict: false,
+                report: false,
+                crs: None,
+            };
+            match crate::tiles::load(&tileset, &options, &mut |_| Ok(())) {
                 Ok(_) => Outcome::Accepted,
                 Err(_) => Outcome::Rejected,
             }

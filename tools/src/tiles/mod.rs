@@ -157,9 +157,9 @@ struct Walk {
 pub struct ImportedTileset {
     /// Meshes in dataset form, in the local east-north-up frame.
     pub scene: Scene,
-    /// Textures in first-use order.
-    pub textures: Vec<EncodedTexture>,
-    /// How many keep their source's BC blocks as they are.
+    /// Textures handed to the sink, in first-use order (their ids).
+    pub textures: usize,
+    /// How many of them keep their source's BC blocks as they are.
     pub kept_blocks: usize,
     /// The frame the scene's coordinates are in.
     pub frame: EastNorthUp,
@@ -179,19 +179,37 @@ pub fn is_tileset(input: &Path) -> bool {
         .is_some_and(|e| e.eq_ignore_ascii_case("json"))
 }
 
-/// Reads the tileset `input` and its content, encoding textures in `format` at most
-/// `max_extent` a side, in the local east-north-up frame or, with `crs`, in that UTM
-/// projection. With `strict`, content that is not imported is an error; with `report`,
-/// it is a warning on standard error, as is progress over many contents.
+/// How [`load`] reads a tileset.
+#[derive(Clone, Debug)]
+pub struct LoadOptions {
+    /// Texture encoding, and the largest side kept.
+    pub format: TextureFormat,
+    pub max_extent: u32,
+    pub lod: Lod,
+    /// Content that is not imported is an error (instead of a warning).
+    pub strict: bool,
+    /// Warnings and progress on standard error.
+    pub report: bool,
+    /// A UTM projection to place the city in; `None`: a local east-north-up frame.
+    pub crs: Option<Crs>,
+}
+
+/// Reads the tileset `input` and its content. Each texture new to the import is handed to
+/// `sink` as it is encoded (its id is the count handed before it), so that textures need
+/// not all be held at once; the scene follows once every content is read.
 pub fn load(
     input: &Path,
-    format: TextureFormat,
-    max_extent: u32,
-    lod: Lod,
-    strict: bool,
-    report: bool,
-    crs: Option<&Crs>,
+    options: &LoadOptions,
+    sink: &mut dyn FnMut(&EncodedTexture) -> Result<()>,
 ) -> Result<ImportedTileset> {
+    let LoadOptions {
+        format,
+        max_extent,
+        lod,
+        strict,
+        report,
+        ref crs,
+    } = *options;
     let canonical = input
         .canonicalize()
         .with_context(|| format!("reading tileset {}", input.display()))?;
@@ -230,7 +248,7 @@ pub fn load(
 
     let started = Instant::now();
     let mut meshes: Vec<PendingMesh> = Vec::new();
-    let mut textures: Vec<(EncodedTexture, bool)> = Vec::new();
+    let (mut textures, mut kept_blocks) = (0usize, 0usize);
     let mut texture_ids: HashMap<u128, usize> = HashMap::new();
     let mut vertices = 0usize;
     let count = walk.contents.len();
@@ -242,7 +260,7 @@ pub fn load(
         let mut fresh = Vec::new();
         for k in 0..read.texture_count() {
             let identity = read.texture_identity(k).with_context(what)?;
-            let next = textures.len() + fresh.len();
+            let next = textures + fresh.len();
             let id = *texture_ids.entry(identity).or_insert_with(|| {
                 fresh.push(k);
                 next
@@ -254,7 +272,11 @@ pub fn load(
             .map(|&k| read.encode_texture(k, format, max_extent))
             .collect::<Result<Vec<_>>>()
             .with_context(what)?;
-        textures.extend(encoded);
+        for (texture, kept) in &encoded {
+            sink(texture).with_context(what)?;
+            kept_blocks += usize::from(*kept);
+        }
+        textures += encoded.len();
         for mesh in &mut read.meshes {
             mesh.texture = local_to_global[mesh.texture];
             vertices += mesh.positions.len();
@@ -265,7 +287,7 @@ pub fn load(
                 "import: {}/{count} contents, {} meshes, {} textures, {:.0} s",
                 n + 1,
                 meshes.len(),
-                textures.len(),
+                textures,
                 started.elapsed().as_secs_f64()
             );
         }
@@ -299,10 +321,9 @@ pub fn load(
     };
     let mut scene = centred_scene(&meshes, input)?;
     scene.crs = Some(scene_crs);
-    let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
     Ok(ImportedTileset {
         scene,
-        textures: textures.into_iter().map(|(t, _)| t).collect(),
+        textures,
         kept_blocks,
         frame,
         contents: count,
@@ -359,11 +380,20 @@ fn import_local(
     crs: Option<&Crs>,
 ) -> Result<()> {
     let start = Instant::now();
-    let imported = load(input, format, max_extent, lod, strict, true, crs)?;
+    let options = LoadOptions {
+        format,
+        max_extent,
+        lod,
+        strict,
+        report: true,
+        crs: crs.cloned(),
+    };
+    // Textures go to the pack as they are encoded; the dataset appears only at `finish`.
     let mut writer = DatasetWriter::create(out)?;
-    for t in &imported.textures {
+    let imported = load(input, &options, &mut |t| {
         writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
-    }
+        Ok(())
+    })?;
     let summary = writer
         .finish(&imported.scene)
         .with_context(|| format!("writing {}", out.display()))?;
