@@ -213,8 +213,12 @@ fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
         json!({}),
         &identity,
         None,
-        None,
-        &mul(&frame, &translation([-200.0, -100.0, 0.0])),
+        // RTC_CENTER under a rotated tile transform: the centre is in the tile's frame.
+        Some([3.0, -4.0, 5.0]),
+        &mul(
+            &mul(&frame, &translation([-200.0, -100.0, 0.0])),
+            &translation([3.0, -4.0, 5.0]),
+        ),
     );
     let external = json!({
         "asset": {"version": "1.1"},
@@ -442,6 +446,19 @@ fn hostile_tilesets_are_refused_naming_the_tile() {
     std::fs::write(dir.join("cut.b3dm"), b3dm).expect("write");
     let e = error_of(&tile(json!({"content": {"uri": "cut.b3dm"}})), &dir, "cut.json");
     assert!(e.contains("cut.b3dm") && e.contains("declares"), "{e}");
+    // A glTF content whose buffer lies outside the tileset's directory.
+    let (mut gltf, _) = write::textured_quad(wall([0.0; 3], 1.0), &write::gradient_png(4, 4, 8), json!({}), None);
+    gltf["buffers"] = json!([{"uri": "../outside.glb", "byteLength": 4}]);
+    std::fs::write(dir.join("escape.gltf"), serde_json::to_vec(&gltf).expect("json")).expect("write");
+    let e = error_of(
+        &tile(json!({"content": {"uri": "escape.gltf"}})),
+        &dir,
+        "gltf-escape.json",
+    );
+    assert!(
+        e.contains("escape.gltf") && e.contains("outside the tileset's directory"),
+        "{e}"
+    );
     // Compressed geometry is refused by extension name.
     let (mut gltf, bin) = write::textured_quad(wall([0.0; 3], 1.0), &write::gradient_png(4, 4, 9), json!({}), None);
     gltf["extensionsRequired"] = json!(["KHR_draco_mesh_compression"]);
@@ -477,7 +494,10 @@ fn content_that_is_not_imported_is_counted_and_strict_refuses_it() {
             "content": {"uri": "a.glb"},
             "children": [
                 {"geometricError": 0.0, "content": {"uri": "cloud.pnts"}},
-                {"geometricError": 0.0, "content": {"uri": "cloud.pnts"}}
+                {"geometricError": 0.0, "content": {"uri": "cloud.pnts"}},
+                {"geometricError": 0.0, "content": {"uri": "content/{level}/{x}/{y}.glb"},
+                 "implicitTiling": {"subdivisionScheme": "QUADTREE", "subtreeLevels": 2,
+                                    "availableLevels": 2, "subtrees": {"uri": "subtrees/{level}.subtree"}}}
             ]
         }
     });
@@ -486,6 +506,7 @@ fn content_that_is_not_imported_is_counted_and_strict_refuses_it() {
     let e = stderr(&out);
     assert!(out.status.success(), "{e}");
     assert!(e.contains("warning") && e.contains("2 point clouds (pnts)"), "{e}");
+    assert!(e.contains("1 implicitly tiled subtrees"), "{e}");
     // Without the root transform the content is in a local frame, not Earth-centred.
     let mut local = tileset.clone();
     local["root"].as_object_mut().expect("object").remove("transform");
@@ -656,4 +677,39 @@ fn a_tileset_projected_into_utm_lands_where_proj_puts_it() {
     let distance = (e1 - e0).hypot(n1 - n0);
     assert!((distance - 8.0 * 0.999_748_7).abs() < 2e-4, "{distance}");
     assert!((h1 - 34.0).abs() < 0.01, "{h1}");
+}
+
+#[test]
+fn an_external_tileset_inherits_the_up_axis_above_it() {
+    // The root says its glTF content is z-up (before 3D Tiles 1.0); the external tileset
+    // says nothing, so its wall's glTF y axis points north, not up.
+    let dir = fresh_dir("up-axis-src");
+    let (lat, lon, h) = BERLIN;
+    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, 6), json!({}), None);
+    std::fs::write(dir.join("wall.glb"), write::glb(&gltf, &bin)).expect("write");
+    let external = json!({
+        "asset": {"version": "1.0"},
+        "geometricError": 1.0,
+        "root": {"geometricError": 0.0, "content": {"uri": "wall.glb"}}
+    });
+    std::fs::write(dir.join("ext.json"), serde_json::to_vec(&external).expect("json")).expect("write");
+    let root = json!({
+        "asset": {"version": "0.0", "gltfUpAxis": "Z"},
+        "geometricError": 1.0,
+        "root": {
+            "geometricError": 1.0,
+            "refine": "REPLACE",
+            "transform": flat(&enu_to_ecef(lat, lon, h)),
+            "content": {"uri": "ext.json"}
+        }
+    });
+    std::fs::write(dir.join("tileset.json"), serde_json::to_vec(&root).expect("json")).expect("write");
+    let (dataset, _) = import_ok(&dir.join("tileset.json"), "up-axis", &[]);
+    let p = &dataset.scene.positions;
+    // Vertex 3 is 8 along the glTF's y: 8 m north (scene −z), at the same height.
+    let d: [f32; 3] = std::array::from_fn(|a| p[3][a] - p[0][a]);
+    assert!(
+        d[0].abs() < 1e-3 && d[1].abs() < 1e-3 && (d[2] + 8.0).abs() < 1e-3,
+        "{d:?}"
+    );
 }

@@ -42,7 +42,7 @@ pub fn parse_b3dm(bytes: &[u8]) -> Result<Batched<'_>> {
     let [feature_json, feature_bin, batch_json, batch_bin] = [12, 16, 20, 24].map(|at| word(bytes, at) as usize);
     // Headers written before 3D Tiles 1.0 put a batch length (and a table length) where
     // the table lengths are now; a glTF's magic then shows up as a huge length.
-    if batch_json >= 0x2200_0000 || feature_json >= 0x2200_0000 {
+    if batch_json >= 0x2200_0000 || batch_bin >= 0x2200_0000 {
         bail!("a legacy b3dm header (written before 3D Tiles 1.0), which is not supported");
     }
     let tables = [feature_json, feature_bin, batch_json, batch_bin];
@@ -229,9 +229,12 @@ mod tests {
         let mut version = good.clone();
         version[4] = 2;
         assert!(error(&version).contains("version 2"));
-        let mut tables = good.clone();
-        tables[24..28].copy_from_slice(&u32::MAX.to_le_bytes());
-        assert!(error(&tables).contains("run past") || error(&tables).contains("legacy"));
+        // Legacy headers: a glTF's magic where the batch table lengths are now.
+        for at in [20, 24] {
+            let mut legacy = good.clone();
+            legacy[at..at + 4].copy_from_slice(b"glTF");
+            assert!(error(&legacy).contains("legacy"), "{}", error(&legacy));
+        }
         let mut past = good.clone();
         past[24..28].copy_from_slice(&100_000u32.to_le_bytes());
         assert!(error(&past).contains("run past"));

@@ -55,6 +55,8 @@ pub const MAX_CONTENT_BYTES: u64 = 1 << 30;
 pub const MAX_TILES: usize = 4_000_000;
 /// Most external tilesets read (one referred to twice counts twice).
 pub const MAX_TILESETS: usize = 100_000;
+/// Most content entries the tiles list, external tilesets' included.
+pub const MAX_CONTENTS: usize = 4_000_000;
 /// Deepest tile nesting, across external tilesets.
 pub const MAX_DEPTH: usize = 256;
 /// Distances from the Earth's centre (metres) a city's geometry lies between: the WGS 84
@@ -68,6 +70,15 @@ pub enum Lod {
     Finest,
     /// Every tile's content, all levels overlapping (for inspection).
     All,
+}
+
+/// The axis a tileset's glTF content points up (`asset.gltfUpAxis`, before 3D Tiles 1.0;
+/// y since). An external tileset that does not say inherits the one above it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum UpAxis {
+    X,
+    Y,
+    Z,
 }
 
 /// How a tile's children refine it.
@@ -135,8 +146,8 @@ struct ContentJson {
 struct ContentRef {
     path: PathBuf,
     transform: Mat4,
-    /// Whether its glTF is y-up (the tileset's `asset.gltfUpAxis`, y unless it says z).
-    y_up: bool,
+    /// Its glTF's up axis (`asset.gltfUpAxis` of the tileset or the one above it; y).
+    up: UpAxis,
     tile: String,
 }
 
@@ -147,6 +158,8 @@ struct Walk {
     lod: Lod,
     tiles: usize,
     tilesets: usize,
+    /// Content entries listed (followed or not).
+    content_entries: usize,
     contents: Vec<ContentRef>,
     /// Content not imported, by kind.
     skipped: BTreeMap<String, usize>,
@@ -219,10 +232,11 @@ pub fn load(
         lod,
         tiles: 0,
         tilesets: 0,
+        content_entries: 0,
         contents: Vec::new(),
         skipped: BTreeMap::new(),
     };
-    walk.tileset(&canonical, &IDENTITY, Refine::Replace, &mut Vec::new(), 0)?;
+    walk.tileset(&canonical, &IDENTITY, Refine::Replace, UpAxis::Y, &mut Vec::new(), 0)?;
     if strict && !walk.skipped.is_empty() {
         bail!("{}: {} (--strict)", input.display(), skipped_text(&walk.skipped));
     }
@@ -254,7 +268,7 @@ pub fn load(
     let count = walk.contents.len();
     for (n, content) in walk.contents.iter().enumerate() {
         let what = || format!("{} (tile {})", content.path.display(), content.tile);
-        let mut read = read_content(content, MAX_IMPORTED_VERTICES - vertices).with_context(what)?;
+        let mut read = read_content(content, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices).with_context(what)?;
         // Textures new to the import are encoded (in parallel); shared ones map to the first.
         let mut local_to_global = Vec::with_capacity(read.texture_count());
         let mut fresh = Vec::new();
@@ -434,6 +448,7 @@ impl Walk {
         path: &Path,
         parent: &Mat4,
         inherited: Refine,
+        inherited_up: UpAxis,
         chain: &mut Vec<PathBuf>,
         depth: usize,
     ) -> Result<()> {
@@ -467,16 +482,18 @@ impl Walk {
                 path.display()
             );
         }
-        let y_up = match tileset
+        let up = match tileset
             .asset
             .gltf_up_axis
             .as_deref()
             .map(str::to_ascii_uppercase)
             .as_deref()
         {
-            None | Some("Y") => true,
-            Some("Z") => false,
-            Some(other) => bail!("{}: asset.gltfUpAxis {other:?} (Y or Z)", path.display()),
+            None => inherited_up,
+            Some("X") => UpAxis::X,
+            Some("Y") => UpAxis::Y,
+            Some("Z") => UpAxis::Z,
+            Some(other) => bail!("{}: asset.gltfUpAxis {other:?} (X, Y or Z)", path.display()),
         };
         let dir = path.parent().unwrap_or(Path::new("/")).to_path_buf();
         chain.push(path.to_path_buf());
@@ -485,7 +502,7 @@ impl Walk {
             &dir,
             parent,
             inherited,
-            y_up,
+            up,
             chain,
             depth,
             &format!("{}#root", file_name(path)),
@@ -501,7 +518,7 @@ impl Walk {
         dir: &Path,
         parent: &Mat4,
         inherited: Refine,
-        y_up: bool,
+        up: UpAxis,
         chain: &mut Vec<PathBuf>,
         depth: usize,
         name: &str,
@@ -527,11 +544,19 @@ impl Walk {
             Some("ADD") => Refine::Add,
             Some(other) => bail!("tile {name}: refine {other:?} (REPLACE or ADD)"),
         };
-        if tile.implicit_tiling.is_some() {
+        // An implicitly tiled subtree's content URIs are templates (`{level}/{x}/{y}`):
+        // counted, not followed.
+        let implicit = tile.implicit_tiling.is_some();
+        if implicit {
             *self.skipped.entry("implicitly tiled subtrees".to_owned()).or_default() += 1;
         }
         let keep = self.lod == Lod::All || refine == Refine::Add || tile.children.is_empty();
-        for content in tile.content.iter().chain(&tile.contents) {
+        let contents = tile.content.iter().chain(&tile.contents).filter(|_| !implicit);
+        for content in contents {
+            self.content_entries += 1;
+            if self.content_entries > MAX_CONTENTS {
+                bail!("tile {name}: the tileset lists more than {MAX_CONTENTS} contents");
+            }
             let Some(uri) = content.uri.as_deref().or(content.url.as_deref()) else {
                 bail!("tile {name}: content without a uri");
             };
@@ -540,11 +565,11 @@ impl Walk {
                 .with_context(|| format!("tile {name}: content {uri:?}"))?;
             let kind = content_kind(&path);
             match kind.as_str() {
-                "json" => self.tileset(&path, &world, refine, chain, depth + 1)?,
+                "json" => self.tileset(&path, &world, refine, up, chain, depth + 1)?,
                 "b3dm" | "glb" | "gltf" if keep => self.contents.push(ContentRef {
                     path,
                     transform: world,
-                    y_up,
+                    up,
                     tile: name.to_owned(),
                 }),
                 "b3dm" | "glb" | "gltf" => {}
@@ -556,16 +581,7 @@ impl Walk {
             }
         }
         for (i, child) in tile.children.iter().enumerate() {
-            self.tile(
-                child,
-                dir,
-                &world,
-                refine,
-                y_up,
-                chain,
-                depth + 1,
-                &format!("{name}/{i}"),
-            )?;
+            self.tile(child, dir, &world, refine, up, chain, depth + 1, &format!("{name}/{i}"))?;
         }
         Ok(())
     }
@@ -676,6 +692,15 @@ fn translation(t: [f64; 3]) -> Mat4 {
     m
 }
 
+/// An x-up glTF to the tiles' z-up (CesiumJS's `Axis.X_UP_TO_Z_UP`, a rotation about y by
+/// −90°): (x, y, z) → (−z, y, x).
+const X_UP_TO_Z_UP: Mat4 = [
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, 1.0, 0.0, 0.0],
+    [-1.0, 0.0, 0.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
 /// glTF's y-up to the tiles' z-up: (x, y, z) → (x, −z, y).
 const Y_UP_TO_Z_UP: Mat4 = [
     [1.0, 0.0, 0.0, 0.0],
@@ -685,7 +710,7 @@ const Y_UP_TO_Z_UP: Mat4 = [
 ];
 
 /// One content file read: its glTF's primitives placed in Earth-centred coordinates.
-fn read_content(content: &ContentRef, vertex_budget: usize) -> Result<crate::import::GltfContent> {
+fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> Result<crate::import::GltfContent> {
     let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
     let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
         let batched = content::parse_b3dm(&bytes)?;
@@ -702,11 +727,52 @@ fn read_content(content: &ContentRef, vertex_budget: usize) -> Result<crate::imp
     for center in [batch_rtc, gltf_rtc].into_iter().flatten() {
         transform = mul(&transform, &translation(center));
     }
-    if content.y_up {
-        transform = mul(&transform, &Y_UP_TO_Z_UP);
+    match content.up {
+        UpAxis::X => transform = mul(&transform, &X_UP_TO_Z_UP),
+        UpAxis::Y => transform = mul(&transform, &Y_UP_TO_Z_UP),
+        UpAxis::Z => {}
     }
     let base = content.path.parent().unwrap_or(Path::new("/"));
+    check_external_files(&json, base, root_dir)?;
     read_gltf(glb, base, &content.path, &transform, vertex_budget)
+}
+
+/// The files a glTF's buffers and images name (other than data URIs) lie inside the
+/// tileset's directory `root_dir` and are at most [`MAX_CONTENT_BYTES`], before the glTF
+/// reader opens them.
+fn check_external_files(json: &Value, base: &Path, root_dir: &Path) -> Result<()> {
+    for key in ["buffers", "images"] {
+        let items = json.get(key).and_then(Value::as_array).into_iter().flatten();
+        for (i, item) in items.enumerate() {
+            let Some(uri) = item.get("uri").and_then(Value::as_str) else {
+                continue;
+            };
+            if uri.starts_with("data:") {
+                continue;
+            }
+            let what = || format!("glTF {key}[{i}] uri {uri:?}");
+            if uri.contains("://") || uri.starts_with(['/', '\\']) {
+                bail!("{}: not a relative path inside the tileset's directory", what());
+            }
+            let path = base.join(percent_decode(uri));
+            let canonical = path
+                .canonicalize()
+                .with_context(|| format!("{}: {} does not exist", what(), path.display()))?;
+            if !canonical.starts_with(root_dir) {
+                bail!(
+                    "{}: {} lies outside the tileset's directory {}",
+                    what(),
+                    canonical.display(),
+                    root_dir.display()
+                );
+            }
+            let len = std::fs::metadata(&canonical).with_context(what)?.len();
+            if len > MAX_CONTENT_BYTES {
+                bail!("{}: {len} bytes (at most {MAX_CONTENT_BYTES} are read)", what());
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Projects Earth-centred `meshes` into the UTM projection `crs` names (x easting, y

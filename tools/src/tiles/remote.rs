@@ -56,6 +56,10 @@ pub fn fetch(url: &str, scratch: &Path) -> Result<PathBuf> {
         let mut stack: Vec<&TileJson> = vec![&tileset.root];
         while let Some(tile) = stack.pop() {
             stack.extend(&tile.children);
+            // Implicit tiling's content URIs are templates: the import counts them only.
+            if tile.implicit_tiling.is_some() {
+                continue;
+            }
             for uri in tile
                 .content
                 .iter()
