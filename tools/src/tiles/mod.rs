@@ -362,7 +362,9 @@ pub fn import(
     if !citystream_dataset::remote::is_remote(&location) {
         return import_local(input, &location, out, format, max_extent, lod, strict, crs);
     }
-    let mut scratch = out.as_os_str().to_owned();
+    // Beside the output, also when it is given with a trailing slash.
+    let out_clean: PathBuf = out.components().collect();
+    let mut scratch = out_clean.into_os_string();
     scratch.push(".tileset-download");
     let scratch = PathBuf::from(scratch);
     if scratch.exists() {
