@@ -147,15 +147,15 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     let input = &args.input;
     if crate::tiles::is_tileset(input) {
         let lod = args.lod.unwrap_or(crate::tiles::Lod::Finest);
-        return crate::tiles::import(
-            input,
-            &args.out,
+        let options = crate::tiles::LoadOptions {
             format,
-            args.max_extent,
+            max_extent: args.max_extent,
             lod,
-            args.strict,
-            args.crs.as_ref(),
-        );
+            strict: args.strict,
+            report: true,
+            crs: args.crs.clone(),
+        };
+        return crate::tiles::import(input, &args.out, &options);
     }
     if args.lod.is_some() || args.strict {
         bail!(
@@ -442,10 +442,8 @@ impl GltfContent {
     }
 }
 
-/// `meshes` as a scene whose origin is the centre of their bounds (rounded to metres), so
-/// that f32 positions relative to it stay precise; checked as a dataset's scene is.
-pub(crate) fn centred_scene(meshes: &[PendingMesh], input: &Path) -> Result<Scene> {
-    // Origin at the centre of the world-space bounds keeps f32 positions precise.
+/// The lowest and highest coordinates of `meshes`' positions (infinite when there are none).
+pub(crate) fn bounds(meshes: &[PendingMesh]) -> ([f64; 3], [f64; 3]) {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
     for p in meshes.iter().flat_map(|m| &m.positions) {
@@ -454,6 +452,14 @@ pub(crate) fn centred_scene(meshes: &[PendingMesh], input: &Path) -> Result<Scen
             hi[a] = hi[a].max(p[a]);
         }
     }
+    (lo, hi)
+}
+
+/// `meshes` as a scene whose origin is the centre of their bounds (rounded to metres), so
+/// that f32 positions relative to it stay precise; checked as a dataset's scene is.
+pub(crate) fn centred_scene(meshes: &[PendingMesh], input: &Path) -> Result<Scene> {
+    // Origin at the centre of the world-space bounds keeps f32 positions precise.
+    let (lo, hi) = bounds(meshes);
     let origin = [0, 1, 2].map(|a| {
         if lo[a].is_finite() {
             (0.5 * (lo[a] + hi[a])).round()

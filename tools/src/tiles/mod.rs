@@ -348,19 +348,10 @@ pub fn load(
 
 /// Writes the tileset `input` (a path, or an `http(s)://` or `s3://` URL: see [`remote`])
 /// as the dataset `out` (see [`load`]).
-#[allow(clippy::too_many_arguments)]
-pub fn import(
-    input: &Path,
-    out: &Path,
-    format: TextureFormat,
-    max_extent: u32,
-    lod: Lod,
-    strict: bool,
-    crs: Option<&Crs>,
-) -> Result<()> {
+pub fn import(input: &Path, out: &Path, options: &LoadOptions) -> Result<()> {
     let location = input.to_string_lossy();
     if !citystream_dataset::remote::is_remote(&location) {
-        return import_local(input, &location, out, format, max_extent, lod, strict, crs);
+        return import_local(input, &location, out, options);
     }
     // Beside the output, also when it is given with a trailing slash.
     let out_clean: PathBuf = out.components().collect();
@@ -374,7 +365,7 @@ pub fn import(
         );
     }
     let imported = remote::fetch(&location, &scratch).and_then(|local| {
-        import_local(&local, &location, out, format, max_extent, lod, strict, crs)
+        import_local(&local, &location, out, options)
             .with_context(|| format!("importing {location} as fetched into {}", scratch.display()))
     });
     // The scratch copy goes whatever happened; a failure to remove it is only reported.
@@ -384,29 +375,11 @@ pub fn import(
     imported
 }
 
-#[allow(clippy::too_many_arguments)]
-fn import_local(
-    input: &Path,
-    shown: &str,
-    out: &Path,
-    format: TextureFormat,
-    max_extent: u32,
-    lod: Lod,
-    strict: bool,
-    crs: Option<&Crs>,
-) -> Result<()> {
+fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) -> Result<()> {
     let start = Instant::now();
-    let options = LoadOptions {
-        format,
-        max_extent,
-        lod,
-        strict,
-        report: true,
-        crs: crs.cloned(),
-    };
     // Textures go to the pack as they are encoded; the dataset appears only at `finish`.
     let mut writer = DatasetWriter::create(out)?;
-    let imported = load(input, &options, &mut |t| {
+    let imported = load(input, options, &mut |t| {
         writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
         Ok(())
     })?;
@@ -424,7 +397,7 @@ fn import_local(
         summary.triangles,
         summary.textures,
         imported.kept_blocks,
-        format.name(),
+        options.format.name(),
         summary.pack_bytes as f64 / 1e6,
         start.elapsed().as_secs_f64(),
         origin.map_or_else(|| "?".to_owned(), |g| format!(
@@ -813,14 +786,7 @@ fn project_utm(meshes: &mut [PendingMesh], frame: &EastNorthUp, crs: &Crs) -> Re
 
 /// The east-north-up frame at the centre of the meshes' Earth-centred bounds.
 fn local_frame(meshes: &[PendingMesh]) -> Result<EastNorthUp> {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for p in meshes.iter().flat_map(|m| &m.positions) {
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
-        }
-    }
+    let (lo, hi) = crate::import::bounds(meshes);
     let centre = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
     let radius = centre[0].hypot(centre[1]).hypot(centre[2]);
     if !(EARTH_SHELL_M.0..=EARTH_SHELL_M.1).contains(&radius) {
