@@ -8,35 +8,14 @@ use citystream_tools::fuzz::{dds_file, ktx2_file, quad_buffer};
 use serde_json::json;
 
 mod cli_support;
-use cli_support::{citystream, stderr};
+use cli_support::{import, import_verified, stderr};
 
 fn fresh_dir(name: &str) -> PathBuf {
     cli_support::fresh_dir("import-gltf", name)
 }
 
-fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
-    let mut args = vec![
-        "import",
-        input.to_str().expect("utf-8"),
-        "--out",
-        out.to_str().expect("utf-8"),
-    ];
-    args.extend_from_slice(extra);
-    citystream(&args)
-}
-
 fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, Output) {
-    let out_dir = fresh_dir(name);
-    let out = import(input, &out_dir, extra);
-    assert!(
-        out.status.success(),
-        "import of {} failed: {}",
-        input.display(),
-        stderr(&out)
-    );
-    let verify = citystream(&["verify", out_dir.to_str().expect("utf-8")]);
-    assert!(verify.status.success(), "verify failed: {}", stderr(&verify));
-    (Dataset::open(&out_dir).expect("open imported dataset"), out)
+    import_verified(input, &fresh_dir(name), extra)
 }
 
 fn data(path: &str) -> PathBuf {

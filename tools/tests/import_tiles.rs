@@ -4,14 +4,13 @@
 //! against an east-north-up computation independent of the importer's.
 
 use std::path::{Path, PathBuf};
-use std::process::Output;
 
 use citystream_dataset::Dataset;
 use citystream_tools::tiles::write;
 use serde_json::{json, Value};
 
 mod cli_support;
-use cli_support::{citystream, stderr};
+use cli_support::{citystream, import, import_verified, stderr};
 
 fn fresh_dir(name: &str) -> PathBuf {
     cli_support::fresh_dir("import-tiles", name)
@@ -276,29 +275,9 @@ fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
     (path, contents)
 }
 
-fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
-    let mut args = vec![
-        "import",
-        input.to_str().expect("utf-8"),
-        "--out",
-        out.to_str().expect("utf-8"),
-    ];
-    args.extend_from_slice(extra);
-    citystream(&args)
-}
-
 fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, PathBuf) {
     let out_dir = fresh_dir(name);
-    let out = import(input, &out_dir, extra);
-    assert!(
-        out.status.success(),
-        "import of {} failed: {}",
-        input.display(),
-        stderr(&out)
-    );
-    let verify = citystream(&["verify", out_dir.to_str().expect("utf-8")]);
-    assert!(verify.status.success(), "verify failed: {}", stderr(&verify));
-    (Dataset::open(&out_dir).expect("open imported dataset"), out_dir)
+    (import_verified(input, &out_dir, extra).0, out_dir)
 }
 
 /// Checks every imported vertex against the independent placement: the dataset's absolute

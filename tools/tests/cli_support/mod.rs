@@ -14,6 +14,34 @@ pub fn citystream(args: &[&str]) -> Output {
         .expect("run citystream")
 }
 
+/// Runs `citystream import INPUT --out OUT EXTRA…`.
+pub fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "import",
+        input.to_str().expect("utf-8"),
+        "--out",
+        out.to_str().expect("utf-8"),
+    ];
+    args.extend_from_slice(extra);
+    citystream(&args)
+}
+
+/// [`import`] into `out_dir`, which must succeed and pass `citystream verify`; the dataset
+/// written and the import's output.
+pub fn import_verified(input: &Path, out_dir: &Path, extra: &[&str]) -> (citystream_dataset::Dataset, Output) {
+    let out = import(input, out_dir, extra);
+    assert!(
+        out.status.success(),
+        "import of {} failed: {}",
+        input.display(),
+        stderr(&out)
+    );
+    let verify = citystream(&["verify", out_dir.to_str().expect("utf-8")]);
+    assert!(verify.status.success(), "verify failed: {}", stderr(&verify));
+    let dataset = citystream_dataset::Dataset::open(out_dir).expect("open imported dataset");
+    (dataset, out)
+}
+
 /// `CARGO_TARGET_TMPDIR/group/name`, removed if it exists; its parent exists,
 /// it does not (for commands that must create their output themselves).
 pub fn fresh_path(group: &str, name: &str) -> PathBuf {
