@@ -10,6 +10,12 @@ use std::process::Command;
 
 const STAGES: &[&str] = &["vert", "frag", "comp"];
 
+/// Shaders that sample the texture cache, compiled a second time with
+/// `CITYSTREAM_NO_SPARSE` defined (`*_arrays.spv`) for devices without sparse
+/// residency, whose SPIR-V must not declare the SparseResidency capability
+/// (the feedback pass reads the table only, so it has none either way).
+const SPARSE_SAMPLERS: &[&str] = &["city.frag", "texture_probe.comp"];
+
 fn main() {
     let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
     let shader_dir = manifest.join("../shaders");
@@ -40,8 +46,16 @@ fn main() {
         .chain(example_sources.iter().map(|s| (s, "embed_host_")));
     for (source, prefix) in all {
         println!("cargo:rerun-if-changed={}", source.display());
-        if let Err(message) = compile(source, &include_dir, &out_dir, prefix) {
+        let output = out_dir.join(spv_name(source, prefix, ""));
+        if let Err(message) = compile(source, &include_dir, &output, &[]) {
             failures.push(message);
+        }
+        let file = source.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        if prefix.is_empty() && SPARSE_SAMPLERS.contains(&file) {
+            let output = out_dir.join(spv_name(source, prefix, "_arrays"));
+            if let Err(message) = compile(source, &include_dir, &output, &["CITYSTREAM_NO_SPARSE"]) {
+                failures.push(message);
+            }
         }
     }
     if !failures.is_empty() {
@@ -70,29 +84,29 @@ fn shader_sources(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
     Ok(sources)
 }
 
-fn spv_name(source: &Path, prefix: &str) -> String {
+fn spv_name(source: &Path, prefix: &str, suffix: &str) -> String {
     let file = source
         .file_name()
         .and_then(|n| n.to_str())
         .expect("shader names are UTF-8");
-    format!("{prefix}{}.spv", file.replace('.', "_"))
+    format!("{prefix}{}{suffix}.spv", file.replace('.', "_"))
 }
 
-fn compile(source: &Path, include_dir: &Path, out_dir: &Path, prefix: &str) -> Result<(), String> {
-    let output_path = out_dir.join(spv_name(source, prefix));
+fn compile(source: &Path, include_dir: &Path, output_path: &Path, defines: &[&str]) -> Result<(), String> {
     let mut glslang = Command::new("glslangValidator");
     glslang
         .arg("--target-env")
         .arg("vulkan1.2")
         .arg(format!("-I{}", include_dir.display()))
+        .args(defines.iter().map(|name| format!("-D{name}")))
         .arg("-o")
-        .arg(&output_path)
+        .arg(output_path)
         .arg(source);
     run_tool(&mut glslang, "glslang-tools", source, || {
         format!("glslangValidator failed on {}", source.display())
     })?;
     let mut spirv_val = Command::new("spirv-val");
-    spirv_val.arg("--target-env").arg("vulkan1.2").arg(&output_path);
+    spirv_val.arg("--target-env").arg("vulkan1.2").arg(output_path);
     run_tool(&mut spirv_val, "spirv-tools", source, || {
         format!(
             "spirv-val rejected {} (from {})",

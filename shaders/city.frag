@@ -1,6 +1,8 @@
 #version 460
 #extension GL_GOOGLE_include_directive : require
+#ifndef CITYSTREAM_NO_SPARSE
 #extension GL_ARB_sparse_texture2 : require
+#endif
 #include "citystream_host.glsl"
 
 // Visible pass of the city: streamed texture blended with the City

@@ -57,6 +57,9 @@ fn setup() -> Result<Setup> {
         },
         device_name: None,
         presentation: false,
+        // Binds are what it measures.
+        sparse: citystream_engine::device::SparseMode::On,
+        ..Default::default()
     })?);
     println!("device: {}", citystream_engine::device::describe(&device));
     print_sparse_shapes(&device)?;

@@ -43,6 +43,7 @@ fn main() -> Result<()> {
         },
         device_name: None,
         presentation: false,
+        ..Default::default()
     })?);
     println!("device: {}", citystream_engine::device::describe(&device));
     let mut commands = CommandContext::new(&device, "bench")?;

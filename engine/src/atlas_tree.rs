@@ -195,7 +195,7 @@ impl AtlasTreeRenderer {
         let pipeline = city_pipeline(
             device,
             shaders::CITY_TREE_VERT,
-            shaders::CITY_FRAG,
+            shaders::for_backing(device, shaders::CITY_FRAG, shaders::CITY_FRAG_ARRAYS),
             bindings,
             DepthMode::TestAndWrite,
             true,

@@ -370,7 +370,7 @@ impl CityRenderer {
         let visible = city_pipeline(
             device,
             shaders::CITY_VERT,
-            shaders::CITY_FRAG,
+            shaders::for_backing(device, shaders::CITY_FRAG, shaders::CITY_FRAG_ARRAYS),
             visible_bindings,
             DepthMode::TestAndWrite,
             true,

@@ -1,10 +1,12 @@
 //! Physical-device choice, the logical device, its queue and allocator.
 //!
-//! citystream needs sparse binding and sparse residency for 2D images, a
-//! queue family that does graphics, compute and sparse binding (so the bind
-//! and the copy that waits on it share one queue), fragment stores and
-//! atomics for the feedback pass, BC texture compression and Vulkan 1.3
-//! (dynamic rendering, synchronization2).
+//! citystream needs a queue family that does graphics and compute, fragment
+//! stores and atomics for the feedback pass, BC texture compression and
+//! Vulkan 1.3 (dynamic rendering, synchronization2). Sparse binding and
+//! residency for 2D images (and sparse binding on that queue, so the bind and
+//! the copy that waits on it share one queue) give the sparse texture cache;
+//! a device without them, or one created with [`SparseMode::Off`], gets the
+//! texture-array cache ([`TextureBacking`]).
 
 use std::ffi::CStr;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -18,6 +20,47 @@ use crate::instance::{Instance, InstanceOptions, ValidationLog};
 /// Environment variable that picks a device by (part of) its name.
 pub const DEVICE_ENV: &str = "CITYSTREAM_DEVICE";
 
+/// Environment variable naming device features (Vulkan names, comma
+/// separated) to treat as absent, as if the device did not report them: how
+/// tests see what the engine does on a device without, say,
+/// `sparseResidencyImage2D`.
+pub const MASK_FEATURES_ENV: &str = "CITYSTREAM_MASK_FEATURES";
+
+/// Whether a device is set up for the sparse texture cache.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum SparseMode {
+    /// Sparse residency where the device has it, texture arrays otherwise.
+    #[default]
+    Auto,
+    /// Sparse residency; a device without it is refused.
+    On,
+    /// Texture arrays, with the sparse features left disabled even where the
+    /// device has them.
+    Off,
+}
+
+/// How the texture cache holds textures on a device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TextureBacking {
+    /// Sparse partially resident array images, bound block by block (the
+    /// paper's cache).
+    Sparse,
+    /// Ordinary, fully bound 2D array images, a full mip chain's memory per
+    /// layer (Trapp and Döllner's texture arrays), for devices without
+    /// sparse residency.
+    Arrays,
+}
+
+impl TextureBacking {
+    /// `sparse` or `texture-arrays`, as reports and the command line say it.
+    pub fn name(self) -> &'static str {
+        match self {
+            TextureBacking::Sparse => "sparse",
+            TextureBacking::Arrays => "texture-arrays",
+        }
+    }
+}
+
 /// Options for [`Device::new`].
 #[derive(Clone, Debug, Default)]
 pub struct DeviceOptions {
@@ -30,6 +73,11 @@ pub struct DeviceOptions {
     /// module); fails with [`EngineError::MissingFeature`] where the device
     /// lacks it.
     pub presentation: bool,
+    /// Sparse texture cache or texture arrays ([`Device::texture_backing`]).
+    pub sparse: SparseMode,
+    /// Features (Vulkan names) treated as absent; empty: those of
+    /// [`MASK_FEATURES_ENV`], if set.
+    pub masked_features: Vec<String>,
 }
 
 /// What the chosen device reports about sparse residency.
@@ -50,10 +98,34 @@ pub struct DeviceCandidate {
     pub name: String,
     /// Device type.
     pub device_type: vk::PhysicalDeviceType,
-    /// Missing requirements; empty when usable.
+    /// Missing requirements of every path; empty when usable.
     pub missing: Vec<String>,
+    /// Missing requirements of the sparse texture cache; empty when the
+    /// device can have it.
+    pub missing_sparse: Vec<String>,
     physical: vk::PhysicalDevice,
+    /// The first queue family with GRAPHICS and COMPUTE.
     queue_family: Option<u32>,
+    /// The first with SPARSE_BINDING as well.
+    sparse_queue_family: Option<u32>,
+}
+
+impl DeviceCandidate {
+    /// The backing `mode` gives on this device, or what it lacks for it.
+    pub fn backing(&self, mode: SparseMode) -> std::result::Result<TextureBacking, String> {
+        if let Some(first) = self.missing.first() {
+            return Err(first.clone());
+        }
+        match mode {
+            SparseMode::Off => Ok(TextureBacking::Arrays),
+            SparseMode::Auto if !self.missing_sparse.is_empty() => Ok(TextureBacking::Arrays),
+            SparseMode::Auto => Ok(TextureBacking::Sparse),
+            SparseMode::On => match self.missing_sparse.first() {
+                Some(first) => Err(format!("{first} (asked for the sparse texture cache)")),
+                None => Ok(TextureBacking::Sparse),
+            },
+        }
+    }
 }
 
 /// The logical device with its one queue and allocator.
@@ -71,6 +143,10 @@ pub struct Device {
     properties: vk::PhysicalDeviceProperties,
     name: String,
     sparse: SparseSupport,
+    backing: TextureBacking,
+    /// The core features the device was created with (for a host's device,
+    /// those the engine requires of it).
+    enabled_features: vk::PhysicalDeviceFeatures,
     instance_fns: ash::Instance,
     log: Arc<ValidationLog>,
     /// Whether `Drop` destroys the logical device (false for a host's device).
@@ -89,6 +165,7 @@ struct DeviceParts {
     queue_family: u32,
     allocator: AllocatorSlot,
     debug_utils: bool,
+    backing: TextureBacking,
     log: Arc<ValidationLog>,
     owns_device: bool,
     instance: Option<Instance>,
@@ -127,12 +204,16 @@ pub struct HostDevice {
     pub instance: vk::Instance,
     /// The physical device the host chose.
     pub physical_device: vk::PhysicalDevice,
-    /// The host's logical device, created with at least [`required_features`].
+    /// The host's logical device, created with at least
+    /// [`required_features`] of `backing`.
     pub device: vk::Device,
     /// A queue of `queue_family` the engine submits to (binds, uploads).
     pub queue: vk::Queue,
-    /// Its family: GRAPHICS, COMPUTE and SPARSE_BINDING (see [`DeviceRequirements`]).
+    /// Its family: GRAPHICS and COMPUTE, and SPARSE_BINDING for the sparse
+    /// backing (see [`DeviceRequirements`]).
     pub queue_family: u32,
+    /// The texture cache the host enabled the features of.
+    pub backing: TextureBacking,
     /// Where the engine's memory comes from.
     pub allocator: HostAllocator,
     /// Whether the instance has `VK_EXT_debug_utils` enabled (the engine
@@ -145,30 +226,53 @@ debug_fields!(HostDevice {
     physical_device,
     device,
     queue_family,
+    backing,
     allocator
 });
 
-/// What a host must enable on its device for the engine.
+/// What a host must enable on its device for the engine, per texture backing.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DeviceRequirements {
     /// Minimum Vulkan API version of instance and device.
     pub api_version: u32,
-    /// Features, by their Vulkan names (core 1.0, 1.2 and 1.3 structs).
+    /// Features every backing needs, by their Vulkan names (core 1.0, 1.2
+    /// and 1.3 structs).
     pub features: Vec<&'static str>,
+    /// Features the sparse backing needs as well (core 1.0).
+    pub sparse_features: Vec<&'static str>,
     /// Device extensions beyond Vulkan 1.3 core (none today).
     pub extensions: Vec<&'static CStr>,
-    /// Flags the engine's queue family must have.
+    /// Flags the engine's queue family must have with every backing.
     pub queue_flags: vk::QueueFlags,
+    /// Flags it must have as well for the sparse backing.
+    pub sparse_queue_flags: vk::QueueFlags,
 }
 
-/// The features, extensions and queue capabilities a host's device needs.
+impl DeviceRequirements {
+    /// Every feature `backing` needs.
+    pub fn features_for(&self, backing: TextureBacking) -> Vec<&'static str> {
+        let mut features = self.features.clone();
+        if backing == TextureBacking::Sparse {
+            features.extend(&self.sparse_features);
+        }
+        features
+    }
+
+    /// The queue flags `backing` needs.
+    pub fn queue_flags_for(&self, backing: TextureBacking) -> vk::QueueFlags {
+        match backing {
+            TextureBacking::Sparse => self.queue_flags | self.sparse_queue_flags,
+            TextureBacking::Arrays => self.queue_flags,
+        }
+    }
+}
+
+/// The features, extensions and queue capabilities a host's device needs,
+/// for each texture backing.
 pub fn device_requirements() -> DeviceRequirements {
     DeviceRequirements {
         api_version: vk::API_VERSION_1_3,
         features: vec![
-            "sparseBinding",
-            "sparseResidencyImage2D",
-            "shaderResourceResidency",
             "fragmentStoresAndAtomics",
             "textureCompressionBC",
             "samplerAnisotropy",
@@ -176,8 +280,10 @@ pub fn device_requirements() -> DeviceRequirements {
             "dynamicRendering",
             "synchronization2",
         ],
+        sparse_features: vec!["sparseBinding", "sparseResidencyImage2D", "shaderResourceResidency"],
         extensions: Vec::new(),
-        queue_flags: vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE | vk::QueueFlags::SPARSE_BINDING,
+        queue_flags: vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE,
+        sparse_queue_flags: vk::QueueFlags::SPARSE_BINDING,
     }
 }
 
@@ -193,13 +299,14 @@ pub struct RequiredFeatures {
     pub vulkan13: vk::PhysicalDeviceVulkan13Features<'static>,
 }
 
-/// The features the engine needs, as Vulkan structs.
-pub fn required_features() -> RequiredFeatures {
+/// The features the engine needs with `backing`, as Vulkan structs.
+pub fn required_features(backing: TextureBacking) -> RequiredFeatures {
+    let sparse = backing == TextureBacking::Sparse;
     RequiredFeatures {
         core: vk::PhysicalDeviceFeatures::default()
-            .sparse_binding(true)
-            .sparse_residency_image2_d(true)
-            .shader_resource_residency(true)
+            .sparse_binding(sparse)
+            .sparse_residency_image2_d(sparse)
+            .shader_resource_residency(sparse)
             .fragment_stores_and_atomics(true)
             .texture_compression_bc(true)
             .sampler_anisotropy(true),
@@ -210,14 +317,29 @@ pub fn required_features() -> RequiredFeatures {
     }
 }
 
-/// What `physical` lacks for the engine (empty when usable), and the first
-/// queue family with the flags it needs.
-pub fn check_physical_device(instance: &ash::Instance, physical: vk::PhysicalDevice) -> (Vec<String>, Option<u32>) {
-    let candidate = examine_raw(instance, physical);
-    (candidate.missing, candidate.queue_family)
+/// What `physical` lacks for the engine with `backing` (empty when usable),
+/// and the first queue family with the flags it needs.
+pub fn check_physical_device(
+    instance: &ash::Instance,
+    physical: vk::PhysicalDevice,
+    backing: TextureBacking,
+) -> (Vec<String>, Option<u32>) {
+    let candidate = examine_raw(instance, physical, &[]);
+    match backing {
+        TextureBacking::Sparse => {
+            let mut missing = candidate.missing;
+            missing.extend(candidate.missing_sparse);
+            (missing, candidate.sparse_queue_family)
+        }
+        TextureBacking::Arrays => (candidate.missing, candidate.queue_family),
+    }
 }
 
-debug_fields!(Device { name, queue_family });
+debug_fields!(Device {
+    name,
+    queue_family,
+    backing
+});
 
 fn rank(device_type: vk::PhysicalDeviceType) -> u32 {
     match device_type {
@@ -231,16 +353,37 @@ fn rank(device_type: vk::PhysicalDeviceType) -> u32 {
 
 /// Lists every physical device with what it lacks for citystream.
 pub fn list_devices(instance: &Instance) -> Result<Vec<DeviceCandidate>> {
+    list_devices_masked(instance, &[])
+}
+
+/// As [`list_devices`], treating the features named in `masked` (Vulkan
+/// names) as absent.
+pub fn list_devices_masked(instance: &Instance, masked: &[String]) -> Result<Vec<DeviceCandidate>> {
     // SAFETY: plain enumeration on a live instance.
     let physicals = unsafe { instance.raw.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
-    Ok(physicals.into_iter().map(|p| examine(instance, p)).collect())
+    Ok(physicals
+        .into_iter()
+        .map(|p| examine_raw(&instance.raw, p, masked))
+        .collect())
 }
 
-fn examine(instance: &Instance, physical: vk::PhysicalDevice) -> DeviceCandidate {
-    examine_raw(&instance.raw, physical)
+/// The masked feature names of `options`, else of [`MASK_FEATURES_ENV`].
+fn masked_features(options: &DeviceOptions) -> Vec<String> {
+    if !options.masked_features.is_empty() {
+        return options.masked_features.clone();
+    }
+    std::env::var(MASK_FEATURES_ENV)
+        .map(|list| {
+            list.split(',')
+                .map(str::trim)
+                .filter(|name| !name.is_empty())
+                .map(str::to_owned)
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
-fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice) -> DeviceCandidate {
+fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice, masked: &[String]) -> DeviceCandidate {
     // SAFETY: `physical` came from this instance.
     let properties = unsafe { raw.get_physical_device_properties(physical) };
     let name = properties
@@ -264,52 +407,68 @@ fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice) -> DeviceCandi
             vk::api_version_minor(properties.api_version)
         ));
     }
+    let reported = |name: &str, value: u32| value == vk::TRUE && !masked.iter().any(|m| m == name);
     let required: [(&str, u32); 6] = [
-        ("feature sparseBinding", features.sparse_binding),
-        ("feature sparseResidencyImage2D", features.sparse_residency_image2_d),
-        ("feature shaderResourceResidency", features.shader_resource_residency),
-        ("feature fragmentStoresAndAtomics", features.fragment_stores_and_atomics),
-        ("feature textureCompressionBC", features.texture_compression_bc),
-        ("feature samplerAnisotropy", features.sampler_anisotropy),
+        ("fragmentStoresAndAtomics", features.fragment_stores_and_atomics),
+        ("textureCompressionBC", features.texture_compression_bc),
+        ("samplerAnisotropy", features.sampler_anisotropy),
+        ("timelineSemaphore", vk12.timeline_semaphore),
+        ("dynamicRendering", vk13.dynamic_rendering),
+        ("synchronization2", vk13.synchronization2),
     ];
     missing.extend(
         required
             .iter()
-            .filter(|(_, v)| *v == vk::FALSE)
-            .map(|(n, _)| (*n).to_owned()),
+            .filter(|(n, v)| !reported(n, *v))
+            .map(|(n, _)| format!("feature {n}")),
     );
-    if vk12.timeline_semaphore == vk::FALSE {
-        missing.push("feature timelineSemaphore".to_owned());
-    }
-    if vk13.dynamic_rendering == vk::FALSE {
-        missing.push("feature dynamicRendering".to_owned());
-    }
-    if vk13.synchronization2 == vk::FALSE {
-        missing.push("feature synchronization2".to_owned());
-    }
+    let sparse: [(&str, u32); 3] = [
+        ("sparseBinding", features.sparse_binding),
+        ("sparseResidencyImage2D", features.sparse_residency_image2_d),
+        ("shaderResourceResidency", features.shader_resource_residency),
+    ];
+    let mut missing_sparse: Vec<String> = sparse
+        .iter()
+        .filter(|(n, v)| !reported(n, *v))
+        .map(|(n, _)| format!("feature {n}"))
+        .collect();
 
     // SAFETY: `physical` came from this instance.
     let families = unsafe { raw.get_physical_device_queue_family_properties(physical) };
-    let wanted = vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE | vk::QueueFlags::SPARSE_BINDING;
-    let queue_family = families
-        .iter()
-        .position(|f| f.queue_flags.contains(wanted) && f.queue_count > 0)
-        .map(|i| i as u32);
+    let family_with = |wanted: vk::QueueFlags| {
+        families
+            .iter()
+            .position(|f| f.queue_flags.contains(wanted) && f.queue_count > 0)
+            .map(|i| i as u32)
+    };
+    let requirements = device_requirements();
+    let queue_family = family_with(requirements.queue_flags_for(TextureBacking::Arrays));
+    let sparse_queue_family = family_with(requirements.queue_flags_for(TextureBacking::Sparse));
     if queue_family.is_none() {
-        missing.push("a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned());
+        missing.push("a queue family with GRAPHICS and COMPUTE".to_owned());
+    }
+    if sparse_queue_family.is_none() && missing_sparse.is_empty() {
+        missing_sparse.push("a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned());
     }
     DeviceCandidate {
         name,
         device_type: properties.device_type,
         missing,
+        missing_sparse,
         physical,
         queue_family,
+        sparse_queue_family,
     }
 }
 
-/// Chooses a device: by name when asked, otherwise the best usable one
-/// (discrete before integrated before CPU).
-pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Result<DeviceCandidate> {
+/// Chooses a device and its texture backing under `mode`: by name when
+/// asked, otherwise the best usable one (discrete before integrated before
+/// CPU).
+pub fn choose_device(
+    candidates: &[DeviceCandidate],
+    wanted: Option<&str>,
+    mode: SparseMode,
+) -> Result<(DeviceCandidate, TextureBacking)> {
     let describe = || {
         if candidates.is_empty() {
             "none".to_owned()
@@ -335,7 +494,7 @@ pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Re
         None => {
             let usable = candidates
                 .iter()
-                .filter(|c| c.missing.is_empty())
+                .filter(|c| c.backing(mode).is_ok())
                 .min_by_key(|c| rank(c.device_type));
             match usable {
                 Some(c) => c,
@@ -345,7 +504,13 @@ pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Re
                     } else {
                         candidates
                             .iter()
-                            .map(|c| format!("{:?} lacks {}", c.name, c.missing.join(", ")))
+                            .map(|c| {
+                                let mut lacks = c.missing.clone();
+                                if mode == SparseMode::On {
+                                    lacks.extend(c.missing_sparse.iter().cloned());
+                                }
+                                format!("{:?} lacks {}", c.name, lacks.join(", "))
+                            })
                             .collect::<Vec<_>>()
                             .join("; ")
                     };
@@ -354,26 +519,31 @@ pub fn choose_device(candidates: &[DeviceCandidate], wanted: Option<&str>) -> Re
             }
         }
     };
-    if let Some(first) = chosen.missing.first() {
-        return Err(EngineError::MissingFeature {
-            device: chosen.name.clone(),
-            feature: first.clone(),
-        });
-    }
-    Ok(chosen.clone())
+    let backing = chosen.backing(mode).map_err(|feature| EngineError::MissingFeature {
+        device: chosen.name.clone(),
+        feature,
+    })?;
+    Ok((chosen.clone(), backing))
 }
 
 impl Device {
     /// Creates the instance and the device.
     pub fn new(options: &DeviceOptions) -> Result<Self> {
         let instance = Instance::new(&options.instance)?;
-        let candidates = list_devices(&instance)?;
+        let candidates = list_devices_masked(&instance, &masked_features(options))?;
         let env_name = std::env::var(DEVICE_ENV).ok().filter(|s| !s.is_empty());
         let wanted = options.device_name.clone().or(env_name);
-        let chosen = choose_device(&candidates, wanted.as_deref())?;
-        let queue_family = chosen.queue_family.ok_or_else(|| EngineError::MissingFeature {
+        let (chosen, backing) = choose_device(&candidates, wanted.as_deref(), options.sparse)?;
+        let family = match backing {
+            TextureBacking::Sparse => chosen.sparse_queue_family,
+            TextureBacking::Arrays => chosen.queue_family,
+        };
+        let queue_family = family.ok_or_else(|| EngineError::MissingFeature {
             device: chosen.name.clone(),
-            feature: "a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned(),
+            feature: format!(
+                "a queue family with {:?}",
+                device_requirements().queue_flags_for(backing)
+            ),
         })?;
         let physical = chosen.physical;
 
@@ -397,7 +567,7 @@ impl Device {
             }
             extensions.push(ash::khr::swapchain::NAME.as_ptr());
         }
-        let required = required_features();
+        let required = required_features(backing);
         let mut vk12 = required.vulkan12;
         let mut vk13 = required.vulkan13;
         let create_info = vk::DeviceCreateInfo::default()
@@ -426,6 +596,7 @@ impl Device {
             queue_family,
             allocator: AllocatorSlot::Own(Box::new(Mutex::new(Some(allocator)))),
             debug_utils: instance.has_debug_utils(),
+            backing,
             log: Arc::clone(instance.validation_log()),
             owns_device: true,
             instance: Some(instance),
@@ -460,6 +631,8 @@ impl Device {
             properties,
             name,
             sparse,
+            backing: parts.backing,
+            enabled_features: required_features(parts.backing).core,
             instance_fns: parts.instance_fns,
             log: parts.log,
             owns_device: parts.owns_device,
@@ -489,27 +662,25 @@ impl Device {
         // SAFETY: as above.
         let raw = unsafe { ash::Device::load(instance_fns.fp_v1_0(), host.device) };
         let physical = host.physical_device;
-        let candidate = examine_raw(&instance_fns, physical);
+        let candidate = examine_raw(&instance_fns, physical, &[]);
         let name = candidate.name.clone();
-        if let Some(first) = candidate.missing.first() {
-            return Err(EngineError::MissingFeature {
-                device: name,
-                feature: first.clone(),
-            });
+        let mode = match host.backing {
+            TextureBacking::Sparse => SparseMode::On,
+            TextureBacking::Arrays => SparseMode::Off,
+        };
+        if let Err(feature) = candidate.backing(mode) {
+            return Err(EngineError::MissingFeature { device: name, feature });
         }
         // SAFETY: `physical` came from this instance.
         let families = unsafe { instance_fns.get_physical_device_queue_family_properties(physical) };
-        let wanted = device_requirements().queue_flags;
+        let wanted = device_requirements().queue_flags_for(host.backing);
         if !families
             .get(host.queue_family as usize)
             .is_some_and(|f| f.queue_flags.contains(wanted))
         {
             return Err(EngineError::MissingFeature {
                 device: name,
-                feature: format!(
-                    "queue family {} with GRAPHICS, COMPUTE and SPARSE_BINDING (the host's queue)",
-                    host.queue_family
-                ),
+                feature: format!("queue family {} with {wanted:?} (the host's queue)", host.queue_family),
             });
         }
         let allocator = match host.allocator {
@@ -528,6 +699,7 @@ impl Device {
             queue_family: host.queue_family,
             allocator,
             debug_utils: host.debug_utils,
+            backing: host.backing,
             log: Arc::new(ValidationLog::default()),
             owns_device: false,
             instance: None,
@@ -572,6 +744,19 @@ impl Device {
     /// Sparse-residency properties of the device.
     pub fn sparse_support(&self) -> SparseSupport {
         self.sparse
+    }
+
+    /// How texture caches on this device hold textures: sparse images where
+    /// the device was created with the sparse features, texture arrays
+    /// otherwise.
+    pub fn texture_backing(&self) -> TextureBacking {
+        self.backing
+    }
+
+    /// The core features enabled on the device ([`required_features`] of its
+    /// backing).
+    pub fn enabled_features(&self) -> vk::PhysicalDeviceFeatures {
+        self.enabled_features
     }
 
     /// The family of the one queue the engine uses.

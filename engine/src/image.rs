@@ -135,6 +135,11 @@ impl Image {
     pub fn desc(&self) -> &ImageDesc {
         &self.desc
     }
+
+    /// Bytes of device memory bound to the image.
+    pub fn memory_bytes(&self) -> u64 {
+        self.allocation.as_ref().map_or(0, Allocation::size)
+    }
 }
 
 /// Creates a view of every layer and level of `image`.

@@ -91,5 +91,5 @@ pub use ash::vk;
 pub use error::{EngineError, Result};
 pub use gpu_allocator;
 
-pub use device::{Device, DeviceOptions, HostAllocator, HostDevice};
+pub use device::{Device, DeviceOptions, HostAllocator, HostDevice, SparseMode, TextureBacking};
 pub use instance::{ValidationLog, ValidationMessage};

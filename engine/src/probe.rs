@@ -118,7 +118,7 @@ impl TextureProbe {
         let compute = vk::ShaderStageFlags::COMPUTE;
         let pipeline = Pipeline::compute(
             device,
-            &shaders::TEXTURE_PROBE_COMP,
+            &shaders::for_backing(device, shaders::TEXTURE_PROBE_COMP, shaders::TEXTURE_PROBE_COMP_ARRAYS),
             &[
                 (
                     BINDING_CACHE_IMAGES,

@@ -42,6 +42,22 @@ shader!(
 shader!(CITY_CULL_COMP, "city_cull.comp", "city_cull_comp.spv");
 shader!(TEXTURE_PROBE_COMP, "texture_probe.comp", "texture_probe_comp.spv");
 shader!(SPARSE_PROBE_COMP, "sparse_probe.comp", "sparse_probe_comp.spv");
+shader!(CITY_FRAG_ARRAYS, "city.frag", "city_frag_arrays.spv");
+shader!(
+    TEXTURE_PROBE_COMP_ARRAYS,
+    "texture_probe.comp",
+    "texture_probe_comp_arrays.spv"
+);
+
+/// `sparse` where `device` holds textures in sparse images, else
+/// `arrays`: the same shader compiled with `CITYSTREAM_NO_SPARSE`, which a
+/// device without `shaderResourceResidency` accepts.
+pub fn for_backing(device: &crate::device::Device, sparse: ShaderSource, arrays: ShaderSource) -> ShaderSource {
+    match device.texture_backing() {
+        crate::device::TextureBacking::Sparse => sparse,
+        crate::device::TextureBacking::Arrays => arrays,
+    }
+}
 
 /// Every embedded shader, for tests that inspect them all.
 pub const ALL: &[ShaderSource] = &[
@@ -58,4 +74,45 @@ pub const ALL: &[ShaderSource] = &[
     CITY_CULL_COMP,
     SPARSE_PROBE_COMP,
     TEXTURE_PROBE_COMP,
+    CITY_FRAG_ARRAYS,
+    TEXTURE_PROBE_COMP_ARRAYS,
 ];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `OpCapability SparseResidency` (opcode 17, capability 41) in `shader`'s SPIR-V.
+    fn declares_sparse_residency(shader: &ShaderSource) -> bool {
+        const OP_CAPABILITY: u32 = 17;
+        const SPARSE_RESIDENCY: u32 = 41;
+        let words: Vec<u32> = shader
+            .spirv
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        // After the five-word header, each instruction's first word holds its length
+        // (high half) and opcode (low half).
+        let mut at = 5;
+        while let Some(&first) = words.get(at) {
+            let length = (first >> 16) as usize;
+            if first & 0xffff == OP_CAPABILITY && words.get(at + 1) == Some(&SPARSE_RESIDENCY) {
+                return true;
+            }
+            at += length.max(1);
+        }
+        false
+    }
+
+    /// A device without sparse residency accepts every shader but the two that
+    /// sample the sparse cache, which have variants for it, and the probe of
+    /// sparse images themselves.
+    #[test]
+    fn only_the_sparse_samplers_need_shader_resource_residency() {
+        let sparse = [CITY_FRAG.spirv, TEXTURE_PROBE_COMP.spirv, SPARSE_PROBE_COMP.spirv];
+        for shader in ALL {
+            let expected = sparse.contains(&shader.spirv);
+            assert_eq!(declares_sparse_residency(shader), expected, "{}", shader.name);
+        }
+    }
+}

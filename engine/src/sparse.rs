@@ -473,93 +473,111 @@ impl SparseImage {
     /// Records copies from `source` into the image, which must be in
     /// TRANSFER_DST_OPTIMAL, and whose destination blocks must be bound.
     pub fn record_copies(&self, rec: Recording<'_>, source: vk::Buffer, uploads: &[TexelUpload]) -> Result<()> {
-        let cmd = rec.raw();
-        let (bw, bh) = texel_block(self.desc.format);
-        let mut regions = Vec::with_capacity(uploads.len());
-        for u in uploads {
-            let (lw, lh) = self.level_extent(u.mip);
-            let fits = u.layer < self.desc.layers
-                && u.mip < self.desc.mips
-                && u.x.checked_add(u.width).is_some_and(|r| r <= lw.max(bw))
-                && u.y.checked_add(u.height).is_some_and(|b| b <= lh.max(bh));
-            if !fits || u.x % bw != 0 || u.y % bh != 0 || u.width == 0 || u.height == 0 {
-                return Err(EngineError::InvalidRequest(format!(
-                    "upload {u:?} does not fit level {} ({lw}x{lh}) of layer {} in a {}-layer image, or is not block aligned",
-                    u.mip, u.layer, self.desc.layers
-                )));
-            }
-            regions.push(vk::BufferImageCopy {
-                buffer_offset: u.buffer_offset,
-                buffer_row_length: 0,
-                buffer_image_height: 0,
-                image_subresource: vk::ImageSubresourceLayers {
-                    aspect_mask: vk::ImageAspectFlags::COLOR,
-                    mip_level: u.mip,
-                    base_array_layer: u.layer,
-                    layer_count: 1,
-                },
-                image_offset: vk::Offset3D {
-                    x: u.x as i32,
-                    y: u.y as i32,
-                    z: 0,
-                },
-                image_extent: vk::Extent3D {
-                    width: u.width,
-                    height: u.height,
-                    depth: 1,
-                },
-            });
-        }
-        if regions.is_empty() {
-            return Ok(());
-        }
-        // SAFETY: cmd is recording; regions were checked against the image;
-        // the caller keeps `source` alive until the submission completes.
-        unsafe {
-            self.device.raw.cmd_copy_buffer_to_image(
-                cmd,
-                source,
-                self.raw,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                &regions,
-            )
-        };
-        Ok(())
+        record_array_copies(&self.device, self.raw, &self.desc, rec, source, uploads)
     }
 
     /// Records a whole-image transition between UNDEFINED, TRANSFER_DST_OPTIMAL
     /// and SHADER_READ_ONLY_OPTIMAL with matching stages.
     pub fn record_layout(&self, rec: Recording<'_>, from: vk::ImageLayout, to: vk::ImageLayout) {
-        let stage_of = |layout: vk::ImageLayout| match layout {
-            vk::ImageLayout::TRANSFER_DST_OPTIMAL => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-            // COPY too: the submission waits for the sparse binds at the copy
-            // stage, and the layout change must come after them as well.
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL => (
-                vk::PipelineStageFlags2::FRAGMENT_SHADER
-                    | vk::PipelineStageFlags2::COMPUTE_SHADER
-                    | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::SHADER_SAMPLED_READ,
-            ),
-            _ => (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
-        };
-        let range = vk::ImageSubresourceRange {
-            aspect_mask: vk::ImageAspectFlags::COLOR,
-            base_mip_level: 0,
-            level_count: self.desc.mips,
-            base_array_layer: 0,
-            layer_count: self.desc.layers,
-        };
-        crate::image::transition(
-            &self.device,
-            rec,
-            self.raw,
-            range,
-            from,
-            to,
-            stage_of(from),
-            stage_of(to),
-        );
+        record_array_layout(&self.device, self.raw, &self.desc, rec, from, to);
     }
+}
+
+/// Records copies from `source` into `image` (a 2D array image of `desc`,
+/// sparse or not), which must be in TRANSFER_DST_OPTIMAL with the
+/// destination memory bound.
+pub(crate) fn record_array_copies(
+    device: &Device,
+    image: vk::Image,
+    desc: &SparseImageDesc,
+    rec: Recording<'_>,
+    source: vk::Buffer,
+    uploads: &[TexelUpload],
+) -> Result<()> {
+    let cmd = rec.raw();
+    let (bw, bh) = texel_block(desc.format);
+    let mut regions = Vec::with_capacity(uploads.len());
+    for u in uploads {
+        let (lw, lh) = (
+            (desc.width >> u.mip.min(31)).max(1),
+            (desc.height >> u.mip.min(31)).max(1),
+        );
+        let fits = u.layer < desc.layers
+            && u.mip < desc.mips
+            && u.x.checked_add(u.width).is_some_and(|r| r <= lw.max(bw))
+            && u.y.checked_add(u.height).is_some_and(|b| b <= lh.max(bh));
+        if !fits || u.x % bw != 0 || u.y % bh != 0 || u.width == 0 || u.height == 0 {
+            return Err(EngineError::InvalidRequest(format!(
+                "upload {u:?} does not fit level {} ({lw}x{lh}) of layer {} in a {}-layer image, or is not block aligned",
+                u.mip, u.layer, desc.layers
+            )));
+        }
+        regions.push(vk::BufferImageCopy {
+            buffer_offset: u.buffer_offset,
+            buffer_row_length: 0,
+            buffer_image_height: 0,
+            image_subresource: vk::ImageSubresourceLayers {
+                aspect_mask: vk::ImageAspectFlags::COLOR,
+                mip_level: u.mip,
+                base_array_layer: u.layer,
+                layer_count: 1,
+            },
+            image_offset: vk::Offset3D {
+                x: u.x as i32,
+                y: u.y as i32,
+                z: 0,
+            },
+            image_extent: vk::Extent3D {
+                width: u.width,
+                height: u.height,
+                depth: 1,
+            },
+        });
+    }
+    if regions.is_empty() {
+        return Ok(());
+    }
+    // SAFETY: cmd is recording; regions were checked against the image;
+    // the caller keeps `source` alive until the submission completes.
+    unsafe {
+        device
+            .raw
+            .cmd_copy_buffer_to_image(cmd, source, image, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &regions)
+    };
+    Ok(())
+}
+
+/// Records a whole-image transition of `image` (of `desc`) between
+/// UNDEFINED, TRANSFER_DST_OPTIMAL and SHADER_READ_ONLY_OPTIMAL with
+/// matching stages.
+pub(crate) fn record_array_layout(
+    device: &Device,
+    image: vk::Image,
+    desc: &SparseImageDesc,
+    rec: Recording<'_>,
+    from: vk::ImageLayout,
+    to: vk::ImageLayout,
+) {
+    let stage_of = |layout: vk::ImageLayout| match layout {
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL => (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+        // COPY too: the submission waits for the sparse binds at the copy
+        // stage, and the layout change must come after them as well.
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL => (
+            vk::PipelineStageFlags2::FRAGMENT_SHADER
+                | vk::PipelineStageFlags2::COMPUTE_SHADER
+                | vk::PipelineStageFlags2::COPY,
+            vk::AccessFlags2::SHADER_SAMPLED_READ,
+        ),
+        _ => (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
+    };
+    let range = vk::ImageSubresourceRange {
+        aspect_mask: vk::ImageAspectFlags::COLOR,
+        base_mip_level: 0,
+        level_count: desc.mips,
+        base_array_layer: 0,
+        layer_count: desc.layers,
+    };
+    crate::image::transition(device, rec, image, range, from, to, stage_of(from), stage_of(to));
 }
 
 /// Bytes per texel block (one texel for uncompressed formats).

@@ -1,6 +1,9 @@
 // Sampling a dataset texture from the sparse cache (paper §3.6-3.7).
 // Requires citystream.glsl and GL_ARB_sparse_texture2; declares the cache
 // images, the texture data and the colormap at their fixed bindings in set CITYSTREAM_SET.
+// Defining CITYSTREAM_NO_SPARSE gives the texture-array cache's variant: plain
+// sampling, no GL_ARB_sparse_texture2 (a device without sparse residency has no
+// shaderResourceResidency); its table never names a level that is not loaded.
 #ifndef CITY_TEXTURE_GLSL
 #define CITY_TEXTURE_GLSL
 
@@ -12,20 +15,28 @@ layout(std430, set = CITYSTREAM_SET, binding = BINDING_COLORMAP) readonly buffer
 // The image a texture lives in varies between fragments of one draw, and
 // indexing a sampler array by a value that is not dynamically uniform needs
 // a device feature; a switch with constant indices needs none.
-#define CITYSTREAM_CACHE_CASE(i) case i: return sparseTextureLodARB(cache_images[i], coord, lod, texel);
+#ifdef CITYSTREAM_NO_SPARSE
+// Every texel of a fully bound array layer is resident: the code sparse
+// sampling would return for a resident read.
+#define CITYSTREAM_CACHE_READ(i) texel = textureLod(cache_images[i], coord, lod); return 0;
+#define CITYSTREAM_TEXELS_RESIDENT(code) true
+#else
+#define CITYSTREAM_CACHE_READ(i) return sparseTextureLodARB(cache_images[i], coord, lod, texel);
+#define CITYSTREAM_TEXELS_RESIDENT(code) sparseTexelsResidentARB(code)
+#endif
 int cache_sparse_lod(uint image, vec3 coord, float lod, out vec4 texel) {
     switch (int(image)) {
-        CITYSTREAM_CACHE_CASE(1)
-        CITYSTREAM_CACHE_CASE(2)
-        CITYSTREAM_CACHE_CASE(3)
-        CITYSTREAM_CACHE_CASE(4)
-        CITYSTREAM_CACHE_CASE(5)
-        CITYSTREAM_CACHE_CASE(6)
-        CITYSTREAM_CACHE_CASE(7)
-        default: return sparseTextureLodARB(cache_images[0], coord, lod, texel);
+        case 1: CITYSTREAM_CACHE_READ(1)
+        case 2: CITYSTREAM_CACHE_READ(2)
+        case 3: CITYSTREAM_CACHE_READ(3)
+        case 4: CITYSTREAM_CACHE_READ(4)
+        case 5: CITYSTREAM_CACHE_READ(5)
+        case 6: CITYSTREAM_CACHE_READ(6)
+        case 7: CITYSTREAM_CACHE_READ(7)
+        default: CITYSTREAM_CACHE_READ(0)
     }
 }
-#undef CITYSTREAM_CACHE_CASE
+#undef CITYSTREAM_CACHE_READ
 
 // Every cache image has the same layer size.
 vec2 cache_layer_texels() {
@@ -66,13 +77,13 @@ bool sample_city_texture_level(uint texture_id, vec2 uv, float lod, out vec4 col
     float blend = level - fine;
     vec4 texel;
     int code = cache_sparse_lod(t.image, coord, fine, texel);
-    if (!sparseTexelsResidentARB(code)) {
+    if (!CITYSTREAM_TEXELS_RESIDENT(code)) {
         return false;
     }
     if (blend > 0.0 && coarse > fine) {
         vec4 coarse_texel;
         code = cache_sparse_lod(t.image, coord, coarse, coarse_texel);
-        if (!sparseTexelsResidentARB(code)) {
+        if (!CITYSTREAM_TEXELS_RESIDENT(code)) {
             return false;
         }
         texel = mix(texel, coarse_texel, blend);

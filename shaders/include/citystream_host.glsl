@@ -6,7 +6,8 @@
 // the streamer's bindings (default 0); their binding numbers are fixed
 // (BINDING_CACHE_IMAGES, BINDING_TEXTURE_DATA, BINDING_COLORMAP,
 // BINDING_FEEDBACK_MESHES in citystream.glsl). The shader needs
-// GL_ARB_sparse_texture2 for sampling. See docs/EMBEDDING.md.
+// GL_ARB_sparse_texture2 for sampling, or, on a device set up for the
+// texture-array cache, CITYSTREAM_NO_SPARSE defined instead. See docs/EMBEDDING.md.
 #ifndef CITYSTREAM_HOST_GLSL
 #define CITYSTREAM_HOST_GLSL
 

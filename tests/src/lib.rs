@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use citystream_dataset::TextureFormat;
+use citystream_engine::device::SparseMode;
 use citystream_engine::instance::InstanceOptions;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig};
@@ -42,7 +43,23 @@ pub fn sync_validated_device() -> Result<Arc<Device>> {
     device_with_validation(true)
 }
 
+/// As [`validated_device`], set up for the texture-array cache
+/// ([`SparseMode::Off`]): no sparse feature enabled, even where the device
+/// has them.
+pub fn validated_array_device() -> Result<Arc<Device>> {
+    device_with_mode(false, SparseMode::Off)
+}
+
+/// As [`sync_validated_device`], set up for the texture-array cache.
+pub fn sync_validated_array_device() -> Result<Arc<Device>> {
+    device_with_mode(true, SparseMode::Off)
+}
+
 fn device_with_validation(synchronization: bool) -> Result<Arc<Device>> {
+    device_with_mode(synchronization, SparseMode::Auto)
+}
+
+fn device_with_mode(synchronization: bool, sparse: SparseMode) -> Result<Arc<Device>> {
     let options = DeviceOptions {
         instance: InstanceOptions {
             validation: true,
@@ -52,6 +69,8 @@ fn device_with_validation(synchronization: bool) -> Result<Arc<Device>> {
         },
         device_name: None,
         presentation: false,
+        sparse,
+        ..Default::default()
     };
     Ok(Arc::new(
         Device::new(&options).context("creating a validated Vulkan device")?,

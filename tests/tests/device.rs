@@ -1,9 +1,17 @@
 //! Device choice and the validation plumbing.
 
+use std::sync::Arc;
+
 use anyhow::{ensure, Result};
+use ash::vk;
+use citystream_dataset::TextureFormat;
+use citystream_engine::commands::CommandContext;
+use citystream_engine::device::{SparseMode, TextureBacking};
 use citystream_engine::instance::InstanceOptions;
+use citystream_engine::sparse::{SparseImage, SparseImageDesc};
+use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_engine::{Device, DeviceOptions, EngineError};
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 
 /// Options for a validated device picked by (part of) its name.
 fn named_device_options(name: &str) -> DeviceOptions {
@@ -16,6 +24,7 @@ fn named_device_options(name: &str) -> DeviceOptions {
         },
         device_name: Some(name.into()),
         presentation: false,
+        ..Default::default()
     }
 }
 
@@ -70,6 +79,69 @@ fn validation_errors_are_collected_and_fail_the_check() -> Result<()> {
     ensure!(
         assert_no_validation_errors(&device).is_err(),
         "the check must fail once an error was logged"
+    );
+    Ok(())
+}
+
+/// A device whose reported features lack sparse residency (masked, as on MoltenVK or
+/// most mobile GPUs) is set up for the texture-array cache by itself: no sparse
+/// feature is enabled on it (the validation layer refuses a sparse image there), and
+/// the texture cache made on it holds fully bound arrays. Asking for sparse on it is
+/// refused, naming the missing feature.
+#[test]
+fn a_device_lacking_sparse_residency_is_set_up_for_texture_arrays() -> Result<()> {
+    let masked = DeviceOptions {
+        masked_features: vec!["sparseResidencyImage2D".into()],
+        ..named_device_options("")
+    };
+    let device = Arc::new(Device::new(&masked)?);
+    ensure!(device.texture_backing() == TextureBacking::Arrays);
+    let enabled = device.enabled_features();
+    ensure!(
+        enabled.sparse_binding == vk::FALSE
+            && enabled.sparse_residency_image2_d == vk::FALSE
+            && enabled.shader_resource_residency == vk::FALSE,
+        "sparse features enabled: {enabled:?}"
+    );
+    let mut commands = CommandContext::new(&device, "texture-array device test")?;
+    let config = test_cache_config(&[TextureFormat::Bc1], 16);
+    let colormap = vec![[0, 0, 0, 255]; config.texture_count as usize];
+    let cache = GpuTextureCache::new(&device, &mut commands, &config, &colormap)?;
+    ensure!(cache.backing() == TextureBacking::Arrays);
+    ensure!(cache.texel_memory_bytes() > 0 && cache.texel_memory_bytes() <= config.memory_budget_bytes);
+    drop(cache);
+    assert_no_validation_errors(&device)?;
+
+    // The sparse features are really off: a sparse image is what validation refuses.
+    let sparse = SparseImage::new(
+        &device,
+        SparseImageDesc {
+            width: 256,
+            height: 256,
+            layers: 1,
+            mips: 1,
+            format: vk::Format::R8G8B8A8_UNORM,
+        },
+        "sparse image on a texture-array device",
+    );
+    drop(sparse);
+    let errors = device.validation_log().errors();
+    ensure!(
+        errors
+            .iter()
+            .any(|e| e.text.contains("sparseBinding") || e.text.contains("sparseResidency")),
+        "no validation error for a sparse image without the sparse features: {errors:?}"
+    );
+
+    let on = DeviceOptions {
+        sparse: SparseMode::On,
+        ..masked
+    };
+    let error = Device::new(&on).expect_err("sparse on a device without it must fail");
+    ensure!(
+        matches!(&error, EngineError::MissingFeature { feature, .. } | EngineError::NoUsableDevice(feature)
+            if feature.contains("sparseResidencyImage2D")),
+        "{error}"
     );
     Ok(())
 }

@@ -6,18 +6,23 @@
 //! City Colormap and the others still read correctly.
 
 use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
 
 use anyhow::{ensure, Result};
 use citystream_cache::geometry::cacheable_mip_count;
 use citystream_cache::TexelFormat;
 use citystream_dataset::TextureFormat;
 use citystream_engine::commands::CommandContext;
+use citystream_engine::device::TextureBacking;
 use citystream_engine::gpu_types::{ProbeResult, TextureProbePoint};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::probe::TextureProbe;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome};
-use citystream_tests::{assert_no_validation_errors, bc1_texel, test_cache_config, validated_device};
+use citystream_engine::Device;
+use citystream_tests::{
+    assert_no_validation_errors, bc1_texel, test_cache_config, validated_array_device, validated_device,
+};
 
 const EXTENTS: [u32; 6] = [4, 8, 16, 32, 64, 128];
 const LAYER_SIZE: u32 = 256;
@@ -144,7 +149,18 @@ fn points_for(
 
 #[test]
 fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Result<()> {
-    let device = validated_device()?;
+    cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(validated_device()?)
+}
+
+/// With texture arrays (no sparse residency) the cache reads back the same.
+#[test]
+fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_with_texture_arrays() -> Result<()> {
+    let device = validated_array_device()?;
+    ensure!(device.texture_backing() == TextureBacking::Arrays);
+    cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(device)
+}
+
+fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(device: Arc<Device>) -> Result<()> {
     let mut rng = SplitMix64::new(2024);
     let mut sources = Vec::new();
     // 20 textures of each extent class and format; rectangular ones too.
@@ -343,11 +359,22 @@ fn bc1_solid(rgb565: u16) -> [u8; 8] {
 
 #[test]
 fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<()> {
+    filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(validated_device()?)
+}
+
+/// With texture arrays (no sparse residency) the cache reads back the same.
+#[test]
+fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_with_texture_arrays() -> Result<()> {
+    let device = validated_array_device()?;
+    ensure!(device.texture_backing() == TextureBacking::Arrays);
+    filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(device)
+}
+
+fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(device: Arc<Device>) -> Result<()> {
     // Two 64x64 textures side by side in one layer, every level a solid colour
     // that differs between levels and between the textures. Bilinear sampling
     // inside a level returns exactly that colour, so any bleed across the
     // region edge or wrong residency shows.
-    let device = validated_device()?;
     let mut commands = CommandContext::new(&device, "filtering test")?;
     let mut cache = GpuTextureCache::new(
         &device,
@@ -668,7 +695,18 @@ fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
 
 #[test]
 fn bc3_and_bc7_textures_are_cached_and_sampled() -> Result<()> {
-    let device = validated_device()?;
+    bc3_and_bc7_textures_are_cached_and_sampled_on(validated_device()?)
+}
+
+/// With texture arrays (no sparse residency) the cache reads back the same.
+#[test]
+fn bc3_and_bc7_textures_are_cached_and_sampled_with_texture_arrays() -> Result<()> {
+    let device = validated_array_device()?;
+    ensure!(device.texture_backing() == TextureBacking::Arrays);
+    bc3_and_bc7_textures_are_cached_and_sampled_on(device)
+}
+
+fn bc3_and_bc7_textures_are_cached_and_sampled_on(device: Arc<Device>) -> Result<()> {
     let mut rng = SplitMix64::new(3_7);
     let mut sources = Vec::new();
     for format in [TextureFormat::Bc3, TextureFormat::Bc7] {

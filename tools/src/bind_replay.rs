@@ -364,6 +364,9 @@ pub fn run(args: &BindReplayArgs) -> Result<()> {
             },
             device_name: None,
             presentation: false,
+            // A bind log replays sparse binds.
+            sparse: citystream_engine::device::SparseMode::On,
+            ..Default::default()
         })
         .context("creating the Vulkan device")?,
     );

@@ -1208,3 +1208,129 @@ fn an_error_with_frames_in_flight_ends_the_run_cleanly() {
     assert!(stderr.contains("failing at frame 20"), "{stderr}");
     assert!(!stderr.contains("validation error"), "{stderr}");
 }
+
+/// A fixed-clock run of `frames` frames of the default city at 320×180 with validation
+/// on, measuring the error every 10 frames, with `extra` options and `env` variables; its
+/// stderr and summary.json.
+fn default_city_run(name: &str, frames: &str, extra: &[&str], env: &[(&str, &str)]) -> (String, serde_json::Value) {
+    let city = default_city();
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--frames", frames, "--frame-interval", "0", "--psnr-interval", "10"])
+        .args(["--width", "320", "--height", "180", "--clock", "fixed"])
+        .args(extra)
+        .arg("--validation=true")
+        .arg("--dataset")
+        .arg(&city)
+        .arg("--out")
+        .arg(&out)
+        .envs(env.iter().copied())
+        .output()
+        .expect("flythrough runs");
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert!(output.status.success(), "{name}: {stderr}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
+            .expect("summary.json is JSON");
+    assert_eq!(summary["validation_errors"], 0, "{name}: {stderr}");
+    assert_eq!(summary["textures_failed"], 0, "{name}: {stderr}");
+    (stderr, summary)
+}
+
+/// `--sparse off` streams the default city into texture arrays (no sparse feature
+/// enabled): it exits 0 with no validation message (synchronization validation on), its
+/// error is within 3 dB of the sparse cache's on the same run, and the memory it holds
+/// stays within the budget. Under a budget of a few layers it evicts whole layers and
+/// still exits 0 within the budget.
+#[test]
+fn texture_arrays_stream_the_default_city_as_well_as_the_sparse_cache() {
+    let budget_mb = 64u64;
+    let budget = ["--memory-budget-mb", "64"];
+    let sync = [("CITYSTREAM_VALIDATION", "sync")];
+    let (_, sparse) = default_city_run("flythrough_backing_sparse", "60", &budget, &sync);
+    let (_, arrays) = default_city_run(
+        "flythrough_backing_arrays",
+        "60",
+        &[budget.as_slice(), &["--sparse", "off"]].concat(),
+        &sync,
+    );
+    assert_eq!(sparse["texture_backing"], "sparse");
+    assert_eq!(arrays["texture_backing"], "texture-arrays");
+    let psnr = |summary: &serde_json::Value| summary["psnr_of_mean_mse_db"].as_f64().expect("psnr_of_mean_mse_db");
+    assert!(
+        (psnr(&arrays) - psnr(&sparse)).abs() <= 3.0,
+        "texture arrays {:.2} dB, sparse {:.2} dB",
+        psnr(&arrays),
+        psnr(&sparse)
+    );
+    assert_eq!(arrays["error_frames"]["measured"], 6);
+    let held = arrays["peak_resident_bytes"].as_u64().expect("peak_resident_bytes");
+    assert!(
+        held > 0 && held <= budget_mb << 20,
+        "texture arrays held {held} bytes under a {budget_mb} MB budget"
+    );
+    assert!(arrays["mips_streamed"].as_u64().expect("mips_streamed") > 0);
+
+    // 12 MB holds four 2048² BC1 layers of 2.8 MB: the view needs more.
+    let (stderr, tight) = default_city_run(
+        "flythrough_backing_arrays_tight",
+        "60",
+        &["--memory-budget-mb", "12", "--sparse", "off"],
+        &sync,
+    );
+    let evicted = tight["evicted_layers"].as_u64().expect("evicted_layers");
+    let held = tight["peak_resident_bytes"].as_u64().expect("peak_resident_bytes");
+    assert!(evicted > 0, "no layer evicted under 12 MB: {stderr}");
+    assert!(held <= 12 << 20, "held {held} bytes under 12 MB");
+
+    // The texture-array strategy: the whole city fits the default budget, so every
+    // texture is loaded before the first frame, nothing streams during the flight, and
+    // each frame's draws are one per array in view (Alg. 2).
+    let (stderr, full) = default_city_run(
+        "flythrough_strategy_arrays",
+        "60",
+        &["--strategy", "texture-arrays"],
+        &sync,
+    );
+    assert_eq!(full["strategy"], "texture-arrays");
+    assert_eq!(full["texture_backing"], "texture-arrays");
+    let preloaded = full["preloaded"]["bytes"].as_u64().unwrap_or(0);
+    assert!(preloaded > 0, "nothing loaded before the first frame: {stderr}");
+    assert_eq!(full["mips_streamed"], 0, "{stderr}");
+    let arrays_held = full["cache_layers"].as_array().expect("cache_layers").len() as f64;
+    let draws = full["draw_calls"]["max"].as_f64().expect("draw_calls");
+    assert!(
+        draws >= 1.0 && draws <= arrays_held,
+        "{draws} draws for {arrays_held} arrays"
+    );
+    assert!(
+        psnr(&full) >= psnr(&sparse),
+        "fully resident {:.2} dB below streamed {:.2} dB",
+        psnr(&full),
+        psnr(&sparse)
+    );
+}
+
+/// A device whose features lack sparse residency (masked) gets the texture arrays by
+/// itself, with a one-line notice; asking for sparse on it is refused, naming the feature.
+#[test]
+fn a_device_without_sparse_residency_streams_into_texture_arrays_by_itself() {
+    let masked = [("CITYSTREAM_MASK_FEATURES", "sparseResidencyImage2D")];
+    let (stderr, summary) = default_city_run("flythrough_masked_sparse", "20", &[], &masked);
+    assert_eq!(summary["texture_backing"], "texture-arrays", "{stderr}");
+    assert_eq!(stderr.matches("notice:").count(), 1, "one notice says why: {stderr}");
+    assert!(stderr.contains("texture arrays"), "{stderr}");
+
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_masked_sparse_on");
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--frames", "2", "--sparse", "on", "--dataset"])
+        .arg(default_city())
+        .arg("--out")
+        .arg(&out)
+        .envs(masked)
+        .output()
+        .expect("flythrough runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "sparse on a device without it must fail");
+    assert!(stderr.contains("sparseResidencyImage2D"), "{stderr}");
+}

@@ -27,7 +27,7 @@ use citystream_dataset::{Dataset, TextureFormat};
 use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::city::Camera;
 use citystream_engine::commands::Recording;
-use citystream_engine::device::{check_physical_device, required_features};
+use citystream_engine::device::{check_physical_device, required_features, TextureBacking};
 use citystream_engine::gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::stream::{StreamConfig, StreamDescriptors, TextureStreamer};
@@ -346,13 +346,13 @@ impl HostVulkan {
         let physicals = unsafe { instance.enumerate_physical_devices() }?;
         let (physical, queue_family) = physicals
             .iter()
-            .find_map(|&p| match check_physical_device(&instance, p) {
+            .find_map(|&p| match check_physical_device(&instance, p, TextureBacking::Sparse) {
                 (missing, Some(family)) if missing.is_empty() => Some((p, family)),
                 _ => None,
             })
             .context("no Vulkan device has what citystream needs (sparse residency, BC, Vulkan 1.3)")?;
         // The host's own features would be merged into these.
-        let required = required_features();
+        let required = required_features(TextureBacking::Sparse);
         let mut vk12 = required.vulkan12;
         let mut vk13 = required.vulkan13;
         let priorities = [1.0];
@@ -705,6 +705,7 @@ fn run(options: &Options) -> Result<()> {
                 queue_family: host.queue_family,
                 allocator: HostAllocator::Shared(Arc::clone(&allocator)),
                 debug_utils: host.messenger.is_some(),
+                backing: TextureBacking::Sparse,
             })
         }?);
         match &options.dataset {

@@ -6,7 +6,7 @@ use citystream_cache::geometry::cacheable_mip_count;
 use citystream_streaming::residency::planner::PackingPass;
 use citystream_streaming::residency::{KeepValue, NeedClass};
 use citystream_streaming::source::{texel_format, MipSource};
-use citystream_streaming::states::TextureState;
+use citystream_streaming::states::{TextureState, TextureStates};
 
 use super::{chain_and_format, source_failure, TextureStreamer};
 use crate::commands::{CommandContext, SemaphoreWait};
@@ -24,6 +24,37 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// the levels it has: [`failed_textures`](Self::failed_textures)), not an error.
     pub fn load_now(&mut self, requests: &[(u32, u32)], commands: &mut CommandContext) -> Result<Vec<u32>> {
         self.check_between_frames("load_now")?;
+        let mips = self.missing_levels(requests)?;
+        let report = self.load_mips_now(&mips, commands)?;
+        Ok(report.invalidated_textures)
+    }
+
+    /// Loads now every level of every texture, coarsest first, and tells the
+    /// loader they are resident: a fully resident start, as the texture-array
+    /// strategy makes when the city fits its budget (Trapp and Döllner load a
+    /// city's textures before drawing it). Call before the first frame. The
+    /// report sums the cycles; its `invalidated_textures` are those the cache
+    /// had no room for (none when the city fits).
+    pub fn load_everything_now(&mut self, commands: &mut CommandContext) -> Result<CycleReport> {
+        self.check_between_frames("load_everything_now")?;
+        let all: Vec<(u32, u32)> = (0..self.loader.source().texture_count()).map(|t| (t, 0)).collect();
+        let mips = self.missing_levels(&all)?;
+        let report = self.load_mips_now(&mips, commands)?;
+        for texture in 0..self.loader.source().texture_count() {
+            let resident = self.cache.resident_levels(texture);
+            if resident != 0 {
+                let finest = TextureStates::resident_status(Some(resident.trailing_zeros()));
+                self.states
+                    .settle(texture, finest)
+                    .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
+            }
+        }
+        Ok(report)
+    }
+
+    /// The levels `requests` (`(texture, finest level)`) ask for that are not
+    /// resident, each texture's coarsest first.
+    fn missing_levels(&self, requests: &[(u32, u32)]) -> Result<Vec<(u32, u32)>> {
         let mut mips = Vec::new();
         for &(texture, level) in requests {
             let source = self.loader.source();
@@ -42,8 +73,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                     .map(|l| (texture, l)),
             );
         }
-        let report = self.load_mips_now(&mips, commands)?;
-        Ok(report.invalidated_textures)
+        Ok(mips)
     }
 
     /// Loads exactly the given `(texture, level)` mips now and waits for the

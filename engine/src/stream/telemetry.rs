@@ -74,9 +74,15 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             .collect()
     }
 
-    /// Bytes of sparse blocks bound now, parked ones included: the device
-    /// memory the cache holds, which the memory budget limits.
+    /// Device memory the cache holds for texels, which the memory budget
+    /// limits: sparse blocks bound now, parked ones included, or with
+    /// texture arrays every layer's full mip chain, bound from the start.
     pub fn bound_bytes(&self) -> u64 {
-        self.cache.utilisation().held_bytes()
+        self.cache.texel_memory_bytes()
+    }
+
+    /// How the cache holds textures (sparse images or texture arrays).
+    pub fn texture_backing(&self) -> crate::device::TextureBacking {
+        self.cache.backing()
     }
 }

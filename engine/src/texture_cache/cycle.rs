@@ -7,7 +7,7 @@ use super::{same_place, stage_bytes, CycleReport, GpuTextureCache, PreparedCycle
 use crate::commands::{CommandContext, Recording, SemaphoreWait};
 use crate::error::{EngineError, Result};
 use crate::gpu_types::TEXTURE_NOT_SAMPLEABLE;
-use crate::sparse::{SparseMemoryChunk, TexelUpload};
+use crate::sparse::TexelUpload;
 
 impl GpuTextureCache {
     /// Carries out a cycle in one submission and waits for it: for tools,
@@ -76,34 +76,13 @@ impl GpuTextureCache {
         self.uploads
             .retain(|u| !batch.invalidated.iter().any(|gone| same_place(&u.placement, gone)));
 
-        // 2. Memory for new pool chunks.
-        for chunk in &batch.new_chunks {
-            let blocks = chunk.bytes / self.block_size.max(1);
-            let memory = SparseMemoryChunk::with_requirements(
-                &self.device,
-                self.block_size,
-                self.memory_type_bits,
-                blocks,
-                &format!("cache block chunk {}", chunk.chunk),
-            )?;
-            let index = self.binder.add_chunk(memory)?;
-            if index != chunk.chunk {
-                return Err(EngineError::InvalidRequest(format!(
-                    "block pool chunk {} was created as engine chunk {index}",
-                    chunk.chunk
-                )));
-            }
-        }
-
-        // 3. One bind submission; unbinds wait for the frames that may still sample.
-        let unbinds = batch
-            .ops
-            .iter()
-            .any(|op| matches!(op, citystream_cache::BindOp::Unbind { .. }));
-        let frame_wait = if unbinds { frames_before } else { None };
-        let bind = self.binder.submit_after(&batch.ops, frame_wait)?;
-        report.bind_entries = bind.entries;
-        report.bind_seconds = bind.seconds;
+        // 2. Memory for new pool chunks, and 3. one bind submission: unbinds
+        // wait for the frames that may still sample (sparse images only).
+        let applied = self
+            .images
+            .apply_batch(&self.device, &batch.new_chunks, &batch.ops, frames_before)?;
+        report.bind_entries = applied.entries;
+        report.bind_seconds = applied.seconds;
         for op in &batch.ops {
             match op {
                 citystream_cache::BindOp::Bind { .. } => report.blocks_bound += 1,
@@ -143,7 +122,7 @@ impl GpuTextureCache {
         };
         let mut report = prepared.report;
         if let Some((source, base)) = prepared.source {
-            for (index, image) in self.images.iter().enumerate() {
+            for index in 0..self.images.len() {
                 let uploads: Vec<TexelUpload> = self
                     .uploads
                     .iter()
@@ -156,16 +135,17 @@ impl GpuTextureCache {
                 if uploads.is_empty() {
                     continue;
                 }
-                for upload in &uploads {
-                    self.binder.check_copy(index as u32, upload)?;
-                }
-                image.record_layout(
+                self.images.record_layout(
+                    &self.device,
+                    index,
                     rec,
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
                     vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                 );
-                image.record_copies(rec, source, &uploads)?;
-                image.record_layout(
+                self.images.record_copies(&self.device, index, rec, source, &uploads)?;
+                self.images.record_layout(
+                    &self.device,
+                    index,
                     rec,
                     vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
@@ -201,7 +181,7 @@ impl GpuTextureCache {
     /// What the submission carrying [`record_cycle`](Self::record_cycle)'s
     /// commands must wait on: the last sparse bind batch, at the copy stage.
     pub fn bind_wait(&self) -> Option<SemaphoreWait> {
-        (self.binder.last_signalled() > 0).then(|| self.binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY))
+        self.images.bind_wait()
     }
 
     /// Releases staging space and one-off buffers of every cycle whose

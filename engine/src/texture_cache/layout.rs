@@ -33,6 +33,26 @@ pub(super) fn held_formats(config: &GpuCacheConfig) -> Result<Vec<usize>> {
     Ok(held)
 }
 
+/// Whether `layer_counts` (per format in [`CACHE_FORMATS`] order) place
+/// every texture of derived layers at once: each format has at least the
+/// layers its textures fill (`false` for fixed layers, whose textures are
+/// not known).
+pub(super) fn holds_every_texture(config: &GpuCacheConfig, layer_counts: &[Vec<u32>]) -> bool {
+    let CacheLayers::Derived { extents, .. } = &config.layers else {
+        return false;
+    };
+    extents.iter().zip(layer_counts).all(|(extents, counts)| {
+        let needed: u64 = extents
+            .iter()
+            .map(|&(extent, textures)| {
+                let per_row = u64::from(config.layer_size / extent.clamp(1, config.layer_size.max(1)));
+                textures.div_ceil((per_row * per_row).max(1))
+            })
+            .fold(0, u64::saturating_add);
+        counts.iter().map(|&layers| u64::from(layers)).sum::<u64>() >= needed
+    })
+}
+
 /// Per format in [`CACHE_FORMATS`] order, the layer count of each of its
 /// images (none for a format not held). `device_max_layers` is the device's
 /// `maxImageArrayLayers`; `probe` measures a layer of the format at an index
@@ -176,6 +196,20 @@ mod tests {
         // A lower limit than the device's applies the same way.
         let counts = plan_layer_counts(&bc1_derived(1024, 10, Some(5), 1000), &[0], 2048, u64::MAX, probe)?;
         assert_eq!(counts[0], vec![5, 5]);
+        Ok(())
+    }
+
+    #[test]
+    fn a_cache_holds_every_texture_only_with_the_layers_they_fill() -> Result<()> {
+        // 100 textures of 256² need 7 layers of 1024².
+        let roomy = bc1_derived(256, 100, None, 1000);
+        let counts = plan_layer_counts(&roomy, &[0], 2048, u64::MAX, probe)?;
+        assert!(holds_every_texture(&roomy, &counts));
+        let tight = bc1_derived(256, 100, None, 3);
+        let counts = plan_layer_counts(&tight, &[0], 2048, u64::MAX, probe)?;
+        assert!(!holds_every_texture(&tight, &counts));
+        let fixed = config(&[TextureFormat::Bc1], CacheLayers::Fixed(100), 1000);
+        assert!(!holds_every_texture(&fixed, &[vec![100], vec![], vec![], vec![]]));
         Ok(())
     }
 

@@ -41,7 +41,7 @@ use gpu_allocator::MemoryLocation;
 use crate::binder::VulkanBinder;
 use crate::buffer::{Buffer, BufferDesc};
 use crate::commands::CommandContext;
-use crate::device::Device;
+use crate::device::{Device, TextureBacking};
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
     TextureData, BINDING_CACHE_IMAGES, BINDING_COLORMAP, BINDING_TEXTURE_DATA, CACHE_IMAGE_SLOTS,
@@ -49,10 +49,12 @@ use crate::gpu_types::{
 };
 use crate::pipeline::{DescriptorResource, Filtering, Sampler};
 use crate::scene::upload_buffer;
-use crate::sparse::{make_sampleable, SparseImage, SparseImageDesc, TexelUpload};
+use crate::sparse::{SparseImage, SparseImageDesc, TexelUpload};
 use crate::staging::StagingRing;
+use backing::{accounting_granularity, CacheImages, ARRAY_ACCOUNTING_BLOCK_BYTES, CACHE_USAGE};
 use layout::LayerProbe;
 
+mod backing;
 mod cycle;
 mod layout;
 mod table;
@@ -208,14 +210,13 @@ struct TextureSlot {
 pub struct GpuTextureCache {
     device: Arc<Device>,
     cache: TextureCache,
-    images: Vec<Arc<SparseImage>>,
+    images: CacheImages,
     /// Per image, its format's index in [`CACHE_FORMATS`].
     image_formats: Vec<usize>,
     /// Per format in [`CACHE_FORMATS`], its images.
     format_images: Vec<Vec<u32>>,
-    binder: VulkanBinder,
-    block_size: u64,
-    memory_type_bits: u32,
+    /// Whether the layers place every texture of the source at once.
+    holds_every_texture: bool,
     slots: Vec<TextureSlot>,
     table: Vec<TextureData>,
     table_buffer: Buffer,
@@ -252,6 +253,7 @@ struct PreparedCycle {
 }
 
 debug_fields!(GpuTextureCache {
+    backing = |s| s.backing().name(),
     images = |s| s.images.len(),
     textures = |s| s.slots.len(),
     pending_uploads = |s| s.uploads.len(),
@@ -278,87 +280,23 @@ impl GpuTextureCache {
             )));
         }
         let mips = 32 - config.layer_size.max(1).leading_zeros();
-        let limits = device.properties().limits;
-        let virtual_budget_bytes = config
-            .virtual_budget_bytes
-            .unwrap_or(device.sparse_support().address_space_size);
         let held = layout::held_formats(config)?;
-        let layer_counts = layout::plan_layer_counts(
-            config,
-            &held,
-            limits.max_image_array_layers,
-            virtual_budget_bytes,
-            |index| {
-                let (_, vk_format, texel_format) = CACHE_FORMATS[index];
-                probe_layer(device, config.layer_size, vk_format, texel_format)
-            },
-        )?;
-        let image_count: usize = layer_counts.iter().map(Vec::len).sum();
-        let mut images = Vec::with_capacity(image_count);
-        let mut image_configs = Vec::with_capacity(image_count);
-        let mut image_formats = Vec::with_capacity(image_count);
-        let mut format_images = vec![Vec::new(); CACHE_FORMATS.len()];
-        let layouts = layer_counts.iter().enumerate().flat_map(|(format, counts)| {
-            counts
-                .iter()
-                .enumerate()
-                .map(move |(nth, &layers)| (format, nth, layers))
-        });
-        for (format_index, nth, layers) in layouts {
-            let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
-            let image = SparseImage::new(
-                device,
-                SparseImageDesc {
-                    width: config.layer_size,
-                    height: config.layer_size,
-                    layers,
-                    mips,
-                    format: vk_format,
-                },
-                &format!("cache {} #{nth}", texel_format.name),
-            )?;
-            if image.mip_tail_first_lod() < mips {
-                return Err(EngineError::MissingFeature {
-                    device: device.name().to_owned(),
-                    feature: format!(
-                        "per-block binding of every level of {:?} (it reports a mip tail from level {}); \
-                         mip-tail binding is not implemented",
-                        vk_format,
-                        image.mip_tail_first_lod()
-                    ),
-                });
-            }
-            let (gw, gh) = image.granularity();
-            image_configs.push(ImageConfig {
-                format: texel_format,
-                granularity: Granularity::texels(gw, gh),
-                layer_size: config.layer_size,
-                layer_count: layers,
-            });
-            format_images[format_index].push(images.len() as u32);
-            image_formats.push(format_index);
-            images.push(Arc::new(image));
-        }
-        let block_size = images.iter().map(|i| i.block_size()).max().unwrap_or(0);
-        let memory_type_bits = images.iter().fold(u32::MAX, |bits, i| bits & i.memory_type_bits());
-        if images.iter().any(|i| i.block_size() != block_size) {
-            return Err(EngineError::InvalidRequest(
-                "cache images report different sparse block sizes; one block pool cannot serve them".into(),
-            ));
-        }
-        let cache_config = CacheConfig {
-            images: image_configs,
-            limits: DeviceLimits {
-                max_image_array_layers: limits.max_image_array_layers,
-                max_image_dimension_2d: limits.max_image_dimension2_d,
-                sparse_block_bytes: block_size,
-            },
-            memory_budget_bytes: config.memory_budget_bytes,
-            virtual_budget_bytes,
-            blocks_per_chunk: config.blocks_per_chunk,
+        let built = match device.texture_backing() {
+            TextureBacking::Sparse => sparse_images(device, config, &held, mips)?,
+            TextureBacking::Arrays => array_images(device, config, &held, mips)?,
         };
+        // Array layers are memory, so placing every texture means holding it;
+        // sparse layers are address space, which says nothing of the budget.
+        let holds_every_texture = matches!(built.images, CacheImages::Arrays { .. })
+            && layout::holds_every_texture(config, &built.layer_counts);
+        let BuiltImages {
+            cache_config,
+            images,
+            image_formats,
+            format_images,
+            ..
+        } = built;
         let cache = TextureCache::new(&cache_config).map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
-        let binder = VulkanBinder::new(device, images.clone())?;
 
         let table = vec![TextureData::default(); config.texture_count as usize];
         // Device-local and changed only by recorded copies, so frames in
@@ -381,7 +319,7 @@ impl GpuTextureCache {
         let sampler = Sampler::new(device, config.filtering, "cache sampler")?;
         let staging = StagingRing::new(device, config.staging_bytes.max(64 * 1024))?;
 
-        make_sampleable(commands, &images)?;
+        images.make_sampleable(device, commands)?;
 
         Ok(Self {
             device: Arc::clone(device),
@@ -389,9 +327,7 @@ impl GpuTextureCache {
             images,
             image_formats,
             format_images,
-            binder,
-            block_size,
-            memory_type_bits,
+            holds_every_texture,
             slots: vec![TextureSlot::default(); config.texture_count as usize],
             table,
             table_buffer,
@@ -416,9 +352,10 @@ impl GpuTextureCache {
     /// `BINDING_CACHE_IMAGES`, an array whose unused elements repeat image
     /// 0, `BINDING_TEXTURE_DATA` and `BINDING_COLORMAP`).
     pub fn descriptors(&self) -> [(u32, DescriptorResource); 3] {
-        let mut views = [self.images[0].view(); CACHE_IMAGE_SLOTS as usize];
-        for (slot, image) in views.iter_mut().zip(&self.images) {
-            *slot = image.view();
+        let first = self.images.view(0).unwrap_or_default();
+        let mut views = [first; CACHE_IMAGE_SLOTS as usize];
+        for (index, slot) in views.iter_mut().enumerate() {
+            *slot = self.images.view(index).unwrap_or(first);
         }
         [
             (
@@ -482,6 +419,30 @@ impl GpuTextureCache {
     /// Bound blocks against the budget.
     pub fn budget_use(&self) -> BudgetUse {
         self.cache.budget_use()
+    }
+
+    /// Whether every texture the cache was sized for ([`CacheLayers::Derived`])
+    /// fits at once, within the budget and the device's limits: texture
+    /// arrays with a layer for each (always `false` for sparse images).
+    pub fn holds_every_texture(&self) -> bool {
+        self.holds_every_texture
+    }
+
+    /// How the cache holds textures: sparse images or texture arrays.
+    pub fn backing(&self) -> TextureBacking {
+        match self.images {
+            CacheImages::Sparse { .. } => TextureBacking::Sparse,
+            CacheImages::Arrays { .. } => TextureBacking::Arrays,
+        }
+    }
+
+    /// Device memory holding texels: the bound blocks of sparse images, or
+    /// every layer's full mip chain of the texture arrays (bound from the
+    /// start, whatever is loaded).
+    pub fn texel_memory_bytes(&self) -> u64 {
+        self.images
+            .array_bytes()
+            .unwrap_or_else(|| self.cache.utilisation().held_bytes())
     }
 
     /// Bytes of the distinct `(texture, level)` pairs uploaded so far, each
@@ -674,6 +635,273 @@ impl GpuTextureCache {
             new_blocks: upload.new_blocks,
         })
     }
+}
+
+/// What [`GpuTextureCache::new`] builds for a backing.
+struct BuiltImages {
+    /// The Vulkan-free cache's configuration.
+    cache_config: CacheConfig,
+    images: CacheImages,
+    /// Each image's format (an index into [`CACHE_FORMATS`]).
+    image_formats: Vec<usize>,
+    /// Each format's images.
+    format_images: Vec<Vec<u32>>,
+    /// Per format, the layers of each of its images.
+    layer_counts: Vec<Vec<u32>>,
+}
+
+/// The images of `layer_counts` (per format in [`CACHE_FORMATS`] order) in
+/// image order: `(format index, nth image of the format, layers)`.
+fn image_layouts(layer_counts: &[Vec<u32>]) -> Vec<(usize, usize, u32)> {
+    layer_counts
+        .iter()
+        .enumerate()
+        .flat_map(|(format, counts)| {
+            counts
+                .iter()
+                .enumerate()
+                .map(move |(nth, &layers)| (format, nth, layers))
+        })
+        .collect()
+}
+
+/// Each image's format and each format's images, for `layouts`.
+fn format_indices(layouts: &[(usize, usize, u32)]) -> (Vec<usize>, Vec<Vec<u32>>) {
+    let mut format_images = vec![Vec::new(); CACHE_FORMATS.len()];
+    for (image, &(format, _, _)) in layouts.iter().enumerate() {
+        format_images[format].push(image as u32);
+    }
+    (layouts.iter().map(|&(format, _, _)| format).collect(), format_images)
+}
+
+/// Sparse cache images: layers derived within the device's sparse address
+/// space, the block size and granularity the device reports.
+fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
+    let limits = device.properties().limits;
+    let virtual_budget_bytes = config
+        .virtual_budget_bytes
+        .unwrap_or(device.sparse_support().address_space_size);
+    let layer_counts = layout::plan_layer_counts(
+        config,
+        held,
+        limits.max_image_array_layers,
+        virtual_budget_bytes,
+        |index| {
+            let (_, vk_format, texel_format) = CACHE_FORMATS[index];
+            probe_layer(device, config.layer_size, vk_format, texel_format)
+        },
+    )?;
+    let layouts = image_layouts(&layer_counts);
+    let mut images = Vec::with_capacity(layouts.len());
+    let mut image_configs = Vec::with_capacity(layouts.len());
+    for &(format_index, nth, layers) in &layouts {
+        let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
+        let image = SparseImage::new(
+            device,
+            SparseImageDesc {
+                width: config.layer_size,
+                height: config.layer_size,
+                layers,
+                mips,
+                format: vk_format,
+            },
+            &format!("cache {} #{nth}", texel_format.name),
+        )?;
+        if image.mip_tail_first_lod() < mips {
+            return Err(EngineError::MissingFeature {
+                device: device.name().to_owned(),
+                feature: format!(
+                    "per-block binding of every level of {:?} (it reports a mip tail from level {}); \
+                     mip-tail binding is not implemented: use the texture-array cache (--sparse off)",
+                    vk_format,
+                    image.mip_tail_first_lod()
+                ),
+            });
+        }
+        let (gw, gh) = image.granularity();
+        image_configs.push(ImageConfig {
+            format: texel_format,
+            granularity: Granularity::texels(gw, gh),
+            layer_size: config.layer_size,
+            layer_count: layers,
+        });
+        images.push(Arc::new(image));
+    }
+    let block_size = images.iter().map(|i| i.block_size()).max().unwrap_or(0);
+    let memory_type_bits = images.iter().fold(u32::MAX, |bits, i| bits & i.memory_type_bits());
+    if images.iter().any(|i| i.block_size() != block_size) {
+        return Err(EngineError::InvalidRequest(
+            "cache images report different sparse block sizes; one block pool cannot serve them".into(),
+        ));
+    }
+    let cache_config = CacheConfig {
+        images: image_configs,
+        limits: DeviceLimits {
+            max_image_array_layers: limits.max_image_array_layers,
+            max_image_dimension_2d: limits.max_image_dimension2_d,
+            sparse_block_bytes: block_size,
+        },
+        memory_budget_bytes: config.memory_budget_bytes,
+        virtual_budget_bytes,
+        blocks_per_chunk: config.blocks_per_chunk,
+    };
+    let binder = VulkanBinder::new(device, images.clone())?;
+    let (image_formats, format_images) = format_indices(&layouts);
+    let images = CacheImages::Sparse {
+        images,
+        binder: Box::new(binder),
+        block_size,
+        memory_type_bits,
+    };
+    Ok(BuiltImages {
+        cache_config,
+        images,
+        image_formats,
+        format_images,
+        layer_counts,
+    })
+}
+
+/// Texture arrays: fully bound images whose layers, each a full mip chain's
+/// memory, share out the memory budget (at most the layers the textures
+/// need, the device's layer and resource-size limits per image).
+fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
+    let limits = device.properties().limits;
+    let mut layer_bytes = [0u64; CACHE_FORMATS.len()];
+    let mut max_layers = limits.max_image_array_layers;
+    for &index in held {
+        let (_, vk_format, _) = CACHE_FORMATS[index];
+        let (bytes, format_max_layers) = array_layer_cost(device, config.layer_size, mips, vk_format)?;
+        layer_bytes[index] = bytes;
+        max_layers = max_layers.min(format_max_layers);
+    }
+    let layer_counts = layout::plan_layer_counts(config, held, max_layers, config.memory_budget_bytes, |index| {
+        Ok(LayerProbe {
+            block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
+            virtual_bytes: layer_bytes[index],
+        })
+    })?;
+    let layouts = image_layouts(&layer_counts);
+    let needed: u64 = layouts
+        .iter()
+        .map(|&(format, _, layers)| u64::from(layers).saturating_mul(layer_bytes[format]))
+        .fold(0, u64::saturating_add);
+    if needed > config.memory_budget_bytes {
+        let smallest = held.iter().map(|&index| layer_bytes[index]).min().unwrap_or(0);
+        return Err(EngineError::InvalidRequest(format!(
+            "the texture-array cache needs {needed} bytes for {:?} layers of {}x{} texels (a layer is its \
+             full mip chain, {smallest} bytes or more), above the memory budget of {} bytes; raise the \
+             budget or lower the layer size",
+            layer_counts.iter().map(|c| c.iter().sum::<u32>()).collect::<Vec<_>>(),
+            config.layer_size,
+            config.layer_size,
+            config.memory_budget_bytes
+        )));
+    }
+    let cache_limits = DeviceLimits {
+        max_image_array_layers: limits.max_image_array_layers,
+        max_image_dimension_2d: limits.max_image_dimension2_d,
+        sparse_block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
+    };
+    let mut image_configs = Vec::with_capacity(layouts.len());
+    let mut descs = Vec::with_capacity(layouts.len());
+    for &(format_index, nth, layers) in &layouts {
+        let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
+        image_configs.push(ImageConfig {
+            format: texel_format,
+            granularity: accounting_granularity(texel_format, ARRAY_ACCOUNTING_BLOCK_BYTES),
+            layer_size: config.layer_size,
+            layer_count: layers,
+        });
+        descs.push((
+            SparseImageDesc {
+                width: config.layer_size,
+                height: config.layer_size,
+                layers,
+                mips,
+                format: vk_format,
+            },
+            format!("cache {} array #{nth}", texel_format.name),
+        ));
+    }
+    // Every layer's blocks fit the accounting budget, so only layers run
+    // out: the budget was spent on them when the images were made.
+    let mut accounted = 0u64;
+    for (index, image_config) in image_configs.iter().enumerate() {
+        let desc = citystream_cache::ImageDesc::new(index, image_config, &cache_limits)
+            .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
+        accounted = accounted.saturating_add(desc.virtual_bytes());
+    }
+    let cache_config = CacheConfig {
+        images: image_configs,
+        limits: cache_limits,
+        memory_budget_bytes: accounted,
+        virtual_budget_bytes: accounted,
+        blocks_per_chunk: config.blocks_per_chunk,
+    };
+    let images = CacheImages::arrays(device, &descs)?;
+    let (image_formats, format_images) = format_indices(&layouts);
+    Ok(BuiltImages {
+        cache_config,
+        images,
+        image_formats,
+        format_images,
+        layer_counts,
+    })
+}
+
+/// Bytes one layer of a fully bound `layer_size`² array image of `format`
+/// with `mips` levels takes, from the device's memory requirements of a
+/// one-layer image, and the most layers one image may have (the device's
+/// `maxArrayLayers` for the format, and its `maxResourceSize`).
+fn array_layer_cost(device: &Arc<Device>, layer_size: u32, mips: u32, format: vk::Format) -> Result<(u64, u32)> {
+    let info = vk::ImageCreateInfo::default()
+        .image_type(vk::ImageType::TYPE_2D)
+        .format(format)
+        .extent(vk::Extent3D {
+            width: layer_size,
+            height: layer_size,
+            depth: 1,
+        })
+        .mip_levels(mips)
+        .array_layers(1)
+        .samples(vk::SampleCountFlags::TYPE_1)
+        .tiling(vk::ImageTiling::OPTIMAL)
+        .usage(CACHE_USAGE)
+        .sharing_mode(vk::SharingMode::EXCLUSIVE)
+        .initial_layout(vk::ImageLayout::UNDEFINED);
+    let query = vk::DeviceImageMemoryRequirements::default().create_info(&info);
+    let mut requirements = vk::MemoryRequirements2::default();
+    // SAFETY: a Vulkan 1.3 query on a live device with a valid create info.
+    unsafe {
+        device
+            .raw()
+            .get_device_image_memory_requirements(&query, &mut requirements)
+    };
+    let layer_bytes = requirements.memory_requirements.size;
+    // SAFETY: physical belongs to the device's instance.
+    let properties = unsafe {
+        device.instance_fns().get_physical_device_image_format_properties(
+            device.physical(),
+            format,
+            vk::ImageType::TYPE_2D,
+            vk::ImageTiling::OPTIMAL,
+            CACHE_USAGE,
+            vk::ImageCreateFlags::empty(),
+        )
+    }
+    .map_err(|_| EngineError::MissingFeature {
+        device: device.name().to_owned(),
+        feature: format!("sampled {layer_size}x{layer_size} array images of {format:?}"),
+    })?;
+    if layer_bytes == 0 || properties.max_mip_levels < mips || properties.max_extent.width < layer_size {
+        return Err(EngineError::MissingFeature {
+            device: device.name().to_owned(),
+            feature: format!("{layer_size}x{layer_size} array images of {format:?} with {mips} levels"),
+        });
+    }
+    let by_size = u32::try_from(properties.max_resource_size / layer_bytes).unwrap_or(u32::MAX);
+    Ok((layer_bytes, properties.max_array_layers.min(by_size).max(1)))
 }
 
 /// Creates a one-layer sparse image of `format` and reads its block size

@@ -110,6 +110,11 @@ pub(crate) enum Strategy {
     /// The texture-atlas tree's (docs/ATLAS_TREE.md): nodes chosen by distance draw their
     /// atlases, blocks paged by §6's priorities; `--dataset` names a tree.
     AtlasTree,
+    /// Texture arrays without sparse residency (Trapp and Döllner, docs/STRATEGIES.md):
+    /// every texture loaded before the first frame where the city fits the memory
+    /// budget, else streamed by the feedback pass at whole-mip granularity into fully
+    /// bound array layers. Implies `--sparse off`.
+    TextureArrays,
 }
 
 impl Strategy {
@@ -118,6 +123,33 @@ impl Strategy {
         match self {
             Strategy::Feedback => "feedback",
             Strategy::AtlasTree => "atlas-tree",
+            Strategy::TextureArrays => "texture-arrays",
+        }
+    }
+}
+
+/// `--sparse`: whether textures live in sparse images or texture arrays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Sparse {
+    /// Sparse residency where the device has it, texture arrays otherwise.
+    Auto,
+    /// Sparse residency; a device without it is refused.
+    On,
+    /// Texture arrays, even on a device with sparse residency.
+    Off,
+}
+
+impl Sparse {
+    /// The engine's device mode.
+    pub(crate) fn mode(self, strategy: Strategy) -> citystream_engine::device::SparseMode {
+        use citystream_engine::device::SparseMode;
+        if strategy == Strategy::TextureArrays {
+            return SparseMode::Off;
+        }
+        match self {
+            Sparse::Auto => SparseMode::Auto,
+            Sparse::On => SparseMode::On,
+            Sparse::Off => SparseMode::Off,
         }
     }
 }
@@ -192,9 +224,11 @@ pub(crate) struct Args {
     /// Image height in pixels.
     #[arg(long, default_value_t = 360, value_parser = clap::value_parser!(u32).range(16..=8192))]
     pub(crate) height: u32,
-    /// Streaming strategy: `feedback` (the paper's GPU feedback) or `atlas-tree` (a
+    /// Streaming strategy: `feedback` (the paper's GPU feedback), `atlas-tree` (a
     /// texture-atlas tree built by `citystream atlas-tree`, named by --dataset; see
-    /// docs/ATLAS_TREE.md). Both share the loader, the cache and the policy.
+    /// docs/ATLAS_TREE.md) or `texture-arrays` (fully resident texture arrays where the
+    /// city fits the budget, else the feedback strategy on texture arrays; see
+    /// docs/STRATEGIES.md). All share the loader, the cache and the policy.
     #[arg(long, value_enum, default_value_t = Strategy::Feedback)]
     pub(crate) strategy: Strategy,
     /// GPU culling of the city passes: `on` draws only the meshes in the view's frustum
@@ -256,6 +290,12 @@ pub(crate) struct Args {
     /// Pick the Vulkan device whose name contains this text (also CITYSTREAM_DEVICE).
     #[arg(long)]
     pub(crate) device: Option<String>,
+    /// Texture cache backing: `auto` (sparse residency where the device has it, texture
+    /// arrays otherwise, with a notice), `on` (sparse; refuse a device without it) or `off`
+    /// (texture arrays: fully bound layers of a full mip chain each, streamed at whole-mip
+    /// granularity; docs/STRATEGIES.md).
+    #[arg(long, value_enum, default_value_t = Sparse::Auto)]
+    pub(crate) sparse: Sparse,
     /// Seed of the placeholder city and of the bind-latency model's spikes.
     #[arg(long, default_value_t = 7)]
     pub(crate) seed: u64,

@@ -13,8 +13,8 @@ use citystream_dataset::Dataset;
 use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::cull::CullStats;
-use citystream_engine::device::describe;
-use citystream_engine::gpu_types::Vertex;
+use citystream_engine::device::{describe, TextureBacking};
+use citystream_engine::gpu_types::{Vertex, TEXTURE_SAMPLEABLE};
 use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::stream::{Frame, StreamConfig, TextureStreamer};
@@ -34,7 +34,8 @@ use citystream_streaming::source::{DatasetSource, FaultPlan, FaultySource};
 use citystream_tools::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 use super::args::{
-    Args, Clock, Culling, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
+    Args, Clock, Culling, Sparse, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS,
+    UNLIMITED_BUDGET_BYTES,
 };
 use super::ground;
 use super::measure::MeshesInView;
@@ -158,6 +159,8 @@ pub(crate) fn flythrough_device(
         },
         device_name: args.device.clone(),
         presentation,
+        sparse: args.sparse.mode(args.strategy),
+        masked_features: Vec::new(),
     });
     let device = Arc::new(created.map_err(|error| {
         // What the setup script installs: the loader, lavapipe and the validation layers.
@@ -173,6 +176,15 @@ pub(crate) fn flythrough_device(
         anyhow::Error::new(error).context(context)
     })?);
     eprintln!("device: {}", describe(&device));
+    if args.sparse == Sparse::Auto
+        && args.strategy != Strategy::TextureArrays
+        && device.texture_backing() == TextureBacking::Arrays
+    {
+        eprintln!(
+            "notice: {} lacks sparse residency; textures stream into texture arrays (docs/STRATEGIES.md)",
+            device.name()
+        );
+    }
     Ok(device)
 }
 
@@ -498,6 +510,52 @@ pub(crate) fn scene_extent(scene: &citystream_dataset::Scene) -> f32 {
     size.x.max(size.y).max(size.z).max(1.0)
 }
 
+/// The texture-array strategy's fully resident start.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub(crate) struct Preload {
+    /// Mips and their bytes loaded before the first frame (every level of every texture).
+    pub(crate) mips: u32,
+    pub(crate) bytes: u64,
+    /// Wall time it took.
+    pub(crate) seconds: f64,
+}
+
+/// The texture-array strategy's start: where the cache's arrays hold the whole city
+/// within the budget, every texture is loaded now, before the first frame, as Trapp and
+/// Döllner's batching has it; otherwise nothing is, and the feedback streams into the
+/// arrays (said on standard error).
+fn preload_city(gpu: &mut CityGpu, commands: &mut CommandContext) -> Result<Option<Preload>> {
+    let cache = gpu.streamer.cache();
+    if !cache.holds_every_texture() {
+        eprintln!(
+            "texture arrays: the city does not fit the memory budget ({:.1} MB of layers); its textures stream into them",
+            cache.texel_memory_bytes() as f64 / f64::from(1 << 20)
+        );
+        return Ok(None);
+    }
+    let started = std::time::Instant::now();
+    let report = gpu.streamer.load_everything_now(commands)?;
+    if !report.invalidated_textures.is_empty() {
+        bail!(
+            "loading the whole city into texture arrays sized for it evicted {} textures",
+            report.invalidated_textures.len()
+        );
+    }
+    let preload = Preload {
+        mips: report.mips_uploaded,
+        bytes: report.bytes_uploaded,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    eprintln!(
+        "texture arrays: every texture resident before the first frame: {} mips, {:.1} MB in {:.1} s ({:.1} MB of layers)",
+        preload.mips,
+        preload.bytes as f64 / f64::from(1 << 20),
+        preload.seconds,
+        gpu.streamer.bound_bytes() as f64 / f64::from(1 << 20)
+    );
+    Ok(Some(preload))
+}
+
 /// How long a run waits, after its last frame, for the loads in flight to end.
 const MAX_FINISH_LOADING: Duration = Duration::from_secs(600);
 
@@ -517,6 +575,10 @@ pub(crate) struct Flight {
     pub(crate) ground: Option<ground::GroundRun>,
     pub(crate) tree: Option<TreeRun>,
     pub(crate) gpu: CityGpu,
+    strategy: Strategy,
+    /// What the texture-array strategy loaded before the first frame, where the city
+    /// fits its budget.
+    pub(crate) preload: Option<Preload>,
     /// One command buffer per frame in flight: a frame's is reused only after the
     /// streamer's throttle saw that frame complete.
     frame_commands: Vec<CommandContext>,
@@ -613,7 +675,7 @@ impl Flight {
     ) -> Result<Self> {
         let tree = match args.strategy {
             Strategy::AtlasTree => Some(citystream_tools::atlas_tree::open_tree(&dataset, dir)?),
-            Strategy::Feedback => None,
+            Strategy::Feedback | Strategy::TextureArrays => None,
         };
         let scene = &dataset.scene;
         let layer_size = cache_layer_size(&dataset, device);
@@ -637,7 +699,7 @@ impl Flight {
             }
             None => None,
         };
-        let gpu = streamed_city_gpu(
+        let mut gpu = streamed_city_gpu(
             args,
             device,
             commands,
@@ -664,6 +726,10 @@ impl Flight {
             Some(tree) => Some(TreeRun::new(args, commands, &gpu, &dataset, tree)?),
             None => None,
         };
+        let preload = match args.strategy {
+            Strategy::TextureArrays => preload_city(&mut gpu, commands)?,
+            Strategy::Feedback | Strategy::AtlasTree => None,
+        };
         let frame_commands = (0..frames_in_flight)
             .map(|i| CommandContext::new(device, &format!("flythrough frame (slot {i})")))
             .collect::<std::result::Result<Vec<_>, _>>()?;
@@ -679,6 +745,8 @@ impl Flight {
             gpu,
             ground,
             tree,
+            strategy: args.strategy,
+            preload,
             frame_commands,
             pass_times,
             clock: args.clock,
@@ -785,10 +853,21 @@ impl Flight {
                         .record_visible_on_ground(rec, target, camera, blend, ground)?,
                     None => self.gpu.renderer.record_visible(rec, target, camera, 1.0, blend)?,
                 }
-                let in_view = self
-                    .meshes_in_view
-                    .count(&self.dataset.scene, camera, target.width(), target.height());
-                (in_view, None)
+                let size = (target.width(), target.height());
+                let draws = match self.strategy {
+                    Strategy::TextureArrays => {
+                        let cache = self.gpu.streamer.cache();
+                        let image_of = |texture: u32| {
+                            cache
+                                .texture_data(texture)
+                                .filter(|t| t.state == TEXTURE_SAMPLEABLE)
+                                .map(|t| t.image)
+                        };
+                        self.meshes_in_view.arrays(&self.dataset.scene, camera, size, image_of)
+                    }
+                    _ => self.meshes_in_view.count(&self.dataset.scene, camera, size.0, size.1),
+                };
+                (draws, None)
             }
         };
         passes.end(rec, slot, 3);

@@ -313,6 +313,8 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         scene: dir.display().to_string(),
         strategy: args.strategy.name(),
         culling: args.culling.name(),
+        texture_backing: flight.gpu.streamer.texture_backing().name(),
+        preloaded: flight.preload,
         meshes_drawn,
         meshes_culled,
         feedback_meshes_drawn: culled_stats(|c| c.feedback_meshes_drawn),

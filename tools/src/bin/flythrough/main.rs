@@ -21,7 +21,7 @@ use citystream_engine::Device;
 use citystream_streaming::bench::stats::SummaryBuilder;
 use citystream_tools::files::{write_atomically, write_png};
 
-use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Strategy, FIXED_STEP_MS};
+use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
 use crate::flight::{dataset_dir, flythrough_device};
 use crate::headless::stream_city;
 use crate::output::status;
@@ -39,8 +39,14 @@ mod window;
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    if args.strategy == Strategy::AtlasTree && (args.placeholder || args.pop_in) {
-        bail!("--strategy atlas-tree streams a dataset; leave out --placeholder and --pop-in");
+    if args.strategy != Strategy::Feedback && (args.placeholder || args.pop_in) {
+        bail!(
+            "--strategy {} streams a dataset; leave out --placeholder and --pop-in",
+            args.strategy.name()
+        );
+    }
+    if args.strategy == Strategy::TextureArrays && args.sparse == Sparse::On {
+        bail!("--strategy texture-arrays holds textures without sparse residency; leave out --sparse on");
     }
     // Refused before any device or dataset work.
     flight::build_policy(&args)?;

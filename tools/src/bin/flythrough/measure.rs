@@ -71,20 +71,60 @@ impl MeshesInView {
 
     /// The meshes of `scene` (the one given to `new`) whose boxes meet the frustum.
     pub(crate) fn count(&self, scene: &citystream_dataset::Scene, camera: &Camera, width: u32, height: u32) -> u32 {
+        let mut count = 0;
+        self.for_each(scene, camera, width, height, |_| count += 1);
+        count
+    }
+
+    /// Draws of a renderer binding one texture array per draw (Trapp and Döllner's
+    /// Alg. 2): one per array holding a texture of a mesh in view, `image_of` telling a
+    /// texture's array (`None`: not resident, drawn with its colormap colour in the
+    /// draw of any array).
+    pub(crate) fn arrays(
+        &self,
+        scene: &citystream_dataset::Scene,
+        camera: &Camera,
+        (width, height): (u32, u32),
+        image_of: impl Fn(u32) -> Option<u32>,
+    ) -> u32 {
+        let mut arrays = 0u64;
+        let mut any = false;
+        self.for_each(scene, camera, width, height, |mesh| {
+            any = true;
+            if let Some(image) = image_of(mesh.texture) {
+                arrays |= 1 << image.min(63);
+            }
+        });
+        arrays.count_ones().max(u32::from(any))
+    }
+
+    /// Calls `visit` with each drawable mesh whose box meets the frustum.
+    fn for_each(
+        &self,
+        scene: &citystream_dataset::Scene,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        mut visit: impl FnMut(&citystream_dataset::Mesh),
+    ) {
         let planes = frustum_planes(
             camera
                 .view_projection(width as f32 / height as f32, 0.0)
                 .to_cols_array_2d(),
         );
         // A box inside another meets the frustum only if the outer one does.
-        let visible =
-            |mesh: &citystream_dataset::Mesh| mesh.index_count > 0 && intersects_frustum(&mesh.bounds, &planes);
-        self.runs
+        let runs = self
+            .runs
             .iter()
             .zip(scene.meshes.chunks(Self::RUN))
-            .filter(|(union, _)| union.is_some_and(|b| intersects_frustum(&b, &planes)))
-            .map(|(_, run)| run.iter().filter(|m| visible(m)).count() as u32)
-            .sum()
+            .filter(|(union, _)| union.is_some_and(|b| intersects_frustum(&b, &planes)));
+        for (_, run) in runs {
+            for mesh in run {
+                if mesh.index_count > 0 && intersects_frustum(&mesh.bounds, &planes) {
+                    visit(mesh);
+                }
+            }
+        }
     }
 }
 

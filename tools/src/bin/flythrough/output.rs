@@ -20,6 +20,12 @@ pub(crate) struct Run<'a> {
     pub(crate) strategy: &'a str,
     /// `--culling`: `on` or `off`.
     pub(crate) culling: &'a str,
+    /// How the cache held textures: `sparse` or `texture-arrays` (`--sparse`, and the
+    /// device's features).
+    pub(crate) texture_backing: &'a str,
+    /// `--strategy texture-arrays` with the city within the budget: what was loaded
+    /// before the first frame (`mips`, `bytes`, `seconds`); null otherwise.
+    pub(crate) preloaded: Option<super::flight::Preload>,
     /// Per frame: meshes the visible pass drew (with culling off, every mesh with geometry).
     pub(crate) meshes_drawn: Stats,
     /// Per frame: meshes of the city the visible pass skipped.
@@ -37,8 +43,9 @@ pub(crate) struct Run<'a> {
     pub(crate) meshes_seen_by_feedback: Stats,
     /// Per frame: draws of a renderer binding one texture per draw (meshes in view, a
     /// mesh having one texture; for the tree, atlases drawn plus the meshes in view of the
-    /// leaves drawn with their originals). citystream itself draws every mesh in one draw
-    /// whatever the strategy.
+    /// leaves drawn with their originals); for texture arrays, of one binding one array
+    /// per draw (Trapp and Döllner's Alg. 2: the arrays holding textures in view).
+    /// citystream itself draws every mesh in one draw whatever the strategy.
     pub(crate) draw_calls: Stats,
     /// Per frame: nodes drawn (the atlas tree only).
     pub(crate) nodes_drawn: Option<Stats>,
