@@ -830,6 +830,18 @@ impl Device {
             .find(|&i| bits & (1 << i) != 0 && props.memory_types[i as usize].property_flags.contains(flags))
     }
 
+    /// Bytes of the largest device-local memory heap.
+    pub fn device_local_heap_bytes(&self) -> u64 {
+        // SAFETY: physical belongs to the instance.
+        let props = unsafe { self.instance_fns.get_physical_device_memory_properties(self.physical) };
+        props.memory_heaps[..props.memory_heap_count as usize]
+            .iter()
+            .filter(|heap| heap.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL))
+            .map(|heap| heap.size)
+            .max()
+            .unwrap_or(0)
+    }
+
     /// Format properties of `format` on this device.
     pub fn format_properties(&self, format: vk::Format) -> vk::FormatProperties {
         // SAFETY: physical belongs to the instance.

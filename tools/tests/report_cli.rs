@@ -980,3 +980,52 @@ fn loader_bench_reads_the_same_mips_as_raw_reads() -> TestResult {
     assert!(md.contains("| warm | off |") && md.contains("| warm | on |"), "{md}");
     Ok(())
 }
+
+/// `--scenario strategies` on a dataset that is no atlas tree: the feedback run and both
+/// texture-array runs (fully resident without a budget, streamed under it), no tree run,
+/// and their rows in strategies.md.
+#[cfg(unix)]
+#[test]
+fn strategies_bench_runs_texture_arrays_resident_and_streamed() -> TestResult {
+    let dir = scratch("bench-strategies");
+    let (script, log) = fake_flythrough(&dir, "none");
+    let dataset = dir.join("city");
+    std::fs::create_dir_all(&dataset)?;
+    let out = dir.join("out");
+    let (d, o) = (dataset.display().to_string(), out.display().to_string());
+    let result = citystream(&[
+        "bench",
+        "--scenario",
+        "strategies",
+        "--dataset",
+        &d,
+        "--out",
+        &o,
+        "--budget-mb",
+        "8",
+        "--flythrough",
+        &script.display().to_string(),
+    ]);
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    assert!(result.status.success(), "bench failed: {stderr}");
+    assert!(stderr.contains("no atlas-tree run"), "{stderr}");
+    let logged = std::fs::read_to_string(&log)?;
+    let lines: Vec<&str> = logged.lines().collect();
+    let shared = format!("--dataset {d} --policy adaptive --alpha 16 --psnr-interval 30 --frame-interval 0");
+    let tail = |name: &str| format!("--clock modelled --bind-latency desktop --out {o}/{name}");
+    let expected = [
+        format!("{shared} --memory-budget-mb 8 --strategy feedback {}", tail("feedback")),
+        format!("{shared} --strategy texture-arrays {}", tail("texture-arrays")),
+        format!(
+            "{shared} --memory-budget-mb 8 --strategy texture-arrays {}",
+            tail("texture-arrays-streamed")
+        ),
+    ];
+    assert_eq!(lines, expected);
+    let table = std::fs::read_to_string(out.join("strategies.md"))?;
+    for row in ["| feedback |", "| texture-arrays |", "| texture-arrays-streamed |"] {
+        assert!(table.contains(row), "{row} missing: {table}");
+    }
+    assert!(!table.contains("| atlas-tree |"), "{table}");
+    Ok(())
+}

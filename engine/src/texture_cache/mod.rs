@@ -764,9 +764,17 @@ fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], 
 
 /// Texture arrays: fully bound images whose layers, each a full mip chain's
 /// memory, share out the memory budget (at most the layers the textures
-/// need, the device's layer and resource-size limits per image).
+/// need, the device's layer and resource-size limits per image, and half the
+/// largest device-local heap: the layers are allocated whole, whatever is
+/// loaded, and geometry, targets and an error reference need room too).
 fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
     let limits = device.properties().limits;
+    let heap_share = device.device_local_heap_bytes() / 2;
+    let budget = config.memory_budget_bytes.min(heap_share.max(1));
+    let config = &GpuCacheConfig {
+        memory_budget_bytes: budget,
+        ..config.clone()
+    };
     let mut layer_bytes = [0u64; CACHE_FORMATS.len()];
     let mut max_layers = limits.max_image_array_layers;
     for &index in held {

@@ -154,6 +154,21 @@ impl Sparse {
     }
 }
 
+/// The memory budget when `--memory-budget-mb` is left out (MB).
+pub(crate) const DEFAULT_BUDGET_MB: u64 = 512;
+
+impl Args {
+    /// The memory budget: `--memory-budget-mb`, else [`DEFAULT_BUDGET_MB`], else for
+    /// the texture-array strategy none (the device's memory bounds it).
+    pub(crate) fn memory_budget_mb(&self) -> BudgetMb {
+        match (self.memory_budget_mb_given, self.strategy) {
+            (Some(budget), _) => budget,
+            (None, Strategy::TextureArrays) => BudgetMb(None),
+            (None, _) => BudgetMb(Some(DEFAULT_BUDGET_MB)),
+        }
+    }
+}
+
 /// `--culling`: whether the city passes draw only what the view may show.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum Culling {
@@ -275,9 +290,12 @@ pub(crate) struct Args {
     /// interval between frames, as a host timing start to start under vsync would).
     #[arg(long, value_enum, default_value_t = ControllerLatency::Work)]
     pub(crate) controller_latency: ControllerLatency,
-    /// Memory budget of bound texture blocks in MB, or `unlimited`.
-    #[arg(long, default_value = "512", value_parser = parse_budget_mb)]
-    pub(crate) memory_budget_mb: BudgetMb,
+    /// Memory budget of the texture cache in MB (bound sparse blocks, or texture-array
+    /// layers), or `unlimited`. Default: 512; with --strategy texture-arrays, what the
+    /// device holds, the whole city loaded before the first frame where it fits (a budget
+    /// given makes that strategy stream within it).
+    #[arg(long = "memory-budget-mb", value_parser = parse_budget_mb)]
+    pub(crate) memory_budget_mb_given: Option<BudgetMb>,
     /// How the cache frees memory at the budget: `view` (drop the levels the
     /// view needs least, see ARCHITECTURE.md, "Eviction") or `ring` (the paper's
     /// oldest-layer ring).

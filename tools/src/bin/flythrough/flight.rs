@@ -14,7 +14,7 @@ use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer, Fee
 use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::cull::CullStats;
 use citystream_engine::device::{describe, TextureBacking};
-use citystream_engine::gpu_types::{Vertex, TEXTURE_SAMPLEABLE};
+use citystream_engine::gpu_types::{Vertex, CACHE_IMAGE_SLOTS, TEXTURE_SAMPLEABLE};
 use citystream_engine::instance::{default_synchronization_validation, default_validation, InstanceOptions};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::stream::{Frame, StreamConfig, TextureStreamer};
@@ -439,7 +439,7 @@ pub(crate) fn streamed_city_gpu(
     tree: Option<&AtlasTree>,
     reserved_bytes: u64,
 ) -> Result<CityGpu> {
-    let budget = match args.memory_budget_mb.bytes() {
+    let budget = match args.memory_budget_mb().bytes() {
         Some(budget) if budget <= reserved_bytes => bail!(
             "the {} MB memory budget leaves nothing for textures beside the ground layer's {:.1} MB",
             budget >> 20,
@@ -520,15 +520,15 @@ pub(crate) struct Preload {
     pub(crate) seconds: f64,
 }
 
-/// The texture-array strategy's start: where the cache's arrays hold the whole city
-/// within the budget, every texture is loaded now, before the first frame, as Trapp and
-/// Döllner's batching has it; otherwise nothing is, and the feedback streams into the
-/// arrays (said on standard error).
+/// The texture-array strategy's start without a budget given: where the cache's arrays
+/// hold the whole city within the device's memory, every texture is loaded now, before
+/// the first frame, as Trapp and Döllner's batching has it; otherwise nothing is, and the
+/// feedback streams into the arrays (said on standard error).
 fn preload_city(gpu: &mut CityGpu, commands: &mut CommandContext) -> Result<Option<Preload>> {
     let cache = gpu.streamer.cache();
     if !cache.holds_every_texture() {
         eprintln!(
-            "texture arrays: the city does not fit the memory budget ({:.1} MB of layers); its textures stream into them",
+            "texture arrays: the city does not fit the device's memory ({:.1} MB of layers); its textures stream into them",
             cache.texel_memory_bytes() as f64 / f64::from(1 << 20)
         );
         return Ok(None);
@@ -692,7 +692,7 @@ impl Flight {
                     frames_in_flight,
                     sizing.focal_px,
                     sizing.lowest_eye_m.unwrap_or(f64::MIN_POSITIVE),
-                    args.memory_budget_mb.bytes(),
+                    args.memory_budget_mb().bytes(),
                     device,
                 )?;
                 Some((set, config, reference))
@@ -718,7 +718,7 @@ impl Flight {
                 config,
                 // The window measures no error.
                 (!args.window && args.psnr_interval > 0).then_some(reference),
-                args.memory_budget_mb.bytes(),
+                args.memory_budget_mb().bytes(),
             )?),
             None => None,
         };
@@ -727,7 +727,11 @@ impl Flight {
             None => None,
         };
         let preload = match args.strategy {
-            Strategy::TextureArrays => preload_city(&mut gpu, commands)?,
+            Strategy::TextureArrays if args.memory_budget_mb_given.is_none() => preload_city(&mut gpu, commands)?,
+            Strategy::TextureArrays => {
+                eprintln!("texture arrays: streaming within the memory budget given");
+                None
+            }
             Strategy::Feedback | Strategy::AtlasTree => None,
         };
         let frame_commands = (0..frames_in_flight)
@@ -755,7 +759,7 @@ impl Flight {
             cpu_clock: CpuFrameClock::new(),
             tau,
             last_feedback: None,
-            budget_mb: args.memory_budget_mb.0,
+            budget_mb: args.memory_budget_mb().0,
             eviction: args.eviction,
             warned_over_budget: false,
             warned_failure: false,
@@ -863,7 +867,14 @@ impl Flight {
                                 .filter(|t| t.state == TEXTURE_SAMPLEABLE)
                                 .map(|t| t.image)
                         };
-                        self.meshes_in_view.arrays(&self.dataset.scene, camera, size, image_of)
+                        // The engine binds CACHE_IMAGE_SLOTS arrays at once: Alg. 1's a_max.
+                        self.meshes_in_view.array_batches(
+                            &self.dataset.scene,
+                            camera,
+                            size,
+                            CACHE_IMAGE_SLOTS,
+                            image_of,
+                        )
                     }
                     _ => self.meshes_in_view.count(&self.dataset.scene, camera, size.0, size.1),
                 };

@@ -330,7 +330,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         atlas_tree: flight
             .tree
             .as_ref()
-            .map(|run| run.summary(args.memory_budget_mb.bytes())),
+            .map(|run| run.summary(args.memory_budget_mb().bytes())),
         policy: flight.gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
         display_period_ms: (args.clock == Clock::Modelled).then_some(args.display_period_ms),
@@ -373,7 +373,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         blocks_bound: blocks_total,
         peak_resident_bytes: peak_resident,
         peak_device_memory_bytes: peak_device_memory,
-        memory_budget_bytes: args.memory_budget_mb.bytes(),
+        memory_budget_bytes: args.memory_budget_mb().bytes(),
         eviction: args.eviction.name(),
         cache_layers: flight.gpu.streamer.cache_layers(),
         frames_over_budget: residency.frames_over_budget,

@@ -76,15 +76,18 @@ impl MeshesInView {
         count
     }
 
-    /// Draws of a renderer binding one texture array per draw (Trapp and Döllner's
-    /// Alg. 2): one per array holding a texture of a mesh in view, `image_of` telling a
-    /// texture's array (`None`: not resident, drawn with its colormap colour in the
-    /// draw of any array).
-    pub(crate) fn arrays(
+    /// Draws of Trapp and Döllner's Alg. 2 for the view: every array is bound once and
+    /// each output batch of Alg. 1 drawn, a batch holding the meshes of up to
+    /// `arrays_per_batch` arrays (their a_max; the batch's primitives uncapped). So one
+    /// draw per `arrays_per_batch` arrays holding a texture of a mesh in view, at least
+    /// one when a mesh is in view; `image_of` tells a texture's array (`None`: not
+    /// resident, drawn with its colormap colour in any batch).
+    pub(crate) fn array_batches(
         &self,
         scene: &citystream_dataset::Scene,
         camera: &Camera,
         (width, height): (u32, u32),
+        arrays_per_batch: u32,
         image_of: impl Fn(u32) -> Option<u32>,
     ) -> u32 {
         let mut arrays = 0u64;
@@ -95,7 +98,10 @@ impl MeshesInView {
                 arrays |= 1 << image.min(63);
             }
         });
-        arrays.count_ones().max(u32::from(any))
+        arrays
+            .count_ones()
+            .div_ceil(arrays_per_batch.max(1))
+            .max(u32::from(any))
     }
 
     /// Calls `visit` with each drawable mesh whose box meets the frustum.

@@ -43,8 +43,9 @@ pub(crate) struct Run<'a> {
     pub(crate) meshes_seen_by_feedback: Stats,
     /// Per frame: draws of a renderer binding one texture per draw (meshes in view, a
     /// mesh having one texture; for the tree, atlases drawn plus the meshes in view of the
-    /// leaves drawn with their originals); for texture arrays, of one binding one array
-    /// per draw (Trapp and Döllner's Alg. 2: the arrays holding textures in view).
+    /// leaves drawn with their originals); for texture arrays, Trapp and Döllner's
+    /// Alg. 2 (one draw per batch of up to 8 arrays in view, the arrays the engine binds
+    /// at once).
     /// citystream itself draws every mesh in one draw whatever the strategy.
     pub(crate) draw_calls: Stats,
     /// Per frame: nodes drawn (the atlas tree only).

@@ -58,7 +58,7 @@ impl TreeRun {
             tree.depth(),
             tree.params.atlas_extent
         );
-        let budget = args.memory_budget_mb.bytes().unwrap_or(UNLIMITED_BUDGET_BYTES);
+        let budget = args.memory_budget_mb().bytes().unwrap_or(UNLIMITED_BUDGET_BYTES);
         let strategy = AtlasTreeStreamer::new(
             commands,
             &gpu.renderer,

@@ -1030,7 +1030,7 @@ impl Viewer {
         if now.duration_since(self.title_at) >= Duration::from_millis(250) || self.frame == 0 {
             self.title_at = now;
             let budget = args
-                .memory_budget_mb
+                .memory_budget_mb()
                 .0
                 .map_or_else(|| "unlimited".to_owned(), |mb| format!("{mb} MB"));
             let mut title = format!(
