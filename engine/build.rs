@@ -16,6 +16,9 @@ const STAGES: &[&str] = &["vert", "frag", "comp"];
 /// (the feedback pass reads the table only, so it has none either way).
 const SPARSE_SAMPLERS: &[&str] = &["city.frag", "texture_probe.comp"];
 
+/// The example host's shaders that sample the cache, likewise.
+const EXAMPLE_SPARSE_SAMPLERS: &[&str] = &["host_visible.frag"];
+
 fn main() {
     let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
     let shader_dir = manifest.join("../shaders");
@@ -51,7 +54,12 @@ fn main() {
             failures.push(message);
         }
         let file = source.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-        if prefix.is_empty() && SPARSE_SAMPLERS.contains(&file) {
+        let samples = if prefix.is_empty() {
+            SPARSE_SAMPLERS.contains(&file)
+        } else {
+            EXAMPLE_SPARSE_SAMPLERS.contains(&file)
+        };
+        if samples {
             let output = out_dir.join(spv_name(source, prefix, "_arrays"));
             if let Err(message) = compile(source, &include_dir, &output, &["CITYSTREAM_NO_SPARSE"]) {
                 failures.push(message);

@@ -6,13 +6,15 @@
 //! own fragment shaders. docs/EMBEDDING.md walks through it.
 //!
 //! ```text
-//! cargo run --release -p citystream-engine --example embed_host [DATASET_DIR] [--out FILE.png] [--reference]
+//! cargo run --release -p citystream-engine --example embed_host [DATASET_DIR] [--out FILE.png] [--reference] [--sparse auto|on|off]
 //! ```
 //! Without a dataset it streams procedural textures from a `MipSource`
 //! implemented below; with one it streams that dataset. It writes its last
 //! frame as a PNG (`embed_host.png` in the working directory unless told
 //! otherwise). `--reference` loads every texture fully before one frame
-//! (the image streaming must converge to). `CITYSTREAM_VALIDATION=1` turns
+//! (the image streaming must converge to). `--sparse` chooses the texture
+//! backing (docs/STRATEGIES.md): `auto` (sparse where the device has it, texture
+//! arrays otherwise), `on` or `off`. `CITYSTREAM_VALIDATION=1` turns
 //! on validation, `CITYSTREAM_VALIDATION=sync` synchronization validation
 //! too; any message makes it exit non-zero.
 
@@ -46,6 +48,8 @@ const FRAMES_IN_FLIGHT: u32 = 2;
 const VERT: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/embed_host_host_vert.spv"));
 const FEEDBACK_FRAG: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/embed_host_host_feedback_frag.spv"));
 const VISIBLE_FRAG: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/embed_host_host_visible_frag.spv"));
+/// The visible pass for the texture-array backing: compiled with `CITYSTREAM_NO_SPARSE`.
+const VISIBLE_FRAG_ARRAYS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/embed_host_host_visible_frag_arrays.spv"));
 
 // ---- The host's mip source: procedural façades --------------------------
 
@@ -296,10 +300,14 @@ struct HostVulkan {
     physical: vk::PhysicalDevice,
     device: ash::Device,
     queue_family: u32,
+    /// The texture backing the device was created with the features of.
+    backing: TextureBacking,
 }
 
 impl HostVulkan {
-    fn new(validation: &str) -> Result<Self> {
+    /// `backing`: the one to take, or `None` for sparse where a device has it and
+    /// texture arrays otherwise.
+    fn new(validation: &str, backing: Option<TextureBacking>) -> Result<Self> {
         // SAFETY: loads the system Vulkan loader.
         let entry = unsafe { ash::Entry::load() }.context("loading Vulkan")?;
         let validate = matches!(validation, "1" | "sync");
@@ -341,18 +349,27 @@ impl HostVulkan {
         } else {
             None
         };
-        // The first physical device that has what citystream needs.
+        // The first physical device that has what citystream needs, sparse
+        // residency first.
         // SAFETY: plain enumeration on a live instance.
         let physicals = unsafe { instance.enumerate_physical_devices() }?;
-        let (physical, queue_family) = physicals
+        let wanted = match backing {
+            Some(backing) => vec![backing],
+            None => vec![TextureBacking::Sparse, TextureBacking::Arrays],
+        };
+        let (physical, queue_family, backing) = wanted
             .iter()
-            .find_map(|&p| match check_physical_device(&instance, p, TextureBacking::Sparse) {
-                (missing, Some(family)) if missing.is_empty() => Some((p, family)),
-                _ => None,
+            .find_map(|&backing| {
+                physicals
+                    .iter()
+                    .find_map(|&p| match check_physical_device(&instance, p, backing) {
+                        (missing, Some(family)) if missing.is_empty() => Some((p, family, backing)),
+                        _ => None,
+                    })
             })
-            .context("no Vulkan device has what citystream needs (sparse residency, BC, Vulkan 1.3)")?;
+            .with_context(|| format!("no Vulkan device has what citystream needs for {wanted:?} (BC, Vulkan 1.3)"))?;
         // The host's own features would be merged into these.
-        let required = required_features(TextureBacking::Sparse);
+        let required = required_features(backing);
         let mut vk12 = required.vulkan12;
         let mut vk13 = required.vulkan13;
         let priorities = [1.0];
@@ -373,6 +390,7 @@ impl HostVulkan {
             physical,
             device,
             queue_family,
+            backing,
         })
     }
 }
@@ -405,7 +423,12 @@ struct HostPipelines {
 }
 
 impl HostPipelines {
-    fn new(device: &ash::Device, host_meshes: vk::Buffer, streamed: &StreamDescriptors) -> Result<Self> {
+    fn new(
+        device: &ash::Device,
+        host_meshes: vk::Buffer,
+        streamed: &StreamDescriptors,
+        backing: TextureBacking,
+    ) -> Result<Self> {
         let fragment = vk::ShaderStageFlags::FRAGMENT;
         let host_bindings = [vk::DescriptorSetLayoutBinding::default()
             .binding(0)
@@ -458,7 +481,12 @@ impl HostPipelines {
             .buffer_info(&mesh_table);
         unsafe { device.update_descriptor_sets(&[write], &[]) };
         let feedback = graphics_pipeline(device, layout, FEEDBACK_FRAG)?;
-        let visible = graphics_pipeline(device, layout, VISIBLE_FRAG)?;
+        // Sampling sparse images needs shaderResourceResidency; texture arrays do not.
+        let visible_frag = match backing {
+            TextureBacking::Sparse => VISIBLE_FRAG,
+            TextureBacking::Arrays => VISIBLE_FRAG_ARRAYS,
+        };
+        let visible = graphics_pipeline(device, layout, visible_frag)?;
         Ok(Self {
             device: device.clone(),
             host_set_layout,
@@ -648,6 +676,8 @@ struct Options {
     out: PathBuf,
     reference: bool,
     validation: String,
+    /// `--sparse`: `None` for `auto`.
+    backing: Option<TextureBacking>,
 }
 
 fn parse_args() -> Result<Options> {
@@ -656,14 +686,23 @@ fn parse_args() -> Result<Options> {
         out: PathBuf::from("embed_host.png"),
         reference: false,
         validation: std::env::var("CITYSTREAM_VALIDATION").unwrap_or_default(),
+        backing: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
         match arg.as_str() {
             "--out" => options.out = args.next().context("--out needs a file name")?.into(),
             "--reference" => options.reference = true,
+            "--sparse" => {
+                options.backing = match args.next().as_deref() {
+                    Some("auto") => None,
+                    Some("on") => Some(TextureBacking::Sparse),
+                    Some("off") => Some(TextureBacking::Arrays),
+                    other => bail!("--sparse takes auto, on or off, not {other:?}"),
+                }
+            }
             "-h" | "--help" => {
-                println!("usage: embed_host [DATASET_DIR] [--out FILE.png] [--reference]");
+                println!("usage: embed_host [DATASET_DIR] [--out FILE.png] [--reference] [--sparse auto|on|off]");
                 std::process::exit(0);
             }
             flag if flag.starts_with('-') => bail!("unknown option {flag:?} (try --help)"),
@@ -681,7 +720,7 @@ fn main() -> Result<()> {
 }
 
 fn run(options: &Options) -> Result<()> {
-    let host = HostVulkan::new(&options.validation)?;
+    let host = HostVulkan::new(&options.validation, options.backing)?;
     {
         // The host shares its allocator with the engine.
         let allocator = Arc::new(Mutex::new(Allocator::new(&AllocatorCreateDesc {
@@ -705,7 +744,7 @@ fn run(options: &Options) -> Result<()> {
                 queue_family: host.queue_family,
                 allocator: HostAllocator::Shared(Arc::clone(&allocator)),
                 debug_utils: host.messenger.is_some(),
-                backing: TextureBacking::Sparse,
+                backing: host.backing,
             })
         }?);
         match &options.dataset {
@@ -781,7 +820,7 @@ fn render<S: MipSource + 'static>(
     )?;
     // The streamer's bindings as one set, read by the host's fragment shaders.
     let streamed = streamer.create_descriptors(vk::ShaderStageFlags::FRAGMENT)?;
-    let pipelines = HostPipelines::new(raw, meshes.raw(), &streamed)?;
+    let pipelines = HostPipelines::new(raw, meshes.raw(), &streamed, host.backing)?;
     let commands = FrameCommands::new(raw, host.queue_family, FRAMES_IN_FLIGHT)?;
     // Dropped first, on success and on error alike: nothing above is
     // destroyed while a submitted frame may still use it.
@@ -891,7 +930,19 @@ mod tests {
     /// no message; after streaming, the image matches the fully resident one.
     #[test]
     fn streams_to_the_fully_resident_image_without_validation_messages() -> Result<()> {
-        let dir = std::env::temp_dir().join(format!("embed_host_test_{}", std::process::id()));
+        streams_to_the_fully_resident_image(Some(TextureBacking::Sparse))
+    }
+
+    /// The same host on texture arrays: its device without the sparse features, its
+    /// visible shader without sparse sampling.
+    #[test]
+    fn streams_into_texture_arrays_as_well() -> Result<()> {
+        streams_to_the_fully_resident_image(Some(TextureBacking::Arrays))
+    }
+
+    fn streams_to_the_fully_resident_image(backing: Option<TextureBacking>) -> Result<()> {
+        let name = format!("embed_host_test_{}_{backing:?}", std::process::id());
+        let dir = std::env::temp_dir().join(name);
         std::fs::create_dir_all(&dir)?;
         let streamed = dir.join("streamed.png");
         let reference = dir.join("reference.png");
@@ -901,6 +952,7 @@ mod tests {
                 out: out.clone(),
                 reference: reference_run,
                 validation: "sync".into(),
+                backing,
             })?;
         }
         let (a, b) = (image::open(&streamed)?.to_rgba8(), image::open(&reference)?.to_rgba8());

@@ -1,6 +1,9 @@
 #version 460
 #extension GL_GOOGLE_include_directive : require
+// Sampling sparse images needs it; the texture-array variant (-DCITYSTREAM_NO_SPARSE) does not.
+#ifndef CITYSTREAM_NO_SPARSE
 #extension GL_ARB_sparse_texture2 : require
+#endif
 #define CITYSTREAM_SET 1
 #include "citystream_host.glsl"
 
