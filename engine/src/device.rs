@@ -830,6 +830,19 @@ impl Device {
             .find(|&i| bits & (1 << i) != 0 && props.memory_types[i as usize].property_flags.contains(flags))
     }
 
+    /// `maxMemoryAllocationSize`: the largest single allocation the device
+    /// takes (Vulkan 1.1).
+    pub fn max_memory_allocation_bytes(&self) -> u64 {
+        let mut vk11 = vk::PhysicalDeviceVulkan11Properties::default();
+        let mut properties = vk::PhysicalDeviceProperties2::default().push_next(&mut vk11);
+        // SAFETY: physical belongs to the instance; the chain is well formed.
+        unsafe {
+            self.instance_fns
+                .get_physical_device_properties2(self.physical, &mut properties)
+        };
+        vk11.max_memory_allocation_size
+    }
+
     /// Bytes of the largest device-local memory heap.
     pub fn device_local_heap_bytes(&self) -> u64 {
         // SAFETY: physical belongs to the instance.

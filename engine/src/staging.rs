@@ -127,6 +127,11 @@ impl StagingRing {
         })
     }
 
+    /// Bytes the ring holds.
+    pub fn capacity(&self) -> u64 {
+        self.ring.capacity()
+    }
+
     /// Copies `bytes` into the ring for the submission `ticket`; `None` when full.
     pub fn push(&mut self, bytes: &[u8], align: u64, ticket: u64) -> Result<Option<RingRange>> {
         let Some(range) = self.ring.alloc(bytes.len() as u64, align, ticket) else {

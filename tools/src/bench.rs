@@ -516,7 +516,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         write_table(
             &args.out,
             "strategies",
-            strategies_table(&args.out, &dataset, budget_mb)?,
+            strategies_table(&args.out, &dataset, budget_mb, &runs)?,
         )?;
     }
     if args.scenario == Scenario::Ground {
@@ -997,8 +997,14 @@ fn ensure_default_tree(data_dir: &Path) -> Result<PathBuf> {
     Ok(tree)
 }
 
-/// `strategies.md` and `strategies.json`: both runs in one table, the paper's figures beside.
-fn strategies_table(out: &Path, dataset: &Path, budget_mb: u64) -> Result<(String, serde_json::Value)> {
+/// `strategies.md` and `strategies.json`: the runs that just ran, in one table, the paper's
+/// figures beside.
+fn strategies_table(
+    out: &Path,
+    dataset: &Path,
+    budget_mb: u64,
+    runs: &[BenchRun],
+) -> Result<(String, serde_json::Value)> {
     let mut text = format!(
         "# Streaming strategies on {}: budget {budget_mb} MB\n\n\
          | | frames | latency median / mean / max (ms, modelled) | GPU ms per frame, measured (feedback + compaction + visible) | wall ms per frame | MB streamed | peak resident MB | PSNR of mean MSE (dB) | identical / measured | draw calls mean / max | nodes drawn mean / max | tree depth |\n\
@@ -1006,19 +1012,9 @@ fn strategies_table(out: &Path, dataset: &Path, budget_mb: u64) -> Result<(Strin
         dataset.display()
     );
     let mut rows = Vec::new();
-    let runs = [
-        StrategyArg::Feedback.name(),
-        StrategyArg::AtlasTree.name(),
-        STRATEGY_ARRAYS_RESIDENT,
-        STRATEGY_ARRAYS_STREAMED,
-    ];
-    for name in runs {
-        let dir = out.join(name);
-        if !dir.join("summary.json").is_file() && name == StrategyArg::AtlasTree.name() {
-            // Not a tree dataset: the scenario ran no tree.
-            continue;
-        }
-        let summary = summary_of(&dir)?;
+    for run in runs {
+        let name = run.dir.as_str();
+        let summary = summary_of(&out.join(name))?;
         let shown = |v: Option<f64>, digits: usize| v.map_or("n/a".to_string(), |v| format!("{v:.digits$}"));
         let pair = |key: &str| {
             format!(

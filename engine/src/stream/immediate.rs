@@ -3,6 +3,7 @@
 
 use ash::vk;
 use citystream_cache::geometry::cacheable_mip_count;
+use citystream_streaming::loader::TextureFailure;
 use citystream_streaming::residency::planner::PackingPass;
 use citystream_streaming::residency::{KeepValue, NeedClass};
 use citystream_streaming::source::{texel_format, MipSource};
@@ -117,11 +118,32 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             // A cycle at most for pending memory and one after making room.
             let mut cycles_run = 0;
             loop {
-                match self
+                let staged = match self
                     .cache
-                    .stage(texture, format, chain.width, chain.height, level, &buffer)?
+                    .stage(texture, format, chain.width, chain.height, level, &buffer)
                 {
-                    StageOutcome::Staged { .. } => break,
+                    Ok(staged) => staged,
+                    // The cache cannot hold this texture at all (a format without an
+                    // image, an extent above the layer): its failure, as in a cycle.
+                    Err(error) => {
+                        self.loader.fail_texture(TextureFailure {
+                            texture,
+                            level: Some(level),
+                            reason: error.to_string(),
+                        });
+                        failed.insert(texture);
+                        break;
+                    }
+                };
+                match staged {
+                    StageOutcome::Staged { .. } => {
+                        // A cycle per staging ring's worth of bytes: its copies go through
+                        // the ring, not through one buffer as large as the whole load.
+                        if self.cache.staged_bytes() >= self.cache.staging_capacity() {
+                            self.finish_cycle_now(commands, &mut total)?;
+                        }
+                        break;
+                    }
                     // The next stage inserts the texture afresh, in a new ring layer.
                     StageOutcome::EvictedItself if cycles_run < 2 => {
                         cycles_run += 1;

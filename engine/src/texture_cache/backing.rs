@@ -62,11 +62,15 @@ pub(super) enum CacheImages {
     Arrays { images: Vec<ArrayImage> },
 }
 
-/// What one [`CacheImages::apply_batch`] submitted.
+/// What one [`CacheImages::apply_batch`] submitted (nothing for texture
+/// arrays, whose blocks are bookkeeping: no bind cost is theirs).
 #[derive(Clone, Copy, Debug, Default)]
 pub(super) struct Applied {
     pub(super) entries: u32,
     pub(super) seconds: f64,
+    /// Blocks bound and unbound.
+    pub(super) bound: u32,
+    pub(super) unbound: u32,
 }
 
 impl CacheImages {
@@ -209,12 +213,14 @@ impl CacheImages {
                 )));
             }
         }
-        let unbinds = ops.iter().any(|op| matches!(op, BindOp::Unbind { .. }));
-        let frame_wait = if unbinds { frames_before } else { None };
+        let unbound = ops.iter().filter(|op| matches!(op, BindOp::Unbind { .. })).count() as u32;
+        let frame_wait = if unbound > 0 { frames_before } else { None };
         let bind = binder.submit_after(ops, frame_wait)?;
         Ok(Applied {
             entries: bind.entries,
             seconds: bind.seconds,
+            bound: ops.len() as u32 - unbound,
+            unbound,
         })
     }
 

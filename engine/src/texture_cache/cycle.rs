@@ -83,12 +83,8 @@ impl GpuTextureCache {
             .apply_batch(&self.device, &batch.new_chunks, &batch.ops, frames_before)?;
         report.bind_entries = applied.entries;
         report.bind_seconds = applied.seconds;
-        for op in &batch.ops {
-            match op {
-                citystream_cache::BindOp::Bind { .. } => report.blocks_bound += 1,
-                citystream_cache::BindOp::Unbind { .. } => report.blocks_unbound += 1,
-            }
-        }
+        report.blocks_bound = applied.bound;
+        report.blocks_unbound = applied.unbound;
 
         // 4. The bytes go to the staging ring (or, for a cycle larger than
         // the ring, a one-off buffer released with the ticket).

@@ -428,6 +428,17 @@ impl GpuTextureCache {
         self.holds_every_texture
     }
 
+    /// Bytes of the mips staged in this cycle, not yet recorded.
+    pub fn staged_bytes(&self) -> u64 {
+        self.upload_bytes.len() as u64
+    }
+
+    /// Bytes of the staging ring the uploads go through; a cycle staging more
+    /// uses a one-off buffer of its size.
+    pub fn staging_capacity(&self) -> u64 {
+        self.staging.capacity()
+    }
+
     /// How the cache holds textures: sparse images or texture arrays.
     pub fn backing(&self) -> TextureBacking {
         match self.images {
@@ -790,6 +801,13 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
         })
     })?;
     let layouts = image_layouts(&layer_counts);
+    // Fixed layer counts are the caller's; the device's limits still hold.
+    if let Some(&(format, _, layers)) = layouts.iter().find(|&&(_, _, layers)| layers > max_layers) {
+        return Err(EngineError::InvalidRequest(format!(
+            "{layers} layers of {}x{} {} texels in one array image; the device allows {max_layers}",
+            config.layer_size, config.layer_size, CACHE_FORMATS[format].2.name
+        )));
+    }
     let needed: u64 = layouts
         .iter()
         .map(|&(format, _, layers)| u64::from(layers).saturating_mul(layer_bytes[format]))
@@ -848,6 +866,16 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
         blocks_per_chunk: config.blocks_per_chunk,
     };
     let images = CacheImages::arrays(device, &descs)?;
+    // The layers were counted from one layer's cost; what the images took is
+    // what holds the budget.
+    let held_bytes = images.array_bytes().unwrap_or(0);
+    if held_bytes > config.memory_budget_bytes {
+        return Err(EngineError::InvalidRequest(format!(
+            "the texture-array images took {held_bytes} bytes of device memory, above the budget of {} bytes \
+             (the device's layers cost more than one layer's requirements said)",
+            config.memory_budget_bytes
+        )));
+    }
     let (image_formats, format_images) = format_indices(&layouts);
     Ok(BuiltImages {
         cache_config,
@@ -859,34 +887,39 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
 }
 
 /// Bytes one layer of a fully bound `layer_size`² array image of `format`
-/// with `mips` levels takes, from the device's memory requirements of a
-/// one-layer image, and the most layers one image may have (the device's
-/// `maxArrayLayers` for the format, and its `maxResourceSize`).
+/// with `mips` levels takes, from the device's memory requirements (what a
+/// second layer adds to a one-layer image, so its alignment counts), and the
+/// most layers one image may have: the device's `maxArrayLayers` for the
+/// format, its `maxResourceSize` and `maxMemoryAllocationSize`.
 fn array_layer_cost(device: &Arc<Device>, layer_size: u32, mips: u32, format: vk::Format) -> Result<(u64, u32)> {
-    let info = vk::ImageCreateInfo::default()
-        .image_type(vk::ImageType::TYPE_2D)
-        .format(format)
-        .extent(vk::Extent3D {
-            width: layer_size,
-            height: layer_size,
-            depth: 1,
-        })
-        .mip_levels(mips)
-        .array_layers(1)
-        .samples(vk::SampleCountFlags::TYPE_1)
-        .tiling(vk::ImageTiling::OPTIMAL)
-        .usage(CACHE_USAGE)
-        .sharing_mode(vk::SharingMode::EXCLUSIVE)
-        .initial_layout(vk::ImageLayout::UNDEFINED);
-    let query = vk::DeviceImageMemoryRequirements::default().create_info(&info);
-    let mut requirements = vk::MemoryRequirements2::default();
-    // SAFETY: a Vulkan 1.3 query on a live device with a valid create info.
-    unsafe {
-        device
-            .raw()
-            .get_device_image_memory_requirements(&query, &mut requirements)
+    let bytes_for = |layers: u32| {
+        let info = vk::ImageCreateInfo::default()
+            .image_type(vk::ImageType::TYPE_2D)
+            .format(format)
+            .extent(vk::Extent3D {
+                width: layer_size,
+                height: layer_size,
+                depth: 1,
+            })
+            .mip_levels(mips)
+            .array_layers(layers)
+            .samples(vk::SampleCountFlags::TYPE_1)
+            .tiling(vk::ImageTiling::OPTIMAL)
+            .usage(CACHE_USAGE)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE)
+            .initial_layout(vk::ImageLayout::UNDEFINED);
+        let query = vk::DeviceImageMemoryRequirements::default().create_info(&info);
+        let mut requirements = vk::MemoryRequirements2::default();
+        // SAFETY: a Vulkan 1.3 query on a live device with a valid create info.
+        unsafe {
+            device
+                .raw()
+                .get_device_image_memory_requirements(&query, &mut requirements)
+        };
+        requirements.memory_requirements.size
     };
-    let layer_bytes = requirements.memory_requirements.size;
+    let one = bytes_for(1);
+    let layer_bytes = one.max(bytes_for(2).saturating_sub(one));
     // SAFETY: physical belongs to the device's instance.
     let properties = unsafe {
         device.instance_fns().get_physical_device_image_format_properties(
@@ -902,14 +935,29 @@ fn array_layer_cost(device: &Arc<Device>, layer_size: u32, mips: u32, format: vk
         device: device.name().to_owned(),
         feature: format!("sampled {layer_size}x{layer_size} array images of {format:?}"),
     })?;
-    if layer_bytes == 0 || properties.max_mip_levels < mips || properties.max_extent.width < layer_size {
+    let largest = properties.max_resource_size.min(device.max_memory_allocation_bytes());
+    if layer_bytes == 0
+        || properties.max_mip_levels < mips
+        || properties.max_extent.width < layer_size
+        || layer_bytes > largest
+    {
         return Err(EngineError::MissingFeature {
             device: device.name().to_owned(),
-            feature: format!("{layer_size}x{layer_size} array images of {format:?} with {mips} levels"),
+            feature: format!(
+                "{layer_size}x{layer_size} array images of {format:?} with {mips} levels ({layer_bytes} bytes a layer)"
+            ),
         });
     }
-    let by_size = u32::try_from(properties.max_resource_size / layer_bytes).unwrap_or(u32::MAX);
+    let by_size = u32::try_from(largest / layer_bytes).unwrap_or(u32::MAX);
     Ok((layer_bytes, properties.max_array_layers.min(by_size).max(1)))
+}
+
+impl Drop for GpuTextureCache {
+    fn drop(&mut self) {
+        // The images, the table and the staging may still be read by submitted
+        // frames; a device lost leaves nothing better to do than free them anyway.
+        let _ = self.device.wait_idle();
+    }
 }
 
 /// Creates a one-layer sparse image of `format` and reads its block size

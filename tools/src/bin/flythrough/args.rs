@@ -291,9 +291,9 @@ pub(crate) struct Args {
     #[arg(long, value_enum, default_value_t = ControllerLatency::Work)]
     pub(crate) controller_latency: ControllerLatency,
     /// Memory budget of the texture cache in MB (bound sparse blocks, or texture-array
-    /// layers), or `unlimited`. Default: 512; with --strategy texture-arrays, what the
-    /// device holds, the whole city loaded before the first frame where it fits (a budget
-    /// given makes that strategy stream within it).
+    /// layers), or `unlimited`. Default: 512; with --strategy texture-arrays, unlimited:
+    /// the whole city is loaded before the first frame where the device holds it (a budget
+    /// in MB makes that strategy stream within it).
     #[arg(long = "memory-budget-mb", value_parser = parse_budget_mb)]
     pub(crate) memory_budget_mb_given: Option<BudgetMb>,
     /// How the cache frees memory at the budget: `view` (drop the levels the

@@ -727,7 +727,8 @@ impl Flight {
             None => None,
         };
         let preload = match args.strategy {
-            Strategy::TextureArrays if args.memory_budget_mb_given.is_none() => preload_city(&mut gpu, commands)?,
+            // No budget (none given, or `unlimited`): the city loads whole where it fits.
+            Strategy::TextureArrays if args.memory_budget_mb().0.is_none() => preload_city(&mut gpu, commands)?,
             Strategy::TextureArrays => {
                 eprintln!("texture arrays: streaming within the memory budget given");
                 None
@@ -764,6 +765,12 @@ impl Flight {
             warned_over_budget: false,
             warned_failure: false,
         })
+    }
+
+    /// Whether frames record the feedback pass: not for the atlas tree, nor for a city
+    /// loaded whole into texture arrays.
+    pub(crate) fn has_feedback(&self) -> bool {
+        self.tree.is_none() && self.preload.is_none()
     }
 
     /// The city's meshes in the engine's layout.
@@ -813,8 +820,9 @@ impl Flight {
             run.layer.record_uploads(rec, slot)?;
         }
         passes.end(rec, slot, 0);
-        // The atlas tree has no feedback: its two passes stay empty (0 ms).
-        let feedback_pass = self.tree.is_none() && settings.feedback;
+        // The atlas tree has no feedback, nor has a city loaded whole into texture arrays
+        // (nothing is left to load): their two passes stay empty (0 ms).
+        let feedback_pass = self.tree.is_none() && self.preload.is_none() && settings.feedback;
         let CityTargets {
             target,
             feedback_target,

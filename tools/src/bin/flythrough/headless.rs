@@ -189,9 +189,10 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
                 // The reference loads what the loader serves (entries
                 // reaching τ); lighter ones are read back for eviction only.
-                let entries: Vec<FeedbackEntry> = match flight.tree {
-                    Some(_) => reference_feedback(reference, &mut commands, &flight.targets, &camera, args.height)?,
-                    None => feedback_reaching(&flight.gpu.streamer, recorded.index, tau)?,
+                let entries: Vec<FeedbackEntry> = if flight.has_feedback() {
+                    feedback_reaching(&flight.gpu.streamer, recorded.index, tau)?
+                } else {
+                    reference_feedback(reference, &mut commands, &flight.targets, &camera, args.height)?
                 };
                 reference_incomplete += load_reference(reference, &mut commands, &entries, flight.meshes())?;
                 let cmd = commands.begin()?;
