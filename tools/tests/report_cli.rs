@@ -671,19 +671,21 @@ fn bench_stops_at_a_failing_run() -> TestResult {
     Ok(())
 }
 
+/// `citystream bench --scenario SCENARIO --budget-mb 8` on an empty dataset directory in
+/// scratch `name`, with the fake flythrough: the dataset, the output directory, what the
+/// bench printed on standard error (it must succeed) and the flythrough lines it ran.
 #[cfg(unix)]
-#[test]
-fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() -> TestResult {
-    let dir = scratch("bench-pressure");
+fn fake_bench(name: &str, scenario: &str) -> (String, String, String, Vec<String>) {
+    let dir = scratch(name);
     let (script, log) = fake_flythrough(&dir, "none");
     let dataset = dir.join("city");
-    std::fs::create_dir_all(&dataset)?;
+    std::fs::create_dir_all(&dataset).expect("creating the dataset directory");
     let out = dir.join("out");
     let (d, o) = (dataset.display().to_string(), out.display().to_string());
     let result = citystream(&[
         "bench",
         "--scenario",
-        "pressure",
+        scenario,
         "--dataset",
         &d,
         "--out",
@@ -693,10 +695,17 @@ fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() 
         "--flythrough",
         &script.display().to_string(),
     ]);
-    let stderr = String::from_utf8_lossy(&result.stderr);
+    let stderr = String::from_utf8_lossy(&result.stderr).into_owned();
     assert!(result.status.success(), "bench failed: {stderr}");
-    let logged = std::fs::read_to_string(&log)?;
-    let lines: Vec<&str> = logged.lines().collect();
+    let logged = std::fs::read_to_string(&log).expect("the fake flythrough's log");
+    (d, o, stderr, logged.lines().map(str::to_owned).collect())
+}
+
+#[cfg(unix)]
+#[test]
+fn pressure_bench_runs_the_policies_under_the_budget_then_ring_and_unbudgeted() -> TestResult {
+    let (d, o, _, lines) = fake_bench("bench-pressure", "pressure");
+    let out = Path::new(&o);
     let shared = "--psnr-interval 60 --frame-interval 0";
     // 30 s of the path at 1080p, the camera moving with the modelled latency.
     let tail = |name: &str| {
@@ -987,30 +996,9 @@ fn loader_bench_reads_the_same_mips_as_raw_reads() -> TestResult {
 #[cfg(unix)]
 #[test]
 fn strategies_bench_runs_texture_arrays_resident_and_streamed() -> TestResult {
-    let dir = scratch("bench-strategies");
-    let (script, log) = fake_flythrough(&dir, "none");
-    let dataset = dir.join("city");
-    std::fs::create_dir_all(&dataset)?;
-    let out = dir.join("out");
-    let (d, o) = (dataset.display().to_string(), out.display().to_string());
-    let result = citystream(&[
-        "bench",
-        "--scenario",
-        "strategies",
-        "--dataset",
-        &d,
-        "--out",
-        &o,
-        "--budget-mb",
-        "8",
-        "--flythrough",
-        &script.display().to_string(),
-    ]);
-    let stderr = String::from_utf8_lossy(&result.stderr);
-    assert!(result.status.success(), "bench failed: {stderr}");
+    let (d, o, stderr, lines) = fake_bench("bench-strategies", "strategies");
+    let out = Path::new(&o);
     assert!(stderr.contains("no atlas-tree run"), "{stderr}");
-    let logged = std::fs::read_to_string(&log)?;
-    let lines: Vec<&str> = logged.lines().collect();
     let shared = format!("--dataset {d} --policy adaptive --alpha 16 --psnr-interval 30 --frame-interval 0");
     let tail = |name: &str| format!("--clock modelled --bind-latency desktop --out {o}/{name}");
     let expected = [

@@ -676,6 +676,17 @@ fn image_layouts(layer_counts: &[Vec<u32>]) -> Vec<(usize, usize, u32)> {
         .collect()
 }
 
+/// A cache image of `layers` square layers of `config`'s size with `mips` levels.
+fn image_desc(config: &GpuCacheConfig, layers: u32, mips: u32, format: vk::Format) -> SparseImageDesc {
+    SparseImageDesc {
+        width: config.layer_size,
+        height: config.layer_size,
+        layers,
+        mips,
+        format,
+    }
+}
+
 /// Each image's format and each format's images, for `layouts`.
 fn format_indices(layouts: &[(usize, usize, u32)]) -> (Vec<usize>, Vec<Vec<u32>>) {
     let mut format_images = vec![Vec::new(); CACHE_FORMATS.len()];
@@ -709,13 +720,7 @@ fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], 
         let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
         let image = SparseImage::new(
             device,
-            SparseImageDesc {
-                width: config.layer_size,
-                height: config.layer_size,
-                layers,
-                mips,
-                format: vk_format,
-            },
+            image_desc(config, layers, mips, vk_format),
             &format!("cache {} #{nth}", texel_format.name),
         )?;
         if image.mip_tail_first_lod() < mips {
@@ -840,13 +845,7 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
             layer_count: layers,
         });
         descs.push((
-            SparseImageDesc {
-                width: config.layer_size,
-                height: config.layer_size,
-                layers,
-                mips,
-                format: vk_format,
-            },
+            image_desc(config, layers, mips, vk_format),
             format!("cache {} array #{nth}", texel_format.name),
         ));
     }
