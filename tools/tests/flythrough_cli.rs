@@ -66,6 +66,8 @@ fn bad_arguments_are_refused_clearly() {
         ("--display-period-ms", "2000"),
         ("--display-period-ms", "NaN"),
         ("--controller-latency", "vsync"),
+        ("--sparse", "maybe"),
+        ("--strategy", "arrays"),
     ] {
         let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
             .args([option, value])
@@ -105,6 +107,14 @@ fn bad_arguments_are_refused_clearly() {
         stderr.contains("--controller-latency period needs a display"),
         "{stderr}"
     );
+    // Texture arrays are the path without sparse residency.
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--strategy", "texture-arrays", "--sparse", "on"])
+        .output()
+        .expect("flythrough runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("leave out --sparse on"), "{stderr}");
 }
 
 /// Writes a small dataset: a ground quad and a ring of facade quads, each

@@ -197,7 +197,8 @@ impl Culling {
                   frame as PNG plus summary.json.\n\n\
                   It runs the adaptive streaming pipeline on a city dataset: a feedback pass tells \
                   which mip each visible mesh needs, a loading task reads exactly those mips, \
-                  the sparse texture cache binds memory and copies them, and the frame blends \
+                  the sparse texture cache binds memory and copies them (texture arrays on a \
+                  device without sparse residency, --sparse), and the frame blends \
                   sampled colour with the City Colormap by mip level. Without --dataset it \
                   streams the default city (data/city, created on first run); with \
                   --placeholder it renders a small procedural city, fully resident."
