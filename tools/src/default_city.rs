@@ -119,7 +119,10 @@ pub fn build_then_move(dir: &Path, build: impl FnOnce(&Path) -> Result<()>) -> R
     if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
     }
-    let partial = dir.with_file_name(format!(".{name}.partial-{}", std::process::id()));
+    // Private to this call: threads of one process (a test binary's tests) build at once too.
+    static BUILDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let build_index = BUILDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let partial = dir.with_file_name(format!(".{name}.partial-{}-{build_index}", std::process::id()));
     let _ = std::fs::remove_dir_all(&partial);
     if let Err(e) = build(&partial) {
         let _ = std::fs::remove_dir_all(&partial);
@@ -189,6 +192,35 @@ mod tests {
 
         build_then_move(&dir, empty_dataset).expect("moved");
         assert!(is_dataset(&dir));
+        let _ = std::fs::remove_dir_all(&root);
+    }
+
+    /// Tests of one binary create the default city from several threads of one process at
+    /// once: each builds in its own directory, one moves its dataset into place, and the
+    /// others keep it (they once shared a directory named after the process and failed).
+    #[test]
+    fn threads_of_one_process_building_at_once_all_succeed() {
+        let root = scratch("threads");
+        let dir = root.join("city");
+        let slow_dataset = |partial: &Path| {
+            empty_dataset(partial)?;
+            std::thread::sleep(std::time::Duration::from_millis(50));
+            Ok(())
+        };
+        std::thread::scope(|scope| {
+            let builds: Vec<_> = (0..4)
+                .map(|_| scope.spawn(|| build_then_move(&dir, slow_dataset)))
+                .collect();
+            for build in builds {
+                build.join().expect("thread").expect("built or kept");
+            }
+        });
+        assert!(is_dataset(&dir));
+        assert_eq!(
+            std::fs::read_dir(&root).expect("root").count(),
+            1,
+            "no partial directory left"
+        );
         let _ = std::fs::remove_dir_all(&root);
     }
 
