@@ -204,6 +204,19 @@ pub struct ImageDemand {
     pub layer_virtual_bytes: u64,
 }
 
+/// Layers of `layer_size`² that place every texture of `extents`
+/// (`(extent, textures)`) at once: each extent packs `(layer_size / extent)²`
+/// textures per layer (an extent above the layer takes a layer).
+pub fn layers_to_place(layer_size: u32, extents: &[(u32, u64)]) -> u64 {
+    extents
+        .iter()
+        .map(|&(extent, textures)| {
+            let per_row = u64::from(layer_size / extent.clamp(1, layer_size.max(1)));
+            textures.div_ceil((per_row * per_row).max(1))
+        })
+        .fold(0, u64::saturating_add)
+}
+
 /// The layers of each cache image, per format (one list per demand, one
 /// count per image), derived from what each format must hold and what the
 /// budget and the device allow, instead of a fixed count:
@@ -232,17 +245,7 @@ pub fn derive_image_layers(
     let max_layers = u64::from(max_layers.max(1));
     let mut wanted: Vec<u64> = demands
         .iter()
-        .map(|demand| {
-            let needed: u64 = demand
-                .extents
-                .iter()
-                .map(|&(extent, textures)| {
-                    let per_row = u64::from(layer_size / extent.clamp(1, layer_size.max(1)));
-                    textures.div_ceil((per_row * per_row).max(1))
-                })
-                .fold(0, u64::saturating_add);
-            needed.min(budget_blocks).max(1)
-        })
+        .map(|demand| layers_to_place(layer_size, &demand.extents).min(budget_blocks).max(1))
         .collect();
     // Images per format, then the slots shared out: the format with the
     // most images gives one up until they fit.

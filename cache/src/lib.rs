@@ -50,7 +50,9 @@ pub use cache::{
     BudgetUse, CacheStats, CycleBatch, EvictedLayer, EvictionReason, ImageId, MipUpload, Placement, TextureCache,
     Utilisation,
 };
-pub use config::{derive_image_layers, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MAX_LAYER_SIZE};
+pub use config::{
+    derive_image_layers, layers_to_place, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MAX_LAYER_SIZE,
+};
 pub use error::{CacheError, ConfigError};
 pub use estimate::{estimate_utilisation, UtilisationEstimate};
 pub use format::{DeviceLimits, Granularity, GranularityUnit, TexelFormat};

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use citystream_dataset::TextureFormat;
-use citystream_engine::device::SparseMode;
+use citystream_engine::device::{SparseMode, TextureBacking};
 use citystream_engine::instance::InstanceOptions;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig};
@@ -47,12 +47,11 @@ pub fn sync_validated_device() -> Result<Arc<Device>> {
 /// ([`SparseMode::Off`]): no sparse feature enabled, even where the device
 /// has them.
 pub fn validated_array_device() -> Result<Arc<Device>> {
-    device_with_mode(false, SparseMode::Off)
-}
-
-/// As [`sync_validated_device`], set up for the texture-array cache.
-pub fn sync_validated_array_device() -> Result<Arc<Device>> {
-    device_with_mode(true, SparseMode::Off)
+    let device = device_with_mode(false, SparseMode::Off)?;
+    if device.texture_backing() != TextureBacking::Arrays {
+        bail!("asked for texture arrays, got {:?}", device.texture_backing());
+    }
+    Ok(device)
 }
 
 /// The sparse cache's tests ask for it: on a device without sparse residency

@@ -155,9 +155,7 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction() -> Re
 /// With texture arrays (no sparse residency) the cache reads back the same.
 #[test]
 fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_with_texture_arrays() -> Result<()> {
-    let device = validated_array_device()?;
-    ensure!(device.texture_backing() == TextureBacking::Arrays);
-    cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(device)
+    cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(validated_array_device()?)
 }
 
 fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(device: Arc<Device>) -> Result<()> {
@@ -369,9 +367,7 @@ fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours() -> Result<
 /// With texture arrays (no sparse residency) the cache reads back the same.
 #[test]
 fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_with_texture_arrays() -> Result<()> {
-    let device = validated_array_device()?;
-    ensure!(device.texture_backing() == TextureBacking::Arrays);
-    filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(device)
+    filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(validated_array_device()?)
 }
 
 fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(device: Arc<Device>) -> Result<()> {
@@ -705,9 +701,7 @@ fn bc3_and_bc7_textures_are_cached_and_sampled() -> Result<()> {
 /// With texture arrays (no sparse residency) the cache reads back the same.
 #[test]
 fn bc3_and_bc7_textures_are_cached_and_sampled_with_texture_arrays() -> Result<()> {
-    let device = validated_array_device()?;
-    ensure!(device.texture_backing() == TextureBacking::Arrays);
-    bc3_and_bc7_textures_are_cached_and_sampled_on(device)
+    bc3_and_bc7_textures_are_cached_and_sampled_on(validated_array_device()?)
 }
 
 fn bc3_and_bc7_textures_are_cached_and_sampled_on(device: Arc<Device>) -> Result<()> {

@@ -3,7 +3,7 @@
 //! limits. Pure: the sparse block size and layer footprint come in as
 //! [`LayerProbe`]s, which the caller measures on the device.
 
-use citystream_cache::{derive_image_layers, ImageDemand};
+use citystream_cache::{derive_image_layers, layers_to_place, ImageDemand};
 
 use super::{CacheLayers, GpuCacheConfig, CACHE_FORMATS};
 use crate::error::{EngineError, Result};
@@ -42,14 +42,7 @@ pub(super) fn holds_every_texture(config: &GpuCacheConfig, layer_counts: &[Vec<u
         return false;
     };
     extents.iter().zip(layer_counts).all(|(extents, counts)| {
-        let needed: u64 = extents
-            .iter()
-            .map(|&(extent, textures)| {
-                let per_row = u64::from(config.layer_size / extent.clamp(1, config.layer_size.max(1)));
-                textures.div_ceil((per_row * per_row).max(1))
-            })
-            .fold(0, u64::saturating_add);
-        counts.iter().map(|&layers| u64::from(layers)).sum::<u64>() >= needed
+        counts.iter().map(|&layers| u64::from(layers)).sum::<u64>() >= layers_to_place(config.layer_size, extents)
     })
 }
 

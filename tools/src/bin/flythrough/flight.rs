@@ -812,6 +812,7 @@ impl Flight {
         };
         self.pass_times.collect(slot, &self.gpu.renderer)?;
         self.gpu.renderer.set_cull_slot(slot)?;
+        let feedback_pass = self.has_feedback() && settings.feedback;
         let rec = self.frame_commands[slot as usize].begin_completed()?;
         let passes = &mut self.pass_times;
         passes.begin(rec, slot, 0);
@@ -820,9 +821,7 @@ impl Flight {
             run.layer.record_uploads(rec, slot)?;
         }
         passes.end(rec, slot, 0);
-        // The atlas tree has no feedback, nor has a city loaded whole into texture arrays
-        // (nothing is left to load): their two passes stay empty (0 ms).
-        let feedback_pass = self.tree.is_none() && self.preload.is_none() && settings.feedback;
+        // Without feedback (`has_feedback`) the two passes stay empty (0 ms).
         let CityTargets {
             target,
             feedback_target,
