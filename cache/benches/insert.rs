@@ -14,6 +14,7 @@ fn config() -> CacheConfig {
             granularity: Granularity::texels(128, 128),
             layer_size: 4096,
             layer_count: 64,
+            mip_tail: None,
         }],
         limits: DeviceLimits::lavapipe_reference(),
         memory_budget_bytes: 1 << 30,

@@ -13,6 +13,7 @@
 use std::collections::HashMap;
 
 use crate::binder::{BindOp, BlockKey, MemorySlot};
+use crate::config::MipTail;
 
 /// The block grid of one sparse image: its layers and, per level, how many
 /// blocks wide and high the level is.
@@ -20,8 +21,11 @@ use crate::binder::{BindOp, BlockKey, MemorySlot};
 pub struct ImageShape {
     /// Array layers.
     pub layers: u32,
-    /// Per mip level, (columns, rows) of sparse blocks.
+    /// Per mip level above the tail, (columns, rows) of sparse blocks.
     pub level_blocks: Vec<(u32, u32)>,
+    /// The mip tail: its levels are bound only as a whole, through the
+    /// tail's blocks ([`BlockKey::tail`]).
+    pub mip_tail: Option<MipTail>,
 }
 
 /// Something the engine was about to ask of the driver that is not legal or
@@ -70,9 +74,34 @@ pub enum BindViolation {
     /// A copy into a block that is not bound.
     #[error("a copy writes {}, which is not bound", describe(block))]
     CopyIntoUnbound { block: BlockKey },
+    /// A per-block bind or unbind of a level that lies in the mip tail.
+    #[error(
+        "{} lies in the mip tail (levels from {first_level} on), which is bound as a whole, not per block",
+        describe(block)
+    )]
+    BlockInTail { block: BlockKey, first_level: u32 },
+    /// A tail block bound again without an unbind.
+    #[error(
+        "the mip tail of image {} layer {} (its block {}) is bound already and was bound again",
+        block.image, block.layer, block.x
+    )]
+    TailBoundTwice { block: BlockKey },
+    /// A copy into a tail level whose tail is not (wholly) bound.
+    #[error(
+        "a copy writes image {image} layer {layer} level {level}, in the mip tail, whose block {index} is not bound"
+    )]
+    CopyIntoUnboundTail {
+        image: u32,
+        layer: u32,
+        level: u32,
+        index: u32,
+    },
 }
 
 fn describe(block: &BlockKey) -> String {
+    if block.is_tail() {
+        return format!("image {} layer {} mip tail block {}", block.image, block.layer, block.x);
+    }
     format!(
         "image {} layer {} level {} block ({}, {})",
         block.image, block.layer, block.mip, block.x, block.y
@@ -148,6 +177,9 @@ impl BindChecker {
         match *op {
             BindOp::Bind { memory, .. } => {
                 if let Some(held) = held {
+                    if block.is_tail() {
+                        return Err(BindViolation::TailBoundTwice { block });
+                    }
                     return Err(BindViolation::DoubleBind { block, held, memory });
                 }
                 self.check_memory(block, memory)?;
@@ -187,6 +219,24 @@ impl BindChecker {
         };
         if block.layer >= shape.layers {
             return outside(format!("{} layers", shape.layers));
+        }
+        if block.is_tail() {
+            let Some(tail) = shape.mip_tail else {
+                return outside("the image has no mip tail".into());
+            };
+            if tail.single && block.layer != 0 {
+                return outside("its single mip tail is bound as layer 0".into());
+            }
+            if block.x >= tail.blocks || block.y != 0 {
+                return outside(format!("the tail is {} blocks", tail.blocks));
+            }
+            return Ok(());
+        }
+        if let Some(tail) = shape.mip_tail.filter(|tail| block.mip >= tail.first_level) {
+            return Err(BindViolation::BlockInTail {
+                block,
+                first_level: tail.first_level,
+            });
         }
         let Some(&(columns, rows)) = shape.level_blocks.get(block.mip as usize) else {
             return outside(format!("{} levels", shape.level_blocks.len()));
@@ -249,6 +299,24 @@ impl BindChecker {
         columns: std::ops::Range<u32>,
         rows: std::ops::Range<u32>,
     ) -> Result<(), BindViolation> {
+        let shape = self.images.get(image as usize);
+        if let Some(tail) = shape.and_then(|s| s.mip_tail).filter(|tail| level >= tail.first_level) {
+            let tail_layer = if tail.single { 0 } else { layer };
+            if layer >= shape.map_or(0, |s| s.layers) {
+                return self.check_inside(BlockKey::tail(image, layer, 0));
+            }
+            for index in 0..tail.blocks {
+                if !self.bound.contains_key(&BlockKey::tail(image, tail_layer, index)) {
+                    return Err(BindViolation::CopyIntoUnboundTail {
+                        image,
+                        layer,
+                        level,
+                        index,
+                    });
+                }
+            }
+            return Ok(());
+        }
         for y in rows {
             for x in columns.clone() {
                 let block = BlockKey {
@@ -280,6 +348,7 @@ mod tests {
         checker.add_image(ImageShape {
             layers: 2,
             level_blocks: vec![(4, 4), (2, 2), (1, 1)],
+            mip_tail: None,
         });
         checker.add_chunk(4 * BLOCK);
         checker
@@ -438,5 +507,128 @@ mod tests {
                 block: block(0, 0, 0, 1)
             }
         );
+    }
+
+    /// One image of 3 layers: levels 0 and 1 in blocks (2x2, 1x1), levels
+    /// from 2 on in a tail of two blocks, per layer or single.
+    fn tail_checker(single: bool) -> BindChecker {
+        let mut checker = BindChecker::new(BLOCK);
+        checker.add_image(ImageShape {
+            layers: 3,
+            level_blocks: vec![(2, 2), (1, 1)],
+            mip_tail: Some(MipTail {
+                first_level: 2,
+                blocks: 2,
+                single,
+            }),
+        });
+        checker.add_chunk(8 * BLOCK);
+        checker
+    }
+
+    #[test]
+    fn a_per_block_bind_into_a_tail_level_is_refused_naming_it() {
+        let mut checker = tail_checker(false);
+        for level in [2, 5] {
+            let error = checker
+                .check_batch(&[bind(block(1, level, 0, 0), 0)])
+                .expect_err("tail levels are not bound per block");
+            assert_eq!(
+                error,
+                BindViolation::BlockInTail {
+                    block: block(1, level, 0, 0),
+                    first_level: 2
+                }
+            );
+            assert!(
+                error
+                    .to_string()
+                    .contains(&format!("image 0 layer 1 level {level} block (0, 0)")),
+                "{error}"
+            );
+            let unbind = checker.check_batch(&[BindOp::Unbind {
+                block: block(1, level, 0, 0),
+            }]);
+            assert!(matches!(unbind, Err(BindViolation::BlockInTail { .. })), "{unbind:?}");
+        }
+        // Levels above the tail still bind per block.
+        checker
+            .check_batch(&[bind(block(1, 1, 0, 0), 0)])
+            .expect("level 1 is a block");
+        assert_eq!(checker.bound_blocks(), 1);
+    }
+
+    #[test]
+    fn a_tail_bound_twice_is_refused_and_unbinding_it_allows_a_rebind() {
+        let mut checker = tail_checker(false);
+        let tail = |layer, index| BlockKey::tail(0, layer, index);
+        checker
+            .check_batch(&[bind(tail(2, 0), 0), bind(tail(2, 1), 1)])
+            .expect("layer 2's tail");
+        let error = checker
+            .check_batch(&[bind(tail(2, 1), 2)])
+            .expect_err("the tail is bound already");
+        assert_eq!(error, BindViolation::TailBoundTwice { block: tail(2, 1) });
+        assert!(error.to_string().contains("mip tail of image 0 layer 2"), "{error}");
+        // Another layer's tail is its own.
+        checker.check_batch(&[bind(tail(0, 0), 2)]).expect("layer 0's tail");
+        checker
+            .check_batch(&[BindOp::Unbind { block: tail(2, 1) }, bind(tail(2, 1), 3)])
+            .expect("rebound after its unbind");
+        // Blocks past the tail, or a tail of a layer that does not exist.
+        for outside in [tail(0, 2), tail(3, 0), BlockKey { y: 1, ..tail(0, 1) }] {
+            let refused = checker.check_batch(&[bind(outside, 4)]);
+            assert!(
+                matches!(refused, Err(BindViolation::OutsideImage { .. })),
+                "{refused:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_copy_into_a_tail_level_needs_the_whole_tail_bound() {
+        let mut checker = tail_checker(false);
+        checker
+            .check_batch(&[bind(BlockKey::tail(0, 1, 0), 0)])
+            .expect("half the tail");
+        let error = checker.check_copy(0, 1, 3, 0..1, 0..1).expect_err("block 1 unbound");
+        assert_eq!(
+            error,
+            BindViolation::CopyIntoUnboundTail {
+                image: 0,
+                layer: 1,
+                level: 3,
+                index: 1
+            }
+        );
+        assert!(error.to_string().contains("image 0 layer 1 level 3"), "{error}");
+        checker
+            .check_batch(&[bind(BlockKey::tail(0, 1, 1), 1)])
+            .expect("the rest of it");
+        checker.check_copy(0, 1, 3, 0..1, 0..1).expect("bound");
+        assert!(
+            checker.check_copy(0, 0, 2, 0..1, 0..1).is_err(),
+            "layer 0's tail is not bound"
+        );
+    }
+
+    #[test]
+    fn a_single_tail_is_bound_once_as_layer_0_and_serves_every_layer() {
+        let mut checker = tail_checker(true);
+        let refused = checker.check_batch(&[bind(BlockKey::tail(0, 1, 0), 0)]);
+        assert!(
+            matches!(refused, Err(BindViolation::OutsideImage { .. })),
+            "{refused:?}"
+        );
+        checker
+            .check_batch(&[bind(BlockKey::tail(0, 0, 0), 0), bind(BlockKey::tail(0, 0, 1), 1)])
+            .expect("the single tail");
+        for layer in 0..3 {
+            checker
+                .check_copy(0, layer, 2, 0..1, 0..1)
+                .expect("every layer's tail levels");
+        }
+        let twice = checker.check_batch(&[bind(BlockKey::tail(0, 0, 0), 2)]);
+        assert!(matches!(twice, Err(BindViolation::TailBoundTwice { .. })), "{twice:?}");
     }
 }

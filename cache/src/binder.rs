@@ -6,7 +6,9 @@
 //! in `streaming/` wrapping either) carries the batch out.
 
 /// One sparse block of one cached sparse image, in block-grid coordinates of
-/// a mip level of an array layer.
+/// a mip level of an array layer; or, with `mip` = [`BlockKey::TAIL_LEVEL`],
+/// block `x` of a layer's mip tail (`y` 0; layer 0 for a single tail), which
+/// a binder binds opaquely at the tail's offset.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct BlockKey {
     /// Which cached sparse image (one per texture format in use).
@@ -19,6 +21,27 @@ pub struct BlockKey {
     pub x: u32,
     /// Block row within the level (in units of the sparse granularity).
     pub y: u32,
+}
+
+impl BlockKey {
+    /// The `mip` of a key that stands for a block of a mip tail.
+    pub const TAIL_LEVEL: u32 = u32::MAX;
+
+    /// Block `index` of the mip tail of `layer` of `image`.
+    pub fn tail(image: u32, layer: u32, index: u32) -> Self {
+        BlockKey {
+            image,
+            layer,
+            mip: Self::TAIL_LEVEL,
+            x: index,
+            y: 0,
+        }
+    }
+
+    /// Whether this key is a block of a mip tail.
+    pub fn is_tail(&self) -> bool {
+        self.mip == Self::TAIL_LEVEL
+    }
 }
 
 /// Where a block's backing memory lives: a chunk of the block pool and a

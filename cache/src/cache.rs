@@ -177,6 +177,11 @@ pub struct Utilisation {
     pub parked_blocks: u64,
     /// Bytes of those blocks.
     pub parked_bytes: u64,
+    /// Blocks of mip tails held: of live layers, parked, and single tails
+    /// (these count in `bound_blocks` too: they are bound for good).
+    pub tail_blocks: u64,
+    /// Bytes of those blocks.
+    pub tail_bytes: u64,
 }
 
 impl Utilisation {
@@ -341,10 +346,17 @@ struct Shared {
     /// ([`CacheError::MemoryPending`]): the next batch unbinds that many
     /// parked blocks.
     memory_shortfall: u64,
+    /// Parked blocks a mip that met [`CacheError::MemoryPending`] takes back
+    /// when it is staged again: the next batch does not unbind them to make
+    /// room (that would leave the retry short again).
+    wanted_back: std::collections::HashSet<BlockKey>,
     invalidated: Vec<Placement>,
     evicted: Vec<EvictedLayer>,
     new_chunks: Vec<ChunkInfo>,
     stats: CacheStats,
+    /// Blocks of the images' single mip tails and their memory, bound for
+    /// good (counted in `live_blocks`).
+    single_tails: Vec<(BlockKey, MemorySlot)>,
 }
 
 /// The sparse-image texture cache: packing, block accounting, memory
@@ -390,7 +402,7 @@ impl TextureCache {
             })
             .collect();
         let budget_blocks = config.budget_blocks();
-        let shared = Shared {
+        let mut shared = Shared {
             live: images.iter().map(|_| VecDeque::new()).collect(),
             next_age: 0,
             pool: BlockPool::new(config.limits.sparse_block_bytes, config.blocks_per_chunk, budget_blocks),
@@ -400,11 +412,32 @@ impl TextureCache {
             parked: HashMap::new(),
             next_park: 0,
             memory_shortfall: 0,
+            wanted_back: std::collections::HashSet::new(),
             invalidated: Vec::new(),
             evicted: Vec::new(),
             new_chunks: Vec::new(),
             stats: CacheStats::default(),
+            single_tails: Vec::new(),
         };
+        // Single tails hold every layer's small levels at once: bound with
+        // the first batch, before any copy, and never released.
+        for image in &images {
+            for index in 0..image.desc.single_tail_blocks() as u32 {
+                let shared = &mut shared;
+                let memory = shared
+                    .pool
+                    .allocate(&mut shared.new_chunks)
+                    .ok_or(ConfigError::TailsOverBudget {
+                        tail_bytes: image.desc.tail_bytes(),
+                        budget_bytes: config.memory_budget_bytes,
+                    })?;
+                let key = BlockKey::tail(image.desc.image, 0, index);
+                shared.pending_binds.insert(key, memory);
+                shared.live_blocks += 1;
+                shared.single_tails.push((key, memory));
+            }
+        }
+        shared.stats.chunks = shared.pool.chunk_count();
         Ok(TextureCache {
             images,
             shared: Mutex::new(shared),
@@ -779,16 +812,14 @@ impl TextureCache {
     pub fn blocks_for_mip(&self, placement: &Placement, mip: u32) -> Result<Vec<BlockKey>, CacheError> {
         let state = self.image(placement.image)?;
         let rect = placement.mip_rect(mip)?;
-        let (x0, y0, x1, y1) = rect.block_range(&state.desc.granularity);
-        Ok((y0..y1)
-            .flat_map(|y| {
-                (x0..x1).map(move |x| BlockKey {
-                    image: placement.image,
-                    layer: placement.layer,
-                    mip,
-                    x,
-                    y,
-                })
+        Ok(rect_blocks(&state.desc, &rect)
+            .into_iter()
+            .map(|(mip, x, y)| BlockKey {
+                image: placement.image,
+                layer: placement.layer,
+                mip,
+                x,
+                y,
             })
             .collect())
     }
@@ -825,7 +856,7 @@ impl TextureCache {
             .layers
             .get(placement.layer as usize)
             .ok_or_else(|| invalidated(placement))?;
-        let (x0, y0, x1, y1) = rect.block_range(&desc.granularity);
+        let touched = rect_blocks(desc, &rect);
         let mut shared = lock(&self.shared);
         loop {
             let mut layer = lock(layer_mutex);
@@ -837,10 +868,10 @@ impl TextureCache {
             {
                 return Err(invalidated(placement));
             }
-            let needed: Vec<BlockKey> = (y0..y1)
-                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
-                .filter(|&(x, y)| !layer.blocks.contains_key(&(mip, x, y)))
-                .map(|(x, y)| BlockKey {
+            let needed: Vec<BlockKey> = touched
+                .iter()
+                .filter(|&at| !layer.blocks.contains_key(at))
+                .map(|&(mip, x, y)| BlockKey {
                     image: placement.image,
                     layer: placement.layer,
                     mip,
@@ -854,6 +885,11 @@ impl TextureCache {
                 let fresh = needed_count - reclaimed;
                 if fresh > shared.pool.available() {
                     shared.memory_shortfall += fresh - shared.pool.available();
+                    let shared = &mut *shared;
+                    let parked = &shared.parked;
+                    shared
+                        .wanted_back
+                        .extend(needed.iter().filter(|key| parked.contains_key(key)));
                     return Err(CacheError::MemoryPending {
                         needed_blocks: fresh,
                         free_blocks: shared.pool.available(),
@@ -893,11 +929,9 @@ impl TextureCache {
                 }
                 if !already_staged {
                     layer.texture_bytes += bytes;
-                    for y in y0..y1 {
-                        for x in x0..x1 {
-                            if let Some(bound) = layer.blocks.get_mut(&(mip, x, y)) {
-                                bound.users += 1;
-                            }
+                    for at in &touched {
+                        if let Some(bound) = layer.blocks.get_mut(at) {
+                            bound.users += 1;
                         }
                     }
                 }
@@ -947,10 +981,16 @@ impl TextureCache {
         let mut shared = lock(&self.shared);
         let shared = &mut *shared;
         let wanted = std::mem::take(&mut shared.memory_shortfall).min(shared.parked.len() as u64) as usize;
+        let wanted_back = std::mem::take(&mut shared.wanted_back);
         // Most batches want none: the parked set is looked at only when some are.
         let mut unbinds: Vec<(BlockKey, MemorySlot)> = Vec::new();
         if wanted > 0 {
-            let mut oldest: Vec<(u64, BlockKey)> = shared.parked.iter().map(|(key, p)| (p.since, *key)).collect();
+            let mut oldest: Vec<(u64, BlockKey)> = shared
+                .parked
+                .iter()
+                .filter(|(key, _)| !wanted_back.contains(key))
+                .map(|(key, p)| (p.since, *key))
+                .collect();
             if wanted < oldest.len() {
                 oldest.select_nth_unstable(wanted);
                 oldest.truncate(wanted);
@@ -989,10 +1029,11 @@ impl TextureCache {
             .map(|bound| bound.memory)
     }
 
-    /// Every block bound for a live layer with its memory, in key order.
+    /// Every block bound for a live layer, and every block of a single mip
+    /// tail, with its memory, in key order.
     pub fn bound_blocks(&self) -> Vec<(BlockKey, MemorySlot)> {
-        let _shared = lock(&self.shared);
-        let mut all = Vec::new();
+        let shared = lock(&self.shared);
+        let mut all = shared.single_tails.clone();
         for state in &self.images {
             for (layer_index, layer) in state.layers.iter().enumerate() {
                 let layer = lock(layer);
@@ -1029,6 +1070,11 @@ impl TextureCache {
         let shared = lock(&self.shared);
         let mut report = Utilisation::default();
         for state in &self.images {
+            let single = state.desc.single_tail_blocks();
+            report.bound_blocks += single;
+            report.bound_bytes += single * state.desc.block_bytes;
+            report.tail_blocks += single;
+            report.tail_bytes += single * state.desc.block_bytes;
             for layer in &state.layers {
                 let layer = lock(layer);
                 if layer.assignment.is_some() {
@@ -1037,15 +1083,58 @@ impl TextureCache {
                     report.texture_bytes += layer.texture_bytes;
                     report.bound_blocks += layer.blocks.len() as u64;
                     report.bound_bytes += layer.blocks.len() as u64 * state.desc.block_bytes;
+                    let tail = layer
+                        .blocks
+                        .keys()
+                        .filter(|(mip, _, _)| *mip == BlockKey::TAIL_LEVEL)
+                        .count() as u64;
+                    report.tail_blocks += tail;
+                    report.tail_bytes += tail * state.desc.block_bytes;
                 }
             }
         }
         for key in shared.parked.keys() {
+            let block_bytes = self.images.get(key.image as usize).map_or(0, |s| s.desc.block_bytes);
             report.parked_blocks += 1;
-            report.parked_bytes += self.images.get(key.image as usize).map_or(0, |s| s.desc.block_bytes);
+            report.parked_bytes += block_bytes;
+            if key.is_tail() {
+                report.tail_blocks += 1;
+                report.tail_bytes += block_bytes;
+            }
         }
         drop(shared);
         report
+    }
+
+    /// Bytes of mip tails each image holds now (live, parked and single
+    /// tails), indexed by [`ImageId`].
+    pub fn tail_bytes_held(&self) -> Vec<u64> {
+        let shared = lock(&self.shared);
+        let mut held: Vec<u64> = self
+            .images
+            .iter()
+            .map(|state| state.desc.single_tail_blocks() * state.desc.block_bytes)
+            .collect();
+        for (state, bytes) in self.images.iter().zip(&mut held) {
+            for layer in &state.layers {
+                let layer = lock(layer);
+                if layer.assignment.is_some() {
+                    let tail = layer
+                        .blocks
+                        .keys()
+                        .filter(|(mip, _, _)| *mip == BlockKey::TAIL_LEVEL)
+                        .count() as u64;
+                    *bytes += tail * state.desc.block_bytes;
+                }
+            }
+        }
+        for key in shared.parked.keys().filter(|key| key.is_tail()) {
+            if let (Some(bytes), Some(state)) = (held.get_mut(key.image as usize), self.images.get(key.image as usize))
+            {
+                *bytes += state.desc.block_bytes;
+            }
+        }
+        held
     }
 
     /// Drops texture mip `mip` of `placement`: the mip is no longer staged,
@@ -1059,7 +1148,7 @@ impl TextureCache {
     pub fn drop_mip(&self, placement: &Placement, mip: u32) -> Result<u32, CacheError> {
         let state = self.image(placement.image)?;
         let rect = placement.mip_rect(mip)?;
-        let (x0, y0, x1, y1) = rect.block_range(&state.desc.granularity);
+        let touched = rect_blocks(&state.desc, &rect);
         let layer_mutex = state
             .layers
             .get(placement.layer as usize)
@@ -1083,25 +1172,23 @@ impl TextureCache {
         record.staged_mips &= !(1 << mip);
         layer.texture_bytes -= state.desc.format.image_bytes(rect.width, rect.height);
         let mut released = 0u32;
-        for y in y0..y1 {
-            for x in x0..x1 {
-                let Some(bound) = layer.blocks.get_mut(&(mip, x, y)) else {
-                    continue;
+        for &(mip, x, y) in &touched {
+            let Some(bound) = layer.blocks.get_mut(&(mip, x, y)) else {
+                continue;
+            };
+            bound.users = bound.users.saturating_sub(1);
+            if bound.users == 0 {
+                let memory = bound.memory;
+                layer.blocks.remove(&(mip, x, y));
+                let key = BlockKey {
+                    image: placement.image,
+                    layer: placement.layer,
+                    mip,
+                    x,
+                    y,
                 };
-                bound.users = bound.users.saturating_sub(1);
-                if bound.users == 0 {
-                    let memory = bound.memory;
-                    layer.blocks.remove(&(mip, x, y));
-                    let key = BlockKey {
-                        image: placement.image,
-                        layer: placement.layer,
-                        mip,
-                        x,
-                        y,
-                    };
-                    release_block(&mut shared, key, memory);
-                    released += 1;
-                }
+                release_block(&mut shared, key, memory);
+                released += 1;
             }
         }
         shared.live_blocks -= u64::from(released);
@@ -1120,7 +1207,7 @@ impl TextureCache {
         let Ok(rect) = placement.mip_rect(mip) else {
             return 0;
         };
-        let (x0, y0, x1, y1) = rect.block_range(&state.desc.granularity);
+        let touched = rect_blocks(&state.desc, &rect);
         let Some(layer_mutex) = state.layers.get(placement.layer as usize) else {
             return 0;
         };
@@ -1134,19 +1221,23 @@ impl TextureCache {
         if !staged {
             return 0;
         }
-        (y0..y1)
-            .flat_map(|y| (x0..x1).map(move |x| (x, y)))
-            .filter(|&(x, y)| layer.blocks.get(&(mip, x, y)).is_some_and(|bound| bound.users == 1))
+        touched
+            .iter()
+            .filter(|at| layer.blocks.get(at).is_some_and(|bound| bound.users == 1))
             .count() as u32
     }
 
     /// Blocks bound for live layers (binds not yet handed out included) and
     /// the budget, in blocks.
+    ///
+    /// Single mip tails, bound for good, count in neither: what is left of
+    /// the budget for the streamed levels is what a planner can use.
     pub fn budget_use(&self) -> BudgetUse {
         let shared = lock(&self.shared);
+        let fixed = shared.single_tails.len() as u64;
         BudgetUse {
-            live_blocks: shared.live_blocks,
-            budget_blocks: shared.budget_blocks,
+            live_blocks: shared.live_blocks - fixed,
+            budget_blocks: shared.budget_blocks - fixed,
         }
     }
 
@@ -1248,6 +1339,26 @@ fn placement_of(
         layer_size: desc.layer_size,
         mip_count: cacheable_mip_count(&desc.format, record.width, record.height),
         uv: UvTransform::new(desc.layer_size, origin_x, origin_y, record.width, record.height),
+    }
+}
+
+/// The blocks of a layer that `rect` (texels of level `rect.mip`) lies on,
+/// as `(mip, x, y)`: its blocks of the level; for a level in a per-layer
+/// tail, every block of the layer's tail (keyed at [`BlockKey::TAIL_LEVEL`]);
+/// none in a single tail, which is bound for good.
+pub(crate) fn rect_blocks(desc: &ImageDesc, rect: &TexelRect) -> Vec<(u32, u32, u32)> {
+    match desc.mip_tail {
+        Some(tail) if rect.mip >= tail.first_level => {
+            if tail.single {
+                Vec::new()
+            } else {
+                (0..tail.blocks).map(|index| (BlockKey::TAIL_LEVEL, index, 0)).collect()
+            }
+        }
+        _ => {
+            let (x0, y0, x1, y1) = rect.block_range(&desc.granularity);
+            (y0..y1).flat_map(|y| (x0..x1).map(move |x| (rect.mip, x, y))).collect()
+        }
     }
 }
 

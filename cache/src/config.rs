@@ -21,6 +21,28 @@ pub struct ImageConfig {
     pub layer_size: u32,
     /// Number of array layers.
     pub layer_count: u32,
+    /// The image's mip tail, where the device keeps its small levels in one
+    /// opaquely bound range; `None` when every level is bound block by block.
+    pub mip_tail: Option<MipTail>,
+}
+
+/// A sparse image's mip tail as the cache accounts for it: the levels from
+/// `first_level` down are bound as a whole (`imageMipTailFirstLod`), never
+/// block by block, in `blocks` sparse blocks (`imageMipTailSize` / block
+/// size), per layer or, with `single` (`SINGLE_MIPTAIL`), once for the image.
+///
+/// A per-layer tail is bound when a texture of the layer first needs one of
+/// its levels and released with the last one, like any block; a single tail
+/// is taken from the budget when the cache is made and never released.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct MipTail {
+    /// First level in the tail (at least 1: a tail from level 0 leaves
+    /// nothing to bind per block, and the cache refuses it).
+    pub first_level: u32,
+    /// Sparse blocks one tail takes.
+    pub blocks: u32,
+    /// One tail for every layer of the image.
+    pub single: bool,
 }
 
 /// Everything the cache is configured with. Block size and limits come
@@ -60,9 +82,12 @@ pub struct ImageDesc {
     pub mip_levels: u32,
     /// Sparse block size in bytes.
     pub block_bytes: u64,
-    /// Sparse blocks covering one layer's full mip chain (no mip tail: every
-    /// level, down to 1×1, is made of ordinary blocks).
+    /// Sparse blocks covering one layer's full mip chain: the levels above
+    /// the tail block by block, and the layer's own tail (none for a single
+    /// tail, which [`ImageDesc::single_tail_blocks`] counts once).
     pub blocks_per_layer: u64,
+    /// The mip tail, if the image has one (`first_level` below `mip_levels`).
+    pub mip_tail: Option<MipTail>,
 }
 
 impl ImageDesc {
@@ -108,12 +133,32 @@ impl ImageDesc {
             });
         }
         let mip_levels = layer_size.trailing_zeros() + 1;
-        let blocks_per_layer = (0..mip_levels)
+        // A tail that starts below the last level is no tail.
+        let mip_tail = config.mip_tail.filter(|tail| tail.first_level < mip_levels);
+        if let Some(tail) = mip_tail {
+            if tail.first_level == 0 || tail.blocks == 0 {
+                return Err(ConfigError::UnservedMipTail {
+                    image,
+                    format: config.format.name,
+                    reason: if tail.first_level == 0 {
+                        "its mip tail starts at level 0, so no level can be bound block by block".into()
+                    } else {
+                        "its mip tail takes no memory".into()
+                    },
+                });
+            }
+        }
+        let block_levels = mip_tail.map_or(mip_levels, |tail| tail.first_level);
+        let layer_tail_blocks = mip_tail
+            .filter(|tail| !tail.single)
+            .map_or(0, |tail| u64::from(tail.blocks));
+        let blocks_per_layer = (0..block_levels)
             .map(|mip| {
                 let size = level_size(layer_size, mip);
                 blocks_in_level(size, &config.granularity)
             })
-            .sum();
+            .sum::<u64>()
+            + layer_tail_blocks;
         let image_index = u32::try_from(image).map_err(|_| bad_size("image index beyond u32".into()))?;
         Ok(ImageDesc {
             image: image_index,
@@ -124,15 +169,36 @@ impl ImageDesc {
             mip_levels,
             block_bytes: limits.sparse_block_bytes,
             blocks_per_layer,
+            mip_tail,
         })
     }
 
     /// Virtual address space the image spans: layers × blocks per layer ×
-    /// block size (saturating).
+    /// block size, and a single tail once (saturating).
     pub fn virtual_bytes(&self) -> u64 {
         u64::from(self.layer_count)
             .saturating_mul(self.blocks_per_layer)
+            .saturating_add(self.single_tail_blocks())
             .saturating_mul(self.block_bytes)
+    }
+
+    /// Whether level `mip` lies in the mip tail (bound as a whole).
+    pub fn in_tail(&self, mip: u32) -> bool {
+        self.mip_tail.is_some_and(|tail| mip >= tail.first_level)
+    }
+
+    /// Blocks of the image's single tail (zero without one): bound for the
+    /// cache's whole life.
+    pub fn single_tail_blocks(&self) -> u64 {
+        self.mip_tail
+            .filter(|tail| tail.single)
+            .map_or(0, |tail| u64::from(tail.blocks))
+    }
+
+    /// Bytes one tail takes (zero without a tail).
+    pub fn tail_bytes(&self) -> u64 {
+        self.mip_tail
+            .map_or(0, |tail| u64::from(tail.blocks).saturating_mul(self.block_bytes))
     }
 
     /// Square regions of `extent` texels one layer holds.
@@ -168,6 +234,13 @@ impl CacheConfig {
             .enumerate()
             .map(|(index, image)| ImageDesc::new(index, image, &self.limits))
             .collect::<Result<Vec<_>, _>>()?;
+        let single_tail_blocks: u64 = descs.iter().map(ImageDesc::single_tail_blocks).sum();
+        if single_tail_blocks >= self.budget_blocks() && single_tail_blocks > 0 {
+            return Err(ConfigError::TailsOverBudget {
+                tail_bytes: single_tail_blocks.saturating_mul(self.limits.sparse_block_bytes),
+                budget_bytes: self.memory_budget_bytes,
+            });
+        }
         let needed_bytes = descs
             .iter()
             .fold(0u64, |sum, desc| sum.saturating_add(desc.virtual_bytes()));

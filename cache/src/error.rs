@@ -61,6 +61,28 @@ pub enum ConfigError {
     /// Pool chunks must hold at least one block.
     #[error("pool chunks must hold at least one block")]
     ZeroChunk,
+    /// An image whose mip tail the cache cannot serve.
+    #[error("image {image} ({format}) cannot be served sparse: {reason}")]
+    UnservedMipTail {
+        /// Image index in the configuration.
+        image: usize,
+        /// Format name.
+        format: &'static str,
+        /// Why.
+        reason: String,
+    },
+    /// The single mip tails, bound for the cache's whole life, leave no
+    /// budget for anything else.
+    #[error(
+        "the images' single mip tails take {tail_bytes} B, which leaves nothing of the memory budget of \
+         {budget_bytes} B: raise the budget"
+    )]
+    TailsOverBudget {
+        /// Bytes of all single tails.
+        tail_bytes: u64,
+        /// The configured budget.
+        budget_bytes: u64,
+    },
     /// The images' sparse address space exceeds the virtual address budget.
     #[error(
         "sparse images need {needed_bytes} B of virtual address space (image {largest_image} alone {largest_bytes} B), \

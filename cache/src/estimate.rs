@@ -21,6 +21,9 @@ pub struct UtilisationEstimate {
     /// Layers the packing needs (may exceed the image's layer count: the
     /// estimate ignores eviction).
     pub layers_used: u64,
+    /// Of `bound_blocks`, those of mip tails (each used layer's, or the
+    /// image's single tail).
+    pub tail_blocks: u64,
 }
 
 impl UtilisationEstimate {
@@ -80,16 +83,19 @@ pub fn estimate_utilisation(image: &ImageDesc, extents: &[(u32, u32)]) -> Result
         for mip in 0..mip_count {
             let rect = TexelRect::of_mip(origin_x, origin_y, width, height, mip);
             estimate.texture_bytes += image.format.image_bytes(rect.width, rect.height);
-            let (x0, y0, x1, y1) = rect.block_range(&image.granularity);
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    blocks.insert((layer, mip, x, y));
-                }
+            for (mip, x, y) in crate::cache::rect_blocks(image, &rect) {
+                blocks.insert((layer, mip, x, y));
             }
         }
         estimate.textures += 1;
     }
-    estimate.bound_blocks = blocks.len() as u64;
+    // A single tail is bound whatever the textures.
+    estimate.tail_blocks = blocks
+        .iter()
+        .filter(|&&(_, mip, _, _)| mip == crate::BlockKey::TAIL_LEVEL)
+        .count() as u64
+        + image.single_tail_blocks();
+    estimate.bound_blocks = blocks.len() as u64 + image.single_tail_blocks();
     estimate.bound_bytes = estimate.bound_blocks * image.block_bytes;
     Ok(estimate)
 }

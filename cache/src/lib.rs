@@ -13,9 +13,11 @@
 //!   is assigned, the oldest layer in ring order is reused and its textures
 //!   are invalidated.
 //! - [`TextureCache::stage_mip`] binds, once per block, every sparse block a
-//!   staged mip touches (levels down to 1×1 are ordinary blocks: no mip
-//!   tail is assumed), within a memory budget of bound bytes; reaching the
-//!   budget evicts the oldest layer first. Blocks no live texture uses any
+//!   staged mip touches, within a memory budget of bound bytes; reaching the
+//!   budget evicts the oldest layer first. Levels in a device's mip tail
+//!   ([`MipTail`]) are bound as a whole: a per-layer tail is a few blocks
+//!   keyed at [`BlockKey::TAIL_LEVEL`], accounted, parked and reclaimed like
+//!   any block; a single tail is bound once, from the budget, for good. Blocks no live texture uses any
 //!   more stay bound ("parked") until staging needs their memory.
 //! - [`TextureCache::take_batch`] hands the engine one [`CycleBatch`] per
 //!   streaming cycle: at most one [`BindOp`] per block, unbinds before
@@ -51,7 +53,7 @@ pub use cache::{
     Utilisation,
 };
 pub use config::{
-    derive_image_layers, layers_to_place, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MAX_LAYER_SIZE,
+    derive_image_layers, layers_to_place, CacheConfig, ImageConfig, ImageDemand, ImageDesc, MipTail, MAX_LAYER_SIZE,
 };
 pub use error::{CacheError, ConfigError};
 pub use estimate::{estimate_utilisation, UtilisationEstimate};

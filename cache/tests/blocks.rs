@@ -1,7 +1,8 @@
 //! Block accounting: after a long random sequence of inserts, mip loads,
 //! budget and ring evictions, the blocks bound (in the cache's accounting
 //! and in a binder that rejects double binds) are exactly the blocks the
-//! loaded mips of live textures touch.
+//! loaded mips of live textures touch. The same holds with mip tails (per
+//! layer or single), checked by the bind checker as well.
 #![allow(clippy::unwrap_used)]
 
 mod common;
@@ -9,8 +10,8 @@ mod common;
 use std::collections::{BTreeSet, HashMap, HashSet};
 
 use citystream_cache::{
-    BindOp, BlockKey, CacheConfig, CacheError, DeviceLimits, Granularity, GranularityUnit, ImageConfig, MemorySlot,
-    Placement, SparseBinder, TexelFormat, TextureCache,
+    BindChecker, BindOp, BlockKey, CacheConfig, CacheError, DeviceLimits, Granularity, GranularityUnit, ImageConfig,
+    ImageShape, MemorySlot, MipTail, Placement, SparseBinder, TexelFormat, TextureCache,
 };
 use common::{brute_force_blocks, model_origin, rgba_config, FakeBinder};
 use proptest::prelude::*;
@@ -19,7 +20,42 @@ const BLOCK_BYTES: u64 = 4096;
 const BUDGET_BLOCKS: u64 = 24;
 const LAYER: u32 = 128;
 
+/// Mip tails of the two images: none, one per layer, or one per image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Tails {
+    None,
+    PerLayer,
+    Single,
+}
+
+/// The tail of image `image` under `tails`: RGBA8 from level 2 (32², the
+/// first level of one block) in one block, BC1 from level 1 in two.
+fn tail_of(image: u32, tails: Tails) -> Option<MipTail> {
+    let single = match tails {
+        Tails::None => return None,
+        Tails::PerLayer => false,
+        Tails::Single => true,
+    };
+    Some(if image == 0 {
+        MipTail {
+            first_level: 2,
+            blocks: 1,
+            single,
+        }
+    } else {
+        MipTail {
+            first_level: 1,
+            blocks: 2,
+            single,
+        }
+    })
+}
+
 fn two_format_config() -> CacheConfig {
+    config_with_tails(Tails::None)
+}
+
+fn config_with_tails(tails: Tails) -> CacheConfig {
     // 128x64 BC1 texels are 32x16 blocks of 8 bytes: one 4 KiB block.
     let bc1 = Granularity::from_device_report(&TexelFormat::BC1, 32, 16, GranularityUnit::TexelBlocks).unwrap();
     CacheConfig {
@@ -29,12 +65,14 @@ fn two_format_config() -> CacheConfig {
                 granularity: Granularity::texels(32, 32),
                 layer_size: LAYER,
                 layer_count: 8,
+                mip_tail: tail_of(0, tails),
             },
             ImageConfig {
                 format: TexelFormat::BC1,
                 granularity: bc1,
                 layer_size: LAYER,
                 layer_count: 4,
+                mip_tail: tail_of(1, tails),
             },
         ],
         limits: DeviceLimits {
@@ -71,9 +109,33 @@ fn op() -> impl Strategy<Value = Op> {
     ]
 }
 
+/// The blocks texture mip `mip` of `placement` lies on under `tails`.
+fn blocks_of(placement: &Placement, mip: u32, tails: Tails) -> HashSet<BlockKey> {
+    if let Some(tail) = tail_of(placement.image, tails).filter(|tail| mip >= tail.first_level) {
+        if tail.single {
+            return HashSet::new();
+        }
+        return (0..tail.blocks)
+            .map(|index| BlockKey::tail(placement.image, placement.layer, index))
+            .collect();
+    }
+    let origin = model_origin(LAYER, placement.extent, placement.region);
+    brute_force_blocks(
+        placement.image,
+        placement.layer,
+        origin,
+        (placement.width, placement.height),
+        mip,
+        granularity(placement.image),
+    )
+}
+
 struct Harness {
     cache: TextureCache,
     binder: FakeBinder,
+    /// The bind checker sees every batch the binder does.
+    checker: BindChecker,
+    tails: Tails,
     /// Live textures with their loaded mips.
     live: Vec<(Placement, BTreeSet<u32>)>,
     /// Textures found evicted since the last batch, by key.
@@ -82,22 +144,21 @@ struct Harness {
 }
 
 impl Harness {
-    fn blocks_of(placement: &Placement, mip: u32) -> HashSet<BlockKey> {
-        let origin = model_origin(LAYER, placement.extent, placement.region);
-        brute_force_blocks(
-            placement.image,
-            placement.layer,
-            origin,
-            (placement.width, placement.height),
-            mip,
-            granularity(placement.image),
-        )
+    fn blocks_of(&self, placement: &Placement, mip: u32) -> HashSet<BlockKey> {
+        blocks_of(placement, mip, self.tails)
     }
 
     fn expected_blocks(&self) -> HashSet<BlockKey> {
+        let single_tails = (0..2).flat_map(|image| {
+            tail_of(image, self.tails)
+                .filter(|tail| tail.single)
+                .into_iter()
+                .flat_map(move |tail| (0..tail.blocks).map(move |index| BlockKey::tail(image, 0, index)))
+        });
         self.live
             .iter()
-            .flat_map(|(placement, mips)| mips.iter().flat_map(|&mip| Self::blocks_of(placement, mip)))
+            .flat_map(|(placement, mips)| mips.iter().flat_map(|&mip| self.blocks_of(placement, mip)))
+            .chain(single_tails)
             .collect()
     }
 
@@ -132,7 +193,11 @@ impl Harness {
                 self.chunks.insert(chunk.chunk, chunk.bytes).is_none(),
                 "chunk created twice"
             );
+            prop_assert_eq!(self.checker.add_chunk(chunk.bytes), chunk.chunk);
         }
+        self.checker
+            .check_batch(&batch.ops)
+            .map_err(|violation| TestCaseError::fail(violation.to_string()))?;
         self.binder
             .submit(&batch.ops)
             .map_err(|error| TestCaseError::fail(error.to_string()))?;
@@ -192,7 +257,7 @@ impl Harness {
                 prop_assert!(!self.cache.is_live(&placement));
             }
             Err(CacheError::OverBudget { .. }) => {
-                prop_assert!(Self::blocks_of(&placement, mip).len() as u64 > BUDGET_BLOCKS);
+                prop_assert!(self.blocks_of(&placement, mip).len() as u64 > BUDGET_BLOCKS);
             }
             Err(other) => return Err(TestCaseError::fail(format!("unexpected {other}"))),
         }
@@ -201,44 +266,102 @@ impl Harness {
     }
 }
 
+/// The bind checker's view of the two images.
+fn checker_for(config: &CacheConfig) -> BindChecker {
+    let mut checker = BindChecker::new(BLOCK_BYTES);
+    for image in &config.images {
+        let levels = LAYER.trailing_zeros() + 1;
+        let block_levels = image.mip_tail.map_or(levels, |tail| tail.first_level);
+        let (gw, gh) = (image.granularity.width, image.granularity.height);
+        checker.add_image(ImageShape {
+            layers: image.layer_count,
+            level_blocks: (0..block_levels)
+                .map(|mip| {
+                    let size = (LAYER >> mip).max(1);
+                    (size.div_ceil(gw), size.div_ceil(gh))
+                })
+                .collect(),
+            mip_tail: image.mip_tail,
+        });
+    }
+    checker
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(32))]
 
     #[test]
     fn bound_blocks_equal_blocks_of_loaded_mips(ops in prop::collection::vec(op(), 200..600)) {
-        let mut harness = Harness {
-            cache: TextureCache::new(&two_format_config()).unwrap(),
-            binder: FakeBinder::default(),
-            live: Vec::new(),
-            dropped_since_batch: BTreeSet::new(),
-            chunks: HashMap::new(),
-        };
-        let mut next_key = 0u64;
-        for op in ops {
-            match op {
-                Op::Insert { image, log_w, log_h } => {
-                    let (w, h) = if image == 1 { (1 << log_w.max(2), 1 << log_h.max(2)) } else { (1 << log_w, 1 << log_h) };
-                    next_key += 1;
-                    let placement = harness.cache.insert(image, next_key, w, h).unwrap();
-                    harness.live.push((placement, BTreeSet::new()));
-                    harness.prune();
-                }
-                Op::Stage { pick, mip } => {
-                    if !harness.live.is_empty() {
-                        let index = pick % harness.live.len();
-                        harness.stage(index, mip)?;
-                    }
-                }
-                Op::Batch => harness.batch()?,
-            }
-            harness.check_accounting()?;
-        }
-        harness.batch()?;
-        let utilisation = harness.cache.utilisation();
-        prop_assert_eq!(utilisation.bound_blocks + utilisation.parked_blocks, harness.binder.bound.len() as u64);
-        prop_assert_eq!(utilisation.bound_bytes, utilisation.bound_blocks * BLOCK_BYTES);
-        prop_assert_eq!(utilisation.held_bytes(), harness.binder.bound.len() as u64 * BLOCK_BYTES);
+        run_ops(ops, Tails::None)?;
     }
+
+    #[test]
+    fn bound_blocks_equal_blocks_of_loaded_mips_with_per_layer_tails(ops in prop::collection::vec(op(), 200..600)) {
+        run_ops(ops, Tails::PerLayer)?;
+    }
+
+    #[test]
+    fn bound_blocks_equal_blocks_of_loaded_mips_with_single_tails(ops in prop::collection::vec(op(), 200..600)) {
+        run_ops(ops, Tails::Single)?;
+    }
+}
+
+fn run_ops(ops: Vec<Op>, tails: Tails) -> Result<(), TestCaseError> {
+    let config = config_with_tails(tails);
+    let mut harness = Harness {
+        cache: TextureCache::new(&config).unwrap(),
+        binder: FakeBinder::default(),
+        checker: checker_for(&config),
+        tails,
+        live: Vec::new(),
+        dropped_since_batch: BTreeSet::new(),
+        chunks: HashMap::new(),
+    };
+    let mut next_key = 0u64;
+    for op in ops {
+        match op {
+            Op::Insert { image, log_w, log_h } => {
+                let (w, h) = if image == 1 {
+                    (1 << log_w.max(2), 1 << log_h.max(2))
+                } else {
+                    (1 << log_w, 1 << log_h)
+                };
+                next_key += 1;
+                let placement = harness.cache.insert(image, next_key, w, h).unwrap();
+                harness.live.push((placement, BTreeSet::new()));
+                harness.prune();
+            }
+            Op::Stage { pick, mip } => {
+                if !harness.live.is_empty() {
+                    let index = pick % harness.live.len();
+                    harness.stage(index, mip)?;
+                }
+            }
+            Op::Batch => harness.batch()?,
+        }
+        harness.check_accounting()?;
+    }
+    harness.batch()?;
+    let utilisation = harness.cache.utilisation();
+    prop_assert_eq!(
+        utilisation.bound_blocks + utilisation.parked_blocks,
+        harness.binder.bound.len() as u64
+    );
+    prop_assert_eq!(utilisation.bound_bytes, utilisation.bound_blocks * BLOCK_BYTES);
+    prop_assert_eq!(
+        utilisation.held_bytes(),
+        harness.binder.bound.len() as u64 * BLOCK_BYTES
+    );
+    let tail_blocks = harness.binder.bound.keys().filter(|key| key.is_tail()).count() as u64;
+    prop_assert_eq!(utilisation.tail_blocks, tail_blocks);
+    prop_assert_eq!(
+        harness.cache.tail_bytes_held().iter().sum::<u64>(),
+        tail_blocks * BLOCK_BYTES
+    );
+    if tails == Tails::Single {
+        prop_assert_eq!(tail_blocks, 3, "the single tails stay bound");
+    }
+    Ok(())
 }
 
 #[test]
@@ -253,6 +376,7 @@ fn a_block_is_bound_once_for_thousands_of_small_bc1_textures() {
             granularity: bc1,
             layer_size: 512,
             layer_count: 2,
+            mip_tail: None,
         }],
         limits,
         memory_budget_bytes: 16 * limits.sparse_block_bytes,
@@ -431,7 +555,7 @@ fn concurrent_loaders_keep_the_accounting_exact() {
         if cache.is_live(placement) {
             live += 1;
             for &mip in mips {
-                expected.extend(Harness::blocks_of(placement, mip));
+                expected.extend(blocks_of(placement, mip, Tails::None));
             }
         }
     }

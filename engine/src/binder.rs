@@ -20,13 +20,13 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use ash::vk;
-use citystream_cache::{BindChecker, BindError, BindOp, BindReport, ImageShape, SparseBinder};
+use citystream_cache::{BindChecker, BindError, BindOp, BindReport, ImageShape, MipTail, SparseBinder};
 
 use crate::commands::{SemaphoreWait, TimelineSemaphore};
 use crate::device::Device;
 use crate::error::EngineError;
 use crate::error::Result;
-use crate::sparse::{submit_bind_sparse_after, SparseBlockBind, SparseImage, SparseMemoryChunk, TexelUpload};
+use crate::sparse::{submit_bind_sparse_after, SparseBlockBind, SparseImage, SparseMemoryChunk, TailBind, TexelUpload};
 
 /// Whether binders check binds and copies: `CITYSTREAM_CHECK_BINDS` = `1` on,
 /// `0` off; unset, on in debug builds and off in release builds.
@@ -51,6 +51,28 @@ pub struct VulkanBinder {
     signalled: u64,
     checker: Option<BindChecker>,
     log: Option<BindLog>,
+}
+
+/// The block grid and mip tail of `image`, as the bind checker sees it.
+pub fn image_shape(image: &SparseImage) -> ImageShape {
+    let desc = image.desc();
+    let tail = cache_mip_tail(image);
+    let block_levels = tail.map_or(desc.mips, |tail| tail.first_level);
+    ImageShape {
+        layers: desc.layers,
+        level_blocks: (0..block_levels).map(|level| image.level_blocks(level)).collect(),
+        mip_tail: tail,
+    }
+}
+
+/// The mip tail of `image` in the cache's terms (`None` without one).
+pub fn cache_mip_tail(image: &SparseImage) -> Option<MipTail> {
+    let tail = image.mip_tail();
+    (tail.first_lod < image.desc().mips).then(|| MipTail {
+        first_level: tail.first_lod,
+        blocks: image.tail_blocks(),
+        single: tail.single,
+    })
 }
 
 /// The bind log being written (see [`bind_log`]).
@@ -80,11 +102,7 @@ impl VulkanBinder {
             // The cache's images share one block size (it refuses others).
             let mut checker = BindChecker::new(images.first().map_or(1, |image| image.block_size()));
             for image in &images {
-                let desc = image.desc();
-                checker.add_image(ImageShape {
-                    layers: desc.layers,
-                    level_blocks: (0..desc.mips).map(|level| image.level_blocks(level)).collect(),
-                });
+                checker.add_image(image_shape(image));
             }
             checker
         });
@@ -113,14 +131,18 @@ impl VulkanBinder {
         for (index, image) in self.images.iter().enumerate() {
             let desc = image.desc();
             let (gw, gh) = image.granularity();
+            let tail = cache_mip_tail(image);
             text += &format!(
-                "image {index} {} {} {} {} {} {gw} {gh} {}\n",
+                "image {index} {} {} {} {} {} {gw} {gh} {} {} {} {}\n",
                 desc.width,
                 desc.height,
                 desc.layers,
                 desc.mips,
                 desc.format.as_raw(),
-                image.block_size()
+                image.block_size(),
+                tail.map_or(desc.mips, |t| t.first_level),
+                tail.map_or(0, |t| t.blocks),
+                u8::from(tail.is_some_and(|t| t.single)),
             );
         }
         self.log = Some(BindLog {
@@ -194,7 +216,7 @@ impl VulkanBinder {
         self.signalled
     }
 
-    fn resolve(&self, op: &BindOp) -> std::result::Result<(usize, SparseBlockBind), BindError> {
+    fn resolve(&self, op: &BindOp) -> std::result::Result<(usize, Resolved), BindError> {
         let block = op.block();
         let image = self
             .images
@@ -229,15 +251,41 @@ impl VulkanBinder {
                 )
             }
         };
+        let first_tail_lod = image.mip_tail().first_lod;
+        if !block.is_tail() && block.mip >= first_tail_lod && first_tail_lod < image.desc().mips {
+            return Err(BindError::Rejected {
+                blocks: 1,
+                reason: format!(
+                    "image {} layer {} level {} block ({}, {}): levels from {first_tail_lod} on are in the mip tail, \
+                     bound as a whole, not per block",
+                    block.image, block.layer, block.mip, block.x, block.y
+                ),
+            });
+        }
+        if block.is_tail() {
+            let bind = image
+                .tail_bind(block.layer, block.x, memory)
+                .map_err(|e| BindError::Rejected {
+                    blocks: 1,
+                    reason: e.to_string(),
+                })?;
+            return Ok((
+                block.image as usize,
+                match bind {
+                    TailBind::Opaque(bind) => Resolved::Opaque(bind),
+                    TailBind::Block(block) => Resolved::Block(block),
+                },
+            ));
+        }
         Ok((
             block.image as usize,
-            SparseBlockBind {
+            Resolved::Block(SparseBlockBind {
                 layer: block.layer,
                 mip: block.mip,
                 x: block.x,
                 y: block.y,
                 memory,
-            },
+            }),
         ))
     }
 }
@@ -265,13 +313,28 @@ impl VulkanBinder {
             return Ok(BindReport::default());
         }
         let mut per_image: Vec<Vec<SparseBlockBind>> = vec![Vec::new(); self.images.len()];
+        let mut opaque_per_image: Vec<Vec<vk::SparseMemoryBind>> = vec![Vec::new(); self.images.len()];
+        let mut tail_blocks = vec![0usize; self.images.len()];
         for op in batch {
             let (image, bind) = self.resolve(op).map_err(SubmitError::Batch)?;
-            per_image[image].push(bind);
+            match bind {
+                Resolved::Block(block) => {
+                    per_image[image].push(block);
+                    tail_blocks[image] += usize::from(op.block().is_tail());
+                }
+                Resolved::Opaque(bind) => opaque_per_image[image].push(bind),
+            }
         }
         let mut entries = Vec::with_capacity(self.images.len());
-        for (image, binds) in self.images.iter().zip(&per_image) {
-            let image_entries = image.bind_entries(binds).map_err(|e| {
+        for ((image, binds), &tail) in self.images.iter().zip(&per_image).zip(&tail_blocks) {
+            // A synthetic tail's blocks are its levels' blocks; other blocks
+            // of tail levels are refused.
+            let built = if tail > 0 {
+                image.bind_entries_with_synthetic_tail(binds)
+            } else {
+                image.bind_entries(binds)
+            };
+            let image_entries = built.map_err(|e| {
                 SubmitError::Batch(BindError::Rejected {
                     blocks: binds.len() as u32,
                     reason: e.to_string(),
@@ -291,6 +354,12 @@ impl VulkanBinder {
         }
         let slices: Vec<(vk::Image, &[vk::SparseImageMemoryBind])> =
             entries.iter().map(|(image, e)| (*image, e.as_slice())).collect();
+        let opaque: Vec<(vk::Image, &[vk::SparseMemoryBind])> = self
+            .images
+            .iter()
+            .zip(&opaque_per_image)
+            .map(|(image, binds)| (image.raw(), binds.as_slice()))
+            .collect();
         if self.log.is_some() {
             self.write_log(&bind_log::batch_text(batch, frames.is_some_and(|f| f.value > 0)))
                 .map_err(SubmitError::Device)?;
@@ -307,6 +376,7 @@ impl VulkanBinder {
         submit_bind_sparse_after(
             &self.device,
             &slices,
+            &opaque,
             &waits,
             &[],
             Some((self.timeline.raw(), value)),
@@ -316,7 +386,8 @@ impl VulkanBinder {
         self.signalled = value;
         Ok(BindReport {
             blocks: batch.len() as u32,
-            entries: entries.iter().map(|(_, e)| e.len() as u32).sum(),
+            entries: entries.iter().map(|(_, e)| e.len() as u32).sum::<u32>()
+                + opaque_per_image.iter().map(|binds| binds.len() as u32).sum::<u32>(),
             seconds: started.elapsed().as_secs_f64(),
         })
     }
@@ -332,6 +403,13 @@ impl SparseBinder for VulkanBinder {
             },
         })
     }
+}
+
+/// A bind op in Vulkan's terms: a block of a level, or an opaque range (a
+/// tail block on a device with a tail).
+enum Resolved {
+    Block(SparseBlockBind),
+    Opaque(vk::SparseMemoryBind),
 }
 
 /// Why a batch was not submitted: the batch itself, or the device.
@@ -352,19 +430,27 @@ impl Drop for VulkanBinder {
 /// spaces (all numbers decimal):
 ///
 /// ```text
-/// citystream-bind-log 1
+/// citystream-bind-log 2
 /// image INDEX WIDTH HEIGHT LAYERS MIPS VK_FORMAT GRANULARITY_W GRANULARITY_H BLOCK_BYTES
+///       TAIL_FIRST_LEVEL TAIL_BLOCKS TAIL_SINGLE(0|1)     (one line; no tail: MIPS 0 0)
 /// chunk INDEX BYTES
 /// batch OPERATIONS WAITS_FOR_FRAMES(0|1)
-/// bind IMAGE LAYER LEVEL X Y CHUNK OFFSET      (OPERATIONS lines of bind or unbind follow batch)
-/// unbind IMAGE LAYER LEVEL X Y
+/// bind IMAGE LAYER LEVEL X Y CHUNK OFFSET      (OPERATIONS lines of bind, unbind,
+/// unbind IMAGE LAYER LEVEL X Y                  bind-tail or unbind-tail follow batch)
+/// bind-tail IMAGE LAYER INDEX CHUNK OFFSET     (block INDEX of the layer's mip tail; layer 0 when single)
+/// unbind-tail IMAGE LAYER INDEX
 /// copy IMAGE LAYER LEVEL X Y WIDTH HEIGHT      (texels; recorded after the batches before it)
 /// ```
+///
+/// Version 1 logs (no tail fields, no tail lines) are still read.
 pub mod bind_log {
     use citystream_cache::BindOp;
 
     /// The first line of a bind log of this format.
-    pub const HEADER: &str = "citystream-bind-log 1";
+    pub const HEADER: &str = "citystream-bind-log 2";
+
+    /// The first line of a version 1 log (written before mip tails).
+    pub const HEADER_V1: &str = "citystream-bind-log 1";
 
     /// A batch's lines.
     pub fn batch_text(batch: &[BindOp], waits_for_frames: bool) -> String {
@@ -372,6 +458,15 @@ pub mod bind_log {
         for op in batch {
             let b = op.block();
             match op {
+                BindOp::Bind { memory, .. } if b.is_tail() => {
+                    text += &format!(
+                        "bind-tail {} {} {} {} {}\n",
+                        b.image, b.layer, b.x, memory.chunk, memory.offset
+                    )
+                }
+                BindOp::Unbind { .. } if b.is_tail() => {
+                    text += &format!("unbind-tail {} {} {}\n", b.image, b.layer, b.x)
+                }
                 BindOp::Bind { memory, .. } => {
                     text += &format!(
                         "bind {} {} {} {} {} {} {}\n",

@@ -144,6 +144,9 @@ pub struct Device {
     name: String,
     sparse: SparseSupport,
     backing: TextureBacking,
+    /// Why `SparseMode::Auto` chose texture arrays on a device that has the
+    /// sparse features, or lacks them (`None` with the sparse backing).
+    sparse_fallback: Option<String>,
     /// The core features the device was created with (for a host's device,
     /// those the engine requires of it).
     enabled_features: vk::PhysicalDeviceFeatures,
@@ -166,6 +169,7 @@ struct DeviceParts {
     allocator: AllocatorSlot,
     debug_utils: bool,
     backing: TextureBacking,
+    sparse_fallback: Option<String>,
     log: Arc<ValidationLog>,
     owns_device: bool,
     instance: Option<Instance>,
@@ -244,8 +248,15 @@ pub struct DeviceRequirements {
     pub extensions: Vec<&'static CStr>,
     /// Flags the engine's queue family must have with every backing.
     pub queue_flags: vk::QueueFlags,
-    /// Flags it must have as well for the sparse backing.
+    /// Flags it must have as well for the sparse backing: on the same
+    /// family (a device that binds sparse only on a family of its own gets
+    /// texture arrays).
     pub sparse_queue_flags: vk::QueueFlags,
+    /// Formats the sparse backing needs sparse 2D images of
+    /// (`vkGetPhysicalDeviceSparseImageFormatProperties` reports them,
+    /// optimal tiling, sampled and copied into) with a standard block shape;
+    /// mip tails, per layer or single, are bound by the engine.
+    pub sparse_image_formats: Vec<vk::Format>,
 }
 
 impl DeviceRequirements {
@@ -284,6 +295,10 @@ pub fn device_requirements() -> DeviceRequirements {
         extensions: Vec::new(),
         queue_flags: vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE,
         sparse_queue_flags: vk::QueueFlags::SPARSE_BINDING,
+        sparse_image_formats: crate::texture_cache::CACHE_FORMATS
+            .iter()
+            .map(|&(_, format, _)| format)
+            .collect(),
     }
 }
 
@@ -448,7 +463,20 @@ fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice, masked: &[Stri
         missing.push("a queue family with GRAPHICS and COMPUTE".to_owned());
     }
     if sparse_queue_family.is_none() && missing_sparse.is_empty() {
-        missing_sparse.push("a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned());
+        // A separate sparse-binding family (recent RADV) would need the binds
+        // and the copies that wait on them on two queues; arrays run instead.
+        let separate = families
+            .iter()
+            .any(|f| f.queue_flags.contains(vk::QueueFlags::SPARSE_BINDING) && f.queue_count > 0);
+        missing_sparse.push(if separate {
+            "SPARSE_BINDING on the GRAPHICS and COMPUTE queue family (the device binds on a family of its own)"
+                .to_owned()
+        } else {
+            "a queue family with GRAPHICS, COMPUTE and SPARSE_BINDING".to_owned()
+        });
+    }
+    if missing_sparse.is_empty() {
+        missing_sparse.extend(unserved_sparse_formats(raw, physical));
     }
     DeviceCandidate {
         name,
@@ -459,6 +487,51 @@ fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice, masked: &[Stri
         queue_family,
         sparse_queue_family,
     }
+}
+
+/// Why the sparse cache could not serve each cache format on `physical`, from
+/// its sparse image format properties (and a forced tail from level 0,
+/// [`crate::sparse::FORCE_MIP_TAIL_ENV`]): no sparse residency for the
+/// format, or a non-standard block shape. Decided before the device is made,
+/// so `SparseMode::Auto` picks texture arrays instead of refusing later.
+fn unserved_sparse_formats(raw: &ash::Instance, physical: vk::PhysicalDevice) -> Vec<String> {
+    let forced_from_zero = matches!(
+        crate::sparse::forced_mip_tail(),
+        Ok(Some(forced)) if forced.first_lod == 0
+    );
+    let mut unserved = Vec::new();
+    for (_, format, _) in crate::texture_cache::CACHE_FORMATS {
+        // SAFETY: `physical` came from this instance.
+        let properties = unsafe {
+            raw.get_physical_device_sparse_image_format_properties(
+                physical,
+                format,
+                vk::ImageType::TYPE_2D,
+                vk::SampleCountFlags::TYPE_1,
+                vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                vk::ImageTiling::OPTIMAL,
+            )
+        };
+        let color = properties
+            .iter()
+            .find(|p| p.aspect_mask.contains(vk::ImageAspectFlags::COLOR));
+        let reason = match color {
+            None => Some("no sparse residency for 2D images of it".to_owned()),
+            Some(p) if p.flags.contains(vk::SparseImageFormatFlags::NONSTANDARD_BLOCK_SIZE) => Some(format!(
+                "a non-standard sparse block shape ({}x{})",
+                p.image_granularity.width, p.image_granularity.height
+            )),
+            Some(_) if forced_from_zero => Some(format!(
+                "a mip tail from level 0 ({}=0): nothing can be bound block by block",
+                crate::sparse::FORCE_MIP_TAIL_ENV
+            )),
+            Some(_) => None,
+        };
+        if let Some(reason) = reason {
+            unserved.push(format!("sparse images of {format:?} the cache can serve ({reason})"));
+        }
+    }
+    unserved
 }
 
 /// Chooses a device and its texture backing under `mode`: by name when
@@ -597,6 +670,9 @@ impl Device {
             allocator: AllocatorSlot::Own(Box::new(Mutex::new(Some(allocator)))),
             debug_utils: instance.has_debug_utils(),
             backing,
+            sparse_fallback: (backing == TextureBacking::Arrays && options.sparse == SparseMode::Auto)
+                .then(|| chosen.missing_sparse.first().cloned())
+                .flatten(),
             log: Arc::clone(instance.validation_log()),
             owns_device: true,
             instance: Some(instance),
@@ -632,6 +708,7 @@ impl Device {
             name,
             sparse,
             backing: parts.backing,
+            sparse_fallback: parts.sparse_fallback,
             enabled_features: required_features(parts.backing).core,
             instance_fns: parts.instance_fns,
             log: parts.log,
@@ -700,6 +777,7 @@ impl Device {
             allocator,
             debug_utils: host.debug_utils,
             backing: host.backing,
+            sparse_fallback: None,
             log: Arc::new(ValidationLog::default()),
             owns_device: false,
             instance: None,
@@ -751,6 +829,13 @@ impl Device {
     /// otherwise.
     pub fn texture_backing(&self) -> TextureBacking {
         self.backing
+    }
+
+    /// What the device lacks for the sparse cache, where `SparseMode::Auto`
+    /// chose texture arrays (a feature, the queue family, or a format the
+    /// cache cannot serve sparse); `None` otherwise.
+    pub fn sparse_fallback_reason(&self) -> Option<&str> {
+        self.sparse_fallback.as_deref()
     }
 
     /// The core features enabled on the device ([`required_features`] of its

@@ -5,11 +5,16 @@
 //! granularity come from the device (`vkGetImageSparseMemoryRequirements`),
 //! never from constants: lavapipe reports 64 KiB blocks and, for BC formats,
 //! a granularity in compressed blocks, which [`SparseImage::granularity`]
-//! converts to texels. Lavapipe has no mip tail: every level down to 1×1 is
-//! bound as ordinary blocks. Binding a mip tail (one opaque range per layer)
-//! is not implemented: [`SparseImage::bind_entries`] refuses tail levels and
-//! the texture cache refuses a device whose images have a tail (an NVIDIA
-//! H200 reports one from level 3 of BC1 2048² layers).
+//! converts to texels.
+//!
+//! Levels smaller than a block live in the **mip tail** (every desktop GPU
+//! reports one; an NVIDIA H200 from level 3 of BC1 2048² layers): bound only
+//! opaquely ([`SparseImage::tail_bind`]), at `imageMipTailOffset + layer ×
+//! imageMipTailStride` (once for a `SINGLE_MIPTAIL` image), never block by
+//! block ([`SparseImage::bind_entries`] refuses tail levels). Lavapipe has no
+//! tail: every level down to 1×1 is bound as ordinary blocks. So that tests
+//! on it meet one, [`FORCE_MIP_TAIL_ENV`] makes an image without a tail
+//! report a synthetic one, whose blocks bind as the levels' own blocks.
 
 use std::sync::Arc;
 
@@ -22,6 +27,50 @@ use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
 use crate::image::{create_view, ImageDesc};
 use crate::memory;
+
+/// Environment variable `LEVEL[,single]`: where the device reports no mip
+/// tail, sparse images report one from level `LEVEL` (one per layer, or with
+/// `single` one for the image), so the cache's tail binding, accounting and
+/// checks run where no device has a tail (lavapipe). The tail's blocks are
+/// bound as the blocks of its levels (lavapipe has no tail offset).
+pub const FORCE_MIP_TAIL_ENV: &str = "CITYSTREAM_FORCE_MIP_TAIL";
+
+/// A synthetic mip tail asked for by [`FORCE_MIP_TAIL_ENV`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ForcedMipTail {
+    /// First level in the tail.
+    pub first_lod: u32,
+    /// One tail for the image.
+    pub single: bool,
+}
+
+/// The synthetic tail [`FORCE_MIP_TAIL_ENV`] asks for, if set; a value that
+/// is not `LEVEL` or `LEVEL,single` is an error naming the variable.
+pub fn forced_mip_tail() -> Result<Option<ForcedMipTail>> {
+    let Some(value) = std::env::var_os(FORCE_MIP_TAIL_ENV).filter(|v| !v.is_empty()) else {
+        return Ok(None);
+    };
+    let text = value.to_string_lossy();
+    let bad = || {
+        EngineError::InvalidRequest(format!(
+            "{FORCE_MIP_TAIL_ENV}={text:?}: expected LEVEL or LEVEL,single (a level number, e.g. 3 or 3,single)"
+        ))
+    };
+    let mut parts = text.split(',').map(str::trim);
+    let first_lod = parts
+        .next()
+        .and_then(|level| level.parse::<u32>().ok())
+        .ok_or_else(bad)?;
+    let single = match parts.next() {
+        None => false,
+        Some("single") => true,
+        Some(_) => return Err(bad()),
+    };
+    if parts.next().is_some() || first_lod > 31 {
+        return Err(bad());
+    }
+    Ok(Some(ForcedMipTail { first_lod, single }))
+}
 
 /// How to create a [`SparseImage`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -93,7 +142,13 @@ pub struct SparseImage {
     block_size: u64,
     granularity: (u32, u32),
     mip_tail: MipTail,
+    /// The colour aspect's sparse format flags (single tail, aligned mip
+    /// size, non-standard block shape).
+    format_flags: vk::SparseImageFormatFlags,
     memory_type_bits: u32,
+    /// `VkMemoryRequirements::size`: the opaque range of the image (a tail
+    /// offset may lie beyond it).
+    opaque_bytes: u64,
 }
 
 /// Where a device keeps the levels of a sparse image's mip tail, as
@@ -111,6 +166,31 @@ pub struct MipTail {
     pub stride: u64,
     /// One tail for all layers (`VK_SPARSE_IMAGE_FORMAT_SINGLE_MIPTAIL_BIT`).
     pub single: bool,
+    /// Asked for by [`FORCE_MIP_TAIL_ENV`] on a device without a tail: its
+    /// blocks are bound as the blocks of its levels.
+    pub synthetic: bool,
+}
+
+/// Block `index` of the mip tail of `layer` (layer 0 for a single tail) to
+/// bind to `memory` (`None`: unbind), for [`SparseImage::bind_with_tail`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TailBlockBind {
+    /// Array layer (0 for a single tail).
+    pub layer: u32,
+    /// Block of the tail.
+    pub index: u32,
+    /// Backing memory and byte offset, or `None` to make it non-resident.
+    pub memory: Option<(vk::DeviceMemory, u64)>,
+}
+
+/// One tail block's bind: opaque on a device with a tail, the block of a
+/// level it stands for with a synthetic tail.
+#[derive(Clone, Copy, Debug)]
+pub enum TailBind {
+    /// `VkSparseMemoryBind` of the image's opaque range.
+    Opaque(vk::SparseMemoryBind),
+    /// A block of a level (synthetic tails).
+    Block(SparseBlockBind),
 }
 
 debug_fields!(SparseImage {
@@ -192,7 +272,9 @@ impl SparseImage {
                 first_lod: desc.mips,
                 ..MipTail::default()
             },
+            format_flags: vk::SparseImageFormatFlags::empty(),
             memory_type_bits: 0,
+            opaque_bytes: 0,
         };
         // SAFETY: raw is a live sparse image.
         let requirements = unsafe { device.raw.get_image_memory_requirements(raw) };
@@ -230,8 +312,17 @@ impl SparseImage {
                 .format_properties
                 .flags
                 .contains(vk::SparseImageFormatFlags::SINGLE_MIPTAIL),
+            synthetic: false,
         };
+        image.format_flags = color.format_properties.flags;
         image.memory_type_bits = requirements.memory_type_bits;
+        image.opaque_bytes = requirements.size;
+        // A synthetic tail only where the device reports none.
+        if image.mip_tail.first_lod >= desc.mips {
+            if let Some(forced) = forced_mip_tail()?.filter(|forced| forced.first_lod < desc.mips) {
+                image.mip_tail = image.synthetic_tail(forced);
+            }
+        }
         image.view = create_view(
             device,
             raw,
@@ -281,9 +372,168 @@ impl SparseImage {
         self.mip_tail.first_lod
     }
 
-    /// The mip tail as the device reports it.
+    /// The mip tail as the device reports it (or as [`FORCE_MIP_TAIL_ENV`]
+    /// makes it).
     pub fn mip_tail(&self) -> MipTail {
         self.mip_tail
+    }
+
+    /// The colour aspect's sparse format flags as the device reports them.
+    pub fn format_flags(&self) -> vk::SparseImageFormatFlags {
+        self.format_flags
+    }
+
+    /// Why the texture cache cannot serve this image sparse, if it cannot:
+    /// a tail from level 0 (nothing to bind per block), or a block shape
+    /// that is not one memory block of texels.
+    pub fn unserved_reason(&self) -> Option<String> {
+        if self.desc.mips > 0 && self.mip_tail.first_lod == 0 {
+            return Some(format!(
+                "its mip tail starts at level 0 of a {}x{} image: nothing can be bound block by block",
+                self.desc.width, self.desc.height
+            ));
+        }
+        let (gw, gh) = self.granularity;
+        let (bw, bh) = texel_block(self.desc.format);
+        let texel_blocks = u64::from(gw / bw.max(1)) * u64::from(gh / bh.max(1));
+        let spans_one_block =
+            gw % bw == 0 && gh % bh == 0 && texel_blocks * bytes_per_texel_block(self.desc.format) == self.block_size;
+        if !spans_one_block {
+            let standard = !self
+                .format_flags
+                .contains(vk::SparseImageFormatFlags::NONSTANDARD_BLOCK_SIZE);
+            return Some(format!(
+                "a {}sparse block shape of {gw}x{gh} texels that is not one {}-byte memory block",
+                if standard { "" } else { "non-standard " },
+                self.block_size
+            ));
+        }
+        None
+    }
+
+    /// Sparse blocks one tail takes (`imageMipTailSize` over the block
+    /// size); zero without a tail.
+    pub fn tail_blocks(&self) -> u32 {
+        if self.mip_tail.first_lod >= self.desc.mips || self.block_size == 0 {
+            return 0;
+        }
+        u32::try_from(self.mip_tail.size.div_ceil(self.block_size)).unwrap_or(u32::MAX)
+    }
+
+    /// A tail from `forced.first_lod` made of the blocks its levels would
+    /// take, per layer or, single, for every layer.
+    fn synthetic_tail(&self, forced: ForcedMipTail) -> MipTail {
+        let per_layer: u64 = (forced.first_lod..self.desc.mips)
+            .map(|mip| {
+                let (w, h) = self.level_blocks(mip);
+                u64::from(w) * u64::from(h)
+            })
+            .sum();
+        let layer_bytes = per_layer * self.block_size;
+        MipTail {
+            first_lod: forced.first_lod,
+            size: if forced.single {
+                layer_bytes * u64::from(self.desc.layers)
+            } else {
+                layer_bytes
+            },
+            offset: 0,
+            stride: if forced.single { 0 } else { layer_bytes },
+            single: forced.single,
+            synthetic: true,
+        }
+    }
+
+    /// The bind of block `index` of the tail of `layer` (layer 0 for a
+    /// single tail) to `memory` (`None`: unbind): opaque at the tail's
+    /// offset, or the level block it stands for in a synthetic tail.
+    pub fn tail_bind(&self, layer: u32, index: u32, memory: Option<(vk::DeviceMemory, u64)>) -> Result<TailBind> {
+        let tail = self.mip_tail;
+        let blocks = self.tail_blocks();
+        let outside = || {
+            EngineError::InvalidRequest(format!(
+                "tail block {index} of layer {layer}: the image has {} layers and a {}tail of {blocks} blocks",
+                self.desc.layers,
+                if tail.single { "single " } else { "" }
+            ))
+        };
+        if index >= blocks || layer >= self.desc.layers || (tail.single && layer != 0) {
+            return Err(outside());
+        }
+        if tail.synthetic {
+            // Block `index` of the tail's levels, layer by layer for a single tail.
+            let mut rest = u64::from(index);
+            let layers = if tail.single {
+                0..self.desc.layers
+            } else {
+                layer..layer + 1
+            };
+            for at_layer in layers {
+                for mip in tail.first_lod..self.desc.mips {
+                    let (w, h) = self.level_blocks(mip);
+                    let count = u64::from(w) * u64::from(h);
+                    if rest < count {
+                        return Ok(TailBind::Block(SparseBlockBind {
+                            layer: at_layer,
+                            mip,
+                            x: (rest % u64::from(w)) as u32,
+                            y: (rest / u64::from(w)) as u32,
+                            memory,
+                        }));
+                    }
+                    rest -= count;
+                }
+            }
+            return Err(outside());
+        }
+        let layer_offset = if tail.single { 0 } else { u64::from(layer) * tail.stride };
+        let (memory, memory_offset) = memory.unwrap_or((vk::DeviceMemory::null(), 0));
+        Ok(TailBind::Opaque(vk::SparseMemoryBind {
+            // An opaque offset: it may lie past the image's memory size (NVK).
+            resource_offset: tail.offset + layer_offset + u64::from(index) * self.block_size,
+            size: self.block_size.min(tail.size - u64::from(index) * self.block_size),
+            memory,
+            memory_offset,
+            flags: vk::SparseMemoryBindFlags::empty(),
+        }))
+    }
+
+    /// Bytes of the image's opaque memory range (`VkMemoryRequirements::size`).
+    pub fn opaque_bytes(&self) -> u64 {
+        self.opaque_bytes
+    }
+
+    /// Binds and unbinds `blocks` of levels above the tail and blocks of
+    /// mip tails ([`TailBlockBind`]) in
+    /// one `vkQueueBindSparse`, signalling `signal` and `fence` (may be
+    /// null). Returns the bind entries submitted.
+    pub fn bind_with_tail(
+        &self,
+        blocks: &[SparseBlockBind],
+        tail: &[TailBlockBind],
+        signal: &[vk::Semaphore],
+        fence: vk::Fence,
+    ) -> Result<usize> {
+        let mut level_blocks = Vec::new();
+        let mut opaque = Vec::new();
+        for bind in tail {
+            match self.tail_bind(bind.layer, bind.index, bind.memory)? {
+                TailBind::Opaque(bind) => opaque.push(bind),
+                TailBind::Block(block) => level_blocks.push(block),
+            }
+        }
+        let mut entries = self.bind_entries(blocks)?;
+        entries.extend(self.entries_of(&level_blocks)?);
+        submit_bind_sparse_after(
+            &self.device,
+            &[(self.raw, entries.as_slice())],
+            &[(self.raw, opaque.as_slice())],
+            &[],
+            signal,
+            None,
+            fence,
+        )?;
+        Ok(entries.len() + opaque.len())
     }
 
     /// Memory types the blocks may come from.
@@ -337,13 +587,38 @@ impl SparseImage {
 
     /// Turns blocks into bind entries: runs of blocks adjacent in a row whose
     /// memory is contiguous (or which are all unbound) become one entry.
+    /// Levels in the mip tail are refused: they are bound as a whole
+    /// ([`tail_bind`](Self::tail_bind)).
     pub fn bind_entries(&self, blocks: &[SparseBlockBind]) -> Result<Vec<vk::SparseImageMemoryBind>> {
         let first_tail_lod = self.mip_tail.first_lod;
-        if first_tail_lod < self.desc.mips && blocks.iter().any(|b| b.mip >= first_tail_lod) {
+        if let Some(block) = blocks
+            .iter()
+            .find(|b| b.mip >= first_tail_lod && first_tail_lod < self.desc.mips)
+        {
             return Err(EngineError::InvalidRequest(format!(
-                "levels from {first_tail_lod} on are in the mip tail and are bound as a whole, not per block"
+                "layer {} level {} block ({}, {}): levels from {first_tail_lod} on are in the mip tail and are \
+                 bound as a whole, not per block",
+                block.layer, block.mip, block.x, block.y
             )));
         }
+        self.entries_of(blocks)
+    }
+
+    /// [`bind_entries`](Self::bind_entries) for blocks of the cache's own
+    /// levels and of a synthetic tail's levels, which on a device without a
+    /// tail are ordinary blocks.
+    pub(crate) fn bind_entries_with_synthetic_tail(
+        &self,
+        blocks: &[SparseBlockBind],
+    ) -> Result<Vec<vk::SparseImageMemoryBind>> {
+        if self.mip_tail.synthetic {
+            self.entries_of(blocks)
+        } else {
+            self.bind_entries(blocks)
+        }
+    }
+
+    fn entries_of(&self, blocks: &[SparseBlockBind]) -> Result<Vec<vk::SparseImageMemoryBind>> {
         let mut sorted = blocks.to_vec();
         sorted.sort_by_key(|b| (b.layer, b.mip, b.y, b.x));
         let mut entries: Vec<vk::SparseImageMemoryBind> = Vec::with_capacity(sorted.len());
@@ -406,7 +681,15 @@ pub fn submit_bind_sparse(
     timeline: Option<(vk::Semaphore, u64)>,
     fence: vk::Fence,
 ) -> Result<()> {
-    submit_bind_sparse_after(device, images, &[], signal, timeline, fence)
+    submit_bind_sparse_after(device, images, &[], &[], signal, timeline, fence)
+}
+
+/// Binds `binds` of the opaque memory range of each image (mip tails, or a
+/// whole image's memory) in one `vkQueueBindSparse`, and waits for it.
+pub fn bind_opaque_and_wait(device: &Arc<Device>, images: &[(vk::Image, &[vk::SparseMemoryBind])]) -> Result<()> {
+    let fence = crate::commands::Fence::new(device, false, "opaque sparse bind")?;
+    submit_bind_sparse_after(device, &[], images, &[], &[], None, fence.raw())?;
+    fence.wait()
 }
 
 /// As [`submit_bind_sparse`], but the binds start only once every timeline
@@ -415,6 +698,7 @@ pub fn submit_bind_sparse(
 pub fn submit_bind_sparse_after(
     device: &Device,
     images: &[(vk::Image, &[vk::SparseImageMemoryBind])],
+    opaque: &[(vk::Image, &[vk::SparseMemoryBind])],
     waits: &[(vk::Semaphore, u64)],
     signal: &[vk::Semaphore],
     timeline: Option<(vk::Semaphore, u64)>,
@@ -424,6 +708,15 @@ pub fn submit_bind_sparse_after(
         .iter()
         .filter(|(_, entries)| !entries.is_empty())
         .map(|&(image, entries)| vk::SparseImageMemoryBindInfo::default().image(image).binds(entries))
+        .collect();
+    let opaque_binds: Vec<_> = opaque
+        .iter()
+        .filter(|(_, entries)| !entries.is_empty())
+        .map(|&(image, entries)| {
+            vk::SparseImageOpaqueMemoryBindInfo::default()
+                .image(image)
+                .binds(entries)
+        })
         .collect();
     let mut semaphores = signal.to_vec();
     let mut values = vec![0u64; signal.len()];
@@ -439,7 +732,8 @@ pub fn submit_bind_sparse_after(
     let mut info = vk::BindSparseInfo::default()
         .wait_semaphores(&wait_semaphores)
         .signal_semaphores(&semaphores)
-        .image_binds(&image_binds);
+        .image_binds(&image_binds)
+        .image_opaque_binds(&opaque_binds);
     if timeline.is_some() || !waits.is_empty() {
         info = info.push_next(&mut timeline_info);
     }

@@ -218,3 +218,43 @@ pub fn bc1_texel(level: &[u8], width: u32, x: u32, y: u32) -> [u8; 4] {
     bytes.copy_from_slice(&level[block..block + 8]);
     decode_bc1_block(&bytes)[((y % 4) * 4 + x % 4) as usize]
 }
+
+/// Bytes of memory a sparse cache of `layers` layers of `layer_size`²
+/// `format` texels binds for mip tails beyond what the same levels take
+/// without a tail, when `live_layers` layers hold textures: where a level of
+/// the tail alone (its coarsest) would take one block per live layer, a
+/// per-layer tail takes all of its blocks per live layer, and a single tail
+/// is bound once; zero
+/// without a tail (lavapipe, unless `CITYSTREAM_FORCE_MIP_TAIL` forces one).
+/// Tests whose budget holds "about N textures" add it, so the scenario stays
+/// the one they describe on a device with tails.
+pub fn tail_allowance(
+    device: &Arc<Device>,
+    format: citystream_engine::vk::Format,
+    layer_size: u32,
+    layers: u32,
+    live_layers: u32,
+) -> Result<u64> {
+    use citystream_engine::sparse::{SparseImage, SparseImageDesc};
+    let probe = SparseImage::new(
+        device,
+        SparseImageDesc {
+            width: layer_size,
+            height: layer_size,
+            layers,
+            mips: layer_size.max(1).ilog2() + 1,
+            format,
+        },
+        "tail allowance probe",
+    )?;
+    let tail_bytes = u64::from(probe.tail_blocks()) * probe.block_size();
+    // Without a tail, the coarsest level alone of a live layer takes a block.
+    let coarsest_alone = probe.block_size() * u64::from(live_layers);
+    Ok(if probe.tail_blocks() == 0 {
+        0
+    } else if probe.mip_tail().single {
+        tail_bytes.saturating_sub(coarsest_alone)
+    } else {
+        (tail_bytes * u64::from(live_layers)).saturating_sub(coarsest_alone)
+    })
+}

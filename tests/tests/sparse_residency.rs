@@ -1,8 +1,10 @@
 //! A sparse 2D-array image with a full mip chain: bind blocks at two levels
-//! with `vkQueueBindSparse` (its semaphore gates the graphics-queue copy and
-//! sampling), copy texels in, sample with `GL_ARB_sparse_texture2`, check the
-//! resident values and the non-resident residency code, then unbind one block
-//! and check it reads as non-resident.
+//! and the mip tail where the device has one (or `CITYSTREAM_FORCE_MIP_TAIL`
+//! makes one) with `vkQueueBindSparse` (its semaphore gates the
+//! graphics-queue copy and sampling), copy texels in, sample with
+//! `GL_ARB_sparse_texture2`, check the resident values and the non-resident
+//! residency code, then unbind one block and check it reads as non-resident.
+//! And the opaque bind (how a GPU's tails are bound) on a whole image.
 
 use anyhow::{ensure, Context, Result};
 use citystream_engine::buffer::{Buffer, BufferDesc};
@@ -10,7 +12,9 @@ use citystream_engine::commands::{CommandContext, Semaphore, SemaphoreWait};
 use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::gpu_types::{ProbePoint, ProbeResult};
 use citystream_engine::probe::SparseProbe;
-use citystream_engine::sparse::{SparseBlockBind, SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
+use citystream_engine::sparse::{
+    bind_opaque_and_wait, SparseBlockBind, SparseImage, SparseImageDesc, SparseMemoryChunk, TailBlockBind, TexelUpload,
+};
 use citystream_engine::vk;
 use citystream_tests::{assert_no_validation_errors, validated_device};
 
@@ -19,7 +23,12 @@ const LAYERS: u32 = 2;
 
 /// Texel pattern of level `mip` at (x, y): distinct per level and position.
 fn texel(mip: u32, x: u32, y: u32) -> [u8; 4] {
-    [(x * (1 << mip)) as u8, (y * (1 << mip)) as u8, 40 + 60 * mip as u8, 255]
+    [
+        (x * (1 << mip)) as u8,
+        (y * (1 << mip)) as u8,
+        (40 + 37 * mip) as u8,
+        255,
+    ]
 }
 
 fn level_bytes(mip: u32, x0: u32, y0: u32, w: u32, h: u32) -> Vec<u8> {
@@ -72,13 +81,21 @@ fn bind_copy_sample_unbind() -> Result<()> {
         SIDE >= 2 * gw,
         "granularity {gw}x{gh} too coarse for a {SIDE}-texel test image"
     );
+    // A second level bound per block: level 2 where the device binds it so
+    // (lavapipe), else the last level above the mip tail (a GPU: level 1).
+    let tail = image.mip_tail();
+    let has_tail = tail.first_lod < mips;
+    let small = 2.min(tail.first_lod.saturating_sub(1));
     ensure!(
-        image.mip_tail_first_lod() > 2,
-        "level 2 must be bindable per block (mip tail starts at {})",
-        image.mip_tail_first_lod()
+        small >= 1,
+        "the mip tail starts at level {}: no small level to bind",
+        tail.first_lod
     );
+    let tail_blocks = image.tail_blocks();
+    // Layer 1's tail (the image's, when single) is bound opaquely.
+    let tail_layer = if tail.single { 0 } else { 1 };
 
-    let chunk = SparseMemoryChunk::new(&device, &image, 2, "residency test blocks")?;
+    let chunk = SparseMemoryChunk::new(&device, &image, 2 + u64::from(tail_blocks), "residency test blocks")?;
     let block_size = image.block_size();
     let level0_block = SparseBlockBind {
         layer: 1,
@@ -87,36 +104,85 @@ fn bind_copy_sample_unbind() -> Result<()> {
         y: 0,
         memory: chunk.block(0, block_size),
     };
-    let level2_block = SparseBlockBind {
+    let small_block = SparseBlockBind {
         layer: 1,
-        mip: 2,
+        mip: small,
         x: 0,
         y: 0,
         memory: chunk.block(1, block_size),
     };
-    ensure!(level0_block.memory.is_some() && level2_block.memory.is_some());
+    ensure!(level0_block.memory.is_some() && small_block.memory.is_some());
+    let tail_binds: Vec<_> = (0..tail_blocks)
+        .map(|index| TailBlockBind {
+            layer: tail_layer,
+            index,
+            memory: chunk.block(2 + u64::from(index), block_size),
+        })
+        .collect();
     let bound = Semaphore::new(&device, "blocks bound")?;
-    let entries = image.bind(&[level0_block, level2_block], &[bound.raw()], vk::Fence::null())?;
-    ensure!(entries == 2, "two separate blocks make two bind entries, got {entries}");
-
-    // Upload the texels of both bound regions.
-    let (r0_offset, r0_extent) = image.block_region(0, 1, 0)?;
-    let (r2_offset, r2_extent) = image.block_region(2, 0, 0)?;
-    let mut bytes = level_bytes(
-        0,
-        r0_offset.x as u32,
-        r0_offset.y as u32,
-        r0_extent.width,
-        r0_extent.height,
+    let entries = image.bind_with_tail(
+        &[level0_block, small_block],
+        &tail_binds,
+        &[bound.raw()],
+        vk::Fence::null(),
+    )?;
+    ensure!(
+        entries >= 2 + usize::from(has_tail),
+        "two separate blocks and a tail make at least {} bind entries, got {entries}",
+        2 + usize::from(has_tail)
     );
-    let level2_start = bytes.len() as u64;
-    bytes.extend(level_bytes(
-        2,
-        r2_offset.x as u32,
-        r2_offset.y as u32,
-        r2_extent.width,
-        r2_extent.height,
-    ));
+    if has_tail {
+        let refused = image.bind(
+            &[SparseBlockBind {
+                mip: tail.first_lod,
+                ..small_block
+            }],
+            &[],
+            vk::Fence::null(),
+        );
+        ensure!(refused.is_err(), "a per-block bind of a tail level must be refused");
+    }
+
+    // Upload the texels of the bound regions: a level-0 block, the small
+    // level's block and every level of the tail.
+    let (r0_offset, r0_extent) = image.block_region(0, 1, 0)?;
+    let (rs_offset, rs_extent) = image.block_region(small, 0, 0)?;
+    let mut regions = vec![
+        (
+            0,
+            r0_offset.x as u32,
+            r0_offset.y as u32,
+            r0_extent.width,
+            r0_extent.height,
+        ),
+        (
+            small,
+            rs_offset.x as u32,
+            rs_offset.y as u32,
+            rs_extent.width,
+            rs_extent.height,
+        ),
+    ];
+    if has_tail {
+        for mip in tail.first_lod..mips {
+            let (w, h) = image.level_extent(mip);
+            regions.push((mip, 0, 0, w, h));
+        }
+    }
+    let mut bytes = Vec::new();
+    let mut uploads = Vec::new();
+    for &(mip, x, y, width, height) in &regions {
+        uploads.push(TexelUpload {
+            layer: 1,
+            mip,
+            x,
+            y,
+            width,
+            height,
+            buffer_offset: bytes.len() as u64,
+        });
+        bytes.extend(level_bytes(mip, x, y, width, height));
+    }
     let mut staging = Buffer::new(
         &device,
         BufferDesc {
@@ -130,30 +196,7 @@ fn bind_copy_sample_unbind() -> Result<()> {
     let mut commands = CommandContext::new(&device, "residency test")?;
     let cmd = commands.begin()?;
     image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
-    image.record_copies(
-        cmd,
-        staging.raw(),
-        &[
-            TexelUpload {
-                layer: 1,
-                mip: 0,
-                x: r0_offset.x as u32,
-                y: r0_offset.y as u32,
-                width: r0_extent.width,
-                height: r0_extent.height,
-                buffer_offset: 0,
-            },
-            TexelUpload {
-                layer: 1,
-                mip: 2,
-                x: r2_offset.x as u32,
-                y: r2_offset.y as u32,
-                width: r2_extent.width,
-                height: r2_extent.height,
-                buffer_offset: level2_start,
-            },
-        ],
-    )?;
+    image.record_copies(cmd, staging.raw(), &uploads)?;
     image.record_layout(
         cmd,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
@@ -164,22 +207,33 @@ fn bind_copy_sample_unbind() -> Result<()> {
 
     let first_resident_x = gw; // first texel of block 1 on level 0
     let last_x = SIDE - 1;
-    let level2_side = SIDE >> 2;
-    let points = vec![
+    let small_side = SIDE >> small;
+    let mut points = vec![
         // Resident: inside and at both edges of the bound level-0 block.
         at(1, 0, first_resident_x, 0),
         at(1, 0, first_resident_x + 7, 5),
         at(1, 0, last_x, gh - 1),
-        // Non-resident: the neighbouring block, the same block of layer 0, level 1.
-        at(1, 0, first_resident_x - 1, 0),
+        // Non-resident: the neighbouring block, the same block of layer 0.
         at(0, 0, first_resident_x, 0),
-        at(1, 1, 5, 5),
-        // Resident: level 2 (one block covers it).
-        at(1, 2, 0, 0),
-        at(1, 2, level2_side - 1, level2_side - 1),
-        at(1, 2, 17, 33),
+        at(1, 0, first_resident_x - 1, 0),
+        // Resident: the small level's block.
+        at(1, small, 0, 0),
+        at(1, small, rs_extent.width - 1, rs_extent.height - 1),
+        at(1, small, 17 % small_side, 33 % small_side),
     ];
-    let expected_resident = [true, true, true, false, false, false, true, true, true];
+    let mut expected_resident = vec![true, true, true, false, false, true, true, true];
+    if small > 1 {
+        // Level 1 has no bound block.
+        points.push(at(1, 1, 5, 5));
+        expected_resident.push(false);
+    }
+    if has_tail {
+        for mip in tail.first_lod..mips {
+            let (w, h) = image.level_extent(mip);
+            points.push(at(1, mip, w - 1, h - 1));
+            expected_resident.push(true);
+        }
+    }
     let probe = SparseProbe::new(&device, 64)?;
     let results = probe.run(&mut commands, image.view(), &points, &[])?;
     for (i, (result, point)) in results.iter().zip(&points).enumerate() {
@@ -203,7 +257,7 @@ fn bind_copy_sample_unbind() -> Result<()> {
         }
     }
 
-    // Unbind the level-0 block; level 2 stays.
+    // Unbind the level-0 block; the small level and the tail stay.
     let unbound = Semaphore::new(&device, "block unbound")?;
     image.bind(
         &[SparseBlockBind {
@@ -225,12 +279,120 @@ fn bind_copy_sample_unbind() -> Result<()> {
         )
         .context("probing after the unbind")?;
     for (i, result) in after.iter().enumerate() {
-        let still = expected_resident[i] && points[i].lod as u32 == 2;
+        let still = expected_resident[i] && points[i].lod as u32 != 0;
         ensure!(
             (result.resident == 1) == still,
             "after unbind, probe {i} at {:?}: resident = {}, expected {still}",
             points[i],
             result.resident
+        );
+    }
+    device.wait_idle()?;
+    drop(probe);
+    drop(commands);
+    drop(image);
+    drop(chunk);
+    assert_no_validation_errors(&device)
+}
+
+/// The opaque bind path (how mip tails are bound on a GPU), where lavapipe
+/// can run it: a sparse image's whole memory bound opaquely, every level
+/// copied in and sampled back resident and exact.
+#[test]
+fn an_opaquely_bound_sparse_image_samples_every_level() -> Result<()> {
+    let device = validated_device()?;
+    let side = 64u32;
+    let mips = 32 - side.leading_zeros();
+    let image = SparseImage::new(
+        &device,
+        SparseImageDesc {
+            width: side,
+            height: side,
+            layers: 1,
+            mips,
+            format: vk::Format::R8G8B8A8_UNORM,
+        },
+        "opaque bind test image",
+    )?;
+    let block_size = image.block_size();
+    let bytes_bound = image.opaque_bytes().next_multiple_of(block_size);
+    let chunk = SparseMemoryChunk::new(&device, &image, bytes_bound / block_size, "opaque bind test memory")?;
+    let (memory, memory_offset) = chunk.block(0, block_size).context("the chunk's first block")?;
+    // One range per block, as the cache binds a tail's blocks. (Lavapipe,
+    // Mesa 25.0.7, made only the first block of a several-block range resident.)
+    let binds: Vec<vk::SparseMemoryBind> = (0..bytes_bound / block_size)
+        .map(|block| vk::SparseMemoryBind {
+            resource_offset: block * block_size,
+            size: block_size,
+            memory,
+            memory_offset: memory_offset + block * block_size,
+            flags: vk::SparseMemoryBindFlags::empty(),
+        })
+        .collect();
+    bind_opaque_and_wait(&device, &[(image.raw(), binds.as_slice())])?;
+
+    let mut bytes = Vec::new();
+    let mut uploads = Vec::new();
+    for mip in 0..mips {
+        let (w, h) = image.level_extent(mip);
+        uploads.push(TexelUpload {
+            layer: 0,
+            mip,
+            x: 0,
+            y: 0,
+            width: w,
+            height: h,
+            buffer_offset: bytes.len() as u64,
+        });
+        bytes.extend(level_bytes(mip, 0, 0, w, h));
+    }
+    let mut staging = Buffer::new(
+        &device,
+        BufferDesc {
+            size: bytes.len() as u64,
+            usage: vk::BufferUsageFlags::TRANSFER_SRC,
+            location: MemoryLocation::CpuToGpu,
+        },
+        "opaque bind test staging",
+    )?;
+    staging.write(0, &bytes)?;
+    let mut commands = CommandContext::new(&device, "opaque bind test")?;
+    let cmd = commands.begin()?;
+    image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
+    image.record_copies(cmd, staging.raw(), &uploads)?;
+    image.record_layout(
+        cmd,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    );
+    commands.submit_and_wait(&[])?;
+
+    let side_at = |mip: u32| (side >> mip).max(1);
+    let points: Vec<ProbePoint> = (0..mips)
+        .flat_map(|mip| {
+            let s = side_at(mip);
+            [(0, 0), (s - 1, s - 1), (s / 2, s / 3)].map(|(x, y)| ProbePoint {
+                uv: [(x as f32 + 0.5) / s as f32, (y as f32 + 0.5) / s as f32],
+                layer: 0.0,
+                lod: mip as f32,
+            })
+        })
+        .collect();
+    let probe = SparseProbe::new(&device, 64)?;
+    let results = probe.run(&mut commands, image.view(), &points, &[])?;
+    for (i, (result, point)) in results.iter().zip(&points).enumerate() {
+        let mip = point.lod as u32;
+        let s = side_at(mip) as f32;
+        let (x, y) = ((point.uv[0] * s) as u32, (point.uv[1] * s) as u32);
+        ensure!(
+            result.resident == 1,
+            "probe {i} at {point:?}: not resident after the opaque bind"
+        );
+        ensure!(
+            to_u8(result) == texel(mip, x, y),
+            "probe {i}: level {mip} texel ({x}, {y}) read {:?}, expected {:?}",
+            to_u8(result),
+            texel(mip, x, y)
         );
     }
     device.wait_idle()?;

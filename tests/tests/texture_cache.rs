@@ -738,3 +738,63 @@ fn bc3_and_bc7_textures_are_cached_and_sampled_on(device: Arc<Device>) -> Result
     drop(cache);
     assert_no_validation_errors(&device)
 }
+
+/// The cache reports the mip tail it binds, per format: where it starts,
+/// its bytes, single or per layer, and the bytes held, which follow the
+/// layers whose textures use tail levels (per layer) or stay put (single).
+/// Without a tail (lavapipe) it reports none; under
+/// `CITYSTREAM_FORCE_MIP_TAIL` the forced one.
+#[test]
+fn the_cache_reports_the_mip_tail_it_binds() -> Result<()> {
+    let device = validated_device()?;
+    let forced = citystream_engine::sparse::forced_mip_tail()?;
+    let mut rng = SplitMix64::new(5);
+    // Two 64² RGBA8 textures in one layer of 256²: levels 0..6, so levels
+    // from 3 on are in a forced tail from 3.
+    let sources: Vec<SourceTexture> = (0..2)
+        .map(|_| SourceTexture::random(&mut rng, TextureFormat::Rgba8, 64, 64))
+        .collect();
+    let mut commands = CommandContext::new(&device, "tail report test")?;
+    let colormap = vec![[255u8; 4]; sources.len()];
+    let mut cache = GpuTextureCache::new(
+        &device,
+        &mut commands,
+        &test_cache_config(&[TextureFormat::Rgba8], sources.len() as u32),
+        &colormap,
+    )?;
+    let before = cache.format_tails();
+    ensure!(before.len() == 1 && before[0].format == "RGBA8", "{before:?}");
+    let tail = &before[0];
+    match forced {
+        None => ensure!(
+            tail.first_level.is_none() && tail.bytes_per_tail == 0 && tail.held_bytes == 0,
+            "lavapipe has no tail: {tail:?}"
+        ),
+        Some(forced) => {
+            ensure!(
+                tail.first_level == Some(forced.first_lod) && tail.single == forced.single && tail.synthetic,
+                "the forced tail {forced:?} reported as {tail:?}"
+            );
+            // A single tail is bound with the images; per-layer tails not yet.
+            let held_at_start = if forced.single { tail.bytes_per_tail } else { 0 };
+            ensure!(tail.held_bytes == held_at_start, "{tail:?}");
+        }
+    }
+    stage_every_level(&mut cache, &mut commands, &sources)?;
+    read_back_every_level(&device, &cache, &mut commands, &sources, &mut rng)?;
+    let after = &cache.format_tails()[0];
+    // Both textures share one layer, so one layer tail, or the single tail.
+    let held = if after.first_level.is_some() {
+        after.bytes_per_tail
+    } else {
+        0
+    };
+    ensure!(after.held_bytes == held, "after loading: {after:?}");
+    ensure!(
+        cache.utilisation().tail_bytes == held,
+        "utilisation {:?} against {after:?}",
+        cache.utilisation()
+    );
+    drop(cache);
+    assert_no_validation_errors(&device)
+}

@@ -40,6 +40,9 @@ pub enum Record {
         /// The sparse granularity (texels) and block size the logging device reported.
         granularity: (u32, u32),
         block_bytes: u32,
+        /// The mip tail the logging device had (version 2 logs): first
+        /// level, blocks, single; `None` without a tail or in a version 1 log.
+        tail: Option<(u32, u32, bool)>,
     },
     Chunk {
         index: u32,
@@ -55,11 +58,16 @@ pub enum Record {
 /// Parses a bind log; errors name the line.
 pub fn parse(text: &str) -> Result<Vec<Record>> {
     let mut lines = text.lines().enumerate().map(|(i, line)| (i + 1, line));
-    match lines.next() {
-        Some((_, header)) if header.trim() == bind_log::HEADER => {}
-        Some((_, header)) => bail!("line 1: {header:?} is not a bind log header ({:?})", bind_log::HEADER),
+    let version_1 = match lines.next() {
+        Some((_, header)) if header.trim() == bind_log::HEADER => false,
+        Some((_, header)) if header.trim() == bind_log::HEADER_V1 => true,
+        Some((_, header)) => bail!(
+            "line 1: {header:?} is not a bind log header ({:?} or {:?})",
+            bind_log::HEADER,
+            bind_log::HEADER_V1
+        ),
         None => bail!("the log is empty"),
-    }
+    };
     let mut records = Vec::new();
     while let Some((number, line)) = lines.next() {
         let words: Vec<&str> = line.split_whitespace().collect();
@@ -74,8 +82,19 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
         };
         match kind {
             "image" => {
-                expect(9)?;
-                let [index, width, height, layers, mips, format, gw, gh, block_bytes] = small_numbers(number, fields)?;
+                let (head, tail) = if version_1 {
+                    expect(9)?;
+                    (fields, None)
+                } else {
+                    expect(12)?;
+                    let [first_level, blocks, single] = small_numbers(number, &fields[9..])?;
+                    if single > 1 {
+                        bail!("line {number}: the tail's single flag is {single}, not 0 or 1");
+                    }
+                    (&fields[..9], Some((first_level, blocks, single == 1)))
+                };
+                let [index, width, height, layers, mips, format, gw, gh, block_bytes] = small_numbers(number, head)?;
+                let tail = tail.filter(|&(first_level, _, _)| first_level < mips);
                 let format = i32::try_from(format).with_context(|| format!("line {number}: format {format}"))?;
                 let format = vk::Format::from_raw(format);
                 let desc = SparseImageDesc {
@@ -90,6 +109,7 @@ pub fn parse(text: &str) -> Result<Vec<Record>> {
                     desc,
                     granularity: (gw, gh),
                     block_bytes,
+                    tail,
                 });
             }
             "chunk" => {
@@ -182,7 +202,27 @@ fn parse_op(number: usize, line: &str) -> Result<BindOp> {
         ["unbind", rest @ ..] if rest.len() == 5 => Ok(BindOp::Unbind {
             block: block(small_numbers(number, rest)?),
         }),
-        _ => bail!("line {number}: {line:?} is not `bind` with 7 numbers or `unbind` with 5"),
+        ["bind-tail", rest @ ..] if rest.len() == 5 => {
+            let [image, layer, index] = small_numbers(number, &rest[..3])?;
+            let [chunk, offset] = numbers(number, &rest[3..])?;
+            Ok(BindOp::Bind {
+                block: BlockKey::tail(image, layer, index),
+                memory: MemorySlot {
+                    chunk: narrow(number, chunk)?,
+                    offset,
+                },
+            })
+        }
+        ["unbind-tail", rest @ ..] if rest.len() == 3 => {
+            let [image, layer, index] = small_numbers(number, rest)?;
+            Ok(BindOp::Unbind {
+                block: BlockKey::tail(image, layer, index),
+            })
+        }
+        _ => bail!(
+            "line {number}: {line:?} is not `bind` with 7 numbers, `unbind` with 5, `bind-tail` with 5 or \
+             `unbind-tail` with 3"
+        ),
     }
 }
 
@@ -208,6 +248,7 @@ pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<R
         desc,
         granularity,
         block_bytes,
+        tail,
     }) = records.get(index)
     {
         if *expected as usize != images.len() {
@@ -225,6 +266,25 @@ pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<R
                 device.name(),
                 image.granularity(),
                 image.block_size()
+            );
+        }
+        // Tail blocks mean what the logging device's tail made of them.
+        let here = citystream_engine::binder::cache_mip_tail(&image).map(|t| (t.first_level, t.blocks, t.single));
+        if here != *tail {
+            let describe = |tail: Option<(u32, u32, bool)>| match tail {
+                None => "no mip tail".to_owned(),
+                Some((first, blocks, single)) => format!(
+                    "a {}mip tail from level {first} of {blocks} blocks",
+                    if single { "single " } else { "" }
+                ),
+            };
+            bail!(
+                "image {expected}: the log was written on a device with {}; {} has {} (on a device without \
+                 a tail, {}=LEVEL[,single] gives one)",
+                describe(*tail),
+                device.name(),
+                describe(here),
+                citystream_engine::sparse::FORCE_MIP_TAIL_ENV
             );
         }
         images.push(Arc::new(image));
@@ -397,19 +457,43 @@ mod tests {
     #[test]
     fn a_log_parses_into_its_records_and_bad_lines_are_named() {
         let log = format!(
-            "{}\nimage 0 1024 1024 4 11 131 256 128 65536\nchunk 0 1048576\nbatch 2 1\nbind 0 1 2 3 4 0 65536\nunbind 0 1 2 3 5\ncopy 0 1 2 0 0 64 64\n",
+            "{}\nimage 0 1024 1024 4 11 131 256 128 65536 8 1 0\nchunk 0 1048576\nbatch 4 1\nbind 0 1 2 3 4 0 65536\nunbind 0 1 2 3 5\nbind-tail 0 3 0 0 0\nunbind-tail 0 2 0\ncopy 0 1 2 0 0 64 64\n",
             bind_log::HEADER
         );
         let records = parse(&log).expect("a valid log");
         assert_eq!(records.len(), 4);
-        assert!(matches!(&records[2], Record::Batch(ops) if ops.len() == 2));
+        assert!(matches!(
+            &records[0],
+            Record::Image {
+                tail: Some((8, 1, false)),
+                ..
+            }
+        ));
+        assert!(matches!(&records[2], Record::Batch(ops) if ops.len() == 4
+            && ops[2] == BindOp::Bind { block: BlockKey::tail(0, 3, 0), memory: MemorySlot { chunk: 0, offset: 0 } }
+            && ops[3] == BindOp::Unbind { block: BlockKey::tail(0, 2, 0) }));
         assert!(matches!(&records[3], Record::Copy { image: 0, upload } if upload.width == 64 && upload.mip == 2));
+        // A version 1 log (before mip tails): nine numbers an image, no tail.
+        let v1 = format!("{}\nimage 0 1024 1024 4 11 131 256 128 65536\n", bind_log::HEADER_V1);
+        let records = parse(&v1).expect("a version 1 log");
+        assert!(matches!(&records[0], Record::Image { tail: None, .. }));
+        assert!(parse(&format!(
+            "{}\nimage 0 1024 1024 4 11 131 256 128 65536 8 1 0\n",
+            bind_log::HEADER_V1
+        ))
+        .is_err());
+        assert!(parse(&format!(
+            "{}\nimage 0 1024 1024 4 11 131 256 128 65536 8 1 2\n",
+            bind_log::HEADER
+        ))
+        .is_err());
         for (bad, line) in [
             ("batch 3 0\nbind 0 0 0 0 0 0 0\n", "line 2"),
             ("chunk 0\n", "line 2"),
             ("copy 0 1 2 x 0 64 64\n", "line 2"),
             ("frobnicate 1\n", "line 2"),
             ("batch 1 0\nbind 0 0 0\n", "line 3"),
+            ("batch 1 0\nbind-tail 0 0 0\n", "line 3"),
         ] {
             let error = parse(&format!("{}\n{bad}", bind_log::HEADER)).expect_err(bad);
             assert!(format!("{error:#}").contains(line), "{bad:?}: {error:#}");

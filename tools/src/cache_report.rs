@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use citystream_cache::{estimate_utilisation, DeviceLimits, Granularity, ImageConfig, ImageDesc, TexelFormat};
+use citystream_cache::{estimate_utilisation, DeviceLimits, Granularity, ImageConfig, ImageDesc, MipTail, TexelFormat};
 use citystream_dataset::{Dataset, TextureFormat};
 use serde::Serialize;
 
@@ -26,9 +26,45 @@ pub struct CacheReportArgs {
     /// Sparse granularity of RGBA8 in texels, WIDTHxHEIGHT (lavapipe: 128x128).
     #[arg(long, default_value = "128x128")]
     pub rgba8_granularity: String,
+    /// The device's mip tails: `none` (lavapipe: every level in blocks), `per-layer`
+    /// (one tail per layer, as RADV and ANV) or `single` (one per image, as NVK). A tail
+    /// holds the levels smaller than one block in --tail-blocks blocks.
+    #[arg(long, value_enum, default_value_t = TailKind::None)]
+    pub mip_tails: TailKind,
+    /// Blocks one mip tail takes (imageMipTailSize over the block size; 1 for 64 KiB tails).
+    #[arg(long, default_value_t = 1)]
+    pub tail_blocks: u32,
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+}
+
+/// `--mip-tails`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum TailKind {
+    None,
+    PerLayer,
+    Single,
+}
+
+/// The tail a device with standard block shapes reports for `layer_size`²
+/// layers of `granularity`: from the first level smaller than one block.
+fn standard_tail(layer_size: u32, granularity: &Granularity, kind: TailKind, blocks: u32) -> Option<MipTail> {
+    let single = match kind {
+        TailKind::None => return None,
+        TailKind::PerLayer => false,
+        TailKind::Single => true,
+    };
+    let levels = layer_size.max(1).ilog2() + 1;
+    let first_level = (0..levels).find(|&mip| {
+        let size = (layer_size >> mip).max(1);
+        size < granularity.width || size < granularity.height
+    })?;
+    Some(MipTail {
+        first_level,
+        blocks,
+        single,
+    })
 }
 
 #[derive(Debug, Serialize)]
@@ -40,6 +76,13 @@ struct ImageReport {
     bound_bytes: u64,
     layers_used: u64,
     utilisation: f64,
+    /// The mip tail's first level (null without tails).
+    tail_first_level: Option<u32>,
+    /// Bytes of one tail (a layer's, or the image's when single).
+    tail_bytes_per_tail: u64,
+    tail_single: bool,
+    /// Bytes of tails held with every cacheable mip loaded (within `bound_bytes`).
+    tail_bytes_held: u64,
 }
 
 fn parse_granularity(text: &str, option: &str) -> Result<Granularity> {
@@ -99,6 +142,7 @@ pub fn run(args: &CacheReportArgs) -> Result<()> {
                 granularity,
                 layer_size: args.layer_size,
                 layer_count: 1,
+                mip_tail: standard_tail(args.layer_size, &granularity, args.mip_tails, args.tail_blocks),
             },
             &limits,
         )
@@ -113,6 +157,10 @@ pub fn run(args: &CacheReportArgs) -> Result<()> {
             bound_bytes: estimate.bound_bytes,
             layers_used: estimate.layers_used,
             utilisation: estimate.ratio(),
+            tail_first_level: desc.mip_tail.map(|tail| tail.first_level),
+            tail_bytes_per_tail: desc.tail_bytes(),
+            tail_single: desc.mip_tail.is_some_and(|tail| tail.single),
+            tail_bytes_held: estimate.tail_blocks * desc.block_bytes,
         });
     }
     if reports.is_empty() {
@@ -129,18 +177,25 @@ pub fn run(args: &CacheReportArgs) -> Result<()> {
         args.layer_size,
         args.block_bytes
     );
-    println!("| format | textures | texture MB | bound blocks | bound MB | layers | utilisation |");
-    println!("| --- | ---: | ---: | ---: | ---: | ---: | ---: |");
+    println!(
+        "| format | textures | texture MB | bound blocks | bound MB | layers | utilisation | tail from | tail KB | single | tails MB |"
+    );
+    println!("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: |");
     for r in &reports {
         println!(
-            "| {} | {} | {:.1} | {} | {:.1} | {} | {:.1} % |",
+            "| {} | {} | {:.1} | {} | {:.1} | {} | {:.1} % | {} | {:.0} | {} | {:.1} |",
             r.format,
             r.textures,
             r.texture_bytes as f64 / 1e6,
             r.bound_blocks,
             r.bound_bytes as f64 / 1e6,
             r.layers_used,
-            r.utilisation * 100.0
+            r.utilisation * 100.0,
+            r.tail_first_level
+                .map_or("-".to_owned(), |level| format!("level {level}")),
+            r.tail_bytes_per_tail as f64 / 1024.0,
+            if r.tail_single { "yes" } else { "no" },
+            r.tail_bytes_held as f64 / 1e6
         );
     }
     Ok(())

@@ -42,6 +42,8 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
         ])
         .env("CITYSTREAM_BIND_LOG", &log)
         .env("CITYSTREAM_CHECK_BINDS", "1")
+        // Block binds of every level (the tail has its own test below).
+        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
         .output()
         .expect("run flythrough");
     assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
@@ -53,7 +55,11 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
         "{batches} batches, {unbinds} unbinds, {copies} copies"
     );
 
-    let replay = citystream(&["bind-replay", log.to_str().expect("utf-8")]);
+    let replay = Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(["bind-replay", log.to_str().expect("utf-8")])
+        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
+        .output()
+        .expect("run bind-replay");
     assert!(replay.status.success(), "replay failed: {}", stderr(&replay));
     let said = String::from_utf8_lossy(&replay.stdout).into_owned();
     let operations = count("bind ") + unbinds;
@@ -79,7 +85,11 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
     lines.insert(at, "batch 1 0");
     let injected = dir.join("injected.log");
     std::fs::write(&injected, lines.join("\n") + "\n").expect("write");
-    let refused = citystream(&["bind-replay", injected.to_str().expect("utf-8")]);
+    let refused = Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(["bind-replay", injected.to_str().expect("utf-8")])
+        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
+        .output()
+        .expect("run bind-replay");
     assert!(!refused.status.success(), "a double bind replayed");
     let fields: Vec<&str> = first_bind.split_whitespace().collect();
     let named = format!(
@@ -89,6 +99,111 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
     let message = stderr(&refused);
     assert!(
         message.contains(&named) && message.contains("without an unbind"),
+        "{message}"
+    );
+}
+
+/// A flight on a device with per-layer mip tails (forced, lavapipe has none)
+/// logs its tails (`bind-tail`, the image lines' tail fields); the replay
+/// needs the same tail and runs the log; a tail bound twice and a per-block
+/// bind into a tail level, injected, are refused naming image and layer.
+#[test]
+fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
+    let dir = fresh_dir("bind_replay", "tails");
+    let city = dir.join("city");
+    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
+    assert!(out.status.success(), "gen failed: {}", stderr(&out));
+    let log = dir.join("binds.log");
+    let flight = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--dataset", city.to_str().expect("utf-8"), "--frames", "90"])
+        .args(["--clock", "fixed", "--frame-interval", "0", "--psnr-interval", "0"])
+        .args(["--out", dir.join("run").to_str().expect("utf-8")])
+        .env("CITYSTREAM_BIND_LOG", &log)
+        .env("CITYSTREAM_CHECK_BINDS", "1")
+        .env("CITYSTREAM_FORCE_MIP_TAIL", "3")
+        .output()
+        .expect("run flythrough");
+    assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
+    let text = std::fs::read_to_string(&log).expect("the bind log");
+    let tail_binds: Vec<&str> = text.lines().filter(|l| l.starts_with("bind-tail ")).collect();
+    assert!(
+        !tail_binds.is_empty(),
+        "no tail was bound:\n{}",
+        &text[..text.len().min(2000)]
+    );
+    let image_line = text.lines().find(|l| l.starts_with("image ")).expect("an image line");
+    let fields: Vec<&str> = image_line.split_whitespace().collect();
+    assert_eq!(fields.len(), 13, "{image_line}");
+    assert_eq!(
+        (fields[10], fields[12]),
+        ("3", "0"),
+        "a per-layer tail from level 3: {image_line}"
+    );
+
+    let replay = |log: &std::path::Path, tail: Option<&str>| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_citystream"));
+        command.args(["bind-replay", log.to_str().expect("utf-8")]);
+        match tail {
+            Some(tail) => command.env("CITYSTREAM_FORCE_MIP_TAIL", tail),
+            None => command.env_remove("CITYSTREAM_FORCE_MIP_TAIL"),
+        };
+        command.output().expect("run bind-replay")
+    };
+    let replayed = replay(&log, Some("3"));
+    assert!(replayed.status.success(), "replay failed: {}", stderr(&replayed));
+    // Without the tail, the log's tail blocks mean nothing here.
+    let no_tail = replay(&log, None);
+    assert!(!no_tail.status.success(), "replayed without the logging device's tail");
+    assert!(
+        stderr(&no_tail).contains("mip tail from level 3"),
+        "{}",
+        stderr(&no_tail)
+    );
+
+    // Inject a batch after the first one that holds a tail bind.
+    let inject = |name: &str, op: String| {
+        let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+        let first_tail = lines
+            .iter()
+            .position(|l| l.starts_with("bind-tail "))
+            .expect("a tail bind");
+        let batch_at = (0..first_tail)
+            .rev()
+            .find(|&i| lines[i].starts_with("batch "))
+            .expect("its batch");
+        let operations: usize = lines[batch_at]
+            .split_whitespace()
+            .nth(1)
+            .and_then(|n| n.parse().ok())
+            .expect("count");
+        let at = batch_at + 1 + operations;
+        lines.insert(at, op);
+        lines.insert(at, "batch 1 0".to_owned());
+        let path = dir.join(name);
+        std::fs::write(&path, lines.join("\n") + "\n").expect("write");
+        replay(&path, Some("3"))
+    };
+    let tail: Vec<&str> = tail_binds[0].split_whitespace().collect();
+    let twice = inject("tail-twice.log", tail_binds[0].to_owned());
+    assert!(!twice.status.success(), "a tail bound twice replayed");
+    let message = stderr(&twice);
+    assert!(
+        message.contains(&format!("mip tail of image {} layer {}", tail[1], tail[2]))
+            && message.contains("bound again"),
+        "{message}"
+    );
+    // Level 5 of the same layer, bound as if it were an ordinary block.
+    let per_block = inject(
+        "per-block.log",
+        format!("bind {} {} 5 0 0 {} {}", tail[1], tail[2], tail[4], tail[5]),
+    );
+    assert!(
+        !per_block.status.success(),
+        "a per-block bind into a tail level replayed"
+    );
+    let message = stderr(&per_block);
+    assert!(
+        message.contains(&format!("image {} layer {} level 5", tail[1], tail[2])) && message.contains("mip tail"),
         "{message}"
     );
 }

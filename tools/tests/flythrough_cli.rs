@@ -1351,3 +1351,68 @@ fn a_device_without_sparse_residency_streams_into_texture_arrays_by_itself() {
     assert!(!output.status.success(), "sparse on a device without it must fail");
     assert!(stderr.contains("sparseResidencyImage2D"), "{stderr}");
 }
+
+/// Mip tails as a GPU has them (forced: lavapipe has none): per layer and single, the
+/// default city streams with them under validation, its summary reports each format's
+/// tail (first level, single or not, bytes held) and the memory held stays within the
+/// budget.
+#[test]
+fn forced_mip_tails_stream_within_the_budget_and_are_reported() {
+    for (value, single) in [("3", false), ("3,single", true)] {
+        let name = format!("flythrough_tail_{}", value.replace(',', "_"));
+        let (stderr, summary) = default_city_run(
+            &name,
+            "40",
+            &["--sparse", "on", "--memory-budget-mb", "64"],
+            &[("CITYSTREAM_FORCE_MIP_TAIL", value), ("CITYSTREAM_CHECK_BINDS", "1")],
+        );
+        assert_eq!(summary["texture_backing"], "sparse", "{stderr}");
+        let tails = summary["cache_tails"].as_array().expect("cache_tails");
+        assert!(!tails.is_empty(), "{summary}");
+        for tail in tails {
+            assert_eq!(tail["first_level"], 3, "{tail}");
+            assert_eq!(tail["single"], single, "{tail}");
+            assert_eq!(tail["synthetic"], true, "{tail}");
+            let per_tail = tail["bytes_per_tail"].as_u64().expect("bytes_per_tail");
+            let held = tail["held_bytes"].as_u64().expect("held_bytes");
+            assert!(per_tail > 0 && held > 0, "{tail}");
+            if single {
+                assert_eq!(held, per_tail, "a single tail is held once: {tail}");
+            }
+        }
+        let budget = summary["memory_budget_bytes"].as_u64().expect("budget");
+        let peak = summary["peak_resident_bytes"].as_u64().expect("peak");
+        assert!(peak <= budget, "{value}: {peak} bytes held over a {budget}-byte budget");
+    }
+}
+
+/// A format the sparse cache cannot serve (a tail from level 0): `--sparse auto` takes
+/// texture arrays with one notice naming the format and why; `--sparse on` is refused,
+/// naming them; a malformed value names the variable.
+#[test]
+fn a_tail_from_level_0_streams_into_texture_arrays_under_auto_and_is_refused_under_on() {
+    let from_zero = [("CITYSTREAM_FORCE_MIP_TAIL", "0")];
+    let (stderr, summary) = default_city_run("flythrough_tail_0_auto", "20", &["--sparse", "auto"], &from_zero);
+    assert_eq!(summary["texture_backing"], "texture-arrays", "{stderr}");
+    let notices: Vec<&str> = stderr.lines().filter(|l| l.starts_with("notice:")).collect();
+    assert_eq!(notices.len(), 1, "one notice says why: {stderr}");
+    assert!(
+        notices[0].contains("BC1_RGB_UNORM_BLOCK") && notices[0].contains("level 0"),
+        "{}",
+        notices[0]
+    );
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_tail_0_on");
+    for (value, named) in [("0", "BC1_RGB_UNORM_BLOCK"), ("three", "CITYSTREAM_FORCE_MIP_TAIL")] {
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args(["--frames", "2", "--sparse", "on", "--dataset"])
+            .arg(default_city())
+            .arg("--out")
+            .arg(&out)
+            .env("CITYSTREAM_FORCE_MIP_TAIL", value)
+            .output()
+            .expect("flythrough runs");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{value}: sparse on must fail");
+        assert!(stderr.contains(named), "{value}: {stderr}");
+    }
+}

@@ -18,6 +18,7 @@ pub fn rgba_config(layer_size: u32, layer_count: u32, granularity: u32, budget_b
             granularity: Granularity::texels(granularity, granularity),
             layer_size,
             layer_count,
+            mip_tail: None,
         }],
         limits: DeviceLimits {
             max_image_array_layers: 2048,

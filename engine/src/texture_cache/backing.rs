@@ -110,6 +110,15 @@ impl CacheImages {
         }
     }
 
+    /// Whether sparse image `image` has a tail forced by
+    /// `CITYSTREAM_FORCE_MIP_TAIL` (false for texture arrays).
+    pub(super) fn sparse_tail_synthetic(&self, image: usize) -> bool {
+        match self {
+            CacheImages::Sparse { images, .. } => images.get(image).is_some_and(|i| i.mip_tail().synthetic),
+            CacheImages::Arrays { .. } => false,
+        }
+    }
+
     pub(super) fn view(&self, image: usize) -> Option<vk::ImageView> {
         match self {
             CacheImages::Sparse { images, .. } => images.get(image).map(|i| i.view()),

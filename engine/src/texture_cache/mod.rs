@@ -38,7 +38,7 @@ use citystream_dataset::TextureFormat;
 use citystream_streaming::residency::planner::ResidentCache;
 use gpu_allocator::MemoryLocation;
 
-use crate::binder::VulkanBinder;
+use crate::binder::{cache_mip_tail, VulkanBinder};
 use crate::buffer::{Buffer, BufferDesc};
 use crate::commands::CommandContext;
 use crate::device::{Device, TextureBacking};
@@ -117,6 +117,23 @@ pub struct GpuCacheConfig {
     pub staging_bytes: u64,
     /// How memory is freed at the budget.
     pub eviction: Eviction,
+}
+
+/// A cache format's mip tail ([`GpuTextureCache::format_tails`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FormatTail {
+    /// The format's name (`BC1`, `RGBA8`, ...).
+    pub format: &'static str,
+    /// First level in the tail; `None` without a tail.
+    pub first_level: Option<u32>,
+    /// Bytes of one tail (of a layer, or of the image when single).
+    pub bytes_per_tail: u64,
+    /// One tail per image (`SINGLE_MIPTAIL`) rather than per layer.
+    pub single: bool,
+    /// Forced by `CITYSTREAM_FORCE_MIP_TAIL` on a device without a tail.
+    pub synthetic: bool,
+    /// Tail bytes the format's images hold now (live, parked, single).
+    pub held_bytes: u64,
 }
 
 /// What one [`GpuTextureCache::finish_cycle`] did.
@@ -321,7 +338,7 @@ impl GpuTextureCache {
 
         images.make_sampleable(device, commands)?;
 
-        Ok(Self {
+        let mut cache = Self {
             device: Arc::clone(device),
             cache,
             images,
@@ -345,7 +362,12 @@ impl GpuTextureCache {
             dropped_bytes: 0,
             uploaded_levels: vec![0; config.texture_count as usize],
             unique_bytes_uploaded: 0,
-        })
+        };
+        // Single mip tails are bound with the images, not in a frame's cycle.
+        if cache.cache.images().iter().any(|image| image.single_tail_blocks() > 0) {
+            cache.finish_cycle(commands)?;
+        }
+        Ok(cache)
     }
 
     /// The descriptors a pass needs to sample city textures (bindings
@@ -542,6 +564,31 @@ impl GpuTextureCache {
         self.cache.utilisation()
     }
 
+    /// Per cache format held (in [`CACHE_FORMATS`] order), its mip tail:
+    /// where it starts, its bytes, single or per layer, and the tail bytes
+    /// its images hold now. Texture arrays have no tail.
+    pub fn format_tails(&self) -> Vec<FormatTail> {
+        let held = self.cache.tail_bytes_held();
+        let descs = self.cache.images();
+        let mut tails: Vec<FormatTail> = Vec::new();
+        for (format_index, images) in self.format_images.iter().enumerate() {
+            let Some(&first) = images.first() else { continue };
+            let Some(desc) = descs.get(first as usize) else {
+                continue;
+            };
+            let synthetic = self.images.sparse_tail_synthetic(first as usize);
+            tails.push(FormatTail {
+                format: CACHE_FORMATS[format_index].2.name,
+                first_level: desc.mip_tail.map(|tail| tail.first_level),
+                bytes_per_tail: desc.tail_bytes(),
+                single: desc.mip_tail.is_some_and(|tail| tail.single),
+                synthetic,
+                held_bytes: images.iter().filter_map(|&image| held.get(image as usize)).sum(),
+            });
+        }
+        tails
+    }
+
     /// The Vulkan-free cache (for statistics and block queries).
     pub fn packing(&self) -> &TextureCache {
         &self.cache
@@ -723,14 +770,12 @@ fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], 
             image_desc(config, layers, mips, vk_format),
             &format!("cache {} #{nth}", texel_format.name),
         )?;
-        if image.mip_tail_first_lod() < mips {
+        if let Some(reason) = image.unserved_reason() {
             return Err(EngineError::MissingFeature {
                 device: device.name().to_owned(),
                 feature: format!(
-                    "per-block binding of every level of {:?} (it reports a mip tail from level {}); \
-                     mip-tail binding is not implemented: use the texture-array cache (--sparse off)",
-                    vk_format,
-                    image.mip_tail_first_lod()
+                    "sparse {vk_format:?} images the cache can serve ({reason}); the texture-array cache \
+                     (--sparse off, or auto) serves this device"
                 ),
             });
         }
@@ -740,6 +785,7 @@ fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], 
             granularity: Granularity::texels(gw, gh),
             layer_size: config.layer_size,
             layer_count: layers,
+            mip_tail: cache_mip_tail(&image),
         });
         images.push(Arc::new(image));
     }
@@ -843,6 +889,7 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
             granularity: accounting_granularity(texel_format, ARRAY_ACCOUNTING_BLOCK_BYTES),
             layer_size: config.layer_size,
             layer_count: layers,
+            mip_tail: None,
         });
         descs.push((
             image_desc(config, layers, mips, vk_format),
@@ -973,6 +1020,15 @@ fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel:
         },
         "cache layer probe",
     )?;
+    if let Some(reason) = probe.unserved_reason() {
+        return Err(EngineError::MissingFeature {
+            device: device.name().to_owned(),
+            feature: format!(
+                "sparse {format:?} images the cache can serve ({reason}); the texture-array cache \
+                 (--sparse off, or auto) serves this device"
+            ),
+        });
+    }
     let (gw, gh) = probe.granularity();
     let desc = citystream_cache::ImageDesc::new(
         0,
@@ -981,6 +1037,7 @@ fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel:
             granularity: Granularity::texels(gw, gh),
             layer_size,
             layer_count: 1,
+            mip_tail: cache_mip_tail(&probe),
         },
         &DeviceLimits {
             max_image_array_layers: 1,

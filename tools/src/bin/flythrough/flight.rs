@@ -181,8 +181,9 @@ pub(crate) fn flythrough_device(
         && device.texture_backing() == TextureBacking::Arrays
     {
         eprintln!(
-            "notice: {} lacks sparse residency; textures stream into texture arrays (docs/STRATEGIES.md)",
-            device.name()
+            "notice: {} lacks {}; textures stream into texture arrays (docs/STRATEGIES.md)",
+            device.name(),
+            device.sparse_fallback_reason().unwrap_or("sparse residency")
         );
     }
     Ok(device)

@@ -377,6 +377,14 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         memory_budget_bytes: args.memory_budget_mb().bytes(),
         eviction: args.eviction.name(),
         cache_layers: flight.gpu.streamer.cache_layers(),
+        cache_tails: flight
+            .gpu
+            .streamer
+            .cache()
+            .format_tails()
+            .into_iter()
+            .map(Into::into)
+            .collect(),
         frames_over_budget: residency.frames_over_budget,
         pause_uploads_second_half,
         dropped_levels: residency.dropped_levels,

@@ -99,6 +99,11 @@ pub(crate) struct Run<'a> {
     pub(crate) eviction: &'a str,
     /// Layers of each cache image, by format (BC1, RGBA8, BC3, BC7) of those the dataset has.
     pub(crate) cache_layers: Vec<u32>,
+    /// Per cache format (BC1, RGBA8, BC3, BC7 of those the dataset has), its mip tail:
+    /// `first_level` (null without one), `bytes_per_tail` (a layer's, or the image's when
+    /// `single`), `single`, `synthetic` (forced by CITYSTREAM_FORCE_MIP_TAIL) and the
+    /// tail bytes `held_bytes` at the end of the run (within `peak_resident_bytes`).
+    pub(crate) cache_tails: Vec<TailSummary>,
     /// Frames in which the view needed more than the budget holds.
     pub(crate) frames_over_budget: u64,
     /// Per pause of the path: mips uploaded in its second half (a settled
@@ -225,4 +230,28 @@ pub(crate) fn optional(value: Option<f64>) -> String {
 /// A measured value in shortest round-trip form; empty when not measured.
 pub(crate) fn exact(value: Option<f64>) -> String {
     value.map(|v| v.to_string()).unwrap_or_default()
+}
+
+/// A cache format's mip tail in `summary.json`.
+#[derive(Debug, serde::Serialize)]
+pub(crate) struct TailSummary {
+    pub(crate) format: &'static str,
+    pub(crate) first_level: Option<u32>,
+    pub(crate) bytes_per_tail: u64,
+    pub(crate) single: bool,
+    pub(crate) synthetic: bool,
+    pub(crate) held_bytes: u64,
+}
+
+impl From<citystream_engine::texture_cache::FormatTail> for TailSummary {
+    fn from(tail: citystream_engine::texture_cache::FormatTail) -> Self {
+        TailSummary {
+            format: tail.format,
+            first_level: tail.first_level,
+            bytes_per_tail: tail.bytes_per_tail,
+            single: tail.single,
+            synthetic: tail.synthetic,
+            held_bytes: tail.held_bytes,
+        }
+    }
 }
