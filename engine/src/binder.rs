@@ -78,7 +78,16 @@ pub fn cache_mip_tail(image: &SparseImage) -> Option<MipTail> {
 /// The bind log being written (see [`bind_log`]).
 struct BindLog {
     path: std::path::PathBuf,
+    /// The absolute path, as held in [`open_bind_logs`].
+    key: std::path::PathBuf,
     out: std::io::BufWriter<std::fs::File>,
+}
+
+/// The bind logs this process's binders write, by absolute path (a few at
+/// most: a list will do).
+fn open_bind_logs() -> std::sync::MutexGuard<'static, Vec<std::path::PathBuf>> {
+    static OPEN: std::sync::Mutex<Vec<std::path::PathBuf>> = std::sync::Mutex::new(Vec::new());
+    OPEN.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 debug_fields!(VulkanBinder {
@@ -121,12 +130,29 @@ impl VulkanBinder {
         Ok(binder)
     }
 
-    /// Writes the bind log to `path` from here on, starting with the images.
+    /// Writes the bind log to `path` from here on, starting with the images;
+    /// unless another binder of this process writes `path` already (the
+    /// flythrough's error reference beside the streamed cache): one writer a
+    /// log, the first, so the two never interleave or truncate each other.
     fn start_log(&mut self, path: std::path::PathBuf) -> Result<()> {
-        let file = std::fs::File::create(&path).map_err(|source| EngineError::BindLog {
-            path: path.display().to_string(),
-            source,
-        })?;
+        let key = std::path::absolute(&path).unwrap_or_else(|_| path.clone());
+        {
+            let mut open = open_bind_logs();
+            if open.contains(&key) {
+                return Ok(());
+            }
+            open.push(key.clone());
+        }
+        let file = match std::fs::File::create(&path) {
+            Ok(file) => file,
+            Err(source) => {
+                open_bind_logs().retain(|open| *open != key);
+                return Err(EngineError::BindLog {
+                    path: path.display().to_string(),
+                    source,
+                });
+            }
+        };
         let mut text = format!("{}\n", bind_log::HEADER);
         for (index, image) in self.images.iter().enumerate() {
             let desc = image.desc();
@@ -147,9 +173,16 @@ impl VulkanBinder {
         }
         self.log = Some(BindLog {
             path,
+            key,
             out: std::io::BufWriter::new(file),
         });
         self.write_log(&text)
+    }
+
+    /// Whether this binder writes the bind log (`CITYSTREAM_BIND_LOG`): false
+    /// without one, or where another binder of the process writes it.
+    pub fn writes_bind_log(&self) -> bool {
+        self.log.is_some()
     }
 
     /// Appends `text` to the bind log, if one is written, and flushes it.
@@ -214,6 +247,14 @@ impl VulkanBinder {
     /// The timeline value signalled by the last batch (0 before any).
     pub fn last_signalled(&self) -> u64 {
         self.signalled
+    }
+
+    /// Blocks the host until every batch submitted so far has been carried out.
+    pub fn wait_for_batches(&self) -> Result<()> {
+        if self.signalled == 0 {
+            return Ok(());
+        }
+        self.timeline.wait(self.signalled)
     }
 
     fn resolve(&self, op: &BindOp) -> std::result::Result<(usize, Resolved), BindError> {
@@ -423,6 +464,9 @@ impl Drop for VulkanBinder {
         // Chunks must outlive every bind that references them; the device
         // idles before the memory is returned.
         let _ = self.device.wait_idle();
+        if let Some(log) = &self.log {
+            open_bind_logs().retain(|open| *open != log.key);
+        }
     }
 }
 

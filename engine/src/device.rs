@@ -383,19 +383,31 @@ pub fn list_devices_masked(instance: &Instance, masked: &[String]) -> Result<Vec
 }
 
 /// The masked feature names of `options`, else of [`MASK_FEATURES_ENV`].
-fn masked_features(options: &DeviceOptions) -> Vec<String> {
-    if !options.masked_features.is_empty() {
-        return options.masked_features.clone();
+/// Refused where a name is not one of the features the engine checks (a typo
+/// or a wrong case would otherwise mask nothing, silently).
+fn masked_features(options: &DeviceOptions) -> Result<Vec<String>> {
+    let (masked, source) = if !options.masked_features.is_empty() {
+        (options.masked_features.clone(), "DeviceOptions::masked_features")
+    } else {
+        let list = std::env::var(MASK_FEATURES_ENV).unwrap_or_default();
+        let names = list
+            .split(',')
+            .map(str::trim)
+            .filter(|name| !name.is_empty())
+            .map(str::to_owned)
+            .collect();
+        (names, MASK_FEATURES_ENV)
+    };
+    let requirements = device_requirements();
+    let known = requirements.features_for(TextureBacking::Sparse);
+    if let Some(unknown) = masked.iter().find(|name| !known.contains(&name.as_str())) {
+        return Err(EngineError::InvalidRequest(format!(
+            "{source}: {unknown:?} is not a feature the engine checks; the names are Vulkan's, \
+             case-sensitive: {}",
+            known.join(", ")
+        )));
     }
-    std::env::var(MASK_FEATURES_ENV)
-        .map(|list| {
-            list.split(',')
-                .map(str::trim)
-                .filter(|name| !name.is_empty())
-                .map(str::to_owned)
-                .collect()
-        })
-        .unwrap_or_default()
+    Ok(masked)
 }
 
 fn examine_raw(raw: &ash::Instance, physical: vk::PhysicalDevice, masked: &[String]) -> DeviceCandidate {
@@ -603,7 +615,7 @@ impl Device {
     /// Creates the instance and the device.
     pub fn new(options: &DeviceOptions) -> Result<Self> {
         let instance = Instance::new(&options.instance)?;
-        let candidates = list_devices_masked(&instance, &masked_features(options))?;
+        let candidates = list_devices_masked(&instance, &masked_features(options)?)?;
         let env_name = std::env::var(DEVICE_ENV).ok().filter(|s| !s.is_empty());
         let wanted = options.device_name.clone().or(env_name);
         let (chosen, backing) = choose_device(&candidates, wanted.as_deref(), options.sparse)?;

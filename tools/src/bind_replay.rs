@@ -19,6 +19,7 @@ use citystream_engine::instance::{default_synchronization_validation, default_va
 use citystream_engine::sparse::{
     bytes_per_texel_block, make_sampleable, texel_block, SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload,
 };
+use citystream_engine::texture_cache::CACHE_FORMATS;
 use citystream_engine::{vk, Device, DeviceOptions};
 
 /// Options of `citystream bind-replay`.
@@ -257,6 +258,15 @@ pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<R
                 images.len()
             );
         }
+        // Only the cache's formats: their texel blocks size the copies' staging.
+        if !CACHE_FORMATS.iter().any(|&(_, format, _)| format == desc.format) {
+            bail!(
+                "image {expected}: format {:?} is not one the cache binds ({}); bind-replay replays the \
+                 cache's logs",
+                desc.format,
+                CACHE_FORMATS.map(|(_, format, _)| format!("{format:?}")).join(", ")
+            );
+        }
         let image = SparseImage::new(device, *desc, &format!("replayed image {expected}"))?;
         // Block coordinates and memory offsets mean what the logging device made of them.
         if image.granularity() != *granularity || image.block_size() != u64::from(*block_bytes) {
@@ -324,6 +334,10 @@ pub fn replay(device: &Arc<Device>, records: &[Record], check: bool) -> Result<R
                 binder
                     .submit_after(ops, None)
                     .with_context(|| format!("batch {} of the log", done.batches + 1))?;
+                // Each batch is waited for, as the cache's batches follow one another.
+                binder
+                    .wait_for_batches()
+                    .with_context(|| format!("waiting for batch {} of the log", done.batches + 1))?;
                 done.batches += 1;
                 done.operations += ops.len() as u64;
             }
@@ -410,9 +424,39 @@ fn record_copies(
     Ok(())
 }
 
+/// The most bytes of bind log `bind-replay` reads: a flight of an hour binding
+/// thousands of blocks a second writes some hundreds of MB.
+pub const MAX_LOG_BYTES: u64 = 1 << 30;
+
+/// Reads a bind log: a regular file of at most [`MAX_LOG_BYTES`], refused
+/// before reading otherwise (a device or a pipe would be read without end).
+fn read_log(path: &std::path::Path) -> Result<String> {
+    use std::io::Read;
+    let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let metadata = file.metadata().with_context(|| format!("reading {}", path.display()))?;
+    if !metadata.is_file() {
+        bail!("{} is not a regular file; a bind log is one", path.display());
+    }
+    if metadata.len() > MAX_LOG_BYTES {
+        bail!(
+            "{} holds {} bytes; bind-replay reads logs of at most {MAX_LOG_BYTES}",
+            path.display(),
+            metadata.len()
+        );
+    }
+    let mut text = String::new();
+    file.take(MAX_LOG_BYTES + 1)
+        .read_to_string(&mut text)
+        .with_context(|| format!("reading {} (a bind log is text)", path.display()))?;
+    if text.len() as u64 > MAX_LOG_BYTES {
+        bail!("{} grew past {MAX_LOG_BYTES} bytes while it was read", path.display());
+    }
+    Ok(text)
+}
+
 /// Runs `citystream bind-replay`.
 pub fn run(args: &BindReplayArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&args.log).with_context(|| format!("reading {}", args.log.display()))?;
+    let text = read_log(&args.log)?;
     let records = parse(&text).with_context(|| format!("reading the bind log {}", args.log.display()))?;
     let device = Arc::new(
         Device::new(&DeviceOptions {

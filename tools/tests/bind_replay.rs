@@ -207,3 +207,66 @@ fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
         "{message}"
     );
 }
+
+/// With the error reference on (PSNR, the default), the streamed cache alone writes the
+/// bind log: the reference's binds do not interleave with it or truncate it, and the
+/// log replays.
+#[test]
+fn a_log_written_beside_the_error_reference_replays() {
+    let dir = fresh_dir("bind_replay", "with_reference");
+    let city = dir.join("city");
+    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
+    assert!(out.status.success(), "gen failed: {}", stderr(&out));
+    let log = dir.join("binds.log");
+    let flight = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--dataset", city.to_str().expect("utf-8"), "--frames", "60"])
+        .args(["--clock", "fixed", "--frame-interval", "0", "--psnr-interval", "10"])
+        .args(["--out", dir.join("run").to_str().expect("utf-8")])
+        .env("CITYSTREAM_BIND_LOG", &log)
+        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
+        .output()
+        .expect("run flythrough");
+    assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
+    assert!(
+        stderr(&flight).contains("error reference's are not logged"),
+        "{}",
+        stderr(&flight)
+    );
+    let text = std::fs::read_to_string(&log).expect("the bind log");
+    assert_eq!(text.matches(bind_log_header()).count(), 1, "one writer, one header");
+    let replay = Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(["bind-replay", log.to_str().expect("utf-8")])
+        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
+        .output()
+        .expect("run bind-replay");
+    assert!(replay.status.success(), "replay failed: {}", stderr(&replay));
+}
+
+fn bind_log_header() -> &'static str {
+    "citystream-bind-log"
+}
+
+/// Logs bind-replay cannot replay safely are refused before anything is read past:
+/// an image of a format the cache does not bind (its copies would be sized wrong), and
+/// a log that is no regular file (a device would be read without end).
+#[test]
+fn a_log_of_a_foreign_format_or_a_device_file_is_refused() {
+    let dir = fresh_dir("bind_replay", "refusals");
+    // R32G32B32A32_SFLOAT (109): 16 bytes a texel, one 4096² copy.
+    let foreign = dir.join("rgba32f.log");
+    std::fs::write(
+        &foreign,
+        "citystream-bind-log 2\nimage 0 4096 4096 1 13 109 128 128 65536 13 0 0\nchunk 0 65536\ncopy 0 0 0 0 0 4096 4096\n",
+    )
+    .expect("write");
+    let refused = citystream(&["bind-replay", foreign.to_str().expect("utf-8")]);
+    assert!(!refused.status.success(), "a foreign format replayed");
+    assert!(
+        stderr(&refused).contains("R32G32B32A32_SFLOAT") && stderr(&refused).contains("not one the cache binds"),
+        "{}",
+        stderr(&refused)
+    );
+    let zero = citystream(&["bind-replay", "/dev/zero"]);
+    assert!(!zero.status.success(), "/dev/zero replayed");
+    assert!(stderr(&zero).contains("not a regular file"), "{}", stderr(&zero));
+}

@@ -1416,3 +1416,42 @@ fn a_tail_from_level_0_streams_into_texture_arrays_under_auto_and_is_refused_und
         assert!(stderr.contains(named), "{value}: {stderr}");
     }
 }
+
+/// Texture arrays with the ring under a budget below the view's need: each layer the
+/// ring reuses is one the budget lacked (array layers are the budget), so the frames are
+/// counted over budget and the run warns, as view eviction does.
+#[test]
+fn texture_arrays_with_the_ring_under_a_small_budget_warn_and_count_frames_over_budget() {
+    let (stderr, ring) = default_city_run(
+        "flythrough_arrays_ring_tight",
+        "60",
+        &["--memory-budget-mb", "12", "--sparse", "off", "--eviction", "ring"],
+        &[],
+    );
+    assert_eq!(ring["texture_backing"], "texture-arrays");
+    assert!(ring["evicted_layers"].as_u64().is_some_and(|e| e > 0), "{stderr}");
+    let over = ring["frames_over_budget"].as_u64().expect("frames_over_budget");
+    assert!(over > 0, "evictions for want of layers not counted: {ring}");
+    assert!(stderr.contains("warning"), "no warning: {stderr}");
+}
+
+/// A feature name `CITYSTREAM_MASK_FEATURES` does not know (a typo, the wrong case) is
+/// refused, naming it, instead of masking nothing.
+#[test]
+fn an_unknown_masked_feature_is_refused_naming_it() {
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_mask_typo");
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--frames", "2", "--dataset"])
+        .arg(default_city())
+        .arg("--out")
+        .arg(&out)
+        .env("CITYSTREAM_MASK_FEATURES", "sparseresidencyimage2d")
+        .output()
+        .expect("flythrough runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "a misspelt mask ran: {stderr}");
+    assert!(
+        stderr.contains("\"sparseresidencyimage2d\"") && stderr.contains("sparseResidencyImage2D"),
+        "{stderr}"
+    );
+}

@@ -167,14 +167,23 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
 
     /// [`Eviction::Ring`](crate::texture_cache::Eviction::Ring): stages every loaded mip
     /// ([`stage_loaded`](Self::stage_loaded)) and counts the layers the cache's ring reused
-    /// or its budget took as evicted; the frame is over budget when the budget took one.
+    /// or its budget took as evicted; the frame is over budget when the budget took one
+    /// (with texture arrays, whose layers are the budget, when the ring reused one).
     /// Returns the mips refused and whether the frame was over budget.
     pub(super) fn stage_by_ring(&mut self) -> Result<(u32, bool)> {
         let before = self.cache.packing().stats();
         let refused = self.stage_loaded()?;
         let after = self.cache.packing().stats();
-        let for_budget = after.budget_evictions - before.budget_evictions;
-        let evicted = for_budget + (after.ring_evictions - before.ring_evictions);
+        let ring = after.ring_evictions - before.ring_evictions;
+        // Texture-array layers are the budget itself (each holds its full
+        // chain's memory): a layer the ring reuses is one the budget lacked.
+        let for_budget = after.budget_evictions - before.budget_evictions
+            + if self.cache.backing() == crate::device::TextureBacking::Arrays {
+                ring
+            } else {
+                0
+            };
+        let evicted = after.budget_evictions - before.budget_evictions + ring;
         self.totals.evicted_layers += evicted;
         self.last_cycle = ResidencyCycle {
             evicted_layers: evicted as u32,

@@ -186,6 +186,14 @@ pub(crate) fn flythrough_device(
             device.sparse_fallback_reason().unwrap_or("sparse residency")
         );
     }
+    if let Some(log) = std::env::var_os("CITYSTREAM_BIND_LOG").filter(|log| !log.is_empty()) {
+        if device.texture_backing() == TextureBacking::Arrays {
+            eprintln!(
+                "notice: CITYSTREAM_BIND_LOG={}: texture arrays bind no sparse memory, so nothing is logged",
+                log.to_string_lossy()
+            );
+        }
+    }
     Ok(device)
 }
 

@@ -9,7 +9,7 @@ use anyhow::{bail, Context, Result};
 
 use citystream_engine::commands::CommandContext;
 use citystream_engine::cull::CullStats;
-use citystream_engine::device::describe;
+use citystream_engine::device::{describe, TextureBacking};
 use citystream_engine::gpu_types::FeedbackEntry;
 use citystream_engine::Device;
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
@@ -73,6 +73,17 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     } else {
         None
     };
+    if let (Some(log), Some(_)) = (
+        std::env::var_os("CITYSTREAM_BIND_LOG").filter(|log| !log.is_empty()),
+        &reference,
+    ) {
+        if device.texture_backing() == TextureBacking::Sparse {
+            eprintln!(
+                "bind log: {} holds the streamed cache's binds; the error reference's are not logged",
+                log.to_string_lossy()
+            );
+        }
+    }
 
     // With the fixed clock the frame count follows from the duration; with
     // the modelled one it is at most that.
