@@ -212,7 +212,8 @@ unpack_debs() { # unpack_debs FOLDER_OF_DEBS DEST
 have_loader() {
     local ldc d path=${LD_LIBRARY_PATH:-}
     ldc=$(command -v ldconfig || echo /sbin/ldconfig)
-    "$ldc" -p 2>/dev/null | grep -q 'libvulkan\.so\.1 ' && return 0
+    # Not `| grep -q`: under pipefail, ldconfig killed by the early close reads as absent.
+    [[ $("$ldc" -p 2>/dev/null) == *"libvulkan.so.1 "* ]] && return 0
     for d in ${path//:/ }; do [[ -e $d/libvulkan.so.1 ]] && return 0; done
     return 1
 }

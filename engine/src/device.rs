@@ -534,13 +534,13 @@ fn unserved_sparse_formats(raw: &ash::Instance, physical: vk::PhysicalDevice) ->
                 p.image_granularity.width, p.image_granularity.height
             )),
             Some(_) if forced_from_zero => Some(format!(
-                "a mip tail from level 0 ({}=0): nothing can be bound block by block",
+                "a mip tail from level 0, forced by {}=0, leaves nothing to bind block by block",
                 crate::sparse::FORCE_MIP_TAIL_ENV
             )),
             Some(_) => None,
         };
         if let Some(reason) = reason {
-            unserved.push(format!("sparse images of {format:?} the cache can serve ({reason})"));
+            unserved.push(format!("sparse images of {format:?} the cache can serve: {reason}"));
         }
     }
     unserved

@@ -164,10 +164,9 @@ pub(crate) fn flythrough_device(
     });
     let device = Arc::new(created.map_err(|error| {
         // What the setup script installs: the loader, lavapipe and the validation layers.
-        let installable = matches!(
-            error,
-            EngineError::Loader(_) | EngineError::LayerMissing(_) | EngineError::NoUsableDevice(_)
-        );
+        // A device refused only for the sparse cache (--sparse on) is not a missing package.
+        let installable = matches!(error, EngineError::Loader(_) | EngineError::LayerMissing(_))
+            || (matches!(error, EngineError::NoUsableDevice(_)) && args.sparse != Sparse::On);
         let context = if installable {
             "creating the Vulkan device (`make setup` installs the Vulkan loader, lavapipe and the validation layers)"
         } else {
