@@ -291,22 +291,7 @@ pub(crate) fn read_gltf(
         document: gltf::Document::from_json(unchecked.document.into_json()).map_err(invalid)?,
         blob: unchecked.blob,
     };
-    // Name a missing buffer file before the loader reports a bare "file not found".
-    for buffer in gltf.document.buffers() {
-        if let gltf::buffer::Source::Uri(uri) = buffer.source() {
-            let path = base.join(percent_decode(uri));
-            if !uri.starts_with("data:") && !path.is_file() {
-                bail!(
-                    "{}: buffer {} refers to missing file {}",
-                    input.display(),
-                    buffer.index(),
-                    path.display()
-                );
-            }
-        }
-    }
-    let buffers = gltf::import_buffers(&gltf.document, Some(base), gltf.blob.clone())
-        .map_err(|e| anyhow!("{}: loading buffers: {e}", input.display()))?;
+    let buffers = load_buffers(&gltf.document, gltf.blob.as_deref(), base, input)?;
     let document = &gltf.document;
 
     let mut keys: Vec<TextureKey> = Vec::new();
@@ -738,6 +723,65 @@ fn flat_normals(positions: &[[f64; 3]], indices: &[u32]) -> Vec<[f32; 3]> {
         .collect()
 }
 
+/// The bytes of every buffer of `document`, each read by our own code (never by a reader
+/// that interprets URI schemes or decodes paths itself): the GLB's binary chunk, a data URI,
+/// or a regular file beside the input, named by a relative URI, of which the declared
+/// `byteLength` is read (so a file is never read past what the document asks for).
+fn load_buffers(
+    document: &gltf::Document,
+    blob: Option<&[u8]>,
+    base: &Path,
+    input: &Path,
+) -> Result<Vec<gltf::buffer::Data>> {
+    use std::io::Read;
+    let mut buffers = Vec::with_capacity(document.buffers().len());
+    for buffer in document.buffers() {
+        let index = buffer.index();
+        let length = buffer.length();
+        let what = || format!("{}: buffer {index}", input.display());
+        let mut bytes = match buffer.source() {
+            gltf::buffer::Source::Bin => blob
+                .with_context(|| format!("{} is the GLB's binary chunk, which the file lacks", what()))?
+                .to_vec(),
+            gltf::buffer::Source::Uri(uri) => {
+                if let Some(data) = uri.strip_prefix("data:") {
+                    let (_, payload) = data
+                        .split_once(";base64,")
+                        .with_context(|| format!("{}: a data URI that is not base64", what()))?;
+                    base64_decode(payload).with_context(|| format!("{}: invalid base64 data URI", what()))?
+                } else {
+                    let path = base.join(relative_uri_path(uri).with_context(what)?);
+                    if !path.is_file() {
+                        bail!("{} refers to missing file {}", what(), path.display());
+                    }
+                    citystream_dataset::ensure_regular_file(&path).with_context(what)?;
+                    let mut file = std::fs::File::open(&path)
+                        .with_context(|| format!("{}: opening {}", what(), path.display()))?;
+                    let mut bytes = Vec::new();
+                    file.by_ref()
+                        .take(length as u64)
+                        .read_to_end(&mut bytes)
+                        .with_context(|| format!("{}: reading {}", what(), path.display()))?;
+                    bytes
+                }
+            }
+        };
+        if bytes.len() < length {
+            bail!(
+                "{}: {} bytes, shorter than its byteLength {length}",
+                what(),
+                bytes.len()
+            );
+        }
+        // As glTF readers do: buffers padded to four bytes.
+        while bytes.len() % 4 != 0 {
+            bytes.push(0);
+        }
+        buffers.push(gltf::buffer::Data(bytes));
+    }
+    Ok(buffers)
+}
+
 /// Raw bytes of a glTF image: a buffer view, an external file, or a data URI.
 fn image_bytes(
     document: &gltf::Document,
@@ -768,7 +812,7 @@ fn image_bytes(
                     .with_context(|| format!("image {index}: unsupported data URI"))?;
                 base64_decode(payload).with_context(|| format!("image {index}: invalid base64 data URI"))
             } else {
-                let path = base.join(percent_decode(uri));
+                let path = base.join(relative_uri_path(uri).with_context(|| format!("image {index}"))?);
                 citystream_dataset::ensure_regular_file(&path)
                     .and_then(|()| std::fs::read(&path))
                     .with_context(|| format!("image {index}: reading {}", path.display()))
@@ -777,7 +821,38 @@ fn image_bytes(
     }
 }
 
-pub(crate) fn percent_decode(s: &str) -> String {
+/// `uri` (a glTF buffer's or image's, a tileset's content) as a relative path, decoded:
+/// refused when it names a scheme (`file:`, `http:`: ours are files beside the input, and no
+/// reader is handed a URI to interpret), is absolute, or does not decode to UTF-8. `data:`
+/// URIs are the caller's to decode. The caller joins the path to its base directory and
+/// keeps it inside where it must.
+pub(crate) fn relative_uri_path(uri: &str) -> Result<PathBuf> {
+    if has_scheme(uri) {
+        bail!("{uri:?} names a scheme; only relative paths (and data: URIs) are read");
+    }
+    if uri.is_empty() || uri.starts_with(['/', '\\']) {
+        bail!("{uri:?} is not a relative path");
+    }
+    let decoded = percent_decode(uri)?;
+    if decoded.starts_with(['/', '\\']) || has_scheme(&decoded) {
+        bail!("{uri:?} decodes to {decoded:?}, not a relative path");
+    }
+    Ok(PathBuf::from(decoded))
+}
+
+/// Whether `uri` begins with a URI scheme (RFC 3986: a letter, then letters, digits, `+`,
+/// `-` or `.`, then `:`), as `file:/x`, `http://x` or `c:x` do.
+fn has_scheme(uri: &str) -> bool {
+    let Some((scheme, _)) = uri.split_once(':') else {
+        return false;
+    };
+    let mut chars = scheme.chars();
+    chars.next().is_some_and(|c| c.is_ascii_alphabetic())
+        && chars.all(|c| c.is_ascii_alphanumeric() || matches!(c, '+' | '-' | '.'))
+}
+
+/// Percent-decodes `s`; refused where the bytes it names are not UTF-8 (`%FF`).
+pub(crate) fn percent_decode(s: &str) -> Result<String> {
     let bytes = s.as_bytes();
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;
@@ -793,7 +868,7 @@ pub(crate) fn percent_decode(s: &str) -> String {
         out.push(bytes[i]);
         i += 1;
     }
-    String::from_utf8_lossy(&out).into_owned()
+    String::from_utf8(out).map_err(|_| anyhow!("{s:?} does not percent-decode to UTF-8"))
 }
 
 fn base64_decode(s: &str) -> Result<Vec<u8>> {

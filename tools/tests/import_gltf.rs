@@ -508,3 +508,48 @@ fn block_compressed_ktx2_and_dds_sources_keep_their_blocks() {
         .collect();
     assert_eq!(dataset.colormap.colours()[bc7_id as usize].to_vec(), mean);
 }
+
+/// A plain glTF's buffer URIs are read by citystream as files beside it, never handed to a
+/// reader that interprets schemes: `file:` (with a decoy of that name beside the glTF) and
+/// `file:/dev/zero` are refused naming the URI, and `%FF` is a clear error, not a panic.
+#[test]
+fn buffer_uris_with_a_scheme_or_bad_escapes_are_refused_naming_them() {
+    let out_dir = fresh_dir("uri-shapes-out");
+    let outside_dir = fresh_dir("uri-shapes-outside");
+    let outside = outside_dir.join("scene.bin");
+    for (name, needle) in [
+        ("file-decoy", "names a scheme"),
+        ("dev-zero", "names a scheme"),
+        ("bad-escape", "does not percent-decode to UTF-8"),
+    ] {
+        let src = fresh_dir(&format!("uri-{name}"));
+        let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
+        std::fs::copy(src.join("scene.bin"), &outside).expect("copy the buffer outside");
+        let uri = match name {
+            "file-decoy" => {
+                let uri = format!("file:{}", outside.display());
+                let decoy = src.join(&uri);
+                std::fs::create_dir_all(decoy.parent().expect("parent")).expect("decoy dirs");
+                std::fs::copy(src.join("scene.bin"), &decoy).expect("decoy");
+                uri
+            }
+            "dev-zero" => "file:/dev/zero".to_owned(),
+            _ => {
+                std::fs::copy(src.join("scene.bin"), src.join("\u{fffd}.bin")).expect("replacement-named file");
+                "%FF.bin".to_owned()
+            }
+        };
+        let mut doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
+        doc["buffers"][0]["uri"] = json!(uri);
+        std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
+        let out = import(&input, &out_dir, &[]);
+        assert!(!out.status.success(), "{name} imported");
+        assert!(
+            stderr(&out).contains(needle) && stderr(&out).contains("buffer 0"),
+            "{name}: {}",
+            stderr(&out)
+        );
+        assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
+    }
+}

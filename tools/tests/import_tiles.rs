@@ -692,3 +692,42 @@ fn an_external_tileset_inherits_the_up_axis_above_it() {
         "{d:?}"
     );
 }
+
+/// Buffer URIs that a reader would interpret itself: `file:` with a decoy of the same
+/// name inside the tileset's directory (the outside file must not be read), `file:` of a
+/// device (refused before reading), and a percent-escape that is not UTF-8: each refused
+/// with a clear error naming the URI, never a panic.
+#[test]
+fn buffer_uris_with_a_scheme_or_bad_escapes_are_refused_naming_them() {
+    let dir = fresh_dir("uri-shapes");
+    let (_, _) = write_tileset(&dir);
+    let tile = |uri: &str| {
+        json!({"asset": {"version": "1.1"}, "geometricError": 1.0, "root": {
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0]}, "geometricError": 1.0, "refine": "ADD",
+            "content": {"uri": uri}}})
+    };
+    let outside = dir.parent().expect("parent").join("outside-buffer.bin");
+    std::fs::write(&outside, vec![0u8; 256]).expect("write");
+    let file_uri = format!("file:{}", outside.display());
+    // The decoy: a file named like the URI, inside the tileset's directory.
+    let decoy = dir.join(&file_uri);
+    std::fs::create_dir_all(decoy.parent().expect("parent")).expect("decoy dirs");
+    std::fs::write(&decoy, vec![0u8; 256]).expect("decoy");
+    std::fs::write(dir.join("\u{fffd}.bin"), vec![0u8; 256]).expect("replacement-named file");
+    for (name, uri, needle) in [
+        ("file-decoy", file_uri.as_str(), "names a scheme"),
+        ("dev-zero", "file:/dev/zero", "names a scheme"),
+        ("bad-escape", "%FF.bin", "does not percent-decode to UTF-8"),
+    ] {
+        let (mut gltf, _) = write::textured_quad(wall([0.0; 3], 1.0), &write::gradient_png(4, 4, 8), json!({}), None);
+        gltf["buffers"] = json!([{"uri": uri, "byteLength": 256}]);
+        std::fs::write(
+            dir.join(format!("{name}.gltf")),
+            serde_json::to_vec(&gltf).expect("json"),
+        )
+        .expect("write");
+        let e = error_of(&tile(&format!("{name}.gltf")), &dir, &format!("{name}.json"));
+        assert!(e.contains(needle) && e.contains(&format!("{name}.gltf")), "{name}: {e}");
+        assert!(!e.contains("panicked"), "{name}: {e}");
+    }
+}

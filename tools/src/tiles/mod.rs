@@ -43,7 +43,7 @@ use serde_json::Value;
 
 use crate::gen::EncodedTexture;
 use crate::import::{
-    centred_scene, mul, percent_decode, read_gltf, Mat4, PendingMesh, IDENTITY, MAX_IMPORTED_VERTICES,
+    centred_scene, mul, read_gltf, relative_uri_path, Mat4, PendingMesh, IDENTITY, MAX_IMPORTED_VERTICES,
 };
 use geodesy::{to_geodetic, EastNorthUp};
 
@@ -564,10 +564,13 @@ impl Walk {
     /// A content URI as a file inside the top tileset's directory.
     fn resolve(&self, dir: &Path, uri: &str) -> Result<PathBuf> {
         let relative = uri.split(['?', '#']).next().unwrap_or("");
-        if relative.is_empty() || uri.contains("://") || uri.starts_with("data:") || relative.starts_with(['/', '\\']) {
+        if uri.starts_with("data:") {
             bail!("not a relative path (citystream imports a tileset's files from its own directory)");
         }
-        let path = dir.join(percent_decode(relative));
+        let path = dir.join(
+            relative_uri_path(relative)
+                .context("not a relative path (citystream imports a tileset's files from its own directory)")?,
+        );
         let canonical = path
             .canonicalize()
             .with_context(|| format!("{} does not exist", path.display()))?;
@@ -726,10 +729,9 @@ fn check_external_files(json: &Value, base: &Path, root_dir: &Path) -> Result<()
                 continue;
             }
             let what = || format!("glTF {key}[{i}] uri {uri:?}");
-            if uri.contains("://") || uri.starts_with(['/', '\\']) {
-                bail!("{}: not a relative path inside the tileset's directory", what());
-            }
-            let path = base.join(percent_decode(uri));
+            let relative = relative_uri_path(uri)
+                .with_context(|| format!("{}: not a relative path inside the tileset's directory", what()))?;
+            let path = base.join(relative);
             let canonical = path
                 .canonicalize()
                 .with_context(|| format!("{}: {} does not exist", what(), path.display()))?;

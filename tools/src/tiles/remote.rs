@@ -171,10 +171,12 @@ impl Fetcher {
 /// path: no scheme, no absolute path, no `..` above the tileset's directory.
 fn normalise(dir: &Path, uri: &str) -> Result<PathBuf> {
     let relative = uri.split(['?', '#']).next().unwrap_or("");
-    if relative.is_empty() || uri.contains("://") || uri.starts_with("data:") || relative.starts_with(['/', '\\']) {
+    if uri.starts_with("data:") {
         bail!("not a relative path (citystream imports a tileset's files from its own directory)");
     }
-    let decoded = crate::import::percent_decode(relative);
+    let decoded = crate::import::relative_uri_path(relative)
+        .context("not a relative path (citystream imports a tileset's files from its own directory)")?;
+    let decoded = decoded.display().to_string();
     let mut parts: Vec<std::ffi::OsString> = Vec::new();
     for component in dir.join(&decoded).components() {
         match component {
