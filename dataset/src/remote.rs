@@ -389,11 +389,19 @@ impl std::fmt::Debug for RemoteStore {
 
 impl RemoteStore {
     /// A store for the dataset at `url` (`http(s)://host/path/` or `s3://bucket/prefix/`).
+    ///
+    /// An HTTP URL's query string (`…/?token=abc`, as hosted datasets and tilesets are
+    /// served) is sent with every request; an S3 URL takes none.
     pub fn new(url: &str, options: &RemoteOptions) -> Result<Self, DatasetError> {
         let bad = |why: String| DatasetError::InvalidInput(format!("dataset URL {url}: {why}"));
         // reqwest is built without a TLS provider of its own: ring's, once per process.
         let _ = rustls::crypto::ring::default_provider().install_default();
-        let trimmed = url.trim_end_matches('/');
+        let (url_path, query) = match url.split_once('?') {
+            Some((path, query)) => (path, Some(query.split('#').next().unwrap_or("").to_owned())),
+            None => (url.split('#').next().unwrap_or(url), None),
+        };
+        let query = query.filter(|q| !q.is_empty());
+        let trimmed = url_path.trim_end_matches('/');
         let (scheme, rest) = trimmed.split_once("://").ok_or_else(|| bad("no scheme".into()))?;
         let (authority, prefix) = rest.split_once('/').unwrap_or((rest, ""));
         if authority.is_empty() {
@@ -403,10 +411,14 @@ impl RemoteStore {
             .with_timeout(options.timeout)
             .with_connect_timeout(options.connect_timeout)
             .with_allow_http(true);
+        if query.is_some() && scheme.eq_ignore_ascii_case("s3") {
+            return Err(bad("an s3:// URL takes no query string".into()));
+        }
         let connector = guarded::GuardedConnector {
             timeout: options.timeout,
             connect_timeout: options.connect_timeout,
             follow_redirects: options.follow_redirects,
+            query,
         };
         let retry = RetryConfig {
             backoff: BackoffConfig {

@@ -17,6 +17,8 @@ use crate::server_process::wait_until_listening;
 pub struct Nginx {
     child: Child,
     port: u16,
+    /// Where it logs each request (the requests a test made, with their query strings).
+    access_log: PathBuf,
 }
 
 impl Drop for Nginx {
@@ -58,7 +60,7 @@ impl Nginx {
                 format!(
                     "daemon off;\nmaster_process off;\nworker_processes 1;\npid {work}/nginx.pid;\n\
                      error_log {work}/nginx-error.log;\nevents {{ worker_connections 1024; }}\n\
-                     http {{\n  access_log off;\n  client_body_temp_path {temp};\n  proxy_temp_path {temp};\n  \
+                     http {{\n  access_log {work}/nginx-access.log;\n  client_body_temp_path {temp};\n  proxy_temp_path {temp};\n  \
                      fastcgi_temp_path {temp};\n  uwsgi_temp_path {temp};\n  scgi_temp_path {temp};\n  \
                      keepalive_requests 100000;\n  server {{ listen 127.0.0.1:{port}; root {root}; }}\n}}\n",
                     work = work.display(),
@@ -81,7 +83,11 @@ impl Nginx {
                 .spawn()
                 .with_context(|| format!("starting {}", binary.display()))?;
             if wait_until_listening(&mut child, Duration::from_secs(10), || Some(port))?.is_some() {
-                return Ok(Self { child, port });
+                return Ok(Self {
+                    child,
+                    port,
+                    access_log: work.join("nginx-access.log"),
+                });
             }
         }
         bail!(
@@ -99,5 +105,14 @@ impl Nginx {
     /// `http://127.0.0.1:PORT/path`.
     pub fn url(&self, path: &str) -> String {
         format!("http://127.0.0.1:{}/{path}", self.port)
+    }
+
+    /// The request lines served so far (method, path with its query, protocol), oldest first.
+    pub fn requests(&self) -> Vec<String> {
+        std::fs::read_to_string(&self.access_log)
+            .unwrap_or_default()
+            .lines()
+            .filter_map(|line| line.split('"').nth(1).map(str::to_owned))
+            .collect()
     }
 }

@@ -588,6 +588,16 @@ fn a_tileset_served_over_http_imports_as_it_does_from_disk() {
     let (local, _) = import_ok(&tileset, "http-local", &["--lod", "all"]);
     let url = nginx.url("city3d/tileset.json");
     let out = fresh_dir("http-remote");
+    // What a killed import leaves: its download directory, marked with its dead process.
+    let mut stale = out.as_os_str().to_owned();
+    stale.push(".tileset-download");
+    let stale = PathBuf::from(stale);
+    let mut finished = std::process::Command::new("true").spawn().expect("spawn");
+    let dead = finished.id();
+    finished.wait().expect("wait");
+    std::fs::create_dir_all(stale.join("city3d")).expect("mkdir");
+    std::fs::write(stale.join(".citystream-tileset-download"), dead.to_string()).expect("marker");
+    std::fs::write(stale.join("city3d/half.b3dm"), b"b3dm").expect("partial file");
     let imported = import(Path::new(&url), &out, &["--lod", "all"]);
     assert!(
         imported.status.success(),
@@ -605,6 +615,46 @@ fn a_tileset_served_over_http_imports_as_it_does_from_disk() {
     let mut scratch = out.as_os_str().to_owned();
     scratch.push(".tileset-download");
     assert!(!Path::new(&scratch).exists());
+    assert!(
+        stderr(&imported).contains(&format!("process {dead}")),
+        "the stale download directory was not cleared with a word: {}",
+        stderr(&imported)
+    );
+    // A hosted tileset's URL with a token: recognised as a tileset, the token sent with
+    // every request.
+    let with_token = format!("{url}?token=abc");
+    let tokened = import(Path::new(&with_token), &fresh_dir("http-token"), &["--lod", "all"]);
+    assert!(
+        tokened.status.success(),
+        "import of {with_token} failed: {}",
+        stderr(&tokened)
+    );
+    let requests = nginx.requests();
+    let content: Vec<&String> = requests
+        .iter()
+        .filter(|r| r.contains(".b3dm") || r.contains(".glb"))
+        .collect();
+    assert!(!content.is_empty(), "{requests:?}");
+    assert!(
+        requests
+            .iter()
+            .filter(|r| r.contains("tileset.json"))
+            .any(|r| r.contains("?token=abc")),
+        "{requests:?}"
+    );
+    assert!(
+        content.iter().rev().take(3).all(|r| r.contains("token=abc")),
+        "{requests:?}"
+    );
+    // A directory of that name that no import wrote is not deleted.
+    let foreign_out = fresh_dir("http-foreign");
+    let mut foreign = foreign_out.as_os_str().to_owned();
+    foreign.push(".tileset-download");
+    std::fs::create_dir_all(&foreign).expect("mkdir");
+    std::fs::write(Path::new(&foreign).join("notes.txt"), b"mine").expect("write");
+    let refused = import(Path::new(&url), &foreign_out, &[]);
+    assert!(!refused.status.success(), "imported over a directory it did not write");
+    assert!(Path::new(&foreign).join("notes.txt").exists());
     std::fs::remove_file(served.join("ext/shared.b3dm")).expect("remove");
     let broken = import(Path::new(&url), &fresh_dir("http-broken"), &[]);
     assert!(!broken.status.success());

@@ -25,6 +25,9 @@ pub(super) struct GuardedConnector {
     pub(super) connect_timeout: Duration,
     /// Follow redirects to another origin too.
     pub(super) follow_redirects: bool,
+    /// A query string every request carries (`token=…` of a hosted tileset's URL), for
+    /// HTTP stores; `None` without one.
+    pub(super) query: Option<String>,
 }
 
 impl HttpConnector for GuardedConnector {
@@ -53,7 +56,10 @@ impl HttpConnector for GuardedConnector {
                 store: "HTTP",
                 source: Box::new(e),
             })?;
-        Ok(HttpClient::new(GuardedService { client }))
+        Ok(HttpClient::new(GuardedService {
+            client,
+            query: self.query.clone(),
+        }))
     }
 }
 
@@ -82,6 +88,24 @@ fn refused(message: String) -> HttpError {
 #[derive(Debug)]
 struct GuardedService {
     client: reqwest::Client,
+    query: Option<String>,
+}
+
+/// `request` with `query` added to its URI's own query, if any.
+fn with_query(mut request: HttpRequest, query: Option<&str>) -> Result<HttpRequest, HttpError> {
+    let Some(query) = query else {
+        return Ok(request);
+    };
+    let uri = request.uri().to_string();
+    let joined = if uri.contains('?') {
+        format!("{uri}&{query}")
+    } else {
+        format!("{uri}?{query}")
+    };
+    *request.uri_mut() = joined
+        .parse()
+        .map_err(|e| refused(format!("{uri} with the query {query:?}: {e}")))?;
+    Ok(request)
 }
 
 /// The bytes a `Range: bytes=a-b` header asks for.
@@ -102,6 +126,7 @@ impl HttpService for GuardedService {
         Self: 'async_trait,
     {
         Box::pin(async move {
+            let request = with_query(request, self.query.as_deref())?;
             let asked = range_length(&request);
             let url = request.uri().to_string();
             let response = self.client.call(request).await?;

@@ -184,10 +184,16 @@ pub struct ImportedTileset {
     pub skipped: BTreeMap<String, usize>,
 }
 
-/// Whether `input` names a tileset rather than a glTF file.
+/// Whether `input` names a tileset rather than a glTF file: a `.json` file, or a URL whose
+/// path is one (its query string, `?token=…`, and fragment aside).
 pub fn is_tileset(input: &Path) -> bool {
-    input
-        .extension()
+    let location = input.to_string_lossy();
+    let path = if citystream_dataset::remote::is_remote(&location) {
+        Path::new(location.split(['?', '#']).next().unwrap_or(""))
+    } else {
+        input
+    };
+    path.extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| e.eq_ignore_ascii_case("json"))
 }
@@ -359,10 +365,7 @@ pub fn import(input: &Path, out: &Path, options: &LoadOptions) -> Result<()> {
     scratch.push(".tileset-download");
     let scratch = PathBuf::from(scratch);
     if scratch.exists() {
-        bail!(
-            "{} exists (left by an import that was interrupted?): remove it, the import fetches the tileset there",
-            scratch.display()
-        );
+        remote::clear_stale_download(&scratch)?;
     }
     let imported = remote::fetch(&location, &scratch).and_then(|local| {
         import_local(&local, &location, out, options)

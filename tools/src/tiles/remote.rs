@@ -20,18 +20,72 @@ use super::{content, content_kind, TileJson, TilesetJson, MAX_CONTENT_BYTES, MAX
 /// Most files fetched for one tileset.
 const MAX_FILES: usize = 4_000_000;
 
+/// The file naming the process that fetches into a scratch directory.
+const DOWNLOAD_MARKER: &str = ".citystream-tileset-download";
+
+/// Clears `scratch`, a download directory an earlier import left, where it is provably
+/// one (it holds the marker [`fetch`] writes) and the process that wrote it is gone (killed
+/// before it could remove it). Refused otherwise: a directory of someone else's is not
+/// deleted, and one a running import fetches into is not touched.
+pub fn clear_stale_download(scratch: &Path) -> Result<()> {
+    let marker = scratch.join(DOWNLOAD_MARKER);
+    let owner = std::fs::read_to_string(&marker)
+        .ok()
+        .and_then(|text| text.trim().parse::<u32>().ok());
+    let Some(pid) = owner else {
+        bail!(
+            "{} exists and is not an import's download directory (no {DOWNLOAD_MARKER}): remove it, the import \
+             fetches the tileset there",
+            scratch.display()
+        );
+    };
+    if process_alive(pid) {
+        bail!(
+            "{} is where a running import (process {pid}) fetches the tileset; wait for it, or remove the \
+             directory if that process is not an import",
+            scratch.display()
+        );
+    }
+    eprintln!(
+        "removing {}, left by an import (process {pid}) that did not finish",
+        scratch.display()
+    );
+    std::fs::remove_dir_all(scratch).with_context(|| format!("removing {}", scratch.display()))
+}
+
+/// Whether process `pid` exists (on Linux, its /proc entry; elsewhere it is taken to,
+/// which only ever refuses to clear a directory).
+fn process_alive(pid: u32) -> bool {
+    if pid == std::process::id() {
+        return true;
+    }
+    if cfg!(target_os = "linux") {
+        Path::new("/proc").join(pid.to_string()).exists()
+    } else {
+        true
+    }
+}
+
 /// Fetches the tileset at `url` and what it refers to into `scratch` (created; must not
 /// exist); returns the local path of the top tileset.
 pub fn fetch(url: &str, scratch: &Path) -> Result<PathBuf> {
-    let Some((dir_url, file)) = url.rsplit_once('/').filter(|(_, f)| !f.is_empty()) else {
+    // A query string (`?token=…`) goes with every request; the path names the files.
+    let (path_url, query) = match url.split_once('?') {
+        Some((path, query)) => (path, format!("?{query}")),
+        None => (url, String::new()),
+    };
+    let Some((dir_url, file)) = path_url.rsplit_once('/').filter(|(_, f)| !f.is_empty()) else {
         bail!("{url}: expected the URL of a tileset JSON (…/tileset.json)");
     };
     let store: Arc<dyn DatasetStore> = Arc::new(
-        RemoteStore::new(&format!("{dir_url}/"), &RemoteOptions::from_env()?)
+        RemoteStore::new(&format!("{dir_url}/{query}"), &RemoteOptions::from_env()?)
             .with_context(|| format!("opening {url}"))?,
     );
     let root = PathBuf::from(dir_url);
     std::fs::create_dir(scratch).with_context(|| format!("creating the scratch directory {}", scratch.display()))?;
+    // Whose it is: a later import may clear it if this process dies before removing it.
+    std::fs::write(scratch.join(DOWNLOAD_MARKER), std::process::id().to_string())
+        .with_context(|| format!("writing {}", scratch.join(DOWNLOAD_MARKER).display()))?;
     let mut fetcher = Fetcher {
         store,
         root,
