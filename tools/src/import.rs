@@ -295,7 +295,30 @@ pub(crate) fn read_gltf(
     let document = &gltf.document;
 
     let mut keys: Vec<TextureKey> = Vec::new();
-    let mut key_ids: HashMap<TextureKey, usize> = HashMap::new();
+    let meshes = place_scene(document, &buffers, input, root, vertex_budget, &mut keys)?;
+
+    Ok(GltfContent {
+        document: gltf.document,
+        buffers,
+        base: base.to_path_buf(),
+        input: input.to_path_buf(),
+        keys,
+        meshes,
+    })
+}
+
+/// Every triangle primitive of `document`'s default scene placed by `root` × its node's
+/// transform, at most `vertex_budget` vertices in all; each primitive's texture indexes
+/// `keys`, where textures met for the first time are appended.
+fn place_scene(
+    document: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+    input: &Path,
+    root: &Mat4,
+    vertex_budget: usize,
+    keys: &mut Vec<TextureKey>,
+) -> Result<Vec<PendingMesh>> {
+    let mut key_ids: HashMap<TextureKey, usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
     let mut meshes = Vec::new();
     let scene = document.default_scene().or_else(|| document.scenes().next());
     let roots: Vec<gltf::Node> = match &scene {
@@ -353,7 +376,7 @@ pub(crate) fn read_gltf(
                     .base_color_texture()
                     .map_or(0, |t| t.tex_coord());
                 let mesh =
-                    read_primitive(&primitive, &buffers, &world, uv_set, texture).with_context(|| what.clone())?;
+                    read_primitive(&primitive, buffers, &world, uv_set, texture).with_context(|| what.clone())?;
                 vertices += mesh.positions.len();
                 if vertices > vertex_budget {
                     bail!(
@@ -366,18 +389,27 @@ pub(crate) fn read_gltf(
         }
         stack.extend(node.children().map(|c| (c, world, depth + 1)));
     }
-
-    Ok(GltfContent {
-        document: gltf.document,
-        buffers,
-        base: base.to_path_buf(),
-        input: input.to_path_buf(),
-        keys,
-        meshes,
-    })
+    Ok(meshes)
 }
 
 impl GltfContent {
+    /// The document's primitives placed again, by `root` instead of the root it was read
+    /// with (a content listed by several tiles is read once), at most `vertex_budget`
+    /// vertices; their textures index the same [`texture_count`](Self::texture_count).
+    pub(crate) fn place(&self, root: &Mat4, vertex_budget: usize) -> Result<Vec<PendingMesh>> {
+        let mut keys = self.keys.clone();
+        let meshes = place_scene(
+            &self.document,
+            &self.buffers,
+            &self.input,
+            root,
+            vertex_budget,
+            &mut keys,
+        )?;
+        debug_assert_eq!(keys.len(), self.keys.len(), "the same scene meets the same textures");
+        Ok(meshes)
+    }
+
     /// Distinct (image, factor) textures the meshes use.
     pub(crate) fn texture_count(&self) -> usize {
         self.keys.len()

@@ -781,3 +781,69 @@ fn buffer_uris_with_a_scheme_or_bad_escapes_are_refused_naming_them() {
         assert!(!e.contains("panicked"), "{name}: {e}");
     }
 }
+
+/// A content file listed by many tiles is read once and placed for each listing: the
+/// import says so in its progress, and gives exactly the dataset that as many copies of
+/// the file, each listed once, give.
+#[test]
+fn a_content_listed_by_many_tiles_is_read_once_and_placed_for_each() {
+    let dir = fresh_dir("listed-many");
+    let (lat, lon, h) = BERLIN;
+    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, 5), json!({}), None);
+    let glb = write::glb(&gltf, &bin);
+    std::fs::write(dir.join("a.glb"), &glb).expect("write");
+    std::fs::create_dir_all(dir.join("copies")).expect("mkdir");
+    let listings = 400;
+    let children = |uri: &dyn Fn(usize) -> String| -> Vec<Value> {
+        (0..listings)
+            .map(|i| {
+                json!({
+                    "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 20.0]},
+                    "geometricError": 0.0,
+                    "transform": flat(&translation([i as f64 * 10.0, 0.0, (i % 7) as f64])),
+                    "content": {"uri": uri(i)}
+                })
+            })
+            .collect()
+    };
+    let tileset = |children: Vec<Value>| {
+        json!({
+            "asset": {"version": "1.1"},
+            "geometricError": 1.0,
+            "root": {
+                "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 5000.0]},
+                "geometricError": 1.0,
+                "refine": "ADD",
+                "transform": flat(&enu_to_ecef(lat, lon, h)),
+                "children": children
+            }
+        })
+    };
+    for i in 0..listings {
+        std::fs::write(dir.join(format!("copies/a{i}.glb")), &glb).expect("write copy");
+    }
+    let one = dir.join("one.json");
+    std::fs::write(
+        &one,
+        serde_json::to_vec(&tileset(children(&|_| "a.glb".to_owned()))).expect("json"),
+    )
+    .expect("write");
+    let many = dir.join("many.json");
+    std::fs::write(
+        &many,
+        serde_json::to_vec(&tileset(children(&|i| format!("copies/a{i}.glb")))).expect("json"),
+    )
+    .expect("write");
+    let out = fresh_dir("listed-many-one");
+    let imported = import(&one, &out, &[]);
+    assert!(imported.status.success(), "{}", stderr(&imported));
+    assert!(
+        stderr(&imported).contains(&format!("{listings}/{listings} contents (1/1 files read)")),
+        "{}",
+        stderr(&imported)
+    );
+    let (copies, _) = import_ok(&many, "listed-many-copies", &[]);
+    let once = Dataset::open(&out).expect("open");
+    assert_eq!(once.scene.meshes.len(), listings);
+    assert_same_dataset(&once, &copies);
+}

@@ -267,19 +267,38 @@ pub fn load(
     }
 
     let started = Instant::now();
-    let mut meshes: Vec<PendingMesh> = Vec::new();
     let (mut textures, mut kept_blocks) = (0usize, 0usize);
     let mut texture_ids: HashMap<u128, usize> = HashMap::new();
     let mut vertices = 0usize;
     let count = walk.contents.len();
+    // Each content file is read and parsed once, however many tiles list it: its listings
+    // are placed from that one read, and the meshes keep the order the walk met them in.
+    let mut files: Vec<&Path> = Vec::new();
+    let mut listings_of: HashMap<&Path, Vec<usize>> = HashMap::new();
     for (n, content) in walk.contents.iter().enumerate() {
-        let what = || format!("{} (tile {})", content.path.display(), content.tile);
-        let mut read = read_content(content, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices).with_context(what)?;
+        let listings = listings_of.entry(content.path.as_path()).or_default();
+        if listings.is_empty() {
+            files.push(content.path.as_path());
+        }
+        listings.push(n);
+    }
+    let mut placed: Vec<Vec<PendingMesh>> = Vec::new();
+    placed.resize_with(count, Vec::new);
+    let mut listings_done = 0usize;
+    for (n, path) in files.iter().enumerate() {
+        let listings = &listings_of[path];
+        let first = &walk.contents[listings[0]];
+        let what = |i: usize| {
+            let content = &walk.contents[i];
+            format!("{} (tile {})", content.path.display(), content.tile)
+        };
+        let (mut read, centres) =
+            read_content(first, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices).with_context(|| what(listings[0]))?;
         // Textures new to the import are encoded (in parallel); shared ones map to the first.
         let mut local_to_global = Vec::with_capacity(read.texture_count());
         let mut fresh = Vec::new();
         for k in 0..read.texture_count() {
-            let identity = read.texture_identity(k).with_context(what)?;
+            let identity = read.texture_identity(k).with_context(|| what(listings[0]))?;
             let next = textures + fresh.len();
             let id = *texture_ids.entry(identity).or_insert_with(|| {
                 fresh.push(k);
@@ -291,27 +310,39 @@ pub fn load(
             .par_iter()
             .map(|&k| read.encode_texture(k, format, max_extent))
             .collect::<Result<Vec<_>>>()
-            .with_context(what)?;
+            .with_context(|| what(listings[0]))?;
         for (texture, kept) in &encoded {
-            sink(texture).with_context(what)?;
+            sink(texture).with_context(|| what(listings[0]))?;
             kept_blocks += usize::from(*kept);
         }
         textures += encoded.len();
-        for mesh in &mut read.meshes {
-            mesh.texture = local_to_global[mesh.texture];
-            vertices += mesh.positions.len();
-        }
-        meshes.append(&mut read.meshes);
-        if report && count >= 100 && (n + 1) % (count / 20).max(1) == 0 {
-            eprintln!(
-                "import: {}/{count} contents, {} meshes, {} textures, {:.0} s",
-                n + 1,
-                meshes.len(),
-                textures,
-                started.elapsed().as_secs_f64()
-            );
+        let mut first_meshes = std::mem::take(&mut read.meshes);
+        for (i, &listing) in listings.iter().enumerate() {
+            let mut meshes = if i == 0 {
+                std::mem::take(&mut first_meshes)
+            } else {
+                let content = &walk.contents[listing];
+                read.place(&content_root(content, centres), MAX_IMPORTED_VERTICES - vertices)
+                    .with_context(|| what(listing))?
+            };
+            for mesh in &mut meshes {
+                mesh.texture = local_to_global[mesh.texture];
+                vertices += mesh.positions.len();
+            }
+            placed[listing] = meshes;
+            listings_done += 1;
+            if report && count >= 100 && listings_done % (count / 20).max(1) == 0 {
+                eprintln!(
+                    "import: {listings_done}/{count} contents ({}/{} files read), {} textures, {:.0} s",
+                    n + 1,
+                    files.len(),
+                    textures,
+                    started.elapsed().as_secs_f64()
+                );
+            }
         }
     }
+    let mut meshes: Vec<PendingMesh> = placed.into_iter().flatten().collect();
     if meshes.is_empty() {
         bail!(
             "{}: the tileset's {count} contents hold no triangle meshes",
@@ -690,8 +721,31 @@ const Y_UP_TO_Z_UP: Mat4 = [
     [0.0, 0.0, 0.0, 1.0],
 ];
 
-/// One content file read: its glTF's primitives placed in Earth-centred coordinates.
-fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> Result<crate::import::GltfContent> {
+/// The RTC centres a content file carries: its b3dm's and its glTF's `CESIUM_RTC`.
+type RtcCentres = [Option<[f64; 3]>; 2];
+
+/// Where a listing of a content file places its glTF: Cesium's order, the tile's
+/// transform, the centres, then the axis correction (the glTF's own node transforms follow).
+fn content_root(content: &ContentRef, centres: RtcCentres) -> Mat4 {
+    let mut transform = content.transform;
+    for center in centres.into_iter().flatten() {
+        transform = mul(&transform, &translation(center));
+    }
+    match content.up {
+        UpAxis::X => transform = mul(&transform, &X_UP_TO_Z_UP),
+        UpAxis::Y => transform = mul(&transform, &Y_UP_TO_Z_UP),
+        UpAxis::Z => {}
+    }
+    transform
+}
+
+/// One content file read: its glTF's primitives placed in Earth-centred coordinates (for
+/// `content`, the first listing of the file), and its RTC centres (for the others).
+fn read_content(
+    content: &ContentRef,
+    root_dir: &Path,
+    vertex_budget: usize,
+) -> Result<(crate::import::GltfContent, RtcCentres)> {
     let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
     let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
         let batched = content::parse_b3dm(&bytes)?;
@@ -702,20 +756,11 @@ fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> 
     let json = content::gltf_json(glb)?;
     content::check_gltf_extensions(&json)?;
     let gltf_rtc = content::cesium_rtc(&json)?;
-    // Cesium's order: the tile's transform, the centre, then the axis correction and the
-    // glTF's own node transforms.
-    let mut transform = content.transform;
-    for center in [batch_rtc, gltf_rtc].into_iter().flatten() {
-        transform = mul(&transform, &translation(center));
-    }
-    match content.up {
-        UpAxis::X => transform = mul(&transform, &X_UP_TO_Z_UP),
-        UpAxis::Y => transform = mul(&transform, &Y_UP_TO_Z_UP),
-        UpAxis::Z => {}
-    }
+    let centres = [batch_rtc, gltf_rtc];
+    let transform = content_root(content, centres);
     let base = content.path.parent().unwrap_or(Path::new("/"));
     check_external_files(&json, base, root_dir)?;
-    read_gltf(glb, base, &content.path, &transform, vertex_budget)
+    Ok((read_gltf(glb, base, &content.path, &transform, vertex_budget)?, centres))
 }
 
 /// The files a glTF's buffers and images name (other than data URIs) lie inside the
