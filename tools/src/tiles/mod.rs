@@ -331,7 +331,7 @@ pub fn load(
             }
             placed[listing] = meshes;
             listings_done += 1;
-            if report && count >= 100 && listings_done % (count / 20).max(1) == 0 {
+            if report && count >= 100 && listings_done.is_multiple_of((count / 20).max(1)) {
                 eprintln!(
                     "import: {listings_done}/{count} contents ({}/{} files read), {} textures, {:.0} s",
                     n + 1,
