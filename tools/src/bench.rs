@@ -69,7 +69,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 
 use crate::berlin_bench::{self, BERLIN_BUDGET_MB, BERLIN_SIZE};
 use crate::default_city::{build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR};
@@ -564,6 +564,9 @@ fn fly(
     // The Berlin-sized city's runs take about half an hour each here: a rerun keeps the
     // ones that finished with the same command.
     let keep_finished = args.scenario == Scenario::Berlin;
+    // An earlier bench's runs are moved aside while this one flies, and put back if it
+    // fails: its report and its runs stay as they were, never half replaced.
+    let previous = PreviousRuns::new(out)?;
     for (i, policy) in runs.iter().enumerate() {
         let run_dir = out.join(&policy.dir);
         let run_args = flythrough_args(args, settings, dataset, policy, &run_dir);
@@ -583,6 +586,7 @@ fn fly(
             });
             continue;
         }
+        previous.set_aside(&run_dir, &policy.dir)?;
         std::fs::create_dir_all(&run_dir).with_context(|| format!("creating {}", run_dir.display()))?;
         // A summary of another command must not pass for this run's if it stops early.
         match std::fs::remove_file(&summary) {
@@ -605,14 +609,32 @@ fn fly(
         let status = Command::new(flythrough)
             .args(&run_args)
             .status()
-            .with_context(|| format!("starting {}", flythrough.display()))?;
-        if !status.success() {
-            bail!(
+            .with_context(|| format!("starting {}", flythrough.display()));
+        let failed = match status {
+            Ok(status) if status.success() => None,
+            Ok(status) => Some(anyhow!(
                 "flythrough run `{}` failed ({status}); command: {} {}",
                 policy.name,
                 flythrough.display(),
                 run_args.join(" ")
-            );
+            )),
+            Err(error) => Some(error),
+        };
+        if let Some(error) = failed {
+            // Berlin's finished runs are kept (a rerun resumes after them); otherwise
+            // every run this bench replaced goes back.
+            let restored = if keep_finished {
+                previous.restore(std::slice::from_ref(&policy.dir), out)
+            } else {
+                previous.restore(&runs[..=i].iter().map(|r| r.dir.clone()).collect::<Vec<_>>(), out)
+            };
+            return Err(match restored {
+                Ok(()) => error,
+                Err(restoring) => error.context(format!("and putting the earlier results back failed: {restoring:#}")),
+            });
+        }
+        if keep_finished {
+            previous.discard(&policy.dir)?;
         }
         let elapsed = started.elapsed().as_secs_f64();
         let headline = report::run_headline(&run_dir)?;
@@ -626,9 +648,79 @@ fn fly(
             name: policy.name.to_string(),
         });
     }
+    previous.finish()?;
     let outputs = report::write_report(&inputs, out)?;
     report::print_outputs(&outputs);
     Ok(inputs)
+}
+
+/// The earlier bench's runs in `OUT/.bench-previous` while a bench flies into `OUT`.
+struct PreviousRuns {
+    dir: PathBuf,
+}
+
+impl PreviousRuns {
+    const DIR: &'static str = ".bench-previous";
+
+    /// Refused where an interrupted bench left its predecessor's runs aside: they are the
+    /// only copy, to be put back by hand.
+    fn new(out: &Path) -> Result<Self> {
+        let dir = out.join(Self::DIR);
+        if dir.exists() {
+            bail!(
+                "{} holds runs an interrupted bench moved aside (the only copy of them): move them back into {} \
+                 or remove it",
+                dir.display(),
+                out.display()
+            );
+        }
+        Ok(Self { dir })
+    }
+
+    /// Moves `run_dir` (named `name` in the bench's output), if it exists, aside.
+    fn set_aside(&self, run_dir: &Path, name: &str) -> Result<()> {
+        if !run_dir.exists() {
+            return Ok(());
+        }
+        std::fs::create_dir_all(&self.dir).with_context(|| format!("creating {}", self.dir.display()))?;
+        let aside = self.dir.join(name);
+        std::fs::rename(run_dir, &aside)
+            .with_context(|| format!("moving {} aside to {}", run_dir.display(), aside.display()))
+    }
+
+    /// Puts the runs `names` set aside back into `out`, over what this bench wrote there.
+    fn restore(&self, names: &[String], out: &Path) -> Result<()> {
+        for name in names {
+            let aside = self.dir.join(name);
+            if !aside.exists() {
+                continue;
+            }
+            let run_dir = out.join(name);
+            if run_dir.exists() {
+                std::fs::remove_dir_all(&run_dir).with_context(|| format!("removing {}", run_dir.display()))?;
+            }
+            std::fs::rename(&aside, &run_dir)
+                .with_context(|| format!("moving {} back to {}", aside.display(), run_dir.display()))?;
+        }
+        self.finish()
+    }
+
+    /// Drops the earlier copy of run `name`, replaced for good.
+    fn discard(&self, name: &str) -> Result<()> {
+        let aside = self.dir.join(name);
+        if aside.exists() {
+            std::fs::remove_dir_all(&aside).with_context(|| format!("removing {}", aside.display()))?;
+        }
+        Ok(())
+    }
+
+    /// Drops what is left aside (every run replaced), and the directory.
+    fn finish(&self) -> Result<()> {
+        if self.dir.exists() {
+            std::fs::remove_dir_all(&self.dir).with_context(|| format!("removing {}", self.dir.display()))?;
+        }
+        Ok(())
+    }
 }
 
 /// `--scenario controllers`: the default city's bench (`OUT/default`, the standard

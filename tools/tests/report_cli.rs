@@ -671,6 +671,65 @@ fn bench_stops_at_a_failing_run() -> TestResult {
     Ok(())
 }
 
+/// A bench re-run into an earlier `--out` that fails leaves the earlier results as they
+/// were: every run's directory (summary, frames, command) and the report, which still
+/// reads them.
+#[cfg(unix)]
+#[test]
+fn a_failed_bench_rerun_leaves_the_earlier_results_intact() -> TestResult {
+    let dir = scratch("bench_rerun_fails");
+    let out = dir.join("out");
+    let bench = |script: &Path, frames: &str| {
+        citystream(&[
+            "bench",
+            "--dataset",
+            &dir.display().to_string(),
+            "--out",
+            &out.display().to_string(),
+            "--frames",
+            frames,
+            "--flythrough",
+            &script.display().to_string(),
+        ])
+    };
+    let (good, _) = fake_flythrough(&dir, "none");
+    let first = bench(&good, "7");
+    assert!(first.status.success(), "{}", String::from_utf8_lossy(&first.stderr));
+    let files = [
+        "table.md",
+        "baseline/summary.json",
+        "baseline/bench-command.txt",
+        "baseline/frames.csv",
+    ];
+    let before: Vec<Vec<u8>> = files
+        .iter()
+        .map(|f| std::fs::read(out.join(f)))
+        .collect::<Result<_, _>>()?;
+    // Another bench (more frames) whose second run fails: its first run has finished by then.
+    let failing_dir = dir.join("failing");
+    std::fs::create_dir_all(&failing_dir)?;
+    let (failing, _) = fake_flythrough(&failing_dir, "adaptive");
+    let second = bench(&failing, "9");
+    assert!(!second.status.success(), "the re-run should fail");
+    let after: Vec<Vec<u8>> = files
+        .iter()
+        .map(|f| std::fs::read(out.join(f)))
+        .collect::<Result<_, _>>()?;
+    for ((file, b), a) in files.iter().zip(&before).zip(&after) {
+        assert!(b == a, "{file} changed by the failed re-run");
+    }
+    assert!(!out.join(".bench-previous").exists());
+    let report = citystream(&[
+        "report",
+        "--run",
+        &out.join("baseline").display().to_string(),
+        "--out",
+        &dir.join("report").display().to_string(),
+    ]);
+    assert!(report.status.success(), "{}", String::from_utf8_lossy(&report.stderr));
+    Ok(())
+}
+
 /// `citystream bench --scenario SCENARIO --budget-mb 8` on an empty dataset directory in
 /// scratch `name`, with the fake flythrough: the dataset, the output directory, what the
 /// bench printed on standard error (it must succeed) and the flythrough lines it ran.
