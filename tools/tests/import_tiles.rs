@@ -847,3 +847,50 @@ fn a_content_listed_by_many_tiles_is_read_once_and_placed_for_each() {
     assert_eq!(once.scene.meshes.len(), listings);
     assert_same_dataset(&once, &copies);
 }
+
+/// Tileset JSON is bounded before it is parsed (a parsed tile takes some 80 times the
+/// bytes of `{}`): 8 MB of empty tiles is refused, naming the count, within 400 MB of
+/// address space (it took 685 MB parsed); a file hard-linked as its own external tileset
+/// a few levels deep is refused once the levels held together pass the bound.
+#[test]
+fn tileset_json_is_bounded_before_it_is_parsed() {
+    let dir = fresh_dir("json-bound");
+    let empty_tiles = |n: usize, child: Option<&str>| {
+        let content = child.map_or(String::new(), |uri| format!(",\"content\":{{\"uri\":\"{uri}\"}}"));
+        format!(
+            "{{\"asset\":{{\"version\":\"1.1\"}},\"geometricError\":1,\"root\":{{\"geometricError\":1,\
+             \"boundingVolume\":{{\"sphere\":[0,0,0,1]}}{content},\"children\":[{}]}}}}",
+            vec!["{}"; n].join(",")
+        )
+    };
+    let big = dir.join("big.json");
+    std::fs::write(&big, empty_tiles(2_700_000, None)).expect("write");
+    assert!(std::fs::metadata(&big).expect("size").len() > 8_000_000);
+    let output = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(r#"ulimit -v 400000 && exec "$0" import "$1" --out "$2""#)
+        .arg(env!("CARGO_BIN_EXE_citystream"))
+        .arg(&big)
+        .arg(fresh_dir("json-bound-out"))
+        .output()
+        .expect("import runs");
+    let text = stderr(&output);
+    assert_eq!(
+        output.status.code(),
+        Some(1),
+        "killed or imported instead of an error: {text}"
+    );
+    assert!(text.contains("2700004 JSON objects"), "{text}");
+
+    // 600,000 objects a level, each level the same file (hard-linked one directory down):
+    // the third level held with the two above passes the bound.
+    let top = dir.join("chain");
+    std::fs::create_dir_all(top.join("sub/sub")).expect("mkdir");
+    std::fs::write(top.join("tileset.json"), empty_tiles(600_000, Some("sub/tileset.json"))).expect("write");
+    std::fs::hard_link(top.join("tileset.json"), top.join("sub/tileset.json")).expect("hard link");
+    std::fs::hard_link(top.join("tileset.json"), top.join("sub/sub/tileset.json")).expect("hard link");
+    let out = import(&top.join("tileset.json"), &fresh_dir("json-bound-chain"), &[]);
+    let text = stderr(&out);
+    assert!(!out.status.success(), "imported");
+    assert!(text.contains("JSON objects") && text.contains("held at once"), "{text}");
+}

@@ -47,6 +47,10 @@ use crate::import::{
 };
 use geodesy::{to_geodetic, EastNorthUp};
 
+/// Most JSON objects of the tilesets held parsed at once (a tileset and the external
+/// ones below it being walked): some 400 MB at the worst.
+pub const MAX_HELD_TILESET_OBJECTS: usize = 1_500_000;
+
 /// Largest `tileset.json` read (external ones too).
 pub const MAX_TILESET_BYTES: u64 = 64 << 20;
 /// Largest content file read.
@@ -163,6 +167,9 @@ struct Walk {
     contents: Vec<ContentRef>,
     /// Content not imported, by kind.
     skipped: BTreeMap<String, usize>,
+    /// JSON objects of the tilesets parsed and held now (the chain of external tilesets
+    /// being walked), against [`MAX_HELD_TILESET_OBJECTS`].
+    held_objects: usize,
 }
 
 /// A tileset read into memory: what `import` writes as a dataset.
@@ -241,6 +248,7 @@ pub fn load(
         content_entries: 0,
         contents: Vec::new(),
         skipped: BTreeMap::new(),
+        held_objects: 0,
     };
     walk.tileset(&canonical, &IDENTITY, Refine::Replace, UpAxis::Y, &mut Vec::new(), 0)?;
     if strict && !walk.skipped.is_empty() {
@@ -479,7 +487,26 @@ impl Walk {
                 path.display()
             );
         }
-        let tileset = read_tileset(path)?;
+        let (tileset, objects) = read_tileset(path, MAX_HELD_TILESET_OBJECTS - self.held_objects)?;
+        // The tilesets above this one stay parsed while it is walked: their objects count.
+        self.held_objects += objects;
+        let walked = self.walk_tileset(&tileset, path, parent, inherited, inherited_up, chain, depth);
+        self.held_objects -= objects;
+        walked
+    }
+
+    /// [`tileset`](Self::tileset) once `tileset` is parsed.
+    #[allow(clippy::too_many_arguments)]
+    fn walk_tileset(
+        &mut self,
+        tileset: &TilesetJson,
+        path: &Path,
+        parent: &Mat4,
+        inherited: Refine,
+        inherited_up: UpAxis,
+        chain: &mut Vec<PathBuf>,
+        depth: usize,
+    ) -> Result<()> {
         let unsupported: Vec<&String> = tileset
             .extensions_required
             .iter()
@@ -642,8 +669,19 @@ fn read_bounded(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
     std::fs::read(path).with_context(|| format!("reading {}", path.display()))
 }
 
-fn read_tileset(path: &Path) -> Result<TilesetJson> {
+/// Reads and parses the tileset `path` and counts its JSON objects, refused before it is
+/// parsed where it holds more than `max_objects` (a parsed tile takes some 250 bytes, so
+/// a file of empty tiles takes 80 times its size once parsed).
+fn read_tileset(path: &Path, max_objects: usize) -> Result<(TilesetJson, usize)> {
     let bytes = read_bounded(path, MAX_TILESET_BYTES, "tileset")?;
+    let objects = json_objects(&bytes);
+    if objects > max_objects {
+        bail!(
+            "{}: {objects} JSON objects, more than the {max_objects} still allowed (at most \
+             {MAX_HELD_TILESET_OBJECTS} are held at once, over the external tilesets being read)",
+            path.display()
+        );
+    }
     let tileset: TilesetJson =
         serde_json::from_slice(&bytes).with_context(|| format!("{}: not a 3D Tiles tileset", path.display()))?;
     if !matches!(tileset.asset.version.as_str(), "0.0" | "1.0" | "1.1") {
@@ -653,7 +691,28 @@ fn read_tileset(path: &Path) -> Result<TilesetJson> {
             tileset.asset.version
         );
     }
-    Ok(tileset)
+    Ok((tileset, objects))
+}
+
+/// The JSON objects in `bytes` (its `{` outside strings), counted without parsing: an
+/// upper bound on what a tileset file holds, for bounding its parse.
+pub(crate) fn json_objects(bytes: &[u8]) -> usize {
+    let (mut objects, mut in_string, mut escaped) = (0usize, false, false);
+    for &b in bytes {
+        if in_string {
+            match (escaped, b) {
+                (true, _) => escaped = false,
+                (false, b'\\') => escaped = true,
+                (false, b'"') => in_string = false,
+                _ => {}
+            }
+        } else if b == b'"' {
+            in_string = true;
+        } else if b == b'{' {
+            objects += 1;
+        }
+    }
+    objects
 }
 
 /// A tile's numbers: a finite, non-negative geometric error; bounding volumes of the

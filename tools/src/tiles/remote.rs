@@ -15,7 +15,10 @@ use citystream_dataset::remote::{RemoteOptions, RemoteStore};
 use citystream_dataset::DatasetStore;
 use serde_json::Value;
 
-use super::{content, content_kind, TileJson, TilesetJson, MAX_CONTENT_BYTES, MAX_TILESETS, MAX_TILESET_BYTES};
+use super::{
+    content, content_kind, TileJson, TilesetJson, MAX_CONTENT_BYTES, MAX_HELD_TILESET_OBJECTS, MAX_TILESETS,
+    MAX_TILESET_BYTES,
+};
 
 /// Most files fetched for one tileset.
 const MAX_FILES: usize = 4_000_000;
@@ -104,6 +107,13 @@ pub fn fetch(url: &str, scratch: &Path) -> Result<PathBuf> {
             bail!("{url}: more than {MAX_TILESETS} external tilesets");
         }
         let bytes = fetcher.get(&relative, MAX_TILESET_BYTES)?;
+        let objects = super::json_objects(&bytes);
+        if objects > MAX_HELD_TILESET_OBJECTS {
+            bail!(
+                "{}: {objects} JSON objects, more than the {MAX_HELD_TILESET_OBJECTS} a tileset may hold",
+                fetcher.url(&relative)
+            );
+        }
         let tileset: TilesetJson = serde_json::from_slice(&bytes)
             .with_context(|| format!("{}: not a 3D Tiles tileset", fetcher.url(&relative)))?;
         let dir = relative.parent().unwrap_or(Path::new("")).to_path_buf();
