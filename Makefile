@@ -29,16 +29,20 @@ window: build
 
 # Then the sparse cache's tests again with mip tails, which every GPU has and
 # lavapipe has not: forced per layer and single (CITYSTREAM_FORCE_MIP_TAIL,
-# docs/REAL_GPU.md). With a single tail every layer's coarse levels are bound
-# from the start, so the row of stream_frames' view-larger-than-the-budget test
-# fits its budget: that scenario does not arise there, and that test is left out.
+# docs/REAL_GPU.md). Two tests are left out of the single run, their scenario
+# not arising there: with a single tail every layer's coarse levels are bound
+# from the start, so stream_frames' view-larger-than-the-budget row fits its
+# budget; and lavapipe's synthetic single tail for the ring test's 64 layers
+# takes 36 MiB (9 blocks a layer, where a GPU's single tail is one block), more
+# than its 8 MB budget, which the flythrough refuses with a clear error.
 TAIL_TESTS = -p citystream-tests --test sparse_residency --test texture_cache --test vulkan_binder \
 	--test stream_frames -p citystream-tools --test flythrough_cli
 test: setup
 	$(CARGO) test --workspace
 	CITYSTREAM_FORCE_MIP_TAIL=3 $(CARGO) test $(TAIL_TESTS)
 	CITYSTREAM_FORCE_MIP_TAIL=3,single $(CARGO) test $(TAIL_TESTS) -- \
-		--skip a_view_larger_than_the_budget_settles_without_reloading
+		--skip a_view_larger_than_the_budget_settles_without_reloading \
+		--skip the_ring_evicting_a_textures_own_layer_does_not_fail_the_texture
 
 fmt:
 	$(CARGO) fmt --all -- --check
