@@ -951,10 +951,12 @@ impl TextureCache {
                     free_blocks: shared.budget_blocks.saturating_sub(shared.live_blocks),
                 });
             }
-            if needed_count > shared.budget_blocks {
+            // Single tails hold their part of the budget for good: no eviction frees it.
+            let evictable_budget = shared.budget_blocks - shared.single_tails.len() as u64;
+            if needed_count > evictable_budget {
                 return Err(CacheError::OverBudget {
                     needed_blocks: needed_count,
-                    budget_blocks: shared.budget_blocks,
+                    budget_blocks: evictable_budget,
                 });
             }
             if !self.evict_oldest(&mut shared, EvictionReason::MemoryBudget) {

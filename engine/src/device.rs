@@ -527,8 +527,12 @@ fn unserved_sparse_formats(raw: &ash::Instance, physical: vk::PhysicalDevice) ->
         let color = properties
             .iter()
             .find(|p| p.aspect_mask.contains(vk::ImageAspectFlags::COLOR));
+        let metadata = properties
+            .iter()
+            .any(|p| p.aspect_mask.contains(vk::ImageAspectFlags::METADATA));
         let reason = match color {
             None => Some("no sparse residency for 2D images of it".to_owned()),
+            Some(_) if metadata => Some("a metadata aspect to bind, which the cache does not bind".to_owned()),
             Some(p) if p.flags.contains(vk::SparseImageFormatFlags::NONSTANDARD_BLOCK_SIZE) => Some(format!(
                 "a non-standard sparse block shape ({}x{})",
                 p.image_granularity.width, p.image_granularity.height

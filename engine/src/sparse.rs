@@ -149,6 +149,8 @@ pub struct SparseImage {
     /// `VkMemoryRequirements::size`: the opaque range of the image (a tail
     /// offset may lie beyond it).
     opaque_bytes: u64,
+    /// The device asks for a metadata aspect to be bound as well.
+    metadata: bool,
 }
 
 /// Where a device keeps the levels of a sparse image's mip tail, as
@@ -275,6 +277,7 @@ impl SparseImage {
             format_flags: vk::SparseImageFormatFlags::empty(),
             memory_type_bits: 0,
             opaque_bytes: 0,
+            metadata: false,
         };
         // SAFETY: raw is a live sparse image.
         let requirements = unsafe { device.raw.get_image_memory_requirements(raw) };
@@ -287,6 +290,9 @@ impl SparseImage {
                 device: device.name().to_owned(),
                 feature: format!("sparse memory requirements for the colour aspect of {:?}", desc.format),
             })?;
+        image.metadata = sparse
+            .iter()
+            .any(|r| r.format_properties.aspect_mask.contains(vk::ImageAspectFlags::METADATA));
         let (block_w, block_h) = texel_block(desc.format);
         let reported = color.format_properties.image_granularity;
         // A standard sparse block shape covers exactly one memory block. Some
@@ -392,6 +398,9 @@ impl SparseImage {
                 "its mip tail starts at level 0 of a {}x{} image: nothing can be bound block by block",
                 self.desc.width, self.desc.height
             ));
+        }
+        if self.metadata {
+            return Some("its sparse images need a metadata aspect bound, which the cache does not bind".into());
         }
         let (gw, gh) = self.granularity;
         let (bw, bh) = texel_block(self.desc.format);

@@ -13,9 +13,6 @@
 //! - **Finest only** (`only_a_textures_finest_level_is_dropped`): a
 //!   texture's chain stays contiguous; after a drop its next level becomes
 //!   the candidate.
-//! - **Only what frees room** (`a_level_that_frees_no_block_is_not_dropped`):
-//!   a level whose blocks are all shared (a mip tail other textures use, a
-//!   block of small textures) is not dropped: it would free nothing.
 //! - **Margin** (`a_needed_level_yields_only_to_a_load_twice_as_dense`): a
 //!   needed level gives way only to a load [`super::REPLACE_MARGIN`] times
 //!   denser; nothing gives way to a load worth no more than itself.
@@ -361,11 +358,6 @@ impl PackingPass {
             if held == 0 || held.trailing_zeros() != least.level || cache.has_pending(texture) {
                 continue;
             }
-            // A level whose blocks other levels share (a mip tail, a block of
-            // small textures) frees nothing: dropping it would only reload it.
-            if cache.exclusive_blocks(texture, least.level) == 0 {
-                continue;
-            }
             let rest = held & !(1 << least.level);
             return RoomStep::Drop(LevelDrop {
                 texture,
@@ -708,30 +700,6 @@ mod tests {
                 level: 0,
                 next: Some(1)
             }
-        );
-    }
-
-    #[test]
-    fn a_level_that_frees_no_block_is_not_dropped() {
-        // Two one-level textures out of view; the first's level shares its
-        // blocks (a mip tail other textures use), so only the second goes.
-        let mut cache = FakeCache::new(2);
-        let shared = cache.texture(1, 1, (0, 0));
-        let own = cache.texture(1, 1, (0, 0));
-        cache.textures[shared as usize].shared = 1;
-        let needs = needs_after(3, &[]);
-        let mut pass = PackingPass::new();
-        let (dropped, made) = cache.make_room(&mut pass, &needs, 1, heavy_load(&needs, 2));
-        assert!(made);
-        assert_eq!(dropped, vec![(own, 0)]);
-        // With nothing else to drop, the shared level is not dropped in vain.
-        let mut cache = FakeCache::new(1);
-        let shared = cache.texture(1, 1, (0, 0));
-        cache.textures[shared as usize].shared = 1;
-        let mut pass = PackingPass::new();
-        assert_eq!(
-            pass.next_drop(&cache, &needs, 1, heavy_load(&needs, 2)),
-            RoomStep::Refused
         );
     }
 
