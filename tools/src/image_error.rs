@@ -5,7 +5,13 @@
 //! reference has an MSE of 0 and an unbounded PSNR; it counts at [`PSNR_CEILING_DB`], so the
 //! better a run streams, the more (not the fewer) of its frames pull its mean up. The mean
 //! squared error over all measured frames needs no ceiling; the PSNR of that mean
-//! ([`ErrorFigures::psnr_of_mean_mse_db`]) is the headline figure when runs are compared.
+//! ([`ErrorFigures::psnr_of_mean_mse_db`]) sums up a run.
+//!
+//! The start-up fill and the streaming after it are reported apart: in the first
+//! [`STARTUP_S`] seconds of path time nothing is resident yet and every policy is equally
+//! wrong, and those frames' squared error can outweigh all others. The PSNR of the mean
+//! MSE of the frames after it ([`ErrorFigures::streaming`]) is the headline when runs
+//! are compared; the start-up's is [`ErrorFigures::startup`].
 
 use citystream_streaming::bench::stats::Stats;
 use serde::ser::SerializeMap;
@@ -16,6 +22,10 @@ use serde::{Deserialize, Serialize, Serializer};
 /// so such a frame counts at the ceiling too; `ErrorFrames::identical` counts exact matches
 /// only, and the MSE keeps every difference.
 pub const PSNR_CEILING_DB: f64 = 100.0;
+
+/// Seconds of path time the start-up fill lasts, for the error figures: frames measured
+/// before it count as the fill, frames from it on as streaming.
+pub const STARTUP_S: f64 = 1.0;
 
 /// Peak value of an 8-bit channel, squared: the numerator of PSNR.
 const PEAK_SQUARED: f64 = 255.0 * 255.0;
@@ -80,10 +90,10 @@ impl FrameError {
     }
 }
 
-/// Every measured frame of a run, in order.
+/// Every measured frame of a run, in order, with its path time.
 #[derive(Debug, Clone, Default)]
 pub struct ErrorSeries {
-    frames: Vec<FrameError>,
+    frames: Vec<(f64, FrameError)>,
 }
 
 impl ErrorSeries {
@@ -91,12 +101,13 @@ impl ErrorSeries {
         Self::default()
     }
 
-    /// Counts one measured frame.
-    pub fn push(&mut self, frame: FrameError) {
-        self.frames.push(frame);
+    /// Counts one frame measured at `path_s` seconds of path time.
+    pub fn push(&mut self, path_s: f64, frame: FrameError) {
+        self.frames.push((path_s, frame));
     }
 
-    pub fn frames(&self) -> &[FrameError] {
+    /// The frames with their path times.
+    pub fn frames(&self) -> &[(f64, FrameError)] {
         &self.frames
     }
 
@@ -105,18 +116,52 @@ impl ErrorSeries {
         if self.frames.is_empty() {
             return None;
         }
-        let psnrs: Vec<f64> = self.frames.iter().map(|f| f.psnr_db).collect();
-        let mses: Vec<f64> = self.frames.iter().map(|f| f.mse).collect();
+        let psnrs: Vec<f64> = self.frames.iter().map(|(_, f)| f.psnr_db).collect();
+        let mses: Vec<f64> = self.frames.iter().map(|(_, f)| f.mse).collect();
         let mean_mse = mses.iter().sum::<f64>() / mses.len() as f64;
+        let phase = |startup: bool| {
+            PhaseError::of(
+                self.frames
+                    .iter()
+                    .filter(|(t, _)| (*t < STARTUP_S) == startup)
+                    .map(|(_, f)| *f),
+            )
+        };
         Some(ErrorFigures {
             psnr_db: Stats::from_samples(&psnrs),
             psnr_ceiling_db: PSNR_CEILING_DB,
             error_frames: ErrorFrames {
                 measured: self.frames.len() as u64,
-                identical: self.frames.iter().filter(|f| f.identical()).count() as u64,
+                identical: self.frames.iter().filter(|(_, f)| f.identical()).count() as u64,
             },
             mse: Stats::from_samples(&mses),
             psnr_of_mean_mse_db: psnr_of_mse_db(mean_mse),
+            startup: phase(true),
+            streaming: phase(false),
+        })
+    }
+}
+
+/// The error of one phase of a run (the start-up fill, or the streaming after it).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PhaseError {
+    /// PSNR of the mean MSE of the phase's measured frames.
+    pub psnr_of_mean_mse_db: f64,
+    pub error_frames: ErrorFrames,
+}
+
+impl PhaseError {
+    /// The phase's figures over `frames`; `None` when it has none.
+    pub fn of(frames: impl Iterator<Item = FrameError>) -> Option<Self> {
+        let (mut measured, mut identical, mut sum) = (0u64, 0u64, 0.0f64);
+        for frame in frames {
+            measured += 1;
+            identical += u64::from(frame.identical());
+            sum += frame.mse;
+        }
+        (measured > 0).then(|| PhaseError {
+            psnr_of_mean_mse_db: psnr_of_mse_db(sum / measured as f64),
+            error_frames: ErrorFrames { measured, identical },
         })
     }
 }
@@ -137,19 +182,28 @@ pub struct ErrorFigures {
     pub error_frames: ErrorFrames,
     /// MSE per measured frame (over RGB, 8-bit channels).
     pub mse: Stats,
-    /// PSNR of the mean MSE over every measured frame: the headline error. It reaches the
-    /// ceiling only when every measured frame is identical.
+    /// PSNR of the mean MSE over every measured frame. It reaches the ceiling only when
+    /// every measured frame is identical.
     pub psnr_of_mean_mse_db: f64,
+    /// The frames of the start-up fill (path time below [`STARTUP_S`]); `None` when none
+    /// was measured.
+    pub startup: Option<PhaseError>,
+    /// The frames after it: the headline error; `None` when none was measured.
+    pub streaming: Option<PhaseError>,
 }
 
 /// The keys of [`ErrorFigures`] in `summary.json`, after a prefix (`""` for the city's,
 /// `"ground_"` for the ground's).
-pub const ERROR_KEYS: [&str; 5] = [
+pub const ERROR_KEYS: [&str; 9] = [
     "psnr_db",
     "psnr_ceiling_db",
     "error_frames",
     "mse",
     "psnr_of_mean_mse_db",
+    "startup_psnr_of_mean_mse_db",
+    "startup_error_frames",
+    "streaming_psnr_of_mean_mse_db",
+    "streaming_error_frames",
 ];
 
 /// Serializes a run's error figures as top-level keys with a prefix, each `null` when no
@@ -171,6 +225,15 @@ impl Serialize for PrefixedErrorFigures {
         map.serialize_entry(&key("error_frames"), &f.map(|f| f.error_frames))?;
         map.serialize_entry(&key("mse"), &f.map(|f| f.mse))?;
         map.serialize_entry(&key("psnr_of_mean_mse_db"), &f.map(|f| f.psnr_of_mean_mse_db))?;
+        let phase = |f: &ErrorFigures, startup: bool| if startup { f.startup } else { f.streaming };
+        for (name, startup) in [("startup", true), ("streaming", false)] {
+            let p = f.and_then(|f| phase(f, startup));
+            map.serialize_entry(
+                &key(&format!("{name}_psnr_of_mean_mse_db")),
+                &p.map(|p| p.psnr_of_mean_mse_db),
+            )?;
+            map.serialize_entry(&key(&format!("{name}_error_frames")), &p.map(|p| p.error_frames))?;
+        }
         map.end()
     }
 }
@@ -207,8 +270,8 @@ mod tests {
     fn every_measured_frame_counts() {
         let mut series = ErrorSeries::new();
         assert_eq!(series.figures(), None);
-        for mse in [100.0, 0.0, 0.0, 2.0] {
-            series.push(FrameError::of_mse(mse));
+        for (path_s, mse) in [(0.0, 100.0), (0.5, 0.0), (1.0, 0.0), (3.0, 2.0)] {
+            series.push(path_s, FrameError::of_mse(mse));
         }
         let f = series.figures().expect("measured");
         assert_eq!(
@@ -226,12 +289,40 @@ mod tests {
         assert_eq!(f.psnr_db.min, psnr_100);
         assert!((f.mse.mean - 25.5).abs() < 1e-12);
         assert!((f.psnr_of_mean_mse_db - 10.0 * (PEAK_SQUARED / 25.5).log10()).abs() < 1e-12);
+        // Apart: the start-up fill (before 1 s of path) and the streaming after it.
+        let startup = f.startup.expect("start-up frames");
+        let streaming = f.streaming.expect("streaming frames");
+        assert_eq!(
+            startup.error_frames,
+            ErrorFrames {
+                measured: 2,
+                identical: 1
+            }
+        );
+        assert_eq!(
+            streaming.error_frames,
+            ErrorFrames {
+                measured: 2,
+                identical: 1
+            }
+        );
+        assert!((startup.psnr_of_mean_mse_db - 10.0 * (PEAK_SQUARED / 50.0).log10()).abs() < 1e-12);
+        assert!((streaming.psnr_of_mean_mse_db - 10.0 * (PEAK_SQUARED / 1.0).log10()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_run_measured_only_after_start_up_has_no_start_up_figures() {
+        let mut series = ErrorSeries::new();
+        series.push(STARTUP_S, FrameError::of_mse(4.0));
+        let f = series.figures().expect("measured");
+        assert_eq!(f.startup, None);
+        assert_eq!(f.streaming.map(|p| p.psnr_of_mean_mse_db), Some(f.psnr_of_mean_mse_db));
     }
 
     #[test]
     fn all_identical_reaches_the_ceiling() {
         let mut series = ErrorSeries::new();
-        series.push(FrameError::of_mse(0.0));
+        series.push(0.0, FrameError::of_mse(0.0));
         let f = series.figures().expect("measured");
         assert_eq!(f.psnr_of_mean_mse_db, PSNR_CEILING_DB);
         assert_eq!(
@@ -254,7 +345,8 @@ mod tests {
             ground: PrefixedErrorFigures,
         }
         let mut series = ErrorSeries::new();
-        series.push(FrameError::of_mse(0.0));
+        series.push(0.0, FrameError::of_mse(0.0));
+        series.push(2.0, FrameError::of_mse(0.0));
         let summary = Summary {
             frames: 1,
             city: PrefixedErrorFigures {
@@ -272,7 +364,9 @@ mod tests {
             let ground = format!("ground_{key}");
             assert_eq!(json[&ground].is_null(), key != "psnr_ceiling_db", "{ground}: {json}");
         }
-        assert_eq!(json["error_frames"]["identical"], 1);
+        assert_eq!(json["error_frames"]["identical"], 2);
         assert_eq!(json["psnr_of_mean_mse_db"], PSNR_CEILING_DB);
+        assert_eq!(json["streaming_error_frames"]["measured"], 1);
+        assert_eq!(json["startup_psnr_of_mean_mse_db"], PSNR_CEILING_DB);
     }
 }

@@ -44,7 +44,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use citystream_streaming::bench::stats::{Stats, RATE_WINDOW_S};
 use citystream_streaming::controller::BYTES_PER_MB;
 
-use crate::image_error::{psnr_of_mse_db, ErrorFrames};
+use crate::image_error::{ErrorFrames, FrameError, PhaseError, STARTUP_S};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use serde::Deserialize;
@@ -148,6 +148,15 @@ struct SummaryJson {
     error_frames: Option<ErrorFrames>,
     #[serde(default)]
     psnr_of_mean_mse_db: Option<f64>,
+    /// The start-up fill's and the streaming's errors apart; absent in older summaries.
+    #[serde(default)]
+    startup_psnr_of_mean_mse_db: Option<f64>,
+    #[serde(default)]
+    startup_error_frames: Option<ErrorFrames>,
+    #[serde(default)]
+    streaming_psnr_of_mean_mse_db: Option<f64>,
+    #[serde(default)]
+    streaming_error_frames: Option<ErrorFrames>,
     frames: u64,
     duration_s: f64,
     policy: String,
@@ -202,38 +211,72 @@ struct Run {
     error: Option<RunError>,
 }
 
-/// A run's headline image error.
+/// A run's image error: over every measured frame, and apart for the start-up fill and
+/// the streaming after it (the headline; `crate::image_error::STARTUP_S`).
 #[derive(Debug, Clone, Copy)]
 struct RunError {
     psnr_of_mean_mse_db: f64,
     frames: ErrorFrames,
+    startup: Option<PhaseError>,
+    streaming: Option<PhaseError>,
 }
 
 impl RunError {
-    /// From the summary's keys, or recomputed from the CSV's `mse` cells.
+    /// From the summary's keys, or recomputed from the CSV's `time_s` and `mse` cells.
     fn of(summary: &SummaryJson, frames: &[FrameRow]) -> Option<Self> {
-        if let (Some(psnr), Some(counted)) = (summary.psnr_of_mean_mse_db, summary.error_frames) {
-            return Some(RunError {
-                psnr_of_mean_mse_db: psnr,
-                frames: counted,
-            });
-        }
-        let mses: Vec<f64> = frames.iter().filter_map(|f| f.mse).collect();
-        if mses.is_empty() {
-            return None;
-        }
-        Some(RunError {
-            psnr_of_mean_mse_db: psnr_of_mse_db(mses.iter().sum::<f64>() / mses.len() as f64),
-            frames: ErrorFrames {
-                measured: mses.len() as u64,
-                identical: mses.iter().filter(|&&m| m == 0.0).count() as u64,
+        let from_csv = |startup: Option<bool>| {
+            PhaseError::of(
+                frames
+                    .iter()
+                    .filter(|f| startup.is_none_or(|s| (f.time_s < STARTUP_S) == s))
+                    .filter_map(|f| f.mse.map(FrameError::of_mse)),
+            )
+        };
+        let phase = |psnr: Option<f64>, counted: Option<ErrorFrames>, startup: bool| match (psnr, counted) {
+            (Some(psnr_of_mean_mse_db), Some(error_frames)) => Some(PhaseError {
+                psnr_of_mean_mse_db,
+                error_frames,
+            }),
+            _ => from_csv(Some(startup)),
+        };
+        let all = match (summary.psnr_of_mean_mse_db, summary.error_frames) {
+            (Some(psnr_of_mean_mse_db), Some(error_frames)) => PhaseError {
+                psnr_of_mean_mse_db,
+                error_frames,
             },
+            _ => from_csv(None)?,
+        };
+        Some(RunError {
+            psnr_of_mean_mse_db: all.psnr_of_mean_mse_db,
+            frames: all.error_frames,
+            startup: phase(summary.startup_psnr_of_mean_mse_db, summary.startup_error_frames, true),
+            streaming: phase(
+                summary.streaming_psnr_of_mean_mse_db,
+                summary.streaming_error_frames,
+                false,
+            ),
         })
+    }
+
+    /// The figure runs are compared by: the streaming after the start-up fill, or every
+    /// frame where none was measured after it.
+    fn headline_db(&self) -> f64 {
+        self.streaming
+            .map_or(self.psnr_of_mean_mse_db, |p| p.psnr_of_mean_mse_db)
     }
 
     fn frames_cell(&self) -> String {
         format!("{} / {}", self.frames.identical, self.frames.measured)
     }
+}
+
+fn phase_cell(phase: Option<PhaseError>) -> (String, String) {
+    phase.map_or(("n/a".to_string(), "n/a".to_string()), |p| {
+        (
+            number(p.psnr_of_mean_mse_db),
+            format!("{} / {}", p.error_frames.identical, p.error_frames.measured),
+        )
+    })
 }
 
 /// `citystream report`.
@@ -625,14 +668,36 @@ fn markdown_table(runs: &[Run]) -> String {
     }
     let _ = writeln!(
         out,
-        "\n## Image error\n\nThe PSNR of the mean squared error over every measured frame, and how many \
-         measured frames were identical to their reference.\n\n| Run | PSNR of mean MSE (dB) | Identical / measured |\n|---|---:|---:|"
+        "\n## Image error\n\nThe PSNR of the mean squared error of the streaming after the start-up fill \
+         (frames from {STARTUP_S} s of path time on: the headline), of the start-up fill, and over every \
+         measured frame, with how many measured frames were identical to their reference.\n\n\
+         | Run | Streaming PSNR of mean MSE (dB) | Identical / measured | Start-up PSNR of mean MSE (dB) | \
+         Identical / measured | All frames PSNR of mean MSE (dB) | Identical / measured |\n\
+         |---|---:|---:|---:|---:|---:|---:|"
     );
     for run in runs {
-        let (psnr, frames) = run.error.map_or(("n/a".to_string(), "n/a".to_string()), |e| {
-            (number(e.psnr_of_mean_mse_db), e.frames_cell())
-        });
-        let _ = writeln!(out, "| {} | {psnr} | {frames} |", escape_cell(&run.name));
+        let (streaming, startup, all) = match run.error {
+            Some(e) => (
+                phase_cell(e.streaming),
+                phase_cell(e.startup),
+                (number(e.psnr_of_mean_mse_db), e.frames_cell()),
+            ),
+            None => {
+                let na = || ("n/a".to_string(), "n/a".to_string());
+                (na(), na(), na())
+            }
+        };
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} | {} | {} | {} | {} |",
+            escape_cell(&run.name),
+            streaming.0,
+            streaming.1,
+            startup.0,
+            startup.1,
+            all.0,
+            all.1
+        );
     }
     let _ = writeln!(out, "\nMB = 2^20 bytes. Transfer rates per {RATE_WINDOW_S} s window.");
     out
@@ -647,10 +712,13 @@ pub fn run_headline(dir: &Path) -> Result<String> {
         serde_json::from_str(&text).with_context(|| format!("{}: not a valid flythrough summary", path.display()))?;
     let error = match (s.psnr_of_mean_mse_db, s.error_frames) {
         (Some(psnr), Some(frames)) => format!(
-            "{} dB ({} of {} measured frames identical)",
+            "{} dB ({} of {} measured frames identical){}",
             number(psnr),
             frames.identical,
-            frames.measured
+            frames.measured,
+            s.streaming_psnr_of_mean_mse_db
+                .map(|streaming| format!(", after start-up {} dB", number(streaming)))
+                .unwrap_or_default()
         ),
         _ => "n/a".to_string(),
     };
@@ -950,7 +1018,7 @@ fn draw_fig6(run: &Run, path: &Path) -> Result<()> {
 fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
     let measured: Vec<(&Run, f64)> = runs
         .iter()
-        .filter_map(|r| r.error.map(|e| (r, e.psnr_of_mean_mse_db)))
+        .filter_map(|r| r.error.map(|e| (r, e.headline_db())))
         .filter(|(_, p)| p.is_finite())
         .collect();
     let missing: Vec<&str> = runs

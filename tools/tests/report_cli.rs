@@ -157,9 +157,10 @@ fn fmt3(s: [f64; 4]) -> Vec<String> {
     vec![format!("{:.2}", s[0]), format!("{:.2}", s[1]), format!("{:.2}", s[2])]
 }
 
-/// The image-error table: the PSNR of the mean MSE and identical / measured frames, from
-/// the summary's keys, or recomputed from the CSV's `mse` column of a summary without them,
-/// or n/a.
+/// The image-error table: the PSNR of the mean MSE and identical / measured frames, of the
+/// streaming after the start-up fill (the headline), of the start-up fill and of every
+/// frame, from the summary's keys, or recomputed from the CSV's `time_s` and `mse` columns
+/// of a summary without them, or n/a.
 #[test]
 fn image_error_table_compares_runs_by_the_psnr_of_the_mean_mse() -> TestResult {
     let dir = scratch("image_error");
@@ -170,9 +171,17 @@ fn image_error_table_compares_runs_by_the_psnr_of_the_mean_mse() -> TestResult {
         33.25,
         1,
         4,
+    )
+    .replacen(
+        "\"frames\":",
+        "\"startup_psnr_of_mean_mse_db\": 21.5, \"startup_error_frames\": {\"measured\": 1, \"identical\": 0}, \
+         \"streaming_psnr_of_mean_mse_db\": 44.75, \"streaming_error_frames\": {\"measured\": 3, \"identical\": 1}, \
+         \"frames\":",
+        1,
     );
     write_run(&dir.join("a"), &csv(&a), &a_summary);
-    // Run B: an older summary, with an `mse` column in the CSV (0 on an identical frame).
+    // Run B: an older summary, with an `mse` column in the CSV (0 on an identical frame);
+    // its frames 20 s of path apart, so the first alone is the start-up fill.
     let b = frames(12, 1.0, 4, 0);
     let mses = [
         Some(26.0),
@@ -194,7 +203,12 @@ fn image_error_table_compares_runs_by_the_psnr_of_the_mean_mse() -> TestResult {
             0 => "mse".to_string(),
             _ => mses[i - 1].map(|m: f64| m.to_string()).unwrap_or_default(),
         };
-        b_csv.push_str(&format!("{line},{mse}\n"));
+        // time_s is the second column: frame i at 20·i s.
+        let mut cells: Vec<String> = line.split(',').map(str::to_owned).collect();
+        if i > 0 {
+            cells[1] = ((i - 1) * 20).to_string();
+        }
+        b_csv.push_str(&format!("{},{mse}\n", cells.join(",")));
     }
     write_run(&dir.join("b"), &b_csv, &summary(&b, "baseline", None, None));
     // Run C: no error measured.
@@ -213,16 +227,29 @@ fn image_error_table_compares_runs_by_the_psnr_of_the_mean_mse() -> TestResult {
     let table = std::fs::read_to_string(out.join("table.md"))?;
     let table = section(&table, "## Image error");
     assert!(
-        table.contains("| Run | PSNR of mean MSE (dB) | Identical / measured |"),
+        table.contains(
+            "| Run | Streaming PSNR of mean MSE (dB) | Identical / measured | Start-up PSNR of mean MSE (dB) | \
+             Identical / measured | All frames PSNR of mean MSE (dB) | Identical / measured |"
+        ),
         "{table}"
     );
-    assert_eq!(row(table, "a"), ["33.25", "1 / 4"]);
-    // Mean MSE 9 over three measured frames: 10·log10(65025 / 9) = 38.588...
+    assert_eq!(row(table, "a"), ["44.75", "1 / 3", "21.50", "0 / 1", "33.25", "1 / 4"]);
+    // MSEs 26 (start-up), 0 and 1 (after it): the mean MSE 9 over three frames is
+    // 10·log10(65025 / 9) = 38.588..., the start-up's 10·log10(65025 / 26), the streaming's
+    // 10·log10(65025 / 0.5).
+    let db = |mse: f64| format!("{:.2}", 10.0 * (65025.0f64 / mse).log10());
     assert_eq!(
         row(table, "b"),
-        [format!("{:.2}", 10.0 * (65025.0f64 / 9.0).log10()), "1 / 3".into()]
+        [
+            db(0.5),
+            "1 / 2".into(),
+            db(26.0),
+            "0 / 1".into(),
+            db(9.0),
+            "1 / 3".into()
+        ]
     );
-    assert_eq!(row(table, "c"), ["n/a", "n/a"]);
+    assert_eq!(row(table, "c"), ["n/a"; 6]);
     let stderr = String::from_utf8_lossy(&result.stderr);
     assert!(stderr.contains("run `c` has no MSE measurement"), "{stderr}");
     Ok(())

@@ -293,8 +293,9 @@ impl GroundRun {
         Ok(self.layer.update_streamed(streamer, frame, eye)?)
     }
 
-    /// Error of the streamed ground of frame slot `slot` (its frame complete) against the
-    /// reference with every arrived patch resident, both drawn alone behind the city.
+    /// Error of the streamed ground of frame slot `slot` (its frame complete, at `path_s`
+    /// seconds of path time) against the reference with every arrived patch resident, both
+    /// drawn alone behind the city.
     pub fn measure(
         &mut self,
         commands: &mut CommandContext,
@@ -302,6 +303,7 @@ impl GroundRun {
         target: &RenderTarget,
         camera: &Camera,
         slot: u32,
+        path_s: f64,
     ) -> Result<Option<FrameError>> {
         let Some(reference) = self.reference.as_mut() else {
             return Ok(None);
@@ -334,7 +336,7 @@ impl GroundRun {
         city.record_ground_only(cmd, target, camera, (reference, 0))?;
         commands.submit_and_wait(&[])?;
         let error = FrameError::of_images(&streamed, &target.read_pixels()?);
-        self.errors.push(error);
+        self.errors.push(path_s, error);
         Ok(Some(error))
     }
 

@@ -223,7 +223,14 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
             }
             if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {
-                ground_error = run.measure(&mut commands, &flight.gpu.renderer, target, &camera, recorded.slot)?;
+                ground_error = run.measure(
+                    &mut commands,
+                    &flight.gpu.renderer,
+                    target,
+                    &camera,
+                    recorded.slot,
+                    time_s,
+                )?;
             }
         }
 
@@ -247,7 +254,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
         if let Some(error) = error {
-            errors.push(error);
+            errors.push(time_s, error);
         }
         uploads_at.push((time_s, mips));
         write_csv_row(
