@@ -285,6 +285,16 @@ struct LayerState {
     texture_bytes: u64,
 }
 
+impl LayerState {
+    /// Blocks of the layer's mip tail bound now.
+    fn tail_blocks(&self) -> u64 {
+        self.blocks
+            .keys()
+            .filter(|(mip, _, _)| *mip == BlockKey::TAIL_LEVEL)
+            .count() as u64
+    }
+}
+
 /// Keeps each hot atomic or lock on its own cache line so threads working
 /// on different extents or layers do not slow each other down.
 #[derive(Debug, Default)]
@@ -1085,11 +1095,7 @@ impl TextureCache {
                     report.texture_bytes += layer.texture_bytes;
                     report.bound_blocks += layer.blocks.len() as u64;
                     report.bound_bytes += layer.blocks.len() as u64 * state.desc.block_bytes;
-                    let tail = layer
-                        .blocks
-                        .keys()
-                        .filter(|(mip, _, _)| *mip == BlockKey::TAIL_LEVEL)
-                        .count() as u64;
+                    let tail = layer.tail_blocks();
                     report.tail_blocks += tail;
                     report.tail_bytes += tail * state.desc.block_bytes;
                 }
@@ -1121,11 +1127,7 @@ impl TextureCache {
             for layer in &state.layers {
                 let layer = lock(layer);
                 if layer.assignment.is_some() {
-                    let tail = layer
-                        .blocks
-                        .keys()
-                        .filter(|(mip, _, _)| *mip == BlockKey::TAIL_LEVEL)
-                        .count() as u64;
+                    let tail = layer.tail_blocks();
                     *bytes += tail * state.desc.block_bytes;
                 }
             }

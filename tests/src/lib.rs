@@ -258,3 +258,38 @@ pub fn tail_allowance(
         (tail_bytes * u64::from(live_layers)).saturating_sub(coarsest_alone)
     })
 }
+
+/// Copies `bytes` into freshly created `image` (from `UNDEFINED`) as `uploads` say, leaving
+/// it sampleable, in one submission on `commands` that waits on `waits` (the binds of the
+/// blocks it writes), and waits for it.
+pub fn copy_into_new_sparse_image(
+    device: &Arc<Device>,
+    commands: &mut citystream_engine::commands::CommandContext,
+    image: &citystream_engine::sparse::SparseImage,
+    uploads: &[citystream_engine::sparse::TexelUpload],
+    bytes: &[u8],
+    waits: &[citystream_engine::commands::SemaphoreWait],
+) -> Result<()> {
+    use citystream_engine::buffer::{Buffer, BufferDesc};
+    use citystream_engine::vk;
+    let mut staging = Buffer::new(
+        device,
+        BufferDesc {
+            size: bytes.len() as u64,
+            usage: vk::BufferUsageFlags::TRANSFER_SRC,
+            location: citystream_engine::gpu_allocator::MemoryLocation::CpuToGpu,
+        },
+        "test upload staging",
+    )?;
+    staging.write(0, bytes)?;
+    let cmd = commands.begin()?;
+    image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
+    image.record_copies(cmd, staging.raw(), uploads)?;
+    image.record_layout(
+        cmd,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    );
+    commands.submit_and_wait(waits)?;
+    Ok(())
+}

@@ -7,16 +7,14 @@
 //! And the opaque bind (how a GPU's tails are bound) on a whole image.
 
 use anyhow::{ensure, Context, Result};
-use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::commands::{CommandContext, Semaphore, SemaphoreWait};
-use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::gpu_types::{ProbePoint, ProbeResult};
 use citystream_engine::probe::SparseProbe;
 use citystream_engine::sparse::{
     bind_opaque_and_wait, SparseBlockBind, SparseImage, SparseImageDesc, SparseMemoryChunk, TailBlockBind, TexelUpload,
 };
 use citystream_engine::vk;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_no_validation_errors, copy_into_new_sparse_image, validated_device};
 
 const SIDE: u32 = 256;
 const LAYERS: u32 = 2;
@@ -183,27 +181,16 @@ fn bind_copy_sample_unbind() -> Result<()> {
         });
         bytes.extend(level_bytes(mip, x, y, width, height));
     }
-    let mut staging = Buffer::new(
-        &device,
-        BufferDesc {
-            size: bytes.len() as u64,
-            usage: vk::BufferUsageFlags::TRANSFER_SRC,
-            location: MemoryLocation::CpuToGpu,
-        },
-        "residency test staging",
-    )?;
-    staging.write(0, &bytes)?;
     let mut commands = CommandContext::new(&device, "residency test")?;
-    let cmd = commands.begin()?;
-    image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
-    image.record_copies(cmd, staging.raw(), &uploads)?;
-    image.record_layout(
-        cmd,
-        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-    );
     // The copy must wait for the sparse bind on the same queue.
-    commands.submit_and_wait(&[SemaphoreWait::binary(bound.raw(), vk::PipelineStageFlags2::COPY)])?;
+    copy_into_new_sparse_image(
+        &device,
+        &mut commands,
+        &image,
+        &uploads,
+        &bytes,
+        &[SemaphoreWait::binary(bound.raw(), vk::PipelineStageFlags2::COPY)],
+    )?;
 
     let first_resident_x = gw; // first texel of block 1 on level 0
     let last_x = SIDE - 1;
@@ -346,26 +333,8 @@ fn an_opaquely_bound_sparse_image_samples_every_level() -> Result<()> {
         });
         bytes.extend(level_bytes(mip, 0, 0, w, h));
     }
-    let mut staging = Buffer::new(
-        &device,
-        BufferDesc {
-            size: bytes.len() as u64,
-            usage: vk::BufferUsageFlags::TRANSFER_SRC,
-            location: MemoryLocation::CpuToGpu,
-        },
-        "opaque bind test staging",
-    )?;
-    staging.write(0, &bytes)?;
     let mut commands = CommandContext::new(&device, "opaque bind test")?;
-    let cmd = commands.begin()?;
-    image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
-    image.record_copies(cmd, staging.raw(), &uploads)?;
-    image.record_layout(
-        cmd,
-        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-    );
-    commands.submit_and_wait(&[])?;
+    copy_into_new_sparse_image(&device, &mut commands, &image, &uploads, &bytes, &[])?;
 
     let side_at = |mip: u32| (side >> mip).max(1);
     let points: Vec<ProbePoint> = (0..mips)

@@ -7,14 +7,12 @@ use std::sync::Arc;
 use anyhow::{ensure, Result};
 use citystream_cache::{BindError, BindOp, BlockKey, MemorySlot, SparseBinder};
 use citystream_engine::binder::VulkanBinder;
-use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::commands::CommandContext;
-use citystream_engine::gpu_allocator::MemoryLocation;
 use citystream_engine::gpu_types::ProbePoint;
 use citystream_engine::probe::SparseProbe;
 use citystream_engine::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
 use citystream_engine::vk;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_no_validation_errors, copy_into_new_sparse_image, validated_device};
 
 fn key(x: u32) -> BlockKey {
     BlockKey {
@@ -73,22 +71,11 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
     // Fill the three blocks, waiting on the batch's timeline value.
     let width = 3 * gw;
     let bytes: Vec<u8> = (0..width * gh).flat_map(|i| [(i % 251) as u8, 7, 9, 255]).collect();
-    let mut staging = Buffer::new(
-        &device,
-        BufferDesc {
-            size: bytes.len() as u64,
-            usage: vk::BufferUsageFlags::TRANSFER_SRC,
-            location: MemoryLocation::CpuToGpu,
-        },
-        "binder staging",
-    )?;
-    staging.write(0, &bytes)?;
     let mut commands = CommandContext::new(&device, "binder test")?;
-    let cmd = commands.begin()?;
-    image.record_layout(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::TRANSFER_DST_OPTIMAL);
-    image.record_copies(
-        cmd,
-        staging.raw(),
+    copy_into_new_sparse_image(
+        &device,
+        &mut commands,
+        &image,
         &[TexelUpload {
             layer: 0,
             mip: 0,
@@ -98,13 +85,9 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
             height: gh,
             buffer_offset: 0,
         }],
+        &bytes,
+        &[binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY)],
     )?;
-    image.record_layout(
-        cmd,
-        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-    );
-    commands.submit_and_wait(&[binder.wait_for_last_batch(vk::PipelineStageFlags2::COPY)])?;
 
     let probe = SparseProbe::new(&device, 16)?;
     let points: Vec<ProbePoint> = (0..4)

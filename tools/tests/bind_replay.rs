@@ -5,48 +5,74 @@
 
 mod cli_support;
 
-use std::process::Command;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
 
 use cli_support::{citystream, fresh_dir, stderr};
 
-#[test]
-fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
-    let dir = fresh_dir("bind_replay", "flight");
+/// The tiny city flown in scratch `name` with its binds logged to `binds.log` there and
+/// checked, with `args` after the fixed clock's, and a forced mip tail or none (whatever the
+/// environment says); the run must succeed. Returns the log's path and the flight's stderr.
+fn logged_flight(name: &str, args: &[&str], tail: Option<&str>) -> (PathBuf, String) {
+    let dir = fresh_dir("bind_replay", name);
     let city = dir.join("city");
     let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
     assert!(out.status.success(), "gen failed: {}", stderr(&out));
     let log = dir.join("binds.log");
-    // A budget below what the view needs, so levels are dropped: unbinds and rebinds.
-    let flight = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+    let mut flight = Command::new(env!("CARGO_BIN_EXE_flythrough"));
+    flight
         .args([
             "--dataset",
             city.to_str().expect("utf-8"),
-            "--frames",
-            "240",
             "--clock",
             "fixed",
-        ])
-        .args([
-            "--bind-latency",
-            "desktop",
             "--frame-interval",
             "0",
+        ])
+        .args(["--out", dir.join("run").to_str().expect("utf-8")])
+        .args(args)
+        .env("CITYSTREAM_BIND_LOG", &log)
+        .env("CITYSTREAM_CHECK_BINDS", "1");
+    with_tail(&mut flight, tail);
+    let flight = flight.output().expect("run flythrough");
+    assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
+    (log, stderr(&flight))
+}
+
+/// `citystream bind-replay LOG` with a forced mip tail or none.
+fn bind_replay(log: &Path, tail: Option<&str>) -> Output {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_citystream"));
+    command.args(["bind-replay", log.to_str().expect("utf-8")]);
+    with_tail(&mut command, tail);
+    command.output().expect("run bind-replay")
+}
+
+fn with_tail(command: &mut Command, tail: Option<&str>) {
+    match tail {
+        Some(tail) => command.env("CITYSTREAM_FORCE_MIP_TAIL", tail),
+        None => command.env_remove("CITYSTREAM_FORCE_MIP_TAIL"),
+    };
+}
+
+#[test]
+fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
+    // A budget below what the view needs, so levels are dropped: unbinds and rebinds;
+    // block binds of every level (the tail has its own test below).
+    let (log, _) = logged_flight(
+        "flight",
+        &[
+            "--frames",
+            "240",
+            "--bind-latency",
+            "desktop",
             "--psnr-interval",
             "0",
-        ])
-        .args([
             "--memory-budget-mb",
             "1",
-            "--out",
-            dir.join("run").to_str().expect("utf-8"),
-        ])
-        .env("CITYSTREAM_BIND_LOG", &log)
-        .env("CITYSTREAM_CHECK_BINDS", "1")
-        // Block binds of every level (the tail has its own test below).
-        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
-        .output()
-        .expect("run flythrough");
-    assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
+        ],
+        None,
+    );
+    let dir = log.parent().expect("the scratch directory").to_path_buf();
     let text = std::fs::read_to_string(&log).expect("the bind log");
     let count = |kind: &str| text.lines().filter(|l| l.starts_with(kind)).count();
     let (batches, unbinds, copies) = (count("batch "), count("unbind "), count("copy "));
@@ -55,11 +81,7 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
         "{batches} batches, {unbinds} unbinds, {copies} copies"
     );
 
-    let replay = Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(["bind-replay", log.to_str().expect("utf-8")])
-        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
-        .output()
-        .expect("run bind-replay");
+    let replay = bind_replay(&log, None);
     assert!(replay.status.success(), "replay failed: {}", stderr(&replay));
     let said = String::from_utf8_lossy(&replay.stdout).into_owned();
     let operations = count("bind ") + unbinds;
@@ -85,11 +107,7 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
     lines.insert(at, "batch 1 0");
     let injected = dir.join("injected.log");
     std::fs::write(&injected, lines.join("\n") + "\n").expect("write");
-    let refused = Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(["bind-replay", injected.to_str().expect("utf-8")])
-        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
-        .output()
-        .expect("run bind-replay");
+    let refused = bind_replay(&injected, None);
     assert!(!refused.status.success(), "a double bind replayed");
     let fields: Vec<&str> = first_bind.split_whitespace().collect();
     let named = format!(
@@ -109,21 +127,8 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
 /// bind into a tail level, injected, are refused naming image and layer.
 #[test]
 fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
-    let dir = fresh_dir("bind_replay", "tails");
-    let city = dir.join("city");
-    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(out.status.success(), "gen failed: {}", stderr(&out));
-    let log = dir.join("binds.log");
-    let flight = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args(["--dataset", city.to_str().expect("utf-8"), "--frames", "90"])
-        .args(["--clock", "fixed", "--frame-interval", "0", "--psnr-interval", "0"])
-        .args(["--out", dir.join("run").to_str().expect("utf-8")])
-        .env("CITYSTREAM_BIND_LOG", &log)
-        .env("CITYSTREAM_CHECK_BINDS", "1")
-        .env("CITYSTREAM_FORCE_MIP_TAIL", "3")
-        .output()
-        .expect("run flythrough");
-    assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
+    let (log, _) = logged_flight("tails", &["--frames", "90", "--psnr-interval", "0"], Some("3"));
+    let dir = log.parent().expect("the scratch directory").to_path_buf();
     let text = std::fs::read_to_string(&log).expect("the bind log");
     let tail_binds: Vec<&str> = text.lines().filter(|l| l.starts_with("bind-tail ")).collect();
     assert!(
@@ -140,19 +145,10 @@ fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
         "a per-layer tail from level 3: {image_line}"
     );
 
-    let replay = |log: &std::path::Path, tail: Option<&str>| {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_citystream"));
-        command.args(["bind-replay", log.to_str().expect("utf-8")]);
-        match tail {
-            Some(tail) => command.env("CITYSTREAM_FORCE_MIP_TAIL", tail),
-            None => command.env_remove("CITYSTREAM_FORCE_MIP_TAIL"),
-        };
-        command.output().expect("run bind-replay")
-    };
-    let replayed = replay(&log, Some("3"));
+    let replayed = bind_replay(&log, Some("3"));
     assert!(replayed.status.success(), "replay failed: {}", stderr(&replayed));
     // Without the tail, the log's tail blocks mean nothing here.
-    let no_tail = replay(&log, None);
+    let no_tail = bind_replay(&log, None);
     assert!(!no_tail.status.success(), "replayed without the logging device's tail");
     assert!(
         stderr(&no_tail).contains("mip tail from level 3"),
@@ -181,7 +177,7 @@ fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
         lines.insert(at, "batch 1 0".to_owned());
         let path = dir.join(name);
         std::fs::write(&path, lines.join("\n") + "\n").expect("write");
-        replay(&path, Some("3"))
+        bind_replay(&path, Some("3"))
     };
     let tail: Vec<&str> = tail_binds[0].split_whitespace().collect();
     let twice = inject("tail-twice.log", tail_binds[0].to_owned());
@@ -213,37 +209,12 @@ fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
 /// log replays.
 #[test]
 fn a_log_written_beside_the_error_reference_replays() {
-    let dir = fresh_dir("bind_replay", "with_reference");
-    let city = dir.join("city");
-    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(out.status.success(), "gen failed: {}", stderr(&out));
-    let log = dir.join("binds.log");
-    let flight = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args(["--dataset", city.to_str().expect("utf-8"), "--frames", "60"])
-        .args(["--clock", "fixed", "--frame-interval", "0", "--psnr-interval", "10"])
-        .args(["--out", dir.join("run").to_str().expect("utf-8")])
-        .env("CITYSTREAM_BIND_LOG", &log)
-        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
-        .output()
-        .expect("run flythrough");
-    assert!(flight.status.success(), "flythrough failed: {}", stderr(&flight));
-    assert!(
-        stderr(&flight).contains("error reference's are not logged"),
-        "{}",
-        stderr(&flight)
-    );
+    let (log, said) = logged_flight("with_reference", &["--frames", "60", "--psnr-interval", "10"], None);
+    assert!(said.contains("error reference's are not logged"), "{said}");
     let text = std::fs::read_to_string(&log).expect("the bind log");
-    assert_eq!(text.matches(bind_log_header()).count(), 1, "one writer, one header");
-    let replay = Command::new(env!("CARGO_BIN_EXE_citystream"))
-        .args(["bind-replay", log.to_str().expect("utf-8")])
-        .env_remove("CITYSTREAM_FORCE_MIP_TAIL")
-        .output()
-        .expect("run bind-replay");
+    assert_eq!(text.matches("citystream-bind-log").count(), 1, "one writer, one header");
+    let replay = bind_replay(&log, None);
     assert!(replay.status.success(), "replay failed: {}", stderr(&replay));
-}
-
-fn bind_log_header() -> &'static str {
-    "citystream-bind-log"
 }
 
 /// Logs bind-replay cannot replay safely are refused before anything is read past:

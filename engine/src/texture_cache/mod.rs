@@ -770,15 +770,7 @@ fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], 
             image_desc(config, layers, mips, vk_format),
             &format!("cache {} #{nth}", texel_format.name),
         )?;
-        if let Some(reason) = image.unserved_reason() {
-            return Err(EngineError::MissingFeature {
-                device: device.name().to_owned(),
-                feature: format!(
-                    "sparse {vk_format:?} images the cache can serve ({reason}); the texture-array cache \
-                     (--sparse off, or auto) serves this device"
-                ),
-            });
-        }
+        ensure_served(device, &image)?;
         let (gw, gh) = image.granularity();
         image_configs.push(ImageConfig {
             format: texel_format,
@@ -1006,6 +998,21 @@ impl Drop for GpuTextureCache {
     }
 }
 
+/// Refuses `image` where the sparse cache cannot serve it, naming its format and why.
+fn ensure_served(device: &Device, image: &SparseImage) -> Result<()> {
+    match image.unserved_reason() {
+        None => Ok(()),
+        Some(reason) => Err(EngineError::MissingFeature {
+            device: device.name().to_owned(),
+            feature: format!(
+                "sparse {:?} images the cache can serve ({reason}); the texture-array cache \
+                 (--sparse off, or auto) serves this device",
+                image.desc().format
+            ),
+        }),
+    }
+}
+
 /// Creates a one-layer sparse image of `format` and reads its block size
 /// and granularity.
 fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel: TexelFormat) -> Result<LayerProbe> {
@@ -1020,15 +1027,7 @@ fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel:
         },
         "cache layer probe",
     )?;
-    if let Some(reason) = probe.unserved_reason() {
-        return Err(EngineError::MissingFeature {
-            device: device.name().to_owned(),
-            feature: format!(
-                "sparse {format:?} images the cache can serve ({reason}); the texture-array cache \
-                 (--sparse off, or auto) serves this device"
-            ),
-        });
-    }
+    ensure_served(device, &probe)?;
     let (gw, gh) = probe.granularity();
     let desc = citystream_cache::ImageDesc::new(
         0,

@@ -624,14 +624,7 @@ impl Walk {
 
     /// A content URI as a file inside the top tileset's directory.
     fn resolve(&self, dir: &Path, uri: &str) -> Result<PathBuf> {
-        let relative = uri.split(['?', '#']).next().unwrap_or("");
-        if uri.starts_with("data:") {
-            bail!("not a relative path (citystream imports a tileset's files from its own directory)");
-        }
-        let path = dir.join(
-            relative_uri_path(relative)
-                .context("not a relative path (citystream imports a tileset's files from its own directory)")?,
-        );
+        let path = dir.join(content_uri_path(uri)?);
         let canonical = path
             .canonicalize()
             .with_context(|| format!("{} does not exist", path.display()))?;
@@ -644,6 +637,16 @@ impl Walk {
         }
         Ok(canonical)
     }
+}
+
+/// A tile's content URI as a relative path, decoded, its query and fragment aside: the one
+/// reading of content URIs for local and remote tilesets alike.
+fn content_uri_path(uri: &str) -> Result<PathBuf> {
+    let not_relative = "not a relative path (citystream imports a tileset's files from its own directory)";
+    if uri.starts_with("data:") {
+        bail!(not_relative);
+    }
+    relative_uri_path(uri.split(['?', '#']).next().unwrap_or("")).context(not_relative)
 }
 
 fn file_name(path: &Path) -> String {
@@ -674,14 +677,7 @@ fn read_bounded(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
 /// a file of empty tiles takes 80 times its size once parsed).
 fn read_tileset(path: &Path, max_objects: usize) -> Result<(TilesetJson, usize)> {
     let bytes = read_bounded(path, MAX_TILESET_BYTES, "tileset")?;
-    let objects = json_objects(&bytes);
-    if objects > max_objects {
-        bail!(
-            "{}: {objects} JSON objects, more than the {max_objects} still allowed (at most \
-             {MAX_HELD_TILESET_OBJECTS} are held at once, over the external tilesets being read)",
-            path.display()
-        );
-    }
+    let objects = objects_within(&bytes, max_objects, &path.display())?;
     let tileset: TilesetJson =
         serde_json::from_slice(&bytes).with_context(|| format!("{}: not a 3D Tiles tileset", path.display()))?;
     if !matches!(tileset.asset.version.as_str(), "0.0" | "1.0" | "1.1") {
@@ -692,6 +688,19 @@ fn read_tileset(path: &Path, max_objects: usize) -> Result<(TilesetJson, usize)>
         );
     }
     Ok((tileset, objects))
+}
+
+/// The JSON objects of tileset `bytes` (named `what`), refused where more than
+/// `max_objects` remain of [`MAX_HELD_TILESET_OBJECTS`].
+pub(crate) fn objects_within(bytes: &[u8], max_objects: usize, what: &dyn std::fmt::Display) -> Result<usize> {
+    let objects = json_objects(bytes);
+    if objects > max_objects {
+        bail!(
+            "{what}: {objects} JSON objects, more than the {max_objects} still allowed (at most \
+             {MAX_HELD_TILESET_OBJECTS} are held at once, over the external tilesets being read)"
+        );
+    }
+    Ok(objects)
 }
 
 /// The JSON objects in `bytes` (its `{` outside strings), counted without parsing: an

@@ -107,13 +107,7 @@ pub fn fetch(url: &str, scratch: &Path) -> Result<PathBuf> {
             bail!("{url}: more than {MAX_TILESETS} external tilesets");
         }
         let bytes = fetcher.get(&relative, MAX_TILESET_BYTES)?;
-        let objects = super::json_objects(&bytes);
-        if objects > MAX_HELD_TILESET_OBJECTS {
-            bail!(
-                "{}: {objects} JSON objects, more than the {MAX_HELD_TILESET_OBJECTS} a tileset may hold",
-                fetcher.url(&relative)
-            );
-        }
+        super::objects_within(&bytes, MAX_HELD_TILESET_OBJECTS, &fetcher.url(&relative))?;
         let tileset: TilesetJson = serde_json::from_slice(&bytes)
             .with_context(|| format!("{}: not a 3D Tiles tileset", fetcher.url(&relative)))?;
         let dir = relative.parent().unwrap_or(Path::new("")).to_path_buf();
@@ -234,13 +228,7 @@ impl Fetcher {
 /// `uri` relative to `dir` (both inside the tileset's directory) as a clean relative
 /// path: no scheme, no absolute path, no `..` above the tileset's directory.
 fn normalise(dir: &Path, uri: &str) -> Result<PathBuf> {
-    let relative = uri.split(['?', '#']).next().unwrap_or("");
-    if uri.starts_with("data:") {
-        bail!("not a relative path (citystream imports a tileset's files from its own directory)");
-    }
-    let decoded = crate::import::relative_uri_path(relative)
-        .context("not a relative path (citystream imports a tileset's files from its own directory)")?;
-    let decoded = decoded.display().to_string();
+    let decoded = super::content_uri_path(uri)?.display().to_string();
     let mut parts: Vec<std::ffi::OsString> = Vec::new();
     for component in dir.join(&decoded).components() {
         match component {
