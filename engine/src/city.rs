@@ -496,6 +496,21 @@ impl CityRenderer {
         self.culling.as_ref().filter(|_| self.culling_on)
     }
 
+    /// Records, before this renderer's next visible pass, a copy of its visible view's
+    /// culling state into `other` (a renderer of the same city, such as the error
+    /// reference): `other`'s next visible pass then draws the same meshes in the same
+    /// phases, so that where both hold the same texels their images agree bit for bit
+    /// (depth ties go to the mesh drawn first). Nothing to copy where neither culls.
+    pub fn record_share_visible_culling(&self, rec: Recording<'_>, other: &CityRenderer) -> Result<()> {
+        match (self.active_culling(), other.active_culling()) {
+            (Some(from), Some(into)) => from.record_copy_flags(rec, CullView::Visible, into),
+            (None, None) => Ok(()),
+            _ => Err(EngineError::InvalidRequest(
+                "visible culling shared between a renderer that culls and one that does not".into(),
+            )),
+        }
+    }
+
     /// Makes the culling recorded next write its statistics into frame slot `slot`
     /// (below the `slots` given to [`enable_culling`](Self::enable_culling)); read them
     /// with [`cull_stats`](Self::cull_stats) once that frame completed.

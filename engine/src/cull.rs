@@ -730,6 +730,61 @@ impl CityCulling {
         self.mark_written(view as u32 * 2);
     }
 
+    /// Records a copy of `view`'s per-mesh flags into `into` (the culling of another
+    /// renderer of the same city), so that `into`'s next pass over that view draws the
+    /// meshes this one draws next, in the same two phases. A depth tie between an early
+    /// and a late mesh goes to the one drawn first, so a renderer culling on its own
+    /// history can resolve it differently; the error reference draws the view's own
+    /// visibility instead. Record it before this view's next early phase.
+    pub(crate) fn record_copy_flags(&self, rec: Recording<'_>, view: CullView, into: &CityCulling) -> Result<()> {
+        if into.mesh_count != self.mesh_count {
+            return Err(EngineError::InvalidRequest(format!(
+                "culling flags of {} meshes copied into a culling of {} meshes",
+                self.mesh_count, into.mesh_count
+            )));
+        }
+        let (from, to) = (&self.views[view as usize].flags, &into.views[view as usize].flags);
+        // Either buffer's earlier passes (this view's last frame, `into`'s last render,
+        // the first clear) finish before the copy reads or replaces it.
+        memory_barrier(
+            &self.device,
+            rec,
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER
+                    | vk::PipelineStageFlags2::CLEAR
+                    | vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
+            ),
+            (
+                vk::PipelineStageFlags2::COPY,
+                vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::TRANSFER_WRITE,
+            ),
+        );
+        let region = vk::BufferCopy {
+            src_offset: 0,
+            dst_offset: 0,
+            size: u64::from(self.mesh_count.max(1)) * 4,
+        };
+        // SAFETY: both buffers hold `mesh_count` flags (at least one word) and allow
+        // transfers; rec is recording outside rendering.
+        unsafe {
+            self.device
+                .raw()
+                .cmd_copy_buffer(rec.raw(), from.raw(), to.raw(), &[region])
+        };
+        // Both cultings' next dispatches over the flags (in this submission or a later one).
+        memory_barrier(
+            &self.device,
+            rec,
+            (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
+            (
+                vk::PipelineStageFlags2::COMPUTE_SHADER,
+                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
+            ),
+        );
+        Ok(())
+    }
+
     /// The late phase of `view`, after its early draws: pyramid from `target`'s depth
     /// (rendering is paused and resumed around it), occlusion flags, the late list (and
     /// for the feedback view the unoccluded one), and the statistics copy.

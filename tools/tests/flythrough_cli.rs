@@ -613,6 +613,94 @@ fn every_measured_frame_counts_in_the_error_figures() {
     assert_eq!(summary["ground_psnr_ceiling_db"].as_f64(), Some(ceiling));
 }
 
+/// The error measures streaming alone, with culling on as with it off: the small city
+/// (seed 2) in 4096² atlases is all resident after frame 0, and where two surfaces tie in
+/// depth the culled pass keeps the one its early phase drew, so a reference culling on its
+/// own history (or not at all) differed from the view at frame 120 with every texel
+/// resident. The reference draws the view's own visibility: every frame after the first
+/// equals it, culled or not.
+#[test]
+fn the_error_reference_agrees_with_the_culled_view_where_streaming_is_complete() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_culled_reference");
+    let _ = std::fs::remove_dir_all(&base);
+    std::fs::create_dir_all(&base).expect("scratch directory");
+    let (city, dataset) = (base.join("small"), base.join("small-4096"));
+    for args in [
+        vec![
+            "gen",
+            "--preset",
+            "small",
+            "--seed",
+            "2",
+            "--out",
+            city.to_str().expect("UTF-8 path"),
+        ],
+        vec![
+            "atlas",
+            city.to_str().expect("UTF-8 path"),
+            "--atlas-extent",
+            "4096",
+            "--out",
+            dataset.to_str().expect("UTF-8 path"),
+        ],
+    ] {
+        let output = Command::new(env!("CARGO_BIN_EXE_citystream"))
+            .args(&args)
+            .output()
+            .expect("citystream runs");
+        assert!(
+            output.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    let run = |culling: &str| {
+        let out = base.join(format!("culling-{culling}"));
+        let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args(["--frames", "180", "--psnr-interval", "60", "--frame-interval", "0"])
+            .args(["--width", "320", "--height", "180", "--path", "standard"])
+            .args(["--clock", "fixed", "--bind-latency", "desktop"])
+            .args(["--policy", "adaptive", "--alpha", "16", "--culling", culling])
+            .arg("--validation=true")
+            .arg("--dataset")
+            .arg(&dataset)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .expect("flythrough runs");
+        assert!(
+            output.status.success(),
+            "--culling {culling}: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let summary: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
+                .expect("summary.json is JSON");
+        summary
+    };
+    let (culled, unculled) = (run("on"), run("off"));
+    for (culling, summary) in [("on", &culled), ("off", &unculled)] {
+        // Frames 60 and 120 are the streaming's: every level they need is resident.
+        assert_eq!(
+            (
+                summary["streaming_error_frames"]["identical"].as_u64(),
+                summary["streaming_error_frames"]["measured"].as_u64()
+            ),
+            (Some(2), Some(2)),
+            "--culling {culling}: {}",
+            summary["streaming_error_frames"]
+        );
+    }
+    for key in [
+        "error_frames",
+        "psnr_db",
+        "psnr_of_mean_mse_db",
+        "startup_psnr_of_mean_mse_db",
+    ] {
+        assert_eq!(culled[key], unculled[key], "{key} with culling on and off");
+    }
+}
+
 #[test]
 fn streaming_converges_during_the_first_pause_of_the_standard_path() {
     use citystream_dataset::Dataset;

@@ -249,7 +249,9 @@ pub(crate) struct Args {
     pub(crate) strategy: Strategy,
     /// GPU culling of the city passes: `on` draws only the meshes in the view's frustum
     /// and not behind depth already drawn (two phases per pass, docs/ARCHITECTURE.md);
-    /// `off` draws every mesh in every pass. The images and the feedback are the same.
+    /// `off` draws every mesh in every pass. The feedback is the same, and so are the images
+    /// except where two surfaces tie in depth (the culled pass keeps the one it drew first);
+    /// the error reference draws the view's own visibility, so the error figures agree.
     #[arg(long, value_enum, default_value_t = Culling::On)]
     pub(crate) culling: Culling,
     /// Streaming policy: adaptive (the controller `--controller` names), baseline (s = s_max,

@@ -623,7 +623,7 @@ pub(crate) struct GroundSizing {
 
 /// What one frame of a flight does besides the standard sequence.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct FrameSettings {
+pub(crate) struct FrameSettings<'a> {
     /// Camera time, seconds: when ground patches arrive.
     pub(crate) time_s: f64,
     /// Record the feedback pass and its compaction (the window can pause streaming).
@@ -632,6 +632,10 @@ pub(crate) struct FrameSettings {
     pub(crate) every_seen_mesh: bool,
     /// City Colormap blending (Eq. 8).
     pub(crate) colormap_blend: bool,
+    /// A renderer that draws this frame's view next (the error reference): it is given
+    /// the visible pass's culling state, so that it draws the same meshes in the same
+    /// phases and its image differs from the frame's by texels alone.
+    pub(crate) share_visible_culling: Option<&'a CityRenderer>,
 }
 
 /// A frame recorded into its command buffer and not yet submitted.
@@ -792,7 +796,12 @@ impl Flight {
     /// share of the load size, then the uploads, the feedback pass and its compaction, and
     /// the visible pass of the strategy, each timed. The host may record more (a blit to
     /// the swapchain) before [`Self::submit`].
-    pub(crate) fn record(&mut self, frame: u32, camera: &Camera, settings: &FrameSettings) -> Result<RecordedFrame> {
+    pub(crate) fn record(
+        &mut self,
+        frame: u32,
+        camera: &Camera,
+        settings: &FrameSettings<'_>,
+    ) -> Result<RecordedFrame> {
         let mut begun = self.gpu.streamer.begin_frame()?;
         self.warn_once(frame, begun.over_budget());
         let feedback = match self.gpu.streamer.latest_feedback() {
@@ -850,6 +859,9 @@ impl Flight {
             (true, false) => self.gpu.streamer.record_feedback_resolve(&mut begun, rec)?,
         }
         passes.end(rec, slot, 2);
+        if let Some(other) = settings.share_visible_culling {
+            self.gpu.renderer.record_share_visible_culling(rec, other)?;
+        }
         passes.begin(rec, slot, 3);
         let ground_layer = self.ground.as_ref().map(|g| (&g.layer, slot));
         let (draw_calls, nodes_drawn) = match self.tree.as_mut() {

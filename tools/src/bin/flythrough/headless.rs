@@ -167,6 +167,10 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 // The error reference needs every seen mesh: τ = 0 then.
                 every_seen_mesh: measure_error,
                 colormap_blend: true,
+                share_visible_culling: reference
+                    .as_ref()
+                    .filter(|_| measure_error)
+                    .map(|reference| &reference.renderer),
             },
         )?;
         let deficit = recorded.feedback.and_then(|f| f.deficit);

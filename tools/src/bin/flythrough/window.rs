@@ -956,6 +956,7 @@ impl Viewer {
                 feedback: !self.streaming_paused,
                 every_seen_mesh: false,
                 colormap_blend: self.colormap_blend,
+                share_visible_culling: None,
             },
         )?;
         if let Some(feedback) = recorded.feedback {
