@@ -9,6 +9,73 @@
 //! the caller saw that slot's previous frame complete (the streamer's
 //! throttle); per swapchain image one render-finished semaphore, which the
 //! presentation engine has released by the time that image is acquired again.
+//!
+//! A host's set-up and frame with the engine's command buffers and swapchain
+//! (docs/EMBEDDING.md quotes it, and its test checks that it still does):
+//!
+//! ```no_run
+//! # use std::sync::Arc;
+//! # use citystream_engine::commands::CommandContext;
+//! # use citystream_engine::instance::InstanceOptions;
+//! # use citystream_engine::present::{self, PresentMode, PresentWindow, Presenter, Surface};
+//! # use citystream_engine::stream::TextureStreamer;
+//! # use citystream_engine::target::RenderTarget;
+//! # use citystream_engine::{Device, DeviceOptions, Result};
+//! # use citystream_streaming::source::MipSource;
+//! # fn host<S: MipSource + 'static>(
+//! #     event_loop: &impl raw_window_handle::HasDisplayHandle,
+//! #     window: Arc<dyn PresentWindow>,
+//! #     size: (u32, u32),
+//! #     new_streamer: impl FnOnce(&Arc<Device>) -> Result<TextureStreamer<S>>,
+//! #     last_frame_ms: f64,
+//! # ) -> Result<()> {
+//! // The window system's instance extensions, before the device.
+//! let extensions = present::instance_extensions(event_loop)?;
+//! let instance = InstanceOptions { extensions, ..InstanceOptions::default() };
+//! let options = DeviceOptions { instance, presentation: true, ..DeviceOptions::default() };
+//! let device = Arc::new(Device::new(&options)?);
+//! let mut streamer = new_streamer(&device)?;
+//! let frames_in_flight = streamer.frames_in_flight();
+//! // The surface keeps the window alive.
+//! let surface = Surface::new(&device, Arc::clone(&window))?;
+//! let mut presenter = Presenter::new(&device, surface, size, PresentMode::Vsync, frames_in_flight, false)?;
+//! let target = RenderTarget::new(&device, size.0, size.1)?;
+//! // The engine's command buffers, one per frame slot.
+//! let mut commands = (0..frames_in_flight)
+//!     .map(|slot| CommandContext::new(&device, &format!("frame slot {slot}")))
+//!     .collect::<Result<Vec<_>>>()?;
+//!
+//! // Per frame:
+//! let mut begun = streamer.begin_frame()?;
+//! let slot = begun.slot() as usize;
+//! // `begin_frame` waited until this slot's last frame completed: no fence to wait for.
+//! let rec = commands[slot].begin_completed()?;
+//! streamer.record_uploads(&mut begun, rec)?;
+//! // ... the feedback pass, then `record_feedback_resolve` ...
+//! target.begin(&device, rec, [0.0, 0.0, 0.0, 1.0]);
+//! // ... the visible pass ...
+//! target.end_and_copy(&device, rec);
+//! // `None`: out of date (resize first) or a hidden window; the frame goes unpresented.
+//! let image = presenter.acquire(begun.slot())?;
+//! if let Some(image) = &image {
+//!     presenter.record_blit(rec, image, &target, false)?;
+//! }
+//! let submit = streamer.end_frame(begun, last_frame_ms)?;
+//! let mut waits = submit.waits.clone();
+//! let mut signals = vec![submit.signal];
+//! if let Some(image) = &image {
+//!     waits.push(image.wait);
+//!     signals.push(image.signal);
+//! }
+//! commands[slot].submit_frame(&waits, &signals)?;
+//! if let Some(image) = image {
+//!     // `false`: out of date or suboptimal; recreate at the window's size before the next frame.
+//!     if !presenter.present(image)? {
+//!         presenter.resize(size.0, size.1)?;
+//!     }
+//! }
+//! # Ok(()) }
+//! ```
 
 use std::ffi::{CStr, CString};
 use std::sync::Arc;

@@ -4,14 +4,21 @@
 //! The file-backed dataset reader ([`DatasetSource`]) implements
 //! [`MipSource`] with one positioned read per mip; the engine's uploader implements [`MipSink`]
 //! (records the copy into the sparse image and the memory binding).
+//!
+//! Everything a [`MipSource`]'s signatures name is here: [`TextureFormat`]
+//! and [`MipChain`] are re-exported, so a host implementing its own source
+//! needs no dependency on `citystream-dataset`.
 
 use std::sync::{Arc, Mutex};
 
 use citystream_cache::geometry::cacheable_mip_count;
 use citystream_cache::TexelFormat;
 
-use crate::states::MipChain;
-use citystream_dataset::{Dataset, DatasetError, TextureFormat};
+pub use crate::states::MipChain;
+/// The formats a source's mips are stored in (`citystream-dataset`'s), re-exported for
+/// [`MipSource::texture_format`].
+pub use citystream_dataset::TextureFormat;
+use citystream_dataset::{Dataset, DatasetError};
 
 /// Error reading a texture's header or a mip.
 #[derive(Debug, thiserror::Error)]

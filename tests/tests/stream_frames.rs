@@ -17,7 +17,7 @@ use citystream_engine::texture_cache::Eviction;
 use citystream_engine::vk;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::records::MeshMetaData;
-use citystream_streaming::source::MemorySource;
+use citystream_streaming::source::{bc1_mip_len, MemorySource};
 use citystream_tests::{assert_no_validation_errors, sync_validated_device, tail_allowance};
 use glam::Vec3;
 
@@ -468,6 +468,40 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         streamer.totals()
     );
     drop(streamer);
+    assert_no_validation_errors(&device)
+}
+
+/// Texture arrays spend the memory budget on whole layers when the streamer is made
+/// (`StreamConfig::memory_budget_bytes`, docs/EMBEDDING.md "Memory budget"): a budget
+/// below one layer's full mip chain is refused naming it, one that holds a layer is not.
+#[test]
+fn texture_arrays_refuse_a_budget_below_one_layer_s_full_chain() -> Result<()> {
+    let device = citystream_tests::validated_array_device()?;
+    // A 2048² BC1 layer with its levels down to 1×1, before the device's alignment.
+    let chain: u64 = (0..12).map(|level| bc1_mip_len(2048 >> level, 2048 >> level)).sum();
+    let new_streamer = |budget: u64| {
+        let mut source = MemorySource::new();
+        source.push_bc1(256, 256);
+        TextureStreamer::new(
+            &device,
+            source,
+            vec![0],
+            &[[255, 0, 0, 255]],
+            PolicyKind::Baseline.build(&PolicyOptions::default())?,
+            &StreamConfig {
+                layer_size: 2048,
+                memory_budget_bytes: budget,
+                staging_bytes: 1 << 16,
+                ..StreamConfig::default()
+            },
+        )
+    };
+    match new_streamer(chain - 1) {
+        Err(citystream_engine::EngineError::InvalidRequest(message)) if message.contains("full mip chain") => {}
+        other => anyhow::bail!("a budget one byte below a layer's chain gave {other:?}"),
+    }
+    // A layer and room for the device's rounding.
+    drop(new_streamer(chain + (1 << 20)).context("a budget holding one layer")?);
     assert_no_validation_errors(&device)
 }
 

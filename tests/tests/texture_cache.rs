@@ -233,7 +233,16 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(devi
     match device.texture_backing() {
         TextureBacking::Sparse => ensure!(report.blocks_bound > 0 && report.bind_entries <= report.blocks_bound),
         // Fully bound layers: nothing to bind, no bind to pay for.
-        TextureBacking::Arrays => ensure!(report.blocks_bound == 0 && report.bind_entries == 0, "{report:?}"),
+        TextureBacking::Arrays => {
+            ensure!(report.blocks_bound == 0 && report.bind_entries == 0, "{report:?}");
+            // The block accounting still counts the blocks the loaded levels cover,
+            // within every layer's (docs/STRATEGIES.md).
+            let used = cache.budget_use();
+            ensure!(
+                used.live_blocks > 0 && used.live_blocks <= used.budget_blocks,
+                "{used:?}"
+            );
+        }
     }
 
     let probe = TextureProbe::new(&device)?;

@@ -25,7 +25,7 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::{bail, Context, Result};
 use ash::vk;
-use citystream_dataset::{Dataset, TextureFormat};
+use citystream_dataset::Dataset;
 use citystream_engine::buffer::{Buffer, BufferDesc};
 use citystream_engine::city::Camera;
 use citystream_engine::commands::Recording;
@@ -36,8 +36,8 @@ use citystream_engine::stream::{StreamConfig, StreamDescriptors, TextureStreamer
 use citystream_engine::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 use citystream_engine::{Device, HostAllocator, HostDevice};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
-use citystream_streaming::source::{DatasetSource, MipSource, SourceError};
-use citystream_streaming::states::MipChain;
+// Everything a MipSource's signatures name, from one module.
+use citystream_streaming::source::{DatasetSource, MipChain, MipSource, SourceError, TextureFormat};
 use glam::{Mat4, Vec3};
 
 const WIDTH: u32 = 320;

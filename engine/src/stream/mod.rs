@@ -56,6 +56,8 @@ use citystream_streaming::states::{MipChain, TextureStates};
 
 use crate::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait, TimelineSemaphore};
 use crate::device::Device;
+#[cfg(doc)]
+use crate::device::TextureBacking;
 use crate::error::{EngineError, Result};
 use crate::feedback::{CompactedFeedback, FeedbackCompactor};
 use crate::gpu_types::{FeedbackEntry, BINDING_FEEDBACK_MESHES};
@@ -118,46 +120,94 @@ impl MipSink for QueueSink {
     }
 }
 
-/// How a [`TextureStreamer`] is built.
+/// How a [`TextureStreamer`] is built. Each field's documentation gives its
+/// [`Default`] value.
+///
+/// The fields mean the same for both backings ([`TextureBacking`], read from the
+/// [`Device`]) except [`memory_budget_bytes`](Self::memory_budget_bytes): texture
+/// arrays spend it on whole layers when the streamer is made, and refuse a budget
+/// below one layer's full mip chain per format.
 #[derive(Clone, Debug)]
 pub struct StreamConfig {
-    /// Frames the host may have submitted and not yet completed (at least 1).
+    /// Frames the host may have submitted and not yet completed (at least 1). Default: 2.
     pub frames_in_flight: u32,
-    /// Side of every cache array layer in texels (a power of two).
+    /// Side of every cache array layer in texels (a power of two). Default: 2048.
     pub layer_size: u32,
     /// Layers of the one cache image per format; `None` derives images and
     /// layers from the textures each format must place, the memory budget
-    /// and the device ([`citystream_cache::derive_image_layers`]).
+    /// and the device ([`citystream_cache::derive_image_layers`]). Default: `None`.
     pub layer_count: Option<u32>,
     /// A lower layer limit per image than the device's
     /// `maxImageArrayLayers` (hosts sharing the device, tests of small
-    /// devices); a format needing more layers gets more images.
+    /// devices); a format needing more layers gets more images. Default: `None`.
     pub max_layers: Option<u32>,
-    /// How memory is freed at the budget.
+    /// How memory is freed at the budget. Default: [`Eviction::View`].
     pub eviction: Eviction,
-    /// Bytes of bound texture blocks allowed.
+    /// Bytes of device memory the cache may hold for texels. Default: 512 MiB (`512 << 20`).
+    ///
+    /// - Sparse images ([`TextureBacking::Sparse`]): the blocks bound at once (parked
+    ///   ones included), bound as levels load and unbound as they are dropped.
+    /// - Texture arrays ([`TextureBacking::Arrays`]): every layer is allocated with its
+    ///   full mip chain (`layer_size`² down to 1×1) when the streamer is made, as many
+    ///   layers as this budget (capped at half the device's largest device-local heap)
+    ///   holds, at most those the textures need. Each format the source has textures of
+    ///   needs at least one layer, so a budget below the sum over those formats of one
+    ///   layer's chain, as the device's memory requirements size it, makes
+    ///   [`TextureStreamer::new`] fail with [`EngineError::InvalidRequest`]; at 2048²
+    ///   layers that is about 22.4 MB for RGBA8, 5.6 MB for BC3 or BC7 and 2.8 MB for
+    ///   BC1. Fixed [`layer_count`](Self::layer_count) layers needing more than the
+    ///   budget are refused the same way.
     pub memory_budget_bytes: u64,
-    /// Blocks per device-memory chunk of the block pool.
+    /// Blocks per device-memory chunk of the block pool. Default: 256.
     pub blocks_per_chunk: u32,
-    /// Bytes of the host-visible staging ring uploads go through.
+    /// Bytes of the host-visible staging ring uploads go through. Default: 16 MiB (`16 << 20`).
     pub staging_bytes: u64,
-    /// Filtering of the cache sampler.
+    /// Filtering of the cache sampler. Default: [`Filtering::BilinearNearestLevel`].
     pub filtering: Filtering,
-    /// Compacted feedback entries per frame; `None`: one per mesh.
+    /// Compacted feedback entries per frame; `None`: one per mesh. Default: `None`.
     pub feedback_capacity: Option<u32>,
     /// τ: records lighter than this (W per visible fragment) are not loaded.
+    /// Default: [`DEFAULT_WEIGHT_CUTOFF`](citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF) (150).
     pub weight_cutoff: u32,
     /// Visible pixels one feedback fragment stands for
-    /// ([`crate::city::FeedbackView::fragment_area`]).
+    /// ([`crate::city::FeedbackView::fragment_area`]). Default: 1.0 (a feedback
+    /// pass at the visible resolution).
     pub fragment_area: f32,
-    /// Options of the loader.
+    /// Options of the loader. Default: [`LoaderOptions::default`] (16 ms load time per
+    /// cycle, 4096 records per planning chunk, 3 read attempts, 2 ms first retry backoff).
     pub loader: LoaderOptions,
     /// Reproducible runs: each frame's feedback is consumed exactly
     /// `frames_in_flight` frames later and the loading cycle runs on the
-    /// calling thread, so results do not depend on GPU or disk timing.
+    /// calling thread, so results do not depend on GPU or disk timing. Default: `false`.
     pub deterministic: bool,
 }
 
+/// The values each field's documentation states:
+///
+/// ```
+/// # use std::time::Duration;
+/// # use citystream_engine::pipeline::Filtering;
+/// # use citystream_engine::stream::StreamConfig;
+/// # use citystream_engine::texture_cache::Eviction;
+/// let config = StreamConfig::default();
+/// assert_eq!(config.frames_in_flight, 2);
+/// assert_eq!(config.layer_size, 2048);
+/// assert_eq!(config.layer_count, None);
+/// assert_eq!(config.max_layers, None);
+/// assert_eq!(config.eviction, Eviction::View);
+/// assert_eq!(config.memory_budget_bytes, 512 << 20);
+/// assert_eq!(config.blocks_per_chunk, 256);
+/// assert_eq!(config.staging_bytes, 16 << 20);
+/// assert_eq!(config.filtering, Filtering::BilinearNearestLevel);
+/// assert_eq!(config.feedback_capacity, None);
+/// assert_eq!(config.weight_cutoff, 150);
+/// assert_eq!(config.fragment_area, 1.0);
+/// assert_eq!(config.loader.load_time, Duration::from_millis(16));
+/// assert_eq!(config.loader.plan_chunk, 4096);
+/// assert_eq!(config.loader.read_attempts, 3);
+/// assert_eq!(config.loader.retry_backoff, Duration::from_millis(2));
+/// assert!(!config.deterministic);
+/// ```
 impl Default for StreamConfig {
     fn default() -> Self {
         Self {
