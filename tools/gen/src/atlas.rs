@@ -29,7 +29,9 @@ use anyhow::{bail, Context, Result};
 use citystream_dataset::{Dataset, DatasetWriter, Scene, TextureFormat};
 use rayon::prelude::*;
 
-use crate::gen::print_stdout;
+use crate::files::print_stdout;
+use crate::options::check_texture_extent;
+use crate::texture::{decode_level, downsample};
 
 /// Options of `citystream atlas`.
 #[derive(Debug, clap::Args)]
@@ -398,7 +400,7 @@ pub(crate) fn remap_scene(
 pub fn run(args: &AtlasArgs) -> Result<()> {
     let start = Instant::now();
     let extent = args.atlas_extent;
-    crate::gen::check_texture_extent("--atlas-extent", extent)?;
+    check_texture_extent("--atlas-extent", extent)?;
     if !(args.region.is_finite() && args.region > 0.0) {
         bail!("--region {} must be a positive number of metres", args.region);
     }
@@ -568,7 +570,7 @@ pub(crate) fn compose_atlas(
         // Empty space: the mean colour at level 0, the box filter of the level above below it.
         let mut rgba = match &previous {
             None => mean.repeat(side * side),
-            Some(prev) => crate::gen::downsample(prev, side * 2, side * 2).0,
+            Some(prev) => downsample(prev, side * 2, side * 2).0,
         };
         let blocks_per_row = side.div_ceil(4);
         // Blocks inside one part's own mip: their bytes are copied, not encoded.
@@ -580,7 +582,7 @@ pub(crate) fn compose_atlas(
                 continue;
             }
             read(index, level, &mut buf)?;
-            let texels = crate::gen::decode_level(part.format, &buf, w, h);
+            let texels = decode_level(part.format, &buf, w, h);
             let (x0, y0) = ((part.x >> level) as usize, (part.y >> level) as usize);
             for row in 0..h as usize {
                 let dst = ((y0 + row) * side + x0) * 4;

@@ -35,8 +35,8 @@ use citystream_streaming::atlas_tree::{
 };
 use rayon::prelude::*;
 
-use crate::files::write_atomically;
-use crate::gen::{decode_level, downsample, mean_colour, print_stdout};
+use crate::files::{print_stdout, write_atomically};
+use crate::texture::{decode_level, downsample, mean_colour};
 
 /// Options of `citystream atlas-tree`.
 #[derive(Debug, clap::Args)]

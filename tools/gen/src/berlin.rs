@@ -18,9 +18,11 @@ use anyhow::{bail, Context, Result};
 use citystream_dataset::{DatasetWriter, TextureFormat, WriteSummary};
 use rayon::prelude::*;
 
-use super::layout::{self, City, LayoutParams};
-use super::{free_bytes, gb, texture, GenArgs};
 use crate::atlas::{self, AtlasPart, AtlasPlan, Packing};
+use crate::layout::{self, City, LayoutParams};
+use crate::options::{free_bytes, gb, GenArgs};
+use crate::progress::Progress;
+use crate::texture;
 
 /// Atlas side of the paper's Berlin (atlas) dataset.
 pub const ATLAS_EXTENT: u32 = 512;
@@ -279,7 +281,7 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
         .batch
         .unwrap_or_else(|| atlas::atlas_batch(ATLAS_EXTENT, format, BUFFER_MB).0)
         .max(1);
-    let mut progress = super::Progress::resumed(disk.atlases, done, "atlases", 1, args.quiet);
+    let mut progress = Progress::resumed(disk.atlases, done, "atlases", 1, args.quiet);
     let mut batches = 0usize;
     let mut next = done.min(disk.atlases);
     while next < disk.atlases {
@@ -326,7 +328,7 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gen::Preset;
+    use crate::options::Preset;
     use citystream_dataset::Dataset;
     use std::path::Path;
 
@@ -372,7 +374,7 @@ mod tests {
     #[test]
     fn straight_into_atlases_equals_gen_then_atlas() -> Result<()> {
         let (per_mesh, atlased, direct) = (test_dir("per-mesh"), test_dir("atlased"), test_dir("direct"));
-        crate::gen::generate(&args(&per_mesh), PARAMS, TextureFormat::Bc1)?;
+        crate::city::generate(&args(&per_mesh), PARAMS, TextureFormat::Bc1)?;
         crate::atlas::run(&crate::atlas::AtlasArgs {
             input: per_mesh.clone(),
             out: atlased.clone(),

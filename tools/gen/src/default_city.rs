@@ -15,7 +15,7 @@ use anyhow::{Context, Result};
 use citystream_dataset::{upgrade, DatasetError, DatasetFiles};
 
 use crate::atlas::AtlasArgs;
-use crate::gen::{GenArgs, Preset};
+use crate::options::{GenArgs, Preset};
 
 /// Where the default city is created, relative to the working directory.
 pub const DEFAULT_CITY_DIR: &str = "data/city";
@@ -75,7 +75,7 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
     }
     if !is_dataset(&source) && !upgrade_if_old(&source, quiet)? {
         build_then_move(&source, |partial| {
-            crate::gen::run(&GenArgs {
+            crate::city::run(&GenArgs {
                 // The summaries would name the private build directories.
                 quiet: true,
                 ..GenArgs::new(Preset::Small, 1, partial.to_path_buf())
@@ -227,7 +227,7 @@ mod tests {
     #[test]
     fn datasets_of_an_earlier_format_are_upgraded_in_place_once() {
         let root = scratch("upgrade");
-        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/v1-tiny");
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v1-tiny");
         std::fs::create_dir_all(&root).expect("dir");
         for entry in std::fs::read_dir(&fixture).expect("fixture") {
             let entry = entry.expect("entry");

@@ -1,11 +1,19 @@
 //! Output files the tools write: each replaced atomically, so a run that is
 //! stopped or fails midway leaves the previous file or the new one, never a
-//! torn mix.
+//! torn mix; and text printed to stdout.
 
 use std::io::Write;
 use std::path::Path;
 
 use anyhow::{Context, Result};
+
+/// Prints to stdout; a reader that closed the pipe early (`| head`) is not an error.
+pub fn print_stdout(text: &str) -> Result<()> {
+    match std::io::stdout().lock().write_all(text.as_bytes()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        other => Ok(other?),
+    }
+}
 
 /// Writes `bytes` to a temporary file beside `path`, syncs it and renames it
 /// into place.

@@ -7,7 +7,7 @@
 use anyhow::Result;
 use citystream_dataset::{Crs, Scene};
 
-use super::rng::{mix, Rng};
+use crate::rng::{mix, Rng};
 
 /// Side of a city block, metres.
 pub const BLOCK: f32 = 96.0;

@@ -192,7 +192,7 @@ pub fn decode_ktx2(bytes: &[u8]) -> Result<RgbaImage> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fuzz::{dds_file, ktx2_file};
+    use crate::image_files::{dds_file, ktx2_file};
 
     /// A PNG of `w`×`h` RGBA8 texels of one colour, compressed fast.
     fn flat_png(w: u32, h: u32) -> Vec<u8> {

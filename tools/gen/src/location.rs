@@ -1,51 +1,5 @@
-//! The `citystream` tool's commands as a library: the binary parses the
-//! command line, and cross-crate tests drive the same commands directly
-//! (for example, rendering a generated city and its atlas version).
-//!
-//! Datasets in: [`gen`] (synthetic cities), [`import`] (glTF 2.0),
-//! [`atlas`] (the paper's §3.1 texture atlases), [`atlas_tree`] (the
-//! texture-atlas tree), [`patches`] (a simulated aerial survey for the
-//! ground), [`upgrade`] (older dataset formats), [`default_city`] (the city
-//! the flythrough opens without `--dataset`, built on first use).
-//! Datasets checked: [`info`], [`verify`], [`cache_report`] (how one packs
-//! into the sparse cache), [`fuzz`] (mutation harnesses for every parser).
-//! Runs measured: [`simulate`] (the policy on the modelled clock), [`path`]
-//! (the standard camera path), [`report`] (Table 3 and Fig. 6 from
-//! flythrough runs), [`bench`](mod@bench) (the flythrough under several policies,
-//! strategies and scenarios), [`loader_bench`] and [`remote_bench`] (the
-//! loader from disk and over HTTP), [`image_error`] (the image-error
-//! convention every figure uses). Around them: [`files`] (output files
-//! replaced atomically), [`nginx`], [`s3_emulator`], [`fault_proxy`] and
-//! [`server_process`] (local servers for the remote tests and benchmarks),
-//! [`bind_replay`] (a run's sparse binds and copies, logged with
-//! `CITYSTREAM_BIND_LOG`, replayed on the device).
-
-pub mod atlas;
-pub mod atlas_tree;
-pub mod bench;
-pub mod berlin_bench;
-pub mod bind_replay;
-pub mod cache_report;
-pub mod default_city;
-pub mod fault_proxy;
-pub mod files;
-pub mod fuzz;
-pub mod gen;
-pub mod image_error;
-pub mod import;
-pub mod info;
-pub mod loader_bench;
-pub mod nginx;
-pub mod patches;
-pub mod path;
-pub mod remote_bench;
-pub mod report;
-pub mod s3_emulator;
-pub mod server_process;
-pub mod simulate;
-pub mod tiles;
-pub mod upgrade;
-pub mod verify;
+//! Datasets by location, a directory or a URL, with the remote settings of the command
+//! line over the environment's: what every tool that reads a dataset opens it with.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;

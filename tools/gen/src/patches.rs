@@ -263,7 +263,7 @@ pub fn run(args: &PatchesArgs) -> Result<()> {
 
 /// Cuts the set and writes it; returns what `patches.json` says.
 pub fn cut(args: &PatchesArgs) -> Result<PatchSet> {
-    let dataset = crate::open_dataset(&args.dataset)?;
+    let dataset = crate::location::open_dataset(&args.dataset)?;
     let bytes = std::fs::read(&args.image).with_context(|| format!("reading {}", args.image.display()))?;
     let source = image::load_from_memory(&bytes)
         .with_context(|| format!("decoding {} (PNG or JPEG)", args.image.display()))?

@@ -8,8 +8,8 @@
 use anyhow::Result;
 use citystream_dataset::TextureFormat;
 
-use super::layout::{Content, FacadeStyle, TextureSpec, WallMaterial};
-use super::rng::{hash2, value_noise};
+use crate::layout::{Content, FacadeStyle, TextureSpec, WallMaterial};
+use crate::rng::{hash2, value_noise};
 
 /// One encoded texture: its mip chain (finest first, back to back) and mean colour.
 #[derive(Debug)]
