@@ -22,15 +22,18 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use citystream_dataset::{Crs, DatasetWriter, Scene, TextureFormat};
+use citystream_dataset::{Scene, TextureFormat};
 use image::imageops::FilterType;
 use image::RgbaImage;
 use rayon::prelude::*;
 
-use crate::gen::{decode_level, encode_chain, library::decode_image_bytes, mean_colour, EncodedTexture, FormatArg};
+use citystream_gen::library::decode_image_bytes;
+use citystream_gen::texture::{decode_level, encode_chain, mean_colour, EncodedTexture};
+
+use crate::blocks::block_source;
+use crate::transform::{mul, normal_matrix, transform_normal, transform_point, Mat4, IDENTITY};
 
 /// Most node instances an import places (a node reached through several
 /// shared parents counts once per path).
@@ -38,44 +41,6 @@ pub const MAX_NODE_INSTANCES: usize = 1_000_000;
 /// Most vertices an import holds once instances are placed (about 1 GB of
 /// pending geometry).
 pub const MAX_IMPORTED_VERTICES: usize = 20_000_000;
-
-/// Options of `citystream import`.
-#[derive(Debug, clap::Args)]
-pub struct ImportArgs {
-    /// glTF 2.0 file (`.gltf` with external files or data URIs, or `.glb`), or an OGC 3D
-    /// Tiles tileset (`tileset.json`, 1.0 and 1.1: b3dm and glTF content; a path or an
-    /// `http(s)://` or `s3://` URL).
-    pub input: PathBuf,
-    /// Output dataset directory.
-    #[arg(long)]
-    pub out: PathBuf,
-    /// Texture encoding.
-    #[arg(long, value_enum, default_value = "bc1")]
-    pub format: FormatArg,
-    /// Largest texture side in texels (a power of two, 4 to 16384); larger images are downscaled.
-    #[arg(long, default_value_t = 512)]
-    pub max_extent: u32,
-    /// glTF: the coordinate reference system the model's coordinates are in (`EPSG:<code>`
-    /// or WKT), axes as the scene frame maps them: x easting, y height, −z northing (glTF
-    /// carries no CRS; without this option the dataset has a local frame). Tilesets: the
-    /// UTM projection to place the city in (EPSG:326xx, 327xx, 258xx); without it, a local
-    /// east-north-up frame at the tileset's centre.
-    #[arg(long, value_parser = parse_crs)]
-    pub crs: Option<Crs>,
-    /// Tilesets: which tiles' content to import (`finest`: tiles not refined further under
-    /// REPLACE refinement, every tile under ADD; `all`: every level).
-    #[arg(long, value_enum)]
-    pub lod: Option<crate::tiles::Lod>,
-    /// Tilesets: content citystream does not import (point clouds, instanced and composite
-    /// tiles, implicit tiling) is an error instead of a warning.
-    #[arg(long)]
-    pub strict: bool,
-}
-
-/// Parses a `--crs` value.
-pub fn parse_crs(text: &str) -> Result<Crs, String> {
-    Crs::parse(text).map_err(|e| e.to_string())
-}
 
 /// What a mesh's texture is made of: an image (by glTF image index) tinted by a factor.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -92,98 +57,6 @@ pub(crate) struct PendingMesh {
     pub(crate) normals: Vec<[f32; 3]>,
     pub(crate) uvs: Vec<[f32; 2]>,
     pub(crate) indices: Vec<u32>,
-}
-
-/// A column-major 4×4 matrix (`m[column][row]`), as glTF and 3D Tiles store them.
-pub(crate) type Mat4 = [[f64; 4]; 4];
-
-pub(crate) fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
-    // Column-major like glTF: m[column][row].
-    let mut out = [[0.0; 4]; 4];
-    for (c, column) in out.iter_mut().enumerate() {
-        for (r, value) in column.iter_mut().enumerate() {
-            *value = (0..4).map(|k| a[k][r] * b[c][k]).sum();
-        }
-    }
-    out
-}
-
-fn transform_point(m: &Mat4, p: [f32; 3]) -> [f64; 3] {
-    let p = p.map(f64::from);
-    [0, 1, 2].map(|r| m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r])
-}
-
-/// Inverse transpose of the upper 3×3 (for normals) and its determinant's sign.
-fn normal_matrix(m: &Mat4) -> ([[f64; 3]; 3], f64) {
-    let a = |r: usize, c: usize| m[c][r];
-    let cof = |r0: usize, r1: usize, c0: usize, c1: usize| a(r0, c0) * a(r1, c1) - a(r0, c1) * a(r1, c0);
-    // Cofactor matrix = det · inverse transpose; the scale does not matter for unit normals.
-    let cofactor = [
-        [cof(1, 2, 1, 2), -cof(1, 2, 0, 2), cof(1, 2, 0, 1)],
-        [-cof(0, 2, 1, 2), cof(0, 2, 0, 2), -cof(0, 2, 0, 1)],
-        [cof(0, 1, 1, 2), -cof(0, 1, 0, 2), cof(0, 1, 0, 1)],
-    ];
-    let det = a(0, 0) * cofactor[0][0] + a(0, 1) * cofactor[0][1] + a(0, 2) * cofactor[0][2];
-    (cofactor, det)
-}
-
-fn transform_normal(n3: &[[f64; 3]; 3], det: f64, n: [f32; 3]) -> [f32; 3] {
-    let n = n.map(f64::from);
-    let sign = if det < 0.0 { -1.0 } else { 1.0 };
-    let v = [0, 1, 2].map(|r| sign * (n3[r][0] * n[0] + n3[r][1] * n[1] + n3[r][2] * n[2]));
-    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    if len > 0.0 && len.is_finite() {
-        v.map(|x| (x / len) as f32)
-    } else {
-        [0.0, 1.0, 0.0]
-    }
-}
-
-/// Runs `citystream import`.
-pub fn run(args: &ImportArgs) -> Result<()> {
-    let start = Instant::now();
-    crate::gen::check_texture_extent("--max-extent", args.max_extent)?;
-    let format = args.format.texture_format();
-    let input = &args.input;
-    if crate::tiles::is_tileset(input) {
-        let lod = args.lod.unwrap_or(crate::tiles::Lod::Finest);
-        let options = crate::tiles::LoadOptions {
-            format,
-            max_extent: args.max_extent,
-            lod,
-            strict: args.strict,
-            report: true,
-            crs: args.crs.clone(),
-        };
-        return crate::tiles::import(input, &args.out, &options);
-    }
-    if args.lod.is_some() || args.strict {
-        bail!(
-            "--lod and --strict apply to 3D Tiles tilesets (a .json input), not to {}",
-            input.display()
-        );
-    }
-    let mut imported = load(input, format, args.max_extent)?;
-    imported.scene.crs = args.crs.clone();
-    let kept = imported.kept_blocks;
-    let mut writer = DatasetWriter::create(&args.out)?;
-    for t in imported.textures {
-        writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
-    }
-    let summary = writer
-        .finish(&imported.scene)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    crate::gen::print_stdout(&format!(
-        "imported {} into {}: {} meshes, {} triangles, {} textures ({kept} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\n",
-        input.display(),
-        args.out.display(),
-        summary.meshes,
-        summary.triangles,
-        summary.textures,
-        format.name(),
-        summary.pack_bytes as f64 / 1e6,
-        start.elapsed().as_secs_f64()
-    ))
 }
 
 /// A glTF scene read into memory: what `import` writes as a dataset.
@@ -240,14 +113,6 @@ pub fn load_slice(
         kept_blocks,
     })
 }
-
-/// The identity transform.
-pub(crate) const IDENTITY: Mat4 = [
-    [1.0, 0.0, 0.0, 0.0],
-    [0.0, 1.0, 0.0, 0.0],
-    [0.0, 0.0, 1.0, 0.0],
-    [0.0, 0.0, 0.0, 1.0],
-];
 
 /// The triangle primitives of one glTF document, placed in f64 by a root transform and
 /// the node transforms, and what their textures are made of.
@@ -928,16 +793,6 @@ fn base64_decode(s: &str) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// A KTX2 or DDS source stored as BC1, BC3 or BC7 blocks.
-#[derive(Debug)]
-pub(crate) struct BlockSource {
-    format: TextureFormat,
-    width: u32,
-    height: u32,
-    /// The stored levels, finest first, each exactly its `mip_bytes` long.
-    levels: Vec<Vec<u8>>,
-}
-
 /// The texture of `key` with its source's blocks as they are, when its preferred source is
 /// a BC1/BC3/BC7 KTX2 or DDS file of power-of-two sides that is not tinted: re-encoding
 /// would only lose quality (and BC3/BC7 alpha). `None` sends the texture down the decoding
@@ -978,137 +833,6 @@ fn kept_blocks(
         chain: levels.concat(),
         mean,
     })
-}
-
-/// The blocks of a KTX2 or DDS file, or `None` when it holds something else (RGBA8, BC2,
-/// a non-power-of-two extent ...). Errors for files that claim BC data but are damaged.
-pub(crate) fn block_source(bytes: &[u8]) -> Result<Option<BlockSource>> {
-    let (format, width, height, levels) = if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB]) {
-        use ktx2::Format;
-        let reader = ktx2::Reader::new(bytes).map_err(|e| anyhow!("invalid KTX2: {e:?}"))?;
-        let header = reader.header();
-        let format = match header.format {
-            Some(
-                Format::BC1_RGB_UNORM_BLOCK
-                | Format::BC1_RGB_SRGB_BLOCK
-                | Format::BC1_RGBA_UNORM_BLOCK
-                | Format::BC1_RGBA_SRGB_BLOCK,
-            ) => TextureFormat::Bc1,
-            Some(Format::BC3_UNORM_BLOCK | Format::BC3_SRGB_BLOCK) => TextureFormat::Bc3,
-            Some(Format::BC7_UNORM_BLOCK | Format::BC7_SRGB_BLOCK) => TextureFormat::Bc7,
-            _ => return Ok(None),
-        };
-        let (width, height) = (header.pixel_width, header.pixel_height);
-        if header.supercompression_scheme.is_some()
-            || header.layer_count > 1
-            || header.face_count > 1
-            || !keepable_side(width)
-            || !keepable_side(height)
-        {
-            return Ok(None);
-        }
-        // A level index may list any number of (overlapping) levels: copy a full chain at most.
-        let full_chain = width.max(height).trailing_zeros() as usize + 1;
-        let levels: Vec<Vec<u8>> = reader
-            .levels()
-            .take(full_chain)
-            .map(|level| level.data.to_vec())
-            .collect();
-        (format, width, height, levels)
-    } else if bytes.starts_with(b"DDS ") {
-        match dds_blocks(bytes)? {
-            Some(found) => found,
-            None => return Ok(None),
-        }
-    } else {
-        return Ok(None);
-    };
-    // Both readers have checked the sides (`keepable_side`).
-    if levels.is_empty() {
-        return Ok(None);
-    }
-    let full_chain = width.max(height).trailing_zeros() as usize + 1;
-    let mut kept = Vec::new();
-    for (l, data) in levels.iter().take(full_chain).enumerate() {
-        let (w, h) = ((width >> l).max(1), (height >> l).max(1));
-        let len = format.mip_bytes(w, h) as usize;
-        let level = data
-            .get(..len)
-            .with_context(|| format!("level {l} ({w}x{h}) holds {} of its {len} bytes", data.len()))?;
-        kept.push(level.to_vec());
-    }
-    Ok(Some(BlockSource {
-        format,
-        width,
-        height,
-        levels: kept,
-    }))
-}
-
-/// Whether blocks of a texture with this side can be kept: a power of two, at least one
-/// 4-texel block, at most the largest texture side.
-fn keepable_side(side: u32) -> bool {
-    side.is_power_of_two() && (4..=crate::gen::library::MAX_IMAGE_SIDE).contains(&side)
-}
-
-type DdsLevels = (TextureFormat, u32, u32, Vec<Vec<u8>>);
-
-/// The BC1/BC3/BC7 levels of a DDS file (FourCC `DXT1`/`DXT5`, or `DX10` with a BC1, BC3 or
-/// BC7 DXGI format), or `None` for other pixel formats.
-fn dds_blocks(bytes: &[u8]) -> Result<Option<DdsLevels>> {
-    let u32_at = |at: usize| -> Result<u32> {
-        bytes
-            .get(at..at + 4)
-            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .with_context(|| format!("DDS header ends before byte {}", at + 4))
-    };
-    if u32_at(4)? != 124 {
-        bail!("DDS header size is {}, not 124", u32_at(4)?);
-    }
-    let (height, width) = (u32_at(12)?, u32_at(16)?);
-    if !keepable_side(width) || !keepable_side(height) {
-        // Not keepable as blocks; the decoder reports what is wrong with it.
-        return Ok(None);
-    }
-    const DDSD_MIPMAPCOUNT: u32 = 0x2_0000;
-    let levels = if u32_at(8)? & DDSD_MIPMAPCOUNT != 0 {
-        u32_at(28)?.max(1)
-    } else {
-        1
-    };
-    let four_cc = bytes.get(84..88).context("DDS header ends before its FourCC")?;
-    let (format, mut offset): (TextureFormat, usize) = match four_cc {
-        b"DXT1" => (TextureFormat::Bc1, 128),
-        b"DXT5" => (TextureFormat::Bc3, 128),
-        b"DX10" => {
-            let format = match u32_at(128)? {
-                71 | 72 => TextureFormat::Bc1,
-                77 | 78 => TextureFormat::Bc3,
-                98 | 99 => TextureFormat::Bc7,
-                _ => return Ok(None),
-            };
-            // A plain 2D texture: dimension TEXTURE2D (3), one array element.
-            if u32_at(132)? != 3 || u32_at(140)? > 1 {
-                return Ok(None);
-            }
-            (format, 148)
-        }
-        _ => return Ok(None),
-    };
-    let mut found = Vec::new();
-    for l in 0..levels.min(15) {
-        let (w, h) = ((width >> l).max(1), (height >> l).max(1));
-        let len = usize::try_from(format.mip_bytes(w, h)).unwrap_or(usize::MAX);
-        let Some(level) = offset.checked_add(len).and_then(|end| bytes.get(offset..end)) else {
-            bail!(
-                "DDS level {l} ({w}x{h}) needs {len} bytes from byte {offset}, past the file's {}",
-                bytes.len()
-            );
-        };
-        found.push(level.to_vec());
-        offset += len;
-    }
-    Ok(Some((format, width, height, found)))
 }
 
 fn texture_image(
@@ -1165,44 +889,5 @@ fn fit_power_of_two(image: RgbaImage, max_log2: u32, input: &Path) -> RgbaImage 
         image
     } else {
         image::imageops::resize(&image, tw, th, FilterType::Triangle)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A KTX2 file of a 4x4 BC1 texture whose level index lists `entries` levels, every one
-    /// pointing at the same 8-byte block.
-    fn ktx2_with_level_entries(entries: usize) -> Vec<u8> {
-        let mut f = vec![0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
-        for v in [131u32, 1, 4, 4, 0, 0, 1, entries as u32, 0] {
-            f.extend_from_slice(&v.to_le_bytes());
-        }
-        let dfd_offset = 80 + 24 * entries;
-        for v in [dfd_offset as u32, 4, 0, 0] {
-            f.extend_from_slice(&v.to_le_bytes());
-        }
-        f.extend_from_slice(&[0u8; 16]);
-        let data_offset = (dfd_offset + 4) as u64;
-        for _ in 0..entries {
-            for v in [data_offset, 8, 8] {
-                f.extend_from_slice(&v.to_le_bytes());
-            }
-        }
-        f.extend_from_slice(&4u32.to_le_bytes());
-        f.extend_from_slice(&[0x55; 8]);
-        f
-    }
-
-    #[test]
-    fn a_level_index_longer_than_the_chain_is_not_copied_whole() {
-        // 100,000 entries (2.4 MB of index): at most the full chain (3 levels of 4x4) is kept.
-        let source = block_source(&ktx2_with_level_entries(100_000))
-            .expect("readable")
-            .expect("BC1 blocks");
-        assert_eq!((source.format, source.width, source.height), (TextureFormat::Bc1, 4, 4));
-        assert_eq!(source.levels.len(), 3);
-        assert!(source.levels.iter().all(|l| l == &[0x55; 8]));
     }
 }

@@ -29,6 +29,7 @@
 pub mod content;
 pub mod geodesy;
 pub mod remote;
+pub mod tileset;
 pub mod write;
 
 use std::collections::{BTreeMap, HashMap};
@@ -38,31 +39,20 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use citystream_dataset::{Crs, DatasetWriter, Scene, TextureFormat};
 use rayon::prelude::*;
-use serde::Deserialize;
 use serde_json::Value;
 
-use crate::gen::EncodedTexture;
-use crate::import::{
-    centred_scene, mul, read_gltf, relative_uri_path, Mat4, PendingMesh, IDENTITY, MAX_IMPORTED_VERTICES,
-};
+use citystream_gen::files::print_stdout;
+use citystream_gen::texture::EncodedTexture;
+
+use crate::gltf::{bounds, centred_scene, read_gltf, relative_uri_path, GltfContent, PendingMesh, MAX_IMPORTED_VERTICES};
+use crate::transform::{mul, Mat4, IDENTITY};
 use geodesy::{to_geodetic, EastNorthUp};
+use tileset::{
+    content_kind, content_uri_path, objects_within, Refine, TileJson, TilesetJson, UpAxis,
+    MAX_CONTENTS, MAX_CONTENT_BYTES, MAX_DEPTH, MAX_HELD_TILESET_OBJECTS, MAX_TILES, MAX_TILESETS,
+    MAX_TILESET_BYTES,
+};
 
-/// Most JSON objects of the tilesets held parsed at once (a tileset and the external
-/// ones below it being walked): some 400 MB at the worst.
-pub const MAX_HELD_TILESET_OBJECTS: usize = 1_500_000;
-
-/// Largest `tileset.json` read (external ones too).
-pub const MAX_TILESET_BYTES: u64 = 64 << 20;
-/// Largest content file read.
-pub const MAX_CONTENT_BYTES: u64 = 1 << 30;
-/// Most tiles a tileset may have, external tilesets included.
-pub const MAX_TILES: usize = 4_000_000;
-/// Most external tilesets read (one referred to twice counts twice).
-pub const MAX_TILESETS: usize = 100_000;
-/// Most content entries the tiles list, external tilesets' included.
-pub const MAX_CONTENTS: usize = 4_000_000;
-/// Deepest tile nesting, across external tilesets.
-pub const MAX_DEPTH: usize = 256;
 /// Distances from the Earth's centre (metres) a city's geometry lies between: the WGS 84
 /// ellipsoid is 6,356.8 to 6,378.1 km, and city heights are within a few km of it.
 const EARTH_SHELL_M: (f64, f64) = (6_300_000.0, 6_450_000.0);
@@ -74,76 +64,6 @@ pub enum Lod {
     Finest,
     /// Every tile's content, all levels overlapping (for inspection).
     All,
-}
-
-/// The axis a tileset's glTF content points up (`asset.gltfUpAxis`, before 3D Tiles 1.0;
-/// y since). An external tileset that does not say inherits the one above it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum UpAxis {
-    X,
-    Y,
-    Z,
-}
-
-/// How a tile's children refine it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Refine {
-    Replace,
-    Add,
-}
-
-#[derive(Deserialize)]
-struct TilesetJson {
-    asset: AssetJson,
-    root: TileJson,
-    #[serde(default, rename = "extensionsRequired")]
-    extensions_required: Vec<String>,
-}
-
-#[derive(Deserialize)]
-struct AssetJson {
-    version: String,
-    #[serde(default, rename = "gltfUpAxis")]
-    gltf_up_axis: Option<String>,
-}
-
-#[derive(Deserialize)]
-struct TileJson {
-    #[serde(default, rename = "boundingVolume")]
-    bounding_volume: Option<BoundingVolumeJson>,
-    #[serde(default, rename = "geometricError")]
-    geometric_error: Option<f64>,
-    #[serde(default)]
-    refine: Option<String>,
-    #[serde(default)]
-    transform: Option<Vec<f64>>,
-    #[serde(default)]
-    content: Option<ContentJson>,
-    #[serde(default)]
-    contents: Vec<ContentJson>,
-    #[serde(default)]
-    children: Vec<TileJson>,
-    #[serde(default, rename = "implicitTiling")]
-    implicit_tiling: Option<Value>,
-}
-
-#[derive(Deserialize)]
-struct BoundingVolumeJson {
-    #[serde(default, rename = "box")]
-    oriented_box: Option<Vec<f64>>,
-    #[serde(default)]
-    region: Option<Vec<f64>>,
-    #[serde(default)]
-    sphere: Option<Vec<f64>>,
-}
-
-#[derive(Deserialize)]
-struct ContentJson {
-    #[serde(default)]
-    uri: Option<String>,
-    /// The name 3D Tiles used before 1.0.
-    #[serde(default)]
-    url: Option<String>,
 }
 
 /// A content file to import and the transform that places it in Earth-centred coordinates.
@@ -429,7 +349,7 @@ fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) ->
         .finish(&imported.scene)
         .with_context(|| format!("writing {}", out.display()))?;
     let origin = to_geodetic(imported.frame.origin);
-    crate::gen::print_stdout(&format!(
+    print_stdout(&format!(
         "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\nframe: east-north-up at {}\n",
         shown,
         out.display(),
@@ -639,26 +559,9 @@ impl Walk {
     }
 }
 
-/// A tile's content URI as a relative path, decoded, its query and fragment aside: the one
-/// reading of content URIs for local and remote tilesets alike.
-fn content_uri_path(uri: &str) -> Result<PathBuf> {
-    let not_relative = "not a relative path (citystream imports a tileset's files from its own directory)";
-    if uri.starts_with("data:") {
-        bail!(not_relative);
-    }
-    relative_uri_path(uri.split(['?', '#']).next().unwrap_or("")).context(not_relative)
-}
-
 fn file_name(path: &Path) -> String {
     path.file_name()
         .map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned())
-}
-
-/// A content file's kind by its extension, lower case.
-fn content_kind(path: &Path) -> String {
-    path.extension()
-        .map(|e| e.to_string_lossy().to_ascii_lowercase())
-        .unwrap_or_default()
 }
 
 fn read_bounded(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
@@ -688,40 +591,6 @@ fn read_tileset(path: &Path, max_objects: usize) -> Result<(TilesetJson, usize)>
         );
     }
     Ok((tileset, objects))
-}
-
-/// The JSON objects of tileset `bytes` (named `what`), refused where more than
-/// `max_objects` remain of [`MAX_HELD_TILESET_OBJECTS`].
-pub(crate) fn objects_within(bytes: &[u8], max_objects: usize, what: &dyn std::fmt::Display) -> Result<usize> {
-    let objects = json_objects(bytes);
-    if objects > max_objects {
-        bail!(
-            "{what}: {objects} JSON objects, more than the {max_objects} still allowed (at most \
-             {MAX_HELD_TILESET_OBJECTS} are held at once, over the external tilesets being read)"
-        );
-    }
-    Ok(objects)
-}
-
-/// The JSON objects in `bytes` (its `{` outside strings), counted without parsing: an
-/// upper bound on what a tileset file holds, for bounding its parse.
-pub(crate) fn json_objects(bytes: &[u8]) -> usize {
-    let (mut objects, mut in_string, mut escaped) = (0usize, false, false);
-    for &b in bytes {
-        if in_string {
-            match (escaped, b) {
-                (true, _) => escaped = false,
-                (false, b'\\') => escaped = true,
-                (false, b'"') => in_string = false,
-                _ => {}
-            }
-        } else if b == b'"' {
-            in_string = true;
-        } else if b == b'{' {
-            objects += 1;
-        }
-    }
-    objects
 }
 
 /// A tile's numbers: a finite, non-negative geometric error; bounding volumes of the
@@ -813,7 +682,7 @@ fn read_content(
     content: &ContentRef,
     root_dir: &Path,
     vertex_budget: usize,
-) -> Result<(crate::import::GltfContent, RtcCentres)> {
+) -> Result<(GltfContent, RtcCentres)> {
     let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
     let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
         let batched = content::parse_b3dm(&bytes)?;
@@ -904,7 +773,7 @@ fn project_utm(meshes: &mut [PendingMesh], frame: &EastNorthUp, crs: &Crs) -> Re
 
 /// The east-north-up frame at the centre of the meshes' Earth-centred bounds.
 fn local_frame(meshes: &[PendingMesh]) -> Result<EastNorthUp> {
-    let (lo, hi) = crate::import::bounds(meshes);
+    let (lo, hi) = bounds(meshes);
     let centre = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
     let radius = centre[0].hypot(centre[1]).hypot(centre[2]);
     if !(EARTH_SHELL_M.0..=EARTH_SHELL_M.1).contains(&radius) {

@@ -15,9 +15,10 @@ use citystream_dataset::remote::{RemoteOptions, RemoteStore};
 use citystream_dataset::DatasetStore;
 use serde_json::Value;
 
-use super::{
-    content, content_kind, TileJson, TilesetJson, MAX_CONTENT_BYTES, MAX_HELD_TILESET_OBJECTS, MAX_TILESETS,
-    MAX_TILESET_BYTES,
+use super::content;
+use super::tileset::{
+    content_kind, content_uri_path, objects_within, TileJson, TilesetJson, MAX_CONTENT_BYTES,
+    MAX_HELD_TILESET_OBJECTS, MAX_TILESETS, MAX_TILESET_BYTES,
 };
 
 /// Most files fetched for one tileset.
@@ -107,7 +108,7 @@ pub fn fetch(url: &str, scratch: &Path) -> Result<PathBuf> {
             bail!("{url}: more than {MAX_TILESETS} external tilesets");
         }
         let bytes = fetcher.get(&relative, MAX_TILESET_BYTES)?;
-        super::objects_within(&bytes, MAX_HELD_TILESET_OBJECTS, &fetcher.url(&relative))?;
+        objects_within(&bytes, MAX_HELD_TILESET_OBJECTS, &fetcher.url(&relative))?;
         let tileset: TilesetJson = serde_json::from_slice(&bytes)
             .with_context(|| format!("{}: not a 3D Tiles tileset", fetcher.url(&relative)))?;
         let dir = relative.parent().unwrap_or(Path::new("")).to_path_buf();
@@ -228,7 +229,7 @@ impl Fetcher {
 /// `uri` relative to `dir` (both inside the tileset's directory) as a clean relative
 /// path: no scheme, no absolute path, no `..` above the tileset's directory.
 fn normalise(dir: &Path, uri: &str) -> Result<PathBuf> {
-    let decoded = super::content_uri_path(uri)?.display().to_string();
+    let decoded = content_uri_path(uri)?.display().to_string();
     let mut parts: Vec<std::ffi::OsString> = Vec::new();
     for component in dir.join(&decoded).components() {
         match component {
