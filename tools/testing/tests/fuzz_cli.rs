@@ -61,10 +61,10 @@ fn bad_options_are_refused() {
 
 #[test]
 fn inputs_that_once_failed_stay_fixed() {
-    // tools/tests/data/fuzz holds inputs the harnesses found failing (panics inside the gltf
+    // tools/test-data/fuzz holds inputs the harnesses found failing (panics inside the gltf
     // crate, a 136-byte DDS that made the decoder allocate 432 MiB); each must now be a plain
     // error with a small heap.
-    let corpus = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/fuzz");
+    let corpus = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/fuzz");
     let mut files: Vec<_> = std::fs::read_dir(&corpus)
         .expect("corpus")
         .map(|e| e.expect("entry").path())

@@ -1,4 +1,4 @@
-//! `fuzz`: runs the fuzz harnesses of `citystream_tools::fuzz` (dataset files, camera paths,
+//! `fuzz`: runs the fuzz harnesses of `citystream_testing::fuzz` (dataset files, camera paths,
 //! glTF/GLB import, KTX2/DDS/PNG textures) and fails on any input that panics, runs longer
 //! than `--hang-s` or makes the process's heap grow by more than `--max-alloc-mb` above what
 //! it held before the input. Failing inputs are saved under `--out` to reproduce them.
@@ -12,7 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use citystream_tools::fuzz::{Harness, Outcome, Target};
+use citystream_testing::fuzz::{Harness, Outcome, Target};
 use clap::Parser;
 use peakmem_alloc::{PeakMemAlloc, PeakMemAllocTrait, INSTRUMENTED_SYSTEM};
 

@@ -18,8 +18,18 @@ use citystream_dataset::{
     verify, Dataset, DatasetFiles, DatasetWriter, Scene, TextureFormat, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE,
     META_FILE, PACK_FILE, SCENE_FILE,
 };
+use citystream_gen::image_files::{dds_file, ktx2_file};
 use citystream_streaming::bench::path::{standard_path, CameraPath};
 use citystream_streaming::rng::SplitMix64;
+
+mod input;
+mod mutate;
+mod scripted;
+
+use input::Seed;
+pub use input::Outcome;
+use mutate::{below, fix_dataset_checksum, mutate};
+use scripted::{remote_seeds, ScriptedServer};
 
 /// The parsers a harness drives.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -78,22 +88,6 @@ pub struct Harness {
     work: PathBuf,
     /// The remote harness's server and store.
     remote: Option<ScriptedServer>,
-}
-
-#[derive(Debug)]
-struct Seed {
-    /// What the bytes are: a dataset file name, or a file name whose extension says the kind.
-    name: String,
-    bytes: Vec<u8>,
-}
-
-/// What one input did.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Outcome {
-    /// The parser accepted it (and everything downstream ran).
-    Accepted,
-    /// The parser returned an error.
-    Rejected,
 }
 
 impl Harness {
@@ -167,7 +161,7 @@ impl Harness {
         let outcome = if std::fs::write(&path, bytes).is_err() {
             Outcome::Rejected
         } else {
-            match crate::patches::PatchSet::open(&dir) {
+            match citystream_gen::patches::PatchSet::open(&dir) {
                 Ok(set) => {
                     let _ = set.crs();
                     // What the flythrough decodes, where the set's listed sizes (checked
@@ -206,15 +200,15 @@ impl Harness {
         } else {
             // RGBA8 and a small extent: the harness is about parsing, not encoding.
             let tileset = dir.join("tileset.json");
-            let options = crate::tiles::LoadOptions {
+            let options = citystream_import::tiles::LoadOptions {
                 format: TextureFormat::Rgba8,
                 max_extent: 64,
-                lod: crate::tiles::Lod::All,
+                lod: citystream_import::tiles::Lod::All,
                 strict: false,
                 report: false,
                 crs: None,
             };
-            match crate::tiles::load(&tileset, &options, &mut |_| Ok(())) {
+            match citystream_import::tiles::load(&tileset, &options, &mut |_| Ok(())) {
                 Ok(_) => Outcome::Accepted,
                 Err(_) => Outcome::Rejected,
             }
@@ -263,7 +257,7 @@ impl Harness {
     fn run_gltf(&self, name: &str, bytes: &[u8]) -> Outcome {
         let base = self.work.join("gltf");
         // RGBA8 and a small extent: the harness is about parsing, not encoding.
-        match crate::import::load_slice(bytes, &base, Path::new(name), TextureFormat::Rgba8, 64) {
+        match citystream_import::gltf::load_slice(bytes, &base, Path::new(name), TextureFormat::Rgba8, 64) {
             Ok(_) => Outcome::Accepted,
             Err(_) => Outcome::Rejected,
         }
@@ -301,148 +295,12 @@ fn run_path(bytes: &[u8]) -> Outcome {
 fn run_texture(bytes: &[u8]) -> Outcome {
     // Both readers of texture files: block sources kept as they are by `import`, and the
     // decoder every other image goes through.
-    let kept = crate::import::block_source(bytes);
-    match crate::gen::library::decode_image_bytes(bytes) {
+    let kept = citystream_import::blocks::block_source(bytes);
+    match citystream_gen::library::decode_image_bytes(bytes) {
         Ok(_) => Outcome::Accepted,
         Err(_) if matches!(kept, Ok(Some(_))) => Outcome::Accepted,
         Err(_) => Outcome::Rejected,
     }
-}
-
-fn below(rng: &mut SplitMix64, n: usize) -> usize {
-    (rng.next_u64() % n.max(1) as u64) as usize
-}
-
-/// Values that break careless arithmetic, as little-endian 4- and 8-byte fields.
-const EXTREME_U32: [u32; 9] = [
-    0,
-    1,
-    u32::MAX,
-    0x8000_0000,
-    0x7fff_ffff,
-    0x7fc0_0000, // f32 NaN
-    0x7f80_0000, // f32 +inf
-    0xff80_0000, // f32 -inf
-    0x7149_f2ca, // f32 1e30
-];
-const EXTREME_U64: [u64; 6] = [
-    0,
-    u64::MAX,
-    1 << 32,
-    1 << 63,
-    0x7ff8_0000_0000_0000, // f64 NaN
-    0x7ff0_0000_0000_0000, // f64 +inf
-];
-const EXTREME_NUMBERS: [&str; 14] = [
-    "0",
-    "-0",
-    "-1",
-    "1e308",
-    "-1e308",
-    "1e999",
-    "NaN",
-    "Infinity",
-    "4294967296",
-    "18446744073709551616",
-    "2147483648",
-    "1e-320",
-    "0.5",
-    "99999999999999999999999999999",
-];
-
-/// One to four mutations of `original`; `donor` provides spliced bytes.
-fn mutate(rng: &mut SplitMix64, original: &[u8], donor: &[u8], text: bool) -> Vec<u8> {
-    let mut b = original.to_vec();
-    let count = 1 + below(rng, 4);
-    for _ in 0..count {
-        let kinds = if text { 10 } else { 8 };
-        match below(rng, kinds) {
-            0 if !b.is_empty() => {
-                let i = below(rng, b.len());
-                b[i] ^= 1 << below(rng, 8);
-            }
-            1 if !b.is_empty() => {
-                let i = below(rng, b.len());
-                b[i] = [0u8, 0xff, 0x7f, 0x80, b'0', b'"'][below(rng, 6)];
-            }
-            2 if b.len() >= 4 => {
-                // Aligned fields: headers are made of them.
-                let i = below(rng, b.len() / 4) * 4;
-                let v = EXTREME_U32[below(rng, EXTREME_U32.len())];
-                b[i..i + 4].copy_from_slice(&v.to_le_bytes());
-            }
-            3 if b.len() >= 8 => {
-                let i = below(rng, b.len() / 8) * 8;
-                let v = EXTREME_U64[below(rng, EXTREME_U64.len())];
-                b[i..i + 8].copy_from_slice(&v.to_le_bytes());
-            }
-            4 => {
-                let keep = below(rng, b.len() + 1);
-                b.truncate(keep);
-            }
-            5 if !donor.is_empty() => {
-                // Splice: a run of the donor over a run of the input.
-                let from = below(rng, donor.len());
-                let len = 1 + below(rng, (donor.len() - from).min(256));
-                let at = below(rng, b.len() + 1);
-                let end = (at + len).min(b.len());
-                b.splice(at..end, donor[from..from + len].iter().copied());
-            }
-            6 if !b.is_empty() => {
-                let at = below(rng, b.len());
-                let len = 1 + below(rng, (b.len() - at).min(64));
-                if below(rng, 2) == 0 {
-                    b.drain(at..at + len);
-                } else {
-                    let copy: Vec<u8> = b[at..at + len].to_vec();
-                    b.splice(at..at, copy);
-                }
-            }
-            7 => {
-                let extra: Vec<u8> = (0..1 + below(rng, 32)).map(|_| rng.next_u64() as u8).collect();
-                let at = below(rng, b.len() + 1);
-                b.splice(at..at, extra);
-            }
-            8 => replace_number(rng, &mut b),
-            9 if !b.is_empty() => {
-                // Remove a structural character of JSON.
-                let positions: Vec<usize> = b
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, c)| b"{}[],:\"".contains(c))
-                    .map(|(i, _)| i)
-                    .collect();
-                if !positions.is_empty() {
-                    b.remove(positions[below(rng, positions.len())]);
-                }
-            }
-            _ => {}
-        }
-    }
-    b
-}
-
-/// Replaces one number token of JSON text with an extreme one.
-fn replace_number(rng: &mut SplitMix64, b: &mut Vec<u8>) {
-    let is_number_byte = |c: u8| c.is_ascii_digit() || b"-+.eE".contains(&c);
-    let starts: Vec<usize> = (0..b.len())
-        .filter(|&i| b[i].is_ascii_digit() && (i == 0 || !is_number_byte(b[i - 1])))
-        .collect();
-    if starts.is_empty() {
-        return;
-    }
-    let start = starts[below(rng, starts.len())];
-    let start = if start > 0 && b[start - 1] == b'-' {
-        start - 1
-    } else {
-        start
-    };
-    let mut end = start + 1;
-    while end < b.len() && is_number_byte(b[end]) {
-        end += 1;
-    }
-    let replacement = EXTREME_NUMBERS[below(rng, EXTREME_NUMBERS.len())];
-    b.splice(start..end, replacement.bytes());
 }
 
 fn dataset_file_path(dir: &Path, name: &str) -> PathBuf {
@@ -454,157 +312,17 @@ fn dataset_file_path(dir: &Path, name: &str) -> PathBuf {
     }
 }
 
-/// Recomputes the checksum of a dataset file (layout of `docs/DATASET.md`), so that mutated
-/// fields reach the checks behind it.
-fn fix_dataset_checksum(name: &str, b: &mut [u8]) {
-    let crc_of = |parts: &[&[u8]]| {
-        let mut hasher = crc32fast::Hasher::new();
-        for part in parts {
-            hasher.update(part);
-        }
-        hasher.finalize()
-    };
-    let (covered_to, crc_at, body_from) = match name {
-        SCENE_FILE => (96, 96, 104),
-        PACK_FILE => (40, 40, usize::MAX),
-        MANIFEST_FILE => (24, 24, usize::MAX),
-        _ => (32, 32, 40),
-    };
-    if b.len() < crc_at + 4 || (body_from != usize::MAX && b.len() < body_from) {
-        return;
-    }
-    let crc = if body_from == usize::MAX {
-        crc_of(&[&b[..covered_to]])
-    } else {
-        crc_of(&[&b[..covered_to], &b[body_from..]])
-    };
-    b[crc_at..crc_at + 4].copy_from_slice(&crc.to_le_bytes());
-}
-
-/// A loopback HTTP server that answers every request with the current input and closes the
-/// connection, and a remote store reading from it.
-#[derive(Debug)]
-struct ScriptedServer {
-    answer: std::sync::Arc<std::sync::Mutex<Vec<u8>>>,
-    url: String,
-    /// Replaced after an input that waited out the timeout: a store that saw its server go
-    /// silent fails later reads at once, which would hide every later input's answer.
-    store: std::sync::Mutex<citystream_dataset::remote::RemoteStore>,
-}
-
-/// The scripted server's store: no retries (every answer is the same input), a short timeout
-/// for answers that promise more than they send (the server closes at once anyway).
-fn scripted_store(url: &str) -> Result<citystream_dataset::remote::RemoteStore> {
-    let options = citystream_dataset::remote::RemoteOptions {
-        retries: 0,
-        timeout: SCRIPTED_TIMEOUT,
-        connect_timeout: SCRIPTED_TIMEOUT,
-        ..Default::default()
-    };
-    Ok(citystream_dataset::remote::RemoteStore::new(url, &options)?)
-}
-
-const SCRIPTED_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(2);
-
-impl ScriptedServer {
-    fn start() -> Result<Self> {
-        use std::io::{Read, Write};
-        let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
-        let url = format!("http://{}/city/", listener.local_addr()?);
-        let answer = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
-        let served = std::sync::Arc::clone(&answer);
-        std::thread::Builder::new().name("fuzz-http".into()).spawn(move || {
-            for mut stream in listener.incoming().flatten() {
-                // The request (small) in one read; its content does not matter.
-                let mut request = [0u8; 4096];
-                let _ = stream.read(&mut request);
-                let bytes = served.lock().map(|a| a.clone()).unwrap_or_default();
-                let _ = stream.write_all(&bytes);
-                let _ = stream.shutdown(std::net::Shutdown::Both);
-            }
-        })?;
-        let store = std::sync::Mutex::new(scripted_store(&url)?);
-        Ok(Self { answer, url, store })
-    }
-
-    fn run(&self, bytes: &[u8]) -> Outcome {
-        use citystream_dataset::DatasetStore;
-        if let Ok(mut answer) = self.answer.lock() {
-            *answer = bytes.to_vec();
-        }
-        let Ok(mut store) = self.store.lock() else {
-            return Outcome::Rejected;
-        };
-        let started = std::time::Instant::now();
-        let path = store.root().join("file.bin");
-        let _ = store.len(&path);
-        let mut buf = [0u8; 32];
-        let outcome = match store.read_at(&path, 0, &mut buf) {
-            Ok(()) => Outcome::Accepted,
-            Err(_) => Outcome::Rejected,
-        };
-        if started.elapsed() >= SCRIPTED_TIMEOUT {
-            if let Ok(fresh) = scripted_store(&self.url) {
-                *store = fresh;
-            }
-        }
-        outcome
-    }
-}
-
-/// Answers a server may give to a length (HEAD) and a 32-byte range request: partial content
-/// with its range, and ones the client refuses (`refused-…`): the whole file for a range, a
-/// redirect to another origin, errors, a body without a length.
-fn remote_seeds() -> Vec<Seed> {
-    let body: Vec<u8> = (0..32u8).collect();
-    let answer = |head: &str, body: &[u8]| {
-        let mut bytes = head.replace('\n', "\r\n").into_bytes();
-        bytes.extend_from_slice(body);
-        bytes
-    };
-    let seeds = [
-        (
-            "partial.http",
-            answer(
-                "HTTP/1.1 206 Partial Content\nContent-Range: bytes 0-31/4096\nContent-Length: 32\nAccept-Ranges: bytes\n\n",
-                &body,
-            ),
-        ),
-        ("refused-whole-file-for-a-range.http", answer("HTTP/1.1 200 OK\nContent-Length: 32\n\n", &body)),
-        (
-            "refused-redirect-elsewhere.http",
-            answer("HTTP/1.1 302 Found\nLocation: http://127.0.0.1:9/city/file.bin\nContent-Length: 0\n\n", &[]),
-        ),
-        ("refused-unavailable.http", answer("HTTP/1.1 503 Service Unavailable\nContent-Length: 0\n\n", &[])),
-        ("refused-missing.http", answer("HTTP/1.1 404 Not Found\nContent-Length: 9\n\n", b"not found")),
-        (
-            "refused-chunked-without-length.http",
-            answer(
-                "HTTP/1.1 206 Partial Content\nContent-Range: bytes 0-31/32\nTransfer-Encoding: chunked\n\n",
-                b"20\r\n\x00\x01\x02\x03\x04\x05\x06\x07\x08\x09\x0a\x0b\x0c\x0d\x0e\x0f\x10\x11\x12\x13\x14\x15\x16\x17\x18\x19\x1a\x1b\x1c\x1d\x1e\x1f\r\n0\r\n\r\n",
-            ),
-        ),
-    ];
-    seeds
-        .into_iter()
-        .map(|(name, bytes)| Seed {
-            name: name.to_owned(),
-            bytes,
-        })
-        .collect()
-}
-
 /// A tileset at Berlin written to `work/tileset` (`tileset.json` with a transform, REPLACE
 /// refinement and an external `ext.json` under ADD; a glb with CESIUM_RTC and node
 /// transforms, a b3dm with RTC_CENTER and a batch table): each file is a seed.
 fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
-    use crate::tiles::write;
+    use citystream_import::tiles::write;
     use serde_json::json;
     let dir = work.join("tileset");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     // East-north-up at 52.5 N, 13.4 E on the ellipsoid, as a column-major transform.
     let (lat, lon) = (52.5f64.to_radians(), 13.4f64.to_radians());
-    let origin = crate::tiles::geodesy::to_ecef(crate::tiles::geodesy::Geodetic {
+    let origin = citystream_import::tiles::geodesy::to_ecef(citystream_import::tiles::geodesy::Geodetic {
         latitude: lat,
         longitude: lon,
         height: 34.0,
@@ -708,7 +426,7 @@ fn patches_seeds(work: &Path) -> Result<Vec<Seed>> {
         });
     }
     let record =
-        |id: u64, file: &str, (width, height): (u32, u32), min: [f64; 2], arrival_s: f64| crate::patches::PatchRecord {
+        |id: u64, file: &str, (width, height): (u32, u32), min: [f64; 2], arrival_s: f64| citystream_gen::patches::PatchRecord {
             id,
             file: file.to_owned(),
             width,
@@ -718,9 +436,9 @@ fn patches_seeds(work: &Path) -> Result<Vec<Seed>> {
             metres_per_texel: 2.0,
             arrival_s,
         };
-    let set = crate::patches::PatchSet {
+    let set = citystream_gen::patches::PatchSet {
         format: "citystream-patches".into(),
-        version: crate::patches::PATCHES_VERSION,
+        version: citystream_gen::patches::PATCHES_VERSION,
         source_image: "source.png".into(),
         source_size: [64, 64],
         source_crc32: 0x1234_5678,
@@ -738,9 +456,9 @@ fn patches_seeds(work: &Path) -> Result<Vec<Seed>> {
         ],
     };
     let json = serde_json::to_vec_pretty(&set)?;
-    std::fs::write(dir.join(crate::patches::PATCHES_FILE), &json)?;
+    std::fs::write(dir.join(citystream_gen::patches::PATCHES_FILE), &json)?;
     seeds.push(Seed {
-        name: crate::patches::PATCHES_FILE.to_owned(),
+        name: citystream_gen::patches::PATCHES_FILE.to_owned(),
         bytes: json,
     });
     Ok(seeds)
@@ -843,7 +561,7 @@ fn path_seeds() -> Result<Vec<Seed>> {
 /// The Khronos BoxTextured sample as `.gltf` (external buffer and PNG, copied into the
 /// harness's base directory) and `.glb`, and a two-node quad with a data-URI buffer.
 fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
-    let samples = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/gltf");
+    let samples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/gltf");
     let base = work.join("gltf");
     std::fs::create_dir_all(&base)?;
     for file in ["BoxTextured0.bin", "CesiumLogoFlat.png"] {
@@ -1029,16 +747,6 @@ mod tests {
             assert_ne!(harness.input(7, 3), harness.input(7, 4));
             let _ = std::fs::remove_dir_all(&work);
         }
-    }
-
-    #[test]
-    fn number_tokens_are_replaced_whole() {
-        let mut rng = SplitMix64::new(1);
-        let mut text = br#"{"t": -12.5e3, "x": [1, 2]}"#.to_vec();
-        replace_number(&mut rng, &mut text);
-        let text = String::from_utf8(text).expect("utf-8");
-        assert!(!text.contains("12.5e3") || !text.contains("[1, 2]"), "{text}");
-        assert!(text.starts_with("{\"t\": "), "{text}");
     }
 
     #[test]
