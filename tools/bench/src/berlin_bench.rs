@@ -19,8 +19,9 @@ use anyhow::{Context, Result};
 use citystream_dataset::Dataset;
 use citystream_streaming::bench::path::standard_path;
 
-use crate::bench::{checks_table, count, stat, summary_of, BenchRun, Check};
-use crate::default_city::{is_dataset, upgrade_if_old};
+use crate::runs::BenchRun;
+use crate::tables::{checks_table, count, stat, summary_of, Check};
+use citystream_gen::default_city::{is_dataset, upgrade_if_old};
 
 /// Camera seconds of the paper's Berlin benchmark (§4.1).
 pub const BERLIN_PATH_S: f64 = 68.6;
@@ -162,7 +163,7 @@ pub(crate) fn ensure_city(data_dir: &Path) -> Result<PathBuf> {
              `citystream gen --preset berlin --seed 1 --out {}`",
             dir.display()
         );
-        crate::gen::run(&crate::gen::GenArgs::new(crate::gen::Preset::Berlin, 1, dir.clone()))?;
+        citystream_gen::city::run(&citystream_gen::options::GenArgs::new(citystream_gen::options::Preset::Berlin, 1, dir.clone()))?;
     }
     Ok(dir)
 }

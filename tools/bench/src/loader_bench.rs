@@ -268,8 +268,8 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
     md.push_str("\nMB = 2^20 bytes. The loader's time includes its planning (state and header lookups).\n");
     let json = serde_json::to_string_pretty(&passes)?;
     let json_path = out.join("loader.json");
-    crate::files::write_atomically(&json_path, json.as_bytes())?;
+    citystream_gen::files::write_atomically(&json_path, json.as_bytes())?;
     let md_path = out.join("loader.md");
-    crate::files::write_atomically(&md_path, md.as_bytes())?;
+    citystream_gen::files::write_atomically(&md_path, md.as_bytes())?;
     Ok(md)
 }

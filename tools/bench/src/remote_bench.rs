@@ -19,9 +19,9 @@ use citystream_dataset::Dataset;
 
 use citystream_dataset::remote::MipCacheOptions;
 
-use crate::fault_proxy::{FaultOptions, FaultProxy};
+use citystream_testing::fault_proxy::{FaultOptions, FaultProxy};
 use crate::loader_bench::{drop_page_cache, loader_pass};
-use crate::nginx::Nginx;
+use citystream_testing::nginx::Nginx;
 
 /// One measured pass.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -184,10 +184,10 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
          passes run behind the 80 ms proxy at 32 in flight: `filling` also writes every mip into an empty \
          cache, `warm` reads them back from it (its files still in the page cache).\n",
     );
-    crate::files::write_atomically(
+    citystream_gen::files::write_atomically(
         &out.join("remote.json"),
         serde_json::to_string_pretty(&passes)?.as_bytes(),
     )?;
-    crate::files::write_atomically(&out.join("remote.md"), md.as_bytes())?;
+    citystream_gen::files::write_atomically(&out.join("remote.md"), md.as_bytes())?;
     Ok(md)
 }

@@ -11,7 +11,7 @@
 //!   `memory_budget_bytes` (null: unlimited), `eviction` and
 //!   `frames_over_budget`. Other keys are ignored.
 //! - `DIR/frames.csv`: a header naming at least the columns
-//!   [`FRAME_COLUMNS`] (any order) and optionally `mse`, then one row per frame;
+//!   [`FRAME_COLUMNS`](crate::report_runs::FRAME_COLUMNS) (any order) and optionally `mse`, then one row per frame;
 //!   `mip_deficit`, `psnr_db` and `mse` cells are empty on frames where they were not
 //!   measured.
 //!
@@ -32,7 +32,7 @@
 //!
 //! Charts are drawn with `plotters` into an RGB buffer and encoded with the
 //! `image` crate; the text uses the embedded DejaVu Sans font (licence in
-//! `tools/assets/fonts/`), so no system font is needed at run time.
+//! `tools/bench/assets/fonts/`), so no system font is needed at run time.
 
 use std::collections::HashSet;
 use std::fmt::Write as _;
@@ -44,35 +44,10 @@ use anyhow::{anyhow, bail, Context, Result};
 use citystream_streaming::bench::stats::{Stats, RATE_WINDOW_S};
 use citystream_streaming::controller::BYTES_PER_MB;
 
-use crate::image_error::{ErrorFrames, FrameError, PhaseError, STARTUP_S};
+use crate::image_error::{PhaseError, STARTUP_S};
+use crate::report_runs::{load_run, read_frames_csv, FrameRow, Run, SummaryJson};
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use serde::Deserialize;
-
-/// The columns `frames.csv` must have, as the flythrough writes them.
-pub const FRAME_COLUMNS: [&str; 16] = [
-    "frame",
-    "time_s",
-    "dt_ms",
-    "tw_ms",
-    "tm_ms",
-    "tb_ms",
-    "tbl_ms",
-    "tbu_ms",
-    "load_size_mb",
-    "mip_bias",
-    "mips",
-    "bytes",
-    "blocks_bound",
-    "resident_bytes",
-    "mip_deficit",
-    "psnr_db",
-];
-
-/// Size of one Fig. 6 panel in pixels; the per-run chart is 2 × 2 panels.
-pub const PANEL_SIZE: (u32, u32) = (800, 500);
-/// Size of `speed_vs_error.png` in pixels.
-pub const SPEED_ERROR_SIZE: (u32, u32) = (900, 600);
 
 /// Options of `citystream report`.
 #[derive(Debug, clap::Args)]
@@ -108,166 +83,6 @@ pub struct ReportOutputs {
     pub run_charts: Vec<PathBuf>,
     /// The speed-against-error chart.
     pub speed_vs_error: PathBuf,
-}
-
-/// Median / mean / max / min as written in `summary.json`.
-#[derive(Debug, Clone, Copy, Deserialize)]
-struct StatsJson {
-    median: f64,
-    mean: f64,
-    max: f64,
-    min: f64,
-}
-
-impl From<StatsJson> for Stats {
-    fn from(s: StatsJson) -> Stats {
-        Stats {
-            median: s.median,
-            mean: s.mean,
-            max: s.max,
-            min: s.min,
-        }
-    }
-}
-
-/// The part of `summary.json` the report reads.
-#[derive(Debug, Clone, Deserialize)]
-struct SummaryJson {
-    frame_ms: StatsJson,
-    tw_ms: StatsJson,
-    mips_per_s: StatsJson,
-    mb_per_s: StatsJson,
-    load_size_mb: StatsJson,
-    mip_bias: StatsJson,
-    #[serde(default)]
-    mip_deficit: Option<StatsJson>,
-    #[serde(default)]
-    psnr_db: Option<StatsJson>,
-    /// Absent in summaries of runs before every measured frame counted.
-    #[serde(default)]
-    error_frames: Option<ErrorFrames>,
-    #[serde(default)]
-    psnr_of_mean_mse_db: Option<f64>,
-    /// The start-up fill's and the streaming's errors apart; absent in older summaries.
-    #[serde(default)]
-    startup_psnr_of_mean_mse_db: Option<f64>,
-    #[serde(default)]
-    startup_error_frames: Option<ErrorFrames>,
-    #[serde(default)]
-    streaming_psnr_of_mean_mse_db: Option<f64>,
-    #[serde(default)]
-    streaming_error_frames: Option<ErrorFrames>,
-    frames: u64,
-    duration_s: f64,
-    policy: String,
-    bytes_streamed: u64,
-    mips_streamed: u64,
-    blocks_bound: u64,
-    peak_resident_bytes: u64,
-    /// Absent in summaries of older runs.
-    #[serde(default)]
-    unique_bytes_streamed: Option<u64>,
-    /// Absent or null: unlimited.
-    #[serde(default)]
-    memory_budget_bytes: Option<u64>,
-    #[serde(default)]
-    frames_over_budget: Option<u64>,
-    /// Written by the runs that also write the budget; absent in older ones.
-    #[serde(default)]
-    eviction: Option<String>,
-}
-
-/// One row of `frames.csv`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct FrameRow {
-    time_s: f64,
-    dt_ms: f64,
-    tw_ms: f64,
-    tm_ms: f64,
-    tb_ms: f64,
-    tbl_ms: f64,
-    tbu_ms: f64,
-    load_size_mb: f64,
-    mip_bias: f64,
-    mips: u64,
-    bytes: u64,
-    blocks_bound: u64,
-    mip_deficit: Option<f64>,
-    psnr_db: Option<f64>,
-    /// Absent from older CSVs.
-    mse: Option<f64>,
-}
-
-/// A run read from disk, with the statistics the table shows.
-#[derive(Debug, Clone)]
-struct Run {
-    name: String,
-    dir: PathBuf,
-    summary: SummaryJson,
-    frames: Vec<FrameRow>,
-    mip_deficit: Option<Stats>,
-    psnr_db: Option<Stats>,
-    /// The headline error and what it counts.
-    error: Option<RunError>,
-}
-
-/// A run's image error: over every measured frame, and apart for the start-up fill and
-/// the streaming after it (the headline; `crate::image_error::STARTUP_S`).
-#[derive(Debug, Clone, Copy)]
-struct RunError {
-    psnr_of_mean_mse_db: f64,
-    frames: ErrorFrames,
-    startup: Option<PhaseError>,
-    streaming: Option<PhaseError>,
-}
-
-impl RunError {
-    /// From the summary's keys, or recomputed from the CSV's `time_s` and `mse` cells.
-    fn of(summary: &SummaryJson, frames: &[FrameRow]) -> Option<Self> {
-        let from_csv = |startup: Option<bool>| {
-            PhaseError::of(
-                frames
-                    .iter()
-                    .filter(|f| startup.is_none_or(|s| (f.time_s < STARTUP_S) == s))
-                    .filter_map(|f| f.mse.map(FrameError::of_mse)),
-            )
-        };
-        let phase = |psnr: Option<f64>, counted: Option<ErrorFrames>, startup: bool| match (psnr, counted) {
-            (Some(psnr_of_mean_mse_db), Some(error_frames)) => Some(PhaseError {
-                psnr_of_mean_mse_db,
-                error_frames,
-            }),
-            _ => from_csv(Some(startup)),
-        };
-        let all = match (summary.psnr_of_mean_mse_db, summary.error_frames) {
-            (Some(psnr_of_mean_mse_db), Some(error_frames)) => PhaseError {
-                psnr_of_mean_mse_db,
-                error_frames,
-            },
-            _ => from_csv(None)?,
-        };
-        Some(RunError {
-            psnr_of_mean_mse_db: all.psnr_of_mean_mse_db,
-            frames: all.error_frames,
-            startup: phase(summary.startup_psnr_of_mean_mse_db, summary.startup_error_frames, true),
-            streaming: phase(
-                summary.streaming_psnr_of_mean_mse_db,
-                summary.streaming_error_frames,
-                false,
-            ),
-        })
-    }
-
-    /// The figure runs are compared by: the streaming after the start-up fill, or every
-    /// frame where none was measured after it.
-    fn headline_db(&self) -> f64 {
-        self.streaming
-            .map_or(self.psnr_of_mean_mse_db, |p| p.psnr_of_mean_mse_db)
-    }
-
-    fn frames_cell(&self) -> String {
-        format!("{} / {}", self.frames.identical, self.frames.measured)
-    }
 }
 
 fn phase_cell(phase: Option<PhaseError>) -> (String, String) {
@@ -337,7 +152,7 @@ pub fn write_report(inputs: &[RunInput], out: &Path) -> Result<ReportOutputs> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
 
     let table = out.join("table.md");
-    crate::files::write_atomically(&table, markdown_table(&runs).as_bytes())?;
+    citystream_gen::files::write_atomically(&table, markdown_table(&runs).as_bytes())?;
 
     let mut run_charts = Vec::with_capacity(runs.len());
     for run in &runs {
@@ -436,135 +251,6 @@ fn file_slug(name: &str) -> String {
     } else {
         slug
     }
-}
-
-fn load_run(dir: &Path, name: &str) -> Result<Run> {
-    let summary_path = dir.join("summary.json");
-    let text = std::fs::read_to_string(&summary_path).with_context(|| format!("reading {}", summary_path.display()))?;
-    // serde_json's messages carry the line and column of the fault.
-    let summary: SummaryJson = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not a valid flythrough summary", summary_path.display()))?;
-    let frames = read_frames_csv(&dir.join("frames.csv"))?;
-    let measured = |pick: fn(&FrameRow) -> Option<f64>| -> Option<Stats> {
-        let samples: Vec<f64> = frames.iter().filter_map(pick).filter(|x| x.is_finite()).collect();
-        (!samples.is_empty()).then(|| Stats::from_samples(&samples))
-    };
-    let mip_deficit = summary
-        .mip_deficit
-        .map(Stats::from)
-        .or_else(|| measured(|f| f.mip_deficit));
-    let psnr_db = summary.psnr_db.map(Stats::from).or_else(|| measured(|f| f.psnr_db));
-    let error = RunError::of(&summary, &frames);
-    Ok(Run {
-        name: name.to_string(),
-        dir: dir.to_path_buf(),
-        summary,
-        frames,
-        mip_deficit,
-        psnr_db,
-        error,
-    })
-}
-
-/// Parse `frames.csv`; every error names the file and the 1-based line.
-fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut lines = text.lines().enumerate();
-    let header = loop {
-        match lines.next() {
-            Some((_, l)) if l.trim().is_empty() => continue,
-            Some((_, l)) => break l,
-            None => bail!("{}: empty file, expected a header line", path.display()),
-        }
-    };
-    let names: Vec<&str> = header.trim_end_matches('\r').split(',').map(str::trim).collect();
-    let mse_column = names.iter().position(|n| *n == "mse");
-    let mut index = [0usize; FRAME_COLUMNS.len()];
-    for (slot, column) in index.iter_mut().zip(FRAME_COLUMNS) {
-        *slot = names.iter().position(|n| *n == column).ok_or_else(|| {
-            anyhow!(
-                "{}: line 1: header lacks the column `{column}` (expected {})",
-                path.display(),
-                FRAME_COLUMNS.join(",")
-            )
-        })?;
-    }
-    let mut rows = Vec::new();
-    for (i, line) in lines {
-        let line_no = i + 1;
-        let line = line.trim_end_matches('\r');
-        if line.trim().is_empty() {
-            continue;
-        }
-        let cells: Vec<&str> = line.split(',').map(str::trim).collect();
-        if cells.len() != names.len() {
-            bail!(
-                "{}: line {line_no}: {} fields, the header has {} (truncated or malformed row)",
-                path.display(),
-                cells.len(),
-                names.len()
-            );
-        }
-        let cell = |c: usize| cells[index[c]];
-        let context = |c: usize| {
-            format!(
-                "{}: line {line_no}: column `{}` = {:?}",
-                path.display(),
-                FRAME_COLUMNS[c],
-                cell(c)
-            )
-        };
-        let float = |c: usize| -> Result<f64> {
-            cell(c)
-                .parse::<f64>()
-                .map_err(|e| anyhow!("{}: not a number ({e})", context(c)))
-        };
-        let count = |c: usize| -> Result<u64> {
-            cell(c)
-                .parse::<u64>()
-                .map_err(|e| anyhow!("{}: not a non-negative integer ({e})", context(c)))
-        };
-        let optional = |c: usize| -> Result<Option<f64>> {
-            if cell(c).is_empty() {
-                Ok(None)
-            } else {
-                float(c).map(Some)
-            }
-        };
-        // Indices into FRAME_COLUMNS; `frame` and `resident_bytes` are validated but not
-        // charted.
-        count(0)?;
-        count(13)?;
-        rows.push(FrameRow {
-            time_s: float(1)?,
-            dt_ms: float(2)?,
-            tw_ms: float(3)?,
-            tm_ms: float(4)?,
-            tb_ms: float(5)?,
-            tbl_ms: float(6)?,
-            tbu_ms: float(7)?,
-            load_size_mb: float(8)?,
-            mip_bias: float(9)?,
-            mips: count(10)?,
-            blocks_bound: count(12)?,
-            bytes: count(11)?,
-            mip_deficit: optional(14)?,
-            psnr_db: optional(15)?,
-            mse: match mse_column.map(|c| cells[c]) {
-                None | Some("") => None,
-                Some(text) => Some(text.parse::<f64>().map_err(|e| {
-                    anyhow!(
-                        "{}: line {line_no}: column `mse` = {text:?}: not a number ({e})",
-                        path.display()
-                    )
-                })?),
-            },
-        });
-    }
-    if rows.is_empty() {
-        bail!("{}: no frame rows after the header", path.display());
-    }
-    Ok(rows)
 }
 
 fn markdown_table(runs: &[Run]) -> String {
@@ -743,6 +429,11 @@ fn number(x: f64) -> String {
 fn escape_cell(s: &str) -> String {
     s.replace('|', "\\|").replace('\n', " ")
 }
+
+/// Size of one Fig. 6 panel in pixels; the per-run chart is 2 × 2 panels.
+pub const PANEL_SIZE: (u32, u32) = (800, 500);
+/// Size of `speed_vs_error.png` in pixels.
+pub const SPEED_ERROR_SIZE: (u32, u32) = (900, 600);
 
 fn ensure_font() -> Result<()> {
     static FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
@@ -1095,6 +786,7 @@ fn draw_speed_vs_error(runs: &[Run], path: &Path) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::report_runs::FRAME_COLUMNS;
 
     #[test]
     fn load_profile_counts_cycles_cut_by_the_load_size_and_slow_frames() -> Result<()> {
