@@ -375,9 +375,9 @@ pub(crate) struct Args {
     #[arg(long, requires = "window")]
     pub(crate) input_script: Option<PathBuf>,
     #[command(flatten)]
-    pub(crate) remote: citystream_tools::RemoteArgs,
+    pub(crate) remote: citystream_gen::location::RemoteArgs,
     #[command(flatten)]
-    pub(crate) mip_cache: citystream_tools::MipCacheArgs,
+    pub(crate) mip_cache: citystream_gen::location::MipCacheArgs,
 }
 
 /// `--memory-budget-mb`: whole MB, or `None` for `unlimited`.

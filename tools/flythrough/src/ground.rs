@@ -20,8 +20,8 @@ use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
 use citystream_streaming::ground::PatchImage;
 use citystream_streaming::source::MipSource;
-use citystream_tools::image_error::{ErrorSeries, FrameError};
-use citystream_tools::patches::PatchSet;
+use citystream_bench::image_error::{ErrorSeries, FrameError};
+use citystream_gen::patches::PatchSet;
 
 /// One patch to insert when its time comes: where, and the PNG it is decoded from then.
 struct Arrival {

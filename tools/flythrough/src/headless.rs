@@ -14,13 +14,13 @@ use citystream_engine::gpu_types::FeedbackEntry;
 use citystream_engine::Device;
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
-use citystream_tools::files::{write_atomically, write_png};
-use citystream_tools::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
+use citystream_gen::files::{write_atomically, write_png};
+use citystream_bench::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
+use super::city_gpu::{city_gpu, reference_config};
 use super::flight::{
-    camera_path, city_gpu, focal_px, lowest_eye_height, open_city, pose_camera, reference_config, scene_extent, Flight,
-    FrameSettings, GroundSizing,
+    camera_path, focal_px, lowest_eye_height, open_city, pose_camera, scene_extent, Flight, FrameSettings, GroundSizing,
 };
 use super::measure::{feedback_reaching, load_reference, reference_feedback};
 use super::output::{status, write_csv_row, CsvRow, MipCacheSummary, Run, CSV_HEADER};

@@ -19,7 +19,7 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::Device;
 use citystream_streaming::bench::stats::SummaryBuilder;
-use citystream_tools::files::{write_atomically, write_png};
+use citystream_gen::files::{write_atomically, write_png};
 
 use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
 use crate::flight::{dataset_dir, flythrough_device};
@@ -28,6 +28,8 @@ use crate::output::status;
 use crate::pop_in::pop_in;
 
 mod args;
+mod city_gpu;
+mod controls;
 mod flight;
 mod ground;
 mod headless;

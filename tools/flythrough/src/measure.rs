@@ -13,7 +13,7 @@ use citystream_streaming::atlas_tree::{frustum_planes, intersects_frustum};
 use citystream_streaming::source::MipSource;
 
 use super::args::FIXED_STEP_MS;
-use super::flight::{CityGpu, CityTargets};
+use super::city_gpu::{CityGpu, CityTargets};
 
 /// Loads, into the reference streamer, every level from the one each seen
 /// mesh needs up to its coarsest, with no budget or load size; returns how

@@ -6,7 +6,7 @@ use anyhow::Result;
 
 use citystream_engine::city::Camera;
 use citystream_streaming::bench::stats::Stats;
-use citystream_tools::image_error::{FrameError, PrefixedErrorFigures};
+use citystream_bench::image_error::{FrameError, PrefixedErrorFigures};
 
 use super::flight::GpuPassMs;
 use super::ground;
@@ -61,7 +61,7 @@ pub(crate) struct Run<'a> {
     pub(crate) mip_deficit: Option<Stats>,
     /// The facades' error against the fully resident reference: `psnr_db`,
     /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured
-    /// frame counts, identical ones at the ceiling; `citystream_tools::image_error`).
+    /// frame counts, identical ones at the ceiling; `citystream_bench::image_error`).
     #[serde(flatten)]
     pub(crate) error: PrefixedErrorFigures,
     /// With --ground: tiles of ground imagery composed and uploaded, their MB, and the

@@ -11,14 +11,12 @@ use citystream_engine::gpu_types::FEEDBACK_MIP_ONE;
 use citystream_engine::Device;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MipSource;
-use citystream_tools::files::{write_atomically, write_png};
-use citystream_tools::image_error::mse;
+use citystream_gen::files::{write_atomically, write_png};
+use citystream_bench::image_error::mse;
 
 use super::args::{frame_interval, frames_dir_path, Args};
-use super::flight::{
-    cache_layer_size, camera_path, city_gpu, city_targets, open_city, pose_camera, reference_config, CityGpu,
-    CityTargets,
-};
+use super::city_gpu::{cache_layer_size, city_gpu, city_targets, reference_config, CityGpu, CityTargets};
+use super::flight::{camera_path, open_city, pose_camera};
 use super::measure::feedback_frame_now;
 
 #[derive(Debug, serde::Serialize)]

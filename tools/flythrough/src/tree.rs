@@ -16,7 +16,7 @@ use citystream_streaming::atlas_tree::AtlasTree;
 use citystream_streaming::bench::stats::Stats;
 
 use super::args::{Args, UNLIMITED_BUDGET_BYTES};
-use super::flight::CityGpu;
+use super::city_gpu::CityGpu;
 
 /// The atlas-tree strategy and, per frame, what it chose.
 pub(crate) struct TreeRun {

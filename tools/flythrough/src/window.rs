@@ -13,318 +13,29 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use glam::Vec3;
-use serde::Deserialize;
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
-use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::keyboard::PhysicalKey;
 use winit::window::{Window, WindowId};
 
-use citystream_dataset::Dataset;
 use citystream_engine::commands::CommandContext;
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::Device;
-use citystream_streaming::bench::path::{CameraPath, CameraPose, Keyframe};
-use citystream_tools::files::write_png;
+use citystream_streaming::bench::path::{CameraPath, CameraPose};
+use citystream_gen::files::write_png;
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_STEP_MS};
+use super::city_gpu::city_targets;
+use super::controls::{
+    load_script, overview_pose, report_saved, Action, FlyCamera, Recorder, Replay, ScriptEvent, Throughput, HELP,
+};
 use super::flight::{
-    camera_path, city_targets, dataset_dir, flythrough_device, focal_px, lowest_eye_height, open_city, pose_camera,
-    Flight, FrameSettings, GroundSizing,
+    camera_path, dataset_dir, flythrough_device, focal_px, lowest_eye_height, open_city, pose_camera, Flight,
+    FrameSettings, GroundSizing,
 };
 use super::output::{write_csv_row, CsvRow, CSV_HEADER};
-
-/// What a key (or a scripted event) does.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-enum Action {
-    Forward,
-    Back,
-    Left,
-    Right,
-    Down,
-    Up,
-    /// Held: fly four times as fast.
-    Fast,
-    /// Jump to the dataset's overview.
-    Overview,
-    /// Play the camera path (`--path`, default the standard path) from its start.
-    Replay,
-    /// Stop or resume streaming (feedback and loading); the view keeps what is resident.
-    PauseStreaming,
-    /// Blend the City Colormap by mip level (Eq. 8) or show sampled colour only.
-    ToggleColormap,
-    /// Start or stop recording the camera path.
-    Record,
-    Quit,
-}
-
-impl Action {
-    fn of_key(code: KeyCode) -> Option<Action> {
-        Some(match code {
-            KeyCode::KeyW | KeyCode::ArrowUp => Action::Forward,
-            KeyCode::KeyS | KeyCode::ArrowDown => Action::Back,
-            KeyCode::KeyA | KeyCode::ArrowLeft => Action::Left,
-            KeyCode::KeyD | KeyCode::ArrowRight => Action::Right,
-            KeyCode::KeyQ | KeyCode::PageDown => Action::Down,
-            KeyCode::KeyE | KeyCode::PageUp => Action::Up,
-            KeyCode::ShiftLeft | KeyCode::ShiftRight => Action::Fast,
-            KeyCode::KeyO | KeyCode::Home => Action::Overview,
-            KeyCode::KeyP => Action::Replay,
-            KeyCode::Space => Action::PauseStreaming,
-            KeyCode::KeyC => Action::ToggleColormap,
-            KeyCode::KeyR => Action::Record,
-            KeyCode::Escape => Action::Quit,
-            _ => return None,
-        })
-    }
-
-    /// Held actions move the camera while down; the others act once on press.
-    fn is_held(self) -> bool {
-        matches!(
-            self,
-            Action::Forward | Action::Back | Action::Left | Action::Right | Action::Down | Action::Up | Action::Fast
-        )
-    }
-}
-
-/// The controls, printed at start.
-const HELP: &str = "controls: drag with the left mouse button to look, W/A/S/D fly, Q/E down/up, Shift faster, \
-                    scroll wheel changes speed, O overview, P play the path, Space pause streaming, \
-                    C colormap blending, R start/stop recording, Esc quit";
-
-/// One scripted input event (`--input-script`), applied before frame `frame` renders.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ScriptEvent {
-    frame: u32,
-    #[serde(default)]
-    press: Option<Action>,
-    #[serde(default)]
-    release: Option<Action>,
-    /// A mouse drag, in pixels (x right, y down).
-    #[serde(default)]
-    look: Option<[f64; 2]>,
-    /// Scroll-wheel notches (positive: faster).
-    #[serde(default)]
-    scroll: Option<f64>,
-    /// Ask the window system for this inner size.
-    #[serde(default)]
-    resize: Option<[u32; 2]>,
-    /// Minimise (and unmap) the window for this many wall-clock seconds.
-    #[serde(default)]
-    minimise_s: Option<f64>,
-    /// Write the presented image of this frame to OUT/frames/.
-    #[serde(default)]
-    screenshot: bool,
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Script {
-    events: Vec<ScriptEvent>,
-}
-
-fn load_script(path: &Path) -> Result<Vec<ScriptEvent>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading the input script {}", path.display()))?;
-    let script: Script =
-        serde_json::from_str(&text).with_context(|| format!("parsing the input script {}", path.display()))?;
-    let mut events = script.events;
-    for (i, e) in events.iter().enumerate() {
-        let actions = [
-            e.press.is_some(),
-            e.release.is_some(),
-            e.look.is_some(),
-            e.scroll.is_some(),
-            e.resize.is_some(),
-            e.minimise_s.is_some(),
-            e.screenshot,
-        ];
-        if actions.iter().filter(|a| **a).count() != 1 {
-            bail!(
-                "{}: event {i} (frame {}) must do exactly one of press, release, look, scroll, resize, \
-                 minimise_s, screenshot",
-                path.display(),
-                e.frame
-            );
-        }
-        let finite = e.look.is_none_or(|l| l.iter().all(|v| v.is_finite()))
-            && e.scroll.is_none_or(f64::is_finite)
-            && e.minimise_s
-                .is_none_or(|s| s.is_finite() && (0.0..=3600.0).contains(&s));
-        if !finite {
-            bail!(
-                "{}: event {i} (frame {}): numbers must be finite (minimise_s within 0..=3600)",
-                path.display(),
-                e.frame
-            );
-        }
-        if let Some([w, h]) = e.resize {
-            if !(16..=8192).contains(&w) || !(16..=8192).contains(&h) {
-                bail!(
-                    "{}: event {i} (frame {}): resize {w}x{h} is outside 16..=8192 per side",
-                    path.display(),
-                    e.frame
-                );
-            }
-        }
-    }
-    // Stable: events of one frame keep their order.
-    events.sort_by_key(|e| e.frame);
-    Ok(events)
-}
-
-/// The free-flying camera: a position and a view direction.
-#[derive(Clone, Copy, Debug)]
-struct FlyCamera {
-    position: Vec3,
-    yaw: f32,
-    pitch: f32,
-    /// Distance of the look-at point written to recorded paths.
-    look_distance: f32,
-}
-
-impl FlyCamera {
-    fn from_pose(pose: &CameraPose) -> Self {
-        let position = Vec3::from(pose.position);
-        let offset = Vec3::from(pose.look_at) - position;
-        let distance = offset.length().max(1e-3);
-        let dir = offset / distance;
-        Self {
-            position,
-            yaw: dir.z.atan2(dir.x),
-            pitch: dir.y.clamp(-1.0, 1.0).asin(),
-            look_distance: distance,
-        }
-    }
-
-    fn direction(&self) -> Vec3 {
-        Vec3::new(
-            self.yaw.cos() * self.pitch.cos(),
-            self.pitch.sin(),
-            self.yaw.sin() * self.pitch.cos(),
-        )
-    }
-
-    fn pose(&self) -> CameraPose {
-        CameraPose {
-            position: self.position.to_array(),
-            look_at: (self.position + self.direction() * self.look_distance).to_array(),
-            in_pause: false,
-            jumped: false,
-        }
-    }
-}
-
-/// The dataset's overview: above the middle of its bounds, looking down on it.
-fn overview_pose(dataset: &Dataset) -> CameraPose {
-    let bounds = dataset.scene.bounds;
-    let (min, max) = (Vec3::from(bounds.min), Vec3::from(bounds.max));
-    let centre = (min + max) * 0.5;
-    let size = max - min;
-    let extent = size.x.max(size.z).max(1.0);
-    let eye = Vec3::new(centre.x, max.y + extent * 0.45, centre.z - extent * 0.55);
-    CameraPose {
-        position: eye.to_array(),
-        look_at: centre.to_array(),
-        in_pause: false,
-        jumped: false,
-    }
-}
-
-/// Records the flown path: a keyframe per frame in which the camera moved,
-/// `hold_s` on the keyframe where it then held still, `jump` where it teleported.
-#[derive(Debug)]
-struct Recorder {
-    file: PathBuf,
-    started_s: f64,
-    keyframes: Vec<Keyframe>,
-}
-
-impl Recorder {
-    fn new(file: PathBuf, started_s: f64) -> Self {
-        Self {
-            file,
-            started_s,
-            keyframes: Vec::new(),
-        }
-    }
-
-    fn push(&mut self, time_s: f64, pose: &CameraPose, jumped: bool) {
-        let t = time_s - self.started_s;
-        if let Some(last) = self.keyframes.last_mut() {
-            if t <= last.end_s() {
-                return;
-            }
-            if !jumped && last.position == pose.position && last.look_at == pose.look_at {
-                last.hold_s = t - last.t;
-                return;
-            }
-        }
-        let mut keyframe = Keyframe::new(t, pose.position, pose.look_at);
-        keyframe.jump = jumped && !self.keyframes.is_empty();
-        self.keyframes.push(keyframe);
-    }
-
-    /// Writes the path (atomically); `None` when nothing was recorded. On
-    /// failure the recorder comes back, keyframes intact.
-    fn save(self) -> std::result::Result<Option<SavedPath>, (Self, anyhow::Error)> {
-        if self.keyframes.is_empty() {
-            return Ok(None);
-        }
-        let written = CameraPath::new(self.keyframes.clone())
-            .context("the recorded path")
-            .and_then(|path| {
-                let path = path.with_description("recorded in the flythrough window");
-                path.save(&self.file)
-                    .with_context(|| format!("writing the recorded path {}", self.file.display()))?;
-                Ok(path.duration_s())
-            });
-        match written {
-            Ok(duration_s) => Ok(Some(SavedPath {
-                file: self.file,
-                keyframes: self.keyframes.len(),
-                duration_s,
-            })),
-            Err(e) => Err((self, e)),
-        }
-    }
-}
-
-/// A recording written to its file.
-#[derive(Debug)]
-struct SavedPath {
-    file: PathBuf,
-    keyframes: usize,
-    duration_s: f64,
-}
-
-/// A path played at the camera clock's speed.
-#[derive(Debug)]
-struct Replay {
-    path: CameraPath,
-    /// Camera time of the path's start: the first frame that plays it.
-    started_s: Option<f64>,
-    previous_t: Option<f64>,
-}
-
-/// Bytes uploaded over the last second, for the MB/s the title shows.
-#[derive(Debug, Default)]
-struct Throughput {
-    samples: std::collections::VecDeque<(f64, u64)>,
-}
-
-impl Throughput {
-    fn push(&mut self, time_s: f64, bytes: u64) -> f64 {
-        self.samples.push_back((time_s, bytes));
-        while self.samples.front().is_some_and(|(t, _)| time_s - t > 1.0) {
-            self.samples.pop_front();
-        }
-        let span = self.samples.front().map_or(0.0, |(t, _)| time_s - t).max(1e-3);
-        self.samples.iter().map(|(_, b)| *b).sum::<u64>() as f64 / 1e6 / span.max(FIXED_STEP_MS / 1000.0)
-    }
-}
 
 /// Everything that needs the window: created on the first `resumed`.
 struct Viewer {
@@ -1100,20 +811,5 @@ impl Drop for Viewer {
         // in use by frames in flight; they go once the GPU is done (also on
         // error paths, which skip `finish`).
         let _ = self.device.wait_idle();
-    }
-}
-
-fn report_saved(saved: Option<SavedPath>) {
-    match saved {
-        Some(SavedPath {
-            file,
-            keyframes,
-            duration_s,
-        }) => eprintln!(
-            "\nrecorded {keyframes} keyframes ({duration_s:.1} s) to {}; replay with --path {}",
-            file.display(),
-            file.display()
-        ),
-        None => eprintln!("\nnothing recorded"),
     }
 }
