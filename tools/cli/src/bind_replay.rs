@@ -454,8 +454,34 @@ fn read_log(path: &std::path::Path) -> Result<String> {
     Ok(text)
 }
 
-/// Runs `citystream bind-replay`.
-pub fn run(args: &BindReplayArgs) -> Result<()> {
+/// A log replayed on this machine's device: what it did and the validation errors it raised.
+#[derive(Clone, Copy, Debug)]
+pub struct LogReplay {
+    pub done: Replayed,
+    pub seconds: f64,
+    pub validation_errors: usize,
+}
+
+impl std::fmt::Display for LogReplay {
+    /// The line `citystream bind-replay` prints.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "replayed {} images, {} chunks, {} batches ({} block operations) and {} copies in {:.2} s; {} validation errors",
+            self.done.images,
+            self.done.chunks,
+            self.done.batches,
+            self.done.operations,
+            self.done.copies,
+            self.seconds,
+            self.validation_errors
+        )
+    }
+}
+
+/// Replays the log `args` names on a device of this machine, the bind checker on unless
+/// `--no-check`; the flythrough's tests replay the logs of their flights with it.
+pub fn replay_log(args: &BindReplayArgs) -> Result<LogReplay> {
     let text = read_log(&args.log)?;
     let records = parse(&text).with_context(|| format!("reading the bind log {}", args.log.display()))?;
     let device = Arc::new(
@@ -477,17 +503,18 @@ pub fn run(args: &BindReplayArgs) -> Result<()> {
     let start = Instant::now();
     let done =
         replay(&device, &records, !args.no_check).with_context(|| format!("replaying {}", args.log.display()))?;
-    let errors = device.validation_log().errors().len();
-    println!(
-        "replayed {} images, {} chunks, {} batches ({} block operations) and {} copies in {:.2} s; {} validation errors",
-        done.images,
-        done.chunks,
-        done.batches,
-        done.operations,
-        done.copies,
-        start.elapsed().as_secs_f64(),
-        errors
-    );
+    Ok(LogReplay {
+        done,
+        seconds: start.elapsed().as_secs_f64(),
+        validation_errors: device.validation_log().errors().len(),
+    })
+}
+
+/// Runs `citystream bind-replay`.
+pub fn run(args: &BindReplayArgs) -> Result<()> {
+    let replayed = replay_log(args)?;
+    println!("{replayed}");
+    let errors = replayed.validation_errors;
     if errors > 0 {
         bail!("{errors} validation errors during the replay");
     }

@@ -18,7 +18,7 @@ pub struct InfoArgs {
     #[arg(long)]
     pub json: bool,
     #[command(flatten)]
-    pub remote: crate::RemoteArgs,
+    pub remote: citystream_gen::location::RemoteArgs,
 }
 
 /// Textures of one extent.
@@ -35,8 +35,8 @@ struct LocalFrame {
 
 impl LocalFrame {
     fn of(crs: &Crs) -> Option<Self> {
-        let ecef = crate::tiles::local_frame_origin(crs)?;
-        let g = crate::tiles::geodesy::to_geodetic(ecef)?;
+        let ecef = citystream_import::tiles::local_frame_origin(crs)?;
+        let g = citystream_import::tiles::geodesy::to_geodetic(ecef)?;
         Some(Self {
             ecef,
             latitude_deg: g.latitude.to_degrees(),
@@ -81,13 +81,13 @@ struct Info {
     host_bytes_per_texture: usize,
     open_seconds: f64,
     /// The texture-atlas tree, where the dataset is one (`citystream atlas-tree`).
-    atlas_tree: Option<crate::atlas_tree::TreeInfo>,
+    atlas_tree: Option<citystream_gen::atlas_tree::TreeInfo>,
 }
 
 /// Runs `citystream info`.
 pub fn run(args: &InfoArgs) -> Result<()> {
     let start = Instant::now();
-    let dataset = crate::open_dataset_with(&args.dir, &args.remote.options()?)?;
+    let dataset = citystream_gen::location::open_dataset_with(&args.dir, &args.remote.options()?)?;
     let open_seconds = start.elapsed().as_secs_f64();
     let info = collect(args, &dataset, open_seconds)?;
     let mut text = Vec::new();
@@ -96,7 +96,7 @@ pub fn run(args: &InfoArgs) -> Result<()> {
     } else {
         print_text(&mut text, &info)?;
     }
-    crate::gen::print_stdout(&String::from_utf8_lossy(&text))
+    citystream_gen::files::print_stdout(&String::from_utf8_lossy(&text))
 }
 
 fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info> {
@@ -144,9 +144,9 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         bounds_max: scene.bounds.max,
         host_bytes_per_texture: Dataset::metadata_bytes_per_texture(),
         open_seconds,
-        atlas_tree: crate::atlas_tree::open_if_tree(dataset)?
+        atlas_tree: citystream_gen::atlas_tree::open_if_tree(dataset)?
             .as_ref()
-            .map(crate::atlas_tree::TreeInfo::of),
+            .map(citystream_gen::atlas_tree::TreeInfo::of),
     })
 }
 

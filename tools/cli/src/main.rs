@@ -3,10 +3,10 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-use citystream_tools::{
-    atlas, atlas_tree, bench, bind_replay, cache_report, gen, import, info, patches, path, report, simulate, upgrade,
-    verify,
-};
+use citystream_bench::{bench, report, simulate};
+use citystream_cli::{bind_replay, cache_report, info, path, upgrade, verify};
+use citystream_gen::{atlas, atlas_tree, city, options, patches};
+use citystream_import::command as import;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -22,7 +22,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Generate a synthetic city dataset.
-    Gen(gen::GenArgs),
+    Gen(options::GenArgs),
     /// Pack a dataset's textures into square atlases.
     Atlas(atlas::AtlasArgs),
     /// Build a texture-atlas tree (Buchholz & Döllner) from a dataset.
@@ -54,7 +54,7 @@ enum Command {
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
-        Command::Gen(args) => gen::run(&args),
+        Command::Gen(args) => city::run(&args),
         Command::Atlas(args) => atlas::run(&args),
         Command::AtlasTree(args) => atlas_tree::run(&args),
         Command::CacheReport(args) => cache_report::run(&args),

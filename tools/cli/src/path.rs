@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use citystream_dataset::{DatasetFiles, Scene, SCENE_FILE};
 use citystream_streaming::bench::path::{standard_path, DEFAULT_STANDARD_DURATION_S};
 
-use crate::gen::print_stdout;
+use citystream_gen::files::print_stdout;
 
 /// Options of `citystream path`.
 #[derive(Debug, clap::Args)]

@@ -15,7 +15,7 @@ pub struct UpgradeArgs {
     /// The coordinate reference system the dataset's origin is in (`EPSG:<code>` or WKT),
     /// for a dataset that has none (older versions had none). A dataset already in another
     /// CRS is refused: its coordinates would have to be transformed.
-    #[arg(long, value_parser = crate::import::parse_crs)]
+    #[arg(long, value_parser = citystream_import::command::parse_crs)]
     pub crs: Option<Crs>,
 }
 
@@ -46,5 +46,5 @@ pub fn run(args: &UpgradeArgs) -> Result<()> {
             start.elapsed().as_secs_f64()
         ),
     };
-    crate::gen::print_stdout(&line)
+    citystream_gen::files::print_stdout(&line)
 }

@@ -13,7 +13,7 @@ pub struct VerifyArgs {
     /// A remote dataset's mips are read from the server, never from a mip cache.
     pub dir: PathBuf,
     #[command(flatten)]
-    pub remote: crate::RemoteArgs,
+    pub remote: citystream_gen::location::RemoteArgs,
 }
 
 /// Runs `citystream verify`; fails (non-zero exit) with the file and offset of the first problem.
@@ -22,12 +22,12 @@ pub fn run(args: &VerifyArgs) -> Result<()> {
     let mut options = args.remote.options()?;
     // Verifying checks what the server holds.
     options.mip_cache = None;
-    let dataset = crate::open_dataset_with(&args.dir, &options)
+    let dataset = citystream_gen::location::open_dataset_with(&args.dir, &options)
         .with_context(|| format!("verify failed for {}", args.dir.display()))?;
     let report = verify_dataset(&dataset).with_context(|| format!("verify failed for {}", args.dir.display()))?;
-    let tree = crate::atlas_tree::open_if_tree(&dataset)
+    let tree = citystream_gen::atlas_tree::open_if_tree(&dataset)
         .with_context(|| format!("verify failed for {}", args.dir.display()))?;
-    crate::gen::print_stdout(&format!(
+    citystream_gen::files::print_stdout(&format!(
         "ok: {}: {} meshes, {} textures, {} mips, {:.1} MB of mip data{} checked in {:.2} s\n",
         args.dir.display(),
         report.meshes,
