@@ -19,9 +19,10 @@ use citystream_engine::Device;
 use citystream_streaming::atlas_tree::{distance_to, AtlasTree, DrawWith, Selection};
 use citystream_streaming::source::texel_format;
 use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
-use citystream_tools::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
-use citystream_tools::gen::{self, FormatArg, GenArgs, Preset};
-use citystream_tools::image_error::psnr_db;
+use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
+use citystream_gen::city;
+use citystream_gen::options::{FormatArg, GenArgs, Preset};
+use citystream_bench::image_error::psnr_db;
 use glam::Vec3;
 
 const WIDTH: u32 = 320;
@@ -114,7 +115,7 @@ fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()>
     let city = base.join("city");
     let tree_dir = base.join("tree");
     let _ = std::fs::remove_dir_all(&base);
-    gen::run(&GenArgs {
+    city::run(&GenArgs {
         preset: Preset::Tiny,
         seed: 5,
         out: city.clone(),

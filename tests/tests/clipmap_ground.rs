@@ -14,7 +14,7 @@ use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
 use citystream_streaming::ground::{GroundImagery, PatchImage};
 use citystream_tests::{assert_no_validation_errors, validated_device};
-use citystream_tools::image_error::psnr_db;
+use citystream_bench::image_error::psnr_db;
 use glam::{Mat4, Vec3, Vec4};
 
 const SIZE: u32 = 256;

@@ -4,7 +4,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use citystream_dataset::Dataset;
-use citystream_tools::fuzz::{dds_file, ktx2_file, quad_buffer};
+use citystream_gen::image_files::{dds_file, ktx2_file};
+use citystream_testing::fuzz::quad_buffer;
 use serde_json::json;
 
 mod cli_support;
@@ -19,7 +20,7 @@ fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, Output) {
 }
 
 fn data(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/gltf").join(path)
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/gltf").join(path)
 }
 
 #[test]

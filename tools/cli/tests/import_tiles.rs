@@ -6,273 +6,16 @@
 use std::path::{Path, PathBuf};
 
 use citystream_dataset::Dataset;
-use citystream_tools::tiles::write;
+use citystream_import::tiles::write;
 use serde_json::{json, Value};
 
 mod cli_support;
+mod tileset_support;
 use cli_support::{citystream, import, import_verified, stderr};
+use tileset_support::*;
 
 fn fresh_dir(name: &str) -> PathBuf {
     cli_support::fresh_dir("import-tiles", name)
-}
-
-type Mat4 = [[f64; 4]; 4];
-
-/// Column-major product a × b.
-fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
-    std::array::from_fn(|c| std::array::from_fn(|r| (0..4).map(|k| a[k][r] * b[c][k]).sum()))
-}
-
-fn apply(m: &Mat4, p: [f64; 3]) -> [f64; 3] {
-    std::array::from_fn(|r| m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r])
-}
-
-fn translation(t: [f64; 3]) -> Mat4 {
-    [
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0, 0.0],
-        [t[0], t[1], t[2], 1.0],
-    ]
-}
-
-fn flat(m: &Mat4) -> Vec<f64> {
-    m.iter().flatten().copied().collect()
-}
-
-/// WGS 84, written out here rather than taken from the importer.
-const A: f64 = 6_378_137.0;
-const F: f64 = 1.0 / 298.257_223_563;
-
-fn ecef(lat_deg: f64, lon_deg: f64, h: f64) -> [f64; 3] {
-    let e2 = F * (2.0 - F);
-    let (lat, lon) = (lat_deg.to_radians(), lon_deg.to_radians());
-    let n = A / (1.0 - e2 * lat.sin().powi(2)).sqrt();
-    [
-        (n + h) * lat.cos() * lon.cos(),
-        (n + h) * lat.cos() * lon.sin(),
-        (n * (1.0 - e2) + h) * lat.sin(),
-    ]
-}
-
-/// Geodetic latitude and longitude (radians) by fixed-point iteration on the latitude.
-fn geodetic(p: [f64; 3]) -> (f64, f64) {
-    let e2 = F * (2.0 - F);
-    let r = p[0].hypot(p[1]);
-    let mut lat = (p[2] / r).atan();
-    for _ in 0..20 {
-        let n = A / (1.0 - e2 * lat.sin().powi(2)).sqrt();
-        lat = ((p[2] + e2 * n * lat.sin()) / r).atan();
-    }
-    (lat, p[1].atan2(p[0]))
-}
-
-/// The textbook east-north-up rotation at geodetic (lat, lon) as rows east, north, up.
-fn enu_rows(lat: f64, lon: f64) -> [[f64; 3]; 3] {
-    let (sl, cl) = lat.sin_cos();
-    let (so, co) = lon.sin_cos();
-    [[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]]
-}
-
-/// The ENU → ECEF transform at (lat, lon, h), as a tileset's root transform.
-fn enu_to_ecef(lat_deg: f64, lon_deg: f64, h: f64) -> Mat4 {
-    let [e, n, u] = enu_rows(lat_deg.to_radians(), lon_deg.to_radians());
-    let o = ecef(lat_deg, lon_deg, h);
-    [
-        [e[0], e[1], e[2], 0.0],
-        [n[0], n[1], n[2], 0.0],
-        [u[0], u[1], u[2], 0.0],
-        [o[0], o[1], o[2], 1.0],
-    ]
-}
-
-/// glTF y-up to the tiles' z-up, as the 3D Tiles specification gives it.
-const Y_UP_TO_Z_UP: Mat4 = [
-    [1.0, 0.0, 0.0, 0.0],
-    [0.0, 0.0, 1.0, 0.0],
-    [0.0, -1.0, 0.0, 0.0],
-    [0.0, 0.0, 0.0, 1.0],
-];
-
-/// A quad in glTF coordinates (y up): `size` metres wide and high, standing at `at`.
-fn wall(at: [f32; 3], size: f32) -> [[f32; 3]; 4] {
-    let [x, y, z] = at;
-    [[x, y, z], [x + size, y, z], [x + size, y + size, z], [x, y + size, z]]
-}
-
-/// One tile's content as written and where its corners must land (Earth-centred).
-struct Written {
-    file: String,
-    corners_ecef: Vec<[f64; 3]>,
-    png: Vec<u8>,
-}
-
-/// Writes a glb (`b3dm` wraps it) of one textured wall into `dir/file`.
-#[allow(clippy::too_many_arguments)]
-fn write_content(
-    dir: &Path,
-    file: &str,
-    corners: [[f32; 3]; 4],
-    png: Vec<u8>,
-    node: Value,
-    node_matrix: &Mat4,
-    extensions: Option<Value>,
-    b3dm_rtc: Option<[f64; 3]>,
-    placed_by: &Mat4,
-) -> Written {
-    let (gltf, bin) = write::textured_quad(corners, &png, node, extensions);
-    let glb = write::glb(&gltf, &bin);
-    let bytes = match b3dm_rtc {
-        Some(rtc) => write::b3dm(
-            &glb,
-            &json!({"BATCH_LENGTH": 1, "RTC_CENTER": rtc}),
-            Some(&json!({"height": [12.5]})),
-            &[],
-        ),
-        None if file.ends_with(".b3dm") => write::b3dm(&glb, &json!({"BATCH_LENGTH": 0}), None, &[]),
-        None => glb,
-    };
-    std::fs::write(dir.join(file), bytes).expect("write content");
-    let m = mul(placed_by, &mul(&Y_UP_TO_Z_UP, node_matrix));
-    Written {
-        file: file.to_owned(),
-        corners_ecef: corners.iter().map(|c| apply(&m, c.map(f64::from))).collect(),
-        png,
-    }
-}
-
-/// Berlin (Brandenburg Gate), 34 m above the ellipsoid.
-const BERLIN: (f64, f64, f64) = (52.516_275, 13.377_704, 34.0);
-
-/// The test tileset; returns its path and, in walk order, every content with the level
-/// flag `finest` (whether `--lod finest` imports it).
-fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
-    let (lat, lon, h) = BERLIN;
-    let frame = enu_to_ecef(lat, lon, h);
-    let shared_png = write::gradient_png(64, 32, 1);
-    let identity = translation([0.0; 3]);
-    // Root (REPLACE, no transform): a coarse wall as b3dm with RTC_CENTER at the gate.
-    let coarse = write_content(
-        dir,
-        "coarse.b3dm",
-        wall([-50.0, 0.0, 0.0], 100.0),
-        write::gradient_png(16, 16, 4),
-        json!({}),
-        &identity,
-        None,
-        Some(ecef(lat, lon, h)),
-        &translation(ecef(lat, lon, h)),
-    );
-    // Tile 1: the east-north-up frame at the gate; its glb has a node translation.
-    let node_t = translation([10.0, 0.0, -5.0]);
-    let a = write_content(
-        dir,
-        "a.glb",
-        wall([0.0, 0.0, 0.0], 20.0),
-        shared_png.clone(),
-        json!({"translation": [10.0, 0.0, -5.0]}),
-        &node_t,
-        None,
-        None,
-        &frame,
-    );
-    // Tile 1a: 300 m east and 1.5 m up of tile 1, nested transforms.
-    let nested = translation([300.0, 0.0, 1.5]);
-    let a2 = write_content(
-        dir,
-        "a2.glb",
-        wall([0.0, 0.0, 0.0], 8.0),
-        write::gradient_png(32, 32, 2),
-        json!({}),
-        &identity,
-        None,
-        None,
-        &mul(&frame, &nested),
-    );
-    // External tileset (ADD): a glb with CESIUM_RTC 400 m north of the gate, and a child
-    // b3dm with the first texture again.
-    std::fs::create_dir_all(dir.join("ext")).expect("mkdir");
-    let north = apply(&frame, [0.0, 400.0, 0.0]);
-    let rtc = write_content(
-        &dir.join("ext"),
-        "rtc.glb",
-        wall([0.0, 0.0, 0.0], 12.0),
-        write::gradient_png(16, 64, 3),
-        json!({}),
-        &identity,
-        Some(json!({"CESIUM_RTC": {"center": north}})),
-        None,
-        &translation(north),
-    );
-    let shared = write_content(
-        &dir.join("ext"),
-        "shared.b3dm",
-        wall([5.0, 0.0, 5.0], 6.0),
-        shared_png,
-        json!({}),
-        &identity,
-        None,
-        // RTC_CENTER under a rotated tile transform: the centre is in the tile's frame.
-        Some([3.0, -4.0, 5.0]),
-        &mul(
-            &mul(&frame, &translation([-200.0, -100.0, 0.0])),
-            &translation([3.0, -4.0, 5.0]),
-        ),
-    );
-    let external = json!({
-        "asset": {"version": "1.1"},
-        "geometricError": 10.0,
-        "root": {
-            "boundingVolume": {"sphere": [north[0], north[1], north[2], 50.0]},
-            "geometricError": 5.0,
-            "refine": "ADD",
-            "content": {"uri": "rtc.glb"},
-            "children": [{
-                "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
-                "geometricError": 0.0,
-                "transform": flat(&mul(&frame, &translation([-200.0, -100.0, 0.0]))),
-                "content": {"uri": "shared.b3dm"}
-            }]
-        }
-    });
-    std::fs::write(
-        dir.join("ext/tileset.json"),
-        serde_json::to_vec_pretty(&external).expect("json"),
-    )
-    .expect("write external");
-    let tileset = json!({
-        "asset": {"version": "1.0"},
-        "geometricError": 500.0,
-        "root": {
-            "boundingVolume": {"region": [0.23, 0.91, 0.24, 0.92, 0.0, 100.0]},
-            "geometricError": 100.0,
-            "refine": "REPLACE",
-            "content": {"uri": "coarse.b3dm"},
-            "children": [
-                {
-                    "boundingVolume": {"box": [0.0, 0.0, 0.0, 500.0, 0.0, 0.0, 0.0, 500.0, 0.0, 0.0, 0.0, 50.0]},
-                    "geometricError": 20.0,
-                    "transform": flat(&frame),
-                    "content": {"uri": "a.glb"},
-                    "children": [{
-                        "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 20.0]},
-                        "geometricError": 0.0,
-                        "transform": flat(&nested),
-                        "content": {"uri": "a2.glb"}
-                    }]
-                },
-                {
-                    "boundingVolume": {"sphere": [north[0], north[1], north[2], 50.0]},
-                    "geometricError": 10.0,
-                    "content": {"uri": "ext/tileset.json"}
-                }
-            ]
-        }
-    });
-    let path = dir.join("tileset.json");
-    std::fs::write(&path, serde_json::to_vec_pretty(&tileset).expect("json")).expect("write tileset");
-    let contents = vec![(coarse, false), (a, false), (a2, true), (rtc, true), (shared, true)];
-    (path, contents)
 }
 
 fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, PathBuf) {
@@ -496,41 +239,6 @@ fn content_that_is_not_imported_is_counted_and_strict_refuses_it() {
     assert!(stderr(&strict).contains("--strict"), "{}", stderr(&strict));
 }
 
-#[test]
-fn the_imported_tileset_flies_with_its_error_measured() {
-    let src = fresh_dir("fly-src");
-    let (tileset, _) = write_tileset(&src);
-    let (_, dataset) = import_ok(&tileset, "fly", &["--lod", "all"]);
-    let out = fresh_dir("fly-out");
-    let status = std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .arg("--dataset")
-        .arg(&dataset)
-        .args([
-            "--frames",
-            "90",
-            "--clock",
-            "fixed",
-            "--psnr-interval",
-            "30",
-            "--frame-interval",
-            "0",
-        ])
-        .args(["--width", "160", "--height", "90", "--validation=true"])
-        .arg("--out")
-        .arg(&out)
-        .status()
-        .expect("flythrough runs");
-    assert!(status.success(), "flythrough failed: {status}");
-    let summary: Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json")).expect("JSON");
-    assert_eq!(summary["frames"], 90);
-    assert_eq!(summary["validation_errors"], 0);
-    assert_eq!(summary["load_failures"], 0);
-    // Three measured frames, each against the fully resident reference.
-    let psnr = summary["psnr_of_mean_mse_db"].as_f64().expect("PSNR measured");
-    assert!(psnr > 20.0, "PSNR of the mean MSE {psnr} dB");
-}
-
 /// The scene and every mip of two datasets are the same.
 fn assert_same_dataset(a: &Dataset, b: &Dataset) {
     let (sa, sb) = (&a.scene, &b.scene);
@@ -581,10 +289,10 @@ fn a_tileset_served_over_http_imports_as_it_does_from_disk() {
     std::fs::create_dir_all(&served).expect("mkdir");
     let (tileset, _) = write_tileset(&served);
     assert!(
-        citystream_tools::nginx::binary().is_some() || !cli_support::setup_ran(),
+        citystream_testing::nginx::binary().is_some() || !cli_support::setup_ran(),
         "nginx is missing although the setup script ran: it should have installed nginx-light"
     );
-    let nginx = citystream_tools::nginx::Nginx::start(&work, &work.join("www")).expect("start nginx");
+    let nginx = citystream_testing::nginx::Nginx::start(&work, &work.join("www")).expect("start nginx");
     let (local, _) = import_ok(&tileset, "http-local", &["--lod", "all"]);
     let url = nginx.url("city3d/tileset.json");
     let out = fresh_dir("http-remote");

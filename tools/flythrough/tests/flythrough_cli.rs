@@ -3,6 +3,9 @@
 
 use std::process::{Command, Output};
 
+mod flight_support;
+use flight_support::citystream_ok;
+
 #[test]
 fn flythrough_writes_frames_and_report() {
     let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_cli");
@@ -509,15 +512,7 @@ fn every_measured_frame_counts_in_the_error_figures() {
             dataset.to_str().expect("UTF-8 path"),
         ],
     ] {
-        let output = Command::new(env!("CARGO_BIN_EXE_citystream"))
-            .args(&args)
-            .output()
-            .expect("citystream runs");
-        assert!(
-            output.status.success(),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        citystream_ok(&args);
     }
     let out = base.join("out");
     let (frames, interval) = (120u64, 10u64);
@@ -644,15 +639,7 @@ fn the_error_reference_agrees_with_the_culled_view_where_streaming_is_complete()
             dataset.to_str().expect("UTF-8 path"),
         ],
     ] {
-        let output = Command::new(env!("CARGO_BIN_EXE_citystream"))
-            .args(&args)
-            .output()
-            .expect("citystream runs");
-        assert!(
-            output.status.success(),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        citystream_ok(&args);
     }
     let run = |culling: &str| {
         let out = base.join(format!("culling-{culling}"));
@@ -822,7 +809,7 @@ fn default_city() -> std::path::PathBuf {
     let city = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
         .join("default_city")
         .join("city");
-    citystream_tools::default_city::ensure_default_city(&city, true).expect("default city created");
+    citystream_gen::default_city::ensure_default_city(&city, true).expect("default city created");
     city
 }
 

@@ -6,14 +6,14 @@
 //! has not run, the tests that need it compile as ignored (`tools/build.rs`), so
 //! they are reported as skipped; after it, a missing Xvfb fails them.
 
-mod cli_support;
+mod flight_support;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 
 use citystream_streaming::bench::path::CameraPath;
-use cli_support::{citystream, fresh_dir, setup_ran, stderr};
+use flight_support::{citystream_ok, fresh_dir, setup_ran, stderr, tiny_city};
 
 /// A running Xvfb, killed on drop.
 struct Xvfb {
@@ -60,13 +60,6 @@ fn start_xvfb() -> Xvfb {
     }
 }
 
-/// A generated tiny city in the test's own directory.
-fn tiny_city(dir: &Path) -> PathBuf {
-    let city = dir.join("city");
-    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8 path")]);
-    assert!(out.status.success(), "gen failed: {}", stderr(&out));
-    city
-}
 
 /// Runs the flythrough with `args`, on `display` when given; synchronization
 /// validation on either way.
@@ -207,7 +200,7 @@ fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
     let city = tiny_city(&dir);
     let tree = dir.join("tree");
     let s = |p: &Path| p.to_str().expect("utf-8 path").to_owned();
-    let out = citystream(&[
+    citystream_ok(&[
         "atlas-tree",
         &s(&city),
         "--out",
@@ -216,7 +209,6 @@ fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
         "256",
         "--quiet",
     ]);
-    assert!(out.status.success(), "atlas-tree: {}", stderr(&out));
     let image = dir.join("survey.png");
     image::RgbaImage::from_fn(300, 200, |x, y| {
         image::Rgba([(x % 256) as u8, (y % 256) as u8, 128, 255])
@@ -224,7 +216,7 @@ fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
     .save(&image)
     .expect("write the survey image");
     let patches = dir.join("patches");
-    let out = citystream(&[
+    citystream_ok(&[
         "patches",
         &s(&image),
         "--dataset",
@@ -237,7 +229,6 @@ fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
         "256",
         "--quiet",
     ]);
-    assert!(out.status.success(), "patches: {}", stderr(&out));
     assert_window_presents_the_headless_frames(
         &x,
         &dir,
@@ -374,14 +365,13 @@ fn windowed_replay_follows_the_wall_clock() {
     let dir = fresh_dir("windowed", "wall_clock");
     let city = tiny_city(&dir);
     let path_file = dir.join("standard.json");
-    let out = citystream(&[
+    citystream_ok(&[
         "path",
         "--dataset",
         city.to_str().expect("utf-8"),
         "--out",
         path_file.to_str().expect("utf-8"),
     ]);
-    assert!(out.status.success(), "{}", stderr(&out));
     let out_dir = dir.join("window");
     // Hidden for 1.5 s after frame 10: camera time stands still meanwhile.
     let script = write_script(&dir, r#"{"events": [{"frame": 10, "minimise_s": 1.5}]}"#);

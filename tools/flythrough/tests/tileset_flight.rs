@@ -1,0 +1,48 @@
+//! A 3D Tiles tileset imported (`citystream import`) flies with its error measured.
+
+mod flight_support;
+#[path = "../../cli/tests/tileset_support/mod.rs"]
+mod tileset_support;
+
+use serde_json::Value;
+
+use flight_support::{citystream_ok, fresh_dir};
+use tileset_support::write_tileset;
+
+#[test]
+fn the_imported_tileset_flies_with_its_error_measured() {
+    let src = fresh_dir("import-tiles", "fly-src");
+    let (tileset, _) = write_tileset(&src);
+    let dataset = fresh_dir("import-tiles", "fly");
+    let (input, out_dir) = (tileset.to_str().expect("utf-8"), dataset.to_str().expect("utf-8"));
+    citystream_ok(&["import", input, "--out", out_dir, "--lod", "all"]);
+    citystream_ok(&["verify", out_dir]);
+    let out = fresh_dir("import-tiles", "fly-out");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .arg("--dataset")
+        .arg(&dataset)
+        .args([
+            "--frames",
+            "90",
+            "--clock",
+            "fixed",
+            "--psnr-interval",
+            "30",
+            "--frame-interval",
+            "0",
+        ])
+        .args(["--width", "160", "--height", "90", "--validation=true"])
+        .arg("--out")
+        .arg(&out)
+        .status()
+        .expect("flythrough runs");
+    assert!(status.success(), "flythrough failed: {status}");
+    let summary: Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json")).expect("JSON");
+    assert_eq!(summary["frames"], 90);
+    assert_eq!(summary["validation_errors"], 0);
+    assert_eq!(summary["load_failures"], 0);
+    // Three measured frames, each against the fully resident reference.
+    let psnr = summary["psnr_of_mean_mse_db"].as_f64().expect("PSNR measured");
+    assert!(psnr > 20.0, "PSNR of the mean MSE {psnr} dB");
+}
