@@ -15,10 +15,10 @@ use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
-use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 use citystream_gen::atlas::{self, AtlasArgs};
-use citystream_gen::city;
+use citystream_gen::command as gen;
 use citystream_gen::options::{FormatArg, GenArgs, Preset};
+use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 use glam::Vec3;
 
 const WIDTH: u32 = 320;
@@ -73,7 +73,7 @@ fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
     let original = base.join("city");
     let atlased = base.join("atlas");
     let _ = std::fs::remove_dir_all(&base);
-    city::run(&GenArgs {
+    gen::run(&GenArgs {
         preset: Preset::Tiny,
         seed: 5,
         out: original.clone(),

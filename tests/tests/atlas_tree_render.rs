@@ -6,6 +6,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{ensure, Context, Result};
+use citystream_bench::image_error::psnr_db;
 use citystream_cache::geometry::cacheable_mip_count;
 use citystream_dataset::{Dataset, TextureFormat};
 use citystream_engine::atlas_tree::AtlasTreeRenderer;
@@ -16,13 +17,12 @@ use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
+use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
+use citystream_gen::command as gen;
+use citystream_gen::options::{FormatArg, GenArgs, Preset};
 use citystream_streaming::atlas_tree::{distance_to, AtlasTree, DrawWith, Selection};
 use citystream_streaming::source::texel_format;
 use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
-use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
-use citystream_gen::city;
-use citystream_gen::options::{FormatArg, GenArgs, Preset};
-use citystream_bench::image_error::psnr_db;
 use glam::Vec3;
 
 const WIDTH: u32 = 320;
@@ -115,7 +115,7 @@ fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()>
     let city = base.join("city");
     let tree_dir = base.join("tree");
     let _ = std::fs::remove_dir_all(&base);
-    city::run(&GenArgs {
+    gen::run(&GenArgs {
         preset: Preset::Tiny,
         seed: 5,
         out: city.clone(),

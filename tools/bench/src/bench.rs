@@ -72,13 +72,15 @@ use std::time::Instant;
 use anyhow::{anyhow, bail, Context, Result};
 
 use crate::berlin_bench::{self, BERLIN_BUDGET_MB, BERLIN_SIZE};
-use citystream_gen::default_city::{build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR};
 use crate::report::{self, RunInput};
 use crate::runs::{
     controller_runs, ground_runs, pressure_runs, strategy_runs, BenchRun, StrategyArg, DEFAULT_BUDGET_MB, POLICY_RUNS,
     PRESSURE_DURATION_S, PRESSURE_SIZE,
 };
 use crate::tables::{controller_checks, ground_table, pressure_checks, strategies_table, write_table};
+use citystream_gen::default_city::{
+    build_then_move, ensure_default_city, is_dataset, upgrade_if_old, DEFAULT_CITY_DIR,
+};
 
 /// Which benchmark `citystream bench` runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -648,7 +650,7 @@ fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
                 source.display()
             );
             build_then_move(&source, |partial| {
-                citystream_gen::city::run(&citystream_gen::options::GenArgs::new(
+                citystream_gen::command::run(&citystream_gen::options::GenArgs::new(
                     citystream_gen::options::Preset::Large,
                     1,
                     partial.to_path_buf(),

@@ -163,7 +163,11 @@ pub(crate) fn ensure_city(data_dir: &Path) -> Result<PathBuf> {
              `citystream gen --preset berlin --seed 1 --out {}`",
             dir.display()
         );
-        citystream_gen::city::run(&citystream_gen::options::GenArgs::new(citystream_gen::options::Preset::Berlin, 1, dir.clone()))?;
+        citystream_gen::command::run(&citystream_gen::options::GenArgs::new(
+            citystream_gen::options::Preset::Berlin,
+            1,
+            dir.clone(),
+        ))?;
     }
     Ok(dir)
 }

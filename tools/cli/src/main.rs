@@ -5,7 +5,8 @@ use clap::{Parser, Subcommand};
 
 use citystream_bench::{bench, report, simulate};
 use citystream_cli::{bind_replay, cache_report, info, path, upgrade, verify};
-use citystream_gen::{atlas, atlas_tree, city, options, patches};
+use citystream_gen::command as gen;
+use citystream_gen::{atlas, atlas_tree, options, patches};
 use citystream_import::command as import;
 
 #[derive(Debug, Parser)]
@@ -54,7 +55,7 @@ enum Command {
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
-        Command::Gen(args) => city::run(&args),
+        Command::Gen(args) => gen::run(&args),
         Command::Atlas(args) => atlas::run(&args),
         Command::AtlasTree(args) => atlas_tree::run(&args),
         Command::CacheReport(args) => cache_report::run(&args),

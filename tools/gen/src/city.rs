@@ -5,60 +5,17 @@
 //! rayon, a chunk at a time, and appended to the pack in texture-id order so the output is
 //! byte-identical for a given seed whatever the thread count.
 
-use std::time::Instant;
-
 use anyhow::{bail, Context, Result};
 use citystream_dataset::{DatasetWriter, TextureFormat, WriteSummary};
 use rayon::prelude::*;
 
-use crate::berlin;
 use crate::files::print_stdout;
 use crate::layout::{self, LayoutParams};
 use crate::library;
-use crate::options::{check_texture_extent, free_bytes, gb, GenArgs, Preset};
+use crate::options::{free_bytes, gb, GenArgs};
 use crate::progress::Progress;
 use crate::rng;
 use crate::texture;
-
-/// Runs `citystream gen`.
-pub fn run(args: &GenArgs) -> Result<()> {
-    let start = Instant::now();
-    check_texture_extent("--max-extent", args.max_extent)?;
-    let format = args.format.texture_format();
-    let mut params = args.preset.params();
-    params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);
-    let summary = if args.preset == Preset::Berlin {
-        berlin::generate(args, params, berlin::RunControl::default())?
-    } else {
-        generate(args, params, format)?
-    };
-    if args.quiet || args.dry_run {
-        return Ok(());
-    }
-    let seconds = start.elapsed().as_secs_f64();
-    let texture_bytes = summary.pack_bytes as f64;
-    let report = format!(
-        "generated {} (preset {:?}, seed {}): {} textures, {} mips, {} meshes, {} triangles\n\
-         bytes: pack {:.1} MB ({}), scene {:.1} MB, metadata {:.2} MB\n\
-         time {:.2} s: {:.0} textures/s, {:.1} MB/s of texture data ({} threads)\n",
-        args.out.display(),
-        args.preset,
-        args.seed,
-        summary.textures,
-        summary.mips,
-        summary.meshes,
-        summary.triangles,
-        texture_bytes / 1e6,
-        format.name(),
-        summary.scene_bytes as f64 / 1e6,
-        summary.metadata_bytes as f64 / 1e6,
-        seconds,
-        f64::from(summary.textures) / seconds,
-        texture_bytes / 1e6 / seconds,
-        rayon::current_num_threads()
-    );
-    print_stdout(&report)
-}
 
 pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureFormat) -> Result<WriteSummary> {
     let mut city = layout::layout(params, args.seed)?;
@@ -161,6 +118,7 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::options::Preset;
 
     /// The presets promise sizes (tests use `tiny`, the benchmark uses `large`, `city` must
     /// reach the paper's scale); check them on the layout, which is cheap.

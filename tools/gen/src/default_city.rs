@@ -75,7 +75,7 @@ pub fn ensure_default_city(dir: &Path, quiet: bool) -> Result<bool> {
     }
     if !is_dataset(&source) && !upgrade_if_old(&source, quiet)? {
         build_then_move(&source, |partial| {
-            crate::city::run(&GenArgs {
+            crate::command::run(&GenArgs {
                 // The summaries would name the private build directories.
                 quiet: true,
                 ..GenArgs::new(Preset::Small, 1, partial.to_path_buf())

@@ -1,5 +1,5 @@
-//! City generation: synthetic cities from presets ([`city`], the paper's Berlin in
-//! [`berlin`]), the paper's §3.1 texture atlases ([`atlas`]), the texture-atlas tree
+//! City generation: synthetic cities from presets ([`command`] is `citystream gen`; the
+//! standard generator in [`city`], the paper's Berlin in [`berlin`]), the paper's §3.1 texture atlases ([`atlas`]), the texture-atlas tree
 //! ([`atlas_tree`]), the default city the flythrough and the benchmarks open ([`default_city`])
 //! and a simulated aerial survey for the ground ([`patches`]).
 //!
@@ -13,6 +13,7 @@ pub mod atlas;
 pub mod atlas_tree;
 pub mod berlin;
 pub mod city;
+pub mod command;
 pub mod default_city;
 pub mod files;
 pub mod image_files;

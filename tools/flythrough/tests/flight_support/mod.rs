@@ -17,7 +17,7 @@ use clap::{Args, FromArgMatches};
 /// process; its error as `citystream` would report it.
 pub fn citystream(args: &[&str]) -> Result<()> {
     match args.first().copied() {
-        Some("gen") => command(args, citystream_gen::city::run),
+        Some("gen") => command(args, citystream_gen::command::run),
         Some("atlas") => command(args, citystream_gen::atlas::run),
         Some("atlas-tree") => command(args, citystream_gen::atlas_tree::run),
         Some("patches") => command(args, citystream_gen::patches::run),
