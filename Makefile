@@ -36,7 +36,7 @@ window: build
 # takes 36 MiB (9 blocks a layer, where a GPU's single tail is one block), more
 # than its 8 MB budget, which the flythrough refuses with a clear error.
 TAIL_TESTS = -p citystream-tests --test sparse_residency --test texture_cache --test vulkan_binder \
-	--test stream_frames -p citystream-tools --test flythrough_cli
+	--test stream_frames -p citystream-flythrough --test flythrough_cli
 test: setup
 	$(CARGO) test --workspace
 	CITYSTREAM_FORCE_MIP_TAIL=3 $(CARGO) test $(TAIL_TESTS)
@@ -71,7 +71,7 @@ FUZZ_SEED ?= 1
 FUZZ_OUT ?= $(if $(wildcard /dev/shm),/dev/shm/citystream-fuzz,out/fuzz)
 fuzz-long:
 	CARGO_PROFILE_RELEASE_OVERFLOW_CHECKS=true CARGO_PROFILE_RELEASE_DEBUG_ASSERTIONS=true \
-		$(CARGO) run --release --target-dir target/fuzz -p citystream-tools --bin fuzz -- \
+		$(CARGO) run --release --target-dir target/fuzz -p citystream-testing --bin fuzz -- \
 		--inputs $(FUZZ_INPUTS) --seed $(FUZZ_SEED) --out $(FUZZ_OUT)
 
 # The GPU check (docs/REAL_GPU.md). gpu-check-pack builds the release binaries and the

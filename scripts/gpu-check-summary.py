@@ -6,7 +6,7 @@ CSVs, step 2's validation-messages.tsv, step 4's report) and writes the two summ
 into --out. Standard library only; gpu-check.sh falls back to a plain step table when
 python3 is missing or this fails.
 
-The summary.json keys read are the flythrough's (tools/src/bin/flythrough/output.rs and
+The summary.json keys read are the flythrough's (tools/flythrough/src/output.rs and
 streaming/src/bench/stats.rs): device, texture_backing, validation_errors, frames,
 frame_ms, wall_s, duration_s, wall_ms_per_frame, gpu_pass_ms, meshes_drawn,
 meshes_culled, bytes_streamed, psnr_of_mean_mse_db, error_frames, evicted_layers,

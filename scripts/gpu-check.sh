@@ -375,7 +375,7 @@ if ((BINS_OK)) && wants_step 2; then
         city_ready=1
         record 2a 2 dataset "the default city ($CITY_DIR)" ok 0 0 "" "" "" "already there"
     else
-        # What the flythrough's first run does (tools/src/default_city.rs), as two commands.
+        # What the flythrough's first run does (tools/gen/src/default_city.rs), as two commands.
         # shellcheck disable=SC2016 # the arguments expand in the inner shell
         run_step 2a 2 dataset "create the default city ($CITY_DIR)" "$(est 40 0 120 0)" "" "" -- \
             bash -c '"$1" gen --preset small --seed 1 --out "$2-per-mesh" --quiet &&

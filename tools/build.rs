@@ -29,13 +29,13 @@ fn main() {
     // (cfg, where the tool may be, how many folders up to watch while it is missing)
     let tools = [
         ("citystream_skip_xvfb", on_path("Xvfb"), 1),
-        // Where `citystream_tools::nginx::binary` looks.
+        // Where `citystream_testing::nginx::binary` looks.
         (
             "citystream_skip_nginx",
             vec!["/usr/sbin/nginx".into(), "/usr/bin/nginx".into()],
             1,
         ),
-        // Where `citystream_tools::s3_emulator::binary` looks; setup creates its folders.
+        // Where `citystream_testing::s3_emulator::binary` looks; setup creates its folders.
         ("citystream_skip_s3", vec![s3_dir.join("bin").join("moto_server")], 3),
     ];
     for (cfg, candidates, levels) in tools {

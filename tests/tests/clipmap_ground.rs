@@ -6,6 +6,7 @@ use std::collections::HashSet;
 use std::sync::Arc;
 
 use anyhow::{ensure, Result};
+use citystream_bench::image_error::psnr_db;
 use citystream_engine::city::Camera;
 use citystream_engine::commands::CommandContext;
 use citystream_engine::ground::{GroundAllowance, GroundConfig, GroundLayer};
@@ -14,7 +15,6 @@ use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
 use citystream_streaming::ground::{GroundImagery, PatchImage};
 use citystream_tests::{assert_no_validation_errors, validated_device};
-use citystream_bench::image_error::psnr_db;
 use glam::{Mat4, Vec3, Vec4};
 
 const SIZE: u32 = 256;

@@ -19,8 +19,8 @@ use citystream_dataset::Dataset;
 
 use citystream_dataset::remote::MipCacheOptions;
 
-use citystream_testing::fault_proxy::{FaultOptions, FaultProxy};
 use crate::loader_bench::{drop_page_cache, loader_pass};
+use citystream_testing::fault_proxy::{FaultOptions, FaultProxy};
 use citystream_testing::nginx::Nginx;
 
 /// One measured pass.

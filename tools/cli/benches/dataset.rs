@@ -1,6 +1,6 @@
 //! Dataset benchmark: generation throughput, open time and host bytes per texture.
 //!
-//! `cargo bench -p citystream-tools --bench dataset` (set `CITYSTREAM_BENCH_PRESET=small`
+//! `cargo bench -p citystream-cli --bench dataset` (set `CITYSTREAM_BENCH_PRESET=small`
 //! for a quick run). Prints:
 //! 1. `citystream gen --preset large` (about 100 000 textures): textures/s and MB/s;
 //! 2. the time to open that dataset (median of 5) and its host metadata per texture;

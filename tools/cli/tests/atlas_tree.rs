@@ -9,10 +9,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use citystream_dataset::{Dataset, Scene};
+use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances, TreeSummary};
 use citystream_streaming::atlas_tree::{
     texels_per_metre_at_unit_distance, world_length_of_texture_axes, AtlasTree, Block, DrawWith, TreeView, TREE_FILE,
 };
-use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances, TreeSummary};
 use cli_support::{citystream, fresh_dir, stderr};
 
 /// A tiny generated city and its tree (`extent`² atlases), in `name`'s own directory.

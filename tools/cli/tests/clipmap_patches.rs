@@ -7,8 +7,8 @@ mod cli_support;
 use std::path::{Path, PathBuf};
 
 use citystream_dataset::Dataset;
-use citystream_streaming::clipmap::{Clipmap, ClipmapOptions, Patch};
 use citystream_gen::patches::PatchSet;
+use citystream_streaming::clipmap::{Clipmap, ClipmapOptions, Patch};
 use cli_support::{citystream, fresh_dir, stderr};
 
 /// A 300 × 200 image whose colour encodes where a pixel is.

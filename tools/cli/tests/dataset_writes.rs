@@ -354,7 +354,10 @@ fn gen_like_the_fixtures(dir: &Path) {
 /// A version-1 dataset written by the version-1 `gen --preset tiny --seed 3 --max-extent 16`.
 fn v1_fixture(name: &str) -> PathBuf {
     let dir = fresh_dir(name);
-    copy_tree(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v1-tiny"), &dir);
+    copy_tree(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v1-tiny"),
+        &dir,
+    );
     dir
 }
 
@@ -436,7 +439,10 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
 /// A version-2 dataset written by the version-2 `gen --preset tiny --seed 3 --max-extent 16`.
 fn v2_fixture(name: &str) -> PathBuf {
     let dir = fresh_dir(name);
-    copy_tree(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v2-tiny"), &dir);
+    copy_tree(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v2-tiny"),
+        &dir,
+    );
     dir
 }
 

@@ -20,7 +20,9 @@ fn import_ok(input: &Path, name: &str, extra: &[&str]) -> (Dataset, Output) {
 }
 
 fn data(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/gltf").join(path)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../test-data/gltf")
+        .join(path)
 }
 
 #[test]

@@ -68,7 +68,8 @@ impl Action {
 }
 
 /// The controls, printed at start.
-pub(crate) const HELP: &str = "controls: drag with the left mouse button to look, W/A/S/D fly, Q/E down/up, Shift faster, \
+pub(crate) const HELP: &str =
+    "controls: drag with the left mouse button to look, W/A/S/D fly, Q/E down/up, Shift faster, \
                     scroll wheel changes speed, O overview, P play the path, Space pause streaming, \
                     C colormap blending, R start/stop recording, Esc quit";
 

@@ -21,21 +21,18 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CycleReport, Eviction};
 use citystream_engine::timing::{CpuFrameClock, GpuTimer};
 use citystream_engine::{Device, DeviceOptions, EngineError};
+use citystream_gen::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 use citystream_streaming::atlas_tree::AtlasTree;
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 use citystream_streaming::bench::stats::Stats;
 use citystream_streaming::bind_latency::BindLatencyModel;
 use citystream_streaming::controller::PolicyOptions;
 use citystream_streaming::rng::SplitMix64;
-use citystream_gen::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 use super::args::{
-    Args, Clock, Sparse, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS,
-    UNLIMITED_BUDGET_BYTES,
+    Args, Clock, Sparse, Strategy, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS, FIXED_STEP_MS, UNLIMITED_BUDGET_BYTES,
 };
-use super::city_gpu::{
-    cache_layer_size, city_gpu, city_targets, stream_config, CityGeometry, CityGpu, CityTargets,
-};
+use super::city_gpu::{cache_layer_size, city_gpu, city_targets, stream_config, CityGeometry, CityGpu, CityTargets};
 use super::ground;
 use super::measure::MeshesInView;
 use super::tree::TreeRun;

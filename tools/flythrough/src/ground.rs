@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
+use citystream_bench::image_error::{ErrorSeries, FrameError};
 use citystream_dataset::{Dataset, Scene};
 use citystream_engine::city::{Camera, CityRenderer};
 use citystream_engine::commands::CommandContext;
@@ -17,11 +18,10 @@ use citystream_engine::ground::{GroundAllowance, GroundConfig, GroundFrame, Grou
 use citystream_engine::stream::{Frame, TextureStreamer};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::Device;
+use citystream_gen::patches::PatchSet;
 use citystream_streaming::clipmap::Patch;
 use citystream_streaming::ground::PatchImage;
 use citystream_streaming::source::MipSource;
-use citystream_bench::image_error::{ErrorSeries, FrameError};
-use citystream_gen::patches::PatchSet;
 
 /// One patch to insert when its time comes: where, and the PNG it is decoded from then.
 struct Arrival {

@@ -7,15 +7,15 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
+use citystream_bench::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::cull::CullStats;
 use citystream_engine::device::{describe, TextureBacking};
 use citystream_engine::gpu_types::FeedbackEntry;
 use citystream_engine::Device;
+use citystream_gen::files::{write_atomically, write_png};
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
-use citystream_gen::files::{write_atomically, write_png};
-use citystream_bench::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
 use super::city_gpu::{city_gpu, reference_config};

@@ -18,8 +18,8 @@ use citystream_engine::scene::MeshRenderer;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::Device;
-use citystream_streaming::bench::stats::SummaryBuilder;
 use citystream_gen::files::{write_atomically, write_png};
+use citystream_streaming::bench::stats::SummaryBuilder;
 
 use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
 use crate::flight::{dataset_dir, flythrough_device};

@@ -4,9 +4,9 @@ use std::io::Write;
 
 use anyhow::Result;
 
+use citystream_bench::image_error::{FrameError, PrefixedErrorFigures};
 use citystream_engine::city::Camera;
 use citystream_streaming::bench::stats::Stats;
-use citystream_bench::image_error::{FrameError, PrefixedErrorFigures};
 
 use super::flight::GpuPassMs;
 use super::ground;

@@ -6,13 +6,13 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 use glam::Vec3;
 
+use citystream_bench::image_error::mse;
 use citystream_engine::commands::CommandContext;
 use citystream_engine::gpu_types::FEEDBACK_MIP_ONE;
 use citystream_engine::Device;
+use citystream_gen::files::{write_atomically, write_png};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MipSource;
-use citystream_gen::files::{write_atomically, write_png};
-use citystream_bench::image_error::mse;
 
 use super::args::{frame_interval, frames_dir_path, Args};
 use super::city_gpu::{cache_layer_size, city_gpu, city_targets, reference_config, CityGpu, CityTargets};

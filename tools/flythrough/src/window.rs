@@ -23,8 +23,8 @@ use winit::window::{Window, WindowId};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::Device;
-use citystream_streaming::bench::path::{CameraPath, CameraPose};
 use citystream_gen::files::write_png;
+use citystream_streaming::bench::path::{CameraPath, CameraPose};
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_STEP_MS};
 use super::city_gpu::city_targets;

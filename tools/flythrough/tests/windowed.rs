@@ -60,7 +60,6 @@ fn start_xvfb() -> Xvfb {
     }
 }
 
-
 /// Runs the flythrough with `args`, on `display` when given; synchronization
 /// validation on either way.
 fn flythrough(display: Option<&Xvfb>, args: &[&str], paths: &[(&str, &Path)]) -> Output {

@@ -44,13 +44,14 @@ use serde_json::Value;
 use citystream_gen::files::print_stdout;
 use citystream_gen::texture::EncodedTexture;
 
-use crate::gltf::{bounds, centred_scene, read_gltf, relative_uri_path, GltfContent, PendingMesh, MAX_IMPORTED_VERTICES};
+use crate::gltf::{
+    bounds, centred_scene, read_gltf, relative_uri_path, GltfContent, PendingMesh, MAX_IMPORTED_VERTICES,
+};
 use crate::transform::{mul, Mat4, IDENTITY};
 use geodesy::{to_geodetic, EastNorthUp};
 use tileset::{
-    content_kind, content_uri_path, objects_within, Refine, TileJson, TilesetJson, UpAxis,
-    MAX_CONTENTS, MAX_CONTENT_BYTES, MAX_DEPTH, MAX_HELD_TILESET_OBJECTS, MAX_TILES, MAX_TILESETS,
-    MAX_TILESET_BYTES,
+    content_kind, content_uri_path, objects_within, Refine, TileJson, TilesetJson, UpAxis, MAX_CONTENTS,
+    MAX_CONTENT_BYTES, MAX_DEPTH, MAX_HELD_TILESET_OBJECTS, MAX_TILES, MAX_TILESETS, MAX_TILESET_BYTES,
 };
 
 /// Distances from the Earth's centre (metres) a city's geometry lies between: the WGS 84
@@ -678,11 +679,7 @@ fn content_root(content: &ContentRef, centres: RtcCentres) -> Mat4 {
 
 /// One content file read: its glTF's primitives placed in Earth-centred coordinates (for
 /// `content`, the first listing of the file), and its RTC centres (for the others).
-fn read_content(
-    content: &ContentRef,
-    root_dir: &Path,
-    vertex_budget: usize,
-) -> Result<(GltfContent, RtcCentres)> {
+fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> Result<(GltfContent, RtcCentres)> {
     let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
     let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
         let batched = content::parse_b3dm(&bytes)?;

@@ -17,8 +17,8 @@ use serde_json::Value;
 
 use super::content;
 use super::tileset::{
-    content_kind, content_uri_path, objects_within, TileJson, TilesetJson, MAX_CONTENT_BYTES,
-    MAX_HELD_TILESET_OBJECTS, MAX_TILESETS, MAX_TILESET_BYTES,
+    content_kind, content_uri_path, objects_within, TileJson, TilesetJson, MAX_CONTENT_BYTES, MAX_HELD_TILESET_OBJECTS,
+    MAX_TILESETS, MAX_TILESET_BYTES,
 };
 
 /// Most files fetched for one tileset.

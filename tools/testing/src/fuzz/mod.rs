@@ -26,8 +26,8 @@ mod input;
 mod mutate;
 mod scripted;
 
-use input::Seed;
 pub use input::Outcome;
+use input::Seed;
 use mutate::{below, fix_dataset_checksum, mutate};
 use scripted::{remote_seeds, ScriptedServer};
 
@@ -425,8 +425,8 @@ fn patches_seeds(work: &Path) -> Result<Vec<Seed>> {
             bytes: png,
         });
     }
-    let record =
-        |id: u64, file: &str, (width, height): (u32, u32), min: [f64; 2], arrival_s: f64| citystream_gen::patches::PatchRecord {
+    let record = |id: u64, file: &str, (width, height): (u32, u32), min: [f64; 2], arrival_s: f64| {
+        citystream_gen::patches::PatchRecord {
             id,
             file: file.to_owned(),
             width,
@@ -435,7 +435,8 @@ fn patches_seeds(work: &Path) -> Result<Vec<Seed>> {
             max: [min[0] + f64::from(width) * 2.0, min[1] + f64::from(height) * 2.0],
             metres_per_texel: 2.0,
             arrival_s,
-        };
+        }
+    };
     let set = citystream_gen::patches::PatchSet {
         format: "citystream-patches".into(),
         version: citystream_gen::patches::PATCHES_VERSION,
