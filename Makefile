@@ -53,7 +53,7 @@ clippy: setup
 doc: setup
 	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps
 
-# The engine library alone, as an embedder builds it (the flythrough lives in tools/).
+# The engine library alone, as an embedder builds it (the flythrough lives in tools/flythrough).
 embed:
 	$(CARGO) check -p citystream-engine --lib
 

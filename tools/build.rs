@@ -1,5 +1,9 @@
+//! The build script citystream-gen, citystream-cli and citystream-flythrough share
+//! (`build = "../build.rs"`).
+//!
 //! intel_tex_2 (the BC7 encoder of `gen` and `import`) links a C++ object
-//! of its ASTC kernels without naming the C++ runtime it needs.
+//! of its ASTC kernels without naming the C++ runtime it needs; citystream-gen,
+//! which uses it, links that runtime for every crate above it.
 //!
 //! The tests that need a tool the setup script installs (Xvfb, nginx, the S3
 //! emulator) compile as ignored, so the harness reports them as skipped, where

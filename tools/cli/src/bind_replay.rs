@@ -457,8 +457,11 @@ fn read_log(path: &std::path::Path) -> Result<String> {
 /// A log replayed on this machine's device: what it did and the validation errors it raised.
 #[derive(Clone, Copy, Debug)]
 pub struct LogReplay {
+    /// What was replayed.
     pub done: Replayed,
+    /// Seconds the replay took, the device's creation aside.
     pub seconds: f64,
+    /// Validation errors the layer reported (the command fails on any).
     pub validation_errors: usize,
 }
 

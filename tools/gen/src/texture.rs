@@ -1,6 +1,6 @@
 //! Procedural texture content, mip chains and block compression.
 //!
-//! Level 0 is synthesised texel by texel from a [`TextureSpec`]; every further level is a
+//! Level 0 is synthesised texel by texel from a `TextureSpec`; every further level is a
 //! 2×2 box filter of the previous one, so small levels really are averages of the large ones
 //! (window grids and brick courses blur away), which is what makes per-level image error
 //! meaningful to the streamer.
