@@ -16,8 +16,8 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
 use citystream_gen::atlas::{self, AtlasArgs};
+use citystream_gen::city::{FormatArg, GenArgs, Preset};
 use citystream_gen::command as gen;
-use citystream_gen::options::{FormatArg, GenArgs, Preset};
 use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
 use glam::Vec3;
 

@@ -650,8 +650,8 @@ fn ensure_pressure_city(data_dir: &Path) -> Result<PathBuf> {
                 source.display()
             );
             build_then_move(&source, |partial| {
-                citystream_gen::command::run(&citystream_gen::options::GenArgs::new(
-                    citystream_gen::options::Preset::Large,
+                citystream_gen::command::run(&citystream_gen::city::GenArgs::new(
+                    citystream_gen::city::Preset::Large,
                     1,
                     partial.to_path_buf(),
                 ))

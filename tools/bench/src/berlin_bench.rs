@@ -163,8 +163,8 @@ pub(crate) fn ensure_city(data_dir: &Path) -> Result<PathBuf> {
              `citystream gen --preset berlin --seed 1 --out {}`",
             dir.display()
         );
-        citystream_gen::command::run(&citystream_gen::options::GenArgs::new(
-            citystream_gen::options::Preset::Berlin,
+        citystream_gen::command::run(&citystream_gen::city::GenArgs::new(
+            citystream_gen::city::Preset::Berlin,
             1,
             dir.clone(),
         ))?;

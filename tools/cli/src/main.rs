@@ -6,7 +6,7 @@ use clap::{Parser, Subcommand};
 use citystream_bench::{bench, report, simulate};
 use citystream_cli::{bind_replay, cache_report, info, path, upgrade, verify};
 use citystream_gen::command as gen;
-use citystream_gen::{atlas, atlas_tree, options, patches};
+use citystream_gen::{atlas, atlas_tree, city, patches};
 use citystream_import::command as import;
 
 #[derive(Debug, Parser)]
@@ -23,7 +23,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Generate a synthetic city dataset.
-    Gen(options::GenArgs),
+    Gen(city::GenArgs),
     /// Pack a dataset's textures into square atlases.
     Atlas(atlas::AtlasArgs),
     /// Build a texture-atlas tree (Buchholz & Döllner) from a dataset.

@@ -29,8 +29,8 @@ use anyhow::{bail, Context, Result};
 use citystream_dataset::{Dataset, DatasetWriter, Scene, TextureFormat};
 use rayon::prelude::*;
 
+use crate::city::check_texture_extent;
 use crate::files::print_stdout;
-use crate::options::check_texture_extent;
 use crate::texture::{decode_level, downsample};
 
 /// Options of `citystream atlas`.

@@ -19,9 +19,8 @@ use citystream_dataset::{DatasetWriter, TextureFormat, WriteSummary};
 use rayon::prelude::*;
 
 use crate::atlas::{self, AtlasPart, AtlasPlan, Packing};
+use crate::city::{free_bytes, gb, GenArgs, Progress};
 use crate::layout::{self, City, LayoutParams};
-use crate::options::{free_bytes, gb, GenArgs};
-use crate::progress::Progress;
 use crate::texture;
 
 /// Atlas side of the paper's Berlin (atlas) dataset.
@@ -328,7 +327,7 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, control: RunControl
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::options::Preset;
+    use crate::city::Preset;
     use citystream_dataset::Dataset;
     use std::path::Path;
 

@@ -6,9 +6,8 @@ use std::time::Instant;
 use anyhow::Result;
 
 use crate::berlin;
-use crate::city::generate;
+use crate::city::{check_texture_extent, generate, GenArgs, Preset};
 use crate::files::print_stdout;
-use crate::options::{check_texture_extent, GenArgs, Preset};
 
 /// Runs `citystream gen`.
 pub fn run(args: &GenArgs) -> Result<()> {

@@ -15,7 +15,7 @@ use anyhow::{Context, Result};
 use citystream_dataset::{upgrade, DatasetError, DatasetFiles};
 
 use crate::atlas::AtlasArgs;
-use crate::options::{GenArgs, Preset};
+use crate::city::{GenArgs, Preset};
 
 /// Where the default city is created, relative to the working directory.
 pub const DEFAULT_CITY_DIR: &str = "data/city";

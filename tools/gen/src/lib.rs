@@ -1,7 +1,8 @@
-//! City generation: synthetic cities from presets ([`command`] is `citystream gen`; the
-//! standard generator in [`city`], the paper's Berlin in [`berlin`]), the paper's §3.1 texture atlases ([`atlas`]), the texture-atlas tree
-//! ([`atlas_tree`]), the default city the flythrough and the benchmarks open ([`default_city`])
-//! and a simulated aerial survey for the ground ([`patches`]).
+//! City generation: synthetic cities from presets ([`command`] is `citystream gen`, over
+//! [`city`], the presets and the standard generator, and [`berlin`], the paper's Berlin),
+//! the paper's §3.1 texture atlases ([`atlas`]), the texture-atlas tree ([`atlas_tree`]),
+//! the default city the flythrough and the benchmarks open ([`default_city`]) and a
+//! simulated aerial survey for the ground ([`patches`]).
 //!
 //! Below them, shared by the other tools' crates: [`texture`] (mip chains, BC1/BC3/BC7
 //! encoding and decoding), [`library`] (user images: PNG, JPEG, DDS, KTX2) and
@@ -20,8 +21,6 @@ pub mod image_files;
 mod layout;
 pub mod library;
 pub mod location;
-pub mod options;
 pub mod patches;
-mod progress;
 mod rng;
 pub mod texture;

@@ -6,8 +6,8 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use citystream_dataset::{Crs, DatasetWriter};
+use citystream_gen::city::{check_texture_extent, FormatArg};
 use citystream_gen::files::print_stdout;
-use citystream_gen::options::{check_texture_extent, FormatArg};
 
 use crate::gltf::load;
 
