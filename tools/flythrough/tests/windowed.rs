@@ -32,7 +32,18 @@ impl Drop for Xvfb {
 /// at once never collide.
 fn start_xvfb() -> Xvfb {
     let spawned = Command::new("Xvfb")
-        .args(["-displayfd", "1", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"])
+        // `-noreset`: by default the server resets when its last client leaves, and a
+        // test's next flythrough connecting during that reset is refused.
+        .args([
+            "-displayfd",
+            "1",
+            "-screen",
+            "0",
+            "1280x1024x24",
+            "-nolisten",
+            "tcp",
+            "-noreset",
+        ])
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::null())

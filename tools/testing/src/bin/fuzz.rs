@@ -1,7 +1,10 @@
 //! `fuzz`: runs the fuzz harnesses of `citystream_testing::fuzz` (dataset files, camera paths,
-//! glTF/GLB import, KTX2/DDS/PNG textures) and fails on any input that panics, runs longer
-//! than `--hang-s` or makes the process's heap grow by more than `--max-alloc-mb` above what
-//! it held before the input. Failing inputs are saved under `--out` to reproduce them.
+//! glTF/GLB import, KTX2/DDS/PNG textures, patch sets, remote reads, 3D Tiles) and fails on
+//! any input that panics, runs longer than `--hang-s` or makes the process's heap grow by
+//! more than `--max-alloc-mb` above what it held before the input. An input still running
+//! whose heap growth passes `--runaway-alloc-mb` (a read without end, of a device) is
+//! stopped like a hang, before it exhausts the machine's memory. Failing inputs are saved
+//! under `--out` to reproduce them.
 //!
 //!     fuzz --target dataset --inputs 1000000 --seed 1
 
@@ -40,6 +43,10 @@ struct Args {
     /// An input running longer than this many seconds is a hang.
     #[arg(long, default_value_t = 10.0)]
     hang_s: f64,
+    /// An input whose heap growth passes this many MiB while it runs ends the run at once,
+    /// saved like a hang (at least `--max-alloc-mb`).
+    #[arg(long, default_value_t = 1024)]
+    runaway_alloc_mb: u64,
     /// Scratch files and failing inputs go here.
     #[arg(long, default_value = "out/fuzz")]
     out: PathBuf,
@@ -64,7 +71,8 @@ struct Totals {
     panic_sites: std::collections::BTreeMap<String, u64>,
 }
 
-/// The input being run, for the hang watchdog.
+/// The input being run, for the watchdog: its start, and `TARGET-SEED-INDEX--SEEDFILE`
+/// (what `--replay` reads back from a saved input's name).
 #[derive(Default)]
 struct Current {
     started: Option<Instant>,
@@ -79,6 +87,13 @@ fn main() -> Result<()> {
     }
     if let Some(limit) = args.time_limit_s.filter(|l| !(l.is_finite() && *l > 0.0)) {
         anyhow::bail!("--time-limit-s {limit} must be a positive number of seconds");
+    }
+    if args.runaway_alloc_mb < args.max_alloc_mb {
+        anyhow::bail!(
+            "--runaway-alloc-mb {} must be at least --max-alloc-mb {}",
+            args.runaway_alloc_mb,
+            args.max_alloc_mb
+        );
     }
     let targets = if args.target.is_empty() {
         Target::ALL.to_vec()
@@ -98,15 +113,11 @@ fn main() -> Result<()> {
             }
         }));
     }
-    if !args.replay.is_empty() {
-        return replay(&args, &last_panic);
-    }
     let current = Arc::new(Mutex::new(Current::default()));
-    spawn_watchdog(
-        Arc::clone(&current),
-        Duration::from_secs_f64(args.hang_s),
-        failures.clone(),
-    );
+    spawn_watchdog(Arc::clone(&current), &args, failures.clone());
+    if !args.replay.is_empty() {
+        return replay(&args, &current, &last_panic);
+    }
 
     let mut failed = false;
     println!("| target | inputs | accepted | rejected | panics | over {} MiB | max heap growth KiB | slowest input ms | wall s | inputs/s |", args.max_alloc_mb);
@@ -164,15 +175,9 @@ fn run_harness(
             break;
         }
         let (seed_index, bytes) = harness.input(args.seed, index);
-        if let Ok(mut c) = current.lock() {
-            c.label = format!("{name}-{}-{index}", args.seed);
-            c.bytes.clone_from(&bytes);
-            c.started = Some(Instant::now());
-        }
-        let Measured { result, growth, took } = measure(harness, seed_index, &bytes, last_panic);
-        if let Ok(mut c) = current.lock() {
-            c.started = None;
-        }
+        let seed_name = harness.seed_names()[seed_index];
+        let label = format!("{name}-{}-{index}--{seed_name}", args.seed);
+        let Measured { result, growth, took } = watched(current, label, harness, seed_index, &bytes, last_panic);
         totals.inputs += 1;
         totals.max_alloc = totals.max_alloc.max(growth);
         totals.max_input = totals.max_input.max(took);
@@ -197,7 +202,6 @@ fn run_harness(
             });
         }
         if let Some(failure) = failure {
-            let seed_name = harness.seed_names()[seed_index];
             let path = failures.join(format!("{name}-{}-{index}--{seed_name}.bin", args.seed));
             std::fs::write(&path, &bytes).with_context(|| format!("saving {}", path.display()))?;
             totals
@@ -227,6 +231,30 @@ struct Measured {
     took: Duration,
 }
 
+/// Runs one input under the watchdog's eye, named `label` for it.
+fn watched(
+    current: &Mutex<Current>,
+    label: String,
+    harness: &Harness,
+    seed_index: usize,
+    bytes: &[u8],
+    last_panic: &Mutex<String>,
+) -> Measured {
+    if let Ok(mut c) = current.lock() {
+        c.label = label;
+        c.bytes.clear();
+        c.bytes.extend_from_slice(bytes);
+        // Before the watchdog looks: the peak it reads is then this input's.
+        GLOBAL.reset_peak_memory();
+        c.started = Some(Instant::now());
+    }
+    let measured = measure(harness, seed_index, bytes, last_panic);
+    if let Ok(mut c) = current.lock() {
+        c.started = None;
+    }
+    measured
+}
+
 fn measure(harness: &Harness, seed_index: usize, bytes: &[u8], last_panic: &Mutex<String>) -> Measured {
     GLOBAL.reset_peak_memory();
     let started = Instant::now();
@@ -236,8 +264,9 @@ fn measure(harness: &Harness, seed_index: usize, bytes: &[u8], last_panic: &Mute
     Measured { result, growth, took }
 }
 
-/// Runs each saved input once: outcome, heap growth, time, and the panic if any.
-fn replay(args: &Args, last_panic: &Mutex<String>) -> Result<()> {
+/// Runs each saved input once: outcome, heap growth, time, and the panic if any (a hang
+/// or a runaway heap ends the replay as it ends a run).
+fn replay(args: &Args, current: &Mutex<Current>, last_panic: &Mutex<String>) -> Result<()> {
     for file in &args.replay {
         let name = file.file_name().and_then(|n| n.to_str()).unwrap_or_default();
         let target = Target::ALL
@@ -256,7 +285,8 @@ fn replay(args: &Args, last_panic: &Mutex<String>) -> Result<()> {
             .position(|n| *n == seed_name)
             .with_context(|| format!("{}: {} has no seed {seed_name}", file.display(), target.name()))?;
         let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
-        let Measured { result, growth, took } = measure(&harness, seed_index, &bytes, last_panic);
+        let label = name.strip_suffix(".bin").unwrap_or(name).to_owned();
+        let Measured { result, growth, took } = watched(current, label, &harness, seed_index, &bytes, last_panic);
         let outcome = match result {
             Ok(outcome) => format!("{outcome:?}"),
             Err(message) => format!("panicked: {message}"),
@@ -271,21 +301,32 @@ fn replay(args: &Args, last_panic: &Mutex<String>) -> Result<()> {
     Ok(())
 }
 
-/// Ends the process when one input runs longer than `hang`, saving it first.
-fn spawn_watchdog(current: Arc<Mutex<Current>>, hang: Duration, failures: PathBuf) {
+/// Ends the process when one input runs longer than `--hang-s` or its heap growth passes
+/// `--runaway-alloc-mb` while it runs, saving it first under its label (replayable).
+fn spawn_watchdog(current: Arc<Mutex<Current>>, args: &Args, failures: PathBuf) {
+    let hang = Duration::from_secs_f64(args.hang_s);
+    let runaway = usize::try_from(args.runaway_alloc_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX);
+    // Often enough that a read of /dev/zero (GB/s) is stopped near the bound.
+    let poll = Duration::from_millis(10).min(hang);
     std::thread::spawn(move || loop {
-        std::thread::sleep(Duration::from_millis(100).min(hang));
+        std::thread::sleep(poll);
         let Ok(c) = current.lock() else { continue };
-        if c.started.is_some_and(|s| s.elapsed() > hang) {
-            let path = failures.join(format!("{}.hang.bin", c.label));
-            let _ = std::fs::write(&path, &c.bytes);
-            eprintln!(
-                "fuzz: input {} ran longer than {:.1} s (a hang); saved as {}",
-                c.label,
-                hang.as_secs_f64(),
-                path.display()
-            );
-            std::process::exit(3);
-        }
+        let Some(started) = c.started else { continue };
+        let growth = GLOBAL.get_peak_memory();
+        let why = if started.elapsed() > hang {
+            format!("ran longer than {:.1} s (a hang)", hang.as_secs_f64())
+        } else if growth > runaway {
+            format!(
+                "grew the heap by {:.0} MiB while running, past --runaway-alloc-mb {} (a read without end)",
+                growth as f64 / f64::from(1 << 20),
+                runaway >> 20
+            )
+        } else {
+            continue;
+        };
+        let path = failures.join(format!("{}.bin", c.label));
+        let _ = std::fs::write(&path, &c.bytes);
+        eprintln!("fuzz: input {} {why}; saved as {}", c.label, path.display());
+        std::process::exit(3);
     });
 }

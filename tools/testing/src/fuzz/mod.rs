@@ -7,8 +7,10 @@
 //! seeds: bit flips, extreme bytes and fields (0, all ones, NaN, ±inf, 2^31, huge floats),
 //! truncations, extensions, deletions, duplications and splices between seeds; for text
 //! formats also number tokens replaced by extreme ones and structural characters removed; for
-//! binary dataset files checksums recomputed half of the time so that the checks behind them
-//! are reached. The same seed gives the same inputs. The `fuzz` binary runs a harness and
+//! glTF and tilesets URIs replaced by shapes a resolver must refuse or keep inside (with
+//! decoy files that make their naive readings exist); for binary dataset files checksums
+//! recomputed half of the time so that the checks behind them are reached. The same seed
+//! gives the same inputs. The `fuzz` binary runs a harness and
 //! checks that no input panics, hangs or allocates beyond a bound.
 
 use std::path::{Path, PathBuf};
@@ -25,11 +27,15 @@ use citystream_streaming::rng::SplitMix64;
 mod input;
 mod mutate;
 mod scripted;
+mod uri;
 
 pub use input::Outcome;
 use input::Seed;
 use mutate::{below, fix_dataset_checksum, mutate};
 use scripted::{remote_seeds, ScriptedServer};
+#[cfg(test)]
+use uri::{put_uri, uri_sites};
+use uri::{uri_shapes, write_uri_decoys, UriShape};
 
 /// The parsers a harness drives.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -88,6 +94,8 @@ pub struct Harness {
     work: PathBuf,
     /// The remote harness's server and store.
     remote: Option<ScriptedServer>,
+    /// What the URI mutation puts in place of a URI (glTF and tileset harnesses only).
+    uri_shapes: Vec<UriShape>,
 }
 
 impl Harness {
@@ -108,11 +116,16 @@ impl Harness {
             Target::Remote => Some(ScriptedServer::start()?),
             _ => None,
         };
+        let uri_shapes = match target {
+            Target::Gltf | Target::Tileset => uri_shapes(),
+            _ => Vec::new(),
+        };
         Ok(Self {
             target,
             seeds,
             work: work.to_path_buf(),
             remote,
+            uri_shapes,
         })
     }
 
@@ -130,7 +143,7 @@ impl Harness {
         let donor = &self.seeds[below(&mut rng, self.seeds.len())].bytes;
         let text =
             matches!(self.target, Target::Path) || original.name.ends_with(".gltf") || original.name.ends_with(".json");
-        let mut bytes = mutate(&mut rng, &original.bytes, donor, text);
+        let mut bytes = mutate(&mut rng, &original.bytes, donor, text, &self.uri_shapes);
         if self.target == Target::Dataset && rng.next_u64().is_multiple_of(2) {
             fix_dataset_checksum(&original.name, &mut bytes);
         }
@@ -314,7 +327,8 @@ fn dataset_file_path(dir: &Path, name: &str) -> PathBuf {
 
 /// A tileset at Berlin written to `work/tileset` (`tileset.json` with a transform, REPLACE
 /// refinement and an external `ext.json` under ADD; a glb with CESIUM_RTC and node
-/// transforms, a b3dm with RTC_CENTER and a batch table): each file is a seed.
+/// transforms, a b3dm with RTC_CENTER and a batch table, a glTF with an external buffer and
+/// image), with the URI decoys: each file but the glTF's buffer and image is a seed.
 fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
     use citystream_import::tiles::write;
     use serde_json::json;
@@ -361,12 +375,22 @@ fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
         Some(&json!({"height": [3.0]})),
         &[],
     );
+    // A glTF whose buffer and image are files beside it: URIs for the URI mutation to replace
+    // (a GLB's JSON has none), resolved by the tileset's checks and then by the reader.
+    let png = write::gradient_png(4, 4, 3);
+    let (mut c_gltf, c_bin) = write::textured_quad(quad, &png, json!({}), None);
+    c_gltf["buffers"][0]["uri"] = json!("c.bin");
+    c_gltf["images"] = json!([{"uri": "c.png"}]);
+    std::fs::write(dir.join("c.bin"), &c_bin)?;
+    std::fs::write(dir.join("c.png"), &png)?;
+    write_uri_decoys(&dir, &c_bin)?;
     let volume = json!({"sphere": [0.0, 0.0, 0.0, 100.0]});
     let external = json!({
         "asset": {"version": "1.1"},
         "geometricError": 10.0,
         "root": {"boundingVolume": volume, "geometricError": 5.0, "refine": "ADD", "content": {"uri": "a.glb"},
-                 "children": [{"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "b.b3dm"}}]}
+                 "children": [{"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "b.b3dm"}},
+                              {"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "c.gltf"}}]}
     });
     let tileset = json!({
         "asset": {"version": "1.0"},
@@ -400,6 +424,10 @@ fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
         Seed {
             name: "b.b3dm".into(),
             bytes: b3dm,
+        },
+        Seed {
+            name: "c.gltf".into(),
+            bytes: serde_json::to_vec_pretty(&c_gltf)?,
         },
     ];
     for seed in &seeds {
@@ -560,7 +588,8 @@ fn path_seeds() -> Result<Vec<Seed>> {
 }
 
 /// The Khronos BoxTextured sample as `.gltf` (external buffer and PNG, copied into the
-/// harness's base directory) and `.glb`, and a two-node quad with a data-URI buffer.
+/// harness's base directory, with the URI decoys) and `.glb`, and a two-node quad with a
+/// data-URI buffer.
 fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
     let samples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/gltf");
     let base = work.join("gltf");
@@ -569,6 +598,7 @@ fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
         std::fs::copy(samples.join("BoxTextured").join(file), base.join(file))
             .with_context(|| format!("copying the glTF sample {file}"))?;
     }
+    write_uri_decoys(&base, &std::fs::read(base.join("BoxTextured0.bin"))?)?;
     let read = |path: PathBuf| std::fs::read(&path).with_context(|| format!("reading {}", path.display()));
     let quad_data = quad_buffer(1.0, 2.0);
     let data_uri = format!("data:application/octet-stream;base64,{}", base64(&quad_data.bytes));
@@ -746,6 +776,48 @@ mod tests {
             }
             assert_eq!(harness.input(7, 3), harness.input(7, 3));
             assert_ne!(harness.input(7, 3), harness.input(7, 4));
+            let _ = std::fs::remove_dir_all(&work);
+        }
+    }
+
+    #[test]
+    fn uri_shapes_meet_their_decoys_and_never_panic() {
+        // Every shape at every URI site of the seeds with external files, run once. Shapes
+        // naming a device are left to the `fuzz` binary, whose watchdog stops a read
+        // without end (a unit test has none).
+        for target in [Target::Gltf, Target::Tileset] {
+            let work =
+                std::env::temp_dir().join(format!("citystream-fuzz-uris-{}-{}", target.name(), std::process::id()));
+            let harness = Harness::new(target, &work).expect("harness");
+            let dir = work.join(target.name());
+            for decoy in [
+                "file:/dev/zero",
+                "file:/etc/passwd",
+                "\u{fffd}.bin",
+                "C:\\x.bin",
+                "../outside.bin",
+            ] {
+                assert!(dir.join(decoy).is_file(), "{}: decoy {decoy}", target.name());
+            }
+            assert!(dir.join("escape.bin").is_file() && !dir.join("zero.bin").is_file());
+            for (i, seed) in harness.seeds.iter().enumerate() {
+                if !["BoxTextured.gltf", "c.gltf", "tileset.json"].contains(&seed.name.as_str()) {
+                    continue;
+                }
+                let sites = uri_sites(&seed.bytes).len();
+                assert!(sites >= 2, "{}", seed.name);
+                for shape in harness.uri_shapes.iter().filter(|s| !s.uri.contains("zero")) {
+                    for site in 0..sites {
+                        let mut bytes = seed.bytes.clone();
+                        put_uri(&mut bytes, site, shape);
+                        let outcome = harness.run(i, &bytes);
+                        // A URI with a scheme is refused even where a decoy has its name.
+                        if shape.uri.starts_with("file:") || shape.uri.contains("://") {
+                            assert_eq!(outcome, Outcome::Rejected, "{} site {site}: {:?}", seed.name, shape.uri);
+                        }
+                    }
+                }
+            }
             let _ = std::fs::remove_dir_all(&work);
         }
     }

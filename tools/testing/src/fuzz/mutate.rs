@@ -4,6 +4,8 @@
 use citystream_dataset::{MANIFEST_FILE, PACK_FILE, SCENE_FILE};
 use citystream_streaming::rng::SplitMix64;
 
+use super::uri::{put_uri, UriShape};
+
 pub(crate) fn below(rng: &mut SplitMix64, n: usize) -> usize {
     (rng.next_u64() % n.max(1) as u64) as usize
 }
@@ -45,13 +47,17 @@ const EXTREME_NUMBERS: [&str; 14] = [
     "99999999999999999999999999999",
 ];
 
-/// One to four mutations of `original`; `donor` provides spliced bytes.
-pub(crate) fn mutate(rng: &mut SplitMix64, original: &[u8], donor: &[u8], text: bool) -> Vec<u8> {
+/// One to four mutations of `original`; `donor` provides spliced bytes, `uris` the URI
+/// shapes (none: no URI mutation, and the same inputs as before it existed).
+pub(crate) fn mutate(rng: &mut SplitMix64, original: &[u8], donor: &[u8], text: bool, uris: &[UriShape]) -> Vec<u8> {
     let mut b = original.to_vec();
     let count = 1 + below(rng, 4);
     for _ in 0..count {
-        let kinds = if text { 10 } else { 8 };
-        match below(rng, kinds) {
+        let kinds = if text { 10 } else { 8 } + usize::from(!uris.is_empty());
+        let kind = below(rng, kinds);
+        // Binary inputs skip the two text mutations (8, 9).
+        let kind = if !text && kind >= 8 { kind + 2 } else { kind };
+        match kind {
             0 if !b.is_empty() => {
                 let i = below(rng, b.len());
                 b[i] ^= 1 << below(rng, 8);
@@ -110,6 +116,11 @@ pub(crate) fn mutate(rng: &mut SplitMix64, original: &[u8], donor: &[u8], text: 
                 if !positions.is_empty() {
                     b.remove(positions[below(rng, positions.len())]);
                 }
+            }
+            10 if !uris.is_empty() => {
+                let shape = &uris[below(rng, uris.len())];
+                let site = rng.next_u64() as usize;
+                put_uri(&mut b, site, shape);
             }
             _ => {}
         }
