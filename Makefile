@@ -62,7 +62,7 @@ check: fmt clippy doc embed
 bench: setup
 	$(CARGO) bench --workspace
 
-# The long fuzz campaign (README, "Fuzzing"): every harness, FUZZ_INPUTS inputs each, in an
+# The long fuzz campaign (docs/TOOLS.md, "Fuzzing"): every harness, FUZZ_INPUTS inputs each, in an
 # optimised build that keeps overflow checks and debug assertions (a wrapped subtraction
 # that would panic in a debug build counts as a finding). Scratch files go to FUZZ_OUT;
 # tmpfs makes the dataset harness several times faster.

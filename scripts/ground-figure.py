@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Composes docs/images/ground-refining.jpg from the frames of the README's ground demo.
+"""Composes docs/images/ground-refining.jpg from the frames of the ground demo of docs/MEASURED.md, "Ground imagery".
 
     flythrough --ground data/patches --path docs/paths/ground-demo.json --clock fixed \
         --bind-latency desktop --frame-interval 60 --psnr-interval 0 --width 960 --height 540 \

@@ -1261,7 +1261,8 @@ fn mips_that_fail_their_checksums_fail_their_textures_and_the_run() {
 fn an_error_with_frames_in_flight_ends_the_run_cleanly() {
     // An error mid-run (here injected after frame 20 was submitted, two frames in flight)
     // is reported with exit status 1, no abort and no validation message (the engine of
-    // f967389 ended such a run in a heap corruption inside the driver, README).
+    // f967389 ended such a run in a heap corruption inside the driver; docs/MEASURED.md,
+    // "A city larger than its cache").
     let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_fail_at");
     let _ = std::fs::remove_dir_all(&base);
     let dataset = base.join("city");

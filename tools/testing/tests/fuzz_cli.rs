@@ -1,5 +1,6 @@
-//! The fuzz harnesses in a short, fixed-seed run (the long runs are documented in the
-//! README): every parser sees mutated inputs, none panics, hangs or over-allocates.
+//! The fuzz harnesses in a short, fixed-seed run (the long runs are documented in
+//! docs/TOOLS.md, "Fuzzing"): every parser sees mutated inputs, none panics, hangs or
+//! over-allocates.
 
 use std::process::Command;
 
