@@ -3,8 +3,8 @@
 use std::path::Path;
 
 use super::error::DatasetError;
+use super::format::FORMAT_VERSION;
 use super::io_util::{decode_table, encode_table, read_all, write_new_durably};
-use super::FORMAT_VERSION;
 
 pub(crate) const MAGIC: &[u8; 8] = b"CSCOLMAP";
 

@@ -62,7 +62,7 @@ pub enum DatasetError {
     /// The file is from format version 1, which `citystream upgrade` converts.
     #[error(
         "{}: format version {found} dataset; this build reads version {} only: upgrade it with `citystream upgrade {}` (rewrites it atomically)",
-        path.display(), super::FORMAT_VERSION, dataset_dir(path).display()
+        path.display(), super::format::FORMAT_VERSION, dataset_dir(path).display()
     )]
     NeedsUpgrade {
         /// The file (or the dataset directory) found in the old version.

@@ -16,14 +16,24 @@ use std::fs::{File, TryLockError};
 use std::path::{Path, PathBuf};
 
 use super::error::DatasetError;
+use super::format::FORMAT_VERSION;
 use super::io_util::{
     check_prefix, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION, PREVIOUS_VERSION,
 };
 use super::store::DatasetStore;
-use super::{CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
 
 /// The manifest file at the top of a dataset directory.
 pub const MANIFEST_FILE: &str = "dataset.manifest";
+/// Scene file name inside a dataset directory.
+pub const SCENE_FILE: &str = "scene.bin";
+/// Texture metadata file name.
+pub const META_FILE: &str = "textures.meta";
+/// Texture pack file name.
+pub const PACK_FILE: &str = "textures.pack";
+/// City Colormap file name.
+pub const COLORMAP_FILE: &str = "colormap.bin";
+/// Per-mip checksum file name.
+pub const CHECKSUM_FILE: &str = "textures.crc";
 const MANIFEST_MAGIC: &[u8; 8] = b"CSMANIFS";
 const MANIFEST_BYTES: usize = 32;
 const WRITE_DIR_PREFIX: &str = "write-";

@@ -4,6 +4,9 @@
 //! pack, finest (level 0) first, so a mip's offset is the base offset plus the sizes of the
 //! finer levels. That keeps the per-texture record at ten bytes on disk.
 
+/// The format version this build reads and writes.
+pub const FORMAT_VERSION: u32 = 3;
+
 /// Largest supported texture side, as a power of two (2^14 = 16384, the Vulkan guaranteed
 /// minimum for `maxImageDimension2D` on desktop GPUs). Anything larger is treated as corrupt.
 pub const MAX_EXTENT_LOG2: u8 = 14;

@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use super::error::{DatasetError, Magic};
-use super::FORMAT_VERSION;
+use super::format::FORMAT_VERSION;
 
 /// Length of the common header of `textures.meta`, `colormap.bin` and `textures.crc`:
 /// magic (8), version (u32), flags (u32, 0), write id (u64), record count (u64), CRC-32 of

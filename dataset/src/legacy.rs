@@ -12,14 +12,14 @@ use std::path::Path;
 
 use super::colormap::{self, u32_records, Colormap};
 use super::crs::Crs;
+use super::dataset::Dataset;
 use super::error::DatasetError;
-use super::files::DatasetFiles;
-use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
+use super::files::{DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
+use super::format::{TextureInfo, FORMAT_VERSION, TEXTURE_RECORD_BYTES};
 use super::io_util::{check_versioned_prefix, read_all, table_body, u32_at, u64_at, LEGACY_VERSION, PREVIOUS_VERSION};
 use super::pack::{open_pack, META_MAGIC, PACK_HEADER_BYTES, PACK_MAGIC};
 use super::scene::{Scene, SceneLayout};
 use super::writer::{DatasetWriter, WriteSummary};
-use super::{Dataset, CHECKSUM_FILE, COLORMAP_FILE, FORMAT_VERSION, META_FILE, PACK_FILE, SCENE_FILE};
 
 const LEGACY_TABLE_HEADER_BYTES: usize = 32;
 

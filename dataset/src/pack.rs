@@ -7,12 +7,11 @@ use std::sync::Arc;
 
 use super::colormap::decode_checksums;
 use super::error::DatasetError;
-use super::files::DatasetFiles;
+use super::files::{DatasetFiles, CHECKSUM_FILE, META_FILE, PACK_FILE};
 use super::format::{TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{check_prefix, decode_table, u32_at, u64_at, TABLE_HEADER_BYTES};
 use super::mip_cache::{CacheNamespace, MipCache};
 use super::store::DatasetStore;
-use super::{CHECKSUM_FILE, META_FILE, PACK_FILE};
 
 pub(crate) const META_MAGIC: &[u8; 8] = b"CSTXMETA";
 pub(crate) const PACK_MAGIC: &[u8; 8] = b"CSTXPACK";

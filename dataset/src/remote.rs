@@ -40,9 +40,15 @@ use object_store::http::HttpBuilder;
 use object_store::path::Path as ObjectPath;
 use object_store::{BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, RetryConfig};
 
-use crate::{Dataset, DatasetError, DatasetStore, MipCache};
+use crate::dataset::Dataset;
+use crate::error::DatasetError;
+use crate::mip_cache::MipCache;
+use crate::store::DatasetStore;
 
 mod guarded;
+
+// Defined where the guarded client enforces it; public here beside the other limits.
+pub use guarded::MAX_REDIRECTS;
 
 /// How a remote dataset is reached.
 #[derive(Clone, Debug)]
@@ -181,9 +187,6 @@ impl RemoteOptions {
         Ok(options)
     }
 }
-
-/// Redirects within the dataset URL's origin followed at most, per request.
-pub const MAX_REDIRECTS: usize = 10;
 
 /// Retries per request at most ([`RemoteOptions::retries`]).
 pub const MAX_RETRIES: usize = 100;

@@ -54,7 +54,7 @@ pub(crate) struct SceneLayout {
 
 impl SceneLayout {
     pub(crate) const CURRENT: SceneLayout = SceneLayout {
-        version: super::FORMAT_VERSION,
+        version: super::format::FORMAT_VERSION,
         header_len: 104,
         counts_at: 24,
         origin_at: 48,

@@ -2,9 +2,10 @@
 
 use std::path::Path;
 
+use super::dataset::Dataset;
 use super::error::DatasetError;
+use super::files::META_FILE;
 use super::io_util::TABLE_HEADER_BYTES;
-use super::{Dataset, META_FILE};
 
 /// What [`verify`] checked.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -6,13 +6,13 @@ use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use super::colormap::{write_checksums, Colormap};
+use super::dataset::Dataset;
 use super::error::DatasetError;
-use super::files::PendingWrite;
+use super::files::{PendingWrite, CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
 use super::format::{TextureFormat, TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{encode_table, header_prefix, write_new_durably};
 use super::pack::{META_MAGIC, PACK_HEADER_BYTES, PACK_HEADER_CRC_AT, PACK_MAGIC};
 use super::scene::Scene;
-use super::{Dataset, CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
 
 /// Totals of a written dataset.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -16,7 +16,8 @@ use object_store::client::{
 };
 use object_store::ClientOptions;
 
-use super::MAX_REDIRECTS;
+/// Redirects within the dataset URL's origin followed at most, per request.
+pub const MAX_REDIRECTS: usize = 10;
 
 /// Builds the guarded client (`object_store`'s own client options are replaced by these).
 #[derive(Debug)]
