@@ -65,6 +65,17 @@ const MIN_LIST_INDICES: u64 = 1 << 18;
 /// Largest index capacity of a list: 64 MB of indices.
 const MAX_LIST_INDICES: u64 = 1 << 24;
 
+/// What the culling writes, the source of its barriers: shader stores, fills (copies to
+/// the validation layer, clears to the spec) and copies.
+const CULL_WRITES: (vk::PipelineStageFlags2, vk::AccessFlags2) = (
+    vk::PipelineStageFlags2::from_raw(
+        vk::PipelineStageFlags2::COMPUTE_SHADER.as_raw()
+            | vk::PipelineStageFlags2::CLEAR.as_raw()
+            | vk::PipelineStageFlags2::COPY.as_raw(),
+    ),
+    vk::AccessFlags2::from_raw(vk::AccessFlags2::SHADER_WRITE.as_raw() | vk::AccessFlags2::TRANSFER_WRITE.as_raw()),
+);
+
 /// The two views a frame culls for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CullView {
@@ -520,13 +531,7 @@ impl CityCulling {
         memory_barrier(
             &self.device,
             rec,
-            // Fills count as copies to the validation layer, as clears to the spec.
-            (
-                vk::PipelineStageFlags2::COMPUTE_SHADER
-                    | vk::PipelineStageFlags2::CLEAR
-                    | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
-            ),
+            CULL_WRITES,
             (
                 vk::PipelineStageFlags2::COMPUTE_SHADER,
                 vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
@@ -652,12 +657,7 @@ impl CityCulling {
         memory_barrier(
             &self.device,
             rec,
-            (
-                vk::PipelineStageFlags2::COMPUTE_SHADER
-                    | vk::PipelineStageFlags2::CLEAR
-                    | vk::PipelineStageFlags2::COPY,
-                vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
-            ),
+            CULL_WRITES,
             (
                 vk::PipelineStageFlags2::COPY,
                 vk::AccessFlags2::TRANSFER_READ | vk::AccessFlags2::TRANSFER_WRITE,
