@@ -633,3 +633,51 @@ impl ResidentCache for GpuTextureCache {
             .collect()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cycles_absorbed_add_their_counts_and_keep_every_invalidated_texture() {
+        let mut total = CycleReport {
+            blocks_bound: 3,
+            bind_seconds: 0.5,
+            textures_invalidated: 1,
+            invalidated_textures: vec![9],
+            ..CycleReport::default()
+        };
+        total.absorb(CycleReport {
+            blocks_bound: 2,
+            blocks_unbound: 4,
+            bind_entries: 1,
+            bind_seconds: 0.25,
+            mips_uploaded: 5,
+            bytes_uploaded: 4096,
+            textures_invalidated: 2,
+            invalidated_textures: vec![3, 9],
+        });
+        assert_eq!(
+            (total.blocks_bound, total.blocks_unbound, total.bind_entries),
+            (5, 4, 1)
+        );
+        assert_eq!((total.mips_uploaded, total.bytes_uploaded), (5, 4096));
+        assert_eq!(total.bind_seconds, 0.75);
+        assert_eq!(total.textures_invalidated, 3);
+        assert_eq!(total.invalidated_textures, vec![9, 3, 9]);
+    }
+
+    #[test]
+    fn each_dataset_format_has_its_cache_format() {
+        for format in [
+            TextureFormat::Bc1,
+            TextureFormat::Rgba8,
+            TextureFormat::Bc3,
+            TextureFormat::Bc7,
+        ] {
+            let index = GpuTextureCache::format_index(format).expect("a cache format");
+            assert_eq!(CACHE_FORMATS[index].0, format);
+        }
+        assert_eq!(GpuTextureCache::format_index(TextureFormat::Bc1), Some(0));
+    }
+}
