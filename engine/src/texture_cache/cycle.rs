@@ -10,11 +10,10 @@ use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::Placement;
-use gpu_allocator::MemoryLocation;
 
 use super::table::same_place;
 use super::{CycleReport, GpuTextureCache};
-use crate::buffer::{Buffer, BufferDesc};
+use crate::buffer::Buffer;
 use crate::commands::{CommandContext, Recording, SemaphoreWait};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
@@ -122,16 +121,7 @@ impl Staging {
         if let Some(range) = self.ring.push(bytes, 16, ticket)? {
             return Ok((self.ring.buffer(), range.offset));
         }
-        let mut oversize = Buffer::new(
-            device,
-            BufferDesc {
-                size: bytes.len() as u64,
-                usage: vk::BufferUsageFlags::TRANSFER_SRC,
-                location: MemoryLocation::CpuToGpu,
-            },
-            label,
-        )?;
-        oversize.write(0, bytes)?;
+        let oversize = Buffer::staged(device, bytes, label)?;
         let raw = oversize.raw();
         self.retiring.push_back((ticket, oversize));
         Ok((raw, 0))
