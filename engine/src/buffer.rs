@@ -34,6 +34,22 @@ pub struct Buffer {
 debug_fields!(Buffer { name, desc });
 
 impl Buffer {
+    /// A host-visible transfer source holding `bytes` (a one-off staging
+    /// buffer).
+    pub fn staged(device: &Arc<Device>, bytes: &[u8], name: &str) -> Result<Self> {
+        let mut buffer = Self::new(
+            device,
+            BufferDesc {
+                size: bytes.len() as u64,
+                usage: vk::BufferUsageFlags::TRANSFER_SRC,
+                location: MemoryLocation::CpuToGpu,
+            },
+            name,
+        )?;
+        buffer.write(0, bytes)?;
+        Ok(buffer)
+    }
+
     /// Creates a buffer and binds fresh memory to it.
     pub fn new(device: &Arc<Device>, desc: BufferDesc, name: &str) -> Result<Self> {
         if desc.size == 0 {

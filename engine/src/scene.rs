@@ -422,16 +422,7 @@ pub fn upload_texture_array(
             bytes.extend_from_slice(level);
         }
     }
-    let mut staging = Buffer::new(
-        device,
-        BufferDesc {
-            size: bytes.len() as u64,
-            usage: vk::BufferUsageFlags::TRANSFER_SRC,
-            location: MemoryLocation::CpuToGpu,
-        },
-        "texture staging",
-    )?;
-    staging.write(0, &bytes)?;
+    let staging = Buffer::staged(device, &bytes, "texture staging")?;
     let cmd = commands.begin()?;
     let range = image.desc().full_range();
     transition(

@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use anyhow::{ensure, Result};
 use citystream_engine::stream::{StreamConfig, TextureStreamer};
+use citystream_engine::texture_cache::ResidentCache;
 use citystream_engine::Device;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MemorySource;

@@ -13,7 +13,7 @@ use citystream_engine::gpu_types::{Vertex, TEXTURE_SAMPLEABLE};
 use citystream_engine::image::memory_barrier;
 use citystream_engine::stream::{StreamConfig, TextureStreamer};
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::Eviction;
+use citystream_engine::texture_cache::{Eviction, ResidentCache};
 use citystream_engine::vk;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::records::MeshMetaData;

@@ -18,7 +18,9 @@ use citystream_engine::gpu_types::{ProbeResult, TextureProbePoint};
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::probe::TextureProbe;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache, StageOutcome};
+use citystream_engine::texture_cache::{
+    CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache, ResidentCache, StageOutcome,
+};
 use citystream_engine::Device;
 use citystream_tests::{
     assert_no_validation_errors, bc1_texel, test_cache_config, validated_array_device, validated_device,

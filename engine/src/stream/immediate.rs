@@ -12,7 +12,7 @@ use citystream_streaming::states::{TextureState, TextureStates};
 use super::{chain_and_format, source_failure, TextureStreamer};
 use crate::commands::{CommandContext, SemaphoreWait};
 use crate::error::{EngineError, Result};
-use crate::texture_cache::{CycleReport, StageOutcome};
+use crate::texture_cache::{CycleReport, ResidentCache, StageOutcome};
 
 impl<S: MipSource + 'static> TextureStreamer<S> {
     /// Loads now, bypassing the policy, every level of each `(texture,

@@ -6,15 +6,22 @@
 //! the cache's binds are bookkeeping only and a layer is the unit of
 //! eviction, while the table's lowest level keeps sampling to the levels
 //! loaded.
+//!
+//! The images are built here too ([`build_images`]): their layer counts
+//! planned ([`super::layout`]) from what the device reports of a layer's
+//! cost (a probe image's sparse blocks, or an array layer's memory
+//! requirements), each checked against the device's limits.
 
 use std::sync::Arc;
 
 use ash::vk;
-use citystream_cache::{BindOp, ChunkInfo, Granularity, TexelFormat};
+use citystream_cache::{BindOp, CacheConfig, ChunkInfo, DeviceLimits, Granularity, ImageConfig, TexelFormat};
 
-use crate::binder::VulkanBinder;
+use super::layout::{image_layouts, plan_layer_counts, FormatImages, LayerProbe};
+use super::{GpuCacheConfig, CACHE_FORMATS};
+use crate::binder::{cache_mip_tail, VulkanBinder};
 use crate::commands::{CommandContext, Recording, SemaphoreWait};
-use crate::device::Device;
+use crate::device::{Device, TextureBacking};
 use crate::error::{EngineError, Result};
 use crate::image::{Image, ImageDesc};
 use crate::sparse::{
@@ -252,6 +259,341 @@ impl CacheImages {
             CacheImages::Arrays { images } => Some(images.iter().map(|i| i.bytes).sum()),
         }
     }
+}
+
+/// What [`GpuTextureCache::new`] builds for a backing.
+pub(super) struct BuiltImages {
+    /// The Vulkan-free cache's configuration.
+    pub(super) cache_config: CacheConfig,
+    pub(super) images: CacheImages,
+    /// Which images hold which format.
+    pub(super) formats: FormatImages,
+    /// Per format, the layers of each of its images.
+    pub(super) layer_counts: Vec<Vec<u32>>,
+}
+
+/// The cache images of `config` for the device's backing, `held` the
+/// formats it holds (indices into [`CACHE_FORMATS`]), each image with `mips`
+/// levels.
+pub(super) fn build_images(
+    device: &Arc<Device>,
+    config: &GpuCacheConfig,
+    held: &[usize],
+    mips: u32,
+) -> Result<BuiltImages> {
+    match device.texture_backing() {
+        TextureBacking::Sparse => sparse_images(device, config, held, mips),
+        TextureBacking::Arrays => array_images(device, config, held, mips),
+    }
+}
+
+/// A cache image of `layers` square layers of `config`'s size with `mips` levels.
+fn image_desc(config: &GpuCacheConfig, layers: u32, mips: u32, format: vk::Format) -> SparseImageDesc {
+    SparseImageDesc {
+        width: config.layer_size,
+        height: config.layer_size,
+        layers,
+        mips,
+        format,
+    }
+}
+
+/// Sparse cache images: layers derived within the device's sparse address
+/// space, the block size and granularity the device reports.
+fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
+    let limits = device.properties().limits;
+    let virtual_budget_bytes = config
+        .virtual_budget_bytes
+        .unwrap_or(device.sparse_support().address_space_size);
+    let layer_counts = plan_layer_counts(
+        config,
+        held,
+        limits.max_image_array_layers,
+        virtual_budget_bytes,
+        |index| {
+            let (_, vk_format, texel_format) = CACHE_FORMATS[index];
+            probe_layer(device, config.layer_size, vk_format, texel_format)
+        },
+    )?;
+    let layouts = image_layouts(&layer_counts);
+    let mut images = Vec::with_capacity(layouts.len());
+    let mut image_configs = Vec::with_capacity(layouts.len());
+    for &(format_index, nth, layers) in &layouts {
+        let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
+        let image = SparseImage::new(
+            device,
+            image_desc(config, layers, mips, vk_format),
+            &format!("cache {} #{nth}", texel_format.name),
+        )?;
+        ensure_served(device, &image)?;
+        let (gw, gh) = image.granularity();
+        image_configs.push(ImageConfig {
+            format: texel_format,
+            granularity: Granularity::texels(gw, gh),
+            layer_size: config.layer_size,
+            layer_count: layers,
+            mip_tail: cache_mip_tail(&image),
+        });
+        images.push(Arc::new(image));
+    }
+    let block_size = images.iter().map(|i| i.block_size()).max().unwrap_or(0);
+    let memory_type_bits = images.iter().fold(u32::MAX, |bits, i| bits & i.memory_type_bits());
+    if images.iter().any(|i| i.block_size() != block_size) {
+        return Err(EngineError::InvalidRequest(
+            "cache images report different sparse block sizes; one block pool cannot serve them".into(),
+        ));
+    }
+    let cache_config = CacheConfig {
+        images: image_configs,
+        limits: DeviceLimits {
+            max_image_array_layers: limits.max_image_array_layers,
+            max_image_dimension_2d: limits.max_image_dimension2_d,
+            sparse_block_bytes: block_size,
+        },
+        memory_budget_bytes: config.memory_budget_bytes,
+        virtual_budget_bytes,
+        blocks_per_chunk: config.blocks_per_chunk,
+    };
+    let binder = VulkanBinder::new(device, images.clone())?;
+    let formats = FormatImages::new(&layouts);
+    let images = CacheImages::Sparse {
+        images,
+        binder: Box::new(binder),
+        block_size,
+        memory_type_bits,
+    };
+    Ok(BuiltImages {
+        cache_config,
+        images,
+        formats,
+        layer_counts,
+    })
+}
+
+/// Texture arrays: fully bound images whose layers, each a full mip chain's
+/// memory, share out the memory budget (at most the layers the textures
+/// need, the device's layer and resource-size limits per image, and half the
+/// largest device-local heap: the layers are allocated whole, whatever is
+/// loaded, and geometry, targets and an error reference need room too).
+fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
+    let limits = device.properties().limits;
+    let heap_share = device.device_local_heap_bytes() / 2;
+    let budget = config.memory_budget_bytes.min(heap_share.max(1));
+    let config = &GpuCacheConfig {
+        memory_budget_bytes: budget,
+        ..config.clone()
+    };
+    let mut layer_bytes = [0u64; CACHE_FORMATS.len()];
+    let mut max_layers = limits.max_image_array_layers;
+    for &index in held {
+        let (_, vk_format, _) = CACHE_FORMATS[index];
+        let (bytes, format_max_layers) = array_layer_cost(device, config.layer_size, mips, vk_format)?;
+        layer_bytes[index] = bytes;
+        max_layers = max_layers.min(format_max_layers);
+    }
+    let layer_counts = plan_layer_counts(config, held, max_layers, config.memory_budget_bytes, |index| {
+        Ok(LayerProbe {
+            block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
+            virtual_bytes: layer_bytes[index],
+        })
+    })?;
+    let layouts = image_layouts(&layer_counts);
+    // Fixed layer counts are the caller's; the device's limits still hold.
+    if let Some(&(format, _, layers)) = layouts.iter().find(|&&(_, _, layers)| layers > max_layers) {
+        return Err(EngineError::InvalidRequest(format!(
+            "{layers} layers of {}x{} {} texels in one array image; the device allows {max_layers}",
+            config.layer_size, config.layer_size, CACHE_FORMATS[format].2.name
+        )));
+    }
+    let needed: u64 = layouts
+        .iter()
+        .map(|&(format, _, layers)| u64::from(layers).saturating_mul(layer_bytes[format]))
+        .fold(0, u64::saturating_add);
+    if needed > config.memory_budget_bytes {
+        let smallest = held.iter().map(|&index| layer_bytes[index]).min().unwrap_or(0);
+        return Err(EngineError::InvalidRequest(format!(
+            "the texture-array cache needs {needed} bytes for {:?} layers of {}x{} texels (a layer is its \
+             full mip chain, {smallest} bytes or more), above the memory budget of {} bytes; raise the \
+             budget or lower the layer size",
+            layer_counts.iter().map(|c| c.iter().sum::<u32>()).collect::<Vec<_>>(),
+            config.layer_size,
+            config.layer_size,
+            config.memory_budget_bytes
+        )));
+    }
+    let cache_limits = DeviceLimits {
+        max_image_array_layers: limits.max_image_array_layers,
+        max_image_dimension_2d: limits.max_image_dimension2_d,
+        sparse_block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
+    };
+    let mut image_configs = Vec::with_capacity(layouts.len());
+    let mut descs = Vec::with_capacity(layouts.len());
+    for &(format_index, nth, layers) in &layouts {
+        let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
+        image_configs.push(ImageConfig {
+            format: texel_format,
+            granularity: accounting_granularity(texel_format, ARRAY_ACCOUNTING_BLOCK_BYTES),
+            layer_size: config.layer_size,
+            layer_count: layers,
+            mip_tail: None,
+        });
+        descs.push((
+            image_desc(config, layers, mips, vk_format),
+            format!("cache {} array #{nth}", texel_format.name),
+        ));
+    }
+    // Every layer's blocks fit the accounting budget, so only layers run
+    // out: the budget was spent on them when the images were made.
+    let mut accounted = 0u64;
+    for (index, image_config) in image_configs.iter().enumerate() {
+        let desc = citystream_cache::ImageDesc::new(index, image_config, &cache_limits)
+            .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
+        accounted = accounted.saturating_add(desc.virtual_bytes());
+    }
+    let cache_config = CacheConfig {
+        images: image_configs,
+        limits: cache_limits,
+        memory_budget_bytes: accounted,
+        virtual_budget_bytes: accounted,
+        blocks_per_chunk: config.blocks_per_chunk,
+    };
+    let images = CacheImages::arrays(device, &descs)?;
+    // The layers were counted from one layer's cost; what the images took is
+    // what holds the budget.
+    let held_bytes = images.array_bytes().unwrap_or(0);
+    if held_bytes > config.memory_budget_bytes {
+        return Err(EngineError::InvalidRequest(format!(
+            "the texture-array images took {held_bytes} bytes of device memory, above the budget of {} bytes \
+             (the device's layers cost more than one layer's requirements said)",
+            config.memory_budget_bytes
+        )));
+    }
+    let formats = FormatImages::new(&layouts);
+    Ok(BuiltImages {
+        cache_config,
+        images,
+        formats,
+        layer_counts,
+    })
+}
+
+/// Bytes one layer of a fully bound `layer_size`² array image of `format`
+/// with `mips` levels takes, from the device's memory requirements (what a
+/// second layer adds to a one-layer image, so its alignment counts), and the
+/// most layers one image may have: the device's `maxArrayLayers` for the
+/// format, its `maxResourceSize` and `maxMemoryAllocationSize`.
+fn array_layer_cost(device: &Arc<Device>, layer_size: u32, mips: u32, format: vk::Format) -> Result<(u64, u32)> {
+    let bytes_for = |layers: u32| {
+        let info = vk::ImageCreateInfo::default()
+            .image_type(vk::ImageType::TYPE_2D)
+            .format(format)
+            .extent(vk::Extent3D {
+                width: layer_size,
+                height: layer_size,
+                depth: 1,
+            })
+            .mip_levels(mips)
+            .array_layers(layers)
+            .samples(vk::SampleCountFlags::TYPE_1)
+            .tiling(vk::ImageTiling::OPTIMAL)
+            .usage(CACHE_USAGE)
+            .sharing_mode(vk::SharingMode::EXCLUSIVE)
+            .initial_layout(vk::ImageLayout::UNDEFINED);
+        let query = vk::DeviceImageMemoryRequirements::default().create_info(&info);
+        let mut requirements = vk::MemoryRequirements2::default();
+        // SAFETY: a Vulkan 1.3 query on a live device with a valid create info.
+        unsafe {
+            device
+                .raw()
+                .get_device_image_memory_requirements(&query, &mut requirements)
+        };
+        requirements.memory_requirements.size
+    };
+    let one = bytes_for(1);
+    let layer_bytes = one.max(bytes_for(2).saturating_sub(one));
+    // SAFETY: physical belongs to the device's instance.
+    let properties = unsafe {
+        device.instance_fns().get_physical_device_image_format_properties(
+            device.physical(),
+            format,
+            vk::ImageType::TYPE_2D,
+            vk::ImageTiling::OPTIMAL,
+            CACHE_USAGE,
+            vk::ImageCreateFlags::empty(),
+        )
+    }
+    .map_err(|_| EngineError::MissingFeature {
+        device: device.name().to_owned(),
+        feature: format!("sampled {layer_size}x{layer_size} array images of {format:?}"),
+    })?;
+    let largest = properties.max_resource_size.min(device.max_memory_allocation_bytes());
+    if layer_bytes == 0
+        || properties.max_mip_levels < mips
+        || properties.max_extent.width < layer_size
+        || layer_bytes > largest
+    {
+        return Err(EngineError::MissingFeature {
+            device: device.name().to_owned(),
+            feature: format!(
+                "{layer_size}x{layer_size} array images of {format:?} with {mips} levels ({layer_bytes} bytes a layer)"
+            ),
+        });
+    }
+    let by_size = u32::try_from(largest / layer_bytes).unwrap_or(u32::MAX);
+    Ok((layer_bytes, properties.max_array_layers.min(by_size).max(1)))
+}
+
+/// Refuses `image` where the sparse cache cannot serve it, naming its format and why.
+fn ensure_served(device: &Device, image: &SparseImage) -> Result<()> {
+    match image.unserved_reason() {
+        None => Ok(()),
+        Some(reason) => Err(EngineError::MissingFeature {
+            device: device.name().to_owned(),
+            feature: format!(
+                "sparse {:?} images the cache can serve ({reason}); the texture-array cache \
+                 (--sparse off, or auto) serves this device",
+                image.desc().format
+            ),
+        }),
+    }
+}
+
+/// Creates a one-layer sparse image of `format` and reads its block size
+/// and granularity.
+fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel: TexelFormat) -> Result<LayerProbe> {
+    let probe = SparseImage::new(
+        device,
+        SparseImageDesc {
+            width: layer_size,
+            height: layer_size,
+            layers: 1,
+            mips: 32 - layer_size.max(1).leading_zeros(),
+            format,
+        },
+        "cache layer probe",
+    )?;
+    ensure_served(device, &probe)?;
+    let (gw, gh) = probe.granularity();
+    let desc = citystream_cache::ImageDesc::new(
+        0,
+        &ImageConfig {
+            format: texel,
+            granularity: Granularity::texels(gw, gh),
+            layer_size,
+            layer_count: 1,
+            mip_tail: cache_mip_tail(&probe),
+        },
+        &DeviceLimits {
+            max_image_array_layers: 1,
+            max_image_dimension_2d: layer_size,
+            sparse_block_bytes: probe.block_size(),
+        },
+    )
+    .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
+    Ok(LayerProbe {
+        block_bytes: probe.block_size(),
+        virtual_bytes: desc.virtual_bytes(),
+    })
 }
 
 #[cfg(test)]

@@ -1,7 +1,8 @@
 //! How many images the cache has and how many layers each: from the formats
 //! it holds, the textures each must place, the budget and the device's
 //! limits. Pure: the sparse block size and layer footprint come in as
-//! [`LayerProbe`]s, which the caller measures on the device.
+//! [`LayerProbe`]s, which the caller measures on the device. Also which
+//! image holds which format ([`FormatImages`]).
 
 use citystream_cache::{derive_image_layers, layers_to_place, ImageDemand};
 
@@ -101,6 +102,63 @@ pub(super) fn plan_layer_counts(
         )));
     }
     Ok(layer_counts)
+}
+
+/// The images of `layer_counts` (per format in [`CACHE_FORMATS`] order) in
+/// image order: `(format index, nth image of the format, layers)`.
+pub(super) fn image_layouts(layer_counts: &[Vec<u32>]) -> Vec<(usize, usize, u32)> {
+    layer_counts
+        .iter()
+        .enumerate()
+        .flat_map(|(format, counts)| {
+            counts
+                .iter()
+                .enumerate()
+                .map(move |(nth, &layers)| (format, nth, layers))
+        })
+        .collect()
+}
+
+/// Which cache images hold which format: the images in [`image_layouts`]
+/// order, each of one format of [`CACHE_FORMATS`].
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(super) struct FormatImages {
+    /// Per image, its format's index in [`CACHE_FORMATS`].
+    image_formats: Vec<usize>,
+    /// Per format in [`CACHE_FORMATS`], its images.
+    format_images: Vec<Vec<u32>>,
+}
+
+impl FormatImages {
+    /// Each image's format and each format's images, for `layouts`.
+    pub(super) fn new(layouts: &[(usize, usize, u32)]) -> Self {
+        let mut format_images = vec![Vec::new(); CACHE_FORMATS.len()];
+        for (image, &(format, _, _)) in layouts.iter().enumerate() {
+            format_images[format].push(image as u32);
+        }
+        Self {
+            image_formats: layouts.iter().map(|&(format, _, _)| format).collect(),
+            format_images,
+        }
+    }
+
+    /// The images of the format at `format` in [`CACHE_FORMATS`], in index order.
+    pub(super) fn of_format(&self, format: usize) -> &[u32] {
+        &self.format_images[format]
+    }
+
+    /// The images holding textures of the same format as `image` (itself
+    /// included), in index order; none for an image the cache does not have.
+    pub(super) fn sharing(&self, image: u32) -> &[u32] {
+        self.image_formats
+            .get(image as usize)
+            .map_or(&[], |&format| self.format_images[format].as_slice())
+    }
+
+    /// Per format in [`CACHE_FORMATS`] order, its index and images.
+    pub(super) fn iter(&self) -> impl Iterator<Item = (usize, &[u32])> {
+        self.format_images.iter().map(Vec::as_slice).enumerate()
+    }
 }
 
 #[cfg(test)]
@@ -213,5 +271,20 @@ mod tests {
             plan_layer_counts(&zero, &[0], 2048, u64::MAX, never_probed),
             Err(EngineError::InvalidRequest(_))
         ));
+    }
+
+    #[test]
+    fn images_follow_cache_format_order_and_know_their_format() {
+        let layouts = image_layouts(&[vec![2, 3], vec![], vec![5], vec![]]);
+        assert_eq!(layouts, vec![(0, 0, 2), (0, 1, 3), (2, 0, 5)]);
+        let formats = FormatImages::new(&layouts);
+        assert_eq!(formats.of_format(0), &[0, 1]);
+        assert_eq!(formats.of_format(1), &[] as &[u32]);
+        assert_eq!(formats.of_format(2), &[2]);
+        assert_eq!(formats.sharing(1), &[0, 1]);
+        assert_eq!(formats.sharing(2), &[2]);
+        assert_eq!(formats.sharing(3), &[] as &[u32], "no image 3");
+        let listed: Vec<(usize, Vec<u32>)> = formats.iter().map(|(f, images)| (f, images.to_vec())).collect();
+        assert_eq!(listed, vec![(0, vec![0, 1]), (1, vec![]), (2, vec![2]), (3, vec![])]);
     }
 }

@@ -30,29 +30,23 @@
 use std::sync::Arc;
 
 use ash::vk;
-use citystream_cache::{
-    BudgetUse, CacheConfig, CacheError, DeviceLimits, Granularity, ImageConfig, Placement, TexelFormat, TextureCache,
-    Utilisation,
-};
+use citystream_cache::{BudgetUse, CacheError, TexelFormat, TextureCache, Utilisation};
 use citystream_dataset::TextureFormat;
-use citystream_streaming::residency::planner::ResidentCache;
-use gpu_allocator::MemoryLocation;
+pub use citystream_streaming::residency::planner::ResidentCache;
 
-use crate::binder::{cache_mip_tail, VulkanBinder};
-use crate::buffer::{Buffer, BufferDesc};
+use crate::buffer::Buffer;
 use crate::commands::CommandContext;
 use crate::device::{Device, TextureBacking};
 use crate::error::{EngineError, Result};
-use crate::gpu_types::{
-    TextureData, BINDING_CACHE_IMAGES, BINDING_COLORMAP, BINDING_TEXTURE_DATA, CACHE_IMAGE_SLOTS,
-    TEXTURE_NOT_SAMPLEABLE,
-};
+use crate::gpu_types::{TextureData, BINDING_CACHE_IMAGES, BINDING_COLORMAP, BINDING_TEXTURE_DATA, CACHE_IMAGE_SLOTS};
 use crate::pipeline::{DescriptorResource, Filtering, Sampler};
 use crate::scene::upload_buffer;
-use crate::sparse::{SparseImage, SparseImageDesc, TexelUpload};
+use crate::sparse::TexelUpload;
 use crate::staging::StagingRing;
-use backing::{accounting_granularity, CacheImages, ARRAY_ACCOUNTING_BLOCK_BYTES, CACHE_USAGE};
-use layout::LayerProbe;
+use backing::{build_images, BuiltImages, CacheImages};
+use cycle::{StagingCycle, UploadStats};
+use layout::FormatImages;
+use table::TextureTable;
 
 mod backing;
 mod cycle;
@@ -195,7 +189,7 @@ pub enum StageOutcome {
     /// [`Eviction::View`]: the texture needs a new layer and every layer of
     /// every image of its format is live; the caller may free one
     /// ([`GpuTextureCache::evict_layer`] on any of
-    /// [`GpuTextureCache::images_sharing_format`]).
+    /// [`ResidentCache::images_sharing_format`]).
     NoLayer {
         /// The first cache image of the texture's format.
         image: u32,
@@ -204,76 +198,35 @@ pub enum StageOutcome {
     },
 }
 
-#[derive(Clone, Debug)]
-struct PendingUpload {
-    texture: u32,
-    placement: Placement,
-    upload: TexelUpload,
-    image: u32,
-    bytes: std::ops::Range<usize>,
-}
-
-/// Per-texture host state behind the GPU table.
-#[derive(Clone, Copy, Debug, Default)]
-struct TextureSlot {
-    placement: Option<Placement>,
-    /// Bit m set: mip m is resident (copied and not evicted).
-    resident: u32,
-    /// Bit m set: mip m is staged in this cycle, not yet recorded.
-    pending: u32,
-}
-
-/// Sparse cache images, block memory, texture table and colormap.
+/// Sparse cache images, block memory, texture table and colormap, in
+/// parts of one job each: the images and what binds their memory
+/// (`backing.rs`), which image holds which format (`layout.rs`), the texture
+/// table (`table.rs`) and the staging cycle (`cycle.rs`). Residency queries
+/// are its [`ResidentCache`] impl.
 pub struct GpuTextureCache {
     device: Arc<Device>,
+    /// The Vulkan-free packing, block accounting and eviction.
     cache: TextureCache,
+    /// The images and what binds their memory.
     images: CacheImages,
-    /// Per image, its format's index in [`CACHE_FORMATS`].
-    image_formats: Vec<usize>,
-    /// Per format in [`CACHE_FORMATS`], its images.
-    format_images: Vec<Vec<u32>>,
+    formats: FormatImages,
     /// Whether the layers place every texture of the source at once.
     holds_every_texture: bool,
-    slots: Vec<TextureSlot>,
-    table: Vec<TextureData>,
+    table: TextureTable,
+    /// The device-local copy of `table`'s entries the shaders read.
     table_buffer: Buffer,
     colormap_buffer: Buffer,
     sampler: Sampler,
-    uploads: Vec<PendingUpload>,
-    upload_bytes: Vec<u8>,
-    staging: StagingRing,
-    /// Textures whose table entry changed since the last table copy.
-    dirty: Vec<u32>,
-    dirty_flags: Vec<bool>,
-    /// The cycle prepared by `prepare_cycle`, waiting for `record_cycle`.
-    prepared: Option<PreparedCycle>,
-    /// One-off staging buffers, each with the ticket after which it is free.
-    retiring: std::collections::VecDeque<(u64, Buffer)>,
-    /// The highest ticket handed to `prepare_cycle`.
-    last_ticket: u64,
+    cycle: StagingCycle,
     eviction: Eviction,
-    /// Mip bytes per texture level that `drop_finest` released.
-    dropped_bytes: u64,
-    /// Per texture, bit m: level m was uploaded at least once.
-    uploaded_levels: Vec<u32>,
-    /// Bytes of the distinct (texture, level) pairs uploaded.
-    unique_bytes_uploaded: u64,
-}
-
-/// Where a prepared cycle's upload bytes wait and what it did so far.
-#[derive(Debug)]
-struct PreparedCycle {
-    ticket: u64,
-    /// Buffer and offset of the first upload byte, when there are uploads.
-    source: Option<(vk::Buffer, u64)>,
-    report: CycleReport,
+    stats: UploadStats,
 }
 
 debug_fields!(GpuTextureCache {
     backing = |s| s.backing().name(),
     images = |s| s.images.len(),
-    textures = |s| s.slots.len(),
-    pending_uploads = |s| s.uploads.len(),
+    textures = |s| s.table.slots().len(),
+    pending_uploads = |s| s.cycle.pending.uploads().len(),
 });
 
 fn cache_error(texture: u32, mip: u32, error: CacheError) -> EngineError {
@@ -298,10 +251,7 @@ impl GpuTextureCache {
         }
         let mips = 32 - config.layer_size.max(1).leading_zeros();
         let held = layout::held_formats(config)?;
-        let built = match device.texture_backing() {
-            TextureBacking::Sparse => sparse_images(device, config, &held, mips)?,
-            TextureBacking::Arrays => array_images(device, config, &held, mips)?,
-        };
+        let built = build_images(device, config, &held, mips)?;
         // Array layers are memory, so placing every texture means holding it;
         // sparse layers are address space, which says nothing of the budget.
         let holds_every_texture = matches!(built.images, CacheImages::Arrays { .. })
@@ -309,19 +259,18 @@ impl GpuTextureCache {
         let BuiltImages {
             cache_config,
             images,
-            image_formats,
-            format_images,
+            formats,
             ..
         } = built;
         let cache = TextureCache::new(&cache_config).map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
 
-        let table = vec![TextureData::default(); config.texture_count as usize];
+        let table = TextureTable::new(config.texture_count as usize);
         // Device-local and changed only by recorded copies, so frames in
         // flight never see an entry rewritten under them.
         let table_buffer = upload_buffer(
             device,
             commands,
-            bytemuck::cast_slice(&table),
+            bytemuck::cast_slice(table.entries()),
             vk::BufferUsageFlags::STORAGE_BUFFER,
             "texture data table",
         )?;
@@ -342,26 +291,15 @@ impl GpuTextureCache {
             device: Arc::clone(device),
             cache,
             images,
-            image_formats,
-            format_images,
+            formats,
             holds_every_texture,
-            slots: vec![TextureSlot::default(); config.texture_count as usize],
             table,
             table_buffer,
             colormap_buffer,
             sampler,
-            uploads: Vec::new(),
-            upload_bytes: Vec::new(),
-            staging,
-            dirty: Vec::new(),
-            dirty_flags: vec![false; config.texture_count as usize],
-            prepared: None,
-            retiring: std::collections::VecDeque::new(),
-            last_ticket: 0,
+            cycle: StagingCycle::new(staging),
             eviction: config.eviction,
-            dropped_bytes: 0,
-            uploaded_levels: vec![0; config.texture_count as usize],
-            unique_bytes_uploaded: 0,
+            stats: UploadStats::new(config.texture_count as usize),
         };
         // Single mip tails are bound with the images, not in a frame's cycle.
         if cache.cache.images().iter().any(|image| image.single_tail_blocks() > 0) {
@@ -395,54 +333,6 @@ impl GpuTextureCache {
         ]
     }
 
-    /// Bit m set: mip m of `texture` is resident in its current place
-    /// (copied, or recorded to be copied, and not evicted).
-    pub fn resident_levels(&self, texture: u32) -> u32 {
-        self.slots.get(texture as usize).map_or(0, |s| s.resident)
-    }
-
-    /// Levels of `texture` resident or staged in the current cycle.
-    pub fn held_levels(&self, texture: u32) -> u32 {
-        self.slots.get(texture as usize).map_or(0, |s| s.resident | s.pending)
-    }
-
-    /// Whether `texture` has mips staged in the current cycle.
-    pub fn has_pending(&self, texture: u32) -> bool {
-        self.slots.get(texture as usize).is_some_and(|s| s.pending != 0)
-    }
-
-    /// Textures with resident levels, in id order.
-    pub fn resident_textures(&self) -> impl Iterator<Item = u32> + '_ {
-        self.slots
-            .iter()
-            .enumerate()
-            .filter(|(_, s)| s.resident != 0)
-            .map(|(texture, _)| texture as u32)
-    }
-
-    /// Bytes of level `mip` of `texture` in its place (0 if it has none).
-    pub fn level_bytes(&self, texture: u32, mip: u32) -> u64 {
-        let Some(placement) = self.slots.get(texture as usize).and_then(|s| s.placement) else {
-            return 0;
-        };
-        placement
-            .mip_rect(mip)
-            .map_or(0, |rect| placement.format.image_bytes(rect.width, rect.height))
-    }
-
-    /// Blocks that dropping resident level `mip` of `texture` would free.
-    pub fn exclusive_blocks(&self, texture: u32, mip: u32) -> u32 {
-        self.slots
-            .get(texture as usize)
-            .and_then(|s| s.placement)
-            .map_or(0, |placement| self.cache.exclusive_blocks(&placement, mip))
-    }
-
-    /// Bound blocks against the budget.
-    pub fn budget_use(&self) -> BudgetUse {
-        self.cache.budget_use()
-    }
-
     /// Whether every texture the cache was sized for ([`CacheLayers::Derived`])
     /// fits at once, within the budget and the device's limits: texture
     /// arrays with a layer for each (always `false` for sparse images).
@@ -452,13 +342,13 @@ impl GpuTextureCache {
 
     /// Bytes of the mips staged in this cycle, not yet recorded.
     pub fn staged_bytes(&self) -> u64 {
-        self.upload_bytes.len() as u64
+        self.cycle.pending.bytes().len() as u64
     }
 
     /// Bytes of the staging ring the uploads go through; a cycle staging more
     /// uses a one-off buffer of its size.
     pub fn staging_capacity(&self) -> u64 {
-        self.staging.capacity()
+        self.cycle.staging.capacity()
     }
 
     /// How the cache holds textures: sparse images or texture arrays.
@@ -481,35 +371,17 @@ impl GpuTextureCache {
     /// Bytes of the distinct `(texture, level)` pairs uploaded so far, each
     /// counted once however often it was uploaded.
     pub fn unique_bytes_uploaded(&self) -> u64 {
-        self.unique_bytes_uploaded
+        self.stats.unique_bytes()
     }
 
     /// Texture bytes released by [`drop_finest`](Self::drop_finest) so far.
     pub fn dropped_bytes(&self) -> u64 {
-        self.dropped_bytes
+        self.stats.dropped_bytes()
     }
 
     /// The index of `format` in [`CACHE_FORMATS`], if the cache holds it.
     pub fn format_index(format: TextureFormat) -> Option<usize> {
         CACHE_FORMATS.iter().position(|(f, _, _)| *f == format)
-    }
-
-    /// The images holding textures of the same format as `image` (itself
-    /// included), in index order.
-    pub fn images_sharing_format(&self, image: u32) -> &[u32] {
-        self.image_formats
-            .get(image as usize)
-            .map_or(&[], |&format| self.format_images[format].as_slice())
-    }
-
-    /// Textures placed in each live layer of `image`: `(layer, textures)`,
-    /// layers oldest first.
-    pub fn layer_textures(&self, image: u32) -> Vec<(u32, Vec<u32>)> {
-        self.cache
-            .live_layer_keys(image)
-            .into_iter()
-            .map(|(layer, keys)| (layer, keys.into_iter().filter_map(|k| u32::try_from(k).ok()).collect()))
-            .collect()
     }
 
     /// Evicts live layer `layer` of `image` ([`Eviction::View`]): its
@@ -530,7 +402,7 @@ impl GpuTextureCache {
     /// nothing is resident, a mip of it is staged in this cycle, or its layer
     /// was evicted in this cycle (its levels are gone already).
     pub fn drop_finest(&mut self, texture: u32) -> Result<Option<(u32, u32)>> {
-        let Some(slot) = self.slots.get(texture as usize).copied() else {
+        let Some(slot) = self.table.slot(texture) else {
             return Err(EngineError::InvalidRequest(format!(
                 "texture {texture} is outside the cache's table"
             )));
@@ -548,15 +420,15 @@ impl GpuTextureCache {
             .cache
             .drop_mip(&placement, mip)
             .map_err(|e| cache_error(texture, mip, e))?;
-        self.dropped_bytes += self.level_bytes(texture, mip);
-        self.slots[texture as usize].resident &= !(1 << mip);
-        self.publish(texture);
+        self.stats.dropped(self.level_bytes(texture, mip));
+        self.table.slot_mut(texture).resident &= !(1 << mip);
+        self.table.publish(texture);
         Ok(Some((mip, freed)))
     }
 
     /// The table entry the shaders see for `texture`.
     pub fn texture_data(&self, texture: u32) -> Option<&TextureData> {
-        self.table.get(texture as usize)
+        self.table.entry(texture)
     }
 
     /// Texture bytes versus bound bytes.
@@ -571,7 +443,7 @@ impl GpuTextureCache {
         let held = self.cache.tail_bytes_held();
         let descs = self.cache.images();
         let mut tails: Vec<FormatTail> = Vec::new();
-        for (format_index, images) in self.format_images.iter().enumerate() {
+        for (format_index, images) in self.formats.iter() {
             let Some(&first) = images.first() else { continue };
             let Some(desc) = descs.get(first as usize) else {
                 continue;
@@ -606,19 +478,19 @@ impl GpuTextureCache {
         mip: u32,
         bytes: &[u8],
     ) -> Result<StageOutcome> {
-        let slot = *self
-            .slots
-            .get(texture as usize)
+        let slot = self
+            .table
+            .slot(texture)
             .ok_or_else(|| EngineError::InvalidRequest(format!("texture {texture} is outside the cache's table")))?;
         let format_index = Self::format_index(format)
-            .filter(|&index| !self.format_images[index].is_empty())
+            .filter(|&index| !self.formats.of_format(index).is_empty())
             .ok_or_else(|| EngineError::UnsupportedFormat {
                 texture,
                 format: format!("{format:?}"),
                 reason: "the cache has no sparse image of that format".into(),
             })?;
         let texel_format = CACHE_FORMATS[format_index].2;
-        let images = &self.format_images[format_index];
+        let images = self.formats.of_format(format_index);
         let placement = match slot.placement {
             Some(p)
                 if self.cache.is_live(&p) && images.contains(&p.image) && p.width == width && p.height == height =>
@@ -637,12 +509,7 @@ impl GpuTextureCache {
                 };
                 // A new place starts empty; the old one (if any) is no longer
                 // sampled, whether or not its eviction was reported yet.
-                let slot = &mut self.slots[texture as usize];
-                slot.placement = Some(fresh);
-                slot.resident = 0;
-                slot.pending = 0;
-                self.table[texture as usize].state = TEXTURE_NOT_SAMPLEABLE;
-                self.mark_dirty(texture);
+                self.table.place(texture, Some(fresh));
                 fresh
             }
         };
@@ -669,325 +536,23 @@ impl GpuTextureCache {
             Err(CacheError::Invalidated { .. }) => return Ok(StageOutcome::EvictedItself),
             Err(e) => return Err(cache_error(texture, mip, e)),
         };
-        self.slots[texture as usize].pending |= 1 << mip;
-        let start = self.upload_bytes.len();
-        self.upload_bytes.extend_from_slice(bytes);
+        self.table.slot_mut(texture).pending |= 1 << mip;
         // Copies of block formats cover whole blocks even for levels below 4x4.
         let (bw, bh) = (texel_format.block_width, texel_format.block_height);
-        self.uploads.push(PendingUpload {
-            texture,
-            placement,
-            image: placement.image,
-            upload: TexelUpload {
-                layer: upload.layer,
-                mip,
-                x: rect.x,
-                y: rect.y,
-                width: rect.width.div_ceil(bw) * bw,
-                height: rect.height.div_ceil(bh) * bh,
-                buffer_offset: 0,
-            },
-            bytes: start..start + bytes.len(),
-        });
+        let copy = TexelUpload {
+            layer: upload.layer,
+            mip,
+            x: rect.x,
+            y: rect.y,
+            width: rect.width.div_ceil(bw) * bw,
+            height: rect.height.div_ceil(bh) * bh,
+            buffer_offset: 0,
+        };
+        self.cycle.pending.push(texture, placement, copy, bytes);
         Ok(StageOutcome::Staged {
             new_blocks: upload.new_blocks,
         })
     }
-}
-
-/// What [`GpuTextureCache::new`] builds for a backing.
-struct BuiltImages {
-    /// The Vulkan-free cache's configuration.
-    cache_config: CacheConfig,
-    images: CacheImages,
-    /// Each image's format (an index into [`CACHE_FORMATS`]).
-    image_formats: Vec<usize>,
-    /// Each format's images.
-    format_images: Vec<Vec<u32>>,
-    /// Per format, the layers of each of its images.
-    layer_counts: Vec<Vec<u32>>,
-}
-
-/// The images of `layer_counts` (per format in [`CACHE_FORMATS`] order) in
-/// image order: `(format index, nth image of the format, layers)`.
-fn image_layouts(layer_counts: &[Vec<u32>]) -> Vec<(usize, usize, u32)> {
-    layer_counts
-        .iter()
-        .enumerate()
-        .flat_map(|(format, counts)| {
-            counts
-                .iter()
-                .enumerate()
-                .map(move |(nth, &layers)| (format, nth, layers))
-        })
-        .collect()
-}
-
-/// A cache image of `layers` square layers of `config`'s size with `mips` levels.
-fn image_desc(config: &GpuCacheConfig, layers: u32, mips: u32, format: vk::Format) -> SparseImageDesc {
-    SparseImageDesc {
-        width: config.layer_size,
-        height: config.layer_size,
-        layers,
-        mips,
-        format,
-    }
-}
-
-/// Each image's format and each format's images, for `layouts`.
-fn format_indices(layouts: &[(usize, usize, u32)]) -> (Vec<usize>, Vec<Vec<u32>>) {
-    let mut format_images = vec![Vec::new(); CACHE_FORMATS.len()];
-    for (image, &(format, _, _)) in layouts.iter().enumerate() {
-        format_images[format].push(image as u32);
-    }
-    (layouts.iter().map(|&(format, _, _)| format).collect(), format_images)
-}
-
-/// Sparse cache images: layers derived within the device's sparse address
-/// space, the block size and granularity the device reports.
-fn sparse_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
-    let limits = device.properties().limits;
-    let virtual_budget_bytes = config
-        .virtual_budget_bytes
-        .unwrap_or(device.sparse_support().address_space_size);
-    let layer_counts = layout::plan_layer_counts(
-        config,
-        held,
-        limits.max_image_array_layers,
-        virtual_budget_bytes,
-        |index| {
-            let (_, vk_format, texel_format) = CACHE_FORMATS[index];
-            probe_layer(device, config.layer_size, vk_format, texel_format)
-        },
-    )?;
-    let layouts = image_layouts(&layer_counts);
-    let mut images = Vec::with_capacity(layouts.len());
-    let mut image_configs = Vec::with_capacity(layouts.len());
-    for &(format_index, nth, layers) in &layouts {
-        let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
-        let image = SparseImage::new(
-            device,
-            image_desc(config, layers, mips, vk_format),
-            &format!("cache {} #{nth}", texel_format.name),
-        )?;
-        ensure_served(device, &image)?;
-        let (gw, gh) = image.granularity();
-        image_configs.push(ImageConfig {
-            format: texel_format,
-            granularity: Granularity::texels(gw, gh),
-            layer_size: config.layer_size,
-            layer_count: layers,
-            mip_tail: cache_mip_tail(&image),
-        });
-        images.push(Arc::new(image));
-    }
-    let block_size = images.iter().map(|i| i.block_size()).max().unwrap_or(0);
-    let memory_type_bits = images.iter().fold(u32::MAX, |bits, i| bits & i.memory_type_bits());
-    if images.iter().any(|i| i.block_size() != block_size) {
-        return Err(EngineError::InvalidRequest(
-            "cache images report different sparse block sizes; one block pool cannot serve them".into(),
-        ));
-    }
-    let cache_config = CacheConfig {
-        images: image_configs,
-        limits: DeviceLimits {
-            max_image_array_layers: limits.max_image_array_layers,
-            max_image_dimension_2d: limits.max_image_dimension2_d,
-            sparse_block_bytes: block_size,
-        },
-        memory_budget_bytes: config.memory_budget_bytes,
-        virtual_budget_bytes,
-        blocks_per_chunk: config.blocks_per_chunk,
-    };
-    let binder = VulkanBinder::new(device, images.clone())?;
-    let (image_formats, format_images) = format_indices(&layouts);
-    let images = CacheImages::Sparse {
-        images,
-        binder: Box::new(binder),
-        block_size,
-        memory_type_bits,
-    };
-    Ok(BuiltImages {
-        cache_config,
-        images,
-        image_formats,
-        format_images,
-        layer_counts,
-    })
-}
-
-/// Texture arrays: fully bound images whose layers, each a full mip chain's
-/// memory, share out the memory budget (at most the layers the textures
-/// need, the device's layer and resource-size limits per image, and half the
-/// largest device-local heap: the layers are allocated whole, whatever is
-/// loaded, and geometry, targets and an error reference need room too).
-fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], mips: u32) -> Result<BuiltImages> {
-    let limits = device.properties().limits;
-    let heap_share = device.device_local_heap_bytes() / 2;
-    let budget = config.memory_budget_bytes.min(heap_share.max(1));
-    let config = &GpuCacheConfig {
-        memory_budget_bytes: budget,
-        ..config.clone()
-    };
-    let mut layer_bytes = [0u64; CACHE_FORMATS.len()];
-    let mut max_layers = limits.max_image_array_layers;
-    for &index in held {
-        let (_, vk_format, _) = CACHE_FORMATS[index];
-        let (bytes, format_max_layers) = array_layer_cost(device, config.layer_size, mips, vk_format)?;
-        layer_bytes[index] = bytes;
-        max_layers = max_layers.min(format_max_layers);
-    }
-    let layer_counts = layout::plan_layer_counts(config, held, max_layers, config.memory_budget_bytes, |index| {
-        Ok(LayerProbe {
-            block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
-            virtual_bytes: layer_bytes[index],
-        })
-    })?;
-    let layouts = image_layouts(&layer_counts);
-    // Fixed layer counts are the caller's; the device's limits still hold.
-    if let Some(&(format, _, layers)) = layouts.iter().find(|&&(_, _, layers)| layers > max_layers) {
-        return Err(EngineError::InvalidRequest(format!(
-            "{layers} layers of {}x{} {} texels in one array image; the device allows {max_layers}",
-            config.layer_size, config.layer_size, CACHE_FORMATS[format].2.name
-        )));
-    }
-    let needed: u64 = layouts
-        .iter()
-        .map(|&(format, _, layers)| u64::from(layers).saturating_mul(layer_bytes[format]))
-        .fold(0, u64::saturating_add);
-    if needed > config.memory_budget_bytes {
-        let smallest = held.iter().map(|&index| layer_bytes[index]).min().unwrap_or(0);
-        return Err(EngineError::InvalidRequest(format!(
-            "the texture-array cache needs {needed} bytes for {:?} layers of {}x{} texels (a layer is its \
-             full mip chain, {smallest} bytes or more), above the memory budget of {} bytes; raise the \
-             budget or lower the layer size",
-            layer_counts.iter().map(|c| c.iter().sum::<u32>()).collect::<Vec<_>>(),
-            config.layer_size,
-            config.layer_size,
-            config.memory_budget_bytes
-        )));
-    }
-    let cache_limits = DeviceLimits {
-        max_image_array_layers: limits.max_image_array_layers,
-        max_image_dimension_2d: limits.max_image_dimension2_d,
-        sparse_block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
-    };
-    let mut image_configs = Vec::with_capacity(layouts.len());
-    let mut descs = Vec::with_capacity(layouts.len());
-    for &(format_index, nth, layers) in &layouts {
-        let (_, vk_format, texel_format) = CACHE_FORMATS[format_index];
-        image_configs.push(ImageConfig {
-            format: texel_format,
-            granularity: accounting_granularity(texel_format, ARRAY_ACCOUNTING_BLOCK_BYTES),
-            layer_size: config.layer_size,
-            layer_count: layers,
-            mip_tail: None,
-        });
-        descs.push((
-            image_desc(config, layers, mips, vk_format),
-            format!("cache {} array #{nth}", texel_format.name),
-        ));
-    }
-    // Every layer's blocks fit the accounting budget, so only layers run
-    // out: the budget was spent on them when the images were made.
-    let mut accounted = 0u64;
-    for (index, image_config) in image_configs.iter().enumerate() {
-        let desc = citystream_cache::ImageDesc::new(index, image_config, &cache_limits)
-            .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
-        accounted = accounted.saturating_add(desc.virtual_bytes());
-    }
-    let cache_config = CacheConfig {
-        images: image_configs,
-        limits: cache_limits,
-        memory_budget_bytes: accounted,
-        virtual_budget_bytes: accounted,
-        blocks_per_chunk: config.blocks_per_chunk,
-    };
-    let images = CacheImages::arrays(device, &descs)?;
-    // The layers were counted from one layer's cost; what the images took is
-    // what holds the budget.
-    let held_bytes = images.array_bytes().unwrap_or(0);
-    if held_bytes > config.memory_budget_bytes {
-        return Err(EngineError::InvalidRequest(format!(
-            "the texture-array images took {held_bytes} bytes of device memory, above the budget of {} bytes \
-             (the device's layers cost more than one layer's requirements said)",
-            config.memory_budget_bytes
-        )));
-    }
-    let (image_formats, format_images) = format_indices(&layouts);
-    Ok(BuiltImages {
-        cache_config,
-        images,
-        image_formats,
-        format_images,
-        layer_counts,
-    })
-}
-
-/// Bytes one layer of a fully bound `layer_size`² array image of `format`
-/// with `mips` levels takes, from the device's memory requirements (what a
-/// second layer adds to a one-layer image, so its alignment counts), and the
-/// most layers one image may have: the device's `maxArrayLayers` for the
-/// format, its `maxResourceSize` and `maxMemoryAllocationSize`.
-fn array_layer_cost(device: &Arc<Device>, layer_size: u32, mips: u32, format: vk::Format) -> Result<(u64, u32)> {
-    let bytes_for = |layers: u32| {
-        let info = vk::ImageCreateInfo::default()
-            .image_type(vk::ImageType::TYPE_2D)
-            .format(format)
-            .extent(vk::Extent3D {
-                width: layer_size,
-                height: layer_size,
-                depth: 1,
-            })
-            .mip_levels(mips)
-            .array_layers(layers)
-            .samples(vk::SampleCountFlags::TYPE_1)
-            .tiling(vk::ImageTiling::OPTIMAL)
-            .usage(CACHE_USAGE)
-            .sharing_mode(vk::SharingMode::EXCLUSIVE)
-            .initial_layout(vk::ImageLayout::UNDEFINED);
-        let query = vk::DeviceImageMemoryRequirements::default().create_info(&info);
-        let mut requirements = vk::MemoryRequirements2::default();
-        // SAFETY: a Vulkan 1.3 query on a live device with a valid create info.
-        unsafe {
-            device
-                .raw()
-                .get_device_image_memory_requirements(&query, &mut requirements)
-        };
-        requirements.memory_requirements.size
-    };
-    let one = bytes_for(1);
-    let layer_bytes = one.max(bytes_for(2).saturating_sub(one));
-    // SAFETY: physical belongs to the device's instance.
-    let properties = unsafe {
-        device.instance_fns().get_physical_device_image_format_properties(
-            device.physical(),
-            format,
-            vk::ImageType::TYPE_2D,
-            vk::ImageTiling::OPTIMAL,
-            CACHE_USAGE,
-            vk::ImageCreateFlags::empty(),
-        )
-    }
-    .map_err(|_| EngineError::MissingFeature {
-        device: device.name().to_owned(),
-        feature: format!("sampled {layer_size}x{layer_size} array images of {format:?}"),
-    })?;
-    let largest = properties.max_resource_size.min(device.max_memory_allocation_bytes());
-    if layer_bytes == 0
-        || properties.max_mip_levels < mips
-        || properties.max_extent.width < layer_size
-        || layer_bytes > largest
-    {
-        return Err(EngineError::MissingFeature {
-            device: device.name().to_owned(),
-            feature: format!(
-                "{layer_size}x{layer_size} array images of {format:?} with {mips} levels ({layer_bytes} bytes a layer)"
-            ),
-        });
-    }
-    let by_size = u32::try_from(largest / layer_bytes).unwrap_or(u32::MAX);
-    Ok((layer_bytes, properties.max_array_layers.min(by_size).max(1)))
 }
 
 impl Drop for GpuTextureCache {
@@ -998,127 +563,121 @@ impl Drop for GpuTextureCache {
     }
 }
 
-/// Refuses `image` where the sparse cache cannot serve it, naming its format and why.
-fn ensure_served(device: &Device, image: &SparseImage) -> Result<()> {
-    match image.unserved_reason() {
-        None => Ok(()),
-        Some(reason) => Err(EngineError::MissingFeature {
-            device: device.name().to_owned(),
-            feature: format!(
-                "sparse {:?} images the cache can serve ({reason}); the texture-array cache \
-                 (--sparse off, or auto) serves this device",
-                image.desc().format
-            ),
-        }),
-    }
-}
-
-/// Creates a one-layer sparse image of `format` and reads its block size
-/// and granularity.
-fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel: TexelFormat) -> Result<LayerProbe> {
-    let probe = SparseImage::new(
-        device,
-        SparseImageDesc {
-            width: layer_size,
-            height: layer_size,
-            layers: 1,
-            mips: 32 - layer_size.max(1).leading_zeros(),
-            format,
-        },
-        "cache layer probe",
-    )?;
-    ensure_served(device, &probe)?;
-    let (gw, gh) = probe.granularity();
-    let desc = citystream_cache::ImageDesc::new(
-        0,
-        &ImageConfig {
-            format: texel,
-            granularity: Granularity::texels(gw, gh),
-            layer_size,
-            layer_count: 1,
-            mip_tail: cache_mip_tail(&probe),
-        },
-        &DeviceLimits {
-            max_image_array_layers: 1,
-            max_image_dimension_2d: layer_size,
-            sparse_block_bytes: probe.block_size(),
-        },
-    )
-    .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
-    Ok(LayerProbe {
-        block_bytes: probe.block_size(),
-        virtual_bytes: desc.virtual_bytes(),
-    })
-}
-
-/// Puts `bytes` into the staging ring for the submission `ticket` or, where
-/// the ring has no room, into a one-off buffer released with that ticket
-/// ([`GpuTextureCache::retire`]). Returns the buffer and the bytes' offset.
-fn stage_bytes(
-    device: &Arc<Device>,
-    staging: &mut StagingRing,
-    retiring: &mut std::collections::VecDeque<(u64, Buffer)>,
-    bytes: &[u8],
-    ticket: u64,
-    label: &str,
-) -> Result<(vk::Buffer, u64)> {
-    if let Some(range) = staging.push(bytes, 16, ticket)? {
-        return Ok((staging.buffer(), range.offset));
-    }
-    let mut oversize = Buffer::new(
-        device,
-        BufferDesc {
-            size: bytes.len() as u64,
-            usage: vk::BufferUsageFlags::TRANSFER_SRC,
-            location: MemoryLocation::CpuToGpu,
-        },
-        label,
-    )?;
-    oversize.write(0, bytes)?;
-    let raw = oversize.raw();
-    retiring.push_back((ticket, oversize));
-    Ok((raw, 0))
-}
-
-fn same_place(a: &Placement, b: &Placement) -> bool {
-    a.image == b.image && a.layer == b.layer && a.region == b.region && a.assignment == b.assignment
-}
-
-/// The residency planner's view of the cache (`citystream_streaming::residency::planner`).
+/// The residency planner's view of the cache
+/// (`citystream_streaming::residency::planner`), and the cache's own API for
+/// residency: callers bring the trait into scope ([`ResidentCache`] is
+/// re-exported here).
 impl ResidentCache for GpuTextureCache {
+    /// Textures with resident levels, in id order.
     fn resident_textures(&self) -> impl Iterator<Item = u32> + '_ {
-        GpuTextureCache::resident_textures(self)
+        self.table
+            .slots()
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.resident != 0)
+            .map(|(texture, _)| texture as u32)
     }
 
+    /// Bit m set: mip m of `texture` is resident in its current place
+    /// (copied, or recorded to be copied, and not evicted).
     fn resident_levels(&self, texture: u32) -> u32 {
-        GpuTextureCache::resident_levels(self, texture)
+        self.table.slot(texture).map_or(0, |s| s.resident)
     }
 
+    /// Levels of `texture` resident or staged in the current cycle.
     fn held_levels(&self, texture: u32) -> u32 {
-        GpuTextureCache::held_levels(self, texture)
+        self.table.slot(texture).map_or(0, |s| s.resident | s.pending)
     }
 
+    /// Whether `texture` has mips staged in the current cycle.
     fn has_pending(&self, texture: u32) -> bool {
-        GpuTextureCache::has_pending(self, texture)
+        self.table.slot(texture).is_some_and(|s| s.pending != 0)
     }
 
+    /// Bytes of level `level` of `texture` in its place (0 if it has none).
     fn level_bytes(&self, texture: u32, level: u32) -> u64 {
-        GpuTextureCache::level_bytes(self, texture, level)
+        let Some(placement) = self.table.slot(texture).and_then(|s| s.placement) else {
+            return 0;
+        };
+        placement
+            .mip_rect(level)
+            .map_or(0, |rect| placement.format.image_bytes(rect.width, rect.height))
     }
 
+    /// Blocks that dropping resident level `level` of `texture` would free.
     fn exclusive_blocks(&self, texture: u32, level: u32) -> u32 {
-        GpuTextureCache::exclusive_blocks(self, texture, level)
+        self.table
+            .slot(texture)
+            .and_then(|s| s.placement)
+            .map_or(0, |placement| self.cache.exclusive_blocks(&placement, level))
     }
 
+    /// Bound blocks against the budget.
     fn budget_use(&self) -> BudgetUse {
-        GpuTextureCache::budget_use(self)
+        self.cache.budget_use()
     }
 
+    /// The images holding textures of the same format as `image` (itself
+    /// included), in index order.
     fn images_sharing_format(&self, image: u32) -> &[u32] {
-        GpuTextureCache::images_sharing_format(self, image)
+        self.formats.sharing(image)
     }
 
+    /// Textures placed in each live layer of `image`: `(layer, textures)`,
+    /// layers oldest first.
     fn layer_textures(&self, image: u32) -> Vec<(u32, Vec<u32>)> {
-        GpuTextureCache::layer_textures(self, image)
+        self.cache
+            .live_layer_keys(image)
+            .into_iter()
+            .map(|(layer, keys)| (layer, keys.into_iter().filter_map(|k| u32::try_from(k).ok()).collect()))
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cycles_absorbed_add_their_counts_and_keep_every_invalidated_texture() {
+        let mut total = CycleReport {
+            blocks_bound: 3,
+            bind_seconds: 0.5,
+            textures_invalidated: 1,
+            invalidated_textures: vec![9],
+            ..CycleReport::default()
+        };
+        total.absorb(CycleReport {
+            blocks_bound: 2,
+            blocks_unbound: 4,
+            bind_entries: 1,
+            bind_seconds: 0.25,
+            mips_uploaded: 5,
+            bytes_uploaded: 4096,
+            textures_invalidated: 2,
+            invalidated_textures: vec![3, 9],
+        });
+        assert_eq!(
+            (total.blocks_bound, total.blocks_unbound, total.bind_entries),
+            (5, 4, 1)
+        );
+        assert_eq!((total.mips_uploaded, total.bytes_uploaded), (5, 4096));
+        assert_eq!(total.bind_seconds, 0.75);
+        assert_eq!(total.textures_invalidated, 3);
+        assert_eq!(total.invalidated_textures, vec![9, 3, 9]);
+    }
+
+    #[test]
+    fn each_dataset_format_has_its_cache_format() {
+        for format in [
+            TextureFormat::Bc1,
+            TextureFormat::Rgba8,
+            TextureFormat::Bc3,
+            TextureFormat::Bc7,
+        ] {
+            let index = GpuTextureCache::format_index(format).expect("a cache format");
+            assert_eq!(CACHE_FORMATS[index].0, format);
+        }
+        assert_eq!(GpuTextureCache::format_index(TextureFormat::Bc1), Some(0));
     }
 }
