@@ -10,22 +10,16 @@ mod flight_support;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output, Stdio};
 
 use citystream_streaming::bench::path::CameraPath;
+use citystream_testing::server_process::KilledOnDrop;
 use flight_support::{citystream_ok, fresh_dir, setup_ran, stderr, tiny_city};
 
 /// A running Xvfb, killed on drop.
 struct Xvfb {
-    child: Child,
+    _child: KilledOnDrop,
     display: String,
-}
-
-impl Drop for Xvfb {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// Starts Xvfb on a display it picks itself (`-displayfd`), so tests running
@@ -66,7 +60,7 @@ fn start_xvfb() -> Xvfb {
         .parse()
         .unwrap_or_else(|_| panic!("Xvfb did not report a display number: {line:?}"));
     Xvfb {
-        child,
+        _child: KilledOnDrop(child),
         display: format!(":{number}"),
     }
 }
