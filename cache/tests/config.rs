@@ -33,6 +33,17 @@ fn lavapipe_config(layer_size: u32, layer_count: u32) -> CacheConfig {
     }
 }
 
+/// [`lavapipe_config`] edited by `edit`, validated.
+fn validate_edited(
+    layer_size: u32,
+    layer_count: u32,
+    edit: impl FnOnce(&mut CacheConfig),
+) -> Result<Vec<ImageDesc>, ConfigError> {
+    let mut config = lavapipe_config(layer_size, layer_count);
+    edit(&mut config);
+    config.validate()
+}
+
 #[test]
 fn bc1_granularity_reported_in_blocks_converts_to_texels() -> Result<(), ConfigError> {
     let block = DeviceLimits::lavapipe_reference().sparse_block_bytes;
@@ -106,10 +117,8 @@ fn virtual_budget_is_enforced() {
 
 #[test]
 fn device_limits_are_enforced() {
-    let mut config = lavapipe_config(1024, 4);
-    config.images[1].layer_count = 2049;
     assert!(matches!(
-        config.validate(),
+        validate_edited(1024, 4, |c| c.images[1].layer_count = 2049),
         Err(ConfigError::BadLayerCount {
             image: 1,
             layer_count: 2049,
@@ -117,51 +126,43 @@ fn device_limits_are_enforced() {
             ..
         })
     ));
-    let mut config = lavapipe_config(1024, 4);
-    config.images[0].layer_count = 0;
     assert!(matches!(
-        config.validate(),
+        validate_edited(1024, 4, |c| c.images[0].layer_count = 0),
         Err(ConfigError::BadLayerCount { image: 0, .. })
     ));
 
-    let mut config = lavapipe_config(1024, 1);
-    config.limits.max_image_dimension_2d = 512;
     assert!(matches!(
-        config.validate(),
+        validate_edited(1024, 1, |c| c.limits.max_image_dimension_2d = 512),
         Err(ConfigError::BadLayerSize { layer_size: 1024, .. })
     ));
-    let mut config = lavapipe_config(1024, 1);
-    config.images[1].layer_size = 1000;
     assert!(matches!(
-        config.validate(),
+        validate_edited(1024, 1, |c| c.images[1].layer_size = 1000),
         Err(ConfigError::BadLayerSize {
             image: 1,
             layer_size: 1000,
             ..
         })
     ));
-    let mut config = lavapipe_config(1024, 1);
-    config.images[0].layer_size = 2;
     assert!(matches!(
-        config.validate(),
+        validate_edited(1024, 1, |c| c.images[0].layer_size = 2),
         Err(ConfigError::BadLayerSize { image: 0, .. })
     ));
 }
 
 #[test]
 fn budgets_and_images_are_checked() {
-    let mut config = lavapipe_config(1024, 1);
-    config.memory_budget_bytes = 1000;
     assert!(matches!(
-        config.validate(),
+        validate_edited(1024, 1, |c| c.memory_budget_bytes = 1000),
         Err(ConfigError::MemoryBudgetTooSmall { budget_bytes: 1000, .. })
     ));
-    let mut config = lavapipe_config(1024, 1);
-    config.limits.sparse_block_bytes = 0;
-    assert!(matches!(config.validate(), Err(ConfigError::ZeroBlockSize)));
-    let mut config = lavapipe_config(1024, 1);
-    config.blocks_per_chunk = 0;
-    assert!(matches!(config.validate(), Err(ConfigError::ZeroChunk)));
+    assert!(matches!(
+        validate_edited(1024, 1, |c| c.limits.sparse_block_bytes = 0),
+        Err(ConfigError::ZeroBlockSize)
+    ));
+    assert!(matches!(
+        validate_edited(1024, 1, |c| c.blocks_per_chunk = 0),
+        Err(ConfigError::ZeroChunk)
+    ));
     let mut config = lavapipe_config(1024, 1);
     config.images.clear();
     assert!(matches!(TextureCache::new(&config), Err(ConfigError::NoImages)));

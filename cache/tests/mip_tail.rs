@@ -13,9 +13,14 @@ use common::rgba_config;
 /// 64² RGBA8 layers in 16² blocks (levels 64, 32, 16 in blocks), the tail
 /// from level 2 in `blocks` blocks.
 fn tailed(layers: u32, budget_blocks: u64, blocks: u32, single: bool) -> CacheConfig {
+    tailed_from(2, layers, budget_blocks, blocks, single)
+}
+
+/// [`tailed`] with the tail from `first_level` on.
+fn tailed_from(first_level: u32, layers: u32, budget_blocks: u64, blocks: u32, single: bool) -> CacheConfig {
     let mut config = rgba_config(64, layers, 16, budget_blocks);
     config.images[0].mip_tail = Some(MipTail {
-        first_level: 2,
+        first_level,
         blocks,
         single,
     });
@@ -131,12 +136,7 @@ fn a_single_tail_is_bound_with_the_first_batch_from_the_budget_and_never_release
 
 #[test]
 fn tails_the_cache_cannot_serve_are_refused_naming_the_format() {
-    let mut from_zero = tailed(2, 64, 1, false);
-    from_zero.images[0].mip_tail = Some(MipTail {
-        first_level: 0,
-        blocks: 1,
-        single: false,
-    });
+    let from_zero = tailed_from(0, 2, 64, 1, false);
     let error = TextureCache::new(&from_zero).unwrap_err();
     assert!(matches!(error, ConfigError::UnservedMipTail { .. }), "{error}");
     assert!(
@@ -148,12 +148,7 @@ fn tails_the_cache_cannot_serve_are_refused_naming_the_format() {
     assert!(matches!(error, ConfigError::TailsOverBudget { .. }), "{error}");
 
     // A tail below the last level is no tail.
-    let mut past_the_end = tailed(2, 64, 1, false);
-    past_the_end.images[0].mip_tail = Some(MipTail {
-        first_level: 7,
-        blocks: 1,
-        single: false,
-    });
+    let past_the_end = tailed_from(7, 2, 64, 1, false);
     let cache = TextureCache::new(&past_the_end).unwrap();
     assert_eq!(cache.images()[0].mip_tail, None);
 }

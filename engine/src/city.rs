@@ -29,7 +29,7 @@ use crate::gpu_types::{
 };
 use crate::ground::GroundLayer;
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
-use crate::scene::upload_buffer;
+use crate::scene::{upload_buffer, upload_geometry};
 use crate::shaders;
 use crate::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 use crate::texture_cache::GpuTextureCache;
@@ -399,20 +399,14 @@ impl CityRenderer {
         let (city_vertices, city_indices) = single_draw_geometry(vertices, indices, &meshes)?;
         let index_count = u32::try_from(city_indices.len())
             .map_err(|_| EngineError::InvalidRequest("a city of more than 2^32 indices".into()))?;
-        let vertices = upload_buffer(
+        // The indices also in a storage buffer: culling copies those of the meshes a view shows.
+        let (vertices, indices) = upload_geometry(
             device,
             commands,
-            bytemuck::cast_slice(&city_vertices),
-            vk::BufferUsageFlags::VERTEX_BUFFER,
-            "city vertices",
-        )?;
-        // Also a storage buffer: culling copies the indices of the meshes a view shows.
-        let indices = upload_buffer(
-            device,
-            commands,
-            bytemuck::cast_slice(&city_indices),
-            vk::BufferUsageFlags::INDEX_BUFFER | vk::BufferUsageFlags::STORAGE_BUFFER,
-            "city indices",
+            &city_vertices,
+            &city_indices,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "city",
         )?;
         Ok(Self {
             device: Arc::clone(device),

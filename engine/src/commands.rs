@@ -20,9 +20,23 @@ debug_fields!(Semaphore { raw });
 impl Semaphore {
     /// Creates a binary semaphore.
     pub fn new(device: &Arc<Device>, name: &str) -> Result<Self> {
-        let info = vk::SemaphoreCreateInfo::default();
         // SAFETY: valid create info on a live device.
-        let raw = unsafe { device.raw.create_semaphore(&info, None) }.vk("vkCreateSemaphore")?;
+        unsafe { Self::create(device, &vk::SemaphoreCreateInfo::default(), "vkCreateSemaphore", name) }
+    }
+
+    /// Creates a semaphore of `info` (binary, or a timeline one), named; `call` names the
+    /// creation in an error.
+    ///
+    /// # Safety
+    /// `info` is valid on `device`, whose features allow the kind of semaphore it asks for.
+    unsafe fn create(
+        device: &Arc<Device>,
+        info: &vk::SemaphoreCreateInfo<'_>,
+        call: &'static str,
+        name: &str,
+    ) -> Result<Self> {
+        // SAFETY: as the caller guarantees.
+        let raw = unsafe { device.raw.create_semaphore(info, None) }.vk(call)?;
         device.set_name(raw, name);
         Ok(Self {
             device: Arc::clone(device),
@@ -155,11 +169,11 @@ impl SemaphoreSignal {
 /// A timeline semaphore owned by Rust: bind batches signal increasing
 /// values, and copy submissions wait for the value of the batch they need.
 pub struct TimelineSemaphore {
-    device: Arc<Device>,
-    raw: vk::Semaphore,
+    /// The semaphore, destroyed when it drops (after the idle wait in this type's drop).
+    semaphore: Semaphore,
 }
 
-debug_fields!(TimelineSemaphore { raw });
+debug_fields!(TimelineSemaphore { raw = |s| s.semaphore.raw });
 
 impl TimelineSemaphore {
     /// Creates a timeline semaphore starting at `initial`.
@@ -169,41 +183,38 @@ impl TimelineSemaphore {
             .initial_value(initial);
         let info = vk::SemaphoreCreateInfo::default().push_next(&mut type_info);
         // SAFETY: valid create info; timeline semaphores are enabled on the device.
-        let raw = unsafe { device.raw.create_semaphore(&info, None) }.vk("vkCreateSemaphore (timeline)")?;
-        device.set_name(raw, name);
-        Ok(Self {
-            device: Arc::clone(device),
-            raw,
-        })
+        let semaphore = unsafe { Semaphore::create(device, &info, "vkCreateSemaphore (timeline)", name) }?;
+        Ok(Self { semaphore })
     }
 
     /// The raw handle.
     pub fn raw(&self) -> vk::Semaphore {
-        self.raw
+        self.semaphore.raw
     }
 
     /// The current counter value.
     pub fn value(&self) -> Result<u64> {
+        let Semaphore { device, raw } = &self.semaphore;
         // SAFETY: the semaphore belongs to this device.
-        unsafe { self.device.raw.get_semaphore_counter_value(self.raw) }.vk("vkGetSemaphoreCounterValue")
+        unsafe { device.raw.get_semaphore_counter_value(*raw) }.vk("vkGetSemaphoreCounterValue")
     }
 
     /// Waits until the counter reaches `value`.
     pub fn wait(&self, value: u64) -> Result<()> {
-        let semaphores = [self.raw];
+        let semaphores = [self.semaphore.raw];
         let values = [value];
         let info = vk::SemaphoreWaitInfo::default().semaphores(&semaphores).values(&values);
         // SAFETY: the semaphore belongs to this device.
-        unsafe { self.device.raw.wait_semaphores(&info, u64::MAX) }.vk("vkWaitSemaphores")
+        unsafe { self.semaphore.device.raw.wait_semaphores(&info, u64::MAX) }.vk("vkWaitSemaphores")
     }
 }
 
 impl Drop for TimelineSemaphore {
     fn drop(&mut self) {
-        // The GPU may still be about to signal it; wait for the device first.
-        let _ = self.device.wait_idle();
-        // SAFETY: nothing pending references the semaphore after the idle wait.
-        unsafe { self.device.raw.destroy_semaphore(self.raw, None) };
+        // The GPU may still be about to signal it; wait for the device first. The
+        // semaphore itself is destroyed when the field drops, after this: nothing pending
+        // references it after the idle wait.
+        let _ = self.semaphore.device.wait_idle();
     }
 }
 

@@ -121,6 +121,19 @@ impl Image {
         Ok(image)
     }
 
+    /// Records a layout transition of the whole image ([`transition`]).
+    pub(crate) fn transition(
+        &self,
+        device: &Device,
+        rec: Recording<'_>,
+        from: vk::ImageLayout,
+        to: vk::ImageLayout,
+        src: (vk::PipelineStageFlags2, vk::AccessFlags2),
+        dst: (vk::PipelineStageFlags2, vk::AccessFlags2),
+    ) {
+        transition(device, rec, self.raw, self.desc.full_range(), from, to, src, dst);
+    }
+
     /// The raw image.
     pub fn raw(&self) -> vk::Image {
         self.raw
@@ -156,15 +169,24 @@ pub(crate) fn create_view(device: &Device, image: vk::Image, desc: &ImageDesc) -
 impl Drop for Image {
     fn drop(&mut self) {
         // SAFETY: the owner guarantees the GPU no longer uses the image.
-        unsafe {
-            if self.view != vk::ImageView::null() {
-                self.device.raw.destroy_image_view(self.view, None);
-            }
-            self.device.raw.destroy_image(self.raw, None);
-        }
+        unsafe { destroy_image_and_view(&self.device, self.raw, self.view) };
         if let Some(allocation) = self.allocation.take() {
             memory::free(&self.device, allocation);
         }
+    }
+}
+
+/// Destroys an image and its view (where it has one yet).
+///
+/// # Safety
+/// Both belong to `device`, and the GPU no longer uses either.
+pub(crate) unsafe fn destroy_image_and_view(device: &Device, image: vk::Image, view: vk::ImageView) {
+    // SAFETY: as the caller guarantees.
+    unsafe {
+        if view != vk::ImageView::null() {
+            device.raw.destroy_image_view(view, None);
+        }
+        device.raw.destroy_image(image, None);
     }
 }
 

@@ -528,12 +528,10 @@ impl Presenter {
             layer_count: 1,
         };
         let device = &*self.device;
+        // The acquired image from one layout to another.
+        let image_transition = |from, to, src, dst| transition(device, rec, image, range, from, to, src, dst);
         // Chained to the acquire semaphore's wait at the blit stage.
-        transition(
-            device,
-            rec,
-            image,
-            range,
+        image_transition(
             vk::ImageLayout::UNDEFINED,
             vk::ImageLayout::TRANSFER_DST_OPTIMAL,
             (vk::PipelineStageFlags2::BLIT, vk::AccessFlags2::NONE),
@@ -582,11 +580,7 @@ impl Presenter {
                 .screenshot
                 .as_ref()
                 .ok_or_else(|| EngineError::InvalidRequest("the presenter was created without screenshots".into()))?;
-            transition(
-                device,
-                rec,
-                image,
-                range,
+            image_transition(
                 layout,
                 vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
                 last,
@@ -632,11 +626,7 @@ impl Presenter {
         }
         // Presentation waits on the render-finished semaphore, whose signal
         // (at all commands) makes the writes available; no access after it.
-        transition(
-            device,
-            rec,
-            image,
-            range,
+        image_transition(
             layout,
             vk::ImageLayout::PRESENT_SRC_KHR,
             last,

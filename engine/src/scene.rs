@@ -222,19 +222,13 @@ impl MeshRenderer {
             },
             "mesh pipeline",
         )?;
-        let vertices = upload_buffer(
+        let (vertices, indices) = upload_geometry(
             device,
             commands,
-            bytemuck::cast_slice(&geometry.vertices),
-            vk::BufferUsageFlags::VERTEX_BUFFER,
-            "scene vertices",
-        )?;
-        let indices = upload_buffer(
-            device,
-            commands,
-            bytemuck::cast_slice(&geometry.indices),
-            vk::BufferUsageFlags::INDEX_BUFFER,
-            "scene indices",
+            &geometry.vertices,
+            &geometry.indices,
+            vk::BufferUsageFlags::empty(),
+            "scene",
         )?;
         let texture_image = upload_texture_array(device, commands, textures)?;
         let sampler = Sampler::new(device, filtering, "scene sampler")?;
@@ -311,6 +305,33 @@ impl MeshRenderer {
         commands.submit_and_wait(&[])?;
         target.read_pixels()
     }
+}
+
+/// Uploads a mesh's vertices and indices into device-local buffers named `NAME vertices`
+/// and `NAME indices`, the index buffer also usable as `extra_index_usage` says.
+pub(crate) fn upload_geometry<V: bytemuck::Pod>(
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    vertices: &[V],
+    indices: &[u32],
+    extra_index_usage: vk::BufferUsageFlags,
+    name: &str,
+) -> Result<(Buffer, Buffer)> {
+    let vertex_buffer = upload_buffer(
+        device,
+        commands,
+        bytemuck::cast_slice(vertices),
+        vk::BufferUsageFlags::VERTEX_BUFFER,
+        &format!("{name} vertices"),
+    )?;
+    let index_buffer = upload_buffer(
+        device,
+        commands,
+        bytemuck::cast_slice(indices),
+        vk::BufferUsageFlags::INDEX_BUFFER | extra_index_usage,
+        &format!("{name} indices"),
+    )?;
+    Ok((vertex_buffer, index_buffer))
 }
 
 /// Creates a GPU-only buffer holding `bytes`, through a temporary staging buffer.
@@ -424,12 +445,11 @@ pub fn upload_texture_array(
     }
     let staging = Buffer::staged(device, &bytes, "texture staging")?;
     let cmd = commands.begin()?;
-    let range = image.desc().full_range();
-    transition(
-        device,
-        cmd,
-        image.raw(),
-        range,
+    // The whole image from one layout to another.
+    let image_transition = |from, to, src, dst| {
+        transition(device, cmd, image.raw(), image.desc().full_range(), from, to, src, dst);
+    };
+    image_transition(
         vk::ImageLayout::UNDEFINED,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
         (vk::PipelineStageFlags2::TOP_OF_PIPE, vk::AccessFlags2::NONE),
@@ -445,11 +465,7 @@ pub fn upload_texture_array(
             &regions,
         )
     };
-    transition(
-        device,
-        cmd,
-        image.raw(),
-        range,
+    image_transition(
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
         vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),

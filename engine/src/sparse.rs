@@ -903,12 +903,7 @@ impl Drop for SparseImage {
     fn drop(&mut self) {
         // SAFETY: the owner drops only after the GPU finished with the image;
         // memory bound to it is owned by chunks that outlive nothing here.
-        unsafe {
-            if self.view != vk::ImageView::null() {
-                self.device.raw.destroy_image_view(self.view, None);
-            }
-            self.device.raw.destroy_image(self.raw, None);
-        }
+        unsafe { crate::image::destroy_image_and_view(&self.device, self.raw, self.view) };
     }
 }
 

@@ -9,12 +9,38 @@ use crate::buffer::{Buffer, BufferDesc};
 use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
-use crate::image::{transition, Image, ImageDesc};
+use crate::image::{Image, ImageDesc};
 
 /// Colour format of the off-screen target (8-bit UNORM, written to PNG as is).
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
 /// Depth format of the off-screen target.
 pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;
+
+/// Both depth tests, early and late: where drawing reads and writes the depth attachment.
+const DEPTH_TESTS: vk::PipelineStageFlags2 = vk::PipelineStageFlags2::from_raw(
+    vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS.as_raw() | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS.as_raw(),
+);
+/// Drawing's writes to the depth attachment.
+const DEPTH_WRITE: (vk::PipelineStageFlags2, vk::AccessFlags2) =
+    (DEPTH_TESTS, vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE);
+/// Drawing's depth tests and writes.
+const DEPTH_READ_WRITE: (vk::PipelineStageFlags2, vk::AccessFlags2) = (
+    DEPTH_TESTS,
+    vk::AccessFlags2::from_raw(
+        vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE.as_raw()
+            | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ.as_raw(),
+    ),
+);
+/// Drawing's writes to the colour attachment.
+const COLOR_WRITE: (vk::PipelineStageFlags2, vk::AccessFlags2) = (
+    vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
+    vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
+);
+/// Culling's compute shaders, which read and write the depth copy's buffer.
+const CULLING_READ_WRITE: (vk::PipelineStageFlags2, vk::AccessFlags2) = (
+    vk::PipelineStageFlags2::COMPUTE_SHADER,
+    vk::AccessFlags2::from_raw(vk::AccessFlags2::SHADER_READ.as_raw() | vk::AccessFlags2::SHADER_WRITE.as_raw()),
+);
 
 /// An off-screen colour and depth target with a host-visible read-back buffer.
 #[derive(Debug)]
@@ -98,11 +124,9 @@ impl RenderTarget {
     /// Records the transitions and `vkCmdBeginRendering` that clear colour to
     /// `clear` and depth to 1.
     pub fn begin(&self, device: &Device, rec: Recording<'_>, clear: [f32; 4]) {
-        transition(
+        self.color.transition(
             device,
             rec,
-            self.color.raw(),
-            self.color.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
             // An earlier frame still in flight may be drawing into, copying
@@ -113,26 +137,15 @@ impl RenderTarget {
                     | vk::PipelineStageFlags2::BLIT,
                 vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
             ),
-            (
-                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
-                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
-            ),
+            COLOR_WRITE,
         );
-        transition(
+        self.depth.transition(
             device,
             rec,
-            self.depth.raw(),
-            self.depth.desc().full_range(),
             vk::ImageLayout::UNDEFINED,
             vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-            (
-                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
-            ),
-            (
-                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
-            ),
+            DEPTH_WRITE,
+            DEPTH_READ_WRITE,
         );
         self.begin_rendering(device, rec, vk::AttachmentLoadOp::CLEAR, clear);
     }
@@ -224,27 +237,19 @@ impl RenderTarget {
     /// after.
     pub(crate) fn copy_depth(&self, device: &Device, rec: Recording<'_>, into: vk::Buffer) {
         let cmd = rec.raw();
-        transition(
+        self.depth.transition(
             device,
             rec,
-            self.depth.raw(),
-            self.depth.desc().full_range(),
             vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
             vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-            (
-                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE,
-            ),
+            DEPTH_WRITE,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
         );
         // The last frame's culling read the buffer before this copy overwrites it.
         crate::image::memory_barrier(
             device,
             rec,
-            (
-                vk::PipelineStageFlags2::COMPUTE_SHADER,
-                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
-            ),
+            CULLING_READ_WRITE,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
         );
         let region = self.whole_image_region(vk::ImageAspectFlags::DEPTH);
@@ -262,36 +267,25 @@ impl RenderTarget {
             device,
             rec,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_WRITE),
-            (
-                vk::PipelineStageFlags2::COMPUTE_SHADER,
-                vk::AccessFlags2::SHADER_READ | vk::AccessFlags2::SHADER_WRITE,
-            ),
+            CULLING_READ_WRITE,
         );
     }
 
     /// Resumes rendering after [`copy_depth`](Self::copy_depth), keeping the colour and depth drawn so far.
     pub(crate) fn resume(&self, device: &Device, rec: Recording<'_>) {
-        transition(
+        self.depth.transition(
             device,
             rec,
-            self.depth.raw(),
-            self.depth.desc().full_range(),
             vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
             vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
             (vk::PipelineStageFlags2::COPY, vk::AccessFlags2::TRANSFER_READ),
-            (
-                vk::PipelineStageFlags2::EARLY_FRAGMENT_TESTS | vk::PipelineStageFlags2::LATE_FRAGMENT_TESTS,
-                vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_WRITE | vk::AccessFlags2::DEPTH_STENCIL_ATTACHMENT_READ,
-            ),
+            DEPTH_READ_WRITE,
         );
         // The colour drawn before the pause is loaded by the resumed rendering.
         crate::image::memory_barrier(
             device,
             rec,
-            (
-                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
-                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
-            ),
+            COLOR_WRITE,
             (
                 vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
                 vk::AccessFlags2::COLOR_ATTACHMENT_READ | vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
@@ -307,17 +301,12 @@ impl RenderTarget {
         let cmd = rec.raw();
         // SAFETY: cmd is recording inside the rendering begun by `begin`.
         unsafe { device.raw.cmd_end_rendering(cmd) };
-        transition(
+        self.color.transition(
             device,
             rec,
-            self.color.raw(),
-            self.color.desc().full_range(),
             vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
             vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-            (
-                vk::PipelineStageFlags2::COLOR_ATTACHMENT_OUTPUT,
-                vk::AccessFlags2::COLOR_ATTACHMENT_WRITE,
-            ),
+            COLOR_WRITE,
             // The copy below, and a presenter's blit into a window after it.
             (
                 vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::BLIT,

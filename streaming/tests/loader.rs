@@ -11,6 +11,15 @@ use citystream_streaming::source::{
 };
 use citystream_streaming::states::TextureState;
 
+/// A source of `count` BC1 textures of `side`² texels.
+fn bc1_source(count: usize, side: u32) -> MemorySource {
+    let mut src = MemorySource::new();
+    for _ in 0..count {
+        src.push_bc1(side, side);
+    }
+    src
+}
+
 fn rec(mesh_id: u32, weight: u32, mip_level: u32) -> MeshMetaData {
     MeshMetaData {
         mip_level,
@@ -38,9 +47,7 @@ fn options() -> LoaderOptions {
 /// Two 16×16 BC1 textures (5 levels: 128, 32, 8, 8, 8 bytes; the 4×4 level
 /// is 2), meshes 0 and 1 on texture 0, mesh 2 on texture 1.
 fn two_textures() -> Result<Loader<MemorySource, MemorySink>, LoaderError> {
-    let mut src = MemorySource::new();
-    src.push_bc1(16, 16);
-    src.push_bc1(16, 16);
+    let src = bc1_source(2, 16);
     Loader::new(src, MemorySink::new(), vec![0, 0, 1], 2, options())
 }
 
@@ -104,10 +111,7 @@ fn batch_stops_once_it_exceeds_the_load_size() -> Result<(), LoaderError> {
     // Ten 64×64 textures at level 0 wanted; the first cycle loads the 4×4
     // levels (8 B each). With s = 20 B: 0, 8, 16 ≤ 20 → a third mip is
     // still taken (24 B), then 24 > 20 stops the batch.
-    let mut src = MemorySource::new();
-    for _ in 0..10 {
-        src.push_bc1(64, 64);
-    }
+    let src = bc1_source(10, 64);
     let loader = Loader::new(src, MemorySink::new(), (0..10).collect(), 10, options())?;
     let records: Vec<_> = (0..10).map(|i| rec(i, 1000 - i, 0)).collect();
     let s = Decision {
@@ -125,10 +129,7 @@ fn batch_stops_once_it_exceeds_the_load_size() -> Result<(), LoaderError> {
 
 #[test]
 fn io_errors_fail_the_texture_and_streaming_continues() -> Result<(), LoaderError> {
-    let mut src = MemorySource::new();
-    for _ in 0..3 {
-        src.push_bc1(16, 16);
-    }
+    let mut src = bc1_source(3, 16);
     src.remove_mip(0, 2); // missing data
     src.truncate_mip(1, 2, 3); // short read
     let loader = Loader::new(src, MemorySink::new(), vec![0, 1, 2, 7], 3, options());
@@ -140,10 +141,7 @@ fn io_errors_fail_the_texture_and_streaming_continues() -> Result<(), LoaderErro
             textures: 3
         })
     );
-    let mut src = MemorySource::new();
-    for _ in 0..3 {
-        src.push_bc1(16, 16);
-    }
+    let mut src = bc1_source(3, 16);
     src.remove_mip(0, 2);
     src.truncate_mip(1, 2, 3);
     let loader = Loader::new(src, MemorySink::new(), vec![0, 1, 2], 3, options())?;
@@ -190,8 +188,7 @@ fn invalidated_textures_are_unloaded_then_reloaded() -> Result<(), LoaderError> 
 
 #[test]
 fn load_time_limit_defers_and_keeps_state() -> Result<(), LoaderError> {
-    let mut src = MemorySource::new();
-    src.push_bc1(16, 16);
+    let src = bc1_source(1, 16);
     let opts = LoaderOptions {
         load_time: Duration::ZERO,
         plan_chunk: 16,
@@ -236,8 +233,7 @@ impl MipSink for GateSink {
 #[test]
 fn only_one_cycle_at_a_time() -> Result<(), LoaderError> {
     let (tx, rx) = crossbeam::channel::bounded(1);
-    let mut src = MemorySource::new();
-    src.push_bc1(16, 16);
+    let src = bc1_source(1, 16);
     let sink = GateSink {
         gate: Mutex::new(Some(rx)),
         inner: MemorySink::new(),
@@ -296,10 +292,7 @@ impl MipSink for RefusingSink {
 
 #[test]
 fn sink_refusals_invalidate_or_fail() -> Result<(), LoaderError> {
-    let mut src = MemorySource::new();
-    for _ in 0..3 {
-        src.push_bc1(16, 16);
-    }
+    let src = bc1_source(3, 16);
     let states = std::sync::Arc::new(citystream_streaming::states::TextureStates::new(3));
     let loader = Loader::with_states(src, RefusingSink::default(), vec![0, 1, 2], states.clone(), options())?;
     assert!(std::sync::Arc::ptr_eq(&states, &loader.states_handle()));
@@ -320,10 +313,7 @@ fn sink_refusals_invalidate_or_fail() -> Result<(), LoaderError> {
 
 /// Forty 16×16 textures, one mesh each, loaded to their base level.
 fn load_all_through(plan: FaultPlan) -> Result<Loader<FaultySource<MemorySource>, MemorySink>, LoaderError> {
-    let mut src = MemorySource::new();
-    for _ in 0..40 {
-        src.push_bc1(16, 16);
-    }
+    let src = bc1_source(40, 16);
     let source = FaultySource::new(src, Some(plan), "textures.pack");
     let loader = Loader::new(source, MemorySink::new(), (0..40).collect(), 40, options())?;
     let records: Vec<MeshMetaData> = (0..40).map(|mesh| rec(mesh, 500, 0)).collect();
@@ -428,9 +418,7 @@ impl citystream_streaming::source::MipSource for HintedSource {
 #[test]
 fn prefetch_hints_the_cycle_in_priority_order_then_the_finer_levels_the_records_need_breadth_first(
 ) -> Result<(), LoaderError> {
-    let mut inner = MemorySource::new();
-    inner.push_bc1(16, 16);
-    inner.push_bc1(16, 16);
+    let inner = bc1_source(2, 16);
     let source = HintedSource {
         inner,
         hints: Mutex::new(Vec::new()),

@@ -149,6 +149,16 @@ proptest! {
     }
 }
 
+/// Frame `i`'s time in the million-frame trace: 4 to 8 ms, fluctuating, with a 1000 ms
+/// spike every 10⁵ frames (the last at frame 999 999).
+fn spiky_frame_ms(i: u64) -> f64 {
+    if i % 100_000 == 99_999 {
+        1000.0
+    } else {
+        4.0 + (i.wrapping_mul(2_654_435_761) % 1000) as f64 / 250.0
+    }
+}
+
 #[test]
 fn a_million_frames_stay_finite_and_in_range() {
     // 10⁶ frames of a fluctuating trace with a 1000 ms spike every 10⁵
@@ -156,11 +166,7 @@ fn a_million_frames_stay_finite_and_in_range() {
     let mut p = AdaptivePolicy::new(&PolicyOptions::default()).expect("defaults are valid");
     let mut max_s = 0;
     for i in 0u64..1_000_000 {
-        let ms = if i % 100_000 == 99_999 {
-            1000.0
-        } else {
-            4.0 + (i.wrapping_mul(2_654_435_761) % 1000) as f64 / 250.0
-        };
+        let ms = spiky_frame_ms(i);
         let d = p.update(ms);
         max_s = max_s.max(d.load_size_bytes);
         assert!(d.mip_bias.is_finite() && (0.0..=8.0).contains(&d.mip_bias));
@@ -181,11 +187,7 @@ fn a_million_frames_of_the_headroom_controller_stay_finite_and_in_range() {
     let mut max_s = 0;
     let mut before_last_spike = 0;
     for i in 0u64..1_000_000 {
-        let ms = if i % 100_000 == 99_999 {
-            1000.0
-        } else {
-            4.0 + (i.wrapping_mul(2_654_435_761) % 1000) as f64 / 250.0
-        };
+        let ms = spiky_frame_ms(i);
         p.observe_load(i.wrapping_mul(40_503) % (8 << 20));
         if i == 999_999 {
             before_last_spike = p.decision().load_size_bytes;

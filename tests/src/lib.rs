@@ -7,12 +7,17 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::TextureFormat;
+use citystream_dataset::{Aabb, Dataset, TextureFormat};
+use citystream_engine::city::{city_geometry, Camera, CityRenderer};
+use citystream_engine::commands::CommandContext;
 use citystream_engine::device::{SparseMode, TextureBacking};
+use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::instance::InstanceOptions;
 use citystream_engine::pipeline::Filtering;
-use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig};
+use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
 use citystream_engine::{Device, DeviceOptions};
+use citystream_gen::city::{FormatArg, GenArgs, Preset};
+use glam::Vec3;
 
 /// The tests' cache: `texture_count` textures of `formats` in two layers of 256² per image,
 /// ring eviction, nearest filtering, 16 MB of budget and of staging. Tests that need
@@ -78,6 +83,85 @@ fn device_with_mode(synchronization: bool, sparse: SparseMode) -> Result<Arc<Dev
     ))
 }
 
+/// `base` emptied, and in `base/city` the tiny preset generated as RGBA8 from seed 5 (the
+/// city the atlas tests render); the city's directory.
+pub fn tiny_rgba8_city(base: &Path) -> Result<PathBuf> {
+    let city = base.join("city");
+    let _ = std::fs::remove_dir_all(base);
+    citystream_gen::command::run(&GenArgs {
+        preset: Preset::Tiny,
+        seed: 5,
+        out: city.clone(),
+        format: FormatArg::Rgba8,
+        max_extent: 512,
+        textures_from: None,
+        dry_run: false,
+        quiet: true,
+    })?;
+    Ok(city)
+}
+
+/// A camera looking at the centre of `bounds` from `offset(size)` away from it (`size` the
+/// bounds' extent), with a 60° field of view and a far plane well beyond the city.
+pub fn camera_on_centre(bounds: &Aabb, offset: impl FnOnce(Vec3) -> Vec3) -> Camera {
+    let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
+    let centre = Vec3::from(bounds.center());
+    Camera {
+        eye: centre + offset(size),
+        target: centre,
+        fov_y: 60f32.to_radians(),
+        near: 0.5,
+        far: size.length() * 4.0,
+    }
+}
+
+/// A camera at the origin looking down −z with the vertical field of view `fov_y`, near
+/// 0.1 and far 100: the view of the tests that place quads in front of it.
+pub fn camera_down_negative_z(fov_y: f32) -> Camera {
+    Camera {
+        eye: Vec3::ZERO,
+        target: Vec3::new(0.0, 0.0, -1.0),
+        fov_y,
+        near: 0.1,
+        far: 100.0,
+    }
+}
+
+/// A renderer of `dataset`'s city sampling `cache`, with the feedback compactor it was made
+/// with (for one entry per mesh: these tests draw the visible pass), to keep alive beside it.
+pub fn visible_city_renderer(
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Dataset,
+    cache: &GpuTextureCache,
+) -> Result<(CityRenderer, FeedbackCompactor)> {
+    let (vertices, meshes) = city_geometry(dataset)?;
+    let compactor = FeedbackCompactor::new(device, commands, meshes.len() as u32, 1)?;
+    let renderer = CityRenderer::new(
+        device,
+        commands,
+        &vertices,
+        &dataset.scene.indices,
+        meshes,
+        cache,
+        &compactor,
+    )?;
+    Ok((renderer, compactor))
+}
+
+/// A cache for a whole city at once: `layers` layers of 2048² for BC1 and RGBA8 textures,
+/// a 1 GiB budget and 32 MiB of staging.
+pub fn whole_city_cache_config(texture_count: u32, layers: u32) -> GpuCacheConfig {
+    GpuCacheConfig {
+        layer_size: 2048,
+        layers: CacheLayers::Fixed(layers),
+        memory_budget_bytes: 1 << 30,
+        blocks_per_chunk: 64,
+        staging_bytes: 32 << 20,
+        ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], texture_count)
+    }
+}
+
 /// Fails when the validation layer reported any error on `device`.
 pub fn assert_no_validation_errors(device: &Device) -> Result<()> {
     let errors = device.validation_log().errors();
@@ -86,6 +170,15 @@ pub fn assert_no_validation_errors(device: &Device) -> Result<()> {
         bail!("{} validation error(s):\n{}", errors.len(), listing.join("\n"));
     }
     Ok(())
+}
+
+/// Drops what a test held, in the order given (a tuple drops its fields first to last: what
+/// records into or reads from a resource before the resource, the resource before its
+/// memory), then fails when the validation layer reported any error on `device`: how most
+/// tests here end.
+pub fn assert_clean_after_dropping<T>(device: &Device, held: T) -> Result<()> {
+    drop(held);
+    assert_no_validation_errors(device)
 }
 
 /// Outcome of comparing two images.
@@ -176,6 +269,26 @@ pub fn compare_images(
         );
     }
     Ok(result)
+}
+
+/// [`compare_images`] of `actual` against `expected` within 2 per channel, where
+/// `certain` (row-major, one per pixel) says the reference knows the pixel.
+pub fn compare_where_certain(
+    actual: &image::RgbaImage,
+    expected: &image::RgbaImage,
+    certain: &[bool],
+    out_dir: &Path,
+    name: &str,
+) -> Result<Comparison> {
+    let width = actual.width();
+    compare_images(
+        actual,
+        expected,
+        |x, y| certain[(y * width + x) as usize],
+        2,
+        out_dir,
+        name,
+    )
 }
 
 /// Decodes one BC1 block (opaque RGB mode) into 16 RGBA8 texels, row by row,

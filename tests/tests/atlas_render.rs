@@ -3,22 +3,21 @@
 //! resident, so both renders sample exactly level 0 (the table's coarsest
 //! resident level bounds sampling), with nearest filtering.
 
-use citystream_dataset::TextureFormat;
 use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{ensure, Context, Result};
 use citystream_dataset::Dataset;
-use citystream_engine::city::{city_geometry, Camera, CityRenderer};
+use citystream_engine::city::Camera;
 use citystream_engine::commands::CommandContext;
-use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_engine::Device;
 use citystream_gen::atlas::{self, AtlasArgs};
-use citystream_gen::city::{FormatArg, GenArgs, Preset};
-use citystream_gen::command as gen;
-use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
+use citystream_tests::{
+    assert_no_validation_errors, camera_on_centre, tiny_rgba8_city, validated_device, visible_city_renderer,
+    whole_city_cache_config,
+};
 use glam::Vec3;
 
 const WIDTH: u32 = 320;
@@ -26,20 +25,11 @@ const HEIGHT: u32 = 240;
 
 fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<image::RgbaImage> {
     let dataset = Dataset::open(dir).with_context(|| format!("opening {}", dir.display()))?;
-    let scene = &dataset.scene;
-    let (vertices, meshes) = city_geometry(&dataset)?;
     let mut commands = CommandContext::new(device, "atlas render")?;
     let mut cache = GpuTextureCache::new(
         device,
         &mut commands,
-        &GpuCacheConfig {
-            layer_size: 2048,
-            layers: CacheLayers::Fixed(32),
-            memory_budget_bytes: 1 << 30,
-            blocks_per_chunk: 64,
-            staging_bytes: 32 << 20,
-            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], dataset.textures.len())
-        },
+        &whole_city_cache_config(dataset.textures.len(), 32),
         dataset.colormap.colours(),
     )?;
     let mut bytes = Vec::new();
@@ -49,16 +39,7 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
         cache.stage(texture, info.format(), info.width(), info.height(), 0, &bytes)?;
     }
     cache.finish_cycle(&mut commands)?;
-    let compactor = FeedbackCompactor::new(device, &mut commands, meshes.len() as u32, 1)?;
-    let renderer = CityRenderer::new(
-        device,
-        &mut commands,
-        &vertices,
-        &scene.indices,
-        meshes,
-        &cache,
-        &compactor,
-    )?;
+    let (renderer, _compactor) = visible_city_renderer(device, &mut commands, &dataset, &cache)?;
     let target = RenderTarget::new(device, WIDTH, HEIGHT)?;
     let cmd = commands.begin()?;
     // Unlit, and without the colormap blend: the sampled texels as they are.
@@ -70,19 +51,8 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
 #[test]
 fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
     let base = Path::new(env!("CARGO_TARGET_TMPDIR")).join("atlas_render");
-    let original = base.join("city");
+    let original = tiny_rgba8_city(&base)?;
     let atlased = base.join("atlas");
-    let _ = std::fs::remove_dir_all(&base);
-    gen::run(&GenArgs {
-        preset: Preset::Tiny,
-        seed: 5,
-        out: original.clone(),
-        format: FormatArg::Rgba8,
-        max_extent: 512,
-        textures_from: None,
-        dry_run: false,
-        quiet: true,
-    })?;
     atlas::run(&AtlasArgs {
         input: original.clone(),
         out: atlased.clone(),
@@ -103,16 +73,9 @@ fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
     );
 
     // A close oblique view into the city: facades and roofs fill the frame.
-    let bounds = before.scene.bounds;
-    let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
-    let centre = Vec3::from(bounds.center());
-    let camera = Camera {
-        eye: centre + Vec3::new(size.x * 0.2, size.y * 0.5 + 5.0, size.z * 0.2),
-        target: centre,
-        fov_y: 60f32.to_radians(),
-        near: 0.5,
-        far: size.length() * 4.0,
-    };
+    let camera = camera_on_centre(&before.scene.bounds, |size| {
+        Vec3::new(size.x * 0.2, size.y * 0.5 + 5.0, size.z * 0.2)
+    });
     let device = validated_device()?;
     let a = render_level0(&device, &original, &camera)?;
     let b = render_level0(&device, &atlased, &camera)?;

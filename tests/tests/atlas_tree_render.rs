@@ -8,21 +8,21 @@ use std::sync::Arc;
 use anyhow::{ensure, Context, Result};
 use citystream_bench::image_error::psnr_db;
 use citystream_cache::geometry::cacheable_mip_count;
-use citystream_dataset::{Dataset, TextureFormat};
+use citystream_dataset::Dataset;
 use citystream_engine::atlas_tree::AtlasTreeRenderer;
-use citystream_engine::city::{city_geometry, Camera, CityRenderer};
+use citystream_engine::city::Camera;
 use citystream_engine::commands::CommandContext;
-use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::{CacheLayers, GpuCacheConfig, GpuTextureCache};
+use citystream_engine::texture_cache::{GpuCacheConfig, GpuTextureCache};
 use citystream_engine::Device;
 use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances};
-use citystream_gen::city::{FormatArg, GenArgs, Preset};
-use citystream_gen::command as gen;
 use citystream_streaming::atlas_tree::{distance_to, AtlasTree, DrawWith, Selection};
 use citystream_streaming::source::texel_format;
-use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
+use citystream_tests::{
+    assert_no_validation_errors, camera_on_centre, tiny_rgba8_city, validated_device, visible_city_renderer,
+    whole_city_cache_config,
+};
 use glam::Vec3;
 
 const WIDTH: u32 = 320;
@@ -45,19 +45,13 @@ fn render_both(
     let dataset = Dataset::open(dir).with_context(|| format!("opening {}", dir.display()))?;
     let tree = AtlasTree::open(&dataset)?;
     let scene = &dataset.scene;
-    let (vertices, meshes) = city_geometry(&dataset)?;
     let mut commands = CommandContext::new(device, "atlas tree render")?;
     let mut cache = GpuTextureCache::new(
         device,
         &mut commands,
         &GpuCacheConfig {
-            layer_size: 2048,
-            layers: CacheLayers::Fixed(64),
-            memory_budget_bytes: 1 << 30,
-            blocks_per_chunk: 64,
             filtering: Filtering::BilinearNearestLevel,
-            staging_bytes: 32 << 20,
-            ..test_cache_config(&[TextureFormat::Bc1, TextureFormat::Rgba8], dataset.textures.len())
+            ..whole_city_cache_config(dataset.textures.len(), 64)
         },
         dataset.colormap.colours(),
     )?;
@@ -73,16 +67,7 @@ fn render_both(
         // Whole chains stay within the staging ring.
         cache.finish_cycle(&mut commands)?;
     }
-    let compactor = FeedbackCompactor::new(device, &mut commands, meshes.len() as u32, 1)?;
-    let renderer = CityRenderer::new(
-        device,
-        &mut commands,
-        &vertices,
-        &scene.indices,
-        meshes,
-        &cache,
-        &compactor,
-    )?;
+    let (renderer, _compactor) = visible_city_renderer(device, &mut commands, &dataset, &cache)?;
     let mut tree_renderer = AtlasTreeRenderer::new(device, &mut commands, &renderer, &scene.indices, &tree, &cache, 1)?;
     // Every leaf with its own atlas: the finest cut of the tree.
     let leaves = Selection {
@@ -112,19 +97,8 @@ fn render_both(
 #[test]
 fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()> {
     let base = Path::new(env!("CARGO_TARGET_TMPDIR")).join("atlas_tree_render");
-    let city = base.join("city");
+    let city = tiny_rgba8_city(&base)?;
     let tree_dir = base.join("tree");
-    let _ = std::fs::remove_dir_all(&base);
-    gen::run(&GenArgs {
-        preset: Preset::Tiny,
-        seed: 5,
-        out: city.clone(),
-        format: FormatArg::Rgba8,
-        max_extent: 512,
-        textures_from: None,
-        dry_run: false,
-        quiet: true,
-    })?;
     let summary = build(&AtlasTreeArgs {
         dataset: city,
         out: tree_dir.clone(),
@@ -140,20 +114,17 @@ fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()>
     let tree = AtlasTree::open(&dataset)?;
     // Oblique views over the city and one from street level, all at least the leaves'
     // distance d_min from every triangle (nearer, the traversal draws the originals).
-    let bounds = dataset.scene.bounds;
-    let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
-    let centre = Vec3::from(bounds.center());
-    let camera = |offset: Vec3| Camera {
-        eye: centre + offset,
-        target: centre,
-        fov_y: 60f32.to_radians(),
-        near: 0.5,
-        far: size.length() * 4.0,
-    };
+    let bounds = &dataset.scene.bounds;
     let cameras = [
-        camera(Vec3::new(size.x * 0.25, size.y * 0.3 + 10.0, size.z * 0.25)),
-        camera(Vec3::new(-size.x * 0.4, size.y * 0.2 + 5.0, size.z * 0.1)),
-        camera(Vec3::new(-size.x * 0.25, size.y * 0.3 + 10.0, -size.z * 0.25)),
+        camera_on_centre(bounds, |size| {
+            Vec3::new(size.x * 0.25, size.y * 0.3 + 10.0, size.z * 0.25)
+        }),
+        camera_on_centre(bounds, |size| {
+            Vec3::new(-size.x * 0.4, size.y * 0.2 + 5.0, size.z * 0.1)
+        }),
+        camera_on_centre(bounds, |size| {
+            Vec3::new(-size.x * 0.25, size.y * 0.3 + 10.0, -size.z * 0.25)
+        }),
     ];
     let d_min = tree.params.leaf_min_distance;
     for (i, camera) in cameras.iter().enumerate() {

@@ -12,7 +12,7 @@ use citystream_engine::texture_cache::ResidentCache;
 use citystream_engine::Device;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MemorySource;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_clean_after_dropping, validated_device};
 
 const TEXTURES: u32 = 12;
 const LAYER: u32 = 256;
@@ -80,8 +80,7 @@ fn layers_follow_the_budget_whatever_the_layer_limit() -> Result<()> {
         "{:?} layers for a 9-block budget, 2 per image",
         bc1_layers(&nine)
     );
-    drop(nine);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, nine)
 }
 
 #[test]
@@ -101,8 +100,7 @@ fn textures_in_several_images_are_all_resident_at_once() -> Result<()> {
     }
     let evicted = streamer.residency_totals().evicted_layers;
     ensure!(evicted == 0, "{evicted} layers evicted with room for every texture");
-    drop(streamer);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, streamer)
 }
 
 #[test]
@@ -132,6 +130,5 @@ fn textures_beyond_the_layers_are_served_by_evicting_layers_the_view_does_not_ne
         evicted == u64::from(TEXTURES - 8),
         "{evicted} layers evicted for {TEXTURES} textures in 8 layers"
     );
-    drop(streamer);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, streamer)
 }

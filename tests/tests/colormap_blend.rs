@@ -7,15 +7,16 @@
 
 use anyhow::{ensure, Result};
 use citystream_dataset::TextureFormat;
-use citystream_engine::city::{Camera, CityMesh, CityRenderer};
+use citystream_engine::city::{CityMesh, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::Vertex;
 use citystream_engine::placeholder::SplitMix64;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::GpuTextureCache;
-use citystream_tests::{assert_no_validation_errors, compare_images, test_cache_config, validated_device};
-use glam::Vec3;
+use citystream_tests::{
+    assert_clean_after_dropping, camera_down_negative_z, compare_where_certain, test_cache_config, validated_device,
+};
 
 const SIZE: u32 = 128;
 const TEXTURE: u32 = 64; // M_max = 6
@@ -139,13 +140,7 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
     let compactor = FeedbackCompactor::new(&device, &mut commands, 4, 4)?;
     let renderer = CityRenderer::new(&device, &mut commands, &vertices, &indices, meshes, &cache, &compactor)?;
     let target = RenderTarget::new(&device, SIZE, SIZE)?;
-    let camera = Camera {
-        eye: Vec3::ZERO,
-        target: Vec3::new(0.0, 0.0, -1.0),
-        fov_y: FOV_Y,
-        near: 0.1,
-        far: 100.0,
-    };
+    let camera = camera_down_negative_z(FOV_Y);
     let cmd = commands.begin()?;
     renderer.record_visible(cmd, &target, &camera, 0.0, true)?;
     commands.submit_and_wait(&[])?;
@@ -215,22 +210,11 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
         "levels 0, 2 and 4 must all be displayed: {checked_levels:?}"
     );
     let out_dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("blend");
-    let comparison = compare_images(
-        &actual,
-        &expected,
-        |x, y| certain[(y * SIZE + x) as usize],
-        2,
-        &out_dir,
-        "colormap_blend",
-    )?;
+    let comparison = compare_where_certain(&actual, &expected, &certain, &out_dir, "colormap_blend")?;
     ensure!(
         comparison.compared > 3000,
         "only {} pixels compared",
         comparison.compared
     );
-    drop(renderer);
-    drop(compactor);
-    drop(cache);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (renderer, compactor, cache, commands))
 }

@@ -168,30 +168,25 @@ fn culling_keeps_the_feedback_and_the_image_of_104_views() -> Result<()> {
         &colormap,
     )?;
     let compactor = FeedbackCompactor::new(&device, &mut commands, mesh_count, mesh_count)?;
-    let mut renderer = CityRenderer::new(
-        &device,
-        &mut commands,
-        &vertices,
-        &indices,
-        meshes.clone(),
-        &cache,
-        &compactor,
-    )?;
+    let new_renderer = |commands: &mut CommandContext| {
+        CityRenderer::new(
+            &device,
+            commands,
+            &vertices,
+            &indices,
+            meshes.clone(),
+            &cache,
+            &compactor,
+        )
+    };
+    let mut renderer = new_renderer(&mut commands)?;
     renderer.enable_culling(&mut commands, &vertices, &indices, 1)?;
     // A city larger than one storage binding addresses (7.7 M meshes' bounds on lavapipe's
     // 128 MiB) is culled through windows of the buffers; small windows make this city
     // need several (bounds of 501 meshes, 16 KB, and 3,006 indices, 12 KB, in 4 KiB
     // windows: 4 and 3).
     std::env::set_var(citystream_engine::cull::WINDOW_BYTES_ENV, "4096");
-    let mut windowed = CityRenderer::new(
-        &device,
-        &mut commands,
-        &vertices,
-        &indices,
-        meshes.clone(),
-        &cache,
-        &compactor,
-    )?;
+    let mut windowed = new_renderer(&mut commands)?;
     let enabled = windowed.enable_culling(&mut commands, &vertices, &indices, 1);
     std::env::remove_var(citystream_engine::cull::WINDOW_BYTES_ENV);
     enabled?;

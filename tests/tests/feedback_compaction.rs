@@ -8,7 +8,7 @@ use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::{FeedbackEntry, MeshFeedback, FEEDBACK_UNSEEN};
 use citystream_engine::placeholder::SplitMix64;
-use citystream_tests::{assert_no_validation_errors, validated_device};
+use citystream_tests::{assert_clean_after_dropping, validated_device};
 
 const TAU: u32 = 150;
 
@@ -94,9 +94,7 @@ fn run_case(count: u32, fill: f32, capacity: u32, seed: u64) -> Result<()> {
         after.iter().all(|m| m.min_mip == FEEDBACK_UNSEEN && m.weight == 0),
         "compaction must reset the array for the next frame"
     );
-    drop(compactor);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (compactor, commands))
 }
 
 #[test]

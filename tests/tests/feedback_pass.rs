@@ -11,13 +11,13 @@
 
 use anyhow::{ensure, Result};
 use citystream_dataset::TextureFormat;
-use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
+use citystream_engine::city::{CityMesh, CityRenderer, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::{Vertex, FEEDBACK_MIP_ONE, FEEDBACK_UNSEEN, FEEDBACK_WEIGHT_ONE};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::GpuTextureCache;
-use citystream_tests::{assert_no_validation_errors, test_cache_config, validated_device};
+use citystream_tests::{assert_clean_after_dropping, camera_down_negative_z, test_cache_config, validated_device};
 use glam::Vec3;
 
 const SIZE: u32 = 128;
@@ -244,13 +244,7 @@ fn feedback_matches_cpu_reference() -> Result<()> {
     let compactor = FeedbackCompactor::new(&device, &mut commands, planes.len() as u32, planes.len() as u32)?;
     let renderer = CityRenderer::new(&device, &mut commands, &vertices, &indices, meshes, &cache, &compactor)?;
     let target = RenderTarget::new(&device, SIZE, SIZE)?;
-    let camera = Camera {
-        eye: Vec3::ZERO,
-        target: Vec3::new(0.0, 0.0, -1.0),
-        fov_y: FOV_Y,
-        near: 0.1,
-        far: 100.0,
-    };
+    let camera = camera_down_negative_z(FOV_Y);
     let view = FeedbackView {
         margin: MARGIN,
         foreground_distance: FOREGROUND,
@@ -329,9 +323,5 @@ fn feedback_matches_cpu_reference() -> Result<()> {
         "the near end of the floor needs finer mips than the far plane"
     );
 
-    drop(renderer);
-    drop(compactor);
-    drop(cache);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (renderer, compactor, cache, commands))
 }

@@ -6,15 +6,20 @@
 //! residency code, then unbind one block and check it reads as non-resident.
 //! And the opaque bind (how a GPU's tails are bound) on a whole image.
 
+use std::sync::Arc;
+
 use anyhow::{ensure, Context, Result};
 use citystream_engine::commands::{CommandContext, Semaphore, SemaphoreWait};
+use citystream_engine::device::Device;
 use citystream_engine::gpu_types::{ProbePoint, ProbeResult};
 use citystream_engine::probe::SparseProbe;
 use citystream_engine::sparse::{
     bind_opaque_and_wait, SparseBlockBind, SparseImage, SparseImageDesc, SparseMemoryChunk, TailBlockBind, TexelUpload,
 };
 use citystream_engine::vk;
-use citystream_tests::{assert_no_validation_errors, copy_into_new_sparse_image, validated_device};
+use citystream_tests::{
+    assert_clean_after_dropping, assert_no_validation_errors, copy_into_new_sparse_image, validated_device,
+};
 
 const SIDE: u32 = 256;
 const LAYERS: u32 = 2;
@@ -53,21 +58,29 @@ fn to_u8(result: &ProbeResult) -> [u8; 4] {
     result.value.map(|c| (c * 255.0).round() as u8)
 }
 
+/// A sparse RGBA8 image `side` texels square, of `layers` layers and `mips` levels.
+fn rgba8_image(
+    device: &Arc<Device>,
+    side: u32,
+    layers: u32,
+    mips: u32,
+    name: &str,
+) -> citystream_engine::Result<SparseImage> {
+    let desc = SparseImageDesc {
+        width: side,
+        height: side,
+        layers,
+        mips,
+        format: vk::Format::R8G8B8A8_UNORM,
+    };
+    SparseImage::new(device, desc, name)
+}
+
 #[test]
 fn bind_copy_sample_unbind() -> Result<()> {
     let device = validated_device()?;
     let mips = 32 - SIDE.leading_zeros();
-    let image = SparseImage::new(
-        &device,
-        SparseImageDesc {
-            width: SIDE,
-            height: SIDE,
-            layers: LAYERS,
-            mips,
-            format: vk::Format::R8G8B8A8_UNORM,
-        },
-        "residency test image",
-    )?;
+    let image = rgba8_image(&device, SIDE, LAYERS, mips, "residency test image")?;
     let (gw, gh) = image.granularity();
     ensure!(
         gw > 0 && gh > 0 && image.block_size() > 0,
@@ -275,11 +288,7 @@ fn bind_copy_sample_unbind() -> Result<()> {
         );
     }
     device.wait_idle()?;
-    drop(probe);
-    drop(commands);
-    drop(image);
-    drop(chunk);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (probe, commands, image, chunk))
 }
 
 /// The opaque bind path (how mip tails are bound on a GPU), where lavapipe
@@ -290,17 +299,7 @@ fn an_opaquely_bound_sparse_image_samples_every_level() -> Result<()> {
     let device = validated_device()?;
     let side = 64u32;
     let mips = 32 - side.leading_zeros();
-    let image = SparseImage::new(
-        &device,
-        SparseImageDesc {
-            width: side,
-            height: side,
-            layers: 1,
-            mips,
-            format: vk::Format::R8G8B8A8_UNORM,
-        },
-        "opaque bind test image",
-    )?;
+    let image = rgba8_image(&device, side, 1, mips, "opaque bind test image")?;
     let block_size = image.block_size();
     let bytes_bound = image.opaque_bytes().next_multiple_of(block_size);
     let chunk = SparseMemoryChunk::new(&device, &image, bytes_bound / block_size, "opaque bind test memory")?;
@@ -365,27 +364,13 @@ fn an_opaquely_bound_sparse_image_samples_every_level() -> Result<()> {
         );
     }
     device.wait_idle()?;
-    drop(probe);
-    drop(commands);
-    drop(image);
-    drop(chunk);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (probe, commands, image, chunk))
 }
 
 #[test]
 fn out_of_range_blocks_are_refused() -> Result<()> {
     let device = validated_device()?;
-    let image = SparseImage::new(
-        &device,
-        SparseImageDesc {
-            width: 256,
-            height: 256,
-            layers: 1,
-            mips: 9,
-            format: vk::Format::R8G8B8A8_UNORM,
-        },
-        "range test image",
-    )?;
+    let image = rgba8_image(&device, 256, 1, 9, "range test image")?;
     let (bw, _) = image.level_blocks(0);
     let error = image
         .bind(
@@ -401,20 +386,9 @@ fn out_of_range_blocks_are_refused() -> Result<()> {
         )
         .expect_err("a block past the level edge must be refused");
     ensure!(error.to_string().contains("outside"), "unclear error: {error}");
-    let too_many_mips = SparseImage::new(
-        &device,
-        SparseImageDesc {
-            width: 64,
-            height: 64,
-            layers: 1,
-            mips: 8,
-            format: vk::Format::R8G8B8A8_UNORM,
-        },
-        "bad mips",
-    );
+    let too_many_mips = rgba8_image(&device, 64, 1, 8, "bad mips");
     ensure!(too_many_mips.is_err(), "64x64 has 7 levels; 8 must be refused");
-    drop(image);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, image)
 }
 
 #[test]

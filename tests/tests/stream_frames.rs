@@ -18,7 +18,9 @@ use citystream_engine::vk;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::records::MeshMetaData;
 use citystream_streaming::source::{bc1_mip_len, MemorySource};
-use citystream_tests::{assert_no_validation_errors, sync_validated_device, tail_allowance};
+use citystream_tests::{
+    assert_clean_after_dropping, assert_no_validation_errors, sync_validated_device, tail_allowance,
+};
 use glam::Vec3;
 
 const QUADS: u32 = 24;
@@ -300,26 +302,36 @@ fn synchronization_validation_reports_a_missing_barrier() -> Result<()> {
 /// Calls the frame token's types cannot order are refused with an error naming the call
 /// (those they can order do not compile: see the `compile_fail` examples of
 /// `citystream_engine::stream::Frame` and `citystream_engine::commands::Recording`).
+/// A streamer of one `side`² BC1 texture (a red placeholder) under the baseline policy.
+fn one_texture_streamer(
+    device: &Arc<Device>,
+    side: u32,
+    config: &StreamConfig,
+) -> citystream_engine::Result<TextureStreamer<MemorySource>> {
+    let mut source = MemorySource::new();
+    source.push_bc1(side, side);
+    TextureStreamer::new(
+        device,
+        source,
+        vec![0],
+        &[[255, 0, 0, 255]],
+        PolicyKind::Baseline.build(&PolicyOptions::default())?,
+        config,
+    )
+}
+
 #[test]
 fn calls_out_of_order_are_refused() -> Result<()> {
     let device = sync_validated_device()?;
     let new_streamer = || -> Result<TextureStreamer<MemorySource>> {
-        let mut source = MemorySource::new();
-        source.push_bc1(64, 64);
-        Ok(TextureStreamer::new(
-            &device,
-            source,
-            vec![0],
-            &[[255, 0, 0, 255]],
-            PolicyKind::Baseline.build(&PolicyOptions::default())?,
-            &StreamConfig {
-                layer_size: 256,
-                layer_count: Some(2),
-                memory_budget_bytes: 1 << 20,
-                staging_bytes: 1 << 16,
-                ..StreamConfig::default()
-            },
-        )?)
+        let config = StreamConfig {
+            layer_size: 256,
+            layer_count: Some(2),
+            memory_budget_bytes: 1 << 20,
+            staging_bytes: 1 << 16,
+            ..StreamConfig::default()
+        };
+        Ok(one_texture_streamer(&device, 64, &config)?)
     };
     let mut streamer = new_streamer()?;
     let mut other = new_streamer()?;
@@ -356,8 +368,18 @@ fn calls_out_of_order_are_refused() -> Result<()> {
     let frame = third.begin_frame()?;
     refused(third.end_frame(frame, 16.0).map(|_| ()), "record_uploads")?;
     commands.wait()?;
-    drop((streamer, other, third));
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (streamer, other, third))
+}
+
+/// [`stream_fixed_view`] of the row of quads, one texture each ([`row_source`]).
+fn stream_row_fixed_view(
+    device: &Arc<Device>,
+    config: StreamConfig,
+    frames: u32,
+    host_records: Option<Vec<MeshMetaData>>,
+) -> Result<TextureStreamer<MemorySource>> {
+    let (_, _, meshes) = quad_row();
+    stream_fixed_view(device, row_source(), meshes, config, frames, host_records)
 }
 
 /// Streams `frames` frames of a fixed view of the row's first quads
@@ -467,8 +489,7 @@ fn a_texture_the_cache_cannot_hold_fails_once_instead_of_reloading() -> Result<(
         "the textures beside it were not streamed: resident levels {resident:?}, totals {:?}",
         streamer.totals()
     );
-    drop(streamer);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, streamer)
 }
 
 /// Texture arrays spend the memory budget on whole layers when the streamer is made
@@ -480,21 +501,13 @@ fn texture_arrays_refuse_a_budget_below_one_layer_s_full_chain() -> Result<()> {
     // A 2048² BC1 layer with its levels down to 1×1, before the device's alignment.
     let chain: u64 = (0..12).map(|level| bc1_mip_len(2048 >> level, 2048 >> level)).sum();
     let new_streamer = |budget: u64| {
-        let mut source = MemorySource::new();
-        source.push_bc1(256, 256);
-        TextureStreamer::new(
-            &device,
-            source,
-            vec![0],
-            &[[255, 0, 0, 255]],
-            PolicyKind::Baseline.build(&PolicyOptions::default())?,
-            &StreamConfig {
-                layer_size: 2048,
-                memory_budget_bytes: budget,
-                staging_bytes: 1 << 16,
-                ..StreamConfig::default()
-            },
-        )
+        let config = StreamConfig {
+            layer_size: 2048,
+            memory_budget_bytes: budget,
+            staging_bytes: 1 << 16,
+            ..StreamConfig::default()
+        };
+        one_texture_streamer(&device, 256, &config)
     };
     match new_streamer(chain - 1) {
         Err(citystream_engine::EngineError::InvalidRequest(message)) if message.contains("full mip chain") => {}
@@ -511,8 +524,6 @@ fn texture_arrays_refuse_a_budget_below_one_layer_s_full_chain() -> Result<()> {
 #[test]
 fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<()> {
     let device = sync_validated_device()?;
-    let source = row_source();
-    let (_, _, meshes) = quad_row();
     let config = StreamConfig {
         eviction: Eviction::View,
         memory_budget_bytes: 64 << 20,
@@ -520,7 +531,7 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
         weight_cutoff: 1 << 30,
         ..StreamConfig::default()
     };
-    let streamer = stream_fixed_view(&device, source, meshes, config, 8, None)?;
+    let streamer = stream_row_fixed_view(&device, config, 8, None)?;
     let in_view: Vec<u32> = (0..QUADS).filter(|&t| streamer.needs().in_view(t)).collect();
     ensure!(
         in_view.len() >= 2 && in_view.iter().all(|&t| t < 3),
@@ -532,8 +543,7 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
         "{} mips loaded although no mesh reaches τ ({entries} entries read back)",
         streamer.totals().loaded_mips
     );
-    drop(streamer);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, streamer)
 }
 
 /// A host that knows what the view needs another way (the texture-atlas tree's paging)
@@ -541,8 +551,6 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
 #[test]
 fn host_records_replace_the_feedback() -> Result<()> {
     let device = sync_validated_device()?;
-    let source = row_source();
-    let (_, _, meshes) = quad_row();
     let config = StreamConfig {
         memory_budget_bytes: 64 << 20,
         weight_cutoff: 1,
@@ -555,7 +563,7 @@ fn host_records_replace_the_feedback() -> Result<()> {
         weight: 1000,
         mesh_id: off_screen,
     }];
-    let mut streamer = stream_fixed_view(&device, source, meshes, config, 30, Some(records))?;
+    let mut streamer = stream_row_fixed_view(&device, config, 30, Some(records))?;
     let full = (1u32 << (TEXTURE.trailing_zeros() + 1)) - 1;
     let resident: Vec<u32> = (0..QUADS).map(|t| streamer.cache().resident_levels(t)).collect();
     ensure!(
@@ -575,6 +583,5 @@ fn host_records_replace_the_feedback() -> Result<()> {
         }])
         .expect_err("a mesh id outside the table");
     ensure!(error.to_string().contains("mesh 24"), "{error}");
-    drop(streamer);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, streamer)
 }

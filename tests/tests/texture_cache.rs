@@ -23,7 +23,7 @@ use citystream_engine::texture_cache::{
 };
 use citystream_engine::Device;
 use citystream_tests::{
-    assert_no_validation_errors, bc1_texel, test_cache_config, validated_array_device, validated_device,
+    assert_clean_after_dropping, bc1_texel, test_cache_config, validated_array_device, validated_device,
 };
 
 const EXTENTS: [u32; 6] = [4, 8, 16, 32, 64, 128];
@@ -358,10 +358,7 @@ fn cache_samples_every_texture_at_every_loaded_mip_and_survives_eviction_on(devi
     let utilisation = cache.utilisation();
     ensure!(utilisation.texture_bytes > 0 && utilisation.bound_bytes >= utilisation.texture_bytes / 2);
     device.wait_idle()?;
-    drop(probe);
-    drop(cache);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (probe, cache, commands))
 }
 
 /// One BC1 block of a single opaque colour (RGB565 endpoints equal).
@@ -480,10 +477,7 @@ fn filtered_sampling_blends_levels_and_never_bleeds_into_neighbours_on(device: A
             expected[i]
         );
     }
-    drop(probe);
-    drop(cache);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (probe, cache, commands))
 }
 
 #[test]
@@ -529,10 +523,7 @@ fn levels_coarser_than_the_first_loaded_one_are_never_needed() -> Result<()> {
     let read: Vec<[u8; 4]> = results.iter().map(to_u8).collect();
     ensure!(results.iter().all(|r| r.resident == 1), "{results:?}");
     ensure!(read == vec![colour(0), colour(4), colour(4)], "{read:?}");
-    drop(probe);
-    drop(cache);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (probe, cache, commands))
 }
 
 #[test]
@@ -572,9 +563,7 @@ fn a_level_of_a_layer_evicted_in_the_same_cycle_is_not_dropped_again() -> Result
         cache.texture_data(0).is_some_and(|d| d.state == 0),
         "texture 0 still sampleable"
     );
-    drop(cache);
-    drop(commands);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (cache, commands))
 }
 
 /// Stages every cacheable level of every source texture, coarsest first,
@@ -700,8 +689,7 @@ fn a_format_spread_over_several_images_reads_back_from_each() -> Result<()> {
         .collect();
     ensure!(used.len() == 6, "textures placed in images {used:?}");
     read_back_every_level(&device, &cache, &mut commands, &sources, &mut rng)?;
-    drop(cache);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, cache)
 }
 
 #[test]
@@ -746,8 +734,7 @@ fn bc3_and_bc7_textures_are_cached_and_sampled_on(device: Arc<Device>) -> Result
     let refused = cache.stage(0, TextureFormat::Bc1, 16, 16, 0, &[0; 128]);
     ensure!(refused.is_err(), "BC1 staged into a BC3/BC7 cache: {refused:?}");
     read_back_every_level(&device, &cache, &mut commands, &sources, &mut rng)?;
-    drop(cache);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, cache)
 }
 
 /// The cache reports the mip tail it binds, per format: where it starts,
@@ -806,6 +793,5 @@ fn the_cache_reports_the_mip_tail_it_binds() -> Result<()> {
         "utilisation {:?} against {after:?}",
         cache.utilisation()
     );
-    drop(cache);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, cache)
 }

@@ -12,7 +12,7 @@ use citystream_engine::gpu_types::ProbePoint;
 use citystream_engine::probe::SparseProbe;
 use citystream_engine::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload};
 use citystream_engine::vk;
-use citystream_tests::{assert_no_validation_errors, copy_into_new_sparse_image, validated_device};
+use citystream_tests::{assert_clean_after_dropping, copy_into_new_sparse_image, validated_device};
 
 fn key(x: u32) -> BlockKey {
     BlockKey {
@@ -140,11 +140,7 @@ fn batches_merge_bind_and_unbind() -> Result<()> {
     ensure!(binder.submit(&[])?.blocks == 0, "an empty batch costs nothing");
 
     device.wait_idle()?;
-    drop(probe);
-    drop(commands);
-    drop(binder);
-    drop(image);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (probe, commands, binder, image))
 }
 
 #[test]
@@ -196,7 +192,5 @@ fn the_bind_checker_refuses_a_double_bind_and_a_copy_into_an_unbound_block() -> 
         "{twice:?}"
     );
     device.wait_idle()?;
-    drop(binder);
-    drop(image);
-    assert_no_validation_errors(&device)
+    assert_clean_after_dropping(&device, (binder, image))
 }

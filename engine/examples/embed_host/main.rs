@@ -851,25 +851,25 @@ fn render<S: MipSource + 'static>(
         // thread, until `end_command_buffer` below, after the last use of `rec`.
         let rec = unsafe { Recording::from_raw(cmd) };
         streamer.record_uploads(&mut begun, rec)?;
+        // Both passes' push constants: this frame's camera, the scene's distances and a
+        // level-of-detail offset.
+        let push_with_lod_offset = |lod_offset: f32| {
+            push(
+                camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
+                lod_offset,
+                scene.foreground_distance,
+                scene.fog_distance,
+            )
+        };
         // The host's feedback pass, a quarter of the resolution per axis.
-        let feedback_push = push(
-            camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
-            2.0,
-            scene.foreground_distance,
-            scene.fog_distance,
-        );
+        let feedback_push = push_with_lod_offset(2.0);
         feedback_target.begin(device, rec, [0.0; 4]);
         pipelines.draw(cmd, pipelines.feedback, &feedback_push, &vertices, vertex_count);
         // SAFETY: rendering was begun by `feedback_target.begin` in this buffer.
         unsafe { raw.cmd_end_rendering(cmd) };
         streamer.record_feedback_resolve(&mut begun, rec)?;
         // The host's visible pass.
-        let visible_push = push(
-            camera.view_projection(WIDTH as f32 / HEIGHT as f32, 0.0),
-            0.0,
-            scene.foreground_distance,
-            scene.fog_distance,
-        );
+        let visible_push = push_with_lod_offset(0.0);
         target.begin(device, rec, [0.55, 0.7, 0.9, 1.0]);
         pipelines.draw(cmd, pipelines.visible, &visible_push, &vertices, vertex_count);
         target.end_and_copy(device, rec);

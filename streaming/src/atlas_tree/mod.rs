@@ -248,6 +248,14 @@ mod tests {
         }
     }
 
+    /// The row tree and the paging tests' view of it: from (140, 15, 5) m, the first plane
+    /// keeping x ≥ 150 m.
+    fn row_tree_seen_from_x_140() -> (AtlasTree, TreeView) {
+        let mut planes = EVERYWHERE;
+        planes[0] = [1.0, 0.0, 0.0, -150.0];
+        (row_tree(), view([140.0, 15.0, 5.0], planes))
+    }
+
     /// A root over x 0..400 with four leaves of 100 m each along x (children 1..5); leaf
     /// distances 10 m, root 20 m.
     fn row_tree() -> AtlasTree {
@@ -394,10 +402,7 @@ mod tests {
 
     #[test]
     fn atlas_tree_paging_records_are_the_ideal_block_set_in_priority_order() {
-        let tree = row_tree();
-        let mut planes = EVERYWHERE;
-        planes[0] = [1.0, 0.0, 0.0, -150.0];
-        let view = view([140.0, 15.0, 5.0], planes);
+        let (tree, view) = row_tree_seen_from_x_140();
         let order: Vec<Block> = tree
             .block_priorities(&view)
             .iter()
@@ -426,10 +431,7 @@ mod tests {
 
     #[test]
     fn atlas_tree_paging_within_bytes_stops_at_the_first_block_that_overflows() {
-        let tree = row_tree();
-        let mut planes = EVERYWHERE;
-        planes[0] = [1.0, 0.0, 0.0, -150.0];
-        let view = view([140.0, 15.0, 5.0], planes);
+        let (tree, view) = row_tree_seen_from_x_140();
         // Originals weigh 100 bytes, an atlas 64 >> level: leaf 2's originals (100), leaf
         // 3's atlas at level 2 (16), leaf 4's at level 4 (4) fit 120 bytes; the next does not.
         let bytes = |block: Block, level: u32| match block {

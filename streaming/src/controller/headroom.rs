@@ -284,32 +284,32 @@ mod tests {
         // excess 12 ms, s · √(3.2 / 12) = 0.516 MB.
         let s = headroom_load_size(1_048_576.0, 1e9, 20.0, 20.0, 8.0, 12.0);
         assert!(close(s, 1_048_576.0 * (3.2f64 / 12.0).sqrt(), 1e-6), "{s}");
-        // Below α the size grows with the headroom left by the slowest recent frame:
-        // peak 9 ms of 12 → × 1.25.
-        assert!(close(
-            headroom_load_size(1000.0, 1e9, 8.0, 9.0, 8.0, 12.0),
-            1250.0,
-            1e-9
-        ));
-        // A frame at α is past the aim (8 + 3.2 ms): eased back by √(3.2 / 4); at the aim,
-        // held; a frame far over α cuts by at most 1/64.
-        assert!(close(
-            headroom_load_size(1000.0, 1e9, 12.0, 12.0, 8.0, 12.0),
-            1000.0 * 0.8f64.sqrt(),
-            1e-9
-        ));
+        // At the aim (8 + 3.2 ms) the size is held.
         assert_eq!(headroom_load_size(1000.0, 1e9, 11.2, 11.2, 8.0, 12.0), 1000.0);
-        assert!(close(
-            headroom_load_size(64_000.0, 1e9, 60_000.0, 60_000.0, 8.0, 12.0),
-            1000.0,
-            1e-9
-        ));
-        // A base at or over α leaves no room: the largest cut.
-        assert!(close(
-            headroom_load_size(64_000.0, 1e9, 13.0, 13.0, 13.0, 12.0),
-            1000.0,
-            1e-9
-        ));
+        // (s, safe bytes, frame, peak, base, α) and the size expected.
+        for (case, [load, safe, frame, peak, base, alpha], expected) in [
+            // Below α the size grows with the headroom left by the slowest recent frame.
+            ("peak 9 ms of 12: × 1.25", [1000.0, 1e9, 8.0, 9.0, 8.0, 12.0], 1250.0),
+            // A frame at α is past the aim (8 + 3.2 ms): eased back by √(3.2 / 4).
+            (
+                "a frame at α",
+                [1000.0, 1e9, 12.0, 12.0, 8.0, 12.0],
+                1000.0 * 0.8f64.sqrt(),
+            ),
+            (
+                "a frame far over α cuts by at most 1/64",
+                [64_000.0, 1e9, 60_000.0, 60_000.0, 8.0, 12.0],
+                1000.0,
+            ),
+            (
+                "a base at or over α leaves no room: the largest cut",
+                [64_000.0, 1e9, 13.0, 13.0, 13.0, 12.0],
+                1000.0,
+            ),
+        ] {
+            let s = headroom_load_size(load, safe, frame, peak, base, alpha);
+            assert!(close(s, expected, 1e-9), "{case}: {s}, expected {expected}");
+        }
     }
 
     #[test]

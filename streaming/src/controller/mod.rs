@@ -419,71 +419,22 @@ mod tests {
             ..PolicyOptions::default()
         };
         assert!(AdaptivePolicy::new(&fixed_too_big).is_ok());
-        for (o, name) in [
-            (
-                PolicyOptions {
-                    alpha_ms: f64::NAN,
-                    ..PolicyOptions::default()
-                },
-                "alpha",
-            ),
-            (
-                PolicyOptions {
-                    beta: -1.0,
-                    ..PolicyOptions::default()
-                },
-                "beta",
-            ),
-            (
-                PolicyOptions {
-                    alpha_ms: 1000.5,
-                    ..PolicyOptions::default()
-                },
-                "alpha",
-            ),
-            (
-                PolicyOptions {
-                    alpha_ms: f64::INFINITY,
-                    ..PolicyOptions::default()
-                },
-                "alpha",
-            ),
-            (
-                PolicyOptions {
-                    beta: 16.5,
-                    ..PolicyOptions::default()
-                },
-                "beta",
-            ),
-            (
-                PolicyOptions {
-                    s_min_bytes: 0,
-                    ..PolicyOptions::default()
-                },
-                "s-min-bytes",
-            ),
-            (
-                PolicyOptions {
-                    fixed_load_size_mb: 65.0,
-                    ..PolicyOptions::default()
-                },
-                "load-size-mb",
-            ),
-            (
-                PolicyOptions {
-                    fixed_mip_bias: 1e300,
-                    ..PolicyOptions::default()
-                },
-                "mip-bias",
-            ),
-            (
-                PolicyOptions {
-                    fixed_mip_bias: 16.5,
-                    ..PolicyOptions::default()
-                },
-                "mip-bias",
-            ),
-        ] {
+        // Each option out of range, named as the command line spells it.
+        type Edit = fn(&mut PolicyOptions);
+        let cases: [(&str, Edit); 9] = [
+            ("alpha", |o| o.alpha_ms = f64::NAN),
+            ("beta", |o| o.beta = -1.0),
+            ("alpha", |o| o.alpha_ms = 1000.5),
+            ("alpha", |o| o.alpha_ms = f64::INFINITY),
+            ("beta", |o| o.beta = 16.5),
+            ("s-min-bytes", |o| o.s_min_bytes = 0),
+            ("load-size-mb", |o| o.fixed_load_size_mb = 65.0),
+            ("mip-bias", |o| o.fixed_mip_bias = 1e300),
+            ("mip-bias", |o| o.fixed_mip_bias = 16.5),
+        ];
+        for (name, edit) in cases {
+            let mut o = PolicyOptions::default();
+            edit(&mut o);
             match FixedPolicy::new(&o) {
                 Err(PolicyError::InvalidOption { name: n, .. }) => assert_eq!(n, name),
                 other => panic!("expected error for {name}, got {other:?}"),

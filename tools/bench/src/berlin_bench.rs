@@ -124,16 +124,7 @@ pub(crate) fn runs(budget_mb: u64, path: &Path) -> Vec<BenchRun> {
         "0".to_string(),
     ];
     RUNS.iter()
-        .map(|run| BenchRun {
-            dir: run.dir.into(),
-            name: run.name.into(),
-            args: run
-                .args
-                .iter()
-                .map(|a| a.to_string())
-                .chain(shared.iter().cloned())
-                .collect(),
-        })
+        .map(|run| BenchRun::new(run.dir, run.name, run.args, shared.iter().cloned()))
         .collect()
 }
 

@@ -70,12 +70,22 @@ pub(crate) struct BenchRun {
 }
 
 impl BenchRun {
-    pub(crate) fn of_policy(policy: &PolicyRun, extra: &[&str]) -> Self {
+    /// The run into `dir`, shown as `name`, with the flythrough arguments `args` then `extra`.
+    pub(crate) fn new(dir: &str, name: &str, args: &[&str], extra: impl IntoIterator<Item = String>) -> Self {
         BenchRun {
-            dir: policy.dir.into(),
-            name: policy.name.into(),
-            args: policy.args.iter().chain(extra).map(|a| a.to_string()).collect(),
+            dir: dir.into(),
+            name: name.into(),
+            args: args.iter().map(|a| a.to_string()).chain(extra).collect(),
         }
+    }
+
+    pub(crate) fn of_policy(policy: &PolicyRun, extra: &[&str]) -> Self {
+        Self::new(
+            policy.dir,
+            policy.name,
+            policy.args,
+            extra.iter().map(|a| a.to_string()),
+        )
     }
 }
 
@@ -101,15 +111,7 @@ pub(crate) fn controller_runs(extra: &[String]) -> Vec<BenchRun> {
         ),
     ]
     .into_iter()
-    .map(|(dir, name, args)| BenchRun {
-        dir: dir.into(),
-        name: name.into(),
-        args: args
-            .iter()
-            .map(|a| a.to_string())
-            .chain(extra.iter().cloned())
-            .collect(),
-    })
+    .map(|(dir, name, args)| BenchRun::new(dir, name, args, extra.iter().cloned()))
     .collect()
 }
 
@@ -165,15 +167,9 @@ pub(crate) const COMPARISON_ARGS: [&str; 8] = [
 /// The two runs of `--scenario strategies`: the same policy, budget and PSNR interval.
 pub(crate) fn strategy_runs(budget_mb: u64, tree: bool) -> Vec<BenchRun> {
     let budget = ["--memory-budget-mb".to_string(), budget_mb.to_string()];
-    let run = |dir: &str, strategy: StrategyArg, budget: &[String]| BenchRun {
-        dir: dir.into(),
-        name: dir.into(),
-        args: COMPARISON_ARGS
-            .iter()
-            .map(|a| a.to_string())
-            .chain(budget.iter().cloned())
-            .chain(["--strategy".into(), strategy.name().into()])
-            .collect(),
+    let run = |dir: &str, strategy: StrategyArg, budget: &[String]| {
+        let strategy = ["--strategy".into(), strategy.name().into()];
+        BenchRun::new(dir, dir, &COMPARISON_ARGS, budget.iter().cloned().chain(strategy))
     };
     let mut runs = vec![run(StrategyArg::Feedback.name(), StrategyArg::Feedback, &budget)];
     if tree {
@@ -194,15 +190,9 @@ pub(crate) const STRATEGY_ARRAYS_STREAMED: &str = "texture-arrays-streamed";
 /// with the imagery.
 pub(crate) fn ground_runs(patches: &Path, budget_mb: Option<u64>) -> Vec<BenchRun> {
     let budget = budget_mb.map(|b| ["--memory-budget-mb".to_string(), b.to_string()]);
-    let run = |dir: &str, name: &str, extra: &[String]| BenchRun {
-        dir: dir.into(),
-        name: name.into(),
-        args: COMPARISON_ARGS
-            .iter()
-            .map(|a| a.to_string())
-            .chain(budget.iter().flatten().cloned())
-            .chain(extra.iter().cloned())
-            .collect(),
+    let run = |dir: &str, name: &str, extra: &[String]| {
+        let extra = budget.iter().flatten().chain(extra).cloned();
+        BenchRun::new(dir, name, &COMPARISON_ARGS, extra)
     };
     vec![
         run("no-ground", "without ground", &[]),

@@ -79,7 +79,6 @@ fn check_atlas(format: &str) {
     assert_eq!(after.scene.indices, before.scene.indices);
 
     let format = after.textures.info(0).expect("atlas").format();
-    let (mut atlas_level, mut original) = (Vec::new(), Vec::new());
     for (m, (old, new)) in before.scene.meshes.iter().zip(&after.scene.meshes).enumerate() {
         let info = before.textures.info(old.texture).expect("original");
         let range = new.first_vertex as usize..(new.first_vertex + new.vertex_count) as usize;
@@ -94,14 +93,20 @@ fn check_atlas(format: &str) {
             (0, 0),
             "mesh {m}: placement keeps mip alignment"
         );
-        after
-            .textures
-            .read_mip(new.texture, 0, &mut atlas_level)
-            .expect("atlas level 0");
-        before
-            .textures
-            .read_mip(old.texture, 0, &mut original)
-            .expect("original level 0");
+        // Level `level` of the mesh's atlas and of its original texture.
+        let read_level = |level: u32| {
+            let (mut atlas_level, mut original) = (Vec::new(), Vec::new());
+            after
+                .textures
+                .read_mip(new.texture, level, &mut atlas_level)
+                .unwrap_or_else(|e| panic!("atlas level {level}: {e:?}"));
+            before
+                .textures
+                .read_mip(old.texture, level, &mut original)
+                .unwrap_or_else(|e| panic!("original level {level}: {e:?}"));
+            (atlas_level, original)
+        };
+        let (atlas_level, original) = read_level(0);
         assert_eq!(
             region_bytes(format, &atlas_level, 256, rect),
             original,
@@ -110,14 +115,7 @@ fn check_atlas(format: &str) {
         // One level down the texture's own level-1 data is there too (byte-exact blocks for
         // BC1 where the mip is at least 4x4).
         if info.width() >= 8 && info.height() >= 8 {
-            after
-                .textures
-                .read_mip(new.texture, 1, &mut atlas_level)
-                .expect("atlas level 1");
-            before
-                .textures
-                .read_mip(old.texture, 1, &mut original)
-                .expect("original level 1");
+            let (atlas_level, original) = read_level(1);
             let half = (rect.0 / 2, rect.1 / 2, rect.2 / 2, rect.3 / 2);
             assert_eq!(
                 region_bytes(format, &atlas_level, 128, half),

@@ -9,31 +9,19 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use citystream_dataset::{Dataset, Scene};
-use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances, TreeSummary};
+use citystream_gen::atlas_tree::TreeSummary;
 use citystream_streaming::atlas_tree::{
     texels_per_metre_at_unit_distance, world_length_of_texture_axes, AtlasTree, Block, DrawWith, TreeView, TREE_FILE,
 };
-use cli_support::{citystream, fresh_dir, stderr};
+use citystream_testing::tool_tests::full_density_tree;
+use cli_support::{citystream, citystream_into, fresh_dir, stderr, tiny_city_at};
 
 /// A tiny generated city and its tree (`extent`² atlases), in `name`'s own directory.
 fn tiny_tree(name: &str, extent: u32) -> (PathBuf, PathBuf, TreeSummary) {
     let dir = fresh_dir("atlas_tree", name);
-    let city = dir.join("city");
-    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(out.status.success(), "gen: {}", stderr(&out));
+    let city = tiny_city_at(dir.join("city"));
     let tree = dir.join("tree");
-    let summary = build(&AtlasTreeArgs {
-        dataset: city.clone(),
-        out: tree.clone(),
-        atlas_extent: extent,
-        texel_per_pixel: 1.0,
-        screen_height: 1080,
-        min_distance: None,
-        distances: LeafDistances::FullDensity,
-        buffer_mb: 256,
-        quiet: true,
-    })
-    .expect("build the tree");
+    let summary = full_density_tree(&city, &tree, extent);
     (city, tree, summary)
 }
 
@@ -212,17 +200,12 @@ fn atlas_tree_leaf_atlases_hold_the_texel_per_pixel_bound_at_their_distance() {
 fn atlas_tree_paper_distances_put_every_leaf_at_d_min_and_full_density_ones_no_nearer() {
     let (city, full_dir, full) = tiny_tree("distances", 128);
     let paper_dir = full_dir.with_file_name("paper");
-    let run = citystream(&[
+    let run = citystream_into(
         "atlas-tree",
-        city.to_str().expect("utf-8"),
-        "--out",
-        paper_dir.to_str().expect("utf-8"),
-        "--atlas-extent",
-        "128",
-        "--distances",
-        "paper",
-        "--quiet",
-    ]);
+        &city,
+        &paper_dir,
+        &["--atlas-extent", "128", "--distances", "paper", "--quiet"],
+    );
     assert!(run.status.success(), "{}", stderr(&run));
     let open = |dir: &Path| AtlasTree::open(&Dataset::open(dir).expect("dataset")).expect("tree");
     let (paper, full_tree) = (open(&paper_dir), open(&full_dir));

@@ -9,48 +9,26 @@ use std::path::{Path, PathBuf};
 use citystream_dataset::Dataset;
 use citystream_gen::patches::PatchSet;
 use citystream_streaming::clipmap::{Clipmap, ClipmapOptions, Patch};
-use cli_support::{citystream, fresh_dir, stderr};
+use citystream_testing::tool_tests::{gradient_in, patches_args};
+use cli_support::{citystream, fresh_dir, stderr, tiny_city_at};
 
-/// A 300 × 200 image whose colour encodes where a pixel is.
-fn gradient(path: &Path) {
-    let image = image::RgbaImage::from_fn(300, 200, |x, y| {
-        image::Rgba([(x % 256) as u8, (y % 256) as u8, 128, 255])
-    });
-    image.save(path).expect("write the source image");
+/// A tiny generated city and a gradient image in `name`'s own directory: what every test
+/// here cuts; the directory, the city and the image.
+fn tiny_city_and_image(name: &str) -> (PathBuf, PathBuf, PathBuf) {
+    let dir = fresh_dir("clipmap_patches", name);
+    let city = tiny_city_at(dir.join("city"));
+    let image = gradient_in(&dir);
+    (dir, city, image)
 }
 
-/// A tiny generated city and a gradient image in `dir`: what every test here cuts.
-fn tiny_city_and_image(dir: &Path) -> (PathBuf, PathBuf) {
-    let city = dir.join("city");
-    let run = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(run.status.success(), "gen: {}", stderr(&run));
-    let image = dir.join("source.png");
-    gradient(&image);
-    (city, image)
-}
-
+/// `citystream patches` of `image` over `city` into `out`.
 fn cut(city: &Path, image: &Path, out: &Path, seed: &str) -> std::process::Output {
-    citystream(&[
-        "patches",
-        image.to_str().expect("utf-8"),
-        "--dataset",
-        city.to_str().expect("utf-8"),
-        "--out",
-        out.to_str().expect("utf-8"),
-        "--count",
-        "12",
-        "--seed",
-        seed,
-        "--max-texels",
-        "256",
-        "--quiet",
-    ])
+    citystream(&patches_args(city, image, out, seed))
 }
 
 #[test]
 fn clipmap_patches_cut_a_survey_over_the_city_that_feeds_the_clipmap() {
-    let dir = fresh_dir("clipmap_patches", "survey");
-    let (city, image) = tiny_city_and_image(&dir);
+    let (dir, city, image) = tiny_city_and_image("survey");
 
     let first = dir.join("first");
     let run = cut(&city, &image, &first, "7");
@@ -150,8 +128,7 @@ fn clipmap_patches_cut_a_survey_over_the_city_that_feeds_the_clipmap() {
 
 #[test]
 fn clipmap_patches_bad_input_is_refused_clearly() {
-    let dir = fresh_dir("clipmap_patches", "bad_input");
-    let (city, image) = tiny_city_and_image(&dir);
+    let (dir, city, image) = tiny_city_and_image("bad_input");
     let not_image = dir.join("notes.txt");
     std::fs::write(&not_image, "not an image").expect("write");
     let occupied = dir.join("occupied");

@@ -31,6 +31,20 @@ fn copy_dir(from: &Path, name: &str) -> PathBuf {
     to
 }
 
+/// [`gen`] into `source`, and a copy of it in `copy` to damage: both directories.
+fn gen_and_copy(source: &str, copy: &str) -> (PathBuf, PathBuf) {
+    let good = gen(source, &[]);
+    let dir = copy_dir(&good, copy);
+    (good, dir)
+}
+
+/// `citystream verify` of the dataset in `dir`, which must fail: its standard error.
+fn verify_error(dir: &Path) -> String {
+    let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
+    assert!(!out.status.success(), "{} verified", dir.display());
+    stderr(&out)
+}
+
 /// Path of one data file of the dataset in `dir`.
 fn data_file(dir: &Path, name: &str) -> PathBuf {
     DatasetFiles::resolve(dir).expect("manifest").path(name)
@@ -173,8 +187,7 @@ fn mips_of_generated_textures_differ_and_colormap_is_their_mean() {
 
 #[test]
 fn verify_fails_clearly_on_a_truncated_pack() {
-    let good = gen("truncate-src", &[]);
-    let dir = copy_dir(&good, "truncated");
+    let (_, dir) = gen_and_copy("truncate-src", "truncated");
     let pack = data_file(&dir, PACK_FILE);
     let len = std::fs::metadata(&pack).expect("pack").len();
     std::fs::OpenOptions::new()
@@ -183,9 +196,7 @@ fn verify_fails_clearly_on_a_truncated_pack() {
         .expect("open")
         .set_len(len - 1000)
         .expect("truncate");
-    let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
-    assert!(!out.status.success());
-    let message = stderr(&out);
+    let message = verify_error(&dir);
     assert!(
         message.contains("textures.pack") && message.contains("truncated"),
         "{message}"
@@ -198,8 +209,7 @@ fn verify_fails_clearly_on_a_truncated_pack() {
 
 #[test]
 fn verify_fails_clearly_on_a_corrupted_offset() {
-    let good = gen("offset-src", &[]);
-    let dir = copy_dir(&good, "bad-offset");
+    let (good, dir) = gen_and_copy("offset-src", "bad-offset");
     let meta = data_file(&dir, META_FILE);
     let mut bytes = std::fs::read(&meta).expect("meta");
     // Texture 5's base offset (record at 40 + 10·5) now points 1 GB into a small pack; the
@@ -213,9 +223,7 @@ fn verify_fails_clearly_on_a_corrupted_offset() {
     let crc = hasher.finalize();
     bytes[32..36].copy_from_slice(&crc.to_le_bytes());
     std::fs::write(&meta, &bytes).expect("write meta");
-    let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
-    assert!(!out.status.success());
-    let message = stderr(&out);
+    let message = verify_error(&dir);
     for needle in [
         "textures.meta",
         "texture 5",
@@ -231,9 +239,8 @@ fn verify_fails_clearly_on_a_corrupted_offset() {
     let mut bytes = std::fs::read(&meta).expect("meta");
     bytes[record + 2] ^= 0x10;
     std::fs::write(&meta, &bytes).expect("write");
-    let out = citystream(&["verify", dir.to_str().expect("utf-8")]);
-    assert!(!out.status.success());
-    assert!(stderr(&out).contains("checksum mismatch"), "{}", stderr(&out));
+    let message = verify_error(&dir);
+    assert!(message.contains("checksum mismatch"), "{message}");
 }
 
 #[test]

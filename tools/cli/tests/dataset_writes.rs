@@ -351,41 +351,58 @@ fn gen_like_the_fixtures(dir: &Path) {
     ]);
 }
 
-/// A version-1 dataset written by the version-1 `gen --preset tiny --seed 3 --max-extent 16`.
-fn v1_fixture(name: &str) -> PathBuf {
+/// A copy, in `name`'s own directory, of the fixture dataset `tools/test-data/FIXTURE`.
+fn fixture(fixture: &str, name: &str) -> PathBuf {
     let dir = fresh_dir(name);
     copy_tree(
-        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v1-tiny"),
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data").join(fixture),
         &dir,
     );
     dir
+}
+
+/// The names of the files and directories in `dir` other than its writes, sorted.
+fn names_beside_the_writes(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .expect("dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|n| !n.starts_with("write-"))
+        .collect();
+    names.sort();
+    names
+}
+
+/// `info` and `verify` refuse the dataset in `dir`, of format `version`, naming its
+/// version and the upgrade that would make it readable.
+fn assert_info_and_verify_name_the_upgrade(dir: &Path, version: u32) {
+    for command in ["info", "verify"] {
+        let out = citystream(&[command, utf8(dir)]);
+        assert!(!out.status.success(), "{command} accepted a version-{version} dataset");
+        let message = stderr(&out);
+        assert!(
+            message.contains(&format!("format version {version}"))
+                && message.contains(&format!("citystream upgrade {}", utf8(dir))),
+            "{command}: {message}"
+        );
+    }
+}
+
+/// A version-1 dataset written by the version-1 `gen --preset tiny --seed 3 --max-extent 16`.
+fn v1_fixture(name: &str) -> PathBuf {
+    fixture("v1-tiny", name)
 }
 
 #[test]
 fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
     let dir = v1_fixture("v1");
     std::fs::write(dir.join("notes.txt"), b"mine").expect("notes");
-    for command in ["info", "verify"] {
-        let out = citystream(&[command, utf8(&dir)]);
-        assert!(!out.status.success(), "{command} accepted a version-1 dataset");
-        let message = stderr(&out);
-        assert!(
-            message.contains("format version 1") && message.contains(&format!("citystream upgrade {}", utf8(&dir))),
-            "{command}: {message}"
-        );
-    }
+    assert_info_and_verify_name_the_upgrade(&dir, 1);
     let out = citystream(&["upgrade", utf8(&dir)]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(String::from_utf8_lossy(&out.stdout).contains("from format version 1 to 3"));
     verify(&dir).expect("upgraded dataset verifies");
     // The version-1 files are gone, the user's file stays.
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .expect("dir")
-        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
-        .filter(|n| !n.starts_with("write-"))
-        .collect();
-    names.sort();
-    assert_eq!(names, [MANIFEST_FILE, "notes.txt"]);
+    assert_eq!(names_beside_the_writes(&dir), [MANIFEST_FILE, "notes.txt"]);
     // The same command with this build writes the same content.
     let regenerated = fresh_dir("v1-regenerated");
     gen_like_the_fixtures(&regenerated);
@@ -426,24 +443,13 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
         stdout.contains("nothing to do") && stdout.contains(&format!("removed {} version-1 files", leftovers.len())),
         "{stdout}"
     );
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .expect("dir")
-        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
-        .filter(|n| !n.starts_with("write-"))
-        .collect();
-    names.sort();
-    assert_eq!(names, [MANIFEST_FILE, "notes.txt"]);
+    assert_eq!(names_beside_the_writes(&dir), [MANIFEST_FILE, "notes.txt"]);
     assert_eq!(write_id(&dir), id);
 }
 
 /// A version-2 dataset written by the version-2 `gen --preset tiny --seed 3 --max-extent 16`.
 fn v2_fixture(name: &str) -> PathBuf {
-    let dir = fresh_dir(name);
-    copy_tree(
-        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/v2-tiny"),
-        &dir,
-    );
-    dir
+    fixture("v2-tiny", name)
 }
 
 fn upgrade_stdout(args: &[&str]) -> String {
@@ -455,15 +461,7 @@ fn upgrade_stdout(args: &[&str]) -> String {
 #[test]
 fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_them_a_crs() {
     let dir = v2_fixture("v2");
-    for command in ["info", "verify"] {
-        let out = citystream(&[command, utf8(&dir)]);
-        assert!(!out.status.success(), "{command} accepted a version-2 dataset");
-        let message = stderr(&out);
-        assert!(
-            message.contains("format version 2") && message.contains(&format!("citystream upgrade {}", utf8(&dir))),
-            "{command}: {message}"
-        );
-    }
+    assert_info_and_verify_name_the_upgrade(&dir, 2);
     let old_write = write_dirs(&dir);
     // A text that is no CRS is refused before anything is written.
     let out = citystream(&["upgrade", utf8(&dir), "--crs", "UTM 33N"]);

@@ -237,6 +237,33 @@ fn glb_with_embedded_image_and_colour_factor() {
     assert_eq!((colour[0], colour[1], colour[2]), (200, 100, 200));
 }
 
+/// [`import`] of `input` into `out_dir`, which must fail; its standard error.
+fn import_error(input: &Path, out_dir: &Path) -> String {
+    let out = import(input, out_dir, &[]);
+    assert!(!out.status.success(), "{} imported", input.display());
+    stderr(&out)
+}
+
+/// The quad glTF written into the fresh directory `name`, its JSON edited by `edit`.
+fn edited_quad_gltf(name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> PathBuf {
+    let src = fresh_dir(name);
+    let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
+    let mut doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
+    edit(&mut doc);
+    std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
+    input
+}
+
+/// [`import`] of the case `name`'s `input` fails, naming what is wrong (`needle`), without
+/// a panic.
+fn assert_refused_clearly(name: &str, input: &Path, out_dir: &Path, needle: &str) {
+    let out = import(input, out_dir, &[]);
+    assert!(!out.status.success(), "{name} imported");
+    assert!(stderr(&out).contains(needle), "{name}: {}", stderr(&out));
+    assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
+}
+
 #[test]
 fn broken_gltf_files_give_clear_errors() {
     let dir = fresh_dir("broken");
@@ -244,35 +271,23 @@ fn broken_gltf_files_give_clear_errors() {
 
     let invalid = dir.join("invalid.gltf");
     std::fs::write(&invalid, b"{\"asset\": {\"version\": \"2.0\"}, \"scenes\": [").expect("write");
-    let out = import(&invalid, &out_dir, &[]);
-    assert!(!out.status.success());
-    assert!(
-        stderr(&out).contains("invalid.gltf") && stderr(&out).contains("line"),
-        "{}",
-        stderr(&out)
-    );
+    let error = import_error(&invalid, &out_dir);
+    assert!(error.contains("invalid.gltf") && error.contains("line"), "{error}");
 
     let mut non_utf8 = b"{\"asset\": {\"version\": \"2.0\"}, \"nodes\": [{\"name\": \"".to_vec();
     non_utf8.extend_from_slice(&[0xff, 0xfe, 0x80]);
     non_utf8.extend_from_slice(b"\"}], \"scenes\": [{\"nodes\": [0]}]}");
     let path = dir.join("non-utf8.gltf");
     std::fs::write(&path, non_utf8).expect("write");
-    let out = import(&path, &out_dir, &[]);
-    assert!(!out.status.success());
-    assert!(
-        stderr(&out).contains("non-utf8.gltf") && stderr(&out).contains("line 1"),
-        "{}",
-        stderr(&out)
-    );
+    let error = import_error(&path, &out_dir);
+    assert!(error.contains("non-utf8.gltf") && error.contains("line 1"), "{error}");
 
     let src = fresh_dir("index-src");
     let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 9], (16, 16));
-    let out = import(&input, &out_dir, &[]);
-    assert!(!out.status.success());
+    let error = import_error(&input, &out_dir);
     assert!(
-        stderr(&out).contains("primitive 0") && stderr(&out).contains("index 5 is 9"),
-        "{}",
-        stderr(&out)
+        error.contains("primitive 0") && error.contains("index 5 is 9"),
+        "{error}"
     );
 
     // Accessors the gltf crate would panic on or silently skip: named.
@@ -297,16 +312,10 @@ fn broken_gltf_files_give_clear_errors() {
             "accessor 1 (NORMAL)",
         ),
     ] {
-        let src = fresh_dir(&format!("accessor-{name}"));
-        let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
-        let mut doc: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
-        doc["accessors"][accessor][edit.0] = edit.1;
-        std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
-        let out = import(&input, &out_dir, &[]);
-        assert!(!out.status.success(), "{name} imported");
-        assert!(stderr(&out).contains(needle), "{name}: {}", stderr(&out));
-        assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
+        let input = edited_quad_gltf(&format!("accessor-{name}"), |doc| {
+            doc["accessors"][accessor][edit.0] = edit.1;
+        });
+        assert_refused_clearly(name, &input, &out_dir, needle);
     }
 
     // What the fuzz harness found panicking inside the gltf crate: each a clear error now.
@@ -334,45 +343,26 @@ fn broken_gltf_files_give_clear_errors() {
         ),
     ];
     for (name, edit, needle) in cases {
-        let src = fresh_dir(&format!("fuzz-found-{name}"));
-        let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
-        let mut doc: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&input).expect("read gltf")).expect("gltf is JSON");
-        edit(&mut doc);
-        std::fs::write(&input, serde_json::to_vec(&doc).expect("json")).expect("write gltf");
-        let out = import(&input, &out_dir, &[]);
-        assert!(!out.status.success(), "{name} imported");
-        assert!(stderr(&out).contains(needle), "{name}: {}", stderr(&out));
-        assert!(!stderr(&out).contains("panicked"), "{name}: {}", stderr(&out));
+        let input = edited_quad_gltf(&format!("fuzz-found-{name}"), edit);
+        assert_refused_clearly(name, &input, &out_dir, needle);
     }
     // A GLB whose header declares fewer bytes than the header itself.
     let mut glb = std::fs::read(data("BoxTextured-Binary/BoxTextured.glb")).expect("glb");
     glb[8..12].copy_from_slice(&4u32.to_le_bytes());
     let path = dir.join("short-length.glb");
     std::fs::write(&path, glb).expect("write");
-    let out = import(&path, &out_dir, &[]);
-    assert!(!out.status.success());
-    assert!(
-        stderr(&out).contains("GLB header declares Some(4) bytes"),
-        "{}",
-        stderr(&out)
-    );
-    assert!(!stderr(&out).contains("panicked"), "{}", stderr(&out));
+    let error = import_error(&path, &out_dir);
+    assert!(error.contains("GLB header declares Some(4) bytes"), "{error}");
+    assert!(!error.contains("panicked"), "{error}");
 
     let src = fresh_dir("missing-src");
     let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 3], (16, 16));
     std::fs::remove_file(src.join("tex.png")).expect("remove png");
-    let out = import(&input, &out_dir, &[]);
-    assert!(!out.status.success());
-    assert!(stderr(&out).contains("tex.png"), "{}", stderr(&out));
+    let error = import_error(&input, &out_dir);
+    assert!(error.contains("tex.png"), "{error}");
     std::fs::remove_file(src.join("scene.bin")).expect("remove bin");
-    let out = import(&input, &out_dir, &[]);
-    assert!(!out.status.success());
-    assert!(
-        stderr(&out).contains("missing file") && stderr(&out).contains("scene.bin"),
-        "{}",
-        stderr(&out)
-    );
+    let error = import_error(&input, &out_dir);
+    assert!(error.contains("missing file") && error.contains("scene.bin"), "{error}");
 }
 
 #[cfg(unix)]

@@ -171,7 +171,7 @@ fn hostile_tilesets_are_refused_naming_the_tile() {
     // A glTF content whose buffer lies outside the tileset's directory.
     let (mut gltf, _) = write::textured_quad(wall([0.0; 3], 1.0), &write::gradient_png(4, 4, 8), json!({}), None);
     gltf["buffers"] = json!([{"uri": "../outside.glb", "byteLength": 4}]);
-    std::fs::write(dir.join("escape.gltf"), serde_json::to_vec(&gltf).expect("json")).expect("write");
+    write_json(&dir.join("escape.gltf"), &gltf);
     let e = error_of(
         &tile(json!({"content": {"uri": "escape.gltf"}})),
         &dir,
@@ -223,7 +223,7 @@ fn content_that_is_not_imported_is_counted_and_strict_refuses_it() {
             ]
         }
     });
-    std::fs::write(dir.join("mixed.json"), serde_json::to_vec(&tileset).expect("json")).expect("write");
+    write_json(&dir.join("mixed.json"), &tileset);
     let out = import(&dir.join("mixed.json"), &fresh_dir("mixed"), &[]);
     let e = stderr(&out);
     assert!(out.status.success(), "{e}");
@@ -375,8 +375,7 @@ fn a_tileset_projected_into_utm_lands_where_proj_puts_it() {
     // One wall standing at the Brandenburg Gate: its first corner is the frame's origin.
     let dir = fresh_dir("utm-src");
     let (lat, lon, h) = BERLIN;
-    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, 5), json!({}), None);
-    std::fs::write(dir.join("gate.glb"), write::glb(&gltf, &bin)).expect("write");
+    std::fs::write(dir.join("gate.glb"), wall_glb(5)).expect("write");
     let tileset = json!({
         "asset": {"version": "1.1"},
         "geometricError": 1.0,
@@ -388,7 +387,7 @@ fn a_tileset_projected_into_utm_lands_where_proj_puts_it() {
             "content": {"uri": "gate.glb"}
         }
     });
-    std::fs::write(dir.join("tileset.json"), serde_json::to_vec(&tileset).expect("json")).expect("write");
+    write_json(&dir.join("tileset.json"), &tileset);
     let (dataset, _) = import_ok(&dir.join("tileset.json"), "utm", &["--crs", "EPSG:25833"]);
     let scene = &dataset.scene;
     assert_eq!(scene.crs.as_ref().map(|c| c.as_str()), Some("EPSG:25833"));
@@ -422,14 +421,13 @@ fn an_external_tileset_inherits_the_up_axis_above_it() {
     // says nothing, so its wall's glTF y axis points north, not up.
     let dir = fresh_dir("up-axis-src");
     let (lat, lon, h) = BERLIN;
-    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, 6), json!({}), None);
-    std::fs::write(dir.join("wall.glb"), write::glb(&gltf, &bin)).expect("write");
+    std::fs::write(dir.join("wall.glb"), wall_glb(6)).expect("write");
     let external = json!({
         "asset": {"version": "1.0"},
         "geometricError": 1.0,
         "root": {"geometricError": 0.0, "content": {"uri": "wall.glb"}}
     });
-    std::fs::write(dir.join("ext.json"), serde_json::to_vec(&external).expect("json")).expect("write");
+    write_json(&dir.join("ext.json"), &external);
     let root = json!({
         "asset": {"version": "0.0", "gltfUpAxis": "Z"},
         "geometricError": 1.0,
@@ -440,7 +438,7 @@ fn an_external_tileset_inherits_the_up_axis_above_it() {
             "content": {"uri": "ext.json"}
         }
     });
-    std::fs::write(dir.join("tileset.json"), serde_json::to_vec(&root).expect("json")).expect("write");
+    write_json(&dir.join("tileset.json"), &root);
     let (dataset, _) = import_ok(&dir.join("tileset.json"), "up-axis", &[]);
     let p = &dataset.scene.positions;
     // Vertex 3 is 8 along the glTF's y: 8 m north (scene −z), at the same height.
@@ -497,8 +495,7 @@ fn buffer_uris_with_a_scheme_or_bad_escapes_are_refused_naming_them() {
 fn a_content_listed_by_many_tiles_is_read_once_and_placed_for_each() {
     let dir = fresh_dir("listed-many");
     let (lat, lon, h) = BERLIN;
-    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, 5), json!({}), None);
-    let glb = write::glb(&gltf, &bin);
+    let glb = wall_glb(5);
     std::fs::write(dir.join("a.glb"), &glb).expect("write");
     std::fs::create_dir_all(dir.join("copies")).expect("mkdir");
     let listings = 400;

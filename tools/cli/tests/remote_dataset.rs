@@ -12,16 +12,8 @@ use std::process::Command;
 
 use citystream_testing::nginx::Nginx;
 use citystream_testing::s3_emulator::S3Emulator;
-use cli_support::{citystream, fresh_dir, setup_ran, stderr};
-
-/// Starts nginx serving `root`.
-fn start_nginx(work: &Path, root: &Path) -> Nginx {
-    assert!(
-        citystream_testing::nginx::binary().is_some() || !setup_ran(),
-        "nginx is missing although the setup script ran: it should have installed nginx-light"
-    );
-    Nginx::start(work, root).expect("start nginx (`make setup` installs nginx-light)")
-}
+use citystream_testing::tool_tests::{self, env_refs, start_nginx, S3_CITY};
+use cli_support::{citystream, citystream_into, fresh_dir, stderr, tiny_city_at};
 
 /// A tiny city in the test's own directory, served by nginx (its parent as the root).
 fn served_city(name: &str) -> (PathBuf, PathBuf, Nginx) {
@@ -32,10 +24,7 @@ fn served_city(name: &str) -> (PathBuf, PathBuf, Nginx) {
 }
 
 fn tiny_city(dir: &Path) -> PathBuf {
-    let city = dir.join("www").join("city");
-    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
-    assert!(out.status.success(), "gen failed: {}", stderr(&out));
-    city
+    tiny_city_at(dir.join("www").join("city"))
 }
 
 #[test]
@@ -105,26 +94,13 @@ fn a_missing_remote_dataset_is_a_clear_error() {
     }
 }
 
-/// Starts the S3 emulator.
-fn start_s3(work: &Path) -> S3Emulator {
-    assert!(
-        citystream_testing::s3_emulator::binary().is_some() || !setup_ran(),
-        "the S3 emulator is missing although the setup script ran: it should have installed it"
-    );
-    S3Emulator::start(work).expect("start the S3 emulator (`make setup` installs it)")
-}
-
-/// A tiny city uploaded to `s3://citystream/cities/tiny/` of a fresh emulator.
+/// A tiny city uploaded to [`S3_CITY`] of a fresh emulator.
 fn city_in_s3(name: &str) -> (PathBuf, PathBuf, S3Emulator) {
     let dir = fresh_dir("remote_dataset", name);
     let city = tiny_city(&dir);
-    let s3 = start_s3(&dir);
-    let files = s3.upload_dir("citystream", "cities/tiny", &city).expect("upload");
-    assert!(files >= 6, "{files} files uploaded");
+    let s3 = tool_tests::city_in_s3(&dir, &city);
     (dir, city, s3)
 }
-
-const S3_CITY: &str = "s3://citystream/cities/tiny/";
 
 #[test]
 #[cfg_attr(
@@ -133,8 +109,8 @@ const S3_CITY: &str = "s3://citystream/cities/tiny/";
 )]
 fn info_and_verify_read_a_dataset_in_s3() {
     let (_dir, city, s3) = city_in_s3("s3_info_verify");
-    let env: Vec<(&str, String)> = s3.client_env();
-    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let env = s3.client_env();
+    let env = env_refs(&env);
 
     // info and verify read the bucket; a missing prefix is a clear error naming it.
     let with_env = |args: &[&str]| {
@@ -173,15 +149,7 @@ fn summary_of_local_info(city: &Path) -> serde_json::Value {
 fn a_texture_atlas_tree_is_read_and_checked_over_http() {
     let (dir, city, nginx) = served_city("atlas_tree");
     let tree = dir.join("www").join("tree");
-    let out = citystream(&[
-        "atlas-tree",
-        city.to_str().expect("utf-8"),
-        "--out",
-        tree.to_str().expect("utf-8"),
-        "--atlas-extent",
-        "128",
-        "--quiet",
-    ]);
+    let out = citystream_into("atlas-tree", &city, &tree, &["--atlas-extent", "128", "--quiet"]);
     assert!(out.status.success(), "atlas-tree: {}", stderr(&out));
     let info = |location: &str| -> serde_json::Value {
         let out = citystream(&["info", location, "--json"]);

@@ -5,7 +5,8 @@ mod flight_support;
 
 use std::path::{Path, PathBuf};
 
-use citystream_gen::atlas_tree::{build, AtlasTreeArgs, LeafDistances, TreeSummary};
+use citystream_gen::atlas_tree::TreeSummary;
+use citystream_testing::tool_tests::full_density_tree;
 use flight_support::{fresh_dir, stderr, tiny_city};
 
 /// A tiny generated city and its tree (`extent`² atlases), in `name`'s own directory.
@@ -13,18 +14,7 @@ fn tiny_tree(name: &str, extent: u32) -> (PathBuf, PathBuf, TreeSummary) {
     let dir = fresh_dir("atlas_tree", name);
     let city = tiny_city(&dir);
     let tree = dir.join("tree");
-    let summary = build(&AtlasTreeArgs {
-        dataset: city.clone(),
-        out: tree.clone(),
-        atlas_extent: extent,
-        texel_per_pixel: 1.0,
-        screen_height: 1080,
-        min_distance: None,
-        distances: LeafDistances::FullDensity,
-        buffer_mb: 256,
-        quiet: true,
-    })
-    .expect("build the tree");
+    let summary = full_density_tree(&city, &tree, extent);
     (city, tree, summary)
 }
 

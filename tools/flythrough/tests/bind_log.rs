@@ -72,6 +72,15 @@ fn bind_replay_child() {
     }
 }
 
+/// The number of operations a log's `batch N …` line announces.
+fn operations_in(batch_line: &str) -> usize {
+    batch_line
+        .split_whitespace()
+        .nth(1)
+        .and_then(|n| n.parse().ok())
+        .expect("count")
+}
+
 fn with_tail(command: &mut Command, tail: Option<&str>) {
     match tail {
         Some(tail) => command.env("CITYSTREAM_FORCE_MIP_TAIL", tail),
@@ -122,11 +131,7 @@ fn a_logged_flight_replays_and_an_injected_double_bind_is_refused() {
     let batch_at = lines.iter().position(|l| l.starts_with("batch ")).expect("a batch");
     let first_bind = lines[batch_at + 1];
     assert!(first_bind.starts_with("bind "), "{first_bind}");
-    let operations_in_batch: usize = lines[batch_at]
-        .split_whitespace()
-        .nth(1)
-        .and_then(|n| n.parse().ok())
-        .expect("count");
+    let operations_in_batch = operations_in(lines[batch_at]);
     let at = batch_at + 1 + operations_in_batch;
     lines.insert(at, first_bind);
     lines.insert(at, "batch 1 0");
@@ -192,11 +197,7 @@ fn a_flight_with_mip_tails_logs_and_replays_them_and_tail_misuse_is_refused() {
             .rev()
             .find(|&i| lines[i].starts_with("batch "))
             .expect("its batch");
-        let operations: usize = lines[batch_at]
-            .split_whitespace()
-            .nth(1)
-            .and_then(|n| n.parse().ok())
-            .expect("count");
+        let operations = operations_in(&lines[batch_at]);
         let at = batch_at + 1 + operations;
         lines.insert(at, op);
         lines.insert(at, "batch 1 0".to_owned());

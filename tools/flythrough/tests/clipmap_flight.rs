@@ -6,49 +6,23 @@ mod flight_support;
 use std::path::{Path, PathBuf};
 
 use citystream_gen::patches::PatchSet;
+use citystream_testing::tool_tests::{gradient_in, patches_args};
 use flight_support::{citystream, fresh_dir, stderr, tiny_city};
 
-/// A 300 × 200 image whose colour encodes where a pixel is.
-fn gradient(path: &Path) {
-    let image = image::RgbaImage::from_fn(300, 200, |x, y| {
-        image::Rgba([(x % 256) as u8, (y % 256) as u8, 128, 255])
-    });
-    image.save(path).expect("write the source image");
-}
-
-/// A tiny generated city and a gradient image in `dir`: what every test here cuts.
-fn tiny_city_and_image(dir: &Path) -> (PathBuf, PathBuf) {
-    let city = tiny_city(dir);
-    let image = dir.join("source.png");
-    gradient(&image);
-    (city, image)
-}
-
-/// `citystream patches` of `image` over `city` into `out`.
-fn cut(city: &Path, image: &Path, out: &Path, seed: &str) -> anyhow::Result<()> {
-    citystream(&[
-        "patches",
-        image.to_str().expect("utf-8"),
-        "--dataset",
-        city.to_str().expect("utf-8"),
-        "--out",
-        out.to_str().expect("utf-8"),
-        "--count",
-        "12",
-        "--seed",
-        seed,
-        "--max-texels",
-        "256",
-        "--quiet",
-    ])
+/// A tiny generated city and a survey over it, cut from a gradient image with `seed`
+/// (`citystream patches`), in `name`'s own directory: the directory, the city and the
+/// patches.
+fn city_and_survey(name: &str, seed: &str) -> (PathBuf, PathBuf, PathBuf) {
+    let dir = fresh_dir("clipmap_patches", name);
+    let city = tiny_city(&dir);
+    let patches = dir.join("patches");
+    citystream(&patches_args(&city, &gradient_in(&dir), &patches, seed)).expect("patches");
+    (dir, city, patches)
 }
 
 #[test]
 fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
-    let dir = fresh_dir("clipmap_patches", "flythrough");
-    let (city, image) = tiny_city_and_image(&dir);
-    let patches = dir.join("patches");
-    cut(&city, &image, &patches, "3").expect("patches");
+    let (dir, city, patches) = city_and_survey("flythrough", "3");
     let set = PatchSet::open(&patches).expect("set");
     let fly = |frames: &str, extra: &[&str], out: &Path| {
         // Two frames in flight by default: synchronization validation too.
@@ -159,10 +133,7 @@ fn clipmap_flythrough_drapes_arriving_patches_under_the_city() {
 
 #[test]
 fn clipmap_patches_are_decoded_as_they_arrive_within_the_memory_budget() {
-    let dir = fresh_dir("clipmap_patches", "memory");
-    let (city, image) = tiny_city_and_image(&dir);
-    let patches = dir.join("patches");
-    cut(&city, &image, &patches, "5").expect("patches");
+    let (dir, city, patches) = city_and_survey("memory", "5");
     let json = std::fs::read_to_string(patches.join("patches.json")).expect("json");
     let value: serde_json::Value = serde_json::from_str(&json).expect("json");
     let fly = |set: &Path, name: &str| {

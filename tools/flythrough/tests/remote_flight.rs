@@ -14,16 +14,8 @@ use std::time::{Duration, Instant};
 use citystream_testing::fault_proxy::{FaultOptions, FaultProxy};
 use citystream_testing::nginx::Nginx;
 use citystream_testing::s3_emulator::S3Emulator;
-use flight_support::{citystream_ok, fresh_dir, setup_ran, stderr};
-
-/// Starts nginx serving `root`.
-fn start_nginx(work: &Path, root: &Path) -> Nginx {
-    assert!(
-        citystream_testing::nginx::binary().is_some() || !setup_ran(),
-        "nginx is missing although the setup script ran: it should have installed nginx-light"
-    );
-    Nginx::start(work, root).expect("start nginx (`make setup` installs nginx-light)")
-}
+use citystream_testing::tool_tests::{self, env_refs, start_nginx, S3_CITY};
+use flight_support::{citystream_ok, fresh_dir, stderr};
 
 /// A tiny city in the test's own directory, served by nginx (its parent as the root).
 fn served_city(name: &str) -> (PathBuf, PathBuf, Nginx) {
@@ -275,26 +267,13 @@ fn mips_a_server_never_answers_fail_their_textures_within_their_timeouts_in_ever
     }
 }
 
-/// Starts the S3 emulator.
-fn start_s3(work: &Path) -> S3Emulator {
-    assert!(
-        citystream_testing::s3_emulator::binary().is_some() || !setup_ran(),
-        "the S3 emulator is missing although the setup script ran: it should have installed it"
-    );
-    S3Emulator::start(work).expect("start the S3 emulator (`make setup` installs it)")
-}
-
-/// A tiny city uploaded to `s3://citystream/cities/tiny/` of a fresh emulator.
+/// A tiny city uploaded to [`S3_CITY`] of a fresh emulator.
 fn city_in_s3(name: &str) -> (PathBuf, PathBuf, S3Emulator) {
     let dir = fresh_dir("remote_dataset", name);
     let city = tiny_city(&dir);
-    let s3 = start_s3(&dir);
-    let files = s3.upload_dir("citystream", "cities/tiny", &city).expect("upload");
-    assert!(files >= 6, "{files} files uploaded");
+    let s3 = tool_tests::city_in_s3(&dir, &city);
     (dir, city, s3)
 }
-
-const S3_CITY: &str = "s3://citystream/cities/tiny/";
 
 #[test]
 #[cfg_attr(
@@ -303,8 +282,8 @@ const S3_CITY: &str = "s3://citystream/cities/tiny/";
 )]
 fn a_city_streamed_from_s3_renders_what_it_renders_from_disk() {
     let (dir, city, s3) = city_in_s3("s3_frames");
-    let env: Vec<(&str, String)> = s3.client_env();
-    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let env = s3.client_env();
+    let env = env_refs(&env);
 
     let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &FRAMES_AND_ERROR, &[]);
     let remote_out = run_ok(&dir, "s3", S3_CITY, &FRAMES_AND_ERROR, &env);
@@ -326,7 +305,7 @@ fn s3_requests_dropped_and_cut_short_are_retried_and_change_nothing() {
     let proxy = FaultProxy::start(([127, 0, 0, 1], s3.port()).into(), options).expect("proxy");
     let mut env: Vec<(&str, String)> = s3.client_env();
     env[0].1 = format!("http://{}", proxy.addr());
-    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let env = env_refs(&env);
 
     let local_out = run_ok(&dir, "local", city.to_str().expect("utf-8"), &SHORT_RUN, &[]);
     let remote_out = run_ok(&dir, "s3", S3_CITY, &SHORT_RUN, &env);

@@ -10,22 +10,16 @@ mod flight_support;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output, Stdio};
 
 use citystream_streaming::bench::path::CameraPath;
+use citystream_testing::server_process::KilledOnDrop;
 use flight_support::{citystream_ok, fresh_dir, setup_ran, stderr, tiny_city};
 
 /// A running Xvfb, killed on drop.
 struct Xvfb {
-    child: Child,
+    _child: KilledOnDrop,
     display: String,
-}
-
-impl Drop for Xvfb {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// Starts Xvfb on a display it picks itself (`-displayfd`), so tests running
@@ -66,9 +60,18 @@ fn start_xvfb() -> Xvfb {
         .parse()
         .unwrap_or_else(|_| panic!("Xvfb did not report a display number: {line:?}"));
     Xvfb {
-        child,
+        _child: KilledOnDrop(child),
         display: format!(":{number}"),
     }
+}
+
+/// A fresh Xvfb, and a tiny city generated in the windowed test `name`'s own directory:
+/// the server, the directory and the city.
+fn xvfb_and_tiny_city(name: &str) -> (Xvfb, PathBuf, PathBuf) {
+    let x = start_xvfb();
+    let dir = fresh_dir("windowed", name);
+    let city = tiny_city(&dir);
+    (x, dir, city)
 }
 
 /// Runs the flythrough with `args`, on `display` when given; synchronization
@@ -196,18 +199,14 @@ fn assert_window_presents_the_headless_frames(
 #[test]
 #[cfg_attr(citystream_skip_xvfb, ignore = "Xvfb is not installed and `make setup` has not run")]
 fn windowed_frames_are_the_headless_frames_of_the_same_camera_pose() {
-    let x = start_xvfb();
-    let dir = fresh_dir("windowed", "frames");
-    let city = tiny_city(&dir);
+    let (x, dir, city) = xvfb_and_tiny_city("frames");
     assert_window_presents_the_headless_frames(&x, &dir, &city, &[], &[]);
 }
 
 #[test]
 #[cfg_attr(citystream_skip_xvfb, ignore = "Xvfb is not installed and `make setup` has not run")]
 fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
-    let x = start_xvfb();
-    let dir = fresh_dir("windowed", "tree_ground");
-    let city = tiny_city(&dir);
+    let (x, dir, city) = xvfb_and_tiny_city("tree_ground");
     let tree = dir.join("tree");
     let s = |p: &Path| p.to_str().expect("utf-8 path").to_owned();
     citystream_ok(&[
@@ -251,9 +250,7 @@ fn windowed_atlas_tree_over_aerial_imagery_presents_the_headless_frames() {
 #[test]
 #[cfg_attr(citystream_skip_xvfb, ignore = "Xvfb is not installed and `make setup` has not run")]
 fn windowed_recording_replays_headless_at_the_recorded_poses() {
-    let x = start_xvfb();
-    let dir = fresh_dir("windowed", "record");
-    let city = tiny_city(&dir);
+    let (x, dir, city) = xvfb_and_tiny_city("record");
     // Fly forward while looking around, hold still, jump to the overview,
     // strafe faster; recorded from the first frame.
     let script = write_script(
@@ -338,9 +335,7 @@ fn windowed_recording_replays_headless_at_the_recorded_poses() {
 #[test]
 #[cfg_attr(citystream_skip_xvfb, ignore = "Xvfb is not installed and `make setup` has not run")]
 fn windowed_resize_and_minimise_recreate_the_swapchain_cleanly() {
-    let x = start_xvfb();
-    let dir = fresh_dir("windowed", "resize");
-    let city = tiny_city(&dir);
+    let (x, dir, city) = xvfb_and_tiny_city("resize");
     let script = write_script(
         &dir,
         r#"{"events": [{"frame": 5, "screenshot": true}, {"frame": 10, "resize": [240, 136]},
@@ -371,9 +366,7 @@ fn windowed_resize_and_minimise_recreate_the_swapchain_cleanly() {
 #[test]
 #[cfg_attr(citystream_skip_xvfb, ignore = "Xvfb is not installed and `make setup` has not run")]
 fn windowed_replay_follows_the_wall_clock() {
-    let x = start_xvfb();
-    let dir = fresh_dir("windowed", "wall_clock");
-    let city = tiny_city(&dir);
+    let (x, dir, city) = xvfb_and_tiny_city("wall_clock");
     let path_file = dir.join("standard.json");
     citystream_ok(&[
         "path",
@@ -436,9 +429,7 @@ fn windowed_replay_follows_the_wall_clock() {
 
 #[test]
 fn windowed_vsync_feeds_the_controller_the_frame_or_the_interval_as_asked() {
-    let x = start_xvfb();
-    let dir = fresh_dir("windowed", "controller_latency");
-    let city = tiny_city(&dir);
+    let (x, dir, city) = xvfb_and_tiny_city("controller_latency");
     for latency in ["work", "period"] {
         let out_dir = dir.join(latency);
         let out = flythrough(

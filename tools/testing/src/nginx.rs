@@ -5,27 +5,20 @@
 
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
-use crate::server_process::wait_until_listening;
+use crate::server_process::{wait_until_listening, KilledOnDrop};
 
 /// A running nginx, stopped on drop.
 #[derive(Debug)]
 pub struct Nginx {
-    child: Child,
+    _child: KilledOnDrop,
     port: u16,
     /// Where it logs each request (the requests a test made, with their query strings).
     access_log: PathBuf,
-}
-
-impl Drop for Nginx {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// The nginx binary, if installed.
@@ -84,7 +77,7 @@ impl Nginx {
                 .with_context(|| format!("starting {}", binary.display()))?;
             if wait_until_listening(&mut child, Duration::from_secs(10), || Some(port))?.is_some() {
                 return Ok(Self {
-                    child,
+                    _child: KilledOnDrop(child),
                     port,
                     access_log: work.join("nginx-access.log"),
                 });

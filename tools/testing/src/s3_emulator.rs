@@ -4,12 +4,12 @@
 //! requests, range reads and SigV4-signed requests from any credentials.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
-use crate::server_process::wait_until_listening;
+use crate::server_process::{wait_until_listening, KilledOnDrop};
 
 /// Credentials the emulator is given (it accepts any; the client signs with them).
 pub const ACCESS_KEY_ID: &str = "citystream";
@@ -51,15 +51,8 @@ pub fn binary() -> Option<PathBuf> {
 /// A running emulator, stopped on drop.
 #[derive(Debug)]
 pub struct S3Emulator {
-    child: Child,
+    _child: KilledOnDrop,
     port: u16,
-}
-
-impl Drop for S3Emulator {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl S3Emulator {
@@ -80,7 +73,10 @@ impl S3Emulator {
             .with_context(|| format!("starting {}", binary.display()))?;
         let announced = || announced_port(&std::fs::read_to_string(&log_path).unwrap_or_default());
         if let Some(port) = wait_until_listening(&mut child, Duration::from_secs(60), announced)? {
-            return Ok(Self { child, port });
+            return Ok(Self {
+                _child: KilledOnDrop(child),
+                port,
+            });
         }
         bail!(
             "the S3 emulator did not start: {}",

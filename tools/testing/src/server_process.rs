@@ -4,6 +4,17 @@
 use std::process::Child;
 use std::time::{Duration, Instant};
 
+/// A child process (a server a test or benchmark started) killed and reaped when dropped.
+#[derive(Debug)]
+pub struct KilledOnDrop(pub Child);
+
+impl Drop for KilledOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 /// Polls until `child` accepts connections on the port `port` names (a fixed one, or one
 /// read from its log once it says), within `limit`. `None` when it exits first or the time
 /// runs out; it is then killed and reaped, and the caller reports its log.

@@ -1,10 +1,13 @@
 //! Helpers the tools' command-line tests share (each test file is its own
 //! crate and includes this module with `mod cli_support;`).
 
-#![allow(dead_code)] // reason: each test binary uses a different subset
+#![allow(dead_code, unused_imports)] // reason: each test binary uses a different subset
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+
+use citystream_testing::tool_tests;
+pub use citystream_testing::tool_tests::{setup_ran, stderr};
 
 /// Runs the `citystream` binary built with these tests.
 pub fn citystream(args: &[&str]) -> Output {
@@ -14,16 +17,28 @@ pub fn citystream(args: &[&str]) -> Output {
         .expect("run citystream")
 }
 
-/// Runs `citystream import INPUT --out OUT EXTRA…`.
-pub fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
+/// Runs `citystream COMMAND INPUT --out OUT EXTRA…`.
+pub fn citystream_into(command: &str, input: &Path, out: &Path, extra: &[&str]) -> Output {
     let mut args = vec![
-        "import",
+        command,
         input.to_str().expect("utf-8"),
         "--out",
         out.to_str().expect("utf-8"),
     ];
     args.extend_from_slice(extra);
     citystream(&args)
+}
+
+/// Runs `citystream import INPUT --out OUT EXTRA…`.
+pub fn import(input: &Path, out: &Path, extra: &[&str]) -> Output {
+    citystream_into("import", input, out, extra)
+}
+
+/// `citystream gen --preset tiny --out CITY`, which must succeed; the city's directory.
+pub fn tiny_city_at(city: PathBuf) -> PathBuf {
+    let out = citystream(&["gen", "--preset", "tiny", "--out", city.to_str().expect("utf-8")]);
+    assert!(out.status.success(), "gen: {}", stderr(&out));
+    city
 }
 
 /// [`import`] into `out_dir`, which must succeed and pass `citystream verify`; the dataset
@@ -45,22 +60,12 @@ pub fn import_verified(input: &Path, out_dir: &Path, extra: &[&str]) -> (citystr
 /// `CARGO_TARGET_TMPDIR/group/name`, removed if it exists; its parent exists,
 /// it does not (for commands that must create their output themselves).
 pub fn fresh_path(group: &str, name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(group).join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
-    dir
+    tool_tests::fresh_path(Path::new(env!("CARGO_TARGET_TMPDIR")), group, name)
 }
 
 /// [`fresh_path`], created empty.
 pub fn fresh_dir(group: &str, name: &str) -> PathBuf {
-    let dir = fresh_path(group, name);
-    std::fs::create_dir_all(&dir).expect("create dir");
-    dir
-}
-
-/// The command's standard error, as text.
-pub fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
+    tool_tests::fresh_dir(Path::new(env!("CARGO_TARGET_TMPDIR")), group, name)
 }
 
 /// Copies the directory tree `from` to `to`.
@@ -74,11 +79,4 @@ pub fn copy_tree(from: &Path, to: &Path) {
             std::fs::copy(entry.path(), to.join(entry.file_name())).expect("copy");
         }
     }
-}
-
-/// Whether `tools/scripts/setup.sh` ran to the end on this machine (its stamp exists): tests of
-/// what it installs (Xvfb, nginx) fail rather than skip once it has.
-pub fn setup_ran() -> bool {
-    let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v5").exists()
 }

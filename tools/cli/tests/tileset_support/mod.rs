@@ -93,6 +93,17 @@ pub fn wall(at: [f32; 3], size: f32) -> [[f32; 3]; 4] {
     [[x, y, z], [x + size, y, z], [x + size, y + size, z], [x, y + size, z]]
 }
 
+/// A GLB of one 8 m wall standing at the origin, textured with an 8 × 8 gradient of `seed`.
+pub fn wall_glb(seed: u8) -> Vec<u8> {
+    let (gltf, bin) = write::textured_quad(wall([0.0; 3], 8.0), &write::gradient_png(8, 8, seed), json!({}), None);
+    write::glb(&gltf, &bin)
+}
+
+/// Writes `value` to `path` as JSON.
+pub fn write_json(path: &Path, value: &Value) {
+    std::fs::write(path, serde_json::to_vec(value).expect("json")).expect("write");
+}
+
 /// One tile's content as written and where its corners must land (Earth-centred).
 pub struct Written {
     pub file: String,

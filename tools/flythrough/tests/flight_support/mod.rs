@@ -5,12 +5,13 @@
 //! their library functions on the arguments the binary would be given, parsed as it parses
 //! them: the `citystream` binary belongs to another package, which these tests cannot run.
 
-#![allow(dead_code)] // reason: each test binary uses a different subset
+#![allow(dead_code, unused_imports)] // reason: each test binary uses a different subset
 
 use std::path::{Path, PathBuf};
-use std::process::Output;
 
 use anyhow::Result;
+use citystream_testing::tool_tests;
+pub use citystream_testing::tool_tests::{setup_ran, stderr};
 use clap::{Args, FromArgMatches};
 
 /// Runs `citystream ARGS…` (one of the commands that make or check a dataset) in this
@@ -53,27 +54,10 @@ pub fn tiny_city(dir: &Path) -> PathBuf {
 /// `CARGO_TARGET_TMPDIR/group/name`, removed if it exists; its parent exists,
 /// it does not (for commands that must create their output themselves).
 pub fn fresh_path(group: &str, name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(group).join(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.parent().expect("parent")).expect("create parent");
-    dir
+    tool_tests::fresh_path(Path::new(env!("CARGO_TARGET_TMPDIR")), group, name)
 }
 
 /// [`fresh_path`], created empty.
 pub fn fresh_dir(group: &str, name: &str) -> PathBuf {
-    let dir = fresh_path(group, name);
-    std::fs::create_dir_all(&dir).expect("create dir");
-    dir
-}
-
-/// The command's standard error, as text.
-pub fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// Whether `tools/scripts/setup.sh` ran to the end on this machine (its stamp exists): tests of
-/// what it installs (Xvfb, nginx) fail rather than skip once it has.
-pub fn setup_ran() -> bool {
-    let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v5").exists()
+    tool_tests::fresh_dir(Path::new(env!("CARGO_TARGET_TMPDIR")), group, name)
 }

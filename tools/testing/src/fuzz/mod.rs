@@ -171,9 +171,7 @@ impl Harness {
     fn run_patches(&self, name: &str, bytes: &[u8]) -> Outcome {
         let dir = self.work.join("patches");
         let path = dir.join(name);
-        let outcome = if std::fs::write(&path, bytes).is_err() {
-            Outcome::Rejected
-        } else {
+        self.in_place(name, &path, bytes, || {
             match citystream_gen::patches::PatchSet::open(&dir) {
                 Ok(set) => {
                     let _ = set.crs();
@@ -197,10 +195,20 @@ impl Harness {
                 }
                 Err(_) => Outcome::Rejected,
             }
+        })
+    }
+
+    /// Writes `bytes` over the seed file `name` at `path` and runs `parse` on what is there
+    /// then (a write that fails is a rejection); afterwards restores the seed's own file (its
+    /// first seed of that name) for the next input.
+    fn in_place(&self, name: &str, path: &Path, bytes: &[u8], parse: impl FnOnce() -> Outcome) -> Outcome {
+        let outcome = if std::fs::write(path, bytes).is_err() {
+            Outcome::Rejected
+        } else {
+            parse()
         };
-        // Restore the set's own file for the next input.
         if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
-            let _ = std::fs::write(&path, &original.bytes);
+            let _ = std::fs::write(path, &original.bytes);
         }
         outcome
     }
@@ -208,9 +216,7 @@ impl Harness {
     fn run_tileset(&self, name: &str, bytes: &[u8]) -> Outcome {
         let dir = self.work.join("tileset");
         let path = dir.join(name);
-        let outcome = if std::fs::write(&path, bytes).is_err() {
-            Outcome::Rejected
-        } else {
+        self.in_place(name, &path, bytes, || {
             // RGBA8 and a small extent: the harness is about parsing, not encoding.
             let tileset = dir.join("tileset.json");
             let options = citystream_import::tiles::LoadOptions {
@@ -225,12 +231,7 @@ impl Harness {
                 Ok(_) => Outcome::Accepted,
                 Err(_) => Outcome::Rejected,
             }
-        };
-        // Restore the tileset's own file for the next input.
-        if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
-            let _ = std::fs::write(&path, &original.bytes);
-        }
-        outcome
+        })
     }
 
     fn dataset_dir(&self) -> PathBuf {
@@ -240,31 +241,21 @@ impl Harness {
     fn run_dataset(&self, name: &str, bytes: &[u8]) -> Outcome {
         let dir = self.dataset_dir();
         let path = dataset_file_path(&dir, name);
-        let write = std::fs::write(&path, bytes);
-        let outcome = if write.is_err() {
-            Outcome::Rejected
-        } else {
-            match Dataset::open(&dir) {
-                Ok(dataset) => {
-                    let mut buf = Vec::new();
-                    for (id, info) in dataset.textures.textures().iter().enumerate() {
-                        for level in 0..info.mip_count() {
-                            let _ = dataset.textures.read_mip(id as u32, level, &mut buf);
-                        }
-                    }
-                    match verify(&dir) {
-                        Ok(_) => Outcome::Accepted,
-                        Err(_) => Outcome::Rejected,
+        self.in_place(name, &path, bytes, || match Dataset::open(&dir) {
+            Ok(dataset) => {
+                let mut buf = Vec::new();
+                for (id, info) in dataset.textures.textures().iter().enumerate() {
+                    for level in 0..info.mip_count() {
+                        let _ = dataset.textures.read_mip(id as u32, level, &mut buf);
                     }
                 }
-                Err(_) => Outcome::Rejected,
+                match verify(&dir) {
+                    Ok(_) => Outcome::Accepted,
+                    Err(_) => Outcome::Rejected,
+                }
             }
-        };
-        // Restore the dataset's own file (the first seed of that name) for the next input.
-        if let Some(original) = self.seeds.iter().find(|s| s.name == name) {
-            let _ = std::fs::write(&path, &original.bytes);
-        }
-        outcome
+            Err(_) => Outcome::Rejected,
+        })
     }
 
     fn run_gltf(&self, name: &str, bytes: &[u8]) -> Outcome {
