@@ -171,4 +171,22 @@ impl DatasetError {
             DatasetError::Io { path, source }
         }
     }
+
+    /// [`DatasetError::Truncated`]: `what` needs bytes `offset..end` of the file at `path`,
+    /// which is `file_len` bytes long.
+    pub(crate) fn truncated(
+        path: impl Into<PathBuf>,
+        what: impl Into<String>,
+        offset: u64,
+        end: u64,
+        file_len: u64,
+    ) -> Self {
+        DatasetError::Truncated {
+            path: path.into(),
+            what: what.into(),
+            offset,
+            end,
+            file_len,
+        }
+    }
 }

@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 use super::error::DatasetError;
 use super::format::FORMAT_VERSION;
 use super::io_util::{
-    check_prefix, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION, PREVIOUS_VERSION,
+    check_prefix, expect_end, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION, PREVIOUS_VERSION,
 };
 use super::store::DatasetStore;
 
@@ -172,15 +172,7 @@ fn encode_manifest(write_id: u64) -> Vec<u8> {
 
 fn decode_manifest(path: &Path, bytes: &[u8], version: u32) -> Result<u64, DatasetError> {
     let write_id = check_prefix(path, bytes, MANIFEST_MAGIC, MANIFEST_BYTES, version)?;
-    if bytes.len() != MANIFEST_BYTES {
-        return Err(DatasetError::Truncated {
-            path: path.to_path_buf(),
-            what: "the manifest".into(),
-            offset: 0,
-            end: MANIFEST_BYTES as u64,
-            file_len: bytes.len() as u64,
-        });
-    }
+    expect_end(path, bytes, 0, MANIFEST_BYTES as u64, || "the manifest".into())?;
     if u32_at(bytes, 28) != 0 {
         return Err(DatasetError::Corrupt {
             path: path.to_path_buf(),

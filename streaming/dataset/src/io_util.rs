@@ -93,13 +93,13 @@ pub(crate) fn check_versioned_prefix(
     expected_version: u32,
 ) -> Result<(), DatasetError> {
     if bytes.len() < header_len {
-        return Err(DatasetError::Truncated {
-            path: path.to_path_buf(),
-            what: "the header".into(),
-            offset: 0,
-            end: header_len as u64,
-            file_len: bytes.len() as u64,
-        });
+        return Err(DatasetError::truncated(
+            path,
+            "the header",
+            0,
+            header_len as u64,
+            bytes.len() as u64,
+        ));
     }
     let mut found = [0u8; 8];
     found.copy_from_slice(&bytes[..8]);
@@ -220,14 +220,24 @@ pub(crate) fn table_body<'a>(
             what: format!("record count {count} is absurd"),
         })?;
     let end = body_len.saturating_add(header_len as u64);
-    if end != bytes.len() as u64 {
-        return Err(DatasetError::Truncated {
-            path: path.to_path_buf(),
-            what: format!("{count} records of {record_len} bytes"),
-            offset: header_len as u64,
-            end,
-            file_len: bytes.len() as u64,
-        });
-    }
+    expect_end(path, bytes, header_len as u64, end, || {
+        format!("{count} records of {record_len} bytes")
+    })?;
     Ok(&bytes[header_len..])
+}
+
+/// Refuses a file that does not end exactly at `end`: its header says what it holds (`what`,
+/// bytes `offset..end`), so a shorter file lost data and a longer one is not what was written.
+pub(crate) fn expect_end(
+    path: &Path,
+    bytes: &[u8],
+    offset: u64,
+    end: u64,
+    what: impl FnOnce() -> String,
+) -> Result<(), DatasetError> {
+    if end == bytes.len() as u64 {
+        Ok(())
+    } else {
+        Err(DatasetError::truncated(path, what(), offset, end, bytes.len() as u64))
+    }
 }

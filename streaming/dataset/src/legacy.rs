@@ -257,13 +257,13 @@ impl LegacyDataset {
     fn read_chain(&self, id: u32, info: &TextureInfo, dst: &mut [u8]) -> Result<(), DatasetError> {
         let (offset, end) = (info.offset(), info.offset() + info.chain_len());
         if offset < PACK_HEADER_BYTES || end > self.pack_len {
-            return Err(DatasetError::Truncated {
-                path: self.pack_path.clone(),
-                what: format!("texture {id}'s mip chain"),
+            return Err(DatasetError::truncated(
+                &self.pack_path,
+                format!("texture {id}'s mip chain"),
                 offset,
                 end,
-                file_len: self.pack_len,
-            });
+                self.pack_len,
+            ));
         }
         self.pack
             .read_exact_at(dst, offset)

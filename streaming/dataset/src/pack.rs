@@ -70,13 +70,7 @@ pub(crate) fn open_pack(path: &Path) -> Result<(File, u64, [u8; PACK_HEADER_BYTE
         .map_err(|e| DatasetError::io(path, e))?;
     let len = file.metadata().map_err(|e| DatasetError::io(path, e))?.len();
     if len < PACK_HEADER_BYTES {
-        return Err(DatasetError::Truncated {
-            path: path.to_path_buf(),
-            what: "the header".into(),
-            offset: 0,
-            end: PACK_HEADER_BYTES,
-            file_len: len,
-        });
+        return Err(DatasetError::truncated(path, "the header", 0, PACK_HEADER_BYTES, len));
     }
     let mut header = [0u8; PACK_HEADER_BYTES as usize];
     file.read_exact_at(&mut header, 0)
@@ -123,13 +117,13 @@ impl TexturePack {
             Some(store) => {
                 let len = store.len(&pack_path)?;
                 if len < PACK_HEADER_BYTES {
-                    return Err(DatasetError::Truncated {
-                        path: pack_path,
-                        what: "the header".into(),
-                        offset: 0,
-                        end: PACK_HEADER_BYTES,
-                        file_len: len,
-                    });
+                    return Err(DatasetError::truncated(
+                        pack_path,
+                        "the header",
+                        0,
+                        PACK_HEADER_BYTES,
+                        len,
+                    ));
                 }
                 let mut header = [0u8; PACK_HEADER_BYTES as usize];
                 store.read_at(&pack_path, 0, &mut header)?;
@@ -180,13 +174,13 @@ impl TexturePack {
         }
         let recorded_len = u64_at(&header, 32);
         if recorded_len != pack_len {
-            return Err(DatasetError::Truncated {
-                path: pack_path,
-                what: "the mip data the header records".into(),
-                offset: PACK_HEADER_BYTES,
-                end: recorded_len,
-                file_len: pack_len,
-            });
+            return Err(DatasetError::truncated(
+                pack_path,
+                "the mip data the header records",
+                PACK_HEADER_BYTES,
+                recorded_len,
+                pack_len,
+            ));
         }
 
         let mut textures = Vec::with_capacity(count as usize);
@@ -430,13 +424,7 @@ impl TexturePack {
             PackReader::File(file) => file.metadata().map(|m| m.len()).unwrap_or(self.pack_len),
             PackReader::Store { .. } => self.pack_len,
         };
-        DatasetError::Truncated {
-            path: self.pack_path.clone(),
-            what: "a mip".into(),
-            offset,
-            end,
-            file_len,
-        }
+        DatasetError::truncated(&self.pack_path, "a mip", offset, end, file_len)
     }
 
     /// Path of `textures.pack`.

@@ -756,13 +756,13 @@ impl DatasetStore for RemoteStore {
         self.liveness.record(result.is_ok(), started.elapsed());
         let bytes = result.map_err(|e| Self::error(path, e))?;
         if bytes.len() != dst.len() {
-            return Err(DatasetError::Truncated {
-                path: path.to_path_buf(),
-                what: format!("a range request answered with {} bytes", bytes.len()),
+            return Err(DatasetError::truncated(
+                path,
+                format!("a range request answered with {} bytes", bytes.len()),
                 offset,
                 end,
-                file_len: offset + bytes.len() as u64,
-            });
+                offset + bytes.len() as u64,
+            ));
         }
         dst.copy_from_slice(&bytes);
         Ok(())

@@ -30,7 +30,7 @@ use std::path::Path;
 use super::crs::{Crs, MAX_CRS_BYTES};
 use super::error::DatasetError;
 use super::io_util::{
-    check_versioned_prefix, f32_at, f64_at, header_and_body_crc, header_prefix, read_all, u32_at, u64_at,
+    check_versioned_prefix, expect_end, f32_at, f64_at, header_and_body_crc, header_prefix, read_all, u32_at, u64_at,
     write_new_durably,
 };
 
@@ -380,13 +380,13 @@ impl Scene {
         }
         let crs_len = if layout.crs_record {
             if bytes.len() < header_len + 4 {
-                return Err(DatasetError::Truncated {
-                    path: path.to_path_buf(),
-                    what: "the CRS record".into(),
-                    offset: header_len as u64,
-                    end: header_len as u64 + 4,
-                    file_len: bytes.len() as u64,
-                });
+                return Err(DatasetError::truncated(
+                    path,
+                    "the CRS record",
+                    header_len as u64,
+                    header_len as u64 + 4,
+                    bytes.len() as u64,
+                ));
             }
             let len = u32_at(bytes, header_len) as usize;
             if len > MAX_CRS_BYTES {
@@ -407,15 +407,9 @@ impl Scene {
         // Counts are below 2^32, so these products cannot overflow u64.
         let body_len = mesh_count * MESH_RECORD_BYTES as u64 + vertex_count * 32 + index_count * 4;
         let end = meshes_at as u64 + body_len;
-        if end != bytes.len() as u64 {
-            return Err(DatasetError::Truncated {
-                path: path.to_path_buf(),
-                what: format!("{mesh_count} meshes, {vertex_count} vertices and {index_count} indices"),
-                offset: meshes_at as u64,
-                end,
-                file_len: bytes.len() as u64,
-            });
-        }
+        expect_end(path, bytes, meshes_at as u64, end, || {
+            format!("{mesh_count} meshes, {vertex_count} vertices and {index_count} indices")
+        })?;
         // What the checksum covers after the header: the CRS record and the meshes' data.
         let body = &bytes[header_len..];
         let stored = u32_at(bytes, layout.crc_at);
