@@ -779,13 +779,8 @@ mod tests {
             cache_side: 5,
         })
         .expect("options");
-        let patch = |id, min: f64, max: f64, metres_per_texel| Patch {
-            id,
-            min: [min, min],
-            max: [max, max],
-            metres_per_texel,
-            captured_s: 0.0,
-        };
+        let patch =
+            |id, min: f64, max: f64, metres_per_texel| Patch::new(id, [min, min], [max, max], metres_per_texel, 0.0);
         clipmap.insert(patch(0, lo, lo + extent, base_m)).expect("base");
         clipmap
             .insert(patch(1, lo + extent * 0.4, lo + extent * 0.5, fine_m))

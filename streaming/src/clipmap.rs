@@ -43,6 +43,19 @@ pub struct Patch {
     pub captured_s: f64,
 }
 
+impl Patch {
+    /// A patch over `min..max` at `metres_per_texel`, captured at `captured_s`.
+    pub fn new(id: u64, min: [f64; 2], max: [f64; 2], metres_per_texel: f64, captured_s: f64) -> Patch {
+        Patch {
+            id,
+            min,
+            max,
+            metres_per_texel,
+            captured_s,
+        }
+    }
+}
+
 /// Why a patch was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ClipmapError {
@@ -526,13 +539,7 @@ mod tests {
     }
 
     fn patch(id: u64, min: [f64; 2], max: [f64; 2], metres_per_texel: f64) -> Patch {
-        Patch {
-            id,
-            min,
-            max,
-            metres_per_texel,
-            captured_s: id as f64,
-        }
+        Patch::new(id, min, max, metres_per_texel, id as f64)
     }
 
     #[test]

@@ -306,16 +306,6 @@ mod tests {
         PatchImage::from_rgba8(width, height, &bytes).expect("image")
     }
 
-    fn patch(id: u64, min: [f64; 2], max: [f64; 2], metres_per_texel: f64, captured_s: f64) -> Patch {
-        Patch {
-            id,
-            min,
-            max,
-            metres_per_texel,
-            captured_s,
-        }
-    }
-
     #[test]
     fn clipmap_patch_mips_box_filter_to_one_texel() {
         // A 3 × 2 checker of black and white: the chain is 3x2, 2x1 (odd sizes round up, so
@@ -350,13 +340,13 @@ mod tests {
         // green: the green stays (finer wins), the blue replaces red elsewhere (later wins).
         ground
             .insert(
-                patch(0, [0.0, 0.0], [64.0, 64.0], 1.0, 0.0),
+                Patch::new(0, [0.0, 0.0], [64.0, 64.0], 1.0, 0.0),
                 solid(64, 64, [255, 0, 0, 255]),
             )
             .expect("base");
         ground
             .insert(
-                patch(1, [16.0, 16.0], [24.0, 24.0], 0.25, 1.0),
+                Patch::new(1, [16.0, 16.0], [24.0, 24.0], 0.25, 1.0),
                 solid(32, 32, [0, 255, 0, 255]),
             )
             .expect("fine");
@@ -368,7 +358,7 @@ mod tests {
         assert_eq!(at(&ground, [70.0, 40.0]), None);
         ground
             .insert(
-                patch(2, [0.0, 0.0], [32.0, 32.0], 1.0, 2.0),
+                Patch::new(2, [0.0, 0.0], [32.0, 32.0], 1.0, 2.0),
                 solid(32, 32, [0, 0, 255, 255]),
             )
             .expect("later");
@@ -402,7 +392,7 @@ mod tests {
             Err(GroundError::TileBuffer { got: 3, .. })
         ));
         assert!(matches!(
-            ground.insert(patch(1, [0.0, 0.0], [1.0, 1.0], 1.0, 3.0), solid(1, 1, [0; 4])),
+            ground.insert(Patch::new(1, [0.0, 0.0], [1.0, 1.0], 1.0, 3.0), solid(1, 1, [0; 4])),
             Err(GroundError::BadImage { id: 1, .. })
         ));
     }
@@ -422,7 +412,7 @@ mod tests {
             .collect();
         ground
             .insert(
-                patch(0, [0.0, 0.0], [64.0, 64.0], 1.0, 0.0),
+                Patch::new(0, [0.0, 0.0], [64.0, 64.0], 1.0, 0.0),
                 PatchImage::from_rgba8(64, 64, &bytes).expect("image"),
             )
             .expect("insert");

@@ -42,17 +42,7 @@ fn pattern(min: [f64; 2], max: [f64; 2], width: u32, height: u32, seed: f64) -> 
 fn patch(id: u64, min: [f64; 2], max: [f64; 2], metres_per_texel: f64) -> (Patch, u32, u32) {
     let width = ((max[0] - min[0]) / metres_per_texel).round() as u32;
     let height = ((max[1] - min[1]) / metres_per_texel).round() as u32;
-    (
-        Patch {
-            id,
-            min,
-            max,
-            metres_per_texel,
-            captured_s: id as f64,
-        },
-        width,
-        height,
-    )
+    (Patch::new(id, min, max, metres_per_texel, id as f64), width, height)
 }
 
 fn camera() -> Camera {
