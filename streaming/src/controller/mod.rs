@@ -173,8 +173,8 @@ impl PolicyKind {
         Ok(match self {
             PolicyKind::Adaptive => Box::new(AdaptivePolicy::new(options)?),
             PolicyKind::Headroom => Box::new(HeadroomPolicy::new(options)?),
-            PolicyKind::Baseline => Box::new(BaselinePolicy::new(options)?),
-            PolicyKind::Fixed => Box::new(FixedPolicy::new(options)?),
+            PolicyKind::Baseline => Box::new(ConstantPolicy::baseline(options)?),
+            PolicyKind::Fixed => Box::new(ConstantPolicy::fixed(options)?),
         })
     }
 }
@@ -274,9 +274,11 @@ impl PolicyOptions {
 }
 
 /// A policy with a constant decision; still measures `t_w` and the other
-/// latencies so that its telemetry compares with the adaptive one.
+/// latencies so that its telemetry compares with the adaptive one. Two of them:
+/// [`ConstantPolicy::baseline`] and [`ConstantPolicy::fixed`].
 #[derive(Clone, Debug)]
-struct ConstantPolicy {
+pub struct ConstantPolicy {
+    kind: PolicyKind,
     estimator: Estimator,
     load_factor: f64,
     decision: Decision,
@@ -284,9 +286,33 @@ struct ConstantPolicy {
 }
 
 impl ConstantPolicy {
-    fn new(options: &PolicyOptions, decision: Decision) -> Self {
+    /// No adaptive algorithms: `s = s_max`, `b = 0`, streaming as fast as the
+    /// load-time limit allows (the paper's "No adaptive algorithms" rows).
+    /// Only `s_max` of the options matters for the decision.
+    pub fn baseline(options: &PolicyOptions) -> Result<Self, PolicyError> {
+        options.validate()?;
+        let decision = Decision {
+            load_size_bytes: options.s_max_bytes().round() as u64,
+            mip_bias: 0.0,
+        };
+        Ok(Self::new(PolicyKind::Baseline, options, decision))
+    }
+
+    /// The user's `s` (`fixed_load_size_mb`) and `b` (`fixed_mip_bias`); the
+    /// fixed size must lie in `[s_min, s_max]`.
+    pub fn fixed(options: &PolicyOptions) -> Result<Self, PolicyError> {
+        options.validate_fixed()?;
+        let decision = Decision {
+            load_size_bytes: (options.fixed_load_size_mb * BYTES_PER_MB).round() as u64,
+            mip_bias: options.fixed_mip_bias,
+        };
+        Ok(Self::new(PolicyKind::Fixed, options, decision))
+    }
+
+    fn new(kind: PolicyKind, options: &PolicyOptions, decision: Decision) -> Self {
         let load_factor = decision.load_size_bytes as f64 / options.s_max_bytes();
         ConstantPolicy {
+            kind,
             estimator: Estimator::new(options.alpha_ms),
             load_factor,
             decision,
@@ -298,7 +324,9 @@ impl ConstantPolicy {
             },
         }
     }
+}
 
+impl LoadPolicy for ConstantPolicy {
     fn update(&mut self, frame_latency_ms: f64) -> Decision {
         match self.estimator.step(frame_latency_ms) {
             Some(e) => self.telemetry = self.estimator.telemetry(&e, self.load_factor, self.decision),
@@ -306,68 +334,14 @@ impl ConstantPolicy {
         }
         self.decision
     }
-}
-
-/// No adaptive algorithms: `s = s_max`, `b = 0`, streaming as fast as the
-/// load-time limit allows (the paper's "No adaptive algorithms" rows).
-#[derive(Clone, Debug)]
-pub struct BaselinePolicy(ConstantPolicy);
-
-impl BaselinePolicy {
-    /// Build from options (only `s_max` matters for the decision).
-    pub fn new(options: &PolicyOptions) -> Result<Self, PolicyError> {
-        options.validate()?;
-        let decision = Decision {
-            load_size_bytes: options.s_max_bytes().round() as u64,
-            mip_bias: 0.0,
-        };
-        Ok(BaselinePolicy(ConstantPolicy::new(options, decision)))
-    }
-}
-
-impl LoadPolicy for BaselinePolicy {
-    fn update(&mut self, frame_latency_ms: f64) -> Decision {
-        self.0.update(frame_latency_ms)
-    }
     fn decision(&self) -> Decision {
-        self.0.decision
+        self.decision
     }
     fn telemetry(&self) -> Telemetry {
-        self.0.telemetry
+        self.telemetry
     }
     fn kind(&self) -> PolicyKind {
-        PolicyKind::Baseline
-    }
-}
-
-/// The user's `s` (`fixed_load_size_mb`) and `b` (`fixed_mip_bias`).
-#[derive(Clone, Debug)]
-pub struct FixedPolicy(ConstantPolicy);
-
-impl FixedPolicy {
-    /// Build from options; the fixed size must lie in `[s_min, s_max]`.
-    pub fn new(options: &PolicyOptions) -> Result<Self, PolicyError> {
-        options.validate_fixed()?;
-        let decision = Decision {
-            load_size_bytes: (options.fixed_load_size_mb * BYTES_PER_MB).round() as u64,
-            mip_bias: options.fixed_mip_bias,
-        };
-        Ok(FixedPolicy(ConstantPolicy::new(options, decision)))
-    }
-}
-
-impl LoadPolicy for FixedPolicy {
-    fn update(&mut self, frame_latency_ms: f64) -> Decision {
-        self.0.update(frame_latency_ms)
-    }
-    fn decision(&self) -> Decision {
-        self.0.decision
-    }
-    fn telemetry(&self) -> Telemetry {
-        self.0.telemetry
-    }
-    fn kind(&self) -> PolicyKind {
-        PolicyKind::Fixed
+        self.kind
     }
 }
 
@@ -435,7 +409,7 @@ mod tests {
         for (name, edit) in cases {
             let mut o = PolicyOptions::default();
             edit(&mut o);
-            match FixedPolicy::new(&o) {
+            match ConstantPolicy::fixed(&o) {
                 Err(PolicyError::InvalidOption { name: n, .. }) => assert_eq!(n, name),
                 other => panic!("expected error for {name}, got {other:?}"),
             }
