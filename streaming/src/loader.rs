@@ -191,22 +191,10 @@ fn candidate<S: MipSource + ?Sized>(
 
 /// Plan one cycle (step 2 of the module docs): which mip of which texture
 /// to load, for the records in priority order, within the decision's load
-/// size and mip bias. Header failures mark their textures Failed.
+/// size and mip bias. Header failures mark their textures Failed. Loads a
+/// `gate` declines are skipped (a declined load does not count against the
+/// load size; the texture is not loaded this cycle).
 pub fn plan_cycle<S: MipSource + ?Sized>(
-    states: &TextureStates,
-    mesh_textures: &[u32],
-    records: &[MeshMetaData],
-    decision: Decision,
-    source: &S,
-    plan_chunk: usize,
-) -> CyclePlan {
-    plan_cycle_gated(states, mesh_textures, records, decision, source, plan_chunk, None)
-}
-
-/// [`plan_cycle`] that also skips loads `gate` declines (a declined load
-/// does not count against the load size; the texture is not loaded this
-/// cycle).
-pub fn plan_cycle_gated<S: MipSource + ?Sized>(
     states: &TextureStates,
     mesh_textures: &[u32],
     records: &[MeshMetaData],
@@ -557,7 +545,7 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
     fn cycle(&self, records: &[MeshMetaData], decision: Decision) -> CycleReport {
         let start = Instant::now();
         let unloaded = self.states.unload_invalidated(|texture| self.sink.unload(texture)) as u64;
-        let plan = plan_cycle_gated(
+        let plan = plan_cycle(
             &self.states,
             &self.mesh_textures,
             records,

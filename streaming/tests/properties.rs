@@ -131,7 +131,7 @@ proptest! {
         let records = prepare(records, 0);
         let decision = Decision { load_size_bytes: budget, mip_bias: 0.0 };
         for _ in 0..4 {
-            let plan = plan_cycle(&states, &mesh_textures, &records, decision, &src, 7);
+            let plan = plan_cycle(&states, &mesh_textures, &records, decision, &src, 7, None);
             let mut textures: Vec<u32> = plan.items.iter().map(|i| i.texture).collect();
             textures.sort_unstable();
             let n = textures.len();

@@ -569,7 +569,7 @@ pub fn run_traced(config: &SimConfig, mut observe: impl FnMut(&FrameSample)) -> 
         let decision = policy.decision();
         if in_flight.is_none() {
             visible_records(config, &states, clock_s, decision.mip_bias, &mut records);
-            let plan = plan_cycle(&states, &mesh_textures, &records, decision, &city, 4096);
+            let plan = plan_cycle(&states, &mesh_textures, &records, decision, &city, 4096, None);
             // The load-time limit: mips whose turn comes after it stay
             // unclaimed for a later cycle.
             let (mut read_s, mut bytes, mut mips) = (0.0, 0u64, 0u64);
