@@ -18,10 +18,10 @@ use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
+use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
-use super::flight::{
-    camera_path, focal_px, lowest_eye_height, open_city, pose_camera, scene_extent, Flight, FrameSettings, GroundSizing,
-};
+use super::dataset::{open_city, scene_extent};
+use super::flight::{Flight, FrameSettings, GroundSizing};
 use super::measure::{feedback_reaching, load_reference, reference_feedback};
 use super::output::{status, write_csv_row, CsvRow, MipCacheSummary, Run, CSV_HEADER};
 

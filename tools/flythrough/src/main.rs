@@ -22,20 +22,28 @@ use citystream_gen::files::{write_atomically, write_png};
 use citystream_streaming::bench::stats::SummaryBuilder;
 
 use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
-use crate::flight::{dataset_dir, flythrough_device};
+use crate::dataset::dataset_dir;
+use crate::device::flythrough_device;
 use crate::headless::stream_city;
 use crate::output::status;
 use crate::pop_in::pop_in;
 
 mod args;
+mod camera;
 mod city_gpu;
+mod controller;
 mod controls;
+mod dataset;
+mod device;
 mod flight;
 mod ground;
 mod headless;
 mod measure;
 mod output;
+mod passes;
 mod pop_in;
+mod preload;
+mod recording;
 mod tree;
 mod window;
 
@@ -51,7 +59,7 @@ fn main() -> Result<()> {
         bail!("--strategy texture-arrays holds textures without sparse residency; leave out --sparse on");
     }
     // Refused before any device or dataset work.
-    flight::build_policy(&args)?;
+    controller::build_policy(&args)?;
     if args.clock != Clock::Modelled && args.display_period_ms != FIXED_STEP_MS {
         bail!("--display-period-ms models a display: it needs --clock modelled");
     }

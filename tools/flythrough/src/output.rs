@@ -8,8 +8,8 @@ use citystream_bench::image_error::{FrameError, PrefixedErrorFigures};
 use citystream_engine::city::Camera;
 use citystream_streaming::bench::stats::Stats;
 
-use super::flight::GpuPassMs;
 use super::ground;
+use super::passes::GpuPassMs;
 use super::tree::TreeSummary;
 
 #[derive(Debug, serde::Serialize)]
@@ -25,7 +25,7 @@ pub(crate) struct Run<'a> {
     pub(crate) texture_backing: &'a str,
     /// `--strategy texture-arrays` with the city within the budget: what was loaded
     /// before the first frame (`mips`, `bytes`, `seconds`); null otherwise.
-    pub(crate) preloaded: Option<super::flight::Preload>,
+    pub(crate) preloaded: Option<super::preload::Preload>,
     /// Per frame: meshes the visible pass drew (with culling off, every mesh with geometry).
     pub(crate) meshes_drawn: Stats,
     /// Per frame: meshes of the city the visible pass skipped.

@@ -15,8 +15,9 @@ use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MipSource;
 
 use super::args::{frame_interval, frames_dir_path, Args};
+use super::camera::{camera_path, pose_camera};
 use super::city_gpu::{cache_layer_size, city_gpu, city_targets, reference_config, CityGpu, CityTargets};
-use super::flight::{camera_path, open_city, pose_camera};
+use super::dataset::open_city;
 use super::measure::feedback_frame_now;
 
 #[derive(Debug, serde::Serialize)]

@@ -27,15 +27,14 @@ use citystream_gen::files::write_png;
 use citystream_streaming::bench::path::{CameraPath, CameraPose};
 
 use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_STEP_MS};
+use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::city_targets;
-use super::controls::{
-    load_script, overview_pose, report_saved, Action, FlyCamera, Recorder, Replay, ScriptEvent, Throughput, HELP,
-};
-use super::flight::{
-    camera_path, dataset_dir, flythrough_device, focal_px, lowest_eye_height, open_city, pose_camera, Flight,
-    FrameSettings, GroundSizing,
-};
+use super::controls::{load_script, overview_pose, Action, FlyCamera, ScriptEvent, Throughput, HELP};
+use super::dataset::{dataset_dir, open_city};
+use super::device::flythrough_device;
+use super::flight::{Flight, FrameSettings, GroundSizing};
 use super::output::{write_csv_row, CsvRow, CSV_HEADER};
+use super::recording::{report_saved, Recorder, Replay};
 
 /// Everything that needs the window: created on the first `resumed`.
 struct Viewer {
