@@ -27,7 +27,7 @@ use super::controller::frame_latency;
 use super::dataset::scene_extent;
 use super::ground;
 use super::measure::MeshesInView;
-use super::passes::PassTimes;
+use super::passes::{self, Compaction, PassTimes};
 use super::preload::{preload_city, Preload};
 use super::tree::TreeRun;
 
@@ -298,13 +298,13 @@ impl Flight {
         self.gpu.renderer.set_cull_slot(slot)?;
         let feedback_pass = self.has_feedback() && settings.feedback;
         let rec = self.frame_commands[slot as usize].begin_completed()?;
-        let passes = &mut self.pass_times;
-        passes.begin(rec, slot, 0);
+        let times = &mut self.pass_times;
+        times.begin(rec, slot, 0);
         let applied = self.gpu.streamer.record_uploads(&mut begun, rec)?;
         if let Some(run) = self.ground.as_mut() {
             run.layer.record_uploads(rec, slot)?;
         }
-        passes.end(rec, slot, 0);
+        times.end(rec, slot, 0);
         // Without feedback (`has_feedback`) the two passes stay empty (0 ms).
         let CityTargets {
             target,
@@ -312,24 +312,25 @@ impl Flight {
             view,
             ..
         } = &self.targets;
-        passes.begin(rec, slot, 1);
-        if feedback_pass {
-            self.gpu
-                .renderer
-                .record_feedback(rec, feedback_target, camera, view, target.height())?;
-        }
-        passes.end(rec, slot, 1);
-        passes.begin(rec, slot, 2);
-        match (feedback_pass, settings.every_seen_mesh) {
-            (false, _) => {}
-            (true, true) => self.gpu.streamer.record_feedback_resolve_with_tau(&mut begun, rec, 0)?,
-            (true, false) => self.gpu.streamer.record_feedback_resolve(&mut begun, rec)?,
-        }
-        passes.end(rec, slot, 2);
+        let compaction = match (feedback_pass, settings.every_seen_mesh) {
+            (false, _) => None,
+            (true, true) => Some(Compaction::Tau(0)),
+            (true, false) => Some(Compaction::Streamer),
+        };
+        passes::record_feedback(
+            &mut self.gpu,
+            &mut begun,
+            rec,
+            (feedback_target, view),
+            camera,
+            target.height(),
+            compaction,
+            Some((&mut *times, slot)),
+        )?;
         if let Some(other) = settings.share_visible_culling {
             self.gpu.renderer.record_share_visible_culling(rec, other)?;
         }
-        passes.begin(rec, slot, 3);
+        times.begin(rec, slot, 3);
         let ground_layer = self.ground.as_ref().map(|g| (&g.layer, slot));
         let (draw_calls, nodes_drawn) = match self.tree.as_mut() {
             Some(run) => {
@@ -343,14 +344,13 @@ impl Flight {
                 (drawn.draw_calls, Some(drawn.nodes_drawn))
             }
             None => {
-                let blend = settings.colormap_blend;
-                match ground_layer {
-                    Some(ground) => self
-                        .gpu
-                        .renderer
-                        .record_visible_on_ground(rec, target, camera, blend, ground)?,
-                    None => self.gpu.renderer.record_visible(rec, target, camera, 1.0, blend)?,
-                }
+                passes::record_visible(
+                    &self.gpu.renderer,
+                    rec,
+                    (target, camera),
+                    settings.colormap_blend,
+                    ground_layer,
+                )?;
                 let size = (target.width(), target.height());
                 let draws = match self.strategy {
                     Strategy::TextureArrays => {
@@ -375,7 +375,7 @@ impl Flight {
                 (draws, None)
             }
         };
-        passes.end(rec, slot, 3);
+        times.end(rec, slot, 3);
         Ok(RecordedFrame {
             index: begun.index(),
             slot,

@@ -1,16 +1,101 @@
-//! The timed passes of a flythrough frame: the GPU timestamps around each and the culling
-//! statistics read back once the frame completed, per frame slot.
+//! The passes of a flythrough frame: the feedback pass with its compaction and the visible
+//! pass, as the flight records them and the measurements beside it (the error reference,
+//! the pop-in) record them too; and the GPU timestamps around each and the culling
+//! statistics read back once a frame completed, per frame slot.
 
 use std::sync::Arc;
 
 use anyhow::Result;
 
-use citystream_engine::city::CityRenderer;
-use citystream_engine::commands::Recording;
+use citystream_engine::city::{Camera, CityRenderer, FeedbackView};
+use citystream_engine::commands::{CommandContext, Recording};
 use citystream_engine::cull::CullStats;
+use citystream_engine::ground::GroundLayer;
+use citystream_engine::stream::Frame;
+use citystream_engine::target::RenderTarget;
 use citystream_engine::timing::GpuTimer;
 use citystream_engine::Device;
 use citystream_streaming::bench::stats::Stats;
+
+use super::city_gpu::CityGpu;
+
+/// How a frame compacts its feedback (paper §3.3).
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Compaction {
+    /// Entries reaching the streamer's own τ.
+    Streamer,
+    /// Entries reaching this τ (0: every seen mesh).
+    Tau(u32),
+}
+
+/// Records the feedback pass for `camera` into `feedback_target` (for a visible view
+/// `visible_height` tall) and its compaction into `frame`: the two passes between a
+/// streamer frame's uploads and its visible pass. With `compaction` `None` the frame has no
+/// feedback and records neither. `times` (the flight's) times each pass, empty or not.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn record_feedback(
+    gpu: &mut CityGpu,
+    frame: &mut Frame,
+    rec: Recording<'_>,
+    (feedback_target, view): (&RenderTarget, &FeedbackView),
+    camera: &Camera,
+    visible_height: u32,
+    compaction: Option<Compaction>,
+    mut times: Option<(&mut PassTimes, u32)>,
+) -> Result<()> {
+    if let Some((times, slot)) = times.as_mut() {
+        times.begin(rec, *slot, 1);
+    }
+    if compaction.is_some() {
+        gpu.renderer
+            .record_feedback(rec, feedback_target, camera, view, visible_height)?;
+    }
+    if let Some((times, slot)) = times.as_mut() {
+        times.end(rec, *slot, 1);
+        times.begin(rec, *slot, 2);
+    }
+    match compaction {
+        None => {}
+        Some(Compaction::Tau(tau)) => gpu.streamer.record_feedback_resolve_with_tau(frame, rec, tau)?,
+        Some(Compaction::Streamer) => gpu.streamer.record_feedback_resolve(frame, rec)?,
+    }
+    if let Some((times, slot)) = times.as_mut() {
+        times.end(rec, *slot, 2);
+    }
+    Ok(())
+}
+
+/// Records `renderer`'s visible pass for `camera` into `target`, on the streamed ground
+/// where given (its layer and the frame slot whose tiles it samples).
+pub(crate) fn record_visible(
+    renderer: &CityRenderer,
+    rec: Recording<'_>,
+    (target, camera): (&RenderTarget, &Camera),
+    colormap_blend: bool,
+    ground: Option<(&GroundLayer, u32)>,
+) -> Result<()> {
+    match ground {
+        Some(ground) => renderer.record_visible_on_ground(rec, target, camera, colormap_blend, ground)?,
+        None => renderer.record_visible(rec, target, camera, 1.0, colormap_blend)?,
+    }
+    Ok(())
+}
+
+/// The visible pass ([`record_visible`]) alone, submitted and waited for: `target` then
+/// holds the view as `renderer`'s cache serves it now (the error reference's image of a
+/// flight's frame, the pop-in's images).
+pub(crate) fn draw_now(
+    commands: &mut CommandContext,
+    renderer: &CityRenderer,
+    view: (&RenderTarget, &Camera),
+    colormap_blend: bool,
+    ground: Option<(&GroundLayer, u32)>,
+) -> Result<()> {
+    let rec = commands.begin()?;
+    record_visible(renderer, rec, view, colormap_blend, ground)?;
+    commands.submit_and_wait(&[])?;
+    Ok(())
+}
 
 /// The passes of a flythrough frame, in recording order, timed separately.
 pub(crate) const TIMED_PASSES: usize = 4;
