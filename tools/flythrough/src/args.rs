@@ -436,6 +436,11 @@ pub(crate) fn frame_interval(args: &Args) -> u32 {
     args.frame_interval.unwrap_or(if args.window { 0 } else { 20 })
 }
 
+/// Whether frame `frame` is written to OUT/frames/ at `--frame-interval`.
+pub(crate) fn writes_frame(args: &Args, frame: u32) -> bool {
+    frame_interval(args) > 0 && frame.is_multiple_of(frame_interval(args))
+}
+
 pub(crate) fn frames_dir_path(args: &Args) -> PathBuf {
     args.out.join("frames")
 }

@@ -1,11 +1,12 @@
 //! The GPU side of a city: the streamer over the dataset with the city passes that draw
-//! with it, and the targets they draw into; what the flight, the error reference, the
-//! atlas-tree run and the pop-in measurement each set up.
+//! with it, and the targets they draw into; what the flight (its streamer as the options
+//! ask for it), the error reference, the atlas-tree run and the pop-in measurement each
+//! set up.
 
 use std::sync::Arc;
 use std::time::Duration;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 
 use citystream_dataset::Dataset;
 use citystream_engine::city::{CityMesh, CityRenderer, FeedbackView};
@@ -21,7 +22,8 @@ use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::source::{DatasetSource, FaultPlan, FaultySource};
 
-use super::args::{Clock, Culling, UNLIMITED_BUDGET_BYTES};
+use super::args::{Args, Clock, Culling, UNLIMITED_BUDGET_BYTES};
+use super::controller::build_policy;
 
 /// A streamer over the dataset and the city passes that draw with it.
 pub(crate) struct CityGpu {
@@ -159,6 +161,50 @@ pub(crate) fn city_gpu(
             .context("GPU culling (--culling off draws every mesh instead)")?;
     }
     Ok(CityGpu { streamer, renderer })
+}
+
+/// The streamer and renderer of the run the options ask for (policy,
+/// budget, eviction, clock, frames in flight, injected failures).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn streamed_city_gpu(
+    args: &Args,
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Arc<Dataset>,
+    city: &CityGeometry,
+    fragment_area: f32,
+    layer_size: u32,
+    tree: Option<&AtlasTree>,
+    reserved_bytes: u64,
+) -> Result<CityGpu> {
+    let budget = match args.memory_budget_mb().bytes() {
+        Some(budget) if budget <= reserved_bytes => bail!(
+            "the {} MB memory budget leaves nothing for textures beside the ground layer's {:.1} MB",
+            budget >> 20,
+            reserved_bytes as f64 / f64::from(1 << 20)
+        ),
+        Some(budget) => budget - reserved_bytes,
+        None => UNLIMITED_BUDGET_BYTES,
+    };
+    city_gpu(
+        device,
+        commands,
+        dataset,
+        city,
+        build_policy(args)?,
+        &stream_config(
+            budget,
+            args.frames_in_flight,
+            fragment_area,
+            args.clock,
+            args.eviction,
+            args.cache_layers,
+            layer_size,
+        ),
+        args.inject_read_failures,
+        tree,
+        args.culling,
+    )
 }
 
 /// The visible and feedback targets of the city passes and the feedback view.

@@ -13,17 +13,18 @@ use citystream_engine::cull::CullStats;
 use citystream_engine::device::{describe, TextureBacking};
 use citystream_engine::gpu_types::FeedbackEntry;
 use citystream_engine::Device;
-use citystream_gen::files::{write_atomically, write_png};
+use citystream_gen::files::write_atomically;
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 
-use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
+use super::args::{writes_frame, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
+use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
-use super::flight::{
-    camera_path, focal_px, lowest_eye_height, open_city, pose_camera, scene_extent, Flight, FrameSettings, GroundSizing,
-};
+use super::dataset::{open_city, scene_extent};
+use super::flight::{Flight, FrameSettings, GroundSizing};
 use super::measure::{feedback_reaching, load_reference, reference_feedback};
-use super::output::{status, write_csv_row, CsvRow, MipCacheSummary, Run, CSV_HEADER};
+use super::output::{status, write_csv_row, write_frame_png, CsvRow, MipCacheSummary, Run, CSV_HEADER};
+use super::passes::draw_now;
 
 /// Environment variable naming a frame at which the headless flight fails after submitting
 /// it (a testing aid for error paths with frames in flight).
@@ -156,7 +157,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         frames_run += 1;
         let camera = pose_camera(&path.sample(time_s), extent);
         let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
-        let write_frame = frame_interval(args) > 0 && frame % frame_interval(args) == 0;
+        let write_frame = writes_frame(args, frame);
 
         let mut recorded = flight.record(
             frame,
@@ -197,9 +198,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             waits.count(flight.gpu.streamer.wait_for_frame(recorded.index)?, true);
             let pixels = target.read_pixels()?;
             if write_frame {
-                let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
-                write_png(&pixels, &path)?;
-                written.push(path.display().to_string());
+                write_frame_png(args, frame, &pixels, &mut written)?;
             }
             if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
                 // The reference loads what the loader serves (entries
@@ -210,20 +209,10 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                     reference_feedback(reference, &mut commands, &flight.targets, &camera, args.height)?
                 };
                 reference_incomplete += load_reference(reference, &mut commands, &entries, flight.meshes())?;
-                let cmd = commands.begin()?;
                 // On the streamed ground, so that this error is the facades' alone
                 // (`ground_psnr_db` measures the ground's).
-                match flight.ground.as_ref() {
-                    Some(run) => reference.renderer.record_visible_on_ground(
-                        cmd,
-                        target,
-                        &camera,
-                        true,
-                        (&run.layer, recorded.slot),
-                    )?,
-                    None => reference.renderer.record_visible(cmd, target, &camera, 1.0, true)?,
-                }
-                commands.submit_and_wait(&[])?;
+                let ground = flight.ground.as_ref().map(|run| (&run.layer, recorded.slot));
+                draw_now(&mut commands, &reference.renderer, (target, &camera), true, ground)?;
                 error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
             }
             if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {

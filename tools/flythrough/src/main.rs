@@ -3,39 +3,33 @@
 //! controller, loading task, sparse binds and copies, then the frame with
 //! City Colormap blending. It writes PNG frames and `summary.json`.
 
-use std::sync::Arc;
-
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use glam::Vec3;
 
-use citystream_engine::city::Camera;
-use citystream_engine::commands::CommandContext;
-use citystream_engine::device::describe;
-use citystream_engine::pipeline::Filtering;
-use citystream_engine::placeholder;
-use citystream_engine::scene::MeshRenderer;
-use citystream_engine::target::RenderTarget;
-use citystream_engine::timing::CpuFrameClock;
-use citystream_engine::Device;
-use citystream_gen::files::{write_atomically, write_png};
-use citystream_streaming::bench::stats::SummaryBuilder;
-
-use crate::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
-use crate::flight::{dataset_dir, flythrough_device};
+use crate::args::{Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
+use crate::dataset::dataset_dir;
+use crate::device::flythrough_device;
 use crate::headless::stream_city;
-use crate::output::status;
+use crate::placeholder::placeholder_city;
 use crate::pop_in::pop_in;
 
 mod args;
+mod camera;
 mod city_gpu;
+mod controller;
 mod controls;
+mod dataset;
+mod device;
 mod flight;
 mod ground;
 mod headless;
 mod measure;
 mod output;
+mod passes;
+mod placeholder;
 mod pop_in;
+mod preload;
+mod recording;
 mod tree;
 mod window;
 
@@ -51,7 +45,7 @@ fn main() -> Result<()> {
         bail!("--strategy texture-arrays holds textures without sparse residency; leave out --sparse on");
     }
     // Refused before any device or dataset work.
-    flight::build_policy(&args)?;
+    controller::build_policy(&args)?;
     if args.clock != Clock::Modelled && args.display_period_ms != FIXED_STEP_MS {
         bail!("--display-period-ms models a display: it needs --clock modelled");
     }
@@ -74,84 +68,4 @@ fn main() -> Result<()> {
     } else {
         stream_city(&args, &device, &dir)
     }
-}
-
-/// An orbit around `centre` over a scene `extent` wide and `tall` high:
-/// close over a flat city, clear of a single tall model.
-fn orbit_camera(centre: Vec3, extent: f32, tall: f32, t: f64) -> Camera {
-    let angle = (t as f32) * std::f32::consts::TAU;
-    let radius = extent * 0.55 + tall * 1.5;
-    let height = extent * (0.18 + 0.12 * (angle * 2.0).sin().abs()) + tall;
-    Camera {
-        eye: centre + Vec3::new(angle.cos() * radius, height, angle.sin() * radius),
-        target: centre,
-        fov_y: 60f32.to_radians(),
-        // Scaled to the scene, so a one-metre model and a city both fit the depth range.
-        near: extent * 1e-3,
-        far: (extent + tall) * 4.0,
-    }
-}
-
-fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> {
-    let geometry = placeholder::city(args.seed, args.blocks);
-    let textures = placeholder::textures(args.seed)?;
-    let mut commands = CommandContext::new(device, "flythrough frame")?;
-    let renderer = MeshRenderer::new(
-        device,
-        &mut commands,
-        &geometry,
-        &textures,
-        Filtering::Trilinear { max_anisotropy: 8 },
-    )?;
-    let target = RenderTarget::new(device, args.width, args.height)?;
-    let extent = args.blocks as f32 * 30.0;
-    let aspect = args.width as f32 / args.height as f32;
-    let mut clock = CpuFrameClock::new();
-    let mut summary = SummaryBuilder::new();
-    let mut written = Vec::new();
-    let started = std::time::Instant::now();
-    let frames = args.frames.unwrap_or(240);
-    for frame in 0..frames {
-        let camera = orbit_camera(Vec3::new(0.0, 15.0, 0.0), extent, 0.0, frame as f64 / frames as f64);
-        let cmd = commands.begin()?;
-        target.begin(device, cmd, [0.55, 0.7, 0.9, 1.0]);
-        renderer.record(cmd, camera.view_projection(aspect, 0.0), [0.4, 0.8, 0.3, 1.0]);
-        target.end_and_copy(device, cmd);
-        commands.submit_and_wait(&[])?;
-        if frame_interval(args) > 0 && frame % frame_interval(args) == 0 {
-            let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
-            write_png(&target.read_pixels()?, &path)?;
-            written.push(path.display().to_string());
-        }
-        let dt = clock.tick().as_secs_f64() * 1000.0;
-        summary.push_frame(dt, dt, 0.0, 0.0, 0, 0);
-        status(frame, frames, dt, 0.0, 0.0, 0.0, 0.0);
-    }
-    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-        eprintln!();
-    }
-    device.wait_idle()?;
-    let validation_errors = device.validation_log().error_count();
-    let mut json = serde_json::to_value(summary.finish())?;
-    if let Some(object) = json.as_object_mut() {
-        object.insert("device".into(), describe(device).into());
-        object.insert(
-            "scene".into(),
-            format!(
-                "placeholder city (seed {}, {}x{} blocks)",
-                args.seed, args.blocks, args.blocks
-            )
-            .into(),
-        );
-        object.insert("duration_s".into(), started.elapsed().as_secs_f64().into());
-        object.insert("validation_errors".into(), validation_errors.into());
-        object.insert("frames_written".into(), written.into());
-    }
-    let path = args.out.join("summary.json");
-    write_atomically(&path, serde_json::to_string_pretty(&json)?.as_bytes())?;
-    eprintln!("wrote {}", path.display());
-    if validation_errors > 0 {
-        bail!("{validation_errors} Vulkan validation error(s) during the run");
-    }
-    Ok(())
 }

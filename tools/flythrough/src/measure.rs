@@ -14,6 +14,7 @@ use citystream_streaming::source::MipSource;
 
 use super::args::FIXED_STEP_MS;
 use super::city_gpu::{CityGpu, CityTargets};
+use super::passes::{self, Compaction};
 
 /// Loads, into the reference streamer, every level from the one each seen
 /// mesh needs up to its coarsest, with no budget or load size; returns how
@@ -152,32 +153,41 @@ pub(crate) fn reference_feedback(
         (&targets.feedback_target, &targets.view),
         camera,
         visible_height,
-        Some(0),
+        Compaction::Tau(0),
     )?;
     feedback_reaching(&reference.streamer, index, tau)
 }
 
 /// Runs one streamer frame of feedback for `camera` (uploads, feedback pass, compaction
-/// with `compact_tau` or the streamer's own threshold) and waits for it; returns the
-/// frame's index, whose feedback is then readable.
+/// with `compaction`) and waits for it; returns the frame's index, whose feedback is then
+/// readable.
+///
+/// Not a [`super::flight::Flight`] frame: a flight is the run's streamer (its policy, budget,
+/// frames in flight, ground and strategy) and never waits for its frames, where this is a
+/// streamer of references that load explicitly, waited for. Its passes are recorded by the
+/// functions the flight records them with ([`passes::record_feedback`]).
 pub(crate) fn feedback_frame_now(
     gpu: &mut CityGpu,
     commands: &mut CommandContext,
-    (feedback_target, view): (&RenderTarget, &FeedbackView),
+    feedback_view: (&RenderTarget, &FeedbackView),
     camera: &Camera,
     visible_height: u32,
-    compact_tau: Option<u32>,
+    compaction: Compaction,
 ) -> Result<u64> {
     let mut frame = gpu.streamer.begin_frame()?;
     let index = frame.index();
     let rec = commands.begin()?;
     gpu.streamer.record_uploads(&mut frame, rec)?;
-    gpu.renderer
-        .record_feedback(rec, feedback_target, camera, view, visible_height)?;
-    match compact_tau {
-        Some(tau) => gpu.streamer.record_feedback_resolve_with_tau(&mut frame, rec, tau)?,
-        None => gpu.streamer.record_feedback_resolve(&mut frame, rec)?,
-    }
+    passes::record_feedback(
+        gpu,
+        &mut frame,
+        rec,
+        feedback_view,
+        camera,
+        visible_height,
+        Some(compaction),
+        None,
+    )?;
     let submit = gpu.streamer.end_frame(frame, FIXED_STEP_MS)?;
     commands.submit(&submit.waits, &[submit.signal])?;
     // The frame timeline says when the feedback is readable (a fence may

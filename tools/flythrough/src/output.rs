@@ -6,10 +6,12 @@ use anyhow::Result;
 
 use citystream_bench::image_error::{FrameError, PrefixedErrorFigures};
 use citystream_engine::city::Camera;
+use citystream_gen::files::write_png;
 use citystream_streaming::bench::stats::Stats;
 
-use super::flight::GpuPassMs;
+use super::args::{frames_dir_path, Args};
 use super::ground;
+use super::passes::GpuPassMs;
 use super::tree::TreeSummary;
 
 #[derive(Debug, serde::Serialize)]
@@ -25,7 +27,7 @@ pub(crate) struct Run<'a> {
     pub(crate) texture_backing: &'a str,
     /// `--strategy texture-arrays` with the city within the budget: what was loaded
     /// before the first frame (`mips`, `bytes`, `seconds`); null otherwise.
-    pub(crate) preloaded: Option<super::flight::Preload>,
+    pub(crate) preloaded: Option<super::preload::Preload>,
     /// Per frame: meshes the visible pass drew (with culling off, every mesh with geometry).
     pub(crate) meshes_drawn: Stats,
     /// Per frame: meshes of the city the visible pass skipped.
@@ -140,6 +142,19 @@ pub(crate) struct MipCacheSummary {
     pub(crate) capacity_bytes: u64,
     #[serde(flatten)]
     pub(crate) stats: citystream_dataset::MipCacheStats,
+}
+
+/// Writes `image` as frame `frame`'s PNG in OUT/frames/ and lists its path in `written`.
+pub(crate) fn write_frame_png(
+    args: &Args,
+    frame: u32,
+    image: &image::RgbaImage,
+    written: &mut Vec<String>,
+) -> Result<()> {
+    let path = frames_dir_path(args).join(format!("frame_{frame:05}.png"));
+    write_png(image, &path)?;
+    written.push(path.display().to_string());
+    Ok(())
 }
 
 /// The live one-line status: rewritten in place on a terminal, a line every

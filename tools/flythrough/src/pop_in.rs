@@ -15,9 +15,11 @@ use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MipSource;
 
 use super::args::{frame_interval, frames_dir_path, Args};
+use super::camera::{camera_path, pose_camera};
 use super::city_gpu::{cache_layer_size, city_gpu, city_targets, reference_config, CityGpu, CityTargets};
-use super::flight::{camera_path, open_city, pose_camera};
+use super::dataset::open_city;
 use super::measure::feedback_frame_now;
+use super::passes::{self, Compaction};
 
 #[derive(Debug, serde::Serialize)]
 pub(crate) struct PopIn {
@@ -68,7 +70,7 @@ pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -
         (&feedback_target, &view),
         &camera,
         args.height,
-        None,
+        Compaction::Streamer,
     )?;
     let entries = gpu
         .streamer
@@ -89,10 +91,12 @@ pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -
     wanted.dedup_by_key(|w| w.0);
     eprintln!("pop-in: {} textures refine from their coarsest level", wanted.len());
 
+    // Not a [`Flight`](super::flight::Flight)'s frames: a flight's policy loads what its
+    // feedback asks for over frames, where here the levels are loaded explicitly, one a
+    // step, and the view drawn twice a step (direct, blended) and waited for. The visible
+    // pass is the one the flight records ([`passes::draw_now`]).
     let render = |gpu: &CityGpu, commands: &mut CommandContext, blend: bool| -> Result<image::RgbaImage> {
-        let cmd = commands.begin()?;
-        gpu.renderer.record_visible(cmd, &target, &camera, 1.0, blend)?;
-        commands.submit_and_wait(&[])?;
+        passes::draw_now(commands, &gpu.renderer, (&target, &camera), blend, None)?;
         Ok(target.read_pixels()?)
     };
     let mut previous: Option<(image::RgbaImage, image::RgbaImage)> = None;

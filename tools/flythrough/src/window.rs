@@ -23,19 +23,17 @@ use winit::window::{Window, WindowId};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::Device;
-use citystream_gen::files::write_png;
 use citystream_streaming::bench::path::{CameraPath, CameraPose};
 
-use super::args::{frame_interval, frames_dir_path, Args, Clock, ControllerLatency, FIXED_STEP_MS};
+use super::args::{frame_interval, writes_frame, Args, Clock, ControllerLatency, FIXED_STEP_MS};
+use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::city_targets;
-use super::controls::{
-    load_script, overview_pose, report_saved, Action, FlyCamera, Recorder, Replay, ScriptEvent, Throughput, HELP,
-};
-use super::flight::{
-    camera_path, dataset_dir, flythrough_device, focal_px, lowest_eye_height, open_city, pose_camera, Flight,
-    FrameSettings, GroundSizing,
-};
-use super::output::{write_csv_row, CsvRow, CSV_HEADER};
+use super::controls::{load_script, overview_pose, Action, FlyCamera, ScriptEvent, Throughput, HELP};
+use super::dataset::{dataset_dir, open_city};
+use super::device::flythrough_device;
+use super::flight::{Flight, FrameSettings, GroundSizing};
+use super::output::{write_csv_row, write_frame_png, CsvRow, CSV_HEADER};
+use super::recording::{report_saved, Recorder, Replay};
 
 /// Everything that needs the window: created on the first `resumed`.
 struct Viewer {
@@ -623,9 +621,7 @@ impl Viewer {
         }
         self.last_frame_at = Some(now);
         self.time_s += dt_s;
-        let interval = frame_interval(args);
-        let screenshot =
-            std::mem::take(&mut self.screenshot_pending) || (interval > 0 && self.frame.is_multiple_of(interval));
+        let screenshot = std::mem::take(&mut self.screenshot_pending) || writes_frame(args, self.frame);
         self.render(args, screenshot, dt_s, now)
     }
 
@@ -709,9 +705,12 @@ impl Viewer {
             // The copy was recorded after the blit; a swapchain now out of
             // date still held this frame's image when it ran.
             self.flight.gpu.streamer.wait_for_frame(recorded.index)?;
-            let path = frames_dir_path(args).join(format!("frame_{:05}.png", self.frame));
-            write_png(&self.presenter.read_screenshot()?, &path)?;
-            self.screenshots.push(path.display().to_string());
+            write_frame_png(
+                args,
+                self.frame,
+                &self.presenter.read_screenshot()?,
+                &mut self.screenshots,
+            )?;
         }
 
         let interval_ms = self.flight.latency(&recorded);
