@@ -171,7 +171,13 @@ pub fn load(
         skipped: BTreeMap::new(),
         held_objects: 0,
     };
-    walk.tileset(&canonical, &IDENTITY, Refine::Replace, UpAxis::Y, &mut Vec::new(), 0)?;
+    let top = Inherited {
+        transform: IDENTITY,
+        refine: Refine::Replace,
+        up: UpAxis::Y,
+        depth: 0,
+    };
+    walk.tileset(&canonical, top, &mut Vec::new())?;
     if strict && !walk.skipped.is_empty() {
         bail!("{}: {} (--strict)", input.display(), skipped_text(&walk.skipped));
     }
@@ -380,16 +386,18 @@ fn skipped_text(skipped: &BTreeMap<String, usize>) -> String {
     )
 }
 
+/// What a tile takes from its ancestors: their composed transform, refinement and up axis, and
+/// how deep it lies (external tilesets included).
+#[derive(Clone, Copy)]
+struct Inherited {
+    transform: Mat4,
+    refine: Refine,
+    up: UpAxis,
+    depth: usize,
+}
+
 impl Walk {
-    fn tileset(
-        &mut self,
-        path: &Path,
-        parent: &Mat4,
-        inherited: Refine,
-        inherited_up: UpAxis,
-        chain: &mut Vec<PathBuf>,
-        depth: usize,
-    ) -> Result<()> {
+    fn tileset(&mut self, path: &Path, from: Inherited, chain: &mut Vec<PathBuf>) -> Result<()> {
         if let Some(at) = chain.iter().position(|p| p == path) {
             let cycle: Vec<String> = chain[at..]
                 .iter()
@@ -411,22 +419,18 @@ impl Walk {
         let (tileset, objects) = read_tileset(path, MAX_HELD_TILESET_OBJECTS - self.held_objects)?;
         // The tilesets above this one stay parsed while it is walked: their objects count.
         self.held_objects += objects;
-        let walked = self.walk_tileset(&tileset, path, parent, inherited, inherited_up, chain, depth);
+        let walked = self.walk_tileset(&tileset, path, from, chain);
         self.held_objects -= objects;
         walked
     }
 
     /// [`tileset`](Self::tileset) once `tileset` is parsed.
-    #[allow(clippy::too_many_arguments)]
     fn walk_tileset(
         &mut self,
         tileset: &TilesetJson,
         path: &Path,
-        parent: &Mat4,
-        inherited: Refine,
-        inherited_up: UpAxis,
+        from: Inherited,
         chain: &mut Vec<PathBuf>,
-        depth: usize,
     ) -> Result<()> {
         let unsupported: Vec<&String> = tileset
             .extensions_required
@@ -446,7 +450,7 @@ impl Walk {
             .map(str::to_ascii_uppercase)
             .as_deref()
         {
-            None => inherited_up,
+            None => from.up,
             Some("X") => UpAxis::X,
             Some("Y") => UpAxis::Y,
             Some("Z") => UpAxis::Z,
@@ -457,29 +461,28 @@ impl Walk {
         let walked = self.tile(
             &tileset.root,
             &dir,
-            parent,
-            inherited,
-            up,
+            Inherited { up, ..from },
             chain,
-            depth,
             &format!("{}#root", file_name(path)),
         );
         chain.pop();
         walked.with_context(|| format!("in tileset {}", path.display()))
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn tile(
         &mut self,
         tile: &TileJson,
         dir: &Path,
-        parent: &Mat4,
-        inherited: Refine,
-        up: UpAxis,
+        from: Inherited,
         chain: &mut Vec<PathBuf>,
-        depth: usize,
         name: &str,
     ) -> Result<()> {
+        let Inherited {
+            transform: parent,
+            refine: inherited,
+            up,
+            depth,
+        } = from;
         if depth > MAX_DEPTH {
             bail!("tile {name}: tiles nest deeper than {MAX_DEPTH} levels");
         }
@@ -489,8 +492,8 @@ impl Walk {
         }
         check_tile(tile).with_context(|| format!("tile {name}"))?;
         let world = match &tile.transform {
-            Some(t) => mul(parent, &matrix(t).with_context(|| format!("tile {name}: transform"))?),
-            None => *parent,
+            Some(t) => mul(&parent, &matrix(t).with_context(|| format!("tile {name}: transform"))?),
+            None => parent,
         };
         if world.iter().flatten().any(|v| !v.is_finite()) {
             bail!("tile {name}: its transform composed with its ancestors' is not finite");
@@ -507,6 +510,12 @@ impl Walk {
         if implicit {
             *self.skipped.entry("implicitly tiled subtrees".to_owned()).or_default() += 1;
         }
+        let below = Inherited {
+            transform: world,
+            refine,
+            up,
+            depth: depth + 1,
+        };
         let keep = self.lod == Lod::All || refine == Refine::Add || tile.children.is_empty();
         let contents = tile.content.iter().chain(&tile.contents).filter(|_| !implicit);
         for content in contents {
@@ -522,7 +531,7 @@ impl Walk {
                 .with_context(|| format!("tile {name}: content {uri:?}"))?;
             let kind = content_kind(&path);
             match kind.as_str() {
-                "json" => self.tileset(&path, &world, refine, up, chain, depth + 1)?,
+                "json" => self.tileset(&path, below, chain)?,
                 "b3dm" | "glb" | "gltf" if keep => self.contents.push(ContentRef {
                     path,
                     transform: world,
@@ -538,7 +547,7 @@ impl Walk {
             }
         }
         for (i, child) in tile.children.iter().enumerate() {
-            self.tile(child, dir, &world, refine, up, chain, depth + 1, &format!("{name}/{i}"))?;
+            self.tile(child, dir, below, chain, &format!("{name}/{i}"))?;
         }
         Ok(())
     }
