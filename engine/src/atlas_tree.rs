@@ -22,7 +22,7 @@ use citystream_streaming::source::MipSource;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::city::{city_pipeline, single_draw_layout, Camera, CityMesh, CityRenderer};
+use crate::city::{single_draw_layout, visible_pipeline, Camera, CityMesh, CityRenderer};
 use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
@@ -30,7 +30,7 @@ use crate::gpu_types::{
     CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS, TEXTURE_SAMPLEABLE,
 };
 use crate::ground::GroundLayer;
-use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, Pipeline};
+use crate::pipeline::{BindingSpec, DescriptorPool, DescriptorResource, Pipeline};
 use crate::scene::upload_buffer;
 use crate::shaders;
 use crate::stream::{Frame, TextureStreamer};
@@ -192,15 +192,7 @@ impl AtlasTreeRenderer {
             1,
             vertex,
         ));
-        let pipeline = city_pipeline(
-            device,
-            shaders::CITY_TREE_VERT,
-            shaders::for_backing(device, shaders::CITY_FRAG, shaders::CITY_FRAG_ARRAYS),
-            bindings,
-            DepthMode::TestAndWrite,
-            true,
-            "atlas tree visible pipeline",
-        )?;
+        let pipeline = visible_pipeline(device, shaders::CITY_TREE_VERT, bindings, "atlas tree visible pipeline")?;
         let slot_count = frames_in_flight.max(1);
         let pool = DescriptorPool::new(device, &pipeline, slot_count, "atlas tree descriptors")?;
         let table_bytes = |stride: usize| (stride * meshes.len().max(1)) as u64;

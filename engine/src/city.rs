@@ -227,6 +227,19 @@ pub(crate) fn city_pipeline(
     )
 }
 
+/// A visible pass's pipeline: the city's fragment shader for the device's backing, depth tested
+/// and written, colour written; `vertex` places the meshes (the city's own or a texture-atlas
+/// tree's).
+pub(crate) fn visible_pipeline(
+    device: &Arc<Device>,
+    vertex: shaders::ShaderSource,
+    bindings: Vec<BindingSpec>,
+    name: &str,
+) -> Result<Pipeline> {
+    let fragment = shaders::for_backing(device, shaders::CITY_FRAG, shaders::CITY_FRAG_ARRAYS);
+    city_pipeline(device, vertex, fragment, bindings, DepthMode::TestAndWrite, true, name)
+}
+
 /// The geometry of one draw for every mesh: each mesh's vertices (the range
 /// its indices use) copied and tagged with its id, and its indices made
 /// absolute, in mesh order so triangles rasterise in the same order as one
@@ -367,15 +380,7 @@ impl CityRenderer {
             .iter()
             .map(|(binding, resource)| (*binding, resource.descriptor_type(), resource.count(), fragment))
             .collect();
-        let visible = city_pipeline(
-            device,
-            shaders::CITY_VERT,
-            shaders::for_backing(device, shaders::CITY_FRAG, shaders::CITY_FRAG_ARRAYS),
-            visible_bindings,
-            DepthMode::TestAndWrite,
-            true,
-            "city visible pipeline",
-        )?;
+        let visible = visible_pipeline(device, shaders::CITY_VERT, visible_bindings, "city visible pipeline")?;
         // One pool for all sets: sized by the visible layout, which has the most bindings.
         let pool = DescriptorPool::new(device, &visible, 3, "city descriptors")?;
         let prepass_set = pool.allocate(&depth_prepass, &[])?;
