@@ -30,6 +30,33 @@ pub struct ImageDesc {
     pub view_type: vk::ImageViewType,
 }
 
+/// The create info of every 2D image of the engine: optimal tiling, one sample, one queue
+/// family, contents undefined until the first transition.
+pub(crate) fn image_2d_info(
+    format: vk::Format,
+    width: u32,
+    height: u32,
+    mips: u32,
+    layers: u32,
+    usage: vk::ImageUsageFlags,
+) -> vk::ImageCreateInfo<'static> {
+    vk::ImageCreateInfo::default()
+        .image_type(vk::ImageType::TYPE_2D)
+        .format(format)
+        .extent(vk::Extent3D {
+            width,
+            height,
+            depth: 1,
+        })
+        .mip_levels(mips)
+        .array_layers(layers)
+        .samples(vk::SampleCountFlags::TYPE_1)
+        .tiling(vk::ImageTiling::OPTIMAL)
+        .usage(usage)
+        .sharing_mode(vk::SharingMode::EXCLUSIVE)
+        .initial_layout(vk::ImageLayout::UNDEFINED)
+}
+
 impl ImageDesc {
     /// The aspect of this image's format.
     pub fn aspect(&self) -> vk::ImageAspectFlags {
@@ -79,21 +106,7 @@ impl Image {
                 "image {name:?} has a zero dimension: {desc:?}"
             )));
         }
-        let info = vk::ImageCreateInfo::default()
-            .image_type(vk::ImageType::TYPE_2D)
-            .format(desc.format)
-            .extent(vk::Extent3D {
-                width: desc.width,
-                height: desc.height,
-                depth: 1,
-            })
-            .mip_levels(desc.mips)
-            .array_layers(desc.layers)
-            .samples(vk::SampleCountFlags::TYPE_1)
-            .tiling(vk::ImageTiling::OPTIMAL)
-            .usage(desc.usage)
-            .sharing_mode(vk::SharingMode::EXCLUSIVE)
-            .initial_layout(vk::ImageLayout::UNDEFINED);
+        let info = image_2d_info(desc.format, desc.width, desc.height, desc.mips, desc.layers, desc.usage);
         // SAFETY: valid create info on a live device.
         let raw = unsafe { device.raw.create_image(&info, None) }.vk("vkCreateImage")?;
         let mut image = Self {

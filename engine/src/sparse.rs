@@ -25,7 +25,7 @@ use gpu_allocator::MemoryLocation;
 use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result, VkResultExt};
-use crate::image::{create_view, ImageDesc};
+use crate::image::{create_view, image_2d_info, ImageDesc};
 use crate::memory;
 
 /// Environment variable `LEVEL[,single]`: where the device reports no mip
@@ -245,22 +245,8 @@ impl SparseImage {
                 feature: format!("sparse residency for format {:?}", desc.format),
             });
         }
-        let info = vk::ImageCreateInfo::default()
-            .flags(vk::ImageCreateFlags::SPARSE_BINDING | vk::ImageCreateFlags::SPARSE_RESIDENCY)
-            .image_type(vk::ImageType::TYPE_2D)
-            .format(desc.format)
-            .extent(vk::Extent3D {
-                width: desc.width,
-                height: desc.height,
-                depth: 1,
-            })
-            .mip_levels(desc.mips)
-            .array_layers(desc.layers)
-            .samples(vk::SampleCountFlags::TYPE_1)
-            .tiling(vk::ImageTiling::OPTIMAL)
-            .usage(USAGE)
-            .sharing_mode(vk::SharingMode::EXCLUSIVE)
-            .initial_layout(vk::ImageLayout::UNDEFINED);
+        let info = image_2d_info(desc.format, desc.width, desc.height, desc.mips, desc.layers, USAGE)
+            .flags(vk::ImageCreateFlags::SPARSE_BINDING | vk::ImageCreateFlags::SPARSE_RESIDENCY);
         // SAFETY: valid create info; the device enabled sparse binding and residency.
         let raw = unsafe { device.raw.create_image(&info, None) }.vk("vkCreateImage (sparse)")?;
         let mut image = Self {

@@ -23,7 +23,7 @@ use crate::binder::{cache_mip_tail, VulkanBinder};
 use crate::commands::{CommandContext, Recording, SemaphoreWait};
 use crate::device::{Device, TextureBacking};
 use crate::error::{EngineError, Result};
-use crate::image::{Image, ImageDesc};
+use crate::image::{image_2d_info, Image, ImageDesc};
 use crate::sparse::{
     record_array_copies, record_array_layout, SparseImage, SparseImageDesc, SparseMemoryChunk, TexelUpload,
 };
@@ -484,21 +484,7 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
 /// format, its `maxResourceSize` and `maxMemoryAllocationSize`.
 fn array_layer_cost(device: &Arc<Device>, layer_size: u32, mips: u32, format: vk::Format) -> Result<(u64, u32)> {
     let bytes_for = |layers: u32| {
-        let info = vk::ImageCreateInfo::default()
-            .image_type(vk::ImageType::TYPE_2D)
-            .format(format)
-            .extent(vk::Extent3D {
-                width: layer_size,
-                height: layer_size,
-                depth: 1,
-            })
-            .mip_levels(mips)
-            .array_layers(layers)
-            .samples(vk::SampleCountFlags::TYPE_1)
-            .tiling(vk::ImageTiling::OPTIMAL)
-            .usage(CACHE_USAGE)
-            .sharing_mode(vk::SharingMode::EXCLUSIVE)
-            .initial_layout(vk::ImageLayout::UNDEFINED);
+        let info = image_2d_info(format, layer_size, layer_size, mips, layers, CACHE_USAGE);
         let query = vk::DeviceImageMemoryRequirements::default().create_info(&info);
         let mut requirements = vk::MemoryRequirements2::default();
         // SAFETY: a Vulkan 1.3 query on a live device with a valid create info.
