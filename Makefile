@@ -7,7 +7,7 @@ OUT ?= out/run
 CITY ?=
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
-.PHONY: all setup build run window test check fmt clippy doc embed bench fuzz-long gpu-check gpu-check-pack
+.PHONY: all setup build run window test check fmt clippy doc embed loops bench fuzz-long gpu-check gpu-check-pack
 
 all: build
 
@@ -57,7 +57,11 @@ doc: setup
 embed:
 	$(CARGO) check -p citystream-engine --lib
 
-check: fmt clippy doc embed
+# Import loops between the modules of a crate (cargo refuses loops between crates).
+loops:
+	python3 tools/scripts/module-loops.py .
+
+check: fmt clippy doc embed loops
 
 bench: setup
 	$(CARGO) bench --workspace
