@@ -14,7 +14,7 @@
 //!   with the bad-input and stall rules: a private module whose public items
 //!   are re-exported here.
 //! - This module: the trait, its options and errors, and the constant
-//!   policies ([`BaselinePolicy`], [`FixedPolicy`]).
+//!   policies ([`ConstantPolicy::baseline`], [`ConstantPolicy::fixed`]).
 //!
 //! # Units
 //!
