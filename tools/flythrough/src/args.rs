@@ -72,6 +72,17 @@ fn parse_display_period_ms(text: &str) -> Result<f64, String> {
     Ok(ms)
 }
 
+/// `--render-ms`: finite, in (0, 1000].
+fn parse_render_ms(text: &str) -> Result<f64, String> {
+    let ms: f64 = text
+        .parse()
+        .map_err(|_| format!("`{text}` is not a number of milliseconds"))?;
+    if !(ms.is_finite() && ms > 0.0 && ms <= 1000.0) {
+        return Err(format!("{text} ms is not a render cost in (0, 1000] ms"));
+    }
+    Ok(ms)
+}
+
 /// `--controller`: which adaptive controller `--policy adaptive` runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum Controller {
@@ -287,6 +298,10 @@ pub(crate) struct Args {
     /// modelled work. 16.67 (60 Hz) by default; 0: uncapped.
     #[arg(long, default_value_t = FIXED_STEP_MS, value_parser = parse_display_period_ms)]
     pub(crate) display_period_ms: f64,
+    /// With --clock fixed or modelled: what rendering a frame costs (ms) in the modelled
+    /// latency, before its binds and copies. 8 by default.
+    #[arg(long, default_value_t = FIXED_RENDER_MS, value_parser = parse_render_ms)]
+    pub(crate) render_ms: f64,
     /// The latency the controller is fed, `work` (the default: the frame's modelled work
     /// with --clock modelled; in the window with --clock real, the interval between frames
     /// less the waits for the display, acquiring an image and presenting) or `period` (the
@@ -424,7 +439,8 @@ pub(crate) fn parse_eviction(text: &str) -> std::result::Result<Eviction, String
 /// The budget the cache gets for "unlimited": more than any dataset.
 pub(crate) const UNLIMITED_BUDGET_BYTES: u64 = u64::MAX / 4;
 
-/// Fixed clock: the time step and the modelled render cost of a frame.
+/// Fixed clock: the time step. Fixed and modelled clocks: the render cost of a frame
+/// without `--render-ms`.
 pub(crate) const FIXED_STEP_MS: f64 = 1000.0 / 60.0;
 pub(crate) const FIXED_RENDER_MS: f64 = 8.0;
 /// Fixed clock: host-to-device copy bandwidth of the modelled GPU, the same

@@ -9,7 +9,7 @@ use citystream_streaming::bind_latency::BindLatencyModel;
 use citystream_streaming::controller::PolicyOptions;
 use citystream_streaming::rng::SplitMix64;
 
-use super::args::{Args, Clock, FIXED_COPY_BYTES_PER_S, FIXED_RENDER_MS};
+use super::args::{Args, Clock, FIXED_COPY_BYTES_PER_S};
 
 /// The streaming policy the options ask for.
 pub(crate) fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::controller::LoadPolicy>> {
@@ -34,9 +34,11 @@ pub(crate) fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::
 
 /// The latency (ms) of a frame the controller is given: measured with the
 /// real clock (after sleeping through the modelled bind cost, as a driver
-/// would stall), modelled with the others.
+/// would stall), modelled with the others: `render_ms`, the binds' modelled cost and the
+/// copies' time.
 pub(crate) fn frame_latency(
     clock: Clock,
+    render_ms: f64,
     applied: &citystream_engine::texture_cache::CycleReport,
     other_upload_bytes: u64,
     latency: &BindLatencyModel,
@@ -56,7 +58,7 @@ pub(crate) fn frame_latency(
         Clock::Real => measured_ms(),
         Clock::Fixed | Clock::Modelled => {
             let copied = applied.bytes_uploaded + other_upload_bytes;
-            FIXED_RENDER_MS + bind_cost_ms + copied as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
+            render_ms + bind_cost_ms + copied as f64 / FIXED_COPY_BYTES_PER_S * 1000.0
         }
     }
 }

@@ -59,6 +59,8 @@ pub(crate) struct Flight {
     frame_commands: Vec<CommandContext>,
     pub(crate) pass_times: PassTimes,
     clock: Clock,
+    /// `--render-ms`: a modelled frame's render cost.
+    render_ms: f64,
     latency: BindLatencyModel,
     latency_rng: SplitMix64,
     cpu_clock: CpuFrameClock,
@@ -234,6 +236,7 @@ impl Flight {
             frame_commands,
             pass_times,
             clock: args.clock,
+            render_ms: args.render_ms,
             latency: BindLatencyModel::preset(args.bind_latency),
             latency_rng: SplitMix64::new(args.seed),
             cpu_clock: CpuFrameClock::new(),
@@ -424,6 +427,7 @@ impl Flight {
         let cpu_clock = &mut self.cpu_clock;
         frame_latency(
             self.clock,
+            self.render_ms,
             &frame.applied,
             frame.ground_bytes,
             &self.latency,

@@ -17,7 +17,7 @@ use citystream_gen::files::write_atomically;
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 
-use super::args::{writes_frame, Args, Clock, ControllerLatency, FIXED_RENDER_MS, FIXED_STEP_MS};
+use super::args::{writes_frame, Args, Clock, ControllerLatency, FIXED_STEP_MS};
 use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
 use super::dataset::{open_city, scene_extent};
@@ -90,7 +90,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     // the modelled one it is at most that.
     let shortest_frame_ms = match args.clock {
         // A modelled frame lasts its render cost at the least, and the display period.
-        Clock::Modelled => args.display_period_ms.max(FIXED_RENDER_MS),
+        Clock::Modelled => args.display_period_ms.max(args.render_ms),
         _ => FIXED_STEP_MS,
     };
     let frames = args
@@ -346,6 +346,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         policy: flight.gpu.streamer.policy().kind().name(),
         alpha_ms: args.alpha,
         display_period_ms: (args.clock == Clock::Modelled).then_some(args.display_period_ms),
+        render_ms: (args.clock != Clock::Real).then_some(args.render_ms),
         controller_latency: (args.clock == Clock::Modelled).then_some(args.controller_latency.name()),
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         error: PrefixedErrorFigures {

@@ -6,7 +6,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 
-use crate::args::{Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_STEP_MS};
+use crate::args::{Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_RENDER_MS, FIXED_STEP_MS};
 use crate::dataset::dataset_dir;
 use crate::device::flythrough_device;
 use crate::headless::stream_city;
@@ -48,6 +48,9 @@ fn main() -> Result<()> {
     controller::build_policy(&args)?;
     if args.clock != Clock::Modelled && args.display_period_ms != FIXED_STEP_MS {
         bail!("--display-period-ms models a display: it needs --clock modelled");
+    }
+    if args.clock == Clock::Real && args.render_ms != FIXED_RENDER_MS {
+        bail!("--render-ms is the modelled render cost of a frame: it needs --clock fixed or modelled");
     }
     let has_display = args.clock == Clock::Modelled || (args.window && args.clock == Clock::Real);
     if args.controller_latency != ControllerLatency::Work && !has_display {

@@ -60,6 +60,9 @@ pub(crate) struct Run<'a> {
     /// and what the controller was fed (`work` or `period`); absent with other clocks.
     pub(crate) display_period_ms: Option<f64>,
     pub(crate) controller_latency: Option<&'static str>,
+    /// `--clock fixed` or `modelled`: a frame's modelled render cost (`--render-ms`);
+    /// absent with the real clock.
+    pub(crate) render_ms: Option<f64>,
     pub(crate) mip_deficit: Option<Stats>,
     /// The facades' error against the fully resident reference: `psnr_db`,
     /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured

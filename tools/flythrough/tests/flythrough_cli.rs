@@ -68,6 +68,9 @@ fn bad_arguments_are_refused_clearly() {
         ("--controller", "pid"),
         ("--display-period-ms", "2000"),
         ("--display-period-ms", "NaN"),
+        ("--render-ms", "0"),
+        ("--render-ms", "NaN"),
+        ("--render-ms", "1e9"),
         ("--controller-latency", "vsync"),
         ("--sparse", "maybe"),
         ("--strategy", "arrays"),
@@ -99,6 +102,17 @@ fn bad_arguments_are_refused_clearly() {
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("needs --clock modelled"), "{stderr}");
+    // A render cost is modelled: the real clock measures its own.
+    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(["--clock", "real", "--render-ms", "12"])
+        .output()
+        .expect("flythrough runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--render-ms") && stderr.contains("needs --clock fixed or modelled"),
+        "{stderr}"
+    );
     // Headless with the real clock there is no display to leave out of the latency.
     let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
         .args(["--clock", "real", "--controller-latency", "period"])
@@ -801,6 +815,54 @@ fn fixed_clock_runs_are_reproducible() {
         run("b"),
         "two fixed-clock runs of the same path must match frame by frame"
     );
+}
+
+#[test]
+fn the_modelled_render_cost_is_an_option_that_adds_to_every_frame() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_render_ms");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    // The fixed policy decides the same whatever the latency, so the two runs stream alike
+    // and differ only in what each frame's render costs.
+    let run = |name: &str, extra: &[&str]| {
+        let out = base.join(name);
+        let args = [
+            &["--frames", "60", "--frame-interval", "0", "--policy", "fixed"][..],
+            extra,
+        ]
+        .concat();
+        let args = [&args[..], &["--bind-latency", "desktop"][..]].concat();
+        let (output, summary) = small_run(&dataset, &out, &args);
+        assert!(
+            output.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        let csv = std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv");
+        let mut lines = csv.lines();
+        let column = lines
+            .next()
+            .and_then(|header| header.split(',').position(|c| c == "dt_ms"))
+            .expect("a dt_ms column");
+        let frame_ms: Vec<f64> = lines
+            .map(|line| line.split(',').nth(column).and_then(|v| v.parse().ok()).expect("dt_ms"))
+            .collect();
+        (frame_ms, summary)
+    };
+    let (default, default_summary) = run("default", &[]);
+    let (slower, slower_summary) = run("slower", &["--render-ms", "12.5"]);
+    assert_eq!(default_summary["render_ms"], 8.0);
+    assert_eq!(slower_summary["render_ms"], 12.5);
+    assert_eq!(default.len(), 60);
+    assert_eq!(default.len(), slower.len());
+    for (frame, (a, b)) in default.iter().zip(&slower).enumerate() {
+        assert!(
+            *a >= 8.0 && (b - a - 4.5).abs() < 2e-4,
+            "frame {frame}: {a} ms, then {b} ms"
+        );
+    }
+    // Binds and copies cost on top of the render: some frames streamed.
+    assert!(default.iter().any(|ms| *ms > 8.0001), "{default:?}");
 }
 
 /// The default city, created once for the tests that fly it (concurrent creators are safe:
