@@ -626,7 +626,16 @@ pub fn run_traced(config: &SimConfig, mut observe: impl FnMut(&FrameSample)) -> 
         policy.observe_load(done_bytes);
         policy.update(frame_ms);
         let t = policy.telemetry();
-        summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, done_mips, done_bytes);
+        // The simulated camera moves in real time: the path advances by the frame.
+        summary.push_frame(
+            frame_ms,
+            frame_ms,
+            t.tw_ms,
+            t.load_size_mb,
+            t.mip_bias,
+            done_mips,
+            done_bytes,
+        );
         observe(&FrameSample {
             frame: i,
             time_s: clock_s,

@@ -54,9 +54,10 @@ pub struct Summary {
     pub frame_ms: Stats,
     /// Weighted maximum frame latency `t_w` in ms, per frame.
     pub tw_ms: Stats,
-    /// Mipmaps streamed per second, per sampling window.
+    /// Mipmaps streamed per second of path time, per sampling window.
     pub mips_per_s: Stats,
-    /// MB (2^20 bytes) streamed per second, per sampling window.
+    /// MB (2^20 bytes) streamed per second of path time, per sampling window: its mean is
+    /// the bytes streamed over the path's seconds (the last, partial window aside).
     pub mb_per_s: Stats,
     /// Load size `s` in MB, per frame.
     pub load_size_mb: Stats,
@@ -70,9 +71,12 @@ pub const RATE_WINDOW_S: f64 = 0.10423;
 
 /// Collects per-frame samples and turns them into a [`Summary`].
 ///
-/// Transfer rates are counted per [`RATE_WINDOW_S`] window of the run's own
-/// clock: what completed in the window divided by its length; windows in
-/// which nothing was rendered (inside a long frame) count as zero.
+/// Transfer rates are counted per [`RATE_WINDOW_S`] window of path time (how far
+/// the camera moved along its path, what a user watching the run sees pass): what
+/// completed in the window divided by its length; windows in which nothing was
+/// rendered (inside a long frame) count as zero. Where the path advances by a fixed
+/// step, frames' modelled work takes less time than the path; dividing by work time
+/// would overstate the rate.
 #[derive(Clone, Debug, Default)]
 pub struct SummaryBuilder {
     frame_ms: Vec<f64>,
@@ -81,7 +85,7 @@ pub struct SummaryBuilder {
     mip_bias: Vec<f64>,
     window_mips: Vec<u64>,
     window_bytes: Vec<u64>,
-    clock_s: f64,
+    path_s: f64,
     bytes_streamed: u64,
 }
 
@@ -91,18 +95,30 @@ impl SummaryBuilder {
         Self::default()
     }
 
-    /// Record one frame: its latency, the policy's `t_w`, `s` and `b` for it,
-    /// and the mips and bytes whose streaming completed during it.
-    pub fn push_frame(&mut self, frame_ms: f64, tw_ms: f64, load_size_mb: f64, mip_bias: f64, mips: u64, bytes: u64) {
+    /// Record one frame: its latency, how far the path advanced with it (`path_ms`: the
+    /// latency itself where the camera moves in real time, a fixed step with the fixed
+    /// clock), the policy's `t_w`, `s` and `b` for it, and the mips and bytes whose
+    /// streaming completed during it.
+    #[allow(clippy::too_many_arguments)]
+    pub fn push_frame(
+        &mut self,
+        frame_ms: f64,
+        path_ms: f64,
+        tw_ms: f64,
+        load_size_mb: f64,
+        mip_bias: f64,
+        mips: u64,
+        bytes: u64,
+    ) {
         self.frame_ms.push(frame_ms);
         self.tw_ms.push(tw_ms);
         self.load_size_mb.push(load_size_mb);
         self.mip_bias.push(mip_bias);
-        if frame_ms.is_finite() && frame_ms > 0.0 {
-            self.clock_s += frame_ms / 1000.0;
+        if path_ms.is_finite() && path_ms > 0.0 {
+            self.path_s += path_ms / 1000.0;
         }
         // Completions land at the end of the frame.
-        let window = (self.clock_s / RATE_WINDOW_S) as usize;
+        let window = (self.path_s / RATE_WINDOW_S) as usize;
         if self.window_mips.len() <= window {
             self.window_mips.resize(window + 1, 0);
             self.window_bytes.resize(window + 1, 0);
@@ -112,15 +128,15 @@ impl SummaryBuilder {
         self.bytes_streamed += bytes;
     }
 
-    /// Seconds covered by the frames pushed so far.
+    /// Seconds of path covered by the frames pushed so far.
     pub fn elapsed_s(&self) -> f64 {
-        self.clock_s
+        self.path_s
     }
 
     /// The summary. The last, partial window is left out of the rates
     /// unless it is the only one.
     pub fn finish(&self) -> Summary {
-        let full = (self.clock_s / RATE_WINDOW_S) as usize;
+        let full = (self.path_s / RATE_WINDOW_S) as usize;
         let n = full.clamp(1, self.window_mips.len().max(1));
         let rate = |v: &[u64], scale: f64| -> Vec<f64> {
             (0..n)
@@ -198,7 +214,7 @@ mod tests {
         let mut b = SummaryBuilder::new();
         for i in 0..11 {
             let (m, by) = if i < 5 { (1, 1 << 20) } else { (0, 0) };
-            b.push_frame(20.0, 1.0, 1.0, 0.0, m, by);
+            b.push_frame(20.0, 20.0, 1.0, 1.0, 0.0, m, by);
         }
         let s = b.finish();
         assert_eq!(s.frames, 11);
@@ -208,5 +224,27 @@ mod tests {
         assert_eq!(s.mips_per_s.min, 0.0);
         assert!((s.mips_per_s.mean - 2.5 / 0.10423).abs() < 1e-9);
         assert!((s.mb_per_s.mean - s.mips_per_s.mean).abs() < 1e-9);
+    }
+
+    #[test]
+    fn rates_are_per_second_of_path_not_of_work() {
+        // 600 frames of 8 ms of work on a path advancing 1/60 s each (the fixed clock):
+        // 10 s of path, 4.8 s of work. 3 MiB complete every 6th frame: 300 MiB in all.
+        let mut b = SummaryBuilder::new();
+        for i in 0..600 {
+            let bytes = if i % 6 == 5 { 3 << 20 } else { 0 };
+            b.push_frame(8.0, 1000.0 / 60.0, 1.0, 1.0, 0.0, u64::from(bytes > 0), bytes);
+        }
+        assert!((b.elapsed_s() - 10.0).abs() < 1e-9);
+        let s = b.finish();
+        let per_path_second = (s.bytes_streamed as f64 / f64::from(1 << 20)) / 10.0;
+        assert!((per_path_second - 30.0).abs() < 1e-9);
+        // The windows' mean is the path rate within 1 % (the last, partial window aside);
+        // per second of work it would read 62.5.
+        assert!(
+            (s.mb_per_s.mean / per_path_second - 1.0).abs() < 0.01,
+            "{} MB/s against {per_path_second}",
+            s.mb_per_s.mean
+        );
     }
 }

@@ -239,12 +239,13 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
         }
 
-        sim_time_s += match args.clock {
+        let path_ms = match args.clock {
             Clock::Modelled => frame_ms.max(args.display_period_ms),
             _ => FIXED_STEP_MS,
-        } / 1000.0;
+        };
+        sim_time_s += path_ms / 1000.0;
         let t = flight.gpu.streamer.policy().telemetry();
-        summary.push_frame(frame_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
+        summary.push_frame(frame_ms, path_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
         if let Some(error) = error {
             errors.push(time_s, error);
@@ -265,7 +266,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 camera: &camera,
             },
         )?;
-        let mb_per_s = bytes as f64 / 1e6 / (frame_ms / 1000.0).max(1e-6);
+        let mb_per_s = bytes as f64 / 1e6 / (path_ms / 1000.0).max(1e-6);
         status(
             frame,
             frames,

@@ -74,7 +74,7 @@ pub(crate) fn placeholder_city(args: &Args, device: &Arc<Device>) -> Result<()> 
             write_frame_png(args, frame, &target.read_pixels()?, &mut written)?;
         }
         let dt = clock.tick().as_secs_f64() * 1000.0;
-        summary.push_frame(dt, dt, 0.0, 0.0, 0, 0);
+        summary.push_frame(dt, dt, dt, 0.0, 0.0, 0, 0);
         status(frame, frames, dt, 0.0, 0.0, 0.0, 0.0);
     }
     if std::io::IsTerminal::is_terminal(&std::io::stderr()) {

@@ -865,6 +865,27 @@ fn the_modelled_render_cost_is_an_option_that_adds_to_every_frame() {
     assert!(default.iter().any(|ms| *ms > 8.0001), "{default:?}");
 }
 
+#[test]
+fn transfer_rates_are_per_second_of_path_time() {
+    let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_rates");
+    let dataset = base.join("city");
+    write_small_dataset(&dataset);
+    // 1,000 fixed-clock frames: 16.7 s of path, about 8 s of modelled work. The rates are
+    // per 0.10423 s window and the last, partial one is left out: 0.4 % of this path.
+    let args = ["--frames", "1000", "--frame-interval", "0", "--bind-latency", "desktop"];
+    let (output, summary) = small_run(&dataset, &base.join("run"), &args);
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let path_s = summary["duration_s"].as_f64().expect("duration_s");
+    assert!((path_s - 1000.0 / 60.0).abs() < 0.02, "{summary}");
+    let mb = summary["bytes_streamed"].as_f64().expect("bytes_streamed") / f64::from(1 << 20);
+    assert!(mb > 0.0, "{summary}");
+    let mean = summary["mb_per_s"]["mean"].as_f64().expect("mb_per_s");
+    assert!(
+        (mean / (mb / path_s) - 1.0).abs() < 0.01,
+        "mb_per_s {mean} against {mb} MB over {path_s} s of path"
+    );
+}
+
 /// The default city, created once for the tests that fly it (concurrent creators are safe:
 /// each builds privately and renames into place).
 fn default_city() -> std::path::PathBuf {
