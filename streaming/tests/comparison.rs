@@ -1,4 +1,4 @@
-//! The must-show comparison on the deterministic simulated run:
+//! The controller's acceptance comparison on the deterministic simulated run:
 //! `desktop` bind latency, adaptive against baseline with the same seed.
 
 use citystream_streaming::bench::sim::{self, SimConfig, SimError, SimReport};

@@ -11,7 +11,7 @@ use citystream_streaming::source::MemorySource;
 use citystream_streaming::states::{next_load, TextureState, TextureStates, TextureStatus};
 use proptest::prelude::*;
 
-/// Frame latencies including every hard case of the issue.
+/// Frame latencies including every hard case: non-finite, negative, zero, tiny and huge.
 fn latency() -> impl Strategy<Value = f64> {
     prop_oneof![
         4 => 0.0f64..50.0,

@@ -28,7 +28,7 @@
 //! (`adaptive-a12-ring`, for comparison) and without a budget
 //! (`unbudgeted-a12`, the error reference of the same path). The policy runs
 //! share the cache and its eviction; only load size and mip bias differ. Besides the report it
-//! writes `pressure.md`: the acceptance ratios, measured.
+//! writes `pressure.md`: the acceptance ratios, measured.
 //!
 //! `--scenario loader` measures the loader alone ([`crate::loader_bench`]).
 //!

@@ -10,7 +10,7 @@
 //! `desktop` bind-latency model and a `--budget-mb` cache (1024 MB by default): the baseline,
 //! a fixed load size, and the adaptive policy at α = 12, 14, 16 and 18 ms with β = 8 (the
 //! paper's Table 2; τ = 150 is the engine's mesh-weight cutoff). `berlin.md` sets each run
-//! beside the paper's row of Table 3 and checks the issue's targets; the report of every run
+//! beside the paper's row of Table 3 and checks Table 3's targets; the report of every run
 //! (Table 3 layout, Fig. 6 charts) goes to `OUT` as in the other scenarios.
 
 use std::path::{Path, PathBuf};
@@ -175,7 +175,7 @@ pub(crate) fn write_path(dataset: &Path, out: &Path) -> Result<PathBuf> {
     Ok(file)
 }
 
-/// `berlin.md`: every run beside the paper's row of Table 3, then the issue's checks.
+/// `berlin.md`: every run beside the paper's row of Table 3, then the checks of Table 3's targets.
 pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<String> {
     let mut text = format!(
         "# Table 3 on the Berlin-sized city\n\n\
@@ -254,7 +254,7 @@ pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<Stri
         ),
     ];
     text.push('\n');
-    text.push_str(&checks_table("## The issue's targets", checks));
+    text.push_str(&checks_table("## Table 3's targets", checks));
     text.push_str(
         "\n## What the cycles loaded\n\n\
          Why a run stalls or not: its demand per cycle against the load size `s` (the baseline's \

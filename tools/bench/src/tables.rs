@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use crate::report;
 use crate::runs::{BenchRun, StrategyArg};
 
-/// The controllers scenario's comparisons (the targets), as a markdown table.
+/// The controllers scenario's comparisons (the acceptance targets), as a markdown table.
 pub(crate) fn controller_checks(out: &Path) -> Result<String> {
     const ALPHA_MS: f64 = 12.0;
     let pressure = out.join("pressure");

@@ -5,7 +5,7 @@
 //! 1. `citystream gen --preset large` (about 100 000 textures): textures/s and MB/s;
 //! 2. the time to open that dataset (median of 5) and its host metadata per texture;
 //! 3. the time to open a Berlin-sized texture table (5 712 309 textures of one 4×4 BC1 mip
-//!    each, so the pack stays small) — the cost the issue bounds: "opens in seconds".
+//!    each, so the pack stays small) — the cost bounded by "opens in seconds".
 
 use std::path::Path;
 use std::process::Command;

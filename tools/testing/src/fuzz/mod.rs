@@ -44,7 +44,7 @@ pub enum Target {
     Dataset,
     /// `CameraPath::from_json` and sampling of what parses.
     Path,
-    /// glTF and GLB import (`import::load_slice`) without writing a dataset.
+    /// glTF and GLB import (`citystream_import::gltf::load_slice`) without writing a dataset.
     Gltf,
     /// KTX2, DDS and PNG decoding (`decode_image_bytes`).
     Texture,
