@@ -32,6 +32,17 @@ impl Clock {
         self != Clock::Real
     }
 
+    /// How far the camera moves along its path with a frame of `frame_ms`: the real clock's
+    /// follows the time the frame took, the fixed clock's a 60 Hz step, the modelled
+    /// clock's the frame's modelled latency, at least `display_period_ms`.
+    pub(crate) fn path_advance_ms(self, frame_ms: f64, display_period_ms: f64) -> f64 {
+        match self {
+            Clock::Real => frame_ms,
+            Clock::Fixed => FIXED_STEP_MS,
+            Clock::Modelled => frame_ms.max(display_period_ms),
+        }
+    }
+
     /// The name written to summary.json.
     pub(crate) fn name(self) -> &'static str {
         match self {
@@ -459,4 +470,20 @@ pub(crate) fn writes_frame(args: &Args, frame: u32) -> bool {
 
 pub(crate) fn frames_dir_path(args: &Args) -> PathBuf {
     args.out.join("frames")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_clock_advances_the_path_by_its_own_time() {
+        // A 9 ms frame under a 16.67 ms display period, and a 40 ms stall.
+        assert_eq!(Clock::Real.path_advance_ms(9.0, FIXED_STEP_MS), 9.0);
+        assert_eq!(Clock::Fixed.path_advance_ms(9.0, FIXED_STEP_MS), FIXED_STEP_MS);
+        assert_eq!(Clock::Fixed.path_advance_ms(40.0, 0.0), FIXED_STEP_MS);
+        assert_eq!(Clock::Modelled.path_advance_ms(9.0, FIXED_STEP_MS), FIXED_STEP_MS);
+        assert_eq!(Clock::Modelled.path_advance_ms(40.0, FIXED_STEP_MS), 40.0);
+        assert_eq!(Clock::Modelled.path_advance_ms(9.0, 0.0), 9.0);
+    }
 }

@@ -128,7 +128,6 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     let mut errors = ErrorSeries::new();
     let started = std::time::Instant::now();
     let mut written = Vec::new();
-    let mut sim_time_s = 0.0f64;
     let mut frame_ms = FIXED_STEP_MS;
     let (mut mips_total, mut blocks_total, mut peak_resident) = (0u64, 0u64, 0u64);
     let mut peak_device_memory = 0u64;
@@ -143,7 +142,8 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     let mut meshes_seen = Vec::new();
     for frame in 0..frames {
         let time_s = match args.clock {
-            Clock::Fixed | Clock::Modelled => sim_time_s,
+            // The path so far: every frame before this one pushed its advance.
+            Clock::Fixed | Clock::Modelled => summary.elapsed_s(),
             Clock::Real => started.elapsed().as_secs_f64(),
         };
         let path_done = match args.clock {
@@ -239,11 +239,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             peak_device_memory = peak_device_memory.max(device.device_memory_bytes().unwrap_or(0));
         }
 
-        let path_ms = match args.clock {
-            Clock::Modelled => frame_ms.max(args.display_period_ms),
-            _ => FIXED_STEP_MS,
-        };
-        sim_time_s += path_ms / 1000.0;
+        let path_ms = args.clock.path_advance_ms(frame_ms, args.display_period_ms);
         let t = flight.gpu.streamer.policy().telemetry();
         summary.push_frame(frame_ms, path_ms, t.tw_ms, t.load_size_mb, t.mip_bias, mips, bytes);
         deficits.extend(deficit);
@@ -306,6 +302,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         eprintln!("warning: the error reference evicted {reference_incomplete} textures; PSNR is optimistic");
     }
     let validation_errors = device.validation_log().error_count();
+    let path_s = summary.elapsed_s();
     let summary = summary.finish();
     let residency = flight.gpu.streamer.residency_totals();
     let pause_uploads_second_half = path
@@ -374,7 +371,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         height: args.height,
         duration_s: match args.clock {
             Clock::Real => started.elapsed().as_secs_f64(),
-            Clock::Fixed | Clock::Modelled => sim_time_s,
+            Clock::Fixed | Clock::Modelled => path_s,
         },
         wall_s: started.elapsed().as_secs_f64(),
         wall_ms_per_frame: started.elapsed().as_secs_f64() * 1000.0 / f64::from(frames_run.max(1)),
