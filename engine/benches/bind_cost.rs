@@ -26,7 +26,7 @@ use citystream_engine::instance::InstanceOptions;
 use citystream_engine::sparse::{SparseImage, SparseImageDesc, SparseMemoryChunk};
 use citystream_engine::vk;
 use citystream_engine::{Device, DeviceOptions};
-use citystream_streaming::bind_latency::{BindLatencyModel, BindLatencyPreset};
+use citystream_streaming::bind_latency::{BatchShape, BindLatencyModel, BindLatencyPreset};
 
 /// Batch sizes in blocks.
 const SIZES: [u32; 8] = [1, 4, 16, 64, 256, 1024, 2048, 4096];
@@ -220,8 +220,7 @@ fn main() -> Result<()> {
                 unbinds.push(timed_submit(&mut setup, &unbind)?.0 * 1e3);
             }
             let (bind_ms, unbind_ms) = (median(binds), median(unbinds));
-            let runs = if scattered { u64::from(n) } else { 1 };
-            let model_ms = model.expected_cost_s(u64::from(n), runs) * 1e3;
+            let model_ms = model.expected_cost_s(BatchShape::of(&batch)) * 1e3;
             let pattern = if scattered { "scattered" } else { "contiguous" };
             println!(
                 "{n:>6} {pattern:>10} {entries:>8} {bind_ms:>12.3} {unbind_ms:>12.3} {:>12.2} {model_ms:>14.3}",

@@ -12,11 +12,16 @@
 //! cost(n, runs) = per_call + a·n·(1 + jitter) + c·n² + scatter·(runs − 1) + spike
 //! ```
 //!
-//! for a non-empty batch of `n` blocks in `runs` contiguous runs (an empty
-//! batch costs nothing), with `jitter` uniform in `[−j, j]` and, with
+//! for a non-empty batch of `n` blocks bound or unbound in `runs` contiguous runs (an
+//! empty batch costs nothing), with `jitter` uniform in `[−j, j]` and, with
 //! probability `p` per submission, a spike uniform in `[spike_min,
-//! spike_max]`. Randomness comes from a seeded [`SplitMix64`], so a run is
-//! reproducible.
+//! spike_max]`; plus, for a driver measured per bind entry,
+//! `per_bind_entry · bind_runs + per_unbind_entry · unbind_runs`. Randomness comes from
+//! a seeded [`SplitMix64`], so a run is reproducible.
+//!
+//! Runs are counted from the blocks' layout in the image ([`BatchShape::of`]: adjacent
+//! columns of one row of one level merge), not from where the allocator placed their
+//! memory: two runs that differ only in chunk placement cost the same.
 //!
 //! # Presets
 //!
@@ -44,6 +49,18 @@
 //!      1024 single-block runs), and 1 % of submissions stall 4–12 ms,
 //!      the size of the residual stutters in Table 3's α = 12 ms row (max
 //!      frame 15.98 ms against a 4.55 ms median).
+//! * `h200-linux`: measured on an NVIDIA H200 (driver 580.159, Linux,
+//!   2026-12-04; docs/REAL_GPU.md, "What binding costs on the H200": `bind_cost`, batches
+//!   of 1 to 4,096 blocks of a BC1 image of 2048² layers, contiguous and scattered, bound
+//!   then unbound, median of 7). The cost is linear in the bind entries, where a run of
+//!   adjacent blocks of a row is one entry (4 blocks of 512 × 256 texels across a 2048²
+//!   level). The cost per entry is the least-squares slope over the table's points of
+//!   at most 1,024 entries (the largest batch a 64 MB load size makes): 24.77 µs a bind
+//!   entry, 18.11 µs an unbind entry. The cost of a call is what a single block's bind
+//!   took (0.150 and 0.131 ms, mean 0.1405) less one bind entry: 115.7 µs. Nothing
+//!   quadratic, no spikes (the bench's medians saw none). Every point of the table up to
+//!   1,024 entries is within 14 % of the model (1,024 contiguous blocks, 256 entries:
+//!   6.46 ms against 6.31 measured; scattered, 1,024 entries: 25.5 against 23.2).
 //!
 //! Threading: the model is plain data; [`LatencyBinder`] is `Send` and,
 //! like every [`SparseBinder`], used by one thread at a time.
@@ -62,7 +79,7 @@ pub const SPARSE_BLOCK_BYTES: u64 = 65_536;
 
 /// Error parsing a preset name.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
-#[error("unknown bind-latency preset `{0}` (expected none, lavapipe or desktop)")]
+#[error("unknown bind-latency preset `{0}` (expected none, lavapipe, desktop or h200-linux)")]
 pub struct UnknownPreset(pub String);
 
 /// Named bind-latency presets.
@@ -74,6 +91,8 @@ pub enum BindLatencyPreset {
     Lavapipe,
     /// A desktop driver calibrated from Table 3 (see the module docs).
     Desktop,
+    /// An NVIDIA H200 under Linux as measured (see the module docs).
+    H200Linux,
 }
 
 impl BindLatencyPreset {
@@ -83,6 +102,7 @@ impl BindLatencyPreset {
             BindLatencyPreset::None => "none",
             BindLatencyPreset::Lavapipe => "lavapipe",
             BindLatencyPreset::Desktop => "desktop",
+            BindLatencyPreset::H200Linux => "h200-linux",
         }
     }
 }
@@ -100,6 +120,7 @@ impl FromStr for BindLatencyPreset {
             "none" => Ok(BindLatencyPreset::None),
             "lavapipe" => Ok(BindLatencyPreset::Lavapipe),
             "desktop" => Ok(BindLatencyPreset::Desktop),
+            "h200-linux" => Ok(BindLatencyPreset::H200Linux),
             _ => Err(UnknownPreset(s.to_owned())),
         }
     }
@@ -124,6 +145,67 @@ pub struct BindLatencyModel {
     pub spike_min_s: f64,
     /// Largest spike.
     pub spike_max_s: f64,
+    /// Cost per entry of bound blocks (a run of adjacent blocks).
+    pub per_bind_entry_s: f64,
+    /// Cost per entry of unbound blocks.
+    pub per_unbind_entry_s: f64,
+}
+
+/// What a bind submission holds, as the models charge it: blocks bound and unbound, and
+/// the runs (bind entries) each makes in the image's layout.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct BatchShape {
+    /// Blocks bound.
+    pub bound: u64,
+    /// Blocks unbound.
+    pub unbound: u64,
+    /// Runs of the bound blocks ([`count_runs`]).
+    pub bind_runs: u64,
+    /// Runs of the unbound blocks.
+    pub unbind_runs: u64,
+}
+
+impl BatchShape {
+    /// The shape of `batch`.
+    pub fn of(batch: &[BindOp]) -> Self {
+        let (binds, unbinds): (Vec<BindOp>, Vec<BindOp>) =
+            batch.iter().copied().partition(|op| matches!(op, BindOp::Bind { .. }));
+        BatchShape {
+            bound: binds.len() as u64,
+            unbound: unbinds.len() as u64,
+            bind_runs: count_runs(&binds),
+            unbind_runs: count_runs(&unbinds),
+        }
+    }
+
+    /// `blocks` bound in `runs` runs, nothing unbound.
+    pub fn binds(blocks: u64, runs: u64) -> Self {
+        BatchShape {
+            bound: blocks,
+            bind_runs: runs,
+            ..Self::default()
+        }
+    }
+
+    /// Blocks bound or unbound.
+    pub fn blocks(&self) -> u64 {
+        self.bound + self.unbound
+    }
+
+    /// Runs of both.
+    pub fn runs(&self) -> u64 {
+        self.bind_runs + self.unbind_runs
+    }
+}
+
+impl std::ops::AddAssign for BatchShape {
+    /// Several submissions counted as one.
+    fn add_assign(&mut self, other: Self) {
+        self.bound += other.bound;
+        self.unbound += other.unbound;
+        self.bind_runs += other.bind_runs;
+        self.unbind_runs += other.unbind_runs;
+    }
 }
 
 impl BindLatencyModel {
@@ -138,6 +220,8 @@ impl BindLatencyModel {
             spike_probability: 0.0,
             spike_min_s: 0.0,
             spike_max_s: 0.0,
+            per_bind_entry_s: 0.0,
+            per_unbind_entry_s: 0.0,
         };
         match preset {
             BindLatencyPreset::None => zero,
@@ -156,12 +240,20 @@ impl BindLatencyModel {
                 spike_probability: 0.01,
                 spike_min_s: 4e-3,
                 spike_max_s: 12e-3,
+                ..zero
+            },
+            BindLatencyPreset::H200Linux => BindLatencyModel {
+                per_call_s: 115.7e-6,
+                per_bind_entry_s: 24.77e-6,
+                per_unbind_entry_s: 18.11e-6,
+                ..zero
             },
         }
     }
 
-    /// The cost without jitter or spikes of `blocks` blocks in `runs` runs.
-    pub fn expected_cost_s(&self, blocks: u64, runs: u64) -> f64 {
+    /// The cost without jitter or spikes of a submission of `batch`.
+    pub fn expected_cost_s(&self, batch: BatchShape) -> f64 {
+        let blocks = batch.blocks();
         if blocks == 0 {
             return 0.0;
         }
@@ -169,12 +261,15 @@ impl BindLatencyModel {
         self.per_call_s
             + self.per_block_s * n
             + self.quadratic_s * n * n
-            + self.per_extra_run_s * runs.saturating_sub(1) as f64
+            + self.per_extra_run_s * batch.runs().saturating_sub(1) as f64
+            + self.per_bind_entry_s * batch.bind_runs as f64
+            + self.per_unbind_entry_s * batch.unbind_runs as f64
     }
 
-    /// The modelled cost of one submission, drawing jitter and spikes from
+    /// The modelled cost of one submission of `batch`, drawing jitter and spikes from
     /// `rng`. Always finite and `>= 0`.
-    pub fn cost_s(&self, blocks: u64, runs: u64, rng: &mut SplitMix64) -> f64 {
+    pub fn cost_s(&self, batch: BatchShape, rng: &mut SplitMix64) -> f64 {
+        let blocks = batch.blocks();
         if blocks == 0 {
             return 0.0;
         }
@@ -185,7 +280,7 @@ impl BindLatencyModel {
         } else {
             0.0
         };
-        (self.expected_cost_s(blocks, runs) - self.per_block_s * n + self.per_block_s * n * jitter + spike).max(0.0)
+        (self.expected_cost_s(batch) - self.per_block_s * n + self.per_block_s * n * jitter + spike).max(0.0)
     }
 }
 
@@ -274,7 +369,7 @@ impl<B: SparseBinder> SparseBinder for LatencyBinder<B> {
         if batch.is_empty() {
             return Ok(report);
         }
-        let cost = self.model.cost_s(batch.len() as u64, count_runs(batch), &mut self.rng);
+        let cost = self.model.cost_s(BatchShape::of(batch), &mut self.rng);
         self.modelled_total_s += cost;
         if self.mode == LatencyMode::Sleep && cost > 0.0 {
             std::thread::sleep(Duration::from_secs_f64(cost.min(60.0)));
@@ -325,16 +420,82 @@ mod tests {
     fn desktop_calibration_points() {
         let m = BindLatencyModel::preset(BindLatencyPreset::Desktop);
         // 64 MB = 1024 blocks, one run: 470 ms by construction.
-        assert!((m.expected_cost_s(1024, 1) - 0.470).abs() < 1e-12);
+        assert!((m.expected_cost_s(BatchShape::binds(1024, 1)) - 0.470).abs() < 1e-12);
         // 1 MB = 16 blocks: 5 µs + 8 µs + 256 · 0.447734 µs = 0.12762 ms.
         let c = (470e-3 - 5e-6 - 512e-6) / 1_048_576.0;
-        assert!((m.expected_cost_s(16, 1) - (5e-6 + 8e-6 + 256.0 * c)).abs() < 1e-15);
-        assert!((m.expected_cost_s(16, 1) - 0.12762e-3).abs() < 1e-8);
+        assert!((m.expected_cost_s(BatchShape::binds(16, 1)) - (5e-6 + 8e-6 + 256.0 * c)).abs() < 1e-15);
+        assert!((m.expected_cost_s(BatchShape::binds(16, 1)) - 0.12762e-3).abs() < 1e-8);
         // Grows faster than linearly: 64 blocks cost more than 4 × 16.
-        assert!(m.expected_cost_s(64, 1) > 4.0 * m.expected_cost_s(16, 1));
+        assert!(m.expected_cost_s(BatchShape::binds(64, 1)) > 4.0 * m.expected_cost_s(BatchShape::binds(16, 1)));
         // Scattered is worse: 16 single-block runs add 15 · 20 µs.
-        assert!((m.expected_cost_s(16, 16) - m.expected_cost_s(16, 1) - 300e-6).abs() < 1e-15);
-        assert_eq!(m.expected_cost_s(0, 0), 0.0);
+        assert!(
+            (m.expected_cost_s(BatchShape::binds(16, 16)) - m.expected_cost_s(BatchShape::binds(16, 1)) - 300e-6).abs()
+                < 1e-15
+        );
+        assert_eq!(m.expected_cost_s(BatchShape::binds(0, 0)), 0.0);
+    }
+
+    #[test]
+    fn h200_linux_matches_its_measured_table() {
+        let m = BindLatencyModel::preset(BindLatencyPreset::H200Linux);
+        // (blocks, entries, measured bind ms, measured unbind ms) of the H200's table, up
+        // to 1,024 entries: contiguous rows merge 4 blocks into an entry.
+        let table = [
+            (1, 1, 0.150, 0.126),
+            (16, 4, 0.207, 0.173),
+            (64, 16, 0.491, 0.384),
+            (256, 64, 1.750, 1.194),
+            (1024, 256, 6.306, 4.364),
+            (64, 64, 1.515, 1.121),
+            (256, 256, 6.126, 4.314),
+            (1024, 1024, 23.220, 17.231),
+        ];
+        for (blocks, entries, bind_ms, unbind_ms) in table {
+            let bind = m.expected_cost_s(BatchShape::binds(blocks, entries)) * 1e3;
+            let unbind = m.expected_cost_s(BatchShape {
+                unbound: blocks,
+                unbind_runs: entries,
+                ..BatchShape::default()
+            }) * 1e3;
+            assert!(
+                (bind / bind_ms - 1.0).abs() < 0.15,
+                "{blocks} blocks bound: {bind} ms, measured {bind_ms}"
+            );
+            assert!(
+                (unbind / unbind_ms - 1.0).abs() < 0.15,
+                "{blocks} blocks unbound: {unbind} ms, measured {unbind_ms}"
+            );
+        }
+        // Linear: no growth per block beyond the entries, no spikes.
+        let mut rng = SplitMix64::new(1);
+        let a = m.cost_s(BatchShape::binds(1024, 256), &mut rng);
+        assert!((a - m.expected_cost_s(BatchShape::binds(1024, 256))).abs() < 1e-15);
+        assert!(m.expected_cost_s(BatchShape::binds(1024, 256)) * 70.0 < 0.470);
+    }
+
+    #[test]
+    fn batch_shapes_count_runs_of_binds_and_unbinds_apart() {
+        let unbind = |x, y| BindOp::Unbind {
+            block: BlockKey {
+                image: 0,
+                layer: 0,
+                mip: 0,
+                x,
+                y,
+            },
+        };
+        let shape = BatchShape::of(&[bind(0, 0), bind(1, 0), unbind(2, 0), unbind(3, 1), bind(3, 2)]);
+        assert_eq!(
+            shape,
+            BatchShape {
+                bound: 3,
+                unbound: 2,
+                bind_runs: 2,
+                unbind_runs: 2
+            }
+        );
+        assert_eq!("h200-linux".parse(), Ok(BindLatencyPreset::H200Linux));
+        assert_eq!(BindLatencyPreset::H200Linux.to_string(), "h200-linux");
     }
 
     #[test]
@@ -342,11 +503,11 @@ mod tests {
         let m = BindLatencyModel::preset(BindLatencyPreset::Lavapipe);
         let mut rng = SplitMix64::new(3);
         for _ in 0..100 {
-            let c = m.cost_s(10, 1, &mut rng);
+            let c = m.cost_s(BatchShape::binds(10, 1), &mut rng);
             assert!((45e-6 + 40e-6 - 1e-12..=45e-6 + 60e-6 + 1e-12).contains(&c), "{c}");
         }
         let none = BindLatencyModel::preset(BindLatencyPreset::None);
-        assert_eq!(none.cost_s(1000, 1000, &mut rng), 0.0);
+        assert_eq!(none.cost_s(BatchShape::binds(1000, 1000), &mut rng), 0.0);
     }
 
     #[test]
@@ -354,7 +515,9 @@ mod tests {
         let m = BindLatencyModel::preset(BindLatencyPreset::Desktop);
         let draw = |seed| {
             let mut rng = SplitMix64::new(seed);
-            (0..20_000).map(|_| m.cost_s(1, 1, &mut rng)).collect::<Vec<_>>()
+            (0..20_000)
+                .map(|_| m.cost_s(BatchShape::binds(1, 1), &mut rng))
+                .collect::<Vec<_>>()
         };
         let a = draw(11);
         assert_eq!(a, draw(11));

@@ -14,6 +14,8 @@
 //!   mip bias out.
 //! - [`loader`]: the streaming task, planning each cycle within the load size
 //!   and reading exactly the mips planned on rayon's workers.
+//! - [`disk_model`]: how long a cycle's reads take on a modelled disk, for the clocks
+//!   that model time (a cycle then spans the frames its reads take).
 //! - [`source`]: where mip bytes come from ([`source::MipSource`], with
 //!   [`source::DatasetSource`] over a `citystream-dataset` pack) and where they go
 //!   ([`source::MipSink`]).
@@ -41,6 +43,7 @@ pub mod bench;
 pub mod bind_latency;
 pub mod clipmap;
 pub mod controller;
+pub mod disk_model;
 pub mod ground;
 pub mod loader;
 pub mod records;

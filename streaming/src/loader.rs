@@ -38,6 +38,7 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 
 use crate::controller::Decision;
+use crate::disk_model::DiskModel;
 use crate::records::MeshMetaData;
 use crate::residency::AdmissionGate;
 use crate::source::{MipSink, MipSource, SourceError, StagedMip};
@@ -61,6 +62,11 @@ pub struct LoaderOptions {
     pub read_attempts: u32,
     /// Wait before the first retry of a failed read.
     pub retry_backoff: Duration,
+    /// Reads take modelled time on this disk ([`crate::disk_model`]): the load-time
+    /// limit applies to each read's modelled start instead of the wall clock, and every
+    /// mip goes to [`MipSink::stage_after`] with its modelled completion. For cycles run
+    /// on the caller's thread ([`Loader::run_cycle`]) by a host with a modelled clock.
+    pub disk: Option<DiskModel>,
 }
 
 impl Default for LoaderOptions {
@@ -70,6 +76,7 @@ impl Default for LoaderOptions {
             plan_chunk: 4096,
             read_attempts: 3,
             retry_backoff: Duration::from_millis(2),
+            disk: None,
         }
     }
 }
@@ -281,6 +288,9 @@ pub struct CycleReport {
     pub bad_records: u64,
     /// Wall time of the cycle.
     pub elapsed: Duration,
+    /// With a disk model, when the cycle's last read completes, from its start (zero
+    /// without one).
+    pub modelled_read_time: Duration,
 }
 
 /// Totals over every cycle since the loader was made.
@@ -586,8 +596,29 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
         let lost = AtomicU64::new(0);
         let read_failures = AtomicU64::new(0);
         let invalidated = AtomicU64::new(0);
-        plan.items.par_iter().for_each(|item| {
-            if start.elapsed() > self.options.load_time {
+        // With a disk model every planned read has its modelled start and completion,
+        // in priority order, before any is made: the same plan gives the same times.
+        let schedule = self.options.disk.map(|disk| {
+            let sizes: Vec<u64> = plan.items.iter().map(|item| item.bytes).collect();
+            disk.schedule(&sizes)
+        });
+        let modelled_read_time = schedule
+            .as_ref()
+            .and_then(|reads| {
+                reads
+                    .iter()
+                    .filter(|read| read.start <= self.options.load_time)
+                    .map(|read| read.done)
+                    .max()
+            })
+            .unwrap_or_default();
+        plan.items.par_iter().enumerate().for_each(|(index, item)| {
+            let modelled = schedule.as_ref().map(|reads| reads[index]);
+            let too_late = match modelled {
+                Some(read) => read.start > self.options.load_time,
+                None => start.elapsed() > self.options.load_time,
+            };
+            if too_late {
                 deferred.fetch_add(1, Ordering::Relaxed);
                 return;
             }
@@ -595,7 +626,7 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
                 lost.fetch_add(1, Ordering::Relaxed);
                 return;
             }
-            match self.load(item) {
+            match self.load(item, modelled.map(|read| read.done)) {
                 Ok(()) => {
                     loaded_mips.fetch_add(1, Ordering::Relaxed);
                     loaded_bytes.fetch_add(item.bytes, Ordering::Relaxed);
@@ -629,6 +660,7 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
             bad_records: plan.bad_records,
             declined: plan.declined,
             elapsed: start.elapsed(),
+            modelled_read_time,
         };
         let c = &self.counters;
         c.cycles.fetch_add(1, Ordering::Relaxed);
@@ -675,24 +707,29 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
         unreachable!("the attempts above end in a return")
     }
 
-    fn load(&self, item: &PlannedMip) -> Result<(), LoadFailure> {
+    /// Reads `item` and stages it (after `modelled_done` of modelled time, where a disk
+    /// model gives one).
+    fn load(&self, item: &PlannedMip, modelled_done: Option<Duration>) -> Result<(), LoadFailure> {
         let len = usize::try_from(item.bytes)
             .map_err(|_| LoadFailure::Failed(format!("mip of {} bytes does not fit in memory", item.bytes)))?;
         let mut bytes = vec![0u8; len];
         self.read_with_retries(item.texture, item.level, &mut bytes)
             .map_err(LoadFailure::Failed)?;
-        self.sink
-            .stage(StagedMip {
-                texture: item.texture,
-                level: item.level,
-                bytes,
-            })
-            .map_err(|e| {
-                if e.invalidated {
-                    LoadFailure::Invalidated
-                } else {
-                    LoadFailure::Failed(e.to_string())
-                }
-            })
+        let mip = StagedMip {
+            texture: item.texture,
+            level: item.level,
+            bytes,
+        };
+        match modelled_done {
+            Some(done) => self.sink.stage_after(mip, done),
+            None => self.sink.stage(mip),
+        }
+        .map_err(|e| {
+            if e.invalidated {
+                LoadFailure::Invalidated
+            } else {
+                LoadFailure::Failed(e.to_string())
+            }
+        })
     }
 }

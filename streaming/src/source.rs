@@ -178,6 +178,13 @@ pub trait MipSink: Send + Sync {
     fn unload(&self, texture: u32);
     /// The cycle is over: submit what was recorded. Default: nothing.
     fn end_cycle(&self) {}
+    /// Take one loaded mip whose read completes `done` after its cycle started on a
+    /// modelled disk ([`crate::loader::LoaderOptions::disk`]); a host with a modelled
+    /// clock holds it until then. Default: [`stage`](Self::stage) at once.
+    fn stage_after(&self, mip: StagedMip, done: std::time::Duration) -> Result<(), SinkError> {
+        let _ = done;
+        self.stage(mip)
+    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {

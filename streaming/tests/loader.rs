@@ -201,6 +201,71 @@ fn load_time_limit_defers_and_keeps_state() -> Result<(), LoaderError> {
     Ok(())
 }
 
+/// Keeps each mip's modelled completion.
+#[derive(Debug, Default)]
+struct TimedSink {
+    staged: Mutex<Vec<(u32, u32, Duration)>>,
+}
+
+impl MipSink for TimedSink {
+    fn stage(&self, mip: StagedMip) -> Result<(), SinkError> {
+        Err(SinkError {
+            texture: mip.texture,
+            level: mip.level,
+            reason: "a modelled disk stages with stage_after".into(),
+            invalidated: false,
+        })
+    }
+    fn stage_after(&self, mip: StagedMip, done: Duration) -> Result<(), SinkError> {
+        self.staged
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push((mip.texture, mip.level, done));
+        Ok(())
+    }
+    fn unload(&self, _texture: u32) {}
+}
+
+#[test]
+fn a_modelled_disk_times_each_read_and_limits_the_cycle_by_modelled_time() -> Result<(), LoaderError> {
+    use citystream_streaming::disk_model::DiskModel;
+    // 16 textures of 64² BC1: their 4×4 levels (8 bytes each) in the first cycle. One
+    // lane at 8,000 bytes/s and 1 ms a request: each read takes 2 ms, one after another.
+    let disk = DiskModel {
+        bytes_per_s: 8_000,
+        request_latency: Duration::from_millis(1),
+        queue_depth: 1,
+    };
+    let opts = LoaderOptions {
+        // Reads starting after 9 ms of modelled time wait for a later cycle: 5 start in
+        // time (at 0, 2, 4, 6 and 8 ms).
+        load_time: Duration::from_millis(9),
+        disk: Some(disk),
+        plan_chunk: 16,
+        ..LoaderOptions::default()
+    };
+    let loader = Loader::new(bc1_source(16, 64), TimedSink::default(), (0..16).collect(), 16, opts)?;
+    // Heaviest first: the order the reads are issued in.
+    let records = prepare((0..16).map(|t| rec(t, 1000 - t, 0)).collect(), 150);
+    let r = loader.run_cycle(&records, unlimited()).expect("idle");
+    assert_eq!((r.planned_mips, r.loaded_mips, r.deferred_by_time), (16, 5, 11));
+    assert_eq!(r.modelled_read_time, Duration::from_millis(10));
+    let mut staged = loader
+        .sink()
+        .staged
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .clone();
+    staged.sort();
+    let expected: Vec<(u32, u32, Duration)> = (0..5)
+        .map(|t| (t, 4, Duration::from_millis(2 * u64::from(t) + 2)))
+        .collect();
+    assert_eq!(staged, expected);
+    // Deferred textures stay as they were, for the next cycle.
+    assert_eq!(loader.states().get(5).expect("in range").state, TextureState::Initial);
+    Ok(())
+}
+
 /// A sink whose first `stage` blocks until released, to hold a cycle open.
 #[derive(Debug)]
 struct GateSink {

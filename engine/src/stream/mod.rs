@@ -47,6 +47,7 @@ use std::time::{Duration, Instant};
 use ash::vk;
 use citystream_dataset::TextureFormat;
 use citystream_streaming::controller::{Decision, LoadPolicy};
+use citystream_streaming::disk_model::ModelledReads;
 use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, TextureFailure};
 use citystream_streaming::records::{prepare, MeshMetaData};
 use citystream_streaming::residency::planner::BudgetPressure;
@@ -96,11 +97,17 @@ fn texture_extents<S: MipSource + ?Sized>(source: &S) -> Result<Vec<Vec<(u32, u6
 #[derive(Debug, Default)]
 struct UploadQueue {
     staged: Mutex<Vec<StagedMip>>,
+    /// Mips read on a modelled disk, each with its completion from its cycle's start.
+    modelled: Mutex<Vec<(Duration, StagedMip)>>,
 }
 
 impl UploadQueue {
     fn take(&self) -> Vec<StagedMip> {
         std::mem::take(&mut *self.staged.lock().unwrap_or_else(|e| e.into_inner()))
+    }
+
+    fn take_modelled(&self) -> Vec<(Duration, StagedMip)> {
+        std::mem::take(&mut *self.modelled.lock().unwrap_or_else(|e| e.into_inner()))
     }
 }
 
@@ -111,6 +118,15 @@ struct QueueSink(Arc<UploadQueue>);
 impl MipSink for QueueSink {
     fn stage(&self, mip: StagedMip) -> std::result::Result<(), SinkError> {
         self.0.staged.lock().unwrap_or_else(|e| e.into_inner()).push(mip);
+        Ok(())
+    }
+
+    fn stage_after(&self, mip: StagedMip, done: Duration) -> std::result::Result<(), SinkError> {
+        self.0
+            .modelled
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push((done, mip));
         Ok(())
     }
 
@@ -179,6 +195,10 @@ pub struct StreamConfig {
     /// Reproducible runs: each frame's feedback is consumed exactly
     /// `frames_in_flight` frames later and the loading cycle runs on the
     /// calling thread, so results do not depend on GPU or disk timing. Default: `false`.
+    /// With a disk model ([`LoaderOptions::disk`], deterministic runs only) a cycle's
+    /// mips reach the cache when the host's modelled clock
+    /// ([`TextureStreamer::set_modelled_time`]) passes their reads' completion, and the
+    /// next cycle starts after that: a cycle spans the frames its reads take.
     pub deterministic: bool,
 }
 
@@ -310,6 +330,10 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     gate: Arc<AdmissionGate>,
     /// Loaded mips whose memory waits for the next unbind batch.
     deferred: Vec<StagedMip>,
+    /// With a disk model: the mips of the cycle whose reads are in flight.
+    modelled_reads: Option<ModelledReads>,
+    /// The host's modelled clock ([`TextureStreamer::set_modelled_time`]).
+    modelled_now: Duration,
     totals: ResidencyTotals,
     last_cycle: ResidencyCycle,
     pressure: BudgetPressure,
@@ -340,6 +364,16 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             return Err(EngineError::InvalidRequest(
                 "frames in flight must be at least 1".into(),
             ));
+        }
+        if let Some(disk) = config.loader.disk {
+            if !config.deterministic {
+                return Err(EngineError::InvalidRequest(
+                    "a disk model times the reads of deterministic runs; without one the reads take what the disk takes"
+                        .into(),
+                ));
+            }
+            disk.validate()
+                .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
         }
         let texture_count = source.texture_count();
         let mesh_count = u32::try_from(mesh_textures.len())
@@ -445,6 +479,8 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             needs: NeedTable::new(texture_count as usize),
             gate,
             deferred: Vec::new(),
+            modelled_reads: config.loader.disk.map(|_| ModelledReads::new()),
+            modelled_now: Duration::ZERO,
             totals: ResidencyTotals::default(),
             last_cycle: ResidencyCycle::default(),
             pressure: BudgetPressure::default(),
@@ -624,6 +660,37 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         Ok(())
     }
 
+    /// Sets the host's modelled clock (time since the run started), which a disk model
+    /// ([`StreamConfig::deterministic`]) times reads against: call it before each
+    /// [`begin_frame`](Self::begin_frame) with the time of the frame about to begin. It
+    /// never goes back: an earlier time is refused.
+    pub fn set_modelled_time(&mut self, now: Duration) -> Result<()> {
+        if now < self.modelled_now {
+            return Err(EngineError::InvalidRequest(format!(
+                "the modelled clock went back from {:?} to {now:?}",
+                self.modelled_now
+            )));
+        }
+        self.modelled_now = now;
+        Ok(())
+    }
+
+    /// With a disk model, the mips read and not yet in the cache and their bytes.
+    pub fn reads_in_flight(&self) -> Option<(usize, u64)> {
+        self.modelled_reads
+            .as_ref()
+            .map(|reads| (reads.held(), reads.held_bytes()))
+    }
+
+    /// Loaded mips ready for the cache: all the loader staged, or with a disk model those
+    /// whose reads completed by the modelled clock.
+    fn take_loaded(&mut self) -> Vec<StagedMip> {
+        match self.modelled_reads.as_mut() {
+            Some(reads) => reads.release(self.modelled_now),
+            None => self.queue.take(),
+        }
+    }
+
     /// Step 1 of a frame; see the module docs.
     pub fn begin_frame(&mut self) -> Result<Frame> {
         if self.in_frame {
@@ -734,7 +801,8 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// gate): on this thread in deterministic runs, else on a worker. Whether a cycle ran
     /// or started.
     fn start_loading(&mut self, records: Vec<MeshMetaData>) -> bool {
-        if self.loader.is_streaming() {
+        let now = self.modelled_now;
+        if self.loader.is_streaming() || self.modelled_reads.as_ref().is_some_and(|r| r.busy(now)) {
             return false;
         }
         // One load size for everything streamed: what the host uploaded of its own since
@@ -744,7 +812,11 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             ..self.decision
         };
         let started = if self.deterministic {
-            self.loader.run_cycle(&records, decision).is_some()
+            let report = self.loader.run_cycle(&records, decision);
+            if let (Some(reads), Some(report)) = (self.modelled_reads.as_mut(), report.as_ref()) {
+                reads.hold_cycle(now, self.queue.take_modelled(), report.modelled_read_time);
+            }
+            report.is_some()
         } else {
             self.loader.try_spawn(records, decision)
         };

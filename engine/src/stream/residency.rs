@@ -99,7 +99,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     pub(super) fn stage_by_view(&mut self) -> Result<u32> {
         self.last_cycle = ResidencyCycle::default();
         let mut staged = std::mem::take(&mut self.deferred);
-        staged.extend(self.queue.take());
+        staged.extend(self.take_loaded());
         let mut refused = 0;
         let mut pass = PackingPass::new();
         for (value, mip) in packing_order(&self.needs, staged) {
@@ -201,7 +201,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         let mut refused = 0;
         // Loader workers stage in whatever order they finish; packing in a
         // fixed order keeps cache placement, and so runs, reproducible.
-        let mut staged = self.queue.take();
+        let mut staged = self.take_loaded();
         staged.sort_unstable_by_key(|m| (m.texture, std::cmp::Reverse(m.level)));
         for mip in staged {
             let source = self.loader.source();

@@ -10,6 +10,7 @@ use std::sync::Arc;
 
 use ash::vk;
 use citystream_cache::Placement;
+use citystream_streaming::bind_latency::BatchShape;
 
 use super::table::same_place;
 use super::{CycleReport, GpuTextureCache};
@@ -282,6 +283,7 @@ impl GpuTextureCache {
             .images
             .apply_batch(&self.device, &batch.new_chunks, &batch.ops, frames_before)?;
         report.bind_entries = applied.entries;
+        report.bind_shape = BatchShape::of(&batch.ops);
         report.bind_seconds = applied.seconds;
         report.blocks_bound = applied.bound;
         report.blocks_unbound = applied.unbound;

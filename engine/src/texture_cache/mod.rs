@@ -32,6 +32,7 @@ use std::sync::Arc;
 use ash::vk;
 use citystream_cache::{BudgetUse, CacheError, TexelFormat, TextureCache, Utilisation};
 use citystream_dataset::TextureFormat;
+use citystream_streaming::bind_latency::BatchShape;
 pub use citystream_streaming::residency::planner::ResidentCache;
 
 use crate::buffer::Buffer;
@@ -139,6 +140,10 @@ pub struct CycleReport {
     pub blocks_unbound: u32,
     /// Bind entries submitted after merging.
     pub bind_entries: u32,
+    /// The blocks bound and unbound and their runs in the images' layout, as the
+    /// bind-latency models charge them (not the merged entries, which depend on where
+    /// the allocator placed memory).
+    pub bind_shape: BatchShape,
     /// Seconds the bind submission took on the CPU.
     pub bind_seconds: f64,
     /// Mips copied into the cache.
@@ -157,6 +162,7 @@ impl CycleReport {
         self.blocks_bound += other.blocks_bound;
         self.blocks_unbound += other.blocks_unbound;
         self.bind_entries += other.bind_entries;
+        self.bind_shape += other.bind_shape;
         self.bind_seconds += other.bind_seconds;
         self.mips_uploaded += other.mips_uploaded;
         self.bytes_uploaded += other.bytes_uploaded;
@@ -656,11 +662,18 @@ mod tests {
             bytes_uploaded: 4096,
             textures_invalidated: 2,
             invalidated_textures: vec![3, 9],
+            bind_shape: BatchShape {
+                bound: 2,
+                unbound: 4,
+                bind_runs: 1,
+                unbind_runs: 2,
+            },
         });
         assert_eq!(
             (total.blocks_bound, total.blocks_unbound, total.bind_entries),
             (5, 4, 1)
         );
+        assert_eq!((total.bind_shape.blocks(), total.bind_shape.runs()), (6, 3));
         assert_eq!((total.mips_uploaded, total.bytes_uploaded), (5, 4096));
         assert_eq!(total.bind_seconds, 0.75);
         assert_eq!(total.textures_invalidated, 3);

@@ -105,7 +105,9 @@ pub enum Scenario {
     /// city's bench and on the pressure benchmark.
     Controllers,
     /// The paper's Table 3 on the Berlin-sized city (`gen --preset berlin`, built under
-    /// --data-dir on first use): baseline, fixed, adaptive α = 12, 14, 16, 18 ms.
+    /// --data-dir on first use), its reads on the paper's SSD (`--disk-model 970evo`) and
+    /// the paper's frame: baseline, fixed s = 64 MB, adaptive α = 12 and 16 ms, headroom
+    /// α = 12 ms under the `desktop` driver, and baseline and α = 12 ms under `h200-linux`.
     Berlin,
 }
 
@@ -162,8 +164,8 @@ pub struct BenchArgs {
     #[arg(long)]
     frames: Option<u64>,
     /// `--scenario berlin`: only these runs (directory names, comma-separated: `baseline`,
-    /// `adaptive-a12`, `adaptive-a14`, `adaptive-a16`, `adaptive-a18`, `fixed-s4-b0`); the
-    /// tables show the others as not run.
+    /// `fixed-s64`, `adaptive-a12`, `adaptive-a16`, `headroom-a12`, `h200-baseline`,
+    /// `h200-adaptive-a12`); the tables show the others as not run.
     #[arg(long, value_delimiter = ',')]
     runs: Option<Vec<String>>,
     /// Image width of every run (default: the flythrough's own; 1920 with
@@ -603,11 +605,11 @@ fn flythrough_args(
 ) -> Vec<String> {
     let mut out: Vec<String> = vec!["--dataset".into(), dataset.display().to_string()];
     out.extend(policy.args.iter().cloned());
-    out.extend(
-        ["--clock", settings.clock, "--bind-latency", "desktop"]
-            .iter()
-            .map(|a| a.to_string()),
-    );
+    out.extend(["--clock".to_string(), settings.clock.to_string()]);
+    // The paper's driver, unless the run names another.
+    if !policy.args.iter().any(|a| a == "--bind-latency") {
+        out.extend(["--bind-latency".to_string(), "desktop".to_string()]);
+    }
     let options = [
         ("--frames", settings.frames.map(|f| f.to_string())),
         ("--duration-s", settings.duration_s.map(|d| d.to_string())),

@@ -4,10 +4,11 @@
 //! Fig. 6 from flythrough runs, read by [`report_runs`]), [`image_error`] (the image-error
 //! convention every figure uses, shared with the flythrough), [`simulate`] (the policy on
 //! the modelled clock) and [`loader_bench`] / [`remote_bench`] (the loader from disk and
-//! over HTTP).
+//! over HTTP), with [`disk_probe`] (this machine's disk for the read model).
 
 pub mod bench;
 pub mod berlin_bench;
+pub mod disk_probe;
 pub mod image_error;
 pub mod loader_bench;
 pub mod remote_bench;

@@ -163,8 +163,8 @@ fn pass(reader: &'static str, cache: &'static str, crc: bool, mips: u64, bytes: 
     }
 }
 
-/// Runs the benchmark on `dataset_dir`, writing `loader.json` and
-/// `loader.md` to `out`; returns the markdown.
+/// Runs the benchmark on `dataset_dir`, writing `loader.json`, `loader.md` and the read
+/// model's `disk-model.json` ([`crate::disk_probe`]) to `out`; returns the markdown.
 pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
     let dataset = Arc::new(Dataset::open(dataset_dir).with_context(|| format!("opening {}", dataset_dir.display()))?);
     let pack_path = dataset.textures.pack_path().to_path_buf();
@@ -266,6 +266,18 @@ pub fn run(dataset_dir: &Path, out: &Path) -> Result<String> {
         ));
     }
     md.push_str("\nMB = 2^20 bytes. The loader's time includes its planning (state and header lookups).\n");
+    // This machine's disk as the flythrough's read model takes it (`--disk-model
+    // measured:OUT/disk-model.json`).
+    let disk = crate::disk_probe::measure(&dataset, dataset_dir)?;
+    disk.write(&out.join("disk-model.json"))?;
+    md.push_str(&format!(
+        "\nThe read model's figures (`disk-model.json`, for `flythrough --disk-model measured:FILE`): \
+         {:.1} MB/s, {:.1} µs per request, {} reads in flight ({}).\n",
+        disk.bytes_per_s as f64 / 1e6,
+        disk.request_latency_ns as f64 / 1e3,
+        disk.queue_depth,
+        disk.source
+    ));
     let json = serde_json::to_string_pretty(&passes)?;
     let json_path = out.join("loader.json");
     citystream_gen::files::write_atomically(&json_path, json.as_bytes())?;

@@ -200,6 +200,12 @@ pub struct LoadProfile {
     /// take.
     pub frames_over_twice_median: u64,
     pub time_share_over_twice_median: f64,
+    /// Loading cycles started (None for older CSVs).
+    pub cycles: Option<u64>,
+    /// With a disk model, MB each cycle read (mean and max) and the cycles whose reads
+    /// reached 90 % of their load size `s`.
+    pub mb_per_cycle: Option<[f64; 2]>,
+    pub cycles_at_load_size: Option<u64>,
 }
 
 /// The [`LoadProfile`] of the run in `dir`.
@@ -213,7 +219,32 @@ pub fn load_profile(dir: &Path) -> Result<LoadProfile> {
     let median = dt[dt.len() / 2];
     let slow: Vec<f64> = dt.iter().copied().filter(|&d| d > 2.0 * median).collect();
     let mean_max = |v: &[f64]| [v.iter().sum::<f64>() / n, v.iter().copied().fold(0.0, f64::max)];
+    let cycles = frames
+        .iter()
+        .map(|f| f.cycle_started)
+        .collect::<Option<Vec<bool>>>()
+        .map(|started| started.iter().filter(|s| **s).count() as u64);
+    // A cycle reads all it loads in its first frame, on a modelled disk.
+    let cycle_reads: Option<Vec<(f64, f64)>> = frames
+        .iter()
+        .filter(|f| f.cycle_started == Some(true))
+        .map(|f| {
+            f.reads_in_flight_bytes
+                .map(|b| (b as f64 / BYTES_PER_MB, f.load_size_mb))
+        })
+        .collect();
+    let cycle_reads = cycle_reads.filter(|reads| !reads.is_empty());
     Ok(LoadProfile {
+        cycles,
+        mb_per_cycle: cycle_reads.as_ref().map(|reads| {
+            [
+                reads.iter().map(|r| r.0).sum::<f64>() / reads.len() as f64,
+                reads.iter().map(|r| r.0).fold(0.0, f64::max),
+            ]
+        }),
+        cycles_at_load_size: cycle_reads
+            .as_ref()
+            .map(|reads| reads.iter().filter(|(mb, s)| *s > 0.0 && *mb >= 0.9 * s).count() as u64),
         frames: frames.len() as u64,
         mb_per_frame: mean_max(&mb),
         frames_at_load_size: frames

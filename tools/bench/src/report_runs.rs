@@ -114,6 +114,11 @@ pub(crate) struct FrameRow {
     pub(crate) psnr_db: Option<f64>,
     /// Absent from older CSVs.
     pub(crate) mse: Option<f64>,
+    /// A loading cycle started in the frame (absent from older CSVs).
+    pub(crate) cycle_started: Option<bool>,
+    /// With a disk model, the bytes the cycle in flight had still to deliver after the
+    /// frame began (at a cycle's first frame, all it read); absent otherwise.
+    pub(crate) reads_in_flight_bytes: Option<u64>,
 }
 
 /// A run read from disk, with the statistics the table shows.
@@ -229,6 +234,8 @@ pub(crate) fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
     };
     let names: Vec<&str> = header.trim_end_matches('\r').split(',').map(str::trim).collect();
     let mse_column = names.iter().position(|n| *n == "mse");
+    let cycle_column = names.iter().position(|n| *n == "cycle_started");
+    let in_flight_column = names.iter().position(|n| *n == "reads_in_flight_bytes");
     let mut index = [0usize; FRAME_COLUMNS.len()];
     for (slot, column) in index.iter_mut().zip(FRAME_COLUMNS) {
         *slot = names.iter().position(|n| *n == column).ok_or_else(|| {
@@ -305,6 +312,24 @@ pub(crate) fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
                 Some(text) => Some(text.parse::<f64>().map_err(|e| {
                     anyhow!(
                         "{}: line {line_no}: column `mse` = {text:?}: not a number ({e})",
+                        path.display()
+                    )
+                })?),
+            },
+            cycle_started: match cycle_column.map(|c| cells[c]) {
+                None => None,
+                Some("0") => Some(false),
+                Some("1") => Some(true),
+                Some(text) => bail!(
+                    "{}: line {line_no}: column `cycle_started` = {text:?}: expected 0 or 1",
+                    path.display()
+                ),
+            },
+            reads_in_flight_bytes: match in_flight_column.map(|c| cells[c]) {
+                None | Some("") => None,
+                Some(text) => Some(text.parse::<u64>().map_err(|e| {
+                    anyhow!(
+                        "{}: line {line_no}: column `reads_in_flight_bytes` = {text:?}: not a non-negative integer ({e})",
                         path.display()
                     )
                 })?),

@@ -883,7 +883,11 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
     // Two runs first: the table has the others as not run.
     bench(&["--runs", "baseline,adaptive-a12"]);
     let table = std::fs::read_to_string(out.join("berlin.md"))?;
-    assert!(table.contains("| adaptive α=14 ms | not run |"), "{table}");
+    assert!(table.contains("| adaptive α=16 ms | desktop | not run |"), "{table}");
+    assert!(
+        table.contains("| baseline, h200-linux | h200-linux | not run |"),
+        "{table}"
+    );
     assert!(
         table.contains("| Mean frame latency, adaptive α=12 / baseline (paper 0.125) | 0.300 | ≤ 0.35 | yes |"),
         "{table}"
@@ -913,17 +917,30 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
     );
     let logged = std::fs::read_to_string(&log)?;
     let lines: Vec<&str> = logged.lines().collect();
-    let shared = format!("--memory-budget-mb 1024 --path {o}/path.json --psnr-interval 60 --frame-interval 0");
-    let tail =
-        |name: &str| format!("--clock modelled --bind-latency desktop --width 3840 --height 2160 --out {o}/{name}");
-    let policy = |args: &str, name: &str| format!("--dataset {c} {args} {shared} {}", tail(name));
+    // Every run reads on the paper's SSD and renders the paper's frame; the bind model is
+    // the paper's driver unless the run names another.
+    let shared = format!(
+        "--memory-budget-mb 1024 --path {o}/path.json --psnr-interval 60 --frame-interval 0 \
+         --disk-model 970evo --render-ms 4.5"
+    );
+    let size = "--width 3840 --height 2160";
+    let desktop = |args: &str, name: &str| {
+        format!("--dataset {c} {args} {shared} --clock modelled --bind-latency desktop {size} --out {o}/{name}")
+    };
+    let h200 = |args: &str, name: &str| {
+        format!("--dataset {c} {args} --bind-latency h200-linux {shared} --clock modelled {size} --out {o}/{name}")
+    };
     let expected = [
-        policy("--policy baseline", "baseline"),
-        policy("--policy adaptive --alpha 12 --beta 8", "adaptive-a12"),
-        policy("--policy adaptive --alpha 14 --beta 8", "adaptive-a14"),
-        policy("--policy adaptive --alpha 16 --beta 8", "adaptive-a16"),
-        policy("--policy adaptive --alpha 18 --beta 8", "adaptive-a18"),
-        policy("--policy fixed --load-size-mb 4 --mip-bias 0", "fixed-s4-b0"),
+        desktop("--policy baseline", "baseline"),
+        desktop("--policy adaptive --alpha 12 --beta 8", "adaptive-a12"),
+        desktop("--policy fixed --load-size-mb 64 --mip-bias 0", "fixed-s64"),
+        desktop("--policy adaptive --alpha 16 --beta 8", "adaptive-a16"),
+        desktop(
+            "--policy adaptive --controller headroom --alpha 12 --beta 8",
+            "headroom-a12",
+        ),
+        h200("--policy baseline", "h200-baseline"),
+        h200("--policy adaptive --alpha 12 --beta 8", "h200-adaptive-a12"),
     ];
     assert_eq!(lines, expected);
     // The path: the city's standard path, as long as the paper's Berlin benchmark.
@@ -936,9 +953,21 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
     assert!((last - 68.6).abs() < 1e-9, "path ends at {last} s");
     let table = std::fs::read_to_string(out.join("berlin.md"))?;
     // Each run beside the paper's row; the fake's baseline runs at 40 ms, α at α ms.
-    assert!(table.contains("| baseline | 20 | 40.00 | 40.00 | 40.00 |"), "{table}");
+    assert!(
+        table.contains("| baseline | desktop | 20 | 40.00 | 40.00 | 40.00 | 1.00 |"),
+        "{table}"
+    );
     assert!(table.contains("| 6.8 / 42.5 / 471.16 | 79.95 | 9628 |"), "{table}");
-    assert!(table.contains("| adaptive α=18 ms | 20 | 18.00 |"), "{table}");
+    assert!(table.contains("| adaptive α=16 ms | desktop | 20 | 16.00 |"), "{table}");
+    assert!(table.contains("| headroom α=12 ms | desktop | 20 | 12.00 |"), "{table}");
+    assert!(
+        table.contains("| baseline, h200-linux | h200-linux | 20 | 40.00 |"),
+        "{table}"
+    );
+    assert!(
+        table.contains("| Mean frame latency, headroom α=12 / baseline | 0.300 | ≤ 0.35 | yes |"),
+        "{table}"
+    );
     assert!(
         table.contains(
             "| Baseline: mean / median frame latency (it stalls throughout; paper 6.25) | 1.000 | ≥ 2 | no |"
@@ -949,9 +978,10 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
         table.contains("| Mean frame latency, adaptive α=12 / baseline (paper 0.125) | 0.300 | ≤ 0.35 | yes |"),
         "{table}"
     );
-    // The fake loads 64 KiB a frame in one block, under its 1 MB load size.
+    // The fake loads 64 KiB a frame in one block, under its 1 MB load size; its frames.csv
+    // has no cycle columns.
     assert!(
-        table.contains("| baseline | 0.06 / 0.06 | 0 of 20 | 1.0 / 1 | 0 | 0.0 % |"),
+        table.contains("| baseline | n/a | n/a | n/a | n/a | 0.06 / 0.06 | 1.0 / 1 | 0 | 0.0 % |"),
         "{table}"
     );
     assert!(out.join("table.md").is_file(), "the report of every run");

@@ -8,6 +8,7 @@ use citystream_engine::present::PresentMode;
 use citystream_engine::texture_cache::Eviction;
 use citystream_streaming::bind_latency::BindLatencyPreset;
 use citystream_streaming::controller::PolicyKind;
+use citystream_streaming::disk_model::DiskModelChoice;
 use citystream_streaming::source::FaultPlan;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -296,9 +297,19 @@ pub(crate) struct Args {
     /// Mip bias (fixed policy).
     #[arg(long, default_value_t = 0.0)]
     pub(crate) mip_bias: f64,
-    /// Modelled cost of binding sparse memory: none, lavapipe or desktop.
+    /// Modelled cost of binding sparse memory: none, lavapipe, desktop (the paper's Windows
+    /// driver, calibrated on its Table 3) or h200-linux (an NVIDIA H200 under Linux, as
+    /// measured).
     #[arg(long, default_value = "none")]
     pub(crate) bind_latency: BindLatencyPreset,
+    /// With --clock fixed or modelled: the disk the loader's reads take modelled time on,
+    /// so that a loading cycle lasts as long as its reads while frames go on: none (reads
+    /// take no time: a cycle lasts one frame), 970evo (the paper's SSD), measured (this
+    /// machine's, probed on the dataset's pack first and written to OUT/disk-model.json)
+    /// or measured:FILE (figures a probe wrote). With a model the 16 ms load-time limit
+    /// applies to the reads' modelled start.
+    #[arg(long, default_value = "none")]
+    pub(crate) disk_model: DiskModelChoice,
     /// Clock: real (measured), fixed (reproducible, modelled latency, 60
     /// frames per camera second) or modelled (reproducible, the camera
     /// advancing by each frame's modelled latency).

@@ -18,6 +18,7 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::Eviction;
 use citystream_engine::Device;
 use citystream_streaming::atlas_tree::AtlasTree;
+use citystream_streaming::disk_model::DiskModel;
 use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::source::{DatasetSource, FaultPlan, FaultySource};
@@ -176,6 +177,7 @@ pub(crate) fn streamed_city_gpu(
     layer_size: u32,
     tree: Option<&AtlasTree>,
     reserved_bytes: u64,
+    disk: Option<DiskModel>,
 ) -> Result<CityGpu> {
     let budget = match args.memory_budget_mb().bytes() {
         Some(budget) if budget <= reserved_bytes => bail!(
@@ -186,21 +188,30 @@ pub(crate) fn streamed_city_gpu(
         Some(budget) => budget - reserved_bytes,
         None => UNLIMITED_BUDGET_BYTES,
     };
+    let mut config = stream_config(
+        budget,
+        args.frames_in_flight,
+        fragment_area,
+        args.clock,
+        args.eviction,
+        args.cache_layers,
+        layer_size,
+    );
+    if let Some(disk) = disk {
+        // Reads take modelled time: the paper's load-time limit applies to it again.
+        config.loader = LoaderOptions {
+            disk: Some(disk),
+            load_time: LoaderOptions::default().load_time,
+            ..config.loader
+        };
+    }
     city_gpu(
         device,
         commands,
         dataset,
         city,
         build_policy(args)?,
-        &stream_config(
-            budget,
-            args.frames_in_flight,
-            fragment_area,
-            args.clock,
-            args.eviction,
-            args.cache_layers,
-            layer_size,
-        ),
+        &config,
         args.inject_read_failures,
         tree,
         args.culling,

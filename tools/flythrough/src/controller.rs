@@ -46,10 +46,9 @@ pub(crate) fn frame_latency(
     measured_ms: impl FnOnce() -> f64,
 ) -> f64 {
     let mut bind_cost_ms = 0.0;
-    if applied.blocks_bound + applied.blocks_unbound > 0 {
-        let runs = u64::from(applied.bind_entries);
-        let blocks = u64::from(applied.blocks_bound + applied.blocks_unbound);
-        bind_cost_ms = latency.cost_s(blocks, runs, rng) * 1000.0;
+    if applied.bind_shape.blocks() > 0 {
+        // Charged by the blocks' layout, not by where their memory happened to lie.
+        bind_cost_ms = latency.cost_s(applied.bind_shape, rng) * 1000.0;
         if clock == Clock::Real && bind_cost_ms > 0.0 {
             std::thread::sleep(Duration::from_secs_f64(bind_cost_ms / 1000.0));
         }

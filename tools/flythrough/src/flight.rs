@@ -25,6 +25,7 @@ use super::args::{Args, Clock, Strategy};
 use super::city_gpu::{cache_layer_size, city_targets, streamed_city_gpu, CityGeometry, CityGpu, CityTargets};
 use super::controller::frame_latency;
 use super::dataset::scene_extent;
+use super::disk::{disk_model, DiskSummary};
 use super::ground;
 use super::measure::MeshesInView;
 use super::passes::{self, Compaction, PassTimes};
@@ -63,6 +64,8 @@ pub(crate) struct Flight {
     render_ms: f64,
     latency: BindLatencyModel,
     latency_rng: SplitMix64,
+    /// `--disk-model`: the loader's reads take modelled time on it.
+    pub(crate) disk: Option<DiskSummary>,
     cpu_clock: CpuFrameClock,
     /// τ in the feedback's fixed point: per feedback fragment, not per visible one.
     pub(crate) tau: u32,
@@ -125,6 +128,10 @@ pub(crate) struct RecordedFrame {
     pub(crate) draw_calls: u32,
     /// Nodes the atlas tree drew.
     pub(crate) nodes_drawn: Option<u32>,
+    /// A loading cycle started in this frame's `begin_frame`.
+    pub(crate) cycle_started: bool,
+    /// With a disk model, bytes read by the cycle in flight and not yet in the cache.
+    pub(crate) reads_in_flight_bytes: Option<u64>,
     /// Where the frame consumed feedback not seen before: its mip deficit and the
     /// textures still a level or more coarser than needed, against the cache as
     /// `begin_frame` left it (this frame's evictions applied, its uploads not yet).
@@ -180,6 +187,7 @@ impl Flight {
             }
             None => None,
         };
+        let disk = disk_model(args, &dataset, dir)?;
         let mut gpu = streamed_city_gpu(
             args,
             device,
@@ -191,6 +199,7 @@ impl Flight {
             tree.as_ref(),
             // The ground's tile array and staging come out of the same budget.
             ground.as_ref().map_or(0, |(_, config, _)| config.memory_bytes()),
+            disk.as_ref().map(|(model, _)| *model),
         )?;
         let ground = match ground {
             Some((set, config, reference)) => Some(ground::GroundRun::new(
@@ -239,6 +248,7 @@ impl Flight {
             render_ms: args.render_ms,
             latency: BindLatencyModel::preset(args.bind_latency),
             latency_rng: SplitMix64::new(args.seed),
+            disk: disk.map(|(_, summary)| summary),
             cpu_clock: CpuFrameClock::new(),
             tau,
             last_feedback: None,
@@ -272,7 +282,15 @@ impl Flight {
         camera: &Camera,
         settings: &FrameSettings<'_>,
     ) -> Result<RecordedFrame> {
+        if self.disk.is_some() {
+            // The read model's clock: this frame's time on the path.
+            self.gpu
+                .streamer
+                .set_modelled_time(Duration::from_secs_f64(settings.time_s.max(0.0)))?;
+        }
         let mut begun = self.gpu.streamer.begin_frame()?;
+        let cycle_started = begun.loading_started();
+        let reads_in_flight_bytes = self.gpu.streamer.reads_in_flight().map(|(_, bytes)| bytes);
         self.warn_once(frame, begun.over_budget());
         let feedback = match self.gpu.streamer.latest_feedback() {
             Some((from, entries)) if self.last_feedback != Some(from) => {
@@ -385,6 +403,8 @@ impl Flight {
             cpu_wait: begun.cpu_wait(),
             token: Some(begun),
             applied,
+            cycle_started,
+            reads_in_flight_bytes,
             ground_bytes,
             draw_calls,
             nodes_drawn,

@@ -133,6 +133,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     let mut peak_device_memory = 0u64;
     let mut reference_incomplete = 0u32;
     let mut frames_run = 0u32;
+    let mut loading_cycles = 0u64;
     let fail_at_frame = std::env::var(FAIL_AT_FRAME_ENV)
         .ok()
         .and_then(|v| v.parse::<u32>().ok());
@@ -227,6 +228,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             }
         }
 
+        loading_cycles += u64::from(recorded.cycle_started);
         frame_ms = flight.latency(&recorded);
         let applied = &recorded.applied;
         let bytes = applied.bytes_uploaded;
@@ -260,6 +262,8 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 error,
                 ground_error,
                 camera: &camera,
+                cycle_started: recorded.cycle_started,
+                reads_in_flight_bytes: recorded.reads_in_flight_bytes,
             },
         )?;
         let mb_per_s = bytes as f64 / 1e6 / (path_ms / 1000.0).max(1e-6);
@@ -345,6 +349,8 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         alpha_ms: args.alpha,
         display_period_ms: (args.clock == Clock::Modelled).then_some(args.display_period_ms),
         render_ms: (args.clock != Clock::Real).then_some(args.render_ms),
+        disk_model: flight.disk.clone(),
+        loading_cycles,
         controller_latency: (args.clock == Clock::Modelled).then_some(args.controller_latency.name()),
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         error: PrefixedErrorFigures {

@@ -6,6 +6,8 @@
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 
+use citystream_streaming::disk_model::DiskModelChoice;
+
 use crate::args::{Args, Clock, ControllerLatency, Sparse, Strategy, FIXED_RENDER_MS, FIXED_STEP_MS};
 use crate::dataset::dataset_dir;
 use crate::device::flythrough_device;
@@ -20,6 +22,7 @@ mod controller;
 mod controls;
 mod dataset;
 mod device;
+mod disk;
 mod flight;
 mod ground;
 mod headless;
@@ -51,6 +54,13 @@ fn main() -> Result<()> {
     }
     if args.clock == Clock::Real && args.render_ms != FIXED_RENDER_MS {
         bail!("--render-ms is the modelled render cost of a frame: it needs --clock fixed or modelled");
+    }
+    if args.disk_model != DiskModelChoice::None && (args.clock == Clock::Real || args.window) {
+        bail!(
+            "--disk-model {} times reads on a modelled clock: it needs --clock fixed or modelled, headless \
+             (with --clock real the reads take what the disk takes)",
+            args.disk_model
+        );
     }
     let has_display = args.clock == Clock::Modelled || (args.window && args.clock == Clock::Real);
     if args.controller_latency != ControllerLatency::Work && !has_display {

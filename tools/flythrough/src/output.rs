@@ -63,6 +63,10 @@ pub(crate) struct Run<'a> {
     /// `--clock fixed` or `modelled`: a frame's modelled render cost (`--render-ms`);
     /// absent with the real clock.
     pub(crate) render_ms: Option<f64>,
+    /// `--disk-model`: the disk the reads took modelled time on (null: none).
+    pub(crate) disk_model: Option<crate::disk::DiskSummary>,
+    /// Loading cycles started (with a disk model a cycle spans the frames its reads take).
+    pub(crate) loading_cycles: u64,
     pub(crate) mip_deficit: Option<Stats>,
     /// The facades' error against the fully resident reference: `psnr_db`,
     /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured
@@ -183,7 +187,7 @@ pub(crate) fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: 
 pub(crate) const CSV_HEADER: &str =
     "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
                           blocks_bound,resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,\
-                          eye_x,eye_y,eye_z,look_x,look_y,look_z";
+                          eye_x,eye_y,eye_z,look_x,look_y,look_z,cycle_started,reads_in_flight_bytes";
 
 /// One frame's line of frames.csv.
 pub(crate) struct CsvRow<'a> {
@@ -198,6 +202,11 @@ pub(crate) struct CsvRow<'a> {
     pub(crate) error: Option<FrameError>,
     pub(crate) ground_error: Option<FrameError>,
     pub(crate) camera: &'a Camera,
+    /// A loading cycle started in this frame.
+    pub(crate) cycle_started: bool,
+    /// With `--disk-model`, bytes read by the cycle in flight and not yet in the cache
+    /// after this frame's `begin_frame` (empty without one).
+    pub(crate) reads_in_flight_bytes: Option<u64>,
 }
 
 pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
@@ -206,7 +215,7 @@ pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
     // The pose exactly (shortest round-trip form): a replay is compared with it.
     writeln!(
         csv,
-        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
         row.frame,
         row.time_s,
         row.frame_ms,
@@ -234,6 +243,8 @@ pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
         look.x,
         look.y,
         look.z,
+        u8::from(row.cycle_started),
+        row.reads_in_flight_bytes.map(|b| b.to_string()).unwrap_or_default(),
     )?;
     Ok(())
 }

@@ -735,6 +735,8 @@ impl Viewer {
                 error: None,
                 ground_error: None,
                 camera: &camera,
+                cycle_started: recorded.cycle_started,
+                reads_in_flight_bytes: recorded.reads_in_flight_bytes,
             },
         )?;
         let mb_per_s = self.throughput.push(self.time_s, applied.bytes_uploaded);

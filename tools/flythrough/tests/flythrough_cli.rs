@@ -317,12 +317,16 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
             lines.next(),
             Some(
                 "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,\
-                 resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,eye_x,eye_y,eye_z,look_x,look_y,look_z"
+                 resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,eye_x,eye_y,eye_z,look_x,look_y,look_z,\
+                 cycle_started,reads_in_flight_bytes"
             )
         );
         let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
         assert_eq!(rows.len(), 30);
-        assert!(rows.iter().all(|r| r.len() == 25));
+        assert!(rows.iter().all(|r| r.len() == 27));
+        // Without a disk model every cycle lasts its frame: no reads are in flight.
+        assert!(rows.iter().all(|r| r[26].is_empty()), "reads in flight without a disk model");
+        assert!(rows.iter().any(|r| r[25] == "1"), "no loading cycle started");
         let csv_mips: u64 = rows.iter().map(|r| r[10].parse::<u64>().expect("mips column")).sum();
         assert_eq!(csv_mips, mips, "per-frame mips add up to the total");
         assert!(
