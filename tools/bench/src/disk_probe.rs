@@ -22,8 +22,6 @@ use citystream_dataset::Dataset;
 use citystream_streaming::disk_model::DiskModel;
 use rayon::prelude::*;
 
-use crate::loader_bench::drop_page_cache;
-
 /// Reads timed one at a time for the latency.
 pub const LATENCY_READS: usize = 256;
 /// Bytes read in parallel for the bandwidth.
@@ -164,4 +162,16 @@ pub fn measure(dataset: &Dataset, dataset_dir: &Path) -> Result<DiskModelFile> {
     };
     file.model()?;
     Ok(file)
+}
+
+/// Drops the pack's pages from the page cache where the OS allows it.
+#[cfg(target_os = "linux")]
+pub(crate) fn drop_page_cache(path: &Path) -> Result<bool> {
+    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    Ok(rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::DontNeed).is_ok())
+}
+
+#[cfg(not(target_os = "linux"))]
+pub(crate) fn drop_page_cache(_path: &Path) -> Result<bool> {
+    Ok(false)
 }

@@ -31,6 +31,8 @@ use citystream_streaming::records::MeshMetaData;
 use citystream_streaming::source::{DatasetSource, MipSink, SinkError, StagedMip};
 use rayon::prelude::*;
 
+use crate::disk_probe::drop_page_cache;
+
 /// Keeps which mips arrived, drops the bytes.
 #[derive(Debug, Default)]
 struct CountingSink {
@@ -67,18 +69,6 @@ pub struct Pass {
     pub seconds: f64,
     /// MB/s (MB = 2^20 bytes).
     pub mb_per_s: f64,
-}
-
-/// Drops the pack's pages from the page cache where the OS allows it.
-#[cfg(target_os = "linux")]
-pub(crate) fn drop_page_cache(path: &Path) -> Result<bool> {
-    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
-    Ok(rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::DontNeed).is_ok())
-}
-
-#[cfg(not(target_os = "linux"))]
-pub(crate) fn drop_page_cache(_path: &Path) -> Result<bool> {
-    Ok(false)
 }
 
 /// What one loader pass loaded.

@@ -19,7 +19,8 @@ use citystream_dataset::Dataset;
 
 use citystream_dataset::remote::MipCacheOptions;
 
-use crate::loader_bench::{drop_page_cache, loader_pass};
+use crate::disk_probe::drop_page_cache;
+use crate::loader_bench::loader_pass;
 use citystream_testing::fault_proxy::{FaultOptions, FaultProxy};
 use citystream_testing::nginx::Nginx;
 

@@ -325,7 +325,10 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
         assert_eq!(rows.len(), 30);
         assert!(rows.iter().all(|r| r.len() == 27));
         // Without a disk model every cycle lasts its frame: no reads are in flight.
-        assert!(rows.iter().all(|r| r[26].is_empty()), "reads in flight without a disk model");
+        assert!(
+            rows.iter().all(|r| r[26].is_empty()),
+            "reads in flight without a disk model"
+        );
         assert!(rows.iter().any(|r| r[25] == "1"), "no loading cycle started");
         let csv_mips: u64 = rows.iter().map(|r| r[10].parse::<u64>().expect("mips column")).sum();
         assert_eq!(csv_mips, mips, "per-frame mips add up to the total");
