@@ -316,6 +316,11 @@ impl DatasetWriter {
         })
     }
 
+    /// Bytes of the pack so far, header included (the pack's length once finished).
+    pub fn pack_len(&self) -> u64 {
+        self.next_offset
+    }
+
     /// Number of textures appended so far (the id the next one gets).
     pub fn texture_count(&self) -> u32 {
         self.textures.len() as u32
