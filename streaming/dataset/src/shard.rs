@@ -86,7 +86,7 @@ impl ShardRecord {
             .rfind("crc32 ")
             .ok_or_else(|| corrupt(0, "no crc32 line: not a shard record".into()))?;
         let stored = text[crc_at + 6..].trim_end_matches('\n');
-        let computed = crc32fast::hash(text[..crc_at].as_bytes());
+        let computed = crc32fast::hash(&text.as_bytes()[..crc_at]);
         match u32::from_str_radix(stored, 16) {
             Ok(stored) if stored == computed && text.ends_with('\n') => {}
             Ok(stored) => {

@@ -16,7 +16,7 @@
 mod write;
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use citystream_dataset::remote::{is_remote, open_dataset, ObjectBucket, RemoteOptions};
@@ -398,9 +398,4 @@ fn process_io() -> Option<(u64, u64)> {
             .and_then(|v| v.trim().parse::<u64>().ok())
     };
     Some((field("rchar:")?, field("wchar:")?))
-}
-
-/// `path`'s name under the place's root, for messages.
-fn shown(path: &Path) -> String {
-    path.display().to_string()
 }

@@ -75,7 +75,7 @@ fn assert_same_dataset(merged: &Path, single: &Path) {
             single.display()
         );
     }
-    assert!(a.textures.len() > 0 && !a.scene.meshes.is_empty());
+    assert!(!a.textures.is_empty() && !a.scene.meshes.is_empty());
 }
 
 fn manifest(dir: &Path) -> Option<Vec<u8>> {

@@ -3,7 +3,7 @@
 //! (`docs/SHARDS.md`). `OUT` is a directory or an `s3://bucket/prefix` URL.
 //!
 //! A shard is an ordinary dataset written by [`citystream_dataset::DatasetWriter`], with
-//! its record ([`ShardRecord`]: job, index, count, totals) in the same write, so a shard
+//! its record ([`citystream_dataset::ShardRecord`]: job, index, count, totals) in the same write, so a shard
 //! is atomic and resumable as every write is, and rerunning it replaces it. Into S3 it is
 //! written in a local staging directory first (resumable there), every mip checked, then
 //! uploaded: the write's files, then their pack's entity tag, then the manifest, and the

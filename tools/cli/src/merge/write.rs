@@ -12,7 +12,7 @@ use citystream_dataset::{
     PACK_FILE,
 };
 
-use super::{process_io, shown, write_key, Place};
+use super::{process_io, write_key, Place};
 
 /// Writes the merged dataset of `shards` (checked, in order) at `place`.
 pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Dataset)], quiet: bool) -> Result<()> {
@@ -24,7 +24,7 @@ pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Datas
     };
     let summary = match place {
         Place::Local(out) => {
-            let mut writer = DatasetWriter::create(out).with_context(|| format!("writing {}", shown(out)))?;
+            let mut writer = DatasetWriter::create(out).with_context(|| format!("writing {}", out.display()))?;
             let mut scene = shards[0].1.scene.clone();
             let mut copied = 0u64;
             for (k, (_, shard)) in shards.iter().enumerate() {
@@ -46,7 +46,7 @@ pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Datas
             say("writing the scene and tables, checking the dataset reads back".into());
             let written = writer
                 .finish(&scene)
-                .with_context(|| format!("writing {}", shown(out)))?;
+                .with_context(|| format!("writing {}", out.display()))?;
             format!(
                 "merged {} shards into {location}: {} textures, {} meshes, {:.1} MB pack ({:.1} MB copied file to file), {:.2} s",
                 shards.len(),
@@ -116,19 +116,10 @@ pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Datas
             for (key, _) in old {
                 bucket.delete(&key)?;
             }
-            let io = process_io()
-                .map(|(r, w)| {
-                    format!(
-                        "; this process read {:.1} MB and wrote {:.1} MB in all (/proc/self/io: files and sockets)",
-                        r as f64 / 1e6,
-                        w as f64 / 1e6
-                    )
-                })
-                .unwrap_or_default();
             format!(
                 "merged {} shards into {location}: {} textures, {} meshes, {:.1} MB pack in {} parts, {} copied in the store ({:.1} MB), \
                  {:.3} MB uploaded by this process of which {:.3} MB read from the shards' packs; object data through this process: \
-                 {:.3} MB sent, {:.3} MB received{io}; {:.2} s",
+                 {:.3} MB sent, {:.3} MB received (besides the shards' scenes and tables read to join them); {:.2} s",
                 shards.len(),
                 merged.textures.len(),
                 merged.scene.meshes.len(),
@@ -149,7 +140,7 @@ pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Datas
     }
     let io = match (place, process_io()) {
         (Place::Local(_), Some((r, w))) => format!(
-            " (this process read {:.1} MB and wrote {:.1} MB through system calls, /proc/self/io)",
+            " (its system calls read {:.1} MB and wrote {:.1} MB, /proc/self/io, which counts copy_file_range's bytes though they stay in the kernel)",
             r as f64 / 1e6,
             w as f64 / 1e6
         ),
