@@ -97,6 +97,7 @@ pub fn tiny_rgba8_city(base: &Path) -> Result<PathBuf> {
         textures_from: None,
         dry_run: false,
         quiet: true,
+        shard: Default::default(),
     })?;
     Ok(city)
 }

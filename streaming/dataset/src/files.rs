@@ -162,6 +162,18 @@ fn parse_write_dir_name(name: &str) -> Option<u64> {
     ours.then(|| u64::from_str_radix(hex, 16).ok()).flatten()
 }
 
+/// The 32-byte manifest naming write `write_id`: what a store written object by object puts
+/// last, once the write's files are in place.
+pub fn manifest_bytes(write_id: u64) -> Vec<u8> {
+    encode_manifest(write_id)
+}
+
+/// A fresh write id for a write that does not go through [`super::DatasetWriter`] (one
+/// composed in object storage).
+pub fn fresh_write_id() -> u64 {
+    new_write_id()
+}
+
 fn encode_manifest(write_id: u64) -> Vec<u8> {
     let mut out = header_prefix(MANIFEST_MAGIC, write_id);
     out.extend_from_slice(&crc32fast::hash(&out).to_le_bytes());

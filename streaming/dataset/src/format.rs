@@ -141,6 +141,11 @@ impl TextureInfo {
         })
     }
 
+    /// The same texture with its mip chain at `offset` instead (a pack joined from others).
+    pub fn moved_to(&self, offset: u64) -> Result<Self, String> {
+        Self::new(self.format, self.width_log2, self.height_log2, self.mip_count, offset)
+    }
+
     /// Pixel format of every mip.
     pub fn format(&self) -> TextureFormat {
         self.format

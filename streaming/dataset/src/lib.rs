@@ -7,7 +7,8 @@
 //! `pack`, `colormap` and `format` (the files and their records; `format` also holds the
 //! format version), `crs` (the coordinate reference system a scene names), `files` and
 //! `writer` (the file names, the manifest, write directories and atomic replacement),
-//! `store` (where a dataset's bytes live: a directory or a remote store), `verify` (every
+//! `store` (where a dataset's bytes live: a directory or a remote store), `shard` (the record
+//! naming a shard of a sharded build, and one dataset's files joined from shards), `verify` (every
 //! mip checked), `legacy` (upgrades from formats 1 and 2), `mip_cache` (remote mips kept on
 //! disk), `io_util` and `error`. Each constant lives in the module that uses it and is
 //! re-exported here, so no module imports from this root.
@@ -54,6 +55,7 @@ mod legacy;
 mod mip_cache;
 mod pack;
 mod scene;
+mod shard;
 mod store;
 mod verify;
 mod writer;
@@ -66,7 +68,8 @@ pub use crs::{Crs, CrsError, MAX_CRS_BYTES};
 pub use dataset::Dataset;
 pub use error::{DatasetError, Magic};
 pub use files::{
-    write_dir_name, DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
+    fresh_write_id, manifest_bytes, write_dir_name, DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE,
+    META_FILE, PACK_FILE, SCENE_FILE,
 };
 pub use format::{full_mip_count, TextureFormat, TextureInfo, FORMAT_VERSION, MAX_EXTENT_LOG2, MAX_PACK_OFFSET};
 pub use io_util::ensure_regular_file;
@@ -74,6 +77,7 @@ pub use legacy::{upgrade, UpgradeSummary};
 pub use mip_cache::{CacheNamespace, MipCache, MipCacheStats};
 pub use pack::{MipLocation, TexturePack, PACK_HEADER_BYTES};
 pub use scene::{Aabb, Mesh, Scene};
+pub use shard::{part_pack_body, JoinedTables, ShardRecord, SHARDS_DIR, SHARD_RECORD_FILE};
 pub use store::DatasetStore;
 pub use verify::{verify, verify_dataset, VerifyReport};
 pub use writer::{DatasetWriter, WriteSummary};

@@ -46,6 +46,9 @@ use crate::mip_cache::MipCache;
 use crate::store::DatasetStore;
 
 mod guarded;
+mod objects;
+
+pub use objects::{ComposeReport, ObjectBucket, ObjectInfo, Segment, MIN_PART_BYTES};
 
 // Defined where the guarded client enforces it; public here beside the other limits.
 pub use guarded::MAX_REDIRECTS;
@@ -211,6 +214,40 @@ pub fn parse_megabytes(text: &str) -> Option<u64> {
     let megabytes: f64 = text.trim().parse().ok()?;
     let bytes = megabytes * f64::from(1 << 20);
     (megabytes.is_finite() && bytes >= 1.0 && megabytes <= f64::from(1 << 30)).then_some(bytes as u64)
+}
+
+/// The S3 client of `bucket` with the endpoint and region of `options` or the environment
+/// (`AWS_ENDPOINT_URL`, `AWS_ENDPOINT`, `AWS_REGION`, `AWS_DEFAULT_REGION`; path-style
+/// requests to an endpoint given), credentials from the environment.
+fn s3_builder(
+    bucket: &str,
+    options: &RemoteOptions,
+    client: ClientOptions,
+    connector: guarded::GuardedConnector,
+    retry: RetryConfig,
+) -> AmazonS3Builder {
+    let mut builder = AmazonS3Builder::from_env()
+        .with_bucket_name(bucket)
+        .with_client_options(client)
+        .with_http_connector(connector)
+        .with_retry(retry);
+    let endpoint = options
+        .s3_endpoint
+        .clone()
+        .or_else(|| std::env::var("AWS_ENDPOINT_URL").ok())
+        .or_else(|| std::env::var("AWS_ENDPOINT").ok());
+    if let Some(endpoint) = endpoint {
+        builder = builder
+            .with_endpoint(endpoint.trim_end_matches('/'))
+            .with_virtual_hosted_style_request(false);
+    }
+    let region = options
+        .s3_region
+        .clone()
+        .or_else(|| std::env::var("AWS_REGION").ok())
+        .or_else(|| std::env::var("AWS_DEFAULT_REGION").ok())
+        .unwrap_or_else(|| "us-east-1".to_owned());
+    builder.with_region(region)
 }
 
 /// Whether `location` names a remote dataset (a URL this module opens).
@@ -443,28 +480,7 @@ impl RemoteStore {
                     .map_err(|e| bad(e.to_string()))?,
             ),
             "s3" => {
-                let mut builder = AmazonS3Builder::from_env()
-                    .with_bucket_name(authority)
-                    .with_client_options(client)
-                    .with_http_connector(connector)
-                    .with_retry(retry);
-                let endpoint = options
-                    .s3_endpoint
-                    .clone()
-                    .or_else(|| std::env::var("AWS_ENDPOINT_URL").ok())
-                    .or_else(|| std::env::var("AWS_ENDPOINT").ok());
-                if let Some(endpoint) = endpoint {
-                    builder = builder
-                        .with_endpoint(endpoint.trim_end_matches('/'))
-                        .with_virtual_hosted_style_request(false);
-                }
-                let region = options
-                    .s3_region
-                    .clone()
-                    .or_else(|| std::env::var("AWS_REGION").ok())
-                    .or_else(|| std::env::var("AWS_DEFAULT_REGION").ok())
-                    .unwrap_or_else(|| "us-east-1".to_owned());
-                builder = builder.with_region(region);
+                let mut builder = s3_builder(authority, options, client, connector, retry);
                 if std::env::var_os("AWS_ACCESS_KEY_ID").is_none() {
                     builder = builder.with_skip_signature(true);
                 }

@@ -247,6 +247,66 @@ impl Scene {
         Ok(mesh_index)
     }
 
+    /// The meshes `keep` accepts, in order, with their vertices and indices, as a scene at
+    /// the same origin and CRS; each kept mesh's texture id less `texture_base` (a shard of
+    /// a dataset holds the textures from `texture_base` on, numbered from 0).
+    pub fn part(&self, keep: impl Fn(&Mesh) -> bool, texture_base: u32) -> Result<Scene, DatasetError> {
+        let mut part = Scene::new(self.origin);
+        part.crs = self.crs.clone();
+        for (m, mesh) in self.meshes.iter().enumerate().filter(|(_, mesh)| keep(mesh)) {
+            let texture = mesh.texture.checked_sub(texture_base).ok_or_else(|| {
+                DatasetError::InvalidInput(format!(
+                    "mesh {m} uses texture {}, below the part's first texture {texture_base}",
+                    mesh.texture
+                ))
+            })?;
+            let (positions, normals, uvs, indices) = self.mesh_arrays(m)?;
+            part.push_mesh(texture, positions, normals, uvs, indices)?;
+        }
+        Ok(part)
+    }
+
+    /// Appends `other`'s meshes after this scene's, their texture ids plus `texture_offset`:
+    /// the scene of datasets joined one after another. Both must have the same origin and
+    /// CRS (positions are relative to the origin; re-expressing them would round).
+    pub fn append(&mut self, other: &Scene, texture_offset: u32) -> Result<(), DatasetError> {
+        if other.origin != self.origin || other.crs != self.crs {
+            return Err(DatasetError::InvalidInput(format!(
+                "scenes at different origins or CRSs cannot be joined: {:?} {} against {:?} {}",
+                self.origin,
+                self.crs.as_ref().map_or("(local frame)", |c| c.as_str()),
+                other.origin,
+                other.crs.as_ref().map_or("(local frame)", |c| c.as_str())
+            )));
+        }
+        for (m, mesh) in other.meshes.iter().enumerate() {
+            let texture = mesh
+                .texture
+                .checked_add(texture_offset)
+                .ok_or_else(|| DatasetError::InvalidInput("more than 2^32 textures".into()))?;
+            let (positions, normals, uvs, indices) = other.mesh_arrays(m)?;
+            self.push_mesh(texture, positions, normals, uvs, indices)?;
+        }
+        Ok(())
+    }
+
+    /// Mesh `m`'s positions, normals, UVs and indices; an error where its ranges leave the
+    /// arrays (a scene built by hand, never one that was opened).
+    #[allow(clippy::type_complexity)] // reason: the four arrays of one mesh, named by the call
+    fn mesh_arrays(&self, m: usize) -> Result<(&[[f32; 3]], &[[f32; 3]], &[[f32; 2]], &[u32]), DatasetError> {
+        let mesh = &self.meshes[m];
+        let vertices = mesh.first_vertex as usize..mesh.first_vertex as usize + mesh.vertex_count as usize;
+        let indices = mesh.first_index as usize..mesh.first_index as usize + mesh.index_count as usize;
+        let outside =
+            || DatasetError::InvalidInput(format!("mesh {m}: vertex or index range outside the scene's arrays"));
+        Ok((
+            self.positions.get(vertices.clone()).ok_or_else(outside)?,
+            self.normals.get(vertices.clone()).ok_or_else(outside)?,
+            self.uvs.get(vertices).ok_or_else(outside)?,
+            self.indices.get(indices).ok_or_else(outside)?,
+        ))
+    }
+
     /// Bytes of the scene file [`encode`](Self::encode) writes (what a writer must find free
     /// on disk), without encoding it.
     pub fn encoded_len(&self) -> u64 {

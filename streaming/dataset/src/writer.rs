@@ -8,11 +8,12 @@ use std::path::{Path, PathBuf};
 use super::colormap::{write_checksums, Colormap};
 use super::dataset::Dataset;
 use super::error::DatasetError;
-use super::files::{PendingWrite, CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
+use super::files::{PendingWrite, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE};
 use super::format::{TextureFormat, TextureInfo, TEXTURE_RECORD_BYTES};
-use super::io_util::{encode_table, header_prefix, write_new_durably};
-use super::pack::{META_MAGIC, PACK_HEADER_BYTES, PACK_HEADER_CRC_AT, PACK_MAGIC};
+use super::io_util::{encode_table, write_new_durably};
+use super::pack::{META_MAGIC, PACK_HEADER_BYTES};
 use super::scene::Scene;
+use super::shard::{pack_header, part_pack_body};
 
 /// Totals of a written dataset.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -315,6 +316,11 @@ impl DatasetWriter {
         })
     }
 
+    /// Bytes of the pack so far, header included (the pack's length once finished).
+    pub fn pack_len(&self) -> u64 {
+        self.next_offset
+    }
+
     /// Number of textures appended so far (the id the next one gets).
     pub fn texture_count(&self) -> u32 {
         self.textures.len() as u32
@@ -375,6 +381,88 @@ impl DatasetWriter {
         Ok(id)
     }
 
+    /// Appends every texture of `part` after those written so far, in its id order: its
+    /// pack's mip chains are copied file to file (`copy_file_range` where the file system
+    /// has it, so the bytes need not pass through this process), its table entries moved,
+    /// its colours and mip checksums taken as they are. The chains must fill `part`'s pack
+    /// back to back ([`super::shard::part_pack_body`]). Returns the bytes copied.
+    ///
+    /// The checksums are `part`'s own, not recomputed: check its mips first
+    /// ([`super::verify_dataset`]) where they may be damaged.
+    pub fn append_pack_of(&mut self, part: &Dataset) -> Result<u64, DatasetError> {
+        let body = part_pack_body(part)?;
+        let source_path = part.textures.pack_path().to_path_buf();
+        let mut moved = Vec::with_capacity(part.textures.textures().len());
+        for (t, info) in part.textures.textures().iter().enumerate() {
+            let offset = info.offset() - body.start + self.next_offset;
+            moved.push(info.moved_to(offset).map_err(|e| {
+                DatasetError::InvalidInput(format!(
+                    "texture {} ({t} of {}): {e}",
+                    self.textures.len() + t,
+                    part.dir().display()
+                ))
+            })?);
+        }
+        let mut checksums = Vec::new();
+        for (t, info) in part.textures.textures().iter().enumerate() {
+            for level in 0..info.mip_count() {
+                checksums.push(part.textures.mip_checksum(t as u32, level)?);
+            }
+        }
+        u32::try_from(self.textures.len() + moved.len())
+            .ok()
+            .filter(|&n| n < u32::MAX)
+            .ok_or_else(|| DatasetError::InvalidInput("more than 2^32 - 1 textures".into()))?;
+        self.pack.flush().map_err(|e| DatasetError::io(&self.pack_path, e))?;
+        let mut source = File::open(&source_path).map_err(|e| DatasetError::io(&source_path, e))?;
+        source
+            .seek(SeekFrom::Start(body.start))
+            .map_err(|e| DatasetError::io(&source_path, e))?;
+        let len = body.end - body.start;
+        // `File` to `File`: std copies inside the kernel (copy_file_range, then sendfile).
+        let copied = std::io::copy(&mut std::io::Read::take(&mut source, len), self.pack.get_mut())
+            .map_err(|e| DatasetError::io(&self.pack_path, e))?;
+        if copied != len {
+            return Err(DatasetError::truncated(
+                &source_path,
+                "the pack ended while it was copied".to_string(),
+                body.start,
+                body.end,
+                body.start + copied,
+            ));
+        }
+        self.next_offset += len;
+        self.mips += checksums.len() as u64;
+        self.textures.extend(moved);
+        self.colours.extend_from_slice(part.colormap.colours());
+        self.mip_checksums.extend(checksums);
+        Ok(len)
+    }
+
+    /// Adds a file `name` beside the dataset's own in this write (written and flushed now),
+    /// so it appears with them, atomically, at [`DatasetWriter::finish`]: a shard's record.
+    /// `name` is a plain file name other than the format's.
+    pub fn add_file(&mut self, name: &str, bytes: &[u8]) -> Result<(), DatasetError> {
+        let reserved = [
+            SCENE_FILE,
+            META_FILE,
+            PACK_FILE,
+            COLORMAP_FILE,
+            CHECKSUM_FILE,
+            MANIFEST_FILE,
+            JOURNAL_FILE,
+        ];
+        if name.is_empty() || name.contains(['/', '\\']) || name.starts_with('.') || reserved.contains(&name) {
+            return Err(DatasetError::InvalidInput(format!(
+                "{name:?} cannot be added to a dataset's write (a plain file name other than the format's)"
+            )));
+        }
+        let path = self.pending.path(name);
+        // A resumed write may hold one from before: the new one replaces it.
+        let _ = std::fs::remove_file(&path);
+        write_new_durably(&path, bytes)
+    }
+
     /// Validates `scene` (every mesh texture must exist), writes it and the tables, completes
     /// the pack header, flushes everything, reopens the new dataset with every check
     /// [`Dataset::open`] makes, and only then makes it the directory's dataset.
@@ -393,12 +481,7 @@ impl DatasetWriter {
             .pack
             .into_inner()
             .map_err(|e| DatasetError::io(&self.pack_path, e.into_error()))?;
-        let mut header = header_prefix(PACK_MAGIC, write_id);
-        header.extend_from_slice(&(self.textures.len() as u64).to_le_bytes());
-        header.extend_from_slice(&self.next_offset.to_le_bytes());
-        debug_assert_eq!(header.len(), PACK_HEADER_CRC_AT);
-        header.extend_from_slice(&crc32fast::hash(&header).to_le_bytes());
-        header.resize(PACK_HEADER_BYTES as usize, 0);
+        let header = pack_header(write_id, self.textures.len() as u64, self.next_offset);
         file.seek(SeekFrom::Start(0))
             .and_then(|_| file.write_all(&header))
             .and_then(|_| file.sync_all())

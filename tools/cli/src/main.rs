@@ -4,7 +4,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 use citystream_bench::{bench, report, simulate};
-use citystream_cli::{bind_replay, cache_report, info, path, upgrade, verify};
+use citystream_cli::{bind_replay, cache_report, info, merge, path, upgrade, verify};
 use citystream_gen::command as gen;
 use citystream_gen::{atlas, atlas_tree, city, patches};
 use citystream_import::command as import;
@@ -34,6 +34,8 @@ enum Command {
     Import(import::ImportArgs),
     /// Print totals of a dataset.
     Info(info::InfoArgs),
+    /// Join the shards of a sharded build (`gen`/`import` `--shard I/N`) into one dataset.
+    Merge(merge::MergeArgs),
     /// Write the standard benchmark camera path (paper §4.1) of a dataset.
     Path(path::PathArgs),
     /// Cut an image into a simulated aerial survey over a city (the ground layer's patches).
@@ -61,6 +63,7 @@ fn main() -> Result<()> {
         Command::CacheReport(args) => cache_report::run(&args),
         Command::Import(args) => import::run(&args),
         Command::Info(args) => info::run(&args),
+        Command::Merge(args) => merge::run(&args),
         Command::Path(args) => path::run(&args),
         Command::Patches(args) => patches::run(&args),
         Command::Simulate(args) => simulate::run(&args),

@@ -10,13 +10,14 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::{DatasetWriter, TextureFormat, WriteSummary};
+use citystream_dataset::{DatasetWriter, ShardRecord, TextureFormat, WriteSummary, SHARD_RECORD_FILE};
 use rayon::prelude::*;
 
 use crate::files::print_stdout;
 use crate::layout::{self, LayoutParams};
 use crate::library;
 use crate::rng;
+use crate::shard::{scene_fingerprint, Shard, ShardArgs, ShardWrite};
 use crate::texture;
 
 /// City sizes. Texture counts are for seed 1 (see `docs/DATASET.md`).
@@ -123,6 +124,9 @@ pub struct GenArgs {
     /// Do not print progress or the summary.
     #[arg(long)]
     pub quiet: bool,
+    /// Write one shard of the city (`--shard I/N`, or `--shard-index-env NAME --shards N`).
+    #[command(flatten)]
+    pub shard: ShardArgs,
 }
 
 impl GenArgs {
@@ -138,6 +142,7 @@ impl GenArgs {
             textures_from: None,
             dry_run: false,
             quiet: false,
+            shard: ShardArgs::default(),
         }
     }
 }
@@ -225,6 +230,9 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
             gb(free)
         );
     }
+    if let Some(shard) = args.shard.resolve()? {
+        return generate_shard(args, format, city, shard);
+    }
     let mut writer = DatasetWriter::create(&args.out)?;
 
     // User images become textures 0..n; facades pick one of them by a hash of their seed.
@@ -272,6 +280,87 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
     writer
         .finish(&city.scene)
         .with_context(|| format!("writing {}", args.out.display()))
+}
+
+/// Changes whenever the standard generator would write other bytes for the same
+/// arguments, so that shards of another build are not joined with this one's.
+const GENERATOR_VERSION: u32 = 1;
+
+/// Writes shard `shard` of the city (see [`crate::shard`]): its contiguous range of the
+/// texture ids and the meshes that use them, numbered from 0, resumable at every chunk.
+fn generate_shard(args: &GenArgs, format: TextureFormat, city: layout::City, shard: Shard) -> Result<WriteSummary> {
+    if args.textures_from.is_some() {
+        bail!("--shard: --textures-from is not supported (its shared textures are used all over the city, not by one shard's range)");
+    }
+    let range = shard.range(city.textures.len());
+    // The standard layout gives mesh m texture m: a shard's meshes are those of its range.
+    if let Some((m, _)) = city
+        .scene
+        .meshes
+        .iter()
+        .enumerate()
+        .find(|(m, mesh)| mesh.texture as usize != *m)
+    {
+        bail!("--shard: mesh {m} does not use texture {m}; this layout cannot be divided by texture ranges");
+    }
+    let job = format!(
+        "citystream gen --preset {:?} --seed {} --format {} --max-extent {}, generator {GENERATOR_VERSION}, layout {:08x}",
+        args.preset,
+        args.seed,
+        format.name(),
+        args.max_extent,
+        scene_fingerprint(&city.scene, city.textures.len())
+    )
+    .to_lowercase();
+    let out = ShardWrite::begin(&args.out, shard, &job, args.quiet)?;
+    let part = city
+        .scene
+        .part(|mesh| range.contains(&(mesh.texture as usize)), range.start as u32)?;
+    let resume_job = format!("{job}, shard {} of {}", shard.index, shard.count);
+    let mut writer = DatasetWriter::create_resumable(out.dir(), &resume_job).with_context(|| {
+        format!(
+            "starting shard {} of {} in {}",
+            shard.index,
+            shard.count,
+            out.dir().display()
+        )
+    })?;
+    let done = (writer.texture_count() as usize).min(range.len());
+    if writer.resumed() && !args.quiet {
+        eprintln!(
+            "gen: resuming shard {}/{}: {done} of {} textures are written",
+            shard.index,
+            shard.count,
+            range.len()
+        );
+    }
+    let specs = &city.textures[range.start + done..range.end];
+    let mut progress = Progress::resumed(range.len(), done, "textures", 10, args.quiet || range.len() < 10_000);
+    const CHUNK: usize = 1024;
+    for chunk in specs.chunks(CHUNK) {
+        let encoded: Vec<_> = chunk.par_iter().map(|spec| texture::generate(spec, format)).collect();
+        for texture in encoded {
+            let t = texture?;
+            writer.add_texture(format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
+        }
+        writer.checkpoint()?;
+        progress.advance(chunk.len());
+    }
+    progress.finish();
+    let record = ShardRecord {
+        job,
+        index: shard.index,
+        count: shard.count,
+        textures: writer.texture_count(),
+        meshes: part.meshes.len() as u32,
+        pack_bytes: writer.pack_len(),
+    };
+    writer.add_file(SHARD_RECORD_FILE, &record.encode()?)?;
+    let summary = writer
+        .finish(&part)
+        .with_context(|| format!("writing {}", out.dir().display()))?;
+    out.publish()?;
+    Ok(summary)
 }
 
 /// A one-line progress report on stderr, redrawn in place on a terminal and printed every

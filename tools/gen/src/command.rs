@@ -3,7 +3,7 @@
 
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 
 use crate::berlin;
 use crate::city::{check_texture_extent, generate, GenArgs, Preset};
@@ -16,6 +16,9 @@ pub fn run(args: &GenArgs) -> Result<()> {
     let format = args.format.texture_format();
     let mut params = args.preset.params();
     params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);
+    if args.preset == Preset::Berlin && args.shard.resolve()?.is_some() {
+        bail!("--shard: --preset berlin is written straight into atlases and cannot be sharded yet; shard a per-mesh preset");
+    }
     let summary = if args.preset == Preset::Berlin {
         berlin::generate(args, params, berlin::RunControl::default())?
     } else {

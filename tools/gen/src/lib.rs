@@ -7,8 +7,9 @@
 //! Below them, shared by the other tools' crates: [`texture`] (mip chains, BC1/BC3/BC7
 //! encoding and decoding), [`library`] (user images: PNG, JPEG, DDS, KTX2) and
 //! [`image_files`] (minimal KTX2/DDS writers), [`files`] (output replaced atomically,
-//! stdout) and [`location`] (datasets opened by directory or URL with the command line's
-//! remote settings).
+//! stdout), [`location`] (datasets opened by directory or URL with the command line's
+//! remote settings) and [`shard`] (`--shard I/N`: one shard of a sharded build, written
+//! into a directory or S3).
 
 pub mod atlas;
 pub mod atlas_tree;
@@ -23,4 +24,5 @@ pub mod library;
 pub mod location;
 pub mod patches;
 mod rng;
+pub mod shard;
 pub mod texture;

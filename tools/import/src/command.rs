@@ -8,6 +8,7 @@ use anyhow::{bail, Context, Result};
 use citystream_dataset::{Crs, DatasetWriter};
 use citystream_gen::city::{check_texture_extent, FormatArg};
 use citystream_gen::files::print_stdout;
+use citystream_gen::shard::ShardArgs;
 
 use crate::gltf::load;
 
@@ -42,6 +43,10 @@ pub struct ImportArgs {
     /// tiles, implicit tiling) is an error instead of a warning.
     #[arg(long)]
     pub strict: bool,
+    /// Tilesets: import one shard of the contents (`--shard I/N`, or `--shard-index-env NAME
+    /// --shards N`) into OUT/shards/I/, for `citystream merge OUT`.
+    #[command(flatten)]
+    pub shard: ShardArgs,
 }
 
 /// Parses a `--crs` value.
@@ -64,8 +69,15 @@ pub fn run(args: &ImportArgs) -> Result<()> {
             strict: args.strict,
             report: true,
             crs: args.crs.clone(),
+            part: args.shard.resolve()?,
         };
         return crate::tiles::import(input, &args.out, &options);
+    }
+    if args.shard.resolve()?.is_some() {
+        bail!(
+            "--shard divides a 3D Tiles tileset's contents; {} is one glTF file",
+            input.display()
+        );
     }
     if args.lod.is_some() || args.strict {
         bail!(

@@ -340,15 +340,24 @@ pub(crate) fn bounds(meshes: &[PendingMesh]) -> ([f64; 3], [f64; 3]) {
 /// `meshes` as a scene whose origin is the centre of their bounds (rounded to metres), so
 /// that f32 positions relative to it stay precise; checked as a dataset's scene is.
 pub(crate) fn centred_scene(meshes: &[PendingMesh], input: &Path) -> Result<Scene> {
+    scene_at(meshes, scene_origin(meshes), input)
+}
+
+/// The centre of `meshes`' bounds rounded to metres: the origin [`centred_scene`] gives them.
+pub(crate) fn scene_origin(meshes: &[PendingMesh]) -> [f64; 3] {
     // Origin at the centre of the world-space bounds keeps f32 positions precise.
     let (lo, hi) = bounds(meshes);
-    let origin = [0, 1, 2].map(|a| {
+    [0, 1, 2].map(|a| {
         if lo[a].is_finite() {
             (0.5 * (lo[a] + hi[a])).round()
         } else {
             0.0
         }
-    });
+    })
+}
+
+/// `meshes` as a scene at `origin` (a shard's meshes at the whole tileset's origin).
+pub(crate) fn scene_at(meshes: &[PendingMesh], origin: [f64; 3], input: &Path) -> Result<Scene> {
     let mut scene = Scene::new(origin);
     for m in meshes {
         let positions: Vec<[f32; 3]> = m

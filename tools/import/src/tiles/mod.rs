@@ -37,15 +37,16 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::{Crs, DatasetWriter, Scene, TextureFormat};
+use citystream_dataset::{Crs, DatasetWriter, Scene, ShardRecord, TextureFormat, SHARD_RECORD_FILE};
 use rayon::prelude::*;
 use serde_json::Value;
 
 use citystream_gen::files::print_stdout;
+use citystream_gen::shard::{Shard, ShardWrite};
 use citystream_gen::texture::EncodedTexture;
 
 use crate::gltf::{
-    bounds, centred_scene, read_gltf, relative_uri_path, GltfContent, PendingMesh, MAX_IMPORTED_VERTICES,
+    bounds, read_gltf, relative_uri_path, scene_at, scene_origin, GltfContent, PendingMesh, MAX_IMPORTED_VERTICES,
 };
 use crate::transform::{mul, Mat4, IDENTITY};
 use geodesy::{to_geodetic, EastNorthUp};
@@ -110,6 +111,8 @@ pub struct ImportedTileset {
     pub tiles: usize,
     /// Content not imported, by kind, and how many of each.
     pub skipped: BTreeMap<String, usize>,
+    /// A fingerprint of the contents walked (their paths in order): part of a shard's job.
+    pub contents_fingerprint: u32,
 }
 
 /// Whether `input` names a tileset rather than a glTF file: a `.json` file, or a URL whose
@@ -139,6 +142,9 @@ pub struct LoadOptions {
     pub report: bool,
     /// A UTM projection to place the city in; `None`: a local east-north-up frame.
     pub crs: Option<Crs>,
+    /// Import only this shard's contiguous part of the contents (in the walk's order), in
+    /// the frame and at the origin of the whole tileset (whose geometry is still read).
+    pub part: Option<Shard>,
 }
 
 /// Reads the tileset `input` and its content. Each texture new to the import is handed to
@@ -156,6 +162,7 @@ pub fn load(
         strict,
         report,
         ref crs,
+        part,
     } = *options;
     let canonical = input
         .canonicalize()
@@ -217,6 +224,8 @@ pub fn load(
         }
         listings.push(n);
     }
+    let part = part.map(|shard| shard.range(count));
+    let in_part = |listing: usize| part.as_ref().is_none_or(|range| range.contains(&listing));
     let mut placed: Vec<Vec<PendingMesh>> = Vec::new();
     placed.resize_with(count, Vec::new);
     let mut listings_done = 0usize;
@@ -230,9 +239,12 @@ pub fn load(
         let (mut read, centres) =
             read_content(first, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices).with_context(|| what(listings[0]))?;
         // Textures new to the import are encoded (in parallel); shared ones map to the first.
+        // Content outside a shard's part is read for its geometry only (the frame and origin
+        // are the whole tileset's).
+        let wanted = listings.iter().any(|&l| in_part(l));
         let mut local_to_global = Vec::with_capacity(read.texture_count());
         let mut fresh = Vec::new();
-        for k in 0..read.texture_count() {
+        for k in (0..read.texture_count()).filter(|_| wanted) {
             let identity = read.texture_identity(k).with_context(|| what(listings[0]))?;
             let next = textures + fresh.len();
             let id = *texture_ids.entry(identity).or_insert_with(|| {
@@ -261,7 +273,7 @@ pub fn load(
                     .with_context(|| what(listing))?
             };
             for mesh in &mut meshes {
-                mesh.texture = local_to_global[mesh.texture];
+                mesh.texture = local_to_global.get(mesh.texture).copied().unwrap_or(0);
                 vertices += mesh.positions.len();
             }
             placed[listing] = meshes;
@@ -277,6 +289,17 @@ pub fn load(
             }
         }
     }
+    let mut fingerprint = crc32fast::Hasher::new();
+    for content in &walk.contents {
+        let relative = content.path.strip_prefix(&walk.root_dir).unwrap_or(&content.path);
+        fingerprint.update(relative.to_string_lossy().as_bytes());
+        fingerprint.update(&[0]);
+    }
+    let listing_of_mesh: Vec<usize> = placed
+        .iter()
+        .enumerate()
+        .flat_map(|(l, meshes)| std::iter::repeat_n(l, meshes.len()))
+        .collect();
     let mut meshes: Vec<PendingMesh> = placed.into_iter().flatten().collect();
     if meshes.is_empty() {
         bail!(
@@ -305,7 +328,16 @@ pub fn load(
             crs.clone()
         }
     };
-    let mut scene = centred_scene(&meshes, input)?;
+    let origin = scene_origin(&meshes);
+    if part.is_some() {
+        meshes = meshes
+            .into_iter()
+            .zip(&listing_of_mesh)
+            .filter(|(_, &l)| in_part(l))
+            .map(|(m, _)| m)
+            .collect();
+    }
+    let mut scene = scene_at(&meshes, origin, input)?;
     scene.crs = Some(scene_crs);
     Ok(ImportedTileset {
         scene,
@@ -315,6 +347,7 @@ pub fn load(
         contents: count,
         tiles: walk.tiles,
         skipped: walk.skipped,
+        contents_fingerprint: fingerprint.finalize(),
     })
 }
 
@@ -322,8 +355,26 @@ pub fn load(
 /// as the dataset `out` (see [`load`]).
 pub fn import(input: &Path, out: &Path, options: &LoadOptions) -> Result<()> {
     let location = input.to_string_lossy();
-    if !citystream_dataset::remote::is_remote(&location) {
-        return import_local(input, &location, out, options);
+    let shard = match options.part {
+        Some(shard) => Some(ShardWrite::begin(
+            out,
+            shard,
+            &format!("citystream import {location}"),
+            !options.report,
+        )?),
+        None => None,
+    };
+    let out = shard.as_ref().map_or(out, |s| s.dir());
+    let imported = import_fetched(input, &location, out, options);
+    match shard {
+        Some(shard) if imported.is_ok() => shard.publish(),
+        _ => imported,
+    }
+}
+
+fn import_fetched(input: &Path, location: &str, out: &Path, options: &LoadOptions) -> Result<()> {
+    if !citystream_dataset::remote::is_remote(location) {
+        return import_local(input, location, out, options);
     }
     // Beside the output, also when it is given with a trailing slash.
     let out_clean: PathBuf = out.components().collect();
@@ -333,8 +384,8 @@ pub fn import(input: &Path, out: &Path, options: &LoadOptions) -> Result<()> {
     if scratch.exists() {
         remote::clear_stale_download(&scratch)?;
     }
-    let imported = remote::fetch(&location, &scratch).and_then(|local| {
-        import_local(&local, &location, out, options)
+    let imported = remote::fetch(location, &scratch).and_then(|local| {
+        import_local(&local, location, out, options)
             .with_context(|| format!("importing {location} as fetched into {}", scratch.display()))
     });
     // The scratch copy goes whatever happened; a failure to remove it is only reported.
@@ -352,6 +403,28 @@ fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) ->
         writer.add_texture(t.format, t.width, t.height, t.mip_count, &t.chain, t.mean)?;
         Ok(())
     })?;
+    if let Some(shard) = options.part {
+        let job = format!(
+            "citystream import {shown} --format {} --max-extent {} --lod {:?} --strict {} --crs {}, contents {} {:08x}",
+            options.format.name(),
+            options.max_extent,
+            options.lod,
+            options.strict,
+            options.crs.as_ref().map_or("(local frame)", |c| c.as_str()),
+            imported.contents,
+            imported.contents_fingerprint
+        )
+        .replace(['\n', '\r'], " ");
+        let record = ShardRecord {
+            job,
+            index: shard.index,
+            count: shard.count,
+            textures: writer.texture_count(),
+            meshes: imported.scene.meshes.len() as u32,
+            pack_bytes: writer.pack_len(),
+        };
+        writer.add_file(SHARD_RECORD_FILE, &record.encode()?)?;
+    }
     let summary = writer
         .finish(&imported.scene)
         .with_context(|| format!("writing {}", out.display()))?;

@@ -226,6 +226,7 @@ impl Harness {
                 strict: false,
                 report: false,
                 crs: None,
+                part: None,
             };
             match citystream_import::tiles::load(&tileset, &options, &mut |_| Ok(())) {
                 Ok(_) => Outcome::Accepted,

@@ -1,0 +1,346 @@
+//! Sharded builds (`gen`/`import` `--shard I/N`, `merge`, `merge --status`): shards written
+//! by concurrent processes merge into the dataset one process writes, byte for byte (write
+//! ids aside), locally and in the S3 emulator; a killed shard resumes; a missing shard, a
+//! shard of another job and a damaged shard are refused by name with nothing written.
+
+mod cli_support;
+mod tileset_support;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use citystream_dataset::remote::{open_dataset, RemoteOptions};
+use citystream_dataset::Dataset;
+use citystream_testing::s3_emulator::S3Emulator;
+use citystream_testing::tool_tests::env_refs;
+use cli_support::{citystream, fresh_dir, stderr};
+use serde_json::json;
+use tileset_support::{enu_to_ecef, flat, translation, wall_glb, write_json, BERLIN};
+
+fn spawn(args: &[&str], env: &[(&str, &str)]) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_citystream"))
+        .args(args)
+        .envs(env.iter().copied())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start citystream")
+}
+
+fn ok(out: Output, what: &str) -> Output {
+    assert!(out.status.success(), "{what}: {}", stderr(&out));
+    out
+}
+
+fn run_env(args: &[&str], env: &[(&str, &str)]) -> Output {
+    spawn(args, env).wait_with_output().expect("citystream")
+}
+
+/// The files of the write `dataset` names, header fields that hold the write id (and the
+/// CRCs over it) left out: what must be identical between two writes of the same content.
+fn content_of(dataset: &Dataset) -> Vec<(String, Vec<u8>)> {
+    let skip = |name: &str| match name {
+        "textures.meta" | "colormap.bin" | "textures.crc" => 40,
+        "textures.pack" => 64,
+        _ => 104,
+    };
+    [
+        "scene.bin",
+        "textures.meta",
+        "colormap.bin",
+        "textures.crc",
+        "textures.pack",
+    ]
+    .iter()
+    .map(|name| {
+        let bytes = std::fs::read(dataset.files().path(name)).expect("read file");
+        let mut kept = bytes[24..32.min(bytes.len())].to_vec();
+        kept.extend_from_slice(&bytes[skip(name)..]);
+        (name.to_string(), kept)
+    })
+    .collect()
+}
+
+fn assert_same_dataset(merged: &Path, single: &Path) {
+    let (a, b) = (
+        Dataset::open(merged).expect("merged"),
+        Dataset::open(single).expect("single"),
+    );
+    for ((name, x), (_, y)) in content_of(&a).into_iter().zip(content_of(&b)) {
+        assert!(
+            x == y,
+            "{name} of {} differs from {}'s",
+            merged.display(),
+            single.display()
+        );
+    }
+    assert!(!a.textures.is_empty() && !a.scene.meshes.is_empty());
+}
+
+fn manifest(dir: &Path) -> Option<Vec<u8>> {
+    std::fs::read(dir.join("dataset.manifest")).ok()
+}
+
+#[test]
+fn gen_in_shards_merges_to_the_one_process_city_and_faulty_shards_are_refused() {
+    let dir = fresh_dir("shards", "gen_local");
+    let (single, out) = (dir.join("single"), dir.join("sharded"));
+    let (single_s, out_s) = (single.to_str().expect("utf-8"), out.to_str().expect("utf-8"));
+    let gen = |out: &str, extra: &[&str]| -> Vec<String> {
+        let mut args: Vec<String> = ["gen", "--preset", "small", "--seed", "1", "--quiet", "--out", out]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args
+    };
+    let refs = |args: &[String]| -> Vec<String> { args.to_vec() };
+    let run = |args: Vec<String>| {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        citystream(&args)
+    };
+    ok(run(gen(single_s, &[])), "one-process gen");
+
+    // Shard 0 of 2 only: shard 1 is missing, and nothing is written.
+    ok(run(refs(&gen(out_s, &["--shard", "0/2"]))), "shard 0");
+    let refused = citystream(&["merge", out_s]);
+    assert!(!refused.status.success());
+    assert!(
+        stderr(&refused).contains("shard 1 of 2 is missing"),
+        "{}",
+        stderr(&refused)
+    );
+    assert_eq!(manifest(&out), None, "a refused merge wrote a dataset");
+
+    // Shard 1 of another job (other options): refused by name.
+    ok(
+        run(gen(out_s, &["--shard", "1/2", "--max-extent", "256"])),
+        "foreign shard 1",
+    );
+    let refused = citystream(&["merge", out_s]);
+    assert!(
+        stderr(&refused).contains("shard 1") && stderr(&refused).contains("another job"),
+        "{}",
+        stderr(&refused)
+    );
+    assert_eq!(manifest(&out), None);
+
+    // Shard 1 killed once its first checkpoint is durable: running, refused, then resumed.
+    let args = gen(out_s, &["--shard", "1/2"]);
+    let arg_refs: Vec<&str> = args.iter().map(String::as_str).collect();
+    let mut child = spawn(&arg_refs, &[]);
+    let started = Instant::now();
+    let journal_has_a_record = || {
+        std::fs::read_dir(out.join("shards/1"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|e| std::fs::metadata(e.path().join("resume.journal")).is_ok_and(|m| m.len() > 200))
+    };
+    while !journal_has_a_record() {
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "no checkpoint within 2 min"
+        );
+        assert!(
+            child.try_wait().expect("wait").is_none(),
+            "the shard ended before its kill"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().expect("kill");
+    child.wait().expect("reap");
+    let status = ok(citystream(&["merge", "--status", out_s]), "status");
+    let text = String::from_utf8_lossy(&status.stdout);
+    // The foreign shard is still there, its replacement running beside it.
+    assert!(
+        text.contains("shard 0/2: done") && text.contains("a rerun is running"),
+        "{text}"
+    );
+    let refused = citystream(&["merge", out_s]);
+    assert!(stderr(&refused).contains("shard 1 ("), "{}", stderr(&refused));
+    assert_eq!(manifest(&out), None);
+    let rerun = ok(
+        run(gen(out_s, &["--shard", "1/2"])
+            .into_iter()
+            .filter(|a| a != "--quiet")
+            .collect()),
+        "rerun",
+    );
+    assert!(stderr(&rerun).contains("resuming shard 1/2"), "{}", stderr(&rerun));
+
+    // A flipped byte in shard 0's mips: refused naming the shard and the mip.
+    let shard0 = Dataset::open(out.join("shards/0")).expect("shard 0");
+    let pack = shard0.files().path("textures.pack");
+    let mut bytes = std::fs::read(&pack).expect("pack");
+    let at = bytes.len() / 2;
+    bytes[at] ^= 0x10;
+    std::fs::write(&pack, &bytes).expect("damage");
+    let refused = citystream(&["merge", out_s]);
+    let text = stderr(&refused);
+    assert!(
+        text.contains("shard 0 of 2") && text.contains("damaged") && text.contains("checksum"),
+        "{text}"
+    );
+    assert_eq!(manifest(&out), None);
+    bytes[at] ^= 0x10;
+    std::fs::write(&pack, &bytes).expect("repair");
+
+    let merged = ok(citystream(&["merge", out_s]), "merge");
+    assert!(String::from_utf8_lossy(&merged.stdout).contains("merged 2 shards"));
+    ok(citystream(&["verify", out_s]), "verify");
+    assert_same_dataset(&out, &single);
+}
+
+/// A tileset of `n` walls in a row, each its own content and texture, under one root.
+fn row_of_walls(dir: &Path, n: usize) -> PathBuf {
+    let (lat, lon, h) = BERLIN;
+    let mut children = Vec::new();
+    for i in 0..n {
+        let file = format!("wall{i}.glb");
+        std::fs::write(dir.join(&file), wall_glb(i as u8 + 1)).expect("write content");
+        children.push(json!({
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
+            "geometricError": 0.0,
+            "transform": flat(&translation([i as f64 * 30.0, 5.0 * i as f64, 0.0])),
+            "content": {"uri": file}
+        }));
+    }
+    let tileset = json!({
+        "asset": {"version": "1.0"},
+        "geometricError": 100.0,
+        "root": {
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
+            "geometricError": 10.0,
+            "refine": "ADD",
+            "transform": flat(&enu_to_ecef(lat, lon, h)),
+            "children": children
+        }
+    });
+    let path = dir.join("tileset.json");
+    write_json(&path, &tileset);
+    path
+}
+
+#[test]
+fn a_tileset_imported_in_three_shards_merges_to_the_one_process_import() {
+    let dir = fresh_dir("shards", "import");
+    let tileset = row_of_walls(&dir, 8);
+    let (single, out) = (dir.join("single"), dir.join("sharded"));
+    let t = tileset.to_str().expect("utf-8");
+    ok(
+        citystream(&["import", t, "--out", single.to_str().expect("utf-8")]),
+        "import",
+    );
+    let children: Vec<Child> = (0..3)
+        .map(|i| {
+            let shard = format!("{i}/3");
+            spawn(
+                &["import", t, "--out", out.to_str().expect("utf-8"), "--shard", &shard],
+                &[],
+            )
+        })
+        .collect();
+    for child in children {
+        ok(child.wait_with_output().expect("import shard"), "import shard");
+    }
+    ok(citystream(&["merge", out.to_str().expect("utf-8")]), "merge");
+    assert_same_dataset(&out, &single);
+    let merged = Dataset::open(&out).expect("merged");
+    assert_eq!(merged.textures.len(), 8);
+
+    // A glTF file is one content: nothing to divide.
+    let glb = dir.join("wall0.glb");
+    let refused = citystream(&["import", glb.to_str().expect("utf-8"), "--out", "x", "--shard", "0/2"]);
+    assert!(
+        stderr(&refused).contains("--shard divides a 3D Tiles tileset"),
+        "{}",
+        stderr(&refused)
+    );
+}
+
+#[test]
+#[cfg_attr(
+    citystream_skip_s3,
+    ignore = "the S3 emulator is not installed and `make setup` has not run"
+)]
+fn gen_in_four_concurrent_shards_into_s3_merges_there_to_the_one_process_city() {
+    let preset = std::env::var("CITYSTREAM_SHARD_TEST_PRESET").unwrap_or_else(|_| "small".into());
+    let dir = fresh_dir("shards", "gen_s3");
+    let seed_dir = dir.join("seed");
+    let single = dir.join("single");
+    ok(
+        citystream(&[
+            "gen",
+            "--preset",
+            &preset,
+            "--seed",
+            "1",
+            "--quiet",
+            "--out",
+            single.to_str().expect("utf-8"),
+        ]),
+        "one-process gen",
+    );
+    // The emulator with a bucket (made by uploading a small file tree).
+    std::fs::create_dir_all(&seed_dir).expect("seed dir");
+    std::fs::write(seed_dir.join("README"), "sharded builds").expect("seed file");
+    let s3 = S3Emulator::start(&dir).expect("start the S3 emulator (`make setup` installs it)");
+    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
+    let env = s3.client_env();
+    let env = env_refs(&env);
+    let url = format!("s3://cities/{preset}");
+    let children: Vec<Child> = (0..4)
+        .map(|i| {
+            let index = i.to_string();
+            let mut env = env.clone();
+            env.push(("AWS_BATCH_JOB_ARRAY_INDEX", &index));
+            let args = [
+                "gen",
+                "--preset",
+                &preset,
+                "--seed",
+                "1",
+                "--quiet",
+                "--out",
+                &url,
+                "--shard-index-env",
+                "AWS_BATCH_JOB_ARRAY_INDEX",
+                "--shards",
+                "4",
+            ];
+            spawn(&args, &env)
+        })
+        .collect();
+    for child in children {
+        ok(child.wait_with_output().expect("gen shard"), "gen shard");
+    }
+    let status = ok(run_env(&["merge", "--status", &url], &env), "status");
+    assert!(String::from_utf8_lossy(&status.stdout).contains("4 done, 0 running, 0 missing"));
+    let merged = ok(run_env(&["merge", &url], &env), "merge");
+    let summary = String::from_utf8_lossy(&merged.stdout).into_owned();
+    assert!(summary.contains("merged 4 shards"), "{summary}");
+    ok(run_env(&["verify", &url], &env), "verify");
+
+    // Tables, colours, every mip's CRC and the scene, as read back from the store.
+    for (k, v) in &env {
+        std::env::set_var(k, v);
+    }
+    let remote = open_dataset(&url, &RemoteOptions::default()).expect("open merged");
+    let local = Dataset::open(&single).expect("single");
+    assert_eq!(remote.textures.textures(), local.textures.textures(), "texture tables");
+    assert_eq!(remote.colormap, local.colormap, "colormaps");
+    assert_eq!(remote.scene, local.scene, "scenes");
+    for t in 0..local.textures.len() {
+        for level in 0..local.textures.textures()[t as usize].mip_count() {
+            assert_eq!(
+                remote.textures.mip_checksum(t, level).expect("remote crc"),
+                local.textures.mip_checksum(t, level).expect("local crc"),
+                "texture {t} level {level}"
+            );
+        }
+    }
+    // `verify` above read every mip against these CRCs: the mips are the single build's.
+    assert!(summary.contains("copied in the store"), "{summary}");
+}

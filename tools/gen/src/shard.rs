@@ -1,0 +1,298 @@
+//! Sharded writes: `gen … --shard I/N` and `import … --shard I/N` write shard `I` of `N`
+//! of a dataset into `OUT/shards/I/`, which `citystream merge OUT` joins
+//! (`docs/SHARDS.md`). `OUT` is a directory or an `s3://bucket/prefix` URL.
+//!
+//! A shard is an ordinary dataset written by [`citystream_dataset::DatasetWriter`], with
+//! its record ([`citystream_dataset::ShardRecord`]: job, index, count, totals) in the same write, so a shard
+//! is atomic and resumable as every write is, and rerunning it replaces it. Into S3 it is
+//! written in a local staging directory first (resumable there), every mip checked, then
+//! uploaded: the write's files, then their pack's entity tag, then the manifest, and the
+//! shard's older writes removed. While an S3 shard runs, `shards/I/shard.journal` says so
+//! (`merge --status`); locally the write's own `resume.journal` does.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use citystream_dataset::remote::{is_remote, ObjectBucket, RemoteOptions};
+use citystream_dataset::{verify_dataset, Dataset, Scene, MANIFEST_FILE, PACK_FILE, SHARDS_DIR};
+
+/// The journal an S3 shard keeps beside its files while it runs.
+pub const S3_JOURNAL: &str = "shard.journal";
+/// The file beside an S3 shard's pack holding the pack's size and entity tag as uploaded.
+pub const PACK_TAG_FILE: &str = "textures.pack.etag";
+
+/// Which shard a command writes: from `--shard I/N`, or `--shard-index-env NAME --shards N`.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ShardArgs {
+    /// Write shard I of N (I from 0) into OUT/shards/I/ (OUT a directory or s3://bucket/prefix);
+    /// `citystream merge OUT` joins the N shards into one dataset at OUT.
+    #[arg(long, value_name = "I/N", conflicts_with = "shard_index_env")]
+    pub shard: Option<String>,
+    /// Read the shard index from this environment variable, as a batch scheduler sets it
+    /// (JOB_COMPLETION_INDEX, AWS_BATCH_JOB_ARRAY_INDEX, SLURM_ARRAY_TASK_ID); with --shards.
+    #[arg(long, value_name = "NAME", requires = "shards")]
+    pub shard_index_env: Option<String>,
+    /// How many shards, with --shard-index-env.
+    #[arg(long, value_name = "N", requires = "shard_index_env")]
+    pub shards: Option<u32>,
+}
+
+/// Shard `index` of `count`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shard {
+    /// From 0.
+    pub index: u32,
+    /// At least 1.
+    pub count: u32,
+}
+
+impl ShardArgs {
+    /// The shard asked for, or `None` for an ordinary write.
+    pub fn resolve(&self) -> Result<Option<Shard>> {
+        let (index, count) = match (&self.shard, &self.shard_index_env, self.shards) {
+            (Some(text), _, _) => {
+                let (i, n) = text
+                    .split_once('/')
+                    .with_context(|| format!("--shard {text}: expected I/N, e.g. 0/4"))?;
+                let parse = |what: &str, v: &str| {
+                    v.trim()
+                        .parse::<u32>()
+                        .with_context(|| format!("--shard {text}: {what} {v:?} is not a whole number"))
+                };
+                (parse("index", i)?, parse("count", n)?)
+            }
+            (None, Some(name), Some(count)) => {
+                let value = std::env::var(name).with_context(|| {
+                    format!("--shard-index-env {name}: the variable is not set (the scheduler sets it for array jobs)")
+                })?;
+                let index = value
+                    .trim()
+                    .parse::<u32>()
+                    .with_context(|| format!("--shard-index-env {name}: its value {value:?} is not a whole number"))?;
+                (index, count)
+            }
+            _ => return Ok(None),
+        };
+        if count == 0 || index >= count {
+            bail!(
+                "shard index {index} of {count}: the index must be 0 to {}",
+                count.saturating_sub(1)
+            );
+        }
+        Ok(Some(Shard { index, count }))
+    }
+}
+
+impl Shard {
+    /// This shard's contiguous part of `total` items in order: `total·I/N .. total·(I+1)/N`.
+    pub fn range(&self, total: usize) -> Range<usize> {
+        let at = |i: u32| (total as u128 * u128::from(i) / u128::from(self.count)) as usize;
+        at(self.index)..at(self.index + 1)
+    }
+}
+
+/// A fingerprint of a laid-out scene, part of a shard's job: shards of one job divide the
+/// same city, so a shard of another layout (another build, other options) is refused.
+pub fn scene_fingerprint(scene: &Scene, textures: usize) -> u32 {
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(&(scene.meshes.len() as u64).to_le_bytes());
+    hasher.update(&(textures as u64).to_le_bytes());
+    hasher.update(&(scene.positions.len() as u64).to_le_bytes());
+    for p in scene.positions.iter().step_by(97) {
+        for v in p {
+            hasher.update(&v.to_le_bytes());
+        }
+    }
+    for m in scene.meshes.iter().step_by(31) {
+        hasher.update(&m.texture.to_le_bytes());
+    }
+    hasher.finalize()
+}
+
+/// Where a shard is written and how it is published.
+#[derive(Debug)]
+pub struct ShardWrite {
+    shard: Shard,
+    /// The dataset directory the shard's writer writes.
+    dir: PathBuf,
+    bucket: Option<(ObjectBucket, String)>,
+    quiet: bool,
+}
+
+impl ShardWrite {
+    /// Starts shard `shard` of the output `out`: for a directory, the shard is written in
+    /// `out/shards/I/`; for an S3 URL, in a staging directory under the system's temporary
+    /// directory (named by `out` and `I`, so a rerun resumes it), and `shards/I/shard.journal`
+    /// is put saying that it runs.
+    pub fn begin(out: &Path, shard: Shard, command: &str, quiet: bool) -> Result<Self> {
+        let location = out.to_string_lossy();
+        let key = format!("{SHARDS_DIR}/{}", shard.index);
+        if !is_remote(&location) {
+            return Ok(Self {
+                shard,
+                dir: out.join(&key),
+                bucket: None,
+                quiet,
+            });
+        }
+        let bucket = ObjectBucket::new(&location, &RemoteOptions::from_env()?)?;
+        let name = format!("{:08x}-{}", crc32fast::hash(bucket.url().as_bytes()), shard.index);
+        let dir = std::env::temp_dir().join("citystream-shards").join(name);
+        let started = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        let host = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+        let journal = format!(
+            "shard {} of {}\ncommand {command}\nhost {}\npid {}\nstarted {started}\nstaging {}\n",
+            shard.index,
+            shard.count,
+            host.trim(),
+            std::process::id(),
+            dir.display()
+        );
+        bucket.put(&format!("{key}/{S3_JOURNAL}"), journal.into_bytes())?;
+        Ok(Self {
+            shard,
+            dir,
+            bucket: Some((bucket, key)),
+            quiet,
+        })
+    }
+
+    /// The dataset directory the shard is written in.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// After the shard's write finished: nothing more for a directory; into S3, checks
+    /// every mip of the staged shard, uploads it (its files, its pack's tag, then its
+    /// manifest), removes its older writes and the journal, and the staging directory.
+    pub fn publish(self) -> Result<()> {
+        let Some((bucket, key)) = self.bucket else {
+            return Ok(());
+        };
+        let say = |line: String| {
+            if !self.quiet {
+                eprintln!("shard {}/{}: {line}", self.shard.index, self.shard.count);
+            }
+        };
+        let staged = Dataset::open(&self.dir).with_context(|| format!("reopening {}", self.dir.display()))?;
+        say(format!("checking every mip of {}", self.dir.display()));
+        verify_dataset(&staged).with_context(|| format!("checking {}", self.dir.display()))?;
+        let files = staged.files().clone();
+        let write_name = files
+            .data_dir()
+            .file_name()
+            .context("the staged write has no directory name")?
+            .to_string_lossy()
+            .into_owned();
+        let write_key = format!("{key}/{write_name}");
+        let mut names: Vec<String> = std::fs::read_dir(files.data_dir())
+            .with_context(|| format!("listing {}", files.data_dir().display()))?
+            .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
+            .collect::<std::io::Result<_>>()?;
+        names.sort();
+        for name in &names {
+            let path = files.data_dir().join(name);
+            let mut last_tenth = 0;
+            bucket.upload_file(&format!("{write_key}/{name}"), &path, &mut |done, total| {
+                let tenth = done * 10 / total.max(1);
+                if total >= 64 << 20 && tenth > last_tenth {
+                    last_tenth = tenth;
+                    say(format!("uploading {name}: {} of {} MB", done >> 20, total >> 20));
+                }
+            })?;
+        }
+        let pack = bucket.head(&format!("{write_key}/{PACK_FILE}"))?.with_context(|| {
+            format!(
+                "{}: the pack just uploaded is not there",
+                bucket.url_of(&write_key).display()
+            )
+        })?;
+        let e_tag = pack.e_tag.unwrap_or_default();
+        bucket.put(
+            &format!("{write_key}/{PACK_TAG_FILE}"),
+            format!("{} {e_tag}\n", pack.size).into_bytes(),
+        )?;
+        bucket.upload_file(
+            &format!("{key}/{MANIFEST_FILE}"),
+            &self.dir.join(MANIFEST_FILE),
+            &mut |_, _| {},
+        )?;
+        for (old, _) in bucket.list(&format!("{key}/"))? {
+            let inside = old.strip_prefix(&format!("{key}/")).unwrap_or(&old);
+            if inside.starts_with("write-") && !inside.starts_with(&format!("{write_name}/")) {
+                bucket.delete(&old)?;
+            }
+        }
+        bucket.delete(&format!("{key}/{S3_JOURNAL}"))?;
+        say(format!(
+            "uploaded to {} ({} MB of pack)",
+            bucket.url_of(&key).display(),
+            pack.size >> 20
+        ));
+        drop(staged);
+        if let Err(e) = std::fs::remove_dir_all(&self.dir) {
+            eprintln!(
+                "warning: could not remove the staging directory {}: {e}",
+                self.dir.display()
+            );
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shards_divide_the_items_in_order_without_gaps() {
+        for total in [0usize, 1, 7, 25_858] {
+            for count in 1..=9u32 {
+                let mut next = 0;
+                for index in 0..count {
+                    let range = Shard { index, count }.range(total);
+                    assert_eq!(range.start, next, "{total} in {count}");
+                    assert!(range.len() <= total.div_ceil(count as usize));
+                    next = range.end;
+                }
+                assert_eq!(next, total);
+            }
+        }
+    }
+
+    #[test]
+    fn the_index_comes_from_the_argument_or_the_scheduler() {
+        let args = |shard: Option<&str>, env: Option<&str>, shards: Option<u32>| ShardArgs {
+            shard: shard.map(Into::into),
+            shard_index_env: env.map(Into::into),
+            shards,
+        };
+        assert_eq!(
+            args(Some("2/4"), None, None).resolve().expect("2/4"),
+            Some(Shard { index: 2, count: 4 })
+        );
+        assert_eq!(args(None, None, None).resolve().expect("none"), None);
+        for bad in ["4/4", "1/0", "x/4", "2", "-1/4"] {
+            let error = args(Some(bad), None, None).resolve().expect_err(bad).to_string();
+            assert!(error.contains(bad) || error.contains("index"), "{bad}: {error}");
+        }
+        std::env::set_var("CITYSTREAM_TEST_SHARD_INDEX", "3");
+        assert_eq!(
+            args(None, Some("CITYSTREAM_TEST_SHARD_INDEX"), Some(5))
+                .resolve()
+                .expect("env"),
+            Some(Shard { index: 3, count: 5 })
+        );
+        let error = args(None, Some("CITYSTREAM_TEST_SHARD_UNSET"), Some(5))
+            .resolve()
+            .expect_err("unset")
+            .to_string();
+        assert!(
+            error.contains("CITYSTREAM_TEST_SHARD_UNSET") && error.contains("not set"),
+            "{error}"
+        );
+    }
+}
