@@ -184,20 +184,32 @@ pub fn check_texture_extent(option: &str, extent: u32) -> Result<()> {
 pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureFormat) -> Result<WriteSummary> {
     let mut city = layout::layout(params, args.seed)?;
     // The procedural textures' chains; user images (`--textures-from`) come on top.
-    let pack_bytes: u64 = city
-        .textures
-        .iter()
-        .map(|t| {
-            let (w, h) = (1u32 << t.width_log2, 1u32 << t.height_log2);
-            let mips = u32::from(t.width_log2.max(t.height_log2)) + 1;
-            (0..mips)
-                .map(|l| format.mip_bytes((w >> l).max(1), (h >> l).max(1)))
-                .sum::<u64>()
-        })
-        .sum();
+    let chain_bytes = |t: &layout::TextureSpec| -> u64 {
+        let (w, h) = (1u32 << t.width_log2, 1u32 << t.height_log2);
+        let mips = u32::from(t.width_log2.max(t.height_log2)) + 1;
+        (0..mips)
+            .map(|l| format.mip_bytes((w >> l).max(1), (h >> l).max(1)))
+            .sum::<u64>()
+    };
+    let pack_bytes: u64 = city.textures.iter().map(chain_bytes).sum();
     let scene_bytes = city.scene.encoded_len();
-    let needed = pack_bytes + scene_bytes;
-    let free = free_bytes(&args.out)?;
+    let shard = args.shard.resolve()?;
+    // A shard writes its own range (and at most the whole scene); one bound for S3 is
+    // staged under the temporary directory first.
+    let written_pack = match shard {
+        Some(shard) => city.textures[shard.range(city.textures.len())]
+            .iter()
+            .map(chain_bytes)
+            .sum::<u64>(),
+        None => pack_bytes,
+    };
+    let needed = written_pack + scene_bytes;
+    let written_at = if citystream_dataset::remote::is_remote(&args.out.to_string_lossy()) {
+        std::env::temp_dir()
+    } else {
+        args.out.clone()
+    };
+    let free = free_bytes(&written_at)?;
     if args.dry_run {
         print_stdout(&format!(
             "{} meshes, {} triangles, {} textures; needs {} of disk in {} (pack {}, scene {}); {} free\n",
@@ -222,15 +234,21 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
     }
     if needed > free {
         bail!(
-            "{} needs {} of free disk (pack {}, scene {}), but only {} is free there",
+            "{} needs {} of free disk in {} ({}pack {}, scene {}), but only {} is free there",
             args.out.display(),
             gb(needed),
-            gb(pack_bytes),
+            written_at.display(),
+            if shard.is_some() {
+                "this shard's part of the "
+            } else {
+                ""
+            },
+            gb(written_pack),
             gb(scene_bytes),
             gb(free)
         );
     }
-    if let Some(shard) = args.shard.resolve()? {
+    if let Some(shard) = shard {
         return generate_shard(args, format, city, shard);
     }
     let mut writer = DatasetWriter::create(&args.out)?;
