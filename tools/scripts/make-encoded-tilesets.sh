@@ -11,7 +11,7 @@
 #                     KHR_texture_transform (b2, b3 also -vpf: the exponential filter)
 #   ktx2-uastc/       plain geometry, basisu -ktx2 -uastc -mipmap -ktx2_no_zstandard
 #   ktx2-uastc-zstd/  the same with zstd supercompression (basisu's default for UASTC)
-#   ktx2-etc1s/       basisu -ktx2 -mipmap (ETC1S, BasisLZ)
+#   ktx2-etc1s/       basisu -ktx2 -mipmap -q 255 (ETC1S at its highest quality, BasisLZ)
 #   unsupported/      plain, but b3.glb requires KHR_materials_pbrSpecularGlossiness
 # Each tileset.json is 3d-tiles-tools createTilesetJson at 13.405 E, 52.52 N, 34 m.
 set -euo pipefail
@@ -44,7 +44,7 @@ for name in facade roof; do
   (cd "$images" &&
     "$basisu" -ktx2 -uastc -mipmap -ktx2_no_zstandard "$name.png" -output_file "$name-uastc.ktx2" >/dev/null &&
     "$basisu" -ktx2 -uastc -mipmap "$name.png" -output_file "$name-uastc-zstd.ktx2" >/dev/null &&
-    "$basisu" -ktx2 -mipmap "$name.png" -output_file "$name-etc1s.ktx2" >/dev/null)
+    "$basisu" -ktx2 -mipmap -q 255 "$name.png" -output_file "$name-etc1s.ktx2" >/dev/null)
 done
 for n in 0 1 2 3; do
   b="$out/plain/b$n.glb"

@@ -1,7 +1,7 @@
 // Writes OUT/b0.glb … b3.glb (and the two images as OUT/facade.png, OUT/roof.png): four textured buildings (walls and a flat roof, normals,
 // UVs that repeat the facade along each wall), one building per file, placed by a node
 // translation on a 60 m grid. Every file embeds the same two PNGs (a 128×128 facade, a 64×64
-// roof), as tilesets repeat images per tile. The images come from a fixed pseudo-random
+// roof), as tilesets repeat images per tile. The images' grain comes from a fixed pseudo-random
 // sequence, so a run writes the same files.
 import fs from 'node:fs';
 import path from 'node:path';
@@ -17,15 +17,20 @@ function random() {
   return (state >>> 8) / 16777216;
 }
 
+// Each texel is the mean of 4×4 samples of `texel` (as a photograph's optics soften edges;
+// hard one-texel edges in every 4×4 block would favour no block codec).
 function png(size, texel) {
   const image = new PNG({ width: size, height: size });
   for (let y = 0; y < size; y++) {
     for (let x = 0; x < size; x++) {
-      const [r, g, b] = texel(x, y);
+      const sum = [0, 0, 0];
+      for (let sy = 0; sy < 4; sy++) {
+        for (let sx = 0; sx < 4; sx++) {
+          texel(x + (sx + 0.5) / 4, y + (sy + 0.5) / 4).forEach((v, c) => (sum[c] += v));
+        }
+      }
       const i = (y * size + x) * 4;
-      image.data[i] = r;
-      image.data[i + 1] = g;
-      image.data[i + 2] = b;
+      for (let c = 0; c < 3; c++) image.data[i + c] = Math.max(0, Math.min(255, Math.round(sum[c] / 16)));
       image.data[i + 3] = 255;
     }
   }
@@ -33,19 +38,37 @@ function png(size, texel) {
 }
 
 const clamp = (v) => Math.max(0, Math.min(255, Math.round(v)));
-// Plaster with a 4×4 grid of windows (frames, panes with a sky gradient) and some grain.
+// Weathering: value noise on a 4-texel lattice, bilinearly interpolated (spatially
+// correlated, as the grain of photographed facades is; white noise per texel is not).
+function grainOf(size, amplitude) {
+  const cells = size / 4 + 1;
+  const lattice = Array.from({ length: cells * cells }, () => (random() - 0.5) * amplitude);
+  return (x, y) => {
+    const [gx, gy] = [x / 4, y / 4];
+    const [x0, y0] = [Math.floor(gx), Math.floor(gy)];
+    const [fx, fy] = [gx - x0, gy - y0];
+    const at = (i, j) => lattice[Math.min(j, cells - 1) * cells + Math.min(i, cells - 1)];
+    const top = at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx;
+    const bottom = at(x0, y0 + 1) * (1 - fx) + at(x0 + 1, y0 + 1) * fx;
+    return top * (1 - fy) + bottom * fy;
+  };
+}
+const facadeGrain = grainOf(128, 24);
+const roofGrain = grainOf(64, 30);
+// Beige plaster with a 4×4 grid of windows (light frames, dark grey-blue panes that reflect
+// a sky gradient) and some grain: the muted colours of a rendered European facade.
 const facade = png(128, (x, y) => {
   const cx = x % 32, cy = y % 32;
-  const grain = (random() - 0.5) * 10;
+  const grain = facadeGrain(x, y);
   if (cx >= 6 && cx < 26 && cy >= 5 && cy < 27) {
-    if (cx < 8 || cx >= 24 || cy < 7 || cy >= 25 || cx === 16) return [235, 232, 220].map((v) => clamp(v + grain / 3));
-    return [clamp(60 + cy * 2 + grain), clamp(90 + cy * 3 + grain), clamp(140 + cy * 2 + grain)];
+    if (cx < 8 || cx >= 24 || cy < 7 || cy >= 25 || (cx >= 15.5 && cx < 16.5)) return [235, 232, 220].map((v) => v + grain / 3);
+    return [70 + cy * 2 + grain, 84 + cy * 2 + grain, 100 + cy * 2 + grain];
   }
-  return [clamp(196 + grain + (y >> 5) * 6), clamp(150 + grain), clamp(110 + grain - (x >> 5) * 4)];
+  return [clamp(200 + grain + Math.floor(y / 32) * 4), clamp(178 + grain), clamp(146 + grain - Math.floor(x / 32) * 3)];
 });
 const roof = png(64, (x, y) => {
-  const grain = (random() - 0.5) * 12;
-  const seam = x % 16 === 0 || y % 16 === 0 ? -30 : 0;
+  const grain = roofGrain(x, y);
+  const seam = x % 16 < 1 || y % 16 < 1 ? -30 : 0;
   return [clamp(110 + grain + seam), clamp(105 + grain + seam), clamp(100 + grain + seam)];
 });
 
