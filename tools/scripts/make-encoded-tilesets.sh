@@ -13,6 +13,9 @@
 #   ktx2-uastc-zstd/  the same with zstd supercompression (basisu's default for UASTC)
 #   ktx2-etc1s/       basisu -ktx2 -mipmap -q 255 (ETC1S at its highest quality, BasisLZ)
 #   unsupported/      plain, but b3.glb requires KHR_materials_pbrSpecularGlossiness
+#   fuzz/             small seeds for the fuzzer: ktx2-etc1s/b0.glb through gltf-pipeline -d,
+#                     ktx2-etc1s/b2.glb through gltfpack -cc -vpf, the roof image as ETC1S,
+#                     UASTC and UASTC+zstd KTX2
 # Each tileset.json is 3d-tiles-tools createTilesetJson at 13.405 E, 52.52 N, 34 m.
 set -euo pipefail
 
@@ -63,6 +66,11 @@ for n in 0 1 2 3; do
     cp "$b" "$out/unsupported/b$n.glb"
   fi
 done
+mkdir -p "$out/fuzz"
+"$bin/gltf-pipeline" -i "$out/ktx2-etc1s/b0.glb" -o "$out/fuzz/draco-etc1s.glb" -d >/dev/null
+"$bin/gltfpack" -i "$out/ktx2-etc1s/b2.glb" -o "$out/fuzz/meshopt-etc1s.glb" -cc -vpf >/dev/null
+for codec in etc1s uastc uastc-zstd; do cp "$images/roof-$codec.ktx2" "$out/fuzz/roof-$codec.ktx2"; done
+
 for variant in plain draco meshopt ktx2-uastc ktx2-uastc-zstd ktx2-etc1s unsupported; do
   "$bin/3d-tiles-tools" createTilesetJson -i "$out/$variant" -o "$out/$variant/tileset.json" \
     --cartographicPositionDegrees 13.405 52.52 34 -f >/dev/null
@@ -79,6 +87,6 @@ done
   echo "- node $(node --version), $("$basisu" -version 2>/dev/null | head -1 || true)"
   echo
   echo "Read by tools/cli/tests/import_encodings.rs, tools/flythrough/tests/tileset_flight.rs and"
-  echo "the fuzzer's tileset and texture harnesses."
+  echo "the fuzzer's gltf, tileset and texture harnesses (the seeds in fuzz/)."
 } > "$out/README.md"
 du -sh "$out"

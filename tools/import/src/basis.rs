@@ -4,10 +4,13 @@
 //! maps onto a BC1, BC3 or BC7 block without decoding the image and encoding it again. The
 //! levels are kept as shipped (those finer than `--max-extent` dropped).
 //!
-//! Sizes are checked before anything is transcoded: sides up to the largest texture side,
-//! one 2D image (no arrays, cube maps or video), and no level may transcode to more than
-//! [`MAX_EXPANSION`] times the file's bytes plus 16 MiB, which ETC1S's best compression on
-//! real images stays below, so a damaged header cannot make the import allocate gigabytes.
+//! The container is checked before the transcoder sees it ([`check_container`]: the
+//! transcoder trusts the offsets, lengths and counts a file declares, and the fuzzer found
+//! them overflowing its arithmetic and sizing its allocations): sides up to the largest
+//! texture side, one 2D image (no arrays, cube maps or video), every range inside the file,
+//! each UASTC level exactly its blocks' size (zstd levels declaring exactly that), and no
+//! level may transcode to more than [`MAX_EXPANSION`] times the file's bytes plus 16 MiB,
+//! which ETC1S's best compression on real images stays below.
 
 use basisu::{DecodeFlags, SourceFormat, Supercompression, TargetFormat, Transcoder};
 use citystream_dataset::TextureFormat;
@@ -34,6 +37,116 @@ pub enum BasisError {
     Extent { width: u32, height: u32, max: u32 },
     #[error("level {level} would transcode to {bytes} bytes from a {file}-byte file (at most {MAX_EXPANSION} times its size plus 16 MiB)")]
     TooLarge { level: u32, bytes: u64, file: u64 },
+    #[error("a damaged Basis Universal KTX2 file: {0}")]
+    Container(String),
+}
+
+fn u32_at(bytes: &[u8], at: usize) -> u64 {
+    bytes
+        .get(at..at + 4)
+        .map_or(0, |b| u64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+}
+
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    bytes.get(at..at + 8).map_or(0, |b| {
+        u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])
+    })
+}
+
+/// Checks what the transcoder would trust in a KTX2 file of Basis data: the header's
+/// shape (a 2D texture of sides 1 to the largest texture side, one layer and face, at most
+/// a full chain of levels, no supercompression but BasisLZ and zstd), every range the
+/// index names inside the file, UASTC levels exactly their blocks' size (a zstd level
+/// declaring exactly that uncompressed), and ETC1S's global data (codebooks, tables and one
+/// image descriptor per level) inside its range, each image's slices inside its level.
+pub fn check_container(bytes: &[u8]) -> Result<(), BasisError> {
+    let bad = |what: String| Err(BasisError::Container(what));
+    if bytes.len() < 80 || !is_basis(bytes) {
+        return bad(format!("{} bytes, not a KTX2 header of Basis data", bytes.len()));
+    }
+    let file = bytes.len() as u64;
+    let (width, height, depth) = (u32_at(bytes, 20), u32_at(bytes, 24), u32_at(bytes, 28));
+    let (layers, faces, levels, scheme) = (
+        u32_at(bytes, 32),
+        u32_at(bytes, 36),
+        u32_at(bytes, 40),
+        u32_at(bytes, 44),
+    );
+    let max = u64::from(citystream_gen::library::MAX_IMAGE_SIDE);
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) || depth > 1 {
+        return bad(format!("a {width}x{height}x{depth} texture (2D, sides 1 to {max})"));
+    }
+    if layers > 1 || faces != 1 {
+        return bad(format!("{layers} layers and {faces} faces (one 2D image is read)"));
+    }
+    let full_chain = u64::from(64 - width.max(height).leading_zeros());
+    if !(1..=full_chain).contains(&levels) {
+        return bad(format!("{levels} levels for a {width}x{height} texture"));
+    }
+    if scheme > 2 {
+        return bad(format!("supercompression scheme {scheme} (BasisLZ and zstd are read)"));
+    }
+    let in_file = |offset: u64, length: u64, what: &str| -> Result<(), BasisError> {
+        match offset.checked_add(length) {
+            Some(end) if end <= file => Ok(()),
+            _ => Err(BasisError::Container(format!(
+                "{what} at bytes {offset}..+{length} runs past the file's {file}"
+            ))),
+        }
+    };
+    in_file(u32_at(bytes, 48), u32_at(bytes, 52), "the data format descriptor")?;
+    in_file(u32_at(bytes, 56), u32_at(bytes, 60), "the key/value data")?;
+    let (sgd, sgd_len) = (u64_at(bytes, 64), u64_at(bytes, 72));
+    in_file(sgd, sgd_len, "the supercompression global data")?;
+    in_file(80, 24 * levels, "the level index")?;
+    let mut level_ranges = Vec::new();
+    for l in 0..levels {
+        let at = 80 + 24 * l as usize;
+        let (offset, length, uncompressed) = (u64_at(bytes, at), u64_at(bytes, at + 8), u64_at(bytes, at + 16));
+        in_file(offset, length, &format!("level {l}"))?;
+        let blocks = (width >> l).max(1).div_ceil(4) * (height >> l).max(1).div_ceil(4);
+        let uastc = blocks * 16;
+        match scheme {
+            0 if length != uastc => {
+                return bad(format!(
+                    "level {l} holds {length} bytes, not its {uastc} of UASTC blocks"
+                ))
+            }
+            2 if uncompressed != uastc => {
+                return bad(format!(
+                    "level {l} declares {uncompressed} bytes uncompressed, not its {uastc} of UASTC blocks"
+                ))
+            }
+            _ => {}
+        }
+        level_ranges.push(length);
+    }
+    if scheme == 1 {
+        // BasisLZ: a 20-byte header (codebook sizes, then their byte lengths), one 20-byte
+        // image descriptor per level, then the codebooks and tables.
+        let images = 20 + 20 * levels;
+        let payload = images
+            + u32_at(bytes, sgd as usize + 4)
+            + u32_at(bytes, sgd as usize + 8)
+            + u32_at(bytes, sgd as usize + 12);
+        if sgd_len < images || payload > sgd_len {
+            return bad(format!(
+                "BasisLZ global data of {sgd_len} bytes, short of its {payload} bytes of descriptors and codebooks"
+            ));
+        }
+        for (l, length) in level_ranges.iter().enumerate() {
+            let at = sgd as usize + 20 + 20 * l;
+            for (slice, o) in [("RGB", 4), ("alpha", 12)] {
+                let (start, len) = (u32_at(bytes, at + o), u32_at(bytes, at + o + 4));
+                if start + len > *length {
+                    return bad(format!(
+                        "level {l}'s {slice} slice at {start}..+{len} runs past the level's {length} bytes"
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 impl From<basisu::Error> for BasisError {
@@ -85,6 +198,7 @@ impl std::fmt::Debug for BasisTexture<'_> {
 impl<'a> BasisTexture<'a> {
     /// Opens `bytes` (a file [`is_basis`] accepts).
     pub fn open(bytes: &'a [u8]) -> Result<Self, BasisError> {
+        check_container(bytes)?;
         let transcoder = Transcoder::new(bytes)?;
         let codec = match (transcoder.source_format(), transcoder.supercompression()) {
             (SourceFormat::Etc1s, _) => BasisCodec::Etc1s,

@@ -20,6 +20,11 @@ use super::{slice, DecodeError, MAX_DECODED_BYTES};
 /// The extension's name.
 pub const EXTENSION: &str = "KHR_draco_mesh_compression";
 
+/// Most faces, vertices or symbols a stream may declare per byte it holds: the decoder
+/// allocates by the counts a stream declares, and Draco's densest meshes spend well over a
+/// bit per triangle, so a count past this is a damaged or hostile header.
+pub const MAX_COUNT_PER_BYTE: u64 = 256;
+
 /// One decoded stream: per attribute named in the extension, its values as floats (`None`
 /// for a form the import does not read), and the triangles.
 #[derive(Debug)]
@@ -160,6 +165,7 @@ fn decode_stream(
         .get("attributes")
         .and_then(Value::as_object)
         .ok_or_else(|| DecodeError::invalid(what, "no attributes object"))?;
+    check_declared_counts(bytes, what)?;
     let mesh = draco_oxide_decoder::Decoder::new()
         .decode_mesh(bytes)
         .map_err(|e| DecodeError::Corrupt {
@@ -220,6 +226,79 @@ fn decode_stream(
         attributes,
         indices,
     })
+}
+
+/// Refuses a mesh stream whose header declares more faces, vertices or symbols than
+/// [`MAX_COUNT_PER_BYTE`] allows for its length, before the decoder allocates for them.
+/// Streams this does not recognise are left to the decoder to refuse.
+fn check_declared_counts(bytes: &[u8], what: &str) -> Result<(), DecodeError> {
+    // "DRACO", version 2.2, geometry type, encoder method, flags (u16).
+    if bytes.len() < 11 || &bytes[..5] != b"DRACO" || bytes[7] != 1 {
+        return Ok(());
+    }
+    let too_large = |name: &str, count: u64| -> Result<(), DecodeError> {
+        let limit = (bytes.len() as u64).saturating_mul(MAX_COUNT_PER_BYTE);
+        if count > limit {
+            return Err(DecodeError::TooLarge {
+                what: format!("{what}: the Draco stream's {name}"),
+                bytes: count,
+                limit,
+                why: "a Draco stream holds at most 256 of them per byte",
+            });
+        }
+        Ok(())
+    };
+    if u16::from_le_bytes([bytes[9], bytes[10]]) & 0x8000 != 0 {
+        return Err(DecodeError::invalid(
+            what,
+            "the Draco stream has a metadata section, which the import does not read",
+        ));
+    }
+    let mut at = 11;
+    let counts: Vec<(&str, Option<u64>)> = match bytes[8] {
+        // Sequential: faces, points.
+        0 => vec![("faces", varint(bytes, &mut at)), ("points", varint(bytes, &mut at))],
+        // Edgebreaker: traversal type, then vertices, faces, attribute data (a byte),
+        // symbols and split symbols.
+        1 => {
+            at += 1;
+            let (vertices, faces) = (varint(bytes, &mut at), varint(bytes, &mut at));
+            at += 1;
+            vec![
+                ("vertices", vertices),
+                ("faces", faces),
+                ("symbols", varint(bytes, &mut at)),
+                ("split symbols", varint(bytes, &mut at)),
+            ]
+        }
+        _ => return Ok(()),
+    };
+    for (name, count) in counts {
+        match count {
+            Some(count) => too_large(name, count)?,
+            None => {
+                return Err(DecodeError::invalid(
+                    what,
+                    format!("the Draco stream's {name} count is not a varint"),
+                ))
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The LEB128 varint at `*at`, moving `at` past it; `None` past the end or beyond 64 bits.
+fn varint(bytes: &[u8], at: &mut usize) -> Option<u64> {
+    let mut value = 0u64;
+    for shift in (0..64).step_by(7) {
+        let byte = *bytes.get(*at)?;
+        *at += 1;
+        value |= u64::from(byte & 0x7F) << shift;
+        if byte & 0x80 == 0 {
+            return Some(value);
+        }
+    }
+    None
 }
 
 /// The float values of `attribute` for each of `points` points, components interleaved
