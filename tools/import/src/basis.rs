@@ -322,6 +322,72 @@ impl<'a> BasisTexture<'a> {
 mod tests {
     use super::*;
 
+    fn fixture(name: &str) -> Vec<u8> {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../test-data/encoded-tilesets/fuzz")
+            .join(name);
+        std::fs::read(&path).expect("fixture")
+    }
+
+    #[test]
+    fn shipped_levels_are_transcoded_from_the_first_within_the_extent() {
+        for (file, codec) in [
+            ("roof-etc1s.ktx2", BasisCodec::Etc1s),
+            ("roof-uastc.ktx2", BasisCodec::Uastc),
+            ("roof-uastc-zstd.ktx2", BasisCodec::UastcZstd),
+        ] {
+            let bytes = fixture(file);
+            let texture = BasisTexture::open(&bytes).expect(file);
+            assert_eq!((texture.codec, texture.width, texture.height), (codec, 64, 64));
+            let full = texture
+                .blocks(TextureFormat::Bc7, 14)
+                .expect(file)
+                .expect("kept as shipped");
+            assert_eq!((full.width, full.mip_count), (64, 7));
+            assert_eq!(
+                full.chain.len() as u64,
+                (0..7)
+                    .map(|l| TextureFormat::Bc7.mip_bytes(64 >> l, 64 >> l))
+                    .sum::<u64>()
+            );
+            let half = texture
+                .blocks(TextureFormat::Bc1, 5)
+                .expect(file)
+                .expect("kept as shipped");
+            assert_eq!((half.width, half.height, half.mip_count), (32, 32, 6));
+            assert_eq!(texture.rgba().expect(file).dimensions(), (64, 64));
+        }
+    }
+
+    #[test]
+    fn damaged_containers_are_refused_before_the_transcoder_sees_them() {
+        let good = fixture("roof-uastc-zstd.ktx2");
+        let refused = |edit: &dyn Fn(&mut Vec<u8>)| {
+            let mut bytes = good.clone();
+            edit(&mut bytes);
+            BasisTexture::open(&bytes).expect_err("refused").to_string()
+        };
+        // Level 0's uncompressed length one block more than its blocks (the 2^57-byte
+        // allocation the fuzzer found declared such a length).
+        let error = refused(&|b| {
+            let at = 80 + 16;
+            let length = u64_at(b, at) + 16;
+            b[at..at + 8].copy_from_slice(&length.to_le_bytes());
+        });
+        assert!(error.contains("uncompressed"), "{error}");
+        assert!(refused(&|b| b.truncate(b.len() - 100)).contains("runs past"));
+        assert!(refused(&|b| b[40..44].copy_from_slice(&20u32.to_le_bytes())).contains("20 levels"));
+        assert!(refused(&|b| b[20..24].copy_from_slice(&40_000u32.to_le_bytes())).contains("40000x64"));
+        assert!(refused(&|b| b[32..36].copy_from_slice(&6u32.to_le_bytes())).contains("6 layers"));
+        let etc1s = fixture("roof-etc1s.ktx2");
+        let mut short = etc1s.clone();
+        // The global data's endpoint codebook claims more bytes than the global data holds.
+        let sgd = u64_at(&short, 64) as usize;
+        short[sgd + 4..sgd + 8].copy_from_slice(&u32::MAX.to_le_bytes());
+        let error = BasisTexture::open(&short).expect_err("refused").to_string();
+        assert!(error.contains("BasisLZ global data"), "{error}");
+    }
+
     #[test]
     fn only_ktx2_files_of_undefined_format_are_basis() {
         let mut header = KTX2_MAGIC.to_vec();

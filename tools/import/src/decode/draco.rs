@@ -333,3 +333,83 @@ fn floats(attribute: &Attribute, points: usize, name: &str, what: &str) -> Resul
     }
     Ok(Some(out))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An edgebreaker mesh header declaring `faces` faces, padded to `len` bytes.
+    fn header(faces: u64, len: usize) -> Vec<u8> {
+        fn varint(bytes: &mut Vec<u8>, mut v: u64) {
+            loop {
+                let byte = (v & 0x7F) as u8;
+                v >>= 7;
+                bytes.push(if v > 0 { byte | 0x80 } else { byte });
+                if v == 0 {
+                    break;
+                }
+            }
+        }
+        let mut bytes = b"DRACO".to_vec();
+        bytes.extend_from_slice(&[2, 2, 1, 1, 0, 0, 0]);
+        varint(&mut bytes, 4); // vertices
+        varint(&mut bytes, faces);
+        bytes.push(0); // attribute data
+        varint(&mut bytes, faces); // symbols
+        varint(&mut bytes, 0); // split symbols
+        bytes.resize(len, 0);
+        bytes
+    }
+
+    #[test]
+    fn declared_counts_beyond_the_stream_are_refused_before_decoding() {
+        let error = check_declared_counts(&header(1 << 30, 64), "p")
+            .expect_err("refused")
+            .to_string();
+        assert!(error.contains("faces") && error.contains("256"), "{error}");
+        assert!(check_declared_counts(&header(2, 64), "p").is_ok());
+        let mut metadata = header(2, 64);
+        metadata[10] = 0x80;
+        assert!(check_declared_counts(&metadata, "p")
+            .expect_err("refused")
+            .to_string()
+            .contains("metadata"));
+        // A varint longer than 64 bits is refused, not shifted past them.
+        let mut long = header(2, 64);
+        long[12..30].fill(0xFF);
+        assert!(check_declared_counts(&long, "p").is_err());
+    }
+
+    fn root_with_stream(stream: &[u8]) -> (gltf::json::Root, Vec<Vec<u8>>) {
+        let root = serde_json::from_value(json!({
+            "asset": {"version": "2.0"},
+            "buffers": [{"byteLength": stream.len()}],
+            "bufferViews": [{"buffer": 0, "byteLength": stream.len()}],
+            "accessors": [
+                {"componentType": 5126, "count": 3, "type": "VEC3"},
+                {"componentType": 5123, "count": 3, "type": "SCALAR"}
+            ],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1,
+                "extensions": {EXTENSION: {"bufferView": 0, "attributes": {"POSITION": 0}}}}]}]
+        }))
+        .expect("root");
+        (root, vec![stream.to_vec()])
+    }
+
+    #[test]
+    fn damaged_streams_and_references_are_errors_naming_the_primitive() {
+        for stream in [&b"DRACO"[..], &header(2, 40), &[0xFF; 64]] {
+            let (mut root, mut buffers) = root_with_stream(stream);
+            let error = decode_primitives(&mut root, &mut buffers)
+                .expect_err("refused")
+                .to_string();
+            assert!(error.contains("mesh 0 primitive 0"), "{error}");
+        }
+        let (mut root, mut buffers) = root_with_stream(&header(2, 40));
+        root.buffer_views[0].byte_length = USize64(1000);
+        let error = decode_primitives(&mut root, &mut buffers)
+            .expect_err("refused")
+            .to_string();
+        assert!(error.contains("outside its buffer"), "{error}");
+    }
+}
