@@ -311,7 +311,7 @@ fn floats(attribute: &Attribute, points: usize, name: &str, what: &str) -> Resul
     let n = attribute.get_num_components();
     let data = attribute.get_data_as_bytes();
     let element = 4 * n;
-    let unique = if element == 0 { 0 } else { data.len() / element };
+    let unique = data.len().checked_div(element).unwrap_or(0);
     let mut out = Vec::with_capacity(points * n);
     let mut push = |v: usize| -> Result<(), DecodeError> {
         let bytes = data

@@ -726,8 +726,8 @@ fn content_root(content: &ContentRef, centres: RtcCentres) -> Mat4 {
 
 /// A content file, read or not.
 enum Content {
-    /// Its glTF's primitives and its RTC centres.
-    Read(GltfContent, RtcCentres),
+    /// Its glTF's primitives and its RTC centres (boxed: the other variant is small).
+    Read(Box<GltfContent>, RtcCentres),
     /// Its glTF requires these extensions, which the import does not decode.
     Undecoded(Vec<String>),
 }
@@ -753,7 +753,7 @@ fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> 
     let base = content.path.parent().unwrap_or(Path::new("/"));
     check_external_files(&json, base, root_dir)?;
     Ok(Content::Read(
-        read_gltf(glb, base, &content.path, &transform, vertex_budget)?,
+        Box::new(read_gltf(glb, base, &content.path, &transform, vertex_budget)?),
         centres,
     ))
 }
