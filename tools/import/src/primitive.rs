@@ -1,7 +1,7 @@
-//! One glTF triangle primitive read into a [`PendingMesh`], whatever its encoding: plain
-//! floats, quantized integers (`KHR_mesh_quantization`), meshopt-compressed views (decoded
-//! before the document is read, [`crate::decode::meshopt`]) or a Draco stream
-//! ([`crate::decode::draco`]); texture coordinates through the base-colour texture's
+//! One glTF triangle primitive read into a pending mesh, whatever its encoding: plain
+//! floats, quantized integers (`KHR_mesh_quantization`), meshopt-compressed views or a Draco
+//! stream (both decoded before the document is read: [`crate::decode`]); texture
+//! coordinates through the base-colour texture's
 //! `KHR_texture_transform` where it has one (gltfpack dequantizes UVs with it).
 //!
 //! Accessors are checked before any reader touches them: the `gltf` crate's reader panics on
