@@ -39,11 +39,21 @@ impl InverseTransform {
             TRANSFORM_WRAPPED_DIFFERENCE => {
                 let min = i32::read_from(reader)?;
                 let max = i32::read_from(reader)?;
+                // citystream: min above max (a clamp panic) or a range wider than i32 (an
+                // overflow in `1 + max - min`) are refused.
+                if min > max || i64::from(max) - i64::from(min) >= i64::from(i32::MAX) {
+                    return Err(Err::MalformedAttribute("wrapped transform range out of order or too wide"));
+                }
                 Ok(InverseTransform::Wrapped { min, max })
             }
             TRANSFORM_OCT_ORTHOGONAL => {
                 let max_quantized = reader.read_u32()? as i32;
                 let center = reader.read_u32()? as i32;
+                // citystream: as the reference decoder, an odd lattice size below 2^30 with its
+                // centre at half of it; other values overflowed the arithmetic below.
+                if max_quantized < 1 || max_quantized >= 1 << 30 || max_quantized % 2 == 0 || center != max_quantized / 2 {
+                    return Err(Err::MalformedAttribute("octahedral transform lattice out of range"));
+                }
                 Ok(InverseTransform::OctahedralOrthogonal {
                     center,
                     max_quantized,
@@ -122,7 +132,11 @@ fn oct_orthogonal_original<const N: usize>(
 where
     NdVector<N, i32>: Vector<N, Component = i32>,
 {
-    assert!(N == 2);
+    // citystream: an octahedral transform on an attribute of other than two components is a
+    // damaged stream; its correction is kept rather than asserting.
+    if N != 2 {
+        return corr;
+    }
     let one = center;
 
     let mut pred = NdVector::<2, i32>::from([*pred_in.get(0) - one, *pred_in.get(1) - one]);

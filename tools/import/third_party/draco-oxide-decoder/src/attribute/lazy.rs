@@ -10,7 +10,7 @@ use draco_oxide_core::codec::attribute::prediction_scheme::PredictionSchemeType;
 use draco_oxide_core::codec::attribute::Portable;
 use draco_oxide_core::mesh::ds::{CornerTable, GenericCornerTable};
 use draco_oxide_core::types::{AttributeValueIdx, CornerIdx, PointIdx, VertexIdx};
-use draco_oxide_core::types::{Cross, Dot, NdVector, Vector};
+use draco_oxide_core::types::{Cross, NdVector, Vector};
 
 use super::inverse_transform::InverseTransform;
 use super::{Corrections, Descriptor, Parsed, ParsedPayload};
@@ -970,42 +970,56 @@ where
     let next_pos = pos_at(next_c, c2v, pos_map, pos_vals);
     let prev_pos = pos_at(prev_c, c2v, pos_map, pos_vals);
 
-    let pn = prev_pos - next_pos;
-    let pn_norm2_squared = pn.dot(pn) as u64;
+    // citystream: the prediction below was in i64, which hostile positions and UVs
+    // overflowed (a panic with overflow checks); it is computed in i128 instead, identical
+    // wherever the i64 arithmetic did not overflow, and falls back where the i64 checks
+    // (kept) or a result out of range say it cannot be made.
+    let wide3 = |v: NdVector<3, i64>| [0, 1, 2].map(|k| *v.get(k) as i128);
+    let (curr, next, prev) = (wide3(curr_pos), wide3(next_pos), wide3(prev_pos));
+    let n_uv = [*next_uv.get(0) as i128, *next_uv.get(1) as i128];
+    let p_uv = [*prev_uv.get(0) as i128, *prev_uv.get(1) as i128];
+    let pn = [0, 1, 2].map(|k| prev[k] - next[k]);
+    let pn_norm2_squared: i128 = pn.iter().map(|v| v * v).sum();
     if pn_norm2_squared != 0 {
-        let cn = curr_pos - next_pos;
-        let cn_dot_pn = pn.dot(cn);
-        let pn_uv = prev_uv - next_uv;
-
-        let n_uv_absmax = next_uv.get(0).abs().max(next_uv.get(1).abs());
-        if n_uv_absmax > i64::MAX / pn_norm2_squared as i64 {
+        if pn_norm2_squared > i64::MAX as i128 {
             return fallback(vals);
         }
-        let pn_uv_absmax = pn_uv.get(0).abs().max(pn_uv.get(1).abs());
-        if cn_dot_pn.abs() > i64::MAX / pn_uv_absmax {
+        let cn = [0, 1, 2].map(|k| curr[k] - next[k]);
+        let cn_dot_pn: i128 = (0..3).map(|k| pn[k] * cn[k]).sum();
+        let pn_uv = [p_uv[0] - n_uv[0], p_uv[1] - n_uv[1]];
+        let n_uv_absmax = n_uv[0].abs().max(n_uv[1].abs());
+        if n_uv_absmax > i64::MAX as i128 / pn_norm2_squared {
             return fallback(vals);
         }
-        let x_uv = next_uv * pn_norm2_squared as i64 + pn_uv * cn_dot_pn;
-        let pn_absmax = pn.get(0).abs().max(pn.get(1).abs()).max(pn.get(2).abs());
-        if cn_dot_pn.abs() > i64::MAX / pn_absmax {
+        let pn_uv_absmax = pn_uv[0].abs().max(pn_uv[1].abs());
+        if pn_uv_absmax != 0 && cn_dot_pn.abs() > i64::MAX as i128 / pn_uv_absmax {
             return fallback(vals);
         }
-        let x_pos = next_pos + pn * cn_dot_pn / pn_norm2_squared as i64;
-        let cx_norm2_squared = (curr_pos - x_pos).dot(curr_pos - x_pos) as u64;
-        let mut cx_uv = NdVector::<2, i64>::from([*pn_uv.get(1), -pn_uv.get(0)]);
-        let norm_squared = int_sqrt(cx_norm2_squared * pn_norm2_squared);
-        cx_uv *= norm_squared as i64;
-
-        let predicted_uv_0 = (x_uv + cx_uv) / (pn_norm2_squared as i64);
-        let predicted_uv_1 = (x_uv - cx_uv) / (pn_norm2_squared as i64);
+        let x_uv = [0, 1].map(|k| n_uv[k] * pn_norm2_squared + pn_uv[k] * cn_dot_pn);
+        let pn_absmax = pn[0].abs().max(pn[1].abs()).max(pn[2].abs());
+        if cn_dot_pn.abs() > i64::MAX as i128 / pn_absmax {
+            return fallback(vals);
+        }
+        let x_pos = [0, 1, 2].map(|k| next[k] + pn[k] * cn_dot_pn / pn_norm2_squared);
+        let cx_norm2_squared: i128 = (0..3).map(|k| (curr[k] - x_pos[k]).pow(2)).sum();
+        let Some(product) = cx_norm2_squared
+            .checked_mul(pn_norm2_squared)
+            .and_then(|p| u64::try_from(p).ok())
+        else {
+            return fallback(vals);
+        };
+        let norm_squared = int_sqrt(product) as i128;
+        let cx_uv = [pn_uv[1] * norm_squared, -pn_uv[0] * norm_squared];
+        let predicted_uv_0 = [0, 1].map(|k| (x_uv[k] + cx_uv[k]) / pn_norm2_squared);
+        let predicted_uv_1 = [0, 1].map(|k| (x_uv[k] - cx_uv[k]) / pn_norm2_squared);
         let chosen = if orientations.pop().unwrap_or(true) {
             predicted_uv_0
         } else {
             predicted_uv_1
         };
         let mut out = NdVector::<N, i32>::zero();
-        *out.get_mut(0) = *chosen.get(0) as i32;
-        *out.get_mut(1) = *chosen.get(1) as i32;
+        *out.get_mut(0) = chosen[0] as i64 as i32;
+        *out.get_mut(1) = chosen[1] as i64 as i32;
         return out;
     }
 

@@ -211,6 +211,11 @@ impl<'a> RansSymbolDecoder<'a> {
         precision: usize,
     ) -> Result<Self, Err> {
         let num_symbols = leb128_read(reader)? as usize;
+        // citystream: a byte of the table covers at most 64 symbols (a zero run); a larger
+        // alphabet sized the table below from the stream alone (a capacity overflow).
+        if num_symbols > reader.remaining().saturating_mul(64).saturating_add(64) {
+            return Err(Err::MalformedAttribute("rANS alphabet larger than its table"));
+        }
         let mut freq_counts = vec![0usize; num_symbols];
 
         let mut i = 0;

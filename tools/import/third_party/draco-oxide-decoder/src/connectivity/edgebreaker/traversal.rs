@@ -35,7 +35,12 @@ impl<'a> BitSource<'a> {
     }
 
     fn read_bit(&mut self) -> u32 {
-        let bit = (self.bytes[self.byte_pos] >> self.bit_pos) & 1;
+        // citystream: past the end reads zeros, as the reference's bit decoder does, instead
+        // of indexing out of bounds.
+        let Some(byte) = self.bytes.get(self.byte_pos) else {
+            return 0;
+        };
+        let bit = (byte >> self.bit_pos) & 1;
         self.bit_pos += 1;
         if self.bit_pos == 8 {
             self.bit_pos = 0;
@@ -64,11 +69,18 @@ pub struct TopologySplit {
 /// one edge bit per split.
 pub fn decode_topology_splits(reader: &mut Reader<'_>) -> Result<Vec<TopologySplit>, Err> {
     let num_splits = leb128_read(reader)? as usize;
+    // citystream: each split takes at least two bytes; a larger count sized the Vec below
+    // (the fuzzer saw a request for 99 TB).
+    if num_splits > reader.remaining() / 2 {
+        return Err(Err::MalformedConnectivity("split count exceeds the stream"));
+    }
     let mut splits = Vec::with_capacity(num_splits);
 
     let mut last_source = 0usize;
     for _ in 0..num_splits {
-        let source_symbol_id = leb128_read(reader)? as usize + last_source;
+        let source_symbol_id = (leb128_read(reader)? as usize)
+            .checked_add(last_source)
+            .ok_or(Err::MalformedConnectivity("split id out of range"))?;
         let delta = leb128_read(reader)? as usize;
         if delta > source_symbol_id {
             return Err(Err::MalformedConnectivity("split id delta out of range"));
