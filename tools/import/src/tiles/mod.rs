@@ -224,8 +224,9 @@ pub fn load(
     placed.resize_with(count, Vec::new);
     let mut listings_done = 0usize;
     let mut encodings = EncodingCounts::default();
-    // glTF content requiring extensions the import does not decode: listings, by extension.
-    let mut undecoded: BTreeMap<String, usize> = BTreeMap::new();
+    // glTF content requiring extensions the import does not decode: by extensions, the
+    // listings skipped and the first files.
+    let mut undecoded: BTreeMap<String, (usize, Vec<String>)> = BTreeMap::new();
     for (n, path) in files.iter().enumerate() {
         let listings = &listings_of[path];
         let first = &walk.contents[listings[0]];
@@ -245,7 +246,11 @@ pub fn load(
                         what(listings[0])
                     );
                 }
-                *undecoded.entry(names).or_default() += listings.len();
+                let (count, examples) = undecoded.entry(names).or_default();
+                *count += listings.len();
+                if examples.len() < 3 {
+                    examples.push(file_name(path));
+                }
                 listings_done += listings.len();
                 continue;
             }
@@ -301,13 +306,15 @@ pub fn load(
         }
     }
     let mut skipped = walk.skipped;
-    for (extensions, n) in undecoded {
+    for (extensions, (n, examples)) in undecoded {
         let kind = format!("glTF content requiring {extensions}");
         if report {
+            let more = if n > examples.len() { ", …" } else { "" };
             eprintln!(
-                "warning: {}: {n} glTF content listings skipped: they require {extensions}, which citystream does \
-                 not decode (--strict makes this an error)",
-                input.display()
+                "warning: {}: {n} glTF content listings skipped ({}{more}): they require {extensions}, which \
+                 citystream does not decode (--strict makes this an error)",
+                input.display(),
+                examples.join(", ")
             );
         }
         *skipped.entry(kind).or_default() += n;
