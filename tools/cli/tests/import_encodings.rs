@@ -202,8 +202,12 @@ fn basis_textures_transcode_within_their_codecs_error_of_the_plain_import() {
     // Tilesets repeat each image in every tile: four tiles, two distinct images.
     assert_eq!(plain.textures.len(), 2);
     for (encoding, floor) in [("ktx2-uastc", 35.0), ("ktx2-uastc-zstd", 35.0), ("ktx2-etc1s", 28.0)] {
-        let (dataset, _, out) = import_encoding(encoding, TEST, &[]);
+        let (dataset, stdout, out) = import_encoding(encoding, TEST, &[]);
         assert_eq!(dataset.textures.len(), 2, "{encoding}: identical images imported once");
+        assert!(
+            stdout.contains("2 transcoded from Basis Universal into bc7"),
+            "{stdout}"
+        );
         let db = psnr(&plain, &dataset);
         println!("{encoding}: {db:.2} dB against the plain import's texels");
         assert!(db >= floor, "{encoding}: {db:.2} dB, below {floor}");

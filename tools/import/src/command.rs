@@ -86,13 +86,13 @@ pub fn run(args: &ImportArgs) -> Result<()> {
         .with_context(|| format!("writing {}", args.out.display()))?;
     imported.encodings.write(&args.out)?;
     print_stdout(&format!(
-        "imported {} into {}: {} meshes, {} triangles, {} textures ({kept} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\nencodings: {}\n",
+        "imported {} into {}: {} meshes, {} triangles, {} textures ({}), {:.1} MB pack, {:.2} s\nencodings: {}\n",
         input.display(),
         args.out.display(),
         summary.meshes,
         summary.triangles,
         summary.textures,
-        format.name(),
+        imported.encodings.texture_note(kept, format.name()),
         summary.pack_bytes as f64 / 1e6,
         start.elapsed().as_secs_f64(),
         imported.encodings.summary()

@@ -45,6 +45,24 @@ impl EncodingCounts {
         format!("meshes {}; textures {}", list(&self.meshes), list(&self.textures))
     }
 
+    /// How the import's textures were made, for its summary: `kept` with their KTX2/DDS
+    /// blocks kept, those transcoded from Basis Universal (when there are any), the others
+    /// encoded as `format`.
+    pub fn texture_note(&self, kept: usize, format: &str) -> String {
+        let basis: u64 = self
+            .textures
+            .iter()
+            .filter(|(name, _)| name.starts_with("ktx2-"))
+            .map(|(_, n)| n)
+            .sum();
+        let transcoded = if basis > 0 {
+            format!(", {basis} transcoded from Basis Universal into {format}")
+        } else {
+            String::new()
+        };
+        format!("{kept} with their KTX2/DDS blocks kept{transcoded}, the others encoded as {format}")
+    }
+
     /// Writes the counts beside the dataset just written to `dir`.
     pub fn write(&self, dir: &Path) -> Result<()> {
         let files = DatasetFiles::resolve(dir).with_context(|| format!("reopening {}", dir.display()))?;

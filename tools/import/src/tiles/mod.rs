@@ -401,7 +401,7 @@ fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) ->
     imported.encodings.write(out)?;
     let origin = to_geodetic(imported.frame.origin);
     print_stdout(&format!(
-        "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\nencodings: {}\nframe: east-north-up at {}\n",
+        "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({}), {:.1} MB pack, {:.2} s\nencodings: {}\nframe: east-north-up at {}\n",
         shown,
         out.display(),
         imported.tiles,
@@ -409,8 +409,7 @@ fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) ->
         summary.meshes,
         summary.triangles,
         summary.textures,
-        imported.kept_blocks,
-        options.format.name(),
+        imported.encodings.texture_note(imported.kept_blocks, options.format.name()),
         summary.pack_bytes as f64 / 1e6,
         start.elapsed().as_secs_f64(),
         imported.encodings.summary(),
