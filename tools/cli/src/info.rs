@@ -82,6 +82,9 @@ struct Info {
     open_seconds: f64,
     /// The texture-atlas tree, where the dataset is one (`citystream atlas-tree`).
     atlas_tree: Option<citystream_gen::atlas_tree::TreeInfo>,
+    /// Where `citystream import` wrote the dataset: how many meshes and textures came from
+    /// each encoding of its input (`draco`, `meshopt+quantized`, `ktx2-uastc` …).
+    import_encodings: Option<citystream_import::encodings::EncodingCounts>,
 }
 
 /// Runs `citystream info`.
@@ -147,6 +150,7 @@ fn collect(args: &InfoArgs, dataset: &Dataset, open_seconds: f64) -> Result<Info
         atlas_tree: citystream_gen::atlas_tree::open_if_tree(dataset)?
             .as_ref()
             .map(citystream_gen::atlas_tree::TreeInfo::of),
+        import_encodings: citystream_import::encodings::EncodingCounts::read(dataset)?,
     })
 }
 
@@ -184,6 +188,9 @@ fn print_text(out: &mut impl Write, info: &Info) -> std::io::Result<()> {
             tree.screen_height,
             tree.texel_per_pixel
         )?;
+    }
+    if let Some(encodings) = &info.import_encodings {
+        writeln!(out, "imported   {}", encodings.summary())?;
     }
     writeln!(out, "scene      {:>12} bytes", info.scene_bytes)?;
     writeln!(

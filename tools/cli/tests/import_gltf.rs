@@ -282,6 +282,17 @@ fn broken_gltf_files_give_clear_errors() {
     let error = import_error(&path, &out_dir);
     assert!(error.contains("non-utf8.gltf") && error.contains("line 1"), "{error}");
 
+    // A required extension the import does not decode: refused naming it.
+    let input = edited_quad_gltf("required", |doc| {
+        doc["extensionsRequired"] = json!(["KHR_draco_mesh_compression", "KHR_materials_pbrSpecularGlossiness"]);
+    });
+    assert_refused_clearly(
+        "required",
+        &input,
+        &out_dir,
+        "requires KHR_materials_pbrSpecularGlossiness, which citystream does not decode",
+    );
+
     let src = fresh_dir("index-src");
     let input = write_quad_gltf(&src, json!({"mesh": 0}), [0, 1, 2, 0, 2, 9], (16, 16));
     let error = import_error(&input, &out_dir);

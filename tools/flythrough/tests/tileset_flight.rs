@@ -46,3 +46,52 @@ fn the_imported_tileset_flies_with_its_error_measured() {
     let psnr = summary["psnr_of_mean_mse_db"].as_f64().expect("PSNR measured");
     assert!(psnr > 20.0, "PSNR of the mean MSE {psnr} dB");
 }
+
+/// The same four buildings in each encoding real tilesets ship (Draco, meshopt with
+/// quantization, UASTC and ETC1S KTX2 textures; tools/test-data/encoded-tilesets) import,
+/// verify and fly under the validation layer without a message.
+#[test]
+fn tilesets_in_every_encoding_import_verify_and_fly() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../test-data/encoded-tilesets");
+    for encoding in ["plain", "draco", "meshopt", "ktx2-uastc-zstd", "ktx2-etc1s"] {
+        let tileset = root.join(encoding).join("tileset.json");
+        let dataset = fresh_dir("fly-encodings", encoding);
+        let out_dir = dataset.to_str().expect("utf-8");
+        citystream_ok(&[
+            "import",
+            tileset.to_str().expect("utf-8"),
+            "--out",
+            out_dir,
+            "--format",
+            "bc7",
+        ]);
+        citystream_ok(&["verify", out_dir]);
+        let out = fresh_dir("fly-encodings", &format!("{encoding}-fly"));
+        let status = std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .arg("--dataset")
+            .arg(&dataset)
+            .args([
+                "--frames",
+                "60",
+                "--clock",
+                "fixed",
+                "--psnr-interval",
+                "30",
+                "--frame-interval",
+                "0",
+            ])
+            .args(["--width", "160", "--height", "90", "--validation=true"])
+            .arg("--out")
+            .arg(&out)
+            .status()
+            .expect("flythrough runs");
+        assert!(status.success(), "{encoding}: flythrough failed: {status}");
+        let summary: Value =
+            serde_json::from_slice(&std::fs::read(out.join("summary.json")).expect("summary.json")).expect("JSON");
+        assert_eq!(summary["frames"], 60, "{encoding}");
+        assert_eq!(summary["validation_errors"], 0, "{encoding}");
+        assert_eq!(summary["load_failures"], 0, "{encoding}");
+        let psnr = summary["psnr_of_mean_mse_db"].as_f64().expect("PSNR measured");
+        assert!(psnr > 20.0, "{encoding}: PSNR of the mean MSE {psnr} dB");
+    }
+}

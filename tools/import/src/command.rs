@@ -40,7 +40,8 @@ pub struct ImportArgs {
     #[arg(long, value_enum)]
     pub lod: Option<crate::tiles::Lod>,
     /// Tilesets: content citystream does not import (point clouds, instanced and composite
-    /// tiles, implicit tiling) is an error instead of a warning.
+    /// tiles, implicit tiling, glTF content requiring an extension it does not decode) is an
+    /// error instead of a warning.
     #[arg(long)]
     pub strict: bool,
     /// Tilesets: import one shard of the contents (`--shard I/N`, or `--shard-index-env NAME
@@ -95,15 +96,17 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     let summary = writer
         .finish(&imported.scene)
         .with_context(|| format!("writing {}", args.out.display()))?;
+    imported.encodings.write(&args.out)?;
     print_stdout(&format!(
-        "imported {} into {}: {} meshes, {} triangles, {} textures ({kept} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\n",
+        "imported {} into {}: {} meshes, {} triangles, {} textures ({}), {:.1} MB pack, {:.2} s\nencodings: {}\n",
         input.display(),
         args.out.display(),
         summary.meshes,
         summary.triangles,
         summary.textures,
-        format.name(),
+        imported.encodings.texture_note(kept, format.name()),
         summary.pack_bytes as f64 / 1e6,
-        start.elapsed().as_secs_f64()
+        start.elapsed().as_secs_f64(),
+        imported.encodings.summary()
     ))
 }

@@ -5,9 +5,12 @@
 //! texture (multiplied by the base-colour factor), or a 4×4 texture of the factor when it has
 //! none. Primitives sharing image and factor share a texture. Node transforms are applied
 //! in f64 and positions stored relative to the scene centre. UVs are kept as they are, also
-//! outside `[0, 1]` (the engine samples with repeat addressing). Images may be PNG, JPEG, DDS
-//! (`MSFT_texture_dds`) or KTX2 (`KHR_texture_basisu`, RGBA8/BC1/BC3 only); the first source
-//! that decodes is used. Sides that are not powers of two are resized up to the next power
+//! outside `[0, 1]` (the engine samples with repeat addressing), through the base-colour
+//! texture's `KHR_texture_transform`. Geometry may be Draco-compressed, meshopt-compressed or
+//! quantized ([`crate::decode`], [`crate::primitive`]). Images may be PNG, JPEG, DDS
+//! (`MSFT_texture_dds`) or KTX2 (RGBA8 and BC levels, or Basis Universal under
+//! `KHR_texture_basisu`, transcoded by [`crate::basis`]); the first source that reads is used.
+//! A file that requires an extension outside [`DECODED_EXTENSIONS`] is refused naming it. Sides that are not powers of two are resized up to the next power
 //! of two; sides above `--max-extent` are downscaled with a warning.
 //!
 //! KTX2 and DDS sources stored as BC1, BC3 or BC7 blocks with power-of-two sides and no
@@ -32,8 +35,34 @@ use rayon::prelude::*;
 use citystream_gen::library::decode_image_bytes;
 use citystream_gen::texture::{decode_level, encode_chain, mean_colour, EncodedTexture};
 
+use crate::basis::{is_basis, BasisTexture};
 use crate::blocks::block_source;
-use crate::transform::{mul, normal_matrix, transform_normal, transform_point, Mat4, IDENTITY};
+use crate::decode::{draco, meshopt};
+use crate::encodings::EncodingCounts;
+pub(crate) use crate::primitive::PendingMesh;
+use crate::primitive::{read_primitive, Buffers, DecodedViews, UvTransform};
+use crate::transform::{mul, Mat4, IDENTITY};
+
+/// Extensions a glTF may require that the import decodes (or, for `KHR_materials_unlit`
+/// and `CESIUM_RTC`, whose meaning it keeps); content requiring any other is not imported.
+pub const DECODED_EXTENSIONS: [&str; 7] = [
+    "KHR_draco_mesh_compression",
+    "EXT_meshopt_compression",
+    "KHR_mesh_quantization",
+    "KHR_texture_basisu",
+    "KHR_texture_transform",
+    "KHR_materials_unlit",
+    "CESIUM_RTC",
+];
+
+/// The extensions of `required` (a glTF's `extensionsRequired`) the import does not decode.
+pub fn undecoded_extensions<'a>(required: impl IntoIterator<Item = &'a str>) -> Vec<String> {
+    required
+        .into_iter()
+        .filter(|e| !DECODED_EXTENSIONS.contains(e) && *e != "MSFT_texture_dds")
+        .map(str::to_owned)
+        .collect()
+}
 
 /// Most node instances an import places (a node reached through several
 /// shared parents counts once per path).
@@ -50,15 +79,6 @@ struct TextureKey {
     factor: [u8; 4],
 }
 
-/// A primitive read from a document: positions placed in f64, its texture by index.
-pub(crate) struct PendingMesh {
-    pub(crate) texture: usize,
-    pub(crate) positions: Vec<[f64; 3]>,
-    pub(crate) normals: Vec<[f32; 3]>,
-    pub(crate) uvs: Vec<[f32; 2]>,
-    pub(crate) indices: Vec<u32>,
-}
-
 /// A glTF scene read into memory: what `import` writes as a dataset.
 #[derive(Debug)]
 pub struct ImportedScene {
@@ -68,6 +88,17 @@ pub struct ImportedScene {
     pub textures: Vec<EncodedTexture>,
     /// How many of them keep their source's BC1/BC3/BC7 blocks as they are.
     pub kept_blocks: usize,
+    /// Meshes and textures by the encoding they were stored in.
+    pub encodings: EncodingCounts,
+}
+
+/// Where an imported texture came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct TextureOrigin {
+    /// Its source's encoding, as [`EncodingCounts`] names it.
+    pub(crate) encoding: &'static str,
+    /// Whether the source's BC blocks were kept as they are.
+    pub(crate) kept_blocks: bool,
 }
 
 /// Reads the glTF or GLB file `input` (external files relative to its directory) and
@@ -104,13 +135,21 @@ pub fn load_slice(
         .into_par_iter()
         .map(|k| content.encode_texture(k, format, max_extent))
         .collect::<Result<Vec<_>>>()?;
-    let kept_blocks = textures.iter().filter(|(_, kept)| *kept).count();
+    let kept_blocks = textures.iter().filter(|(_, origin)| origin.kept_blocks).count();
+    let mut encodings = EncodingCounts::default();
+    for (_, origin) in &textures {
+        encodings.add_texture(origin.encoding);
+    }
+    for mesh in &content.meshes {
+        encodings.add_mesh(mesh.encoding);
+    }
     let textures = textures.into_iter().map(|(texture, _)| texture).collect();
     let scene = centred_scene(&content.meshes, input)?;
     Ok(ImportedScene {
         scene,
         textures,
         kept_blocks,
+        encodings,
     })
 }
 
@@ -122,6 +161,8 @@ pub(crate) struct GltfContent {
     base: PathBuf,
     input: PathBuf,
     keys: Vec<TextureKey>,
+    /// Buffer views that hold decoded geometry.
+    decoded: DecodedViews,
     /// Every triangle primitive; `texture` indexes the document's textures.
     pub(crate) meshes: Vec<PendingMesh>,
 }
@@ -133,7 +174,7 @@ pub(crate) fn read_gltf(
     bytes: &[u8],
     base: &Path,
     input: &Path,
-    root: &Mat4,
+    root_transform: &Mat4,
     vertex_budget: usize,
 ) -> Result<GltfContent> {
     let invalid = |e: gltf::Error| anyhow!("{}: not a valid glTF 2.0 file: {e}", input.display());
@@ -151,25 +192,67 @@ pub(crate) fn read_gltf(
     // The `gltf` crate's own validation indexes accessors unchecked (a POSITION attribute
     // naming a missing accessor panics inside it), so references are checked first.
     let unchecked = gltf::Gltf::from_slice_without_validation(bytes).map_err(invalid)?;
-    check_references(unchecked.document.as_json()).with_context(|| input.display().to_string())?;
-    let gltf = gltf::Gltf {
-        document: gltf::Document::from_json(unchecked.document.into_json()).map_err(invalid)?,
-        blob: unchecked.blob,
+    let mut root = unchecked.document.into_json();
+    check_references(&root).with_context(|| input.display().to_string())?;
+    let undecoded = undecoded_extensions(root.extensions_required.iter().map(String::as_str));
+    if !undecoded.is_empty() {
+        bail!(
+            "{}: the glTF requires {}, which citystream does not decode",
+            input.display(),
+            undecoded.join(", ")
+        );
+    }
+    // Checked above; the `gltf` crate refuses extensions it does not know itself.
+    root.extensions_required.clear();
+    use_extension_sources(&mut root);
+    let mut buffers = load_buffers(&root, unchecked.blob.as_deref(), base, input)?;
+    let decoded = DecodedViews {
+        meshopt: meshopt::decode_views(&root, &mut buffers).with_context(|| input.display().to_string())?,
+        draco: draco::decode_primitives(&mut root, &mut buffers).with_context(|| input.display().to_string())?,
     };
-    let buffers = load_buffers(&gltf.document, gltf.blob.as_deref(), base, input)?;
-    let document = &gltf.document;
+    let buffers: Vec<gltf::buffer::Data> = buffers.into_iter().map(gltf::buffer::Data).collect();
+    let document = gltf::Document::from_json(root).map_err(invalid)?;
 
     let mut keys: Vec<TextureKey> = Vec::new();
-    let meshes = place_scene(document, &buffers, input, root, vertex_budget, &mut keys)?;
+    let meshes = place_scene(
+        &document,
+        &buffers,
+        &decoded,
+        input,
+        root_transform,
+        vertex_budget,
+        &mut keys,
+    )?;
 
     Ok(GltfContent {
-        document: gltf.document,
+        document,
         buffers,
         base: base.to_path_buf(),
         input: input.to_path_buf(),
         keys,
+        decoded,
         meshes,
     })
+}
+
+/// A texture that names its image only through an extension (`KHR_texture_basisu`,
+/// `MSFT_texture_dds` without a fallback `source`) gets that image as its `source`, which the
+/// `gltf` crate requires; extension sources that name no image are left to fail validation.
+fn use_extension_sources(root: &mut gltf::json::Root) {
+    let images = root.images.len();
+    for texture in &mut root.textures {
+        if texture.source.value() < images {
+            continue;
+        }
+        let others = texture.extensions.as_ref().map(|e| &e.others);
+        let from_extension = ["KHR_texture_basisu", "MSFT_texture_dds"].iter().find_map(|name| {
+            let source = others?.get(*name)?.get("source")?.as_u64()?;
+            usize::try_from(source).ok().filter(|&s| s < images)
+        });
+        if let Some(source) = from_extension {
+            texture.source = gltf::json::Index::new(source as u32);
+        }
+    }
 }
 
 /// Every triangle primitive of `document`'s default scene placed by `root` × its node's
@@ -178,12 +261,14 @@ pub(crate) fn read_gltf(
 fn place_scene(
     document: &gltf::Document,
     buffers: &[gltf::buffer::Data],
+    decoded: &DecodedViews,
     input: &Path,
     root: &Mat4,
     vertex_budget: usize,
     keys: &mut Vec<TextureKey>,
 ) -> Result<Vec<PendingMesh>> {
     let mut key_ids: HashMap<TextureKey, usize> = keys.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+    let buffers = Buffers { data: buffers, decoded };
     let mut meshes = Vec::new();
     let scene = document.default_scene().or_else(|| document.scenes().next());
     let roots: Vec<gltf::Node> = match &scene {
@@ -235,13 +320,11 @@ fn place_scene(
                     keys.push(key);
                     keys.len() - 1
                 });
-                let uv_set = primitive
-                    .material()
-                    .pbr_metallic_roughness()
-                    .base_color_texture()
-                    .map_or(0, |t| t.tex_coord());
-                let mesh =
-                    read_primitive(&primitive, buffers, &world, uv_set, texture).with_context(|| what.clone())?;
+                let uv = match primitive.material().pbr_metallic_roughness().base_color_texture() {
+                    Some(info) => UvTransform::of(&info).with_context(|| what.clone())?,
+                    None => (None, 0),
+                };
+                let mesh = read_primitive(&primitive, &buffers, &world, uv, texture).with_context(|| what.clone())?;
                 vertices += mesh.positions.len();
                 if vertices > vertex_budget {
                     bail!(
@@ -266,6 +349,7 @@ impl GltfContent {
         let meshes = place_scene(
             &self.document,
             &self.buffers,
+            &self.decoded,
             &self.input,
             root,
             vertex_budget,
@@ -304,23 +388,56 @@ impl GltfContent {
         Ok((u128::from(halves[0]) << 64) | u128::from(halves[1]))
     }
 
-    /// Texture `k` encoded in `format` at most `max_extent` a side, and whether its
-    /// source's BC blocks were kept as they are.
+    /// Texture `k` encoded in `format` at most `max_extent` a side, and where it came from.
+    /// A Basis Universal source is transcoded block by block where it can be kept as shipped
+    /// (untinted, power-of-two sides), and decoded and encoded otherwise.
     pub(crate) fn encode_texture(
         &self,
         k: usize,
         format: TextureFormat,
         max_extent: u32,
-    ) -> Result<(EncodedTexture, bool)> {
+    ) -> Result<(EncodedTexture, TextureOrigin)> {
         let key = &self.keys[k];
         let max_log2 = max_extent.trailing_zeros();
+        let source = key.images.iter().flatten().find_map(|&index| {
+            Some((
+                index,
+                image_bytes(&self.document, &self.buffers, &self.base, index).ok()?,
+            ))
+        });
+        let encoding = source.as_ref().map_or("factor", |(_, bytes)| image_kind(bytes));
+        if let Some((index, bytes)) = source.as_ref().filter(|(_, bytes)| is_basis(bytes)) {
+            let what = || format!("{}: image {index}", self.input.display());
+            let basis = BasisTexture::open(bytes).with_context(what)?;
+            let origin = TextureOrigin {
+                encoding: basis.codec.name(),
+                kept_blocks: false,
+            };
+            if key.factor == [255; 4] {
+                if let Some(texture) = basis.blocks(format, max_log2).with_context(what)? {
+                    return Ok((texture, origin));
+                }
+            }
+            let image = tint(basis.rgba().with_context(what)?, key.factor);
+            let image = fit_power_of_two(image, max_log2, &self.input);
+            let (w, h) = image.dimensions();
+            return Ok((encode_chain(image.into_raw(), w, h, format)?, origin));
+        }
         if let Some(kept) = kept_blocks(&self.document, &self.buffers, &self.base, key, max_log2) {
-            return Ok((kept, true));
+            let origin = TextureOrigin {
+                encoding,
+                kept_blocks: true,
+            };
+            return Ok((kept, origin));
         }
         let image = texture_image(&self.document, &self.buffers, &self.base, key, &self.input)?;
         let image = fit_power_of_two(image, max_log2, &self.input);
         let (w, h) = image.dimensions();
-        Ok((encode_chain(image.into_raw(), w, h, format)?, false))
+        let origin = TextureOrigin {
+            encoding,
+            kept_blocks: false,
+        };
+        Ok((encode_chain(image.into_raw(), w, h, format)?, origin))
     }
 }
 
@@ -429,227 +546,24 @@ fn texture_key(primitive: &gltf::Primitive) -> TextureKey {
     TextureKey { images, factor }
 }
 
-/// Checks an accessor before the `gltf` crate reads it, which panics on a
-/// component type the attribute does not allow and yields nothing for
-/// data outside its buffer: its type and shape must be among `allowed`, and
-/// every element must lie inside its buffer view and the view inside its
-/// buffer. Errors name the accessor and what it is for.
-fn check_accessor(
-    accessor: &gltf::Accessor,
-    buffers: &[gltf::buffer::Data],
-    what: &str,
-    allowed: &[gltf::accessor::DataType],
-    dimensions: gltf::accessor::Dimensions,
-) -> Result<()> {
-    let name = format!("accessor {} ({what})", accessor.index());
-    if !allowed.contains(&accessor.data_type()) || accessor.dimensions() != dimensions {
-        bail!(
-            "{name} is {:?} {:?}; {what} must be {dimensions:?} of {allowed:?}",
-            accessor.dimensions(),
-            accessor.data_type()
-        );
-    }
-    if accessor.sparse().is_some() {
-        bail!("{name} is sparse, which the importer does not support");
-    }
-    if accessor.count() == 0 {
-        // The `gltf` crate's reader computes `count - 1` unchecked.
-        bail!("{name} has count 0; glTF requires at least 1 element");
-    }
-    let Some(view) = accessor.view() else {
-        return Ok(()); // No view: every element is zero.
-    };
-    let buffer_len = buffers
-        .get(view.buffer().index())
-        .map(|data| data.0.len())
-        .with_context(|| format!("{name}: buffer {} is missing", view.buffer().index()))?;
-    let view_end = view.offset().checked_add(view.length());
-    if view_end.is_none_or(|end| end > buffer_len) {
-        bail!(
-            "{name}: buffer view {} (bytes {}..+{}) lies outside buffer {} of {buffer_len} bytes",
-            view.index(),
-            view.offset(),
-            view.length(),
-            view.buffer().index()
-        );
-    }
-    let element = accessor.size();
-    // The `gltf` crate's reader steps by the view's stride and asserts each step holds an
-    // element: a smaller stride would panic there.
-    if let Some(stride) = view.stride().filter(|&s| s < element) {
-        bail!(
-            "{name}: buffer view {} has byteStride {stride}, smaller than the {element}-byte element",
-            view.index()
-        );
-    }
-    let stride = view.stride().unwrap_or(element);
-    {
-        let end = (accessor.count() - 1)
-            .checked_mul(stride)
-            .and_then(|n| n.checked_add(accessor.offset()))
-            .and_then(|n| n.checked_add(element));
-        if end.is_none_or(|end| end > view.length()) {
-            bail!(
-                "{name}: {} elements of {element} bytes from byte {} overrun buffer view {} of {} bytes",
-                accessor.count(),
-                accessor.offset(),
-                view.index(),
-                view.length()
-            );
-        }
-    }
-    Ok(())
-}
-
-fn read_primitive(
-    primitive: &gltf::Primitive,
-    buffers: &[gltf::buffer::Data],
-    world: &Mat4,
-    uv_set: u32,
-    texture: usize,
-) -> Result<PendingMesh> {
-    use gltf::accessor::{DataType, Dimensions};
-    use gltf::Semantic;
-    let position = primitive.get(&Semantic::Positions).context("no POSITION attribute")?;
-    check_accessor(&position, buffers, "POSITION", &[DataType::F32], Dimensions::Vec3)?;
-    if let Some(normal) = primitive.get(&Semantic::Normals) {
-        check_accessor(&normal, buffers, "NORMAL", &[DataType::F32], Dimensions::Vec3)?;
-    }
-    if let Some(uv) = primitive.get(&Semantic::TexCoords(uv_set)) {
-        let types = [DataType::F32, DataType::U8, DataType::U16];
-        check_accessor(&uv, buffers, &format!("TEXCOORD_{uv_set}"), &types, Dimensions::Vec2)?;
-    }
-    if let Some(indices) = primitive.indices() {
-        let types = [DataType::U8, DataType::U16, DataType::U32];
-        check_accessor(&indices, buffers, "indices", &types, Dimensions::Scalar)?;
-    }
-    let reader = primitive.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
-    let local: Vec<[f32; 3]> = reader.read_positions().context("no POSITION attribute")?.collect();
-    let count = local.len();
-    if count > u32::MAX as usize {
-        bail!("{count} vertices exceed 2^32");
-    }
-    if let Some((i, p)) = local.iter().enumerate().find(|(_, p)| p.iter().any(|v| !v.is_finite())) {
-        bail!("vertex {i} has non-finite position {p:?}");
-    }
-    let raw: Vec<u32> = match reader.read_indices() {
-        Some(indices) => indices.into_u32().collect(),
-        None => (0..count as u32).collect(),
-    };
-    let mut indices = triangle_list(primitive.mode(), raw);
-    if !indices.len().is_multiple_of(3) {
-        bail!("{} indices do not form whole triangles", indices.len());
-    }
-    if let Some((i, &index)) = indices.iter().enumerate().find(|(_, &v)| v as usize >= count) {
-        bail!("index {i} is {index}, out of range (the primitive has {count} vertices)");
-    }
-    let (n3, det) = normal_matrix(world);
-    if det < 0.0 {
-        // A mirroring transform flips the winding; restore counter-clockwise front faces.
-        for tri in indices.chunks_exact_mut(3) {
-            tri.swap(1, 2);
-        }
-    }
-    let positions: Vec<[f64; 3]> = local.iter().map(|p| transform_point(world, *p)).collect();
-    let normals: Vec<[f32; 3]> = match reader.read_normals() {
-        Some(normals) => normals.map(|n| transform_normal(&n3, det, n)).collect(),
-        None => flat_normals(&positions, &indices),
-    };
-    let uvs: Vec<[f32; 2]> = match reader.read_tex_coords(uv_set) {
-        Some(uvs) => uvs.into_f32().collect(),
-        None => vec![[0.0, 0.0]; count],
-    };
-    if normals.len() != count || uvs.len() != count {
-        bail!(
-            "attribute counts differ: {count} positions, {} normals, {} uvs",
-            normals.len(),
-            uvs.len()
-        );
-    }
-    if let Some((i, uv)) = uvs.iter().enumerate().find(|(_, uv)| uv.iter().any(|v| !v.is_finite())) {
-        bail!("vertex {i} has non-finite uv {uv:?}");
-    }
-    Ok(PendingMesh {
-        texture,
-        positions,
-        normals,
-        uvs,
-        indices,
-    })
-}
-
-/// Converts strips and fans to a triangle list (keeping counter-clockwise winding).
-fn triangle_list(mode: gltf::mesh::Mode, raw: Vec<u32>) -> Vec<u32> {
-    use gltf::mesh::Mode;
-    let triangles = raw.len().saturating_sub(2);
-    match mode {
-        Mode::TriangleStrip => (0..triangles)
-            .flat_map(|i| {
-                if i % 2 == 0 {
-                    [raw[i], raw[i + 1], raw[i + 2]]
-                } else {
-                    [raw[i + 1], raw[i], raw[i + 2]]
-                }
-            })
-            .collect(),
-        Mode::TriangleFan => (0..triangles).flat_map(|i| [raw[0], raw[i + 1], raw[i + 2]]).collect(),
-        _ => raw,
-    }
-}
-
-/// Per-vertex normals averaged from the faces that use them (glTF says: flat shading).
-fn flat_normals(positions: &[[f64; 3]], indices: &[u32]) -> Vec<[f32; 3]> {
-    let mut sum = vec![[0.0f64; 3]; positions.len()];
-    for tri in indices.chunks_exact(3) {
-        let [a, b, c] = [tri[0], tri[1], tri[2]].map(|i| positions[i as usize]);
-        let (u, v) = (
-            [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
-            [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
-        );
-        let n = [
-            u[1] * v[2] - u[2] * v[1],
-            u[2] * v[0] - u[0] * v[2],
-            u[0] * v[1] - u[1] * v[0],
-        ];
-        for &i in tri {
-            for k in 0..3 {
-                sum[i as usize][k] += n[k];
-            }
-        }
-    }
-    sum.into_iter()
-        .map(|n| {
-            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            if len > 0.0 {
-                n.map(|x| (x / len) as f32)
-            } else {
-                [0.0, 1.0, 0.0]
-            }
-        })
-        .collect()
-}
-
 /// The bytes of every buffer of `document`, each read by our own code (never by a reader
 /// that interprets URI schemes or decodes paths itself): the GLB's binary chunk, a data URI,
 /// or a regular file beside the input, named by a relative URI, of which the declared
 /// `byteLength` is read (so a file is never read past what the document asks for).
-fn load_buffers(
-    document: &gltf::Document,
-    blob: Option<&[u8]>,
-    base: &Path,
-    input: &Path,
-) -> Result<Vec<gltf::buffer::Data>> {
+fn load_buffers(root: &gltf::json::Root, blob: Option<&[u8]>, base: &Path, input: &Path) -> Result<Vec<Vec<u8>>> {
     use std::io::Read;
-    let mut buffers = Vec::with_capacity(document.buffers().len());
-    for buffer in document.buffers() {
-        let index = buffer.index();
-        let length = buffer.length();
+    let fallback = meshopt::fallback_lengths(root).with_context(|| input.display().to_string())?;
+    let mut buffers = Vec::with_capacity(root.buffers.len());
+    for (index, buffer) in root.buffers.iter().enumerate() {
+        let length = usize::try_from(buffer.byte_length.0).unwrap_or(usize::MAX);
         let what = || format!("{}: buffer {index}", input.display());
-        let mut bytes = match buffer.source() {
-            gltf::buffer::Source::Bin => blob
+        let mut bytes = match (&buffer.uri, fallback[index]) {
+            // Zeros that the meshopt views decode over (bounded by `fallback_lengths`).
+            (None, Some(_)) => vec![0; length],
+            (None, None) => blob
                 .with_context(|| format!("{} is the GLB's binary chunk, which the file lacks", what()))?
                 .to_vec(),
-            gltf::buffer::Source::Uri(uri) => {
+            (Some(uri), _) => {
                 if let Some(data) = uri.strip_prefix("data:") {
                     let (_, payload) = data
                         .split_once(";base64,")
@@ -683,7 +597,7 @@ fn load_buffers(
         while bytes.len() % 4 != 0 {
             bytes.push(0);
         }
-        buffers.push(gltf::buffer::Data(bytes));
+        buffers.push(bytes);
     }
     Ok(buffers)
 }
@@ -851,7 +765,6 @@ fn texture_image(
     key: &TextureKey,
     input: &Path,
 ) -> Result<RgbaImage> {
-    let factor = key.factor.map(u32::from);
     let mut errors = Vec::new();
     let mut image = None;
     for index in key.images.iter().flatten() {
@@ -872,14 +785,38 @@ fn texture_image(
             errors.join("; ")
         ),
     };
-    if factor != [255; 4] && key.images.iter().any(Option::is_some) {
+    if key.images.iter().any(Option::is_some) {
+        image = tint(image, key.factor);
+    }
+    Ok(image)
+}
+
+/// `image` multiplied by the base-colour factor.
+fn tint(mut image: RgbaImage, factor: [u8; 4]) -> RgbaImage {
+    if factor != [255; 4] {
+        let factor = factor.map(u32::from);
         for p in image.pixels_mut() {
             for c in 0..4 {
                 p[c] = ((u32::from(p[c]) * factor[c] + 127) / 255) as u8;
             }
         }
     }
-    Ok(image)
+    image
+}
+
+/// What kind of image `bytes` is, by its signature, as [`EncodingCounts`] names it.
+fn image_kind(bytes: &[u8]) -> &'static str {
+    if bytes.starts_with(b"\x89PNG") {
+        "png"
+    } else if bytes.starts_with(&[0xFF, 0xD8]) {
+        "jpeg"
+    } else if bytes.starts_with(b"DDS ") {
+        "dds"
+    } else if bytes.starts_with(&[0xAB, 0x4B, 0x54, 0x58]) {
+        "ktx2"
+    } else {
+        "other"
+    }
 }
 
 /// Resizes up to powers of two (at least 4 per side, one BC block), and down to `max_log2`.

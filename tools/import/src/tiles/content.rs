@@ -133,32 +133,11 @@ pub fn gltf_json(bytes: &[u8]) -> Result<Value> {
     serde_json::from_slice(json).context("glTF JSON")
 }
 
-/// Extensions of a glTF that the import cannot read, with what to do instead.
-const UNSUPPORTED_GLTF: [(&str, &str); 3] = [
-    ("KHR_draco_mesh_compression", "Draco-compressed geometry"),
-    ("EXT_meshopt_compression", "meshoptimizer-compressed buffers"),
-    ("KHR_mesh_quantization", "quantized vertex attributes"),
-];
-
-/// Refuses a glTF that requires (or uses for its geometry) an extension the import does
-/// not decode, naming it.
-pub fn check_gltf_extensions(json: &Value) -> Result<()> {
-    let listed = |key: &str| -> Vec<String> {
-        json.get(key)
-            .and_then(Value::as_array)
-            .map(|a| a.iter().filter_map(Value::as_str).map(str::to_owned).collect())
-            .unwrap_or_default()
-    };
-    let (required, used) = (listed("extensionsRequired"), listed("extensionsUsed"));
-    for (name, what) in UNSUPPORTED_GLTF {
-        if required.iter().chain(&used).any(|e| e == name) {
-            bail!(
-                "the glTF uses {name} ({what}), which citystream does not decode; \
-                 export the tileset without it (e.g. 3d-tiles-tools or gltf-transform can decompress)"
-            );
-        }
-    }
-    Ok(())
+/// The extensions a glTF requires that the import does not decode (empty when it can be
+/// imported): such content is skipped and counted, or refused under `--strict`.
+pub fn undecoded_required(json: &Value) -> Vec<String> {
+    let required = json.get("extensionsRequired").and_then(Value::as_array);
+    crate::gltf::undecoded_extensions(required.into_iter().flatten().filter_map(Value::as_str))
 }
 
 /// A glTF's `CESIUM_RTC` centre (Earth-centred, z up), if it has one.
@@ -245,11 +224,12 @@ mod tests {
     }
 
     #[test]
-    fn compressed_geometry_is_refused_by_name() {
-        let gltf = json!({"asset": {"version": "2.0"}, "extensionsRequired": ["KHR_draco_mesh_compression"]});
-        let error = check_gltf_extensions(&gltf).expect_err("refused").to_string();
-        assert!(error.contains("KHR_draco_mesh_compression"), "{error}");
-        assert!(check_gltf_extensions(&json!({"extensionsUsed": ["KHR_texture_transform"]})).is_ok());
+    fn only_required_extensions_the_import_does_not_decode_are_named() {
+        let gltf = json!({"asset": {"version": "2.0"}, "extensionsRequired": [
+            "KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_mesh_quantization",
+            "KHR_texture_basisu", "KHR_materials_pbrSpecularGlossiness"]});
+        assert_eq!(undecoded_required(&gltf), ["KHR_materials_pbrSpecularGlossiness"]);
+        assert!(undecoded_required(&json!({"extensionsUsed": ["EXT_texture_webp"]})).is_empty());
         let rtc = json!({"extensions": {"CESIUM_RTC": {"center": [1.0, 2.0, 3.0]}}});
         assert_eq!(cesium_rtc(&rtc).expect("centre"), Some([1.0, 2.0, 3.0]));
         assert!(cesium_rtc(&json!({"extensions": {"CESIUM_RTC": {"center": [1.0, "x", 3.0]}}})).is_err());

@@ -45,6 +45,7 @@ use citystream_gen::files::print_stdout;
 use citystream_gen::shard::{Shard, ShardWrite};
 use citystream_gen::texture::EncodedTexture;
 
+use crate::encodings::EncodingCounts;
 use crate::gltf::{
     bounds, read_gltf, relative_uri_path, scene_at, scene_origin, GltfContent, PendingMesh, MAX_IMPORTED_VERTICES,
 };
@@ -113,6 +114,8 @@ pub struct ImportedTileset {
     pub skipped: BTreeMap<String, usize>,
     /// A fingerprint of the contents walked (their paths in order): part of a shard's job.
     pub contents_fingerprint: u32,
+    /// Meshes and textures by the encoding they were stored in.
+    pub encodings: EncodingCounts,
 }
 
 /// Whether `input` names a tileset rather than a glTF file: a `.json` file, or a URL whose
@@ -229,6 +232,10 @@ pub fn load(
     let mut placed: Vec<Vec<PendingMesh>> = Vec::new();
     placed.resize_with(count, Vec::new);
     let mut listings_done = 0usize;
+    let mut encodings = EncodingCounts::default();
+    // glTF content requiring extensions the import does not decode: by extensions, the
+    // listings skipped and the first files.
+    let mut undecoded: BTreeMap<String, (usize, Vec<String>)> = BTreeMap::new();
     for (n, path) in files.iter().enumerate() {
         let listings = &listings_of[path];
         let first = &walk.contents[listings[0]];
@@ -236,8 +243,27 @@ pub fn load(
             let content = &walk.contents[i];
             format!("{} (tile {})", content.path.display(), content.tile)
         };
-        let (mut read, centres) =
-            read_content(first, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices).with_context(|| what(listings[0]))?;
+        let (mut read, centres) = match read_content(first, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices)
+            .with_context(|| what(listings[0]))?
+        {
+            Content::Read(read, centres) => (read, centres),
+            Content::Undecoded(extensions) => {
+                let names = extensions.join(", ");
+                if strict {
+                    bail!(
+                        "{}: requires {names}, which citystream does not decode (--strict)",
+                        what(listings[0])
+                    );
+                }
+                let (count, examples) = undecoded.entry(names).or_default();
+                *count += listings.len();
+                if examples.len() < 3 {
+                    examples.push(file_name(path));
+                }
+                listings_done += listings.len();
+                continue;
+            }
+        };
         // Textures new to the import are encoded (in parallel); shared ones map to the first.
         // Content outside a shard's part is read for its geometry only (the frame and origin
         // are the whole tileset's).
@@ -258,9 +284,10 @@ pub fn load(
             .map(|&k| read.encode_texture(k, format, max_extent))
             .collect::<Result<Vec<_>>>()
             .with_context(|| what(listings[0]))?;
-        for (texture, kept) in &encoded {
+        for (texture, origin) in &encoded {
             sink(texture).with_context(|| what(listings[0]))?;
-            kept_blocks += usize::from(*kept);
+            kept_blocks += usize::from(origin.kept_blocks);
+            encodings.add_texture(origin.encoding);
         }
         textures += encoded.len();
         let mut first_meshes = std::mem::take(&mut read.meshes);
@@ -275,6 +302,7 @@ pub fn load(
             for mesh in &mut meshes {
                 mesh.texture = local_to_global.get(mesh.texture).copied().unwrap_or(0);
                 vertices += mesh.positions.len();
+                encodings.add_mesh(mesh.encoding);
             }
             placed[listing] = meshes;
             listings_done += 1;
@@ -300,6 +328,20 @@ pub fn load(
         .enumerate()
         .flat_map(|(l, meshes)| std::iter::repeat_n(l, meshes.len()))
         .collect();
+    let mut skipped = walk.skipped;
+    for (extensions, (n, examples)) in undecoded {
+        let kind = format!("glTF content requiring {extensions}");
+        if report {
+            let more = if n > examples.len() { ", …" } else { "" };
+            eprintln!(
+                "warning: {}: {n} glTF content listings skipped ({}{more}): they require {extensions}, which \
+                 citystream does not decode (--strict makes this an error)",
+                input.display(),
+                examples.join(", ")
+            );
+        }
+        *skipped.entry(kind).or_default() += n;
+    }
     let mut meshes: Vec<PendingMesh> = placed.into_iter().flatten().collect();
     if meshes.is_empty() {
         bail!(
@@ -346,8 +388,9 @@ pub fn load(
         frame,
         contents: count,
         tiles: walk.tiles,
-        skipped: walk.skipped,
+        skipped,
         contents_fingerprint: fingerprint.finalize(),
+        encodings,
     })
 }
 
@@ -428,9 +471,10 @@ fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) ->
     let summary = writer
         .finish(&imported.scene)
         .with_context(|| format!("writing {}", out.display()))?;
+    imported.encodings.write(out)?;
     let origin = to_geodetic(imported.frame.origin);
     print_stdout(&format!(
-        "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({} with their KTX2/DDS blocks kept, the others encoded as {}), {:.1} MB pack, {:.2} s\nframe: east-north-up at {}\n",
+        "imported tileset {} into {}: {} tiles, {} contents, {} meshes, {} triangles, {} textures ({}), {:.1} MB pack, {:.2} s\nencodings: {}\nframe: east-north-up at {}\n",
         shown,
         out.display(),
         imported.tiles,
@@ -438,10 +482,10 @@ fn import_local(input: &Path, shown: &str, out: &Path, options: &LoadOptions) ->
         summary.meshes,
         summary.triangles,
         summary.textures,
-        imported.kept_blocks,
-        options.format.name(),
+        imported.encodings.texture_note(imported.kept_blocks, options.format.name()),
         summary.pack_bytes as f64 / 1e6,
         start.elapsed().as_secs_f64(),
+        imported.encodings.summary(),
         origin.map_or_else(|| "?".to_owned(), |g| format!(
             "latitude {:.7}°, longitude {:.7}°, height {:.3} m (WGS 84)",
             g.latitude.to_degrees(),
@@ -759,9 +803,17 @@ fn content_root(content: &ContentRef, centres: RtcCentres) -> Mat4 {
     transform
 }
 
+/// A content file, read or not.
+enum Content {
+    /// Its glTF's primitives and its RTC centres (boxed: the other variant is small).
+    Read(Box<GltfContent>, RtcCentres),
+    /// Its glTF requires these extensions, which the import does not decode.
+    Undecoded(Vec<String>),
+}
+
 /// One content file read: its glTF's primitives placed in Earth-centred coordinates (for
 /// `content`, the first listing of the file), and its RTC centres (for the others).
-fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> Result<(GltfContent, RtcCentres)> {
+fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> Result<Content> {
     let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
     let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
         let batched = content::parse_b3dm(&bytes)?;
@@ -770,13 +822,19 @@ fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> 
         (&bytes[..], None)
     };
     let json = content::gltf_json(glb)?;
-    content::check_gltf_extensions(&json)?;
+    let undecoded = content::undecoded_required(&json);
+    if !undecoded.is_empty() {
+        return Ok(Content::Undecoded(undecoded));
+    }
     let gltf_rtc = content::cesium_rtc(&json)?;
     let centres = [batch_rtc, gltf_rtc];
     let transform = content_root(content, centres);
     let base = content.path.parent().unwrap_or(Path::new("/"));
     check_external_files(&json, base, root_dir)?;
-    Ok((read_gltf(glb, base, &content.path, &transform, vertex_budget)?, centres))
+    Ok(Content::Read(
+        Box::new(read_gltf(glb, base, &content.path, &transform, vertex_budget)?),
+        centres,
+    ))
 }
 
 /// The files a glTF's buffers and images name (other than data URIs) lie inside the

@@ -1,5 +1,6 @@
 //! Fuzz harnesses for every parser of untrusted input: dataset files, camera paths, glTF/GLB
-//! import, KTX2/DDS/PNG texture input and ground patch sets.
+//! import (Draco, meshopt and quantized geometry included), KTX2/DDS/PNG texture input
+//! (Basis Universal transcoding included) and ground patch sets.
 //!
 //! Coverage-guided fuzzers for Rust (`cargo fuzz`, libFuzzer) need a nightly compiler and
 //! AFL++ needs its own compiler toolchain, neither of which this project's stable toolchain
@@ -44,9 +45,11 @@ pub enum Target {
     Dataset,
     /// `CameraPath::from_json` and sampling of what parses.
     Path,
-    /// glTF and GLB import (`citystream_import::gltf::load_slice`) without writing a dataset.
+    /// glTF and GLB import (`citystream_import::gltf::load_slice`, Draco and meshopt content
+    /// included) without writing a dataset.
     Gltf,
-    /// KTX2, DDS and PNG decoding (`decode_image_bytes`).
+    /// KTX2, DDS and PNG decoding (`decode_image_bytes`), and Basis Universal KTX2
+    /// (ETC1S, UASTC, UASTC+zstd) transcoded to BC7, BC1 and RGBA8.
     Texture,
     /// Ground patch sets: `patches.json` and the PNG headers `PatchSet::open` reads, then
     /// the images decoded as the flythrough decodes them where their listed size is small.
@@ -56,7 +59,8 @@ pub enum Target {
     /// and a 32-byte range read.
     Remote,
     /// 3D Tiles import (`tiles::load`, every level) of a small tileset with an external
-    /// tileset, b3dm and glb content, one mutated file at a time, without writing a dataset.
+    /// tileset, b3dm and glb content (Draco and meshopt glbs with Basis textures among them),
+    /// one mutated file at a time, without writing a dataset.
     Tileset,
 }
 
@@ -298,6 +302,21 @@ fn run_path(bytes: &[u8]) -> Outcome {
 }
 
 fn run_texture(bytes: &[u8]) -> Outcome {
+    // Basis Universal KTX2: transcoded as `import` transcodes it, into blocks (all levels,
+    // and from the second level on) and to RGBA8.
+    if citystream_import::basis::is_basis(bytes) {
+        let Ok(texture) = citystream_import::basis::BasisTexture::open(bytes) else {
+            return Outcome::Rejected;
+        };
+        let blocks = [(TextureFormat::Bc7, 14), (TextureFormat::Bc1, 5)]
+            .iter()
+            .map(|&(format, max_log2)| texture.blocks(format, max_log2))
+            .collect::<Result<Vec<_>, _>>();
+        return match (blocks, texture.rgba()) {
+            (Ok(_), Ok(_)) => Outcome::Accepted,
+            _ => Outcome::Rejected,
+        };
+    }
     // Both readers of texture files: block sources kept as they are by `import`, and the
     // decoder every other image goes through.
     let kept = citystream_import::blocks::block_source(bytes);
@@ -320,7 +339,8 @@ fn dataset_file_path(dir: &Path, name: &str) -> PathBuf {
 /// A tileset at Berlin written to `work/tileset` (`tileset.json` with a transform, REPLACE
 /// refinement and an external `ext.json` under ADD; a glb with CESIUM_RTC and node
 /// transforms, a b3dm with RTC_CENTER and a batch table, a glTF with an external buffer and
-/// image), with the URI decoys: each file but the glTF's buffer and image is a seed.
+/// image, a Draco and a meshopt glb with ETC1S textures), with the URI decoys: each file but
+/// the glTF's buffer and image is a seed.
 fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
     use citystream_import::tiles::write;
     use serde_json::json;
@@ -382,7 +402,9 @@ fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
         "geometricError": 10.0,
         "root": {"boundingVolume": volume, "geometricError": 5.0, "refine": "ADD", "content": {"uri": "a.glb"},
                  "children": [{"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "b.b3dm"}},
-                              {"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "c.gltf"}}]}
+                              {"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "c.gltf"}},
+                              {"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "d.glb"}},
+                              {"boundingVolume": volume, "geometricError": 0.0, "content": {"uri": "m.glb"}}]}
     });
     let tileset = json!({
         "asset": {"version": "1.0"},
@@ -421,11 +443,29 @@ fn tileset_seeds(work: &Path) -> Result<Vec<Seed>> {
             name: "c.gltf".into(),
             bytes: serde_json::to_vec_pretty(&c_gltf)?,
         },
+        Seed {
+            name: "d.glb".into(),
+            bytes: encoded_seed("draco-etc1s.glb")?,
+        },
+        Seed {
+            name: "m.glb".into(),
+            bytes: encoded_seed("meshopt-etc1s.glb")?,
+        },
     ];
     for seed in &seeds {
         std::fs::write(dir.join(&seed.name), &seed.bytes).with_context(|| format!("writing {}", seed.name))?;
     }
     Ok(seeds)
+}
+
+/// The fuzz seeds of `tools/test-data/encoded-tilesets/fuzz` (made by the ecosystem's own
+/// tools: `tools/scripts/make-encoded-tilesets.sh`): Draco and meshopt glbs with ETC1S
+/// textures, and ETC1S, UASTC and UASTC+zstd KTX2 files.
+fn encoded_seed(file: &str) -> Result<Vec<u8>> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../test-data/encoded-tilesets/fuzz")
+        .join(file);
+    std::fs::read(&path).with_context(|| format!("reading {}", path.display()))
 }
 
 /// A patch set of three patches over two PNGs (one listed twice), written to `work/patches`;
@@ -624,6 +664,14 @@ fn gltf_seeds(work: &Path) -> Result<Vec<Seed>> {
             name: "quad.gltf".into(),
             bytes: serde_json::to_vec_pretty(&quad)?,
         },
+        Seed {
+            name: "draco-etc1s.glb".into(),
+            bytes: encoded_seed("draco-etc1s.glb")?,
+        },
+        Seed {
+            name: "meshopt-etc1s.glb".into(),
+            bytes: encoded_seed("meshopt-etc1s.glb")?,
+        },
     ])
 }
 
@@ -733,6 +781,18 @@ fn texture_seeds() -> Result<Vec<Seed>> {
         Seed {
             name: "small.png".into(),
             bytes: png,
+        },
+        Seed {
+            name: "roof-etc1s.ktx2".into(),
+            bytes: encoded_seed("roof-etc1s.ktx2")?,
+        },
+        Seed {
+            name: "roof-uastc.ktx2".into(),
+            bytes: encoded_seed("roof-uastc.ktx2")?,
+        },
+        Seed {
+            name: "roof-uastc-zstd.ktx2".into(),
+            bytes: encoded_seed("roof-uastc-zstd.ktx2")?,
         },
     ])
 }

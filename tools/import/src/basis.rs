@@ -1,0 +1,401 @@
+//! `KHR_texture_basisu` textures: KTX2 files of Basis Universal data (ETC1S with BasisLZ, or
+//! UASTC with or without zstd), transcoded by `basisu` (a pure-Rust port of the reference
+//! transcoder, bit-exact with it) straight into the dataset's block format: each Basis block
+//! maps onto a BC1, BC3 or BC7 block without decoding the image and encoding it again. The
+//! levels are kept as shipped (those finer than `--max-extent` dropped).
+//!
+//! The container is checked before the transcoder sees it ([`check_container`]: the
+//! transcoder trusts the offsets, lengths and counts a file declares, and the fuzzer found
+//! them overflowing its arithmetic and sizing its allocations): sides up to the largest
+//! texture side, one 2D image (no arrays, cube maps or video), every range inside the file,
+//! each UASTC level exactly its blocks' size (zstd levels declaring exactly that), and no
+//! level may transcode to more than [`MAX_EXPANSION`] times the file's bytes plus 16 MiB,
+//! which ETC1S's best compression on real images stays below.
+
+use basisu::{DecodeFlags, SourceFormat, Supercompression, TargetFormat, Transcoder};
+use citystream_dataset::TextureFormat;
+use citystream_gen::texture::{decode_level, mean_colour, EncodedTexture};
+use image::RgbaImage;
+
+/// Most bytes a level may transcode to, per byte of the file (ETC1S at its smallest, 0.3
+/// bits per texel, is about 107 times smaller than RGBA8).
+pub const MAX_EXPANSION: u64 = 256;
+const EXPANSION_SLACK: u64 = 16 << 20;
+
+const KTX2_MAGIC: [u8; 12] = [0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A];
+
+/// Why a Basis texture could not be transcoded.
+#[derive(Debug, thiserror::Error)]
+pub enum BasisError {
+    #[error("a Basis Universal KTX2 file the transcoder refuses: {0:?}")]
+    Transcoder(basisu::Error),
+    #[error(
+        "a Basis Universal KTX2 file of {0}, which the import does not read (ETC1S and UASTC LDR 2D textures are)"
+    )]
+    Unsupported(String),
+    #[error("a {width}x{height} Basis Universal texture (sides 1 to {max})")]
+    Extent { width: u32, height: u32, max: u32 },
+    #[error("level {level} would transcode to {bytes} bytes from a {file}-byte file (at most {MAX_EXPANSION} times its size plus 16 MiB)")]
+    TooLarge { level: u32, bytes: u64, file: u64 },
+    #[error("a damaged Basis Universal KTX2 file: {0}")]
+    Container(String),
+}
+
+fn u32_at(bytes: &[u8], at: usize) -> u64 {
+    bytes
+        .get(at..at + 4)
+        .map_or(0, |b| u64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+}
+
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    bytes.get(at..at + 8).map_or(0, |b| {
+        u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])
+    })
+}
+
+/// Checks what the transcoder would trust in a KTX2 file of Basis data: the header's
+/// shape (a 2D texture of sides 1 to the largest texture side, one layer and face, at most
+/// a full chain of levels, no supercompression but BasisLZ and zstd), every range the
+/// index names inside the file, UASTC levels exactly their blocks' size (a zstd level
+/// declaring exactly that uncompressed), and ETC1S's global data (codebooks, tables and one
+/// image descriptor per level) inside its range, each image's slices inside its level.
+pub fn check_container(bytes: &[u8]) -> Result<(), BasisError> {
+    let bad = |what: String| Err(BasisError::Container(what));
+    if bytes.len() < 80 || !is_basis(bytes) {
+        return bad(format!("{} bytes, not a KTX2 header of Basis data", bytes.len()));
+    }
+    let file = bytes.len() as u64;
+    let (width, height, depth) = (u32_at(bytes, 20), u32_at(bytes, 24), u32_at(bytes, 28));
+    let (layers, faces, levels, scheme) = (
+        u32_at(bytes, 32),
+        u32_at(bytes, 36),
+        u32_at(bytes, 40),
+        u32_at(bytes, 44),
+    );
+    let max = u64::from(citystream_gen::library::MAX_IMAGE_SIDE);
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) || depth > 1 {
+        return bad(format!("a {width}x{height}x{depth} texture (2D, sides 1 to {max})"));
+    }
+    if layers > 1 || faces != 1 {
+        return bad(format!("{layers} layers and {faces} faces (one 2D image is read)"));
+    }
+    let full_chain = u64::from(64 - width.max(height).leading_zeros());
+    if !(1..=full_chain).contains(&levels) {
+        return bad(format!("{levels} levels for a {width}x{height} texture"));
+    }
+    if scheme > 2 {
+        return bad(format!("supercompression scheme {scheme} (BasisLZ and zstd are read)"));
+    }
+    let in_file = |offset: u64, length: u64, what: &str| -> Result<(), BasisError> {
+        match offset.checked_add(length) {
+            Some(end) if end <= file => Ok(()),
+            _ => Err(BasisError::Container(format!(
+                "{what} at bytes {offset}..+{length} runs past the file's {file}"
+            ))),
+        }
+    };
+    in_file(u32_at(bytes, 48), u32_at(bytes, 52), "the data format descriptor")?;
+    in_file(u32_at(bytes, 56), u32_at(bytes, 60), "the key/value data")?;
+    let (sgd, sgd_len) = (u64_at(bytes, 64), u64_at(bytes, 72));
+    in_file(sgd, sgd_len, "the supercompression global data")?;
+    in_file(80, 24 * levels, "the level index")?;
+    let mut level_ranges = Vec::new();
+    for l in 0..levels {
+        let at = 80 + 24 * l as usize;
+        let (offset, length, uncompressed) = (u64_at(bytes, at), u64_at(bytes, at + 8), u64_at(bytes, at + 16));
+        in_file(offset, length, &format!("level {l}"))?;
+        let blocks = (width >> l).max(1).div_ceil(4) * (height >> l).max(1).div_ceil(4);
+        let uastc = blocks * 16;
+        match scheme {
+            0 if length != uastc => {
+                return bad(format!(
+                    "level {l} holds {length} bytes, not its {uastc} of UASTC blocks"
+                ))
+            }
+            2 if uncompressed != uastc => {
+                return bad(format!(
+                    "level {l} declares {uncompressed} bytes uncompressed, not its {uastc} of UASTC blocks"
+                ))
+            }
+            _ => {}
+        }
+        level_ranges.push(length);
+    }
+    if scheme == 1 {
+        // BasisLZ: a 20-byte header (codebook sizes, then their byte lengths), one 20-byte
+        // image descriptor per level, then the codebooks and tables.
+        let images = 20 + 20 * levels;
+        let payload = images
+            + u32_at(bytes, sgd as usize + 4)
+            + u32_at(bytes, sgd as usize + 8)
+            + u32_at(bytes, sgd as usize + 12);
+        if sgd_len < images || payload > sgd_len {
+            return bad(format!(
+                "BasisLZ global data of {sgd_len} bytes, short of its {payload} bytes of descriptors and codebooks"
+            ));
+        }
+        for (l, length) in level_ranges.iter().enumerate() {
+            let at = sgd as usize + 20 + 20 * l;
+            for (slice, o) in [("RGB", 4), ("alpha", 12)] {
+                let (start, len) = (u32_at(bytes, at + o), u32_at(bytes, at + o + 4));
+                if start + len > *length {
+                    return bad(format!(
+                        "level {l}'s {slice} slice at {start}..+{len} runs past the level's {length} bytes"
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+impl From<basisu::Error> for BasisError {
+    fn from(e: basisu::Error) -> Self {
+        Self::Transcoder(e)
+    }
+}
+
+/// Whether `bytes` is a KTX2 file of Basis Universal data (`vkFormat` undefined, as
+/// `KHR_texture_basisu` requires).
+pub fn is_basis(bytes: &[u8]) -> bool {
+    bytes.starts_with(&KTX2_MAGIC) && bytes.get(12..16) == Some(&[0, 0, 0, 0])
+}
+
+/// The Basis codec of a texture, as `info` counts textures by encoding.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BasisCodec {
+    Etc1s,
+    Uastc,
+    UastcZstd,
+}
+
+impl BasisCodec {
+    /// Name in `info`'s counts.
+    pub fn name(self) -> &'static str {
+        match self {
+            BasisCodec::Etc1s => "ktx2-etc1s",
+            BasisCodec::Uastc => "ktx2-uastc",
+            BasisCodec::UastcZstd => "ktx2-uastc-zstd",
+        }
+    }
+}
+
+/// A Basis KTX2 file opened and checked.
+pub struct BasisTexture<'a> {
+    transcoder: Transcoder<'a>,
+    pub codec: BasisCodec,
+    pub width: u32,
+    pub height: u32,
+    file_len: u64,
+}
+
+impl std::fmt::Debug for BasisTexture<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "BasisTexture({:?}, {}x{})", self.codec, self.width, self.height)
+    }
+}
+
+impl<'a> BasisTexture<'a> {
+    /// Opens `bytes` (a file [`is_basis`] accepts).
+    pub fn open(bytes: &'a [u8]) -> Result<Self, BasisError> {
+        check_container(bytes)?;
+        let transcoder = Transcoder::new(bytes)?;
+        let codec = match (transcoder.source_format(), transcoder.supercompression()) {
+            (SourceFormat::Etc1s, _) => BasisCodec::Etc1s,
+            (SourceFormat::UastcLdr, Supercompression::Zstandard) => BasisCodec::UastcZstd,
+            (SourceFormat::UastcLdr, Supercompression::None) => BasisCodec::Uastc,
+            (source, scheme) => {
+                return Err(BasisError::Unsupported(format!(
+                    "{source:?} with {scheme:?} supercompression"
+                )))
+            }
+        };
+        if transcoder.is_video() || transcoder.layer_count() > 1 || transcoder.face_count() != 1 {
+            return Err(BasisError::Unsupported(format!(
+                "{} layers, {} faces{}",
+                transcoder.layer_count(),
+                transcoder.face_count(),
+                if transcoder.is_video() { ", video" } else { "" }
+            )));
+        }
+        let (width, height) = transcoder.base_dimensions();
+        let max = citystream_gen::library::MAX_IMAGE_SIDE;
+        if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
+            return Err(BasisError::Extent { width, height, max });
+        }
+        Ok(Self {
+            transcoder,
+            codec,
+            width,
+            height,
+            file_len: bytes.len() as u64,
+        })
+    }
+
+    /// Level `level` transcoded to `target`, once its size is checked.
+    fn transcode(&self, level: u32, target: TargetFormat) -> Result<Vec<u8>, BasisError> {
+        let bytes = self.transcoder.output_size(level, target)? as u64;
+        if bytes
+            > self
+                .file_len
+                .saturating_mul(MAX_EXPANSION)
+                .saturating_add(EXPANSION_SLACK)
+        {
+            return Err(BasisError::TooLarge {
+                level,
+                bytes,
+                file: self.file_len,
+            });
+        }
+        Ok(self.transcoder.transcode(level, target, DecodeFlags::NONE)?)
+    }
+
+    /// The texture in `format` with the file's levels as shipped, from the first at most
+    /// `2^max_log2` a side: each block transcoded directly. `None` where that cannot be kept
+    /// as it is (sides that are not powers of two, or no shipped level within the extent):
+    /// the caller decodes [`rgba`](Self::rgba) and encodes it instead.
+    pub fn blocks(&self, format: TextureFormat, max_log2: u32) -> Result<Option<EncodedTexture>, BasisError> {
+        let (width, height) = (self.width, self.height);
+        if !width.is_power_of_two() || !height.is_power_of_two() || width < 4 || height < 4 {
+            return Ok(None);
+        }
+        let first = width.max(height).trailing_zeros().saturating_sub(max_log2);
+        let full_chain = width.max(height).trailing_zeros() + 1;
+        let shipped = self.transcoder.level_count().min(full_chain);
+        let (w0, h0) = (width >> first, height >> first);
+        if first >= shipped || w0 < 4 || h0 < 4 {
+            return Ok(None);
+        }
+        let target = match format {
+            TextureFormat::Bc1 => TargetFormat::Bc1Rgb,
+            TextureFormat::Bc3 => TargetFormat::Bc3Rgba,
+            TextureFormat::Bc7 => TargetFormat::Bc7Rgba,
+            TextureFormat::Rgba8 => TargetFormat::Rgba32,
+        };
+        let mut chain = Vec::new();
+        let mut level0 = Vec::new();
+        for level in first..shipped {
+            let info = self.transcoder.image_level_info(level)?;
+            let (w, h) = ((width >> level).max(1), (height >> level).max(1));
+            if (info.width, info.height) != (w, h) {
+                return Err(BasisError::Unsupported(format!(
+                    "level {level} of {}x{} in a {width}x{height} texture",
+                    info.width, info.height
+                )));
+            }
+            let data = self.transcode(level, target)?;
+            if data.len() as u64 != format.mip_bytes(w, h) {
+                return Err(BasisError::Unsupported(format!(
+                    "level {level} transcoded to {} bytes, not the {} of a {w}x{h} {}",
+                    data.len(),
+                    format.mip_bytes(w, h),
+                    format.name()
+                )));
+            }
+            if level == first {
+                level0 = data.clone();
+            }
+            chain.extend_from_slice(&data);
+        }
+        let mean = mean_colour(&decode_level(format, &level0, w0, h0));
+        Ok(Some(EncodedTexture {
+            format,
+            width: w0,
+            height: h0,
+            mip_count: shipped - first,
+            chain,
+            mean,
+        }))
+    }
+
+    /// Level 0 as RGBA8 (for textures that are tinted or need resizing).
+    pub fn rgba(&self) -> Result<RgbaImage, BasisError> {
+        let data = self.transcode(0, TargetFormat::Rgba32)?;
+        let (width, height) = (self.width, self.height);
+        RgbaImage::from_raw(width, height, data).ok_or_else(|| {
+            BasisError::Unsupported(format!("level 0 transcoded to the wrong size for {width}x{height}"))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture(name: &str) -> Vec<u8> {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../test-data/encoded-tilesets/fuzz")
+            .join(name);
+        std::fs::read(&path).expect("fixture")
+    }
+
+    #[test]
+    fn shipped_levels_are_transcoded_from_the_first_within_the_extent() {
+        for (file, codec) in [
+            ("roof-etc1s.ktx2", BasisCodec::Etc1s),
+            ("roof-uastc.ktx2", BasisCodec::Uastc),
+            ("roof-uastc-zstd.ktx2", BasisCodec::UastcZstd),
+        ] {
+            let bytes = fixture(file);
+            let texture = BasisTexture::open(&bytes).expect(file);
+            assert_eq!((texture.codec, texture.width, texture.height), (codec, 64, 64));
+            let full = texture
+                .blocks(TextureFormat::Bc7, 14)
+                .expect(file)
+                .expect("kept as shipped");
+            assert_eq!((full.width, full.mip_count), (64, 7));
+            assert_eq!(
+                full.chain.len() as u64,
+                (0..7)
+                    .map(|l| TextureFormat::Bc7.mip_bytes(64 >> l, 64 >> l))
+                    .sum::<u64>()
+            );
+            let half = texture
+                .blocks(TextureFormat::Bc1, 5)
+                .expect(file)
+                .expect("kept as shipped");
+            assert_eq!((half.width, half.height, half.mip_count), (32, 32, 6));
+            assert_eq!(texture.rgba().expect(file).dimensions(), (64, 64));
+        }
+    }
+
+    #[test]
+    fn damaged_containers_are_refused_before_the_transcoder_sees_them() {
+        let good = fixture("roof-uastc-zstd.ktx2");
+        let refused = |edit: &dyn Fn(&mut Vec<u8>)| {
+            let mut bytes = good.clone();
+            edit(&mut bytes);
+            BasisTexture::open(&bytes).expect_err("refused").to_string()
+        };
+        // Level 0's uncompressed length one block more than its blocks (the 2^57-byte
+        // allocation the fuzzer found declared such a length).
+        let error = refused(&|b| {
+            let at = 80 + 16;
+            let length = u64_at(b, at) + 16;
+            b[at..at + 8].copy_from_slice(&length.to_le_bytes());
+        });
+        assert!(error.contains("uncompressed"), "{error}");
+        assert!(refused(&|b| b.truncate(b.len() - 100)).contains("runs past"));
+        assert!(refused(&|b| b[40..44].copy_from_slice(&20u32.to_le_bytes())).contains("20 levels"));
+        assert!(refused(&|b| b[20..24].copy_from_slice(&40_000u32.to_le_bytes())).contains("40000x64"));
+        assert!(refused(&|b| b[32..36].copy_from_slice(&6u32.to_le_bytes())).contains("6 layers"));
+        let etc1s = fixture("roof-etc1s.ktx2");
+        let mut short = etc1s.clone();
+        // The global data's endpoint codebook claims more bytes than the global data holds.
+        let sgd = u64_at(&short, 64) as usize;
+        short[sgd + 4..sgd + 8].copy_from_slice(&u32::MAX.to_le_bytes());
+        let error = BasisTexture::open(&short).expect_err("refused").to_string();
+        assert!(error.contains("BasisLZ global data"), "{error}");
+    }
+
+    #[test]
+    fn only_ktx2_files_of_undefined_format_are_basis() {
+        let mut header = KTX2_MAGIC.to_vec();
+        header.extend_from_slice(&[0; 40]);
+        assert!(is_basis(&header));
+        header[12] = 131; // BC1
+        assert!(!is_basis(&header));
+        assert!(!is_basis(b"\x89PNG\r\n\x1a\n"));
+        assert!(BasisTexture::open(&header[..20]).is_err());
+    }
+}
