@@ -34,6 +34,15 @@ pub const PACK_FILE: &str = "textures.pack";
 pub const COLORMAP_FILE: &str = "colormap.bin";
 /// Per-mip checksum file name.
 pub const CHECKSUM_FILE: &str = "textures.crc";
+/// Every file of the format: the five data files of a write, then the manifest.
+pub const DATASET_FILES: [&str; 6] = [
+    SCENE_FILE,
+    META_FILE,
+    PACK_FILE,
+    COLORMAP_FILE,
+    CHECKSUM_FILE,
+    MANIFEST_FILE,
+];
 const MANIFEST_MAGIC: &[u8; 8] = b"CSMANIFS";
 const MANIFEST_BYTES: usize = 32;
 const WRITE_DIR_PREFIX: &str = "write-";

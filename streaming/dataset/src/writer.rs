@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use super::colormap::{write_checksums, Colormap};
 use super::dataset::Dataset;
 use super::error::DatasetError;
-use super::files::{PendingWrite, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE};
+use super::files::{PendingWrite, CHECKSUM_FILE, COLORMAP_FILE, DATASET_FILES, META_FILE, PACK_FILE, SCENE_FILE};
 use super::format::{TextureFormat, TextureInfo, TEXTURE_RECORD_BYTES};
 use super::io_util::{encode_table, write_new_durably};
 use super::pack::{META_MAGIC, PACK_HEADER_BYTES};
@@ -443,16 +443,8 @@ impl DatasetWriter {
     /// so it appears with them, atomically, at [`DatasetWriter::finish`]: a shard's record.
     /// `name` is a plain file name other than the format's.
     pub fn add_file(&mut self, name: &str, bytes: &[u8]) -> Result<(), DatasetError> {
-        let reserved = [
-            SCENE_FILE,
-            META_FILE,
-            PACK_FILE,
-            COLORMAP_FILE,
-            CHECKSUM_FILE,
-            MANIFEST_FILE,
-            JOURNAL_FILE,
-        ];
-        if name.is_empty() || name.contains(['/', '\\']) || name.starts_with('.') || reserved.contains(&name) {
+        let reserved = DATASET_FILES.contains(&name) || name == JOURNAL_FILE;
+        if name.is_empty() || name.contains(['/', '\\']) || name.starts_with('.') || reserved {
             return Err(DatasetError::InvalidInput(format!(
                 "{name:?} cannot be added to a dataset's write (a plain file name other than the format's)"
             )));

@@ -7,9 +7,11 @@ use std::path::Path;
 
 use citystream_dataset::{
     verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, CHECKSUM_FILE, COLORMAP_FILE,
-    FORMAT_VERSION, MANIFEST_FILE, MAX_CRS_BYTES, META_FILE, PACK_FILE, SCENE_FILE,
+    DATASET_FILES, FORMAT_VERSION, MANIFEST_FILE, MAX_CRS_BYTES, META_FILE, PACK_FILE, SCENE_FILE,
 };
-use support::{copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, write_fixture, TEXTURES};
+use support::{
+    copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, test_dir, write_fixture, TEXTURES,
+};
 
 /// Byte offset of texture `i`'s record in `textures.meta`.
 fn record(i: usize) -> usize {
@@ -586,4 +588,20 @@ fn the_crs_round_trips_and_a_damaged_crs_record_is_refused() {
         fix_scene_crc(b);
     });
     assert!(matches!(open_err(&dir), DatasetError::Truncated { .. }));
+}
+
+#[test]
+fn a_file_added_to_a_write_cannot_take_a_format_file_or_leave_the_directory() -> Result<(), DatasetError> {
+    let mut writer = DatasetWriter::create(&test_dir("add-file-names"))?;
+    let refused = DATASET_FILES
+        .iter()
+        .copied()
+        .chain(["resume.journal", "", ".hidden", "a/b", "a\\b"]);
+    for name in refused {
+        assert!(
+            matches!(writer.add_file(name, b"x"), Err(DatasetError::InvalidInput(_))),
+            "{name:?} must be refused"
+        );
+    }
+    writer.add_file("shard.record", b"x")
 }

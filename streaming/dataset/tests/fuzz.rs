@@ -3,20 +3,9 @@
 
 mod support;
 
-use citystream_dataset::{
-    verify, Dataset, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
-};
+use citystream_dataset::{verify, Dataset, DATASET_FILES as FILES, MANIFEST_FILE, PACK_FILE, SCENE_FILE};
 use proptest::prelude::*;
 use support::{copy_dir, data_file, patch, write_fixture};
-
-const FILES: [&str; 6] = [
-    SCENE_FILE,
-    META_FILE,
-    PACK_FILE,
-    COLORMAP_FILE,
-    CHECKSUM_FILE,
-    MANIFEST_FILE,
-];
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
