@@ -222,6 +222,29 @@ pub(crate) fn load_run(dir: &Path, name: &str) -> Result<Run> {
 }
 
 /// Parse `frames.csv`; every error names the file and the 1-based line.
+/// The value of a column older `frames.csv` files lack (`column` is `None`), or a row left
+/// empty: `None`; otherwise parsed, an error naming the row (`at`), the column and `what` it
+/// should be.
+fn optional_column<T>(
+    cells: &[&str],
+    column: Option<usize>,
+    name: &str,
+    what: &str,
+    at: impl Fn() -> String,
+) -> Result<Option<T>>
+where
+    T: std::str::FromStr,
+    T::Err: std::fmt::Display,
+{
+    match column.map(|c| cells[c]) {
+        None | Some("") => Ok(None),
+        Some(text) => text
+            .parse::<T>()
+            .map(Some)
+            .map_err(|e| anyhow!("{}: column `{name}` = {text:?}: {what} ({e})", at())),
+    }
+}
+
 pub(crate) fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut lines = text.lines().enumerate();
@@ -307,15 +330,9 @@ pub(crate) fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
             bytes: count(11)?,
             mip_deficit: optional(14)?,
             psnr_db: optional(15)?,
-            mse: match mse_column.map(|c| cells[c]) {
-                None | Some("") => None,
-                Some(text) => Some(text.parse::<f64>().map_err(|e| {
-                    anyhow!(
-                        "{}: line {line_no}: column `mse` = {text:?}: not a number ({e})",
-                        path.display()
-                    )
-                })?),
-            },
+            mse: optional_column(&cells, mse_column, "mse", "not a number", || {
+                format!("{}: line {line_no}", path.display())
+            })?,
             cycle_started: match cycle_column.map(|c| cells[c]) {
                 None => None,
                 Some("0") => Some(false),
@@ -325,15 +342,13 @@ pub(crate) fn read_frames_csv(path: &Path) -> Result<Vec<FrameRow>> {
                     path.display()
                 ),
             },
-            reads_in_flight_bytes: match in_flight_column.map(|c| cells[c]) {
-                None | Some("") => None,
-                Some(text) => Some(text.parse::<u64>().map_err(|e| {
-                    anyhow!(
-                        "{}: line {line_no}: column `reads_in_flight_bytes` = {text:?}: not a non-negative integer ({e})",
-                        path.display()
-                    )
-                })?),
-            },
+            reads_in_flight_bytes: optional_column(
+                &cells,
+                in_flight_column,
+                "reads_in_flight_bytes",
+                "not a non-negative integer",
+                || format!("{}: line {line_no}", path.display()),
+            )?,
         });
     }
     if rows.is_empty() {

@@ -485,6 +485,31 @@ fn bad_inputs_are_named_with_file_and_line() -> TestResult {
     let err = report_error(&dir.join("not_a_number"));
     assert!(err.contains("frames.csv: line 3: column `tw_ms` = \"fast\""), "{err}");
 
+    // The optional columns (`mse`, `reads_in_flight_bytes`) with a bad cell on line 3.
+    let with_optional = |mse: &str, in_flight: &str| -> String {
+        good_csv
+            .lines()
+            .enumerate()
+            .map(|(i, l)| match i {
+                0 => format!("{l},mse,reads_in_flight_bytes\n"),
+                2 => format!("{l},{mse},{in_flight}\n"),
+                _ => format!("{l},,\n"),
+            })
+            .collect()
+    };
+    write_run(&dir.join("bad_mse"), &with_optional("fast", "0"), &good_summary);
+    let err = report_error(&dir.join("bad_mse"));
+    assert!(
+        err.contains("frames.csv: line 3: column `mse` = \"fast\": not a number"),
+        "{err}"
+    );
+    write_run(&dir.join("bad_in_flight"), &with_optional("", "-1"), &good_summary);
+    let err = report_error(&dir.join("bad_in_flight"));
+    assert!(
+        err.contains("frames.csv: line 3: column `reads_in_flight_bytes` = \"-1\": not a non-negative integer"),
+        "{err}"
+    );
+
     // A header without a required column.
     write_run(
         &dir.join("header"),
