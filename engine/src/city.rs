@@ -578,6 +578,33 @@ impl CityRenderer {
         view: &FeedbackView,
         visible_height: u32,
     ) -> Result<()> {
+        self.record_feedback_with(rec, feedback_target, camera, view, visible_height, true)
+    }
+
+    /// Records a second feedback pass in the frame, for where the camera will be: as
+    /// [`record_feedback`](Self::record_feedback), drawing every mesh (the culling's
+    /// history belongs to the view's pass, whose early set this one must not replace).
+    /// Follow it with the streamer's prefetch resolve.
+    pub fn record_prefetch_feedback(
+        &self,
+        rec: Recording<'_>,
+        feedback_target: &RenderTarget,
+        camera: &Camera,
+        view: &FeedbackView,
+        visible_height: u32,
+    ) -> Result<()> {
+        self.record_feedback_with(rec, feedback_target, camera, view, visible_height, false)
+    }
+
+    fn record_feedback_with(
+        &self,
+        rec: Recording<'_>,
+        feedback_target: &RenderTarget,
+        camera: &Camera,
+        view: &FeedbackView,
+        visible_height: u32,
+        cull: bool,
+    ) -> Result<()> {
         let cmd = rec.raw();
         let pixels = u64::from(feedback_target.width()) * u64::from(feedback_target.height());
         if pixels > FEEDBACK_MAX_PIXELS {
@@ -600,7 +627,7 @@ impl CityRenderer {
             ],
         };
         let clear = [1.0, 0.0, 1.0, 1.0];
-        match self.active_culling() {
+        match self.active_culling().filter(|_| cull) {
             Some(culling) => {
                 // Two phases over the pre-pass; the feedback pass draws what the late test kept.
                 let feedback = CullView::Feedback;

@@ -37,12 +37,12 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use crate::controller::Decision;
+use crate::controller::{BlockBudget, Decision};
 use crate::disk_model::DiskModel;
 use crate::records::MeshMetaData;
 use crate::residency::AdmissionGate;
 use crate::source::{MipSink, MipSource, SourceError, StagedMip};
-use crate::states::{next_load, TextureStates, TextureStatus};
+use crate::states::{next_load, TextureState, TextureStates, TextureStatus};
 
 /// Table 2: maximum load time of one cycle.
 pub const DEFAULT_LOAD_TIME: Duration = Duration::from_millis(16);
@@ -67,6 +67,48 @@ pub struct LoaderOptions {
     /// mip goes to [`MipSink::stage_after`] with its modelled completion. For cycles run
     /// on the caller's thread ([`Loader::run_cycle`]) by a host with a modelled clock.
     pub disk: Option<DiskModel>,
+    /// The order a cycle takes its mips in ([`PlanOrder`]).
+    pub order: PlanOrder,
+}
+
+/// The order in which a cycle takes the mips its records ask for.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum PlanOrder {
+    /// The paper's (§3.3): records by descending weight, one mip per texture.
+    #[default]
+    Weight,
+    /// By the screen error each mip removes per byte it costs ([`error_per_byte`]):
+    /// coarse levels of many textures before fine levels of a few, so a short budget
+    /// buys the most image first.
+    ErrorPerByte,
+}
+
+impl PlanOrder {
+    /// The name used on command lines and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            PlanOrder::Weight => "weight",
+            PlanOrder::ErrorPerByte => "error-per-byte",
+        }
+    }
+}
+
+/// Levels of detail the first load of a texture adds: from the City Colormap's one colour
+/// (a 1×1 image) to the initial 4×4 level is two octaves.
+pub const INITIAL_LOAD_LEVELS: f64 = 2.0;
+
+/// The screen error a load removes per byte it costs, the rank of
+/// [`PlanOrder::ErrorPerByte`]. Natural images have a power spectrum falling as 1/f²
+/// (Field 1987; van der Schaaf and van Hateren 1996), so every octave of detail carries
+/// about the same energy: a texture shown one level too coarse over `weight` (its
+/// feedback weight, Eq. 1: visible fragments weighted by distance and displayed level)
+/// errs by about `weight` per missing level, and loading its next level removes one
+/// level's worth ([`INITIAL_LOAD_LEVELS`] for a texture showing only its colour). A
+/// level costs its bytes, or the whole sparse blocks it binds where a block budget
+/// bounds the cycle.
+pub fn error_per_byte(weight: u64, first_load: bool, cost_bytes: u64) -> f64 {
+    let levels = if first_load { INITIAL_LOAD_LEVELS } else { 1.0 };
+    weight as f64 * levels / cost_bytes.max(1) as f64
 }
 
 impl Default for LoaderOptions {
@@ -77,6 +119,7 @@ impl Default for LoaderOptions {
             read_attempts: 3,
             retry_backoff: Duration::from_millis(2),
             disk: None,
+            order: PlanOrder::Weight,
         }
     }
 }
@@ -139,6 +182,31 @@ pub struct CyclePlan {
     pub failures: Vec<TextureFailure>,
     /// Loads the admission gate declined (the cache would refuse them).
     pub declined: u64,
+    /// Sparse blocks the mips take, by the decision's block budget (0 without one).
+    pub blocks: u64,
+    /// Loads left for a later cycle because their blocks did not fit the block budget.
+    pub over_block_budget: u64,
+    /// Mips planned from the prefetch records (after every one of the view's).
+    pub prefetched: u64,
+}
+
+impl CyclePlan {
+    /// Takes `item` unless the block budget is spent: a cycle always takes its first mip,
+    /// and a later one only if its blocks fit what is left. Whether it was taken.
+    fn take(&mut self, item: PlannedMip, budget: Option<BlockBudget>, prefetch: bool) -> bool {
+        if let Some(budget) = budget {
+            let blocks = budget.blocks_of(item.bytes);
+            if !self.items.is_empty() && self.blocks.saturating_add(blocks) > budget.blocks {
+                self.over_block_budget += 1;
+                return false;
+            }
+            self.blocks += blocks;
+        }
+        self.bytes += item.bytes;
+        self.prefetched += u64::from(prefetch);
+        self.items.push(item);
+        true
+    }
 }
 
 enum Candidate {
@@ -210,46 +278,192 @@ pub fn plan_cycle<S: MipSource + ?Sized>(
     plan_chunk: usize,
     gate: Option<&AdmissionGate>,
 ) -> CyclePlan {
+    let request = CycleRequest {
+        records,
+        prefetch: &[],
+        order: PlanOrder::Weight,
+        plan_chunk,
+    };
+    plan_cycle_with(states, mesh_textures, &request, decision, source, gate)
+}
+
+/// What a cycle is asked to load: the view's records (filtered and sorted by weight), the
+/// prefetch records (where the camera will be; each after every one of the view's, so a
+/// prefetch never displaces the view's needs within a cycle), and the order.
+#[derive(Clone, Copy, Debug)]
+pub struct CycleRequest<'a> {
+    /// The view's records, by descending weight.
+    pub records: &'a [MeshMetaData],
+    /// The prefetch records, by descending weight.
+    pub prefetch: &'a [MeshMetaData],
+    /// The order mips are taken in.
+    pub order: PlanOrder,
+    /// Records planned per parallel chunk ([`PlanOrder::Weight`]).
+    pub plan_chunk: usize,
+}
+
+/// [`plan_cycle`] for a whole [`CycleRequest`]; with a block budget in `decision`, a mip
+/// whose blocks do not fit what is left is left for a later cycle (and the walk goes on
+/// to the cheaper ones).
+pub fn plan_cycle_with<S: MipSource + ?Sized>(
+    states: &TextureStates,
+    mesh_textures: &[u32],
+    request: &CycleRequest<'_>,
+    decision: Decision,
+    source: &S,
+    gate: Option<&AdmissionGate>,
+) -> CyclePlan {
+    match request.order {
+        PlanOrder::Weight => plan_by_weight(states, mesh_textures, request, decision, source, gate),
+        PlanOrder::ErrorPerByte => plan_by_error_per_byte(states, mesh_textures, request, decision, source, gate),
+    }
+}
+
+fn plan_by_weight<S: MipSource + ?Sized>(
+    states: &TextureStates,
+    mesh_textures: &[u32],
+    request: &CycleRequest<'_>,
+    decision: Decision,
+    source: &S,
+    gate: Option<&AdmissionGate>,
+) -> CyclePlan {
     let mut plan = CyclePlan::default();
     let mut seen: HashSet<u32> = HashSet::new();
-    for chunk in records.chunks(plan_chunk.max(1)) {
-        let candidates: Vec<Candidate> = chunk
-            .par_iter()
-            .map(|r| candidate(states, mesh_textures, r, decision.mip_bias, source))
-            .collect();
-        for (c, record) in candidates.into_iter().zip(chunk) {
-            match c {
-                Candidate::Nothing => {}
-                Candidate::BadRecord => plan.bad_records += 1,
-                Candidate::Load(item) => {
-                    if seen.contains(&item.texture) {
-                        continue;
+    let chunk_size = request.plan_chunk.max(1);
+    let lists = [(request.records, false), (request.prefetch, true)];
+    for (records, prefetch) in lists {
+        for chunk in records.chunks(chunk_size) {
+            let candidates: Vec<Candidate> = chunk
+                .par_iter()
+                .map(|r| candidate(states, mesh_textures, r, decision.mip_bias, source))
+                .collect();
+            for (c, record) in candidates.into_iter().zip(chunk) {
+                match c {
+                    Candidate::Nothing => {}
+                    Candidate::BadRecord => plan.bad_records += 1,
+                    Candidate::Load(item) => {
+                        if seen.contains(&item.texture) {
+                            continue;
+                        }
+                        if plan.bytes > decision.load_size_bytes {
+                            return plan;
+                        }
+                        seen.insert(item.texture);
+                        let declined = gate.is_some_and(|gate| {
+                            gate.is_refused(item.texture, item.level) || !gate.admit(record.weight, item.bytes)
+                        });
+                        if declined {
+                            plan.declined += 1;
+                            continue;
+                        }
+                        plan.take(item, decision.block_budget, prefetch);
                     }
-                    if plan.bytes > decision.load_size_bytes {
-                        return plan;
-                    }
-                    seen.insert(item.texture);
-                    let declined = gate.is_some_and(|gate| {
-                        gate.is_refused(item.texture, item.level) || !gate.admit(record.weight, item.bytes)
-                    });
-                    if declined {
-                        plan.declined += 1;
-                        continue;
-                    }
-                    plan.bytes += item.bytes;
-                    plan.items.push(item);
-                }
-                Candidate::Failed(f) => {
-                    if seen.insert(f.texture) {
-                        // The id came from the table, so it is in range.
-                        let _ = states.mark_failed(f.texture);
-                        plan.failures.push(f);
-                    }
+                    Candidate::Failed(f) => plan.fail(states, f, &mut seen),
                 }
             }
         }
     }
     plan
+}
+
+/// One texture's records merged: the finest level any of them asks for, the summed
+/// weight (its screen error, the rank) and the largest (the admission gate's, as
+/// eviction values a texture), and whether only prefetch records name it.
+#[derive(Clone, Copy, Debug)]
+struct TextureRequest {
+    record: MeshMetaData,
+    weight_sum: u64,
+    prefetch: bool,
+}
+
+fn plan_by_error_per_byte<S: MipSource + ?Sized>(
+    states: &TextureStates,
+    mesh_textures: &[u32],
+    request: &CycleRequest<'_>,
+    decision: Decision,
+    source: &S,
+    gate: Option<&AdmissionGate>,
+) -> CyclePlan {
+    let mut plan = CyclePlan::default();
+    let mut by_texture: std::collections::HashMap<u32, usize> = std::collections::HashMap::new();
+    let mut textures: Vec<TextureRequest> = Vec::new();
+    for (records, prefetch) in [(request.records, false), (request.prefetch, true)] {
+        for record in records {
+            let Some(&texture) = mesh_textures.get(record.mesh_id as usize) else {
+                plan.bad_records += 1;
+                continue;
+            };
+            match by_texture.get(&texture) {
+                // The view's records come first: a texture it names keeps its class.
+                Some(&i) if textures[i].prefetch != prefetch => {}
+                Some(&i) => {
+                    let t = &mut textures[i];
+                    t.record.mip_level = t.record.mip_level.min(record.mip_level);
+                    t.record.weight = t.record.weight.max(record.weight);
+                    t.weight_sum += u64::from(record.weight);
+                }
+                None => {
+                    by_texture.insert(texture, textures.len());
+                    textures.push(TextureRequest {
+                        record: *record,
+                        weight_sum: u64::from(record.weight),
+                        prefetch,
+                    });
+                }
+            }
+        }
+    }
+    let candidates: Vec<Candidate> = textures
+        .par_iter()
+        .map(|t| candidate(states, mesh_textures, &t.record, decision.mip_bias, source))
+        .collect();
+    let mut ranked: Vec<(PlannedMip, &TextureRequest, f64)> = Vec::new();
+    let mut seen: HashSet<u32> = HashSet::new();
+    for (c, t) in candidates.into_iter().zip(&textures) {
+        match c {
+            Candidate::Nothing | Candidate::BadRecord => {}
+            Candidate::Load(item) => {
+                let cost = decision
+                    .block_budget
+                    .map_or(item.bytes, |b| b.blocks_of(item.bytes).saturating_mul(b.block_bytes));
+                let first_load = item.from.state == TextureState::Initial;
+                ranked.push((item, t, error_per_byte(t.weight_sum, first_load, cost)));
+            }
+            Candidate::Failed(f) => plan.fail(states, f, &mut seen),
+        }
+    }
+    // The view's before the prefetch's, then by error removed per byte; ties by texture
+    // so that the order never depends on the records' order or the thread timing.
+    ranked.sort_by(|(a, ta, ra), (b, tb, rb)| {
+        ta.prefetch
+            .cmp(&tb.prefetch)
+            .then_with(|| rb.total_cmp(ra))
+            .then_with(|| a.texture.cmp(&b.texture))
+    });
+    for (item, t, _) in ranked {
+        if plan.bytes > decision.load_size_bytes {
+            break;
+        }
+        let declined = gate
+            .is_some_and(|gate| gate.is_refused(item.texture, item.level) || !gate.admit(t.record.weight, item.bytes));
+        if declined {
+            plan.declined += 1;
+            continue;
+        }
+        plan.take(item, decision.block_budget, t.prefetch);
+    }
+    plan
+}
+
+impl CyclePlan {
+    /// Records `failure` once per texture and marks the texture Failed.
+    fn fail(&mut self, states: &TextureStates, failure: TextureFailure, seen: &mut HashSet<u32>) {
+        if seen.insert(failure.texture) {
+            // The id came from the table, so it is in range.
+            let _ = states.mark_failed(failure.texture);
+            self.failures.push(failure);
+        }
+    }
 }
 
 /// Why a planned mip did not reach the sink.
@@ -269,6 +483,10 @@ pub struct CycleReport {
     pub planned_mips: u64,
     /// Loads the admission gate declined.
     pub declined: u64,
+    /// Loads left for a later cycle because their blocks did not fit the block budget.
+    pub over_block_budget: u64,
+    /// Mips planned from the prefetch records.
+    pub prefetched_mips: u64,
     /// Bytes planned.
     pub planned_bytes: u64,
     /// Mips read and staged.
@@ -310,6 +528,8 @@ pub struct LoaderTotals {
     pub deferred_by_time: u64,
     /// Records naming an unknown mesh.
     pub bad_records: u64,
+    /// Mips planned from prefetch records.
+    pub prefetched_mips: u64,
 }
 
 #[derive(Debug, Default)]
@@ -321,6 +541,7 @@ struct Counters {
     read_retries: AtomicU64,
     deferred_by_time: AtomicU64,
     bad_records: AtomicU64,
+    prefetched_mips: AtomicU64,
 }
 
 #[derive(Debug)]
@@ -420,6 +641,11 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
         self.inner.gate.set(gate).is_ok()
     }
 
+    /// The order its cycles take mips in.
+    pub fn order(&self) -> PlanOrder {
+        self.inner.options.order
+    }
+
     /// The mesh → texture table.
     pub fn mesh_textures(&self) -> &[u32] {
         &self.inner.mesh_textures
@@ -461,13 +687,19 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
     /// sorted) and return at once; `false` if a cycle is still running.
     /// The cycle's report arrives through [`Loader::try_recv_report`].
     pub fn try_spawn(&self, records: Vec<MeshMetaData>, decision: Decision) -> bool {
+        self.try_spawn_with(records, Vec::new(), decision)
+    }
+
+    /// [`try_spawn`](Self::try_spawn) with prefetch records, taken after every one of
+    /// `records` ([`CycleRequest`]).
+    pub fn try_spawn_with(&self, records: Vec<MeshMetaData>, prefetch: Vec<MeshMetaData>, decision: Decision) -> bool {
         if !self.try_acquire() {
             return false;
         }
         let inner = Arc::clone(&self.inner);
         rayon::spawn(move || {
             let _guard = StreamingGuard(&inner.streaming);
-            let report = inner.cycle(&records, decision);
+            let report = inner.cycle(&records, &prefetch, decision);
             // The receiver lives in `inner` itself, so sending cannot fail.
             let _ = inner.reports_tx.send(report);
         });
@@ -476,11 +708,22 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
 
     /// Run a cycle on this thread; `None` if a cycle is already running.
     pub fn run_cycle(&self, records: &[MeshMetaData], decision: Decision) -> Option<CycleReport> {
+        self.run_cycle_with(records, &[], decision)
+    }
+
+    /// [`run_cycle`](Self::run_cycle) with prefetch records, taken after every one of
+    /// `records` ([`CycleRequest`]).
+    pub fn run_cycle_with(
+        &self,
+        records: &[MeshMetaData],
+        prefetch: &[MeshMetaData],
+        decision: Decision,
+    ) -> Option<CycleReport> {
         if !self.try_acquire() {
             return None;
         }
         let _guard = StreamingGuard(&self.inner.streaming);
-        Some(self.inner.cycle(records, decision))
+        Some(self.inner.cycle(records, prefetch, decision))
     }
 
     /// The report of a spawned cycle that finished, if any.
@@ -504,6 +747,7 @@ impl<S: MipSource + 'static, K: MipSink + 'static> Loader<S, K> {
             read_retries: c.read_retries.load(Ordering::Relaxed),
             deferred_by_time: c.deferred_by_time.load(Ordering::Relaxed),
             bad_records: c.bad_records.load(Ordering::Relaxed),
+            prefetched_mips: c.prefetched_mips.load(Ordering::Relaxed),
         }
     }
 
@@ -552,16 +796,21 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
         log.push_back(failure);
     }
 
-    fn cycle(&self, records: &[MeshMetaData], decision: Decision) -> CycleReport {
+    fn cycle(&self, records: &[MeshMetaData], prefetch: &[MeshMetaData], decision: Decision) -> CycleReport {
         let start = Instant::now();
         let unloaded = self.states.unload_invalidated(|texture| self.sink.unload(texture)) as u64;
-        let plan = plan_cycle(
+        let request = CycleRequest {
+            records,
+            prefetch,
+            order: self.options.order,
+            plan_chunk: self.options.plan_chunk,
+        };
+        let plan = plan_cycle_with(
             &self.states,
             &self.mesh_textures,
-            records,
+            &request,
             decision,
             &self.source,
-            self.options.plan_chunk,
             self.gate.get().map(Arc::as_ref),
         );
         // Priority order: a remote source issues the requests in this order. After this
@@ -659,6 +908,8 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
             failed: header_failures + read_failures.into_inner(),
             bad_records: plan.bad_records,
             declined: plan.declined,
+            over_block_budget: plan.over_block_budget,
+            prefetched_mips: plan.prefetched,
             elapsed: start.elapsed(),
             modelled_read_time,
         };
@@ -668,6 +919,7 @@ impl<S: MipSource, K: MipSink> Inner<S, K> {
         c.loaded_bytes.fetch_add(report.loaded_bytes, Ordering::Relaxed);
         c.deferred_by_time.fetch_add(report.deferred_by_time, Ordering::Relaxed);
         c.bad_records.fetch_add(report.bad_records, Ordering::Relaxed);
+        c.prefetched_mips.fetch_add(report.prefetched_mips, Ordering::Relaxed);
         report
     }
 

@@ -51,10 +51,7 @@ impl PaperByHand {
             tbl_ring: (Vec::new(), 0),
             tbu_ring: (Vec::new(), 0),
             stall_run: 0,
-            last: Decision {
-                load_size_bytes: o.s_min_bytes,
-                mip_bias: 0.0,
-            },
+            last: Decision::new(o.s_min_bytes, 0.0),
         }
     }
 
@@ -113,10 +110,7 @@ impl PaperByHand {
             let t = ((tb - e0) / (e1 - e0)).clamp(0.0, 1.0);
             t * t * (3.0 - 2.0 * t)
         };
-        self.last = Decision {
-            load_size_bytes: s.round() as u64,
-            mip_bias: (self.beta * step).clamp(0.0, self.beta),
-        };
+        self.last = Decision::new(s.round() as u64, (self.beta * step).clamp(0.0, self.beta));
         self.last
     }
 }

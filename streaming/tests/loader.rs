@@ -29,10 +29,7 @@ fn rec(mesh_id: u32, weight: u32, mip_level: u32) -> MeshMetaData {
 }
 
 fn unlimited() -> Decision {
-    Decision {
-        load_size_bytes: u64::MAX,
-        mip_bias: 0.0,
-    }
+    Decision::new(u64::MAX, 0.0)
 }
 
 fn options() -> LoaderOptions {
@@ -93,10 +90,7 @@ fn first_cycle_loads_the_4x4_level_then_one_level_per_cycle() -> Result<(), Load
 fn bias_holds_back_refinement() -> Result<(), LoaderError> {
     let loader = two_textures()?;
     let records = vec![rec(2, 300, 0)];
-    let biased = Decision {
-        load_size_bytes: u64::MAX,
-        mip_bias: 1.5,
-    };
+    let biased = Decision::new(u64::MAX, 1.5);
     loader.run_cycle(&records, biased); // → level 2
                                         // 0 + 1.5 < 2 → level 1; then 0 + 1.5 < 1 is false → stays at 1.
     loader.run_cycle(&records, biased);
@@ -114,10 +108,7 @@ fn batch_stops_once_it_exceeds_the_load_size() -> Result<(), LoaderError> {
     let src = bc1_source(10, 64);
     let loader = Loader::new(src, MemorySink::new(), (0..10).collect(), 10, options())?;
     let records: Vec<_> = (0..10).map(|i| rec(i, 1000 - i, 0)).collect();
-    let s = Decision {
-        load_size_bytes: 20,
-        mip_bias: 0.0,
-    };
+    let s = Decision::new(20, 0.0);
     let r = loader.run_cycle(&records, s).expect("idle");
     assert_eq!((r.loaded_mips, r.loaded_bytes), (3, 24));
     // Highest weights first.

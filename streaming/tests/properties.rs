@@ -129,7 +129,7 @@ proptest! {
         let records: Vec<MeshMetaData> = weights.iter().enumerate()
             .map(|(i, &(w, m))| MeshMetaData { mip_level: m, weight: w, mesh_id: i as u32 }).collect();
         let records = prepare(records, 0);
-        let decision = Decision { load_size_bytes: budget, mip_bias: 0.0 };
+        let decision = Decision::new(budget, 0.0);
         for _ in 0..4 {
             let plan = plan_cycle(&states, &mesh_textures, &records, decision, &src, 7, None);
             let mut textures: Vec<u32> = plan.items.iter().map(|i| i.texture).collect();

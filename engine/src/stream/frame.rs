@@ -60,6 +60,7 @@ pub struct Frame {
     pub(super) streamer: u64,
     pub(super) uploads_recorded: bool,
     pub(super) resolved: bool,
+    pub(super) prefetch_resolved: bool,
 }
 
 impl Frame {

@@ -48,7 +48,7 @@ use ash::vk;
 use citystream_dataset::TextureFormat;
 use citystream_streaming::controller::{Decision, LoadPolicy};
 use citystream_streaming::disk_model::ModelledReads;
-use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, TextureFailure};
+use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, PlanOrder, TextureFailure};
 use citystream_streaming::records::{prepare, MeshMetaData};
 use citystream_streaming::residency::planner::BudgetPressure;
 use citystream_streaming::residency::{AdmissionGate, NeedTable};
@@ -69,6 +69,7 @@ mod descriptors;
 mod feedback_records;
 mod frame;
 mod immediate;
+pub mod prefetch;
 mod residency;
 mod telemetry;
 
@@ -200,6 +201,10 @@ pub struct StreamConfig {
     /// ([`TextureStreamer::set_modelled_time`]) passes their reads' completion, and the
     /// next cycle starts after that: a cycle spans the frames its reads take.
     pub deterministic: bool,
+    /// The host records a second feedback pass per frame, from where the camera will be
+    /// ([`TextureStreamer::record_prefetch_resolve`]); its records join each loading
+    /// cycle after the view's. Doubles the feedback read-back slots. Default: `false`.
+    pub prefetch: bool,
 }
 
 /// The values each field's documentation states:
@@ -227,6 +232,7 @@ pub struct StreamConfig {
 /// assert_eq!(config.loader.read_attempts, 3);
 /// assert_eq!(config.loader.retry_backoff, Duration::from_millis(2));
 /// assert!(!config.deterministic);
+/// assert!(!config.prefetch);
 /// ```
 impl Default for StreamConfig {
     fn default() -> Self {
@@ -245,6 +251,7 @@ impl Default for StreamConfig {
             fragment_area: 1.0,
             loader: LoaderOptions::default(),
             deterministic: false,
+            prefetch: false,
         }
     }
 }
@@ -293,6 +300,8 @@ struct FrameSlot {
     resolved: bool,
     /// Its compaction is meant for the loader and not consumed yet.
     unread: bool,
+    /// That frame recorded a prefetch resolve into the slot's prefetch half.
+    prefetch_resolved: bool,
 }
 
 /// Algorithm 1 for a host renderer; see the module docs for the per-frame calls.
@@ -320,6 +329,8 @@ pub struct TextureStreamer<S: MipSource + 'static> {
     compact_tau: u32,
     fragment_area: f32,
     deterministic: bool,
+    /// The host records a prefetch pass ([`StreamConfig::prefetch`]).
+    prefetch: bool,
     latest_feedback: Option<(u64, Vec<FeedbackEntry>)>,
     /// Records the host set for the next `begin_frame`, in place of the feedback.
     host_records: Option<Vec<MeshMetaData>>,
@@ -425,12 +436,14 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         )?;
         let feedback_capacity = config.feedback_capacity.unwrap_or(mesh_count);
         let gpu_tau = feedback_tau(config.weight_cutoff, config.fragment_area);
+        // With prefetch, slots `frames_in_flight..2 × frames_in_flight` hold the prefetch
+        // pass's compaction of the frame in the slot `frames_in_flight` below.
         let compactor = FeedbackCompactor::with_slots(
             device,
             &mut commands,
             mesh_count,
             feedback_capacity,
-            config.frames_in_flight,
+            config.frames_in_flight * if config.prefetch { 2 } else { 1 },
         )?;
         let queue = Arc::new(UploadQueue::default());
         let states = Arc::new(TextureStates::new(texture_count as usize));
@@ -454,10 +467,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             queue,
             states,
             policy,
-            decision: Decision {
-                load_size_bytes: 0,
-                mip_bias: 0.0,
-            },
+            decision: Decision::new(0, 0.0),
             frames: TimelineSemaphore::new(device, 0, "streamed frames")?,
             slots: vec![FrameSlot::default(); config.frames_in_flight as usize],
             begun: 0,
@@ -472,6 +482,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             },
             fragment_area: config.fragment_area,
             deterministic: config.deterministic,
+            prefetch: config.prefetch,
             latest_feedback: None,
             host_records: None,
             host_upload_bytes: 0,
@@ -562,6 +573,11 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// Loader totals so far.
     pub fn totals(&self) -> LoaderTotals {
         self.loader.totals()
+    }
+
+    /// The order the loader's cycles take mips in ([`LoaderOptions::order`]).
+    pub fn loader_order(&self) -> PlanOrder {
+        self.loader.order()
     }
 
     /// The most recent load failures (a bounded log, oldest first): which
@@ -742,7 +758,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             }
             self.needs.observe(&records, self.loader.mesh_textures());
             let records = prepare(records, self.tau);
-            loading_started = self.start_loading(records);
+            loading_started = self.start_loading(records, Vec::new());
         } else if let Some((feedback_value, i)) = newest {
             for s in self.slots.iter_mut().filter(|s| s.unread && s.value <= feedback_value) {
                 s.unread = false;
@@ -752,7 +768,22 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             // seen only by small meshes is still sampled, not out of view);
             // the loader sees those reaching τ, as compacted before.
             let seen = records_from_feedback(&entries, self.fragment_area);
-            self.needs.observe(&seen, self.loader.mesh_textures());
+            // Where the camera will be: compacted at τ, in the same frame's submission.
+            let ahead = if self.slots[i].prefetch_resolved {
+                let half = self.slots.len() as u32;
+                let entries = self.compactor.read_back(half + i as u32)?.entries;
+                records_from_feedback(&entries, self.fragment_area)
+            } else {
+                Vec::new()
+            };
+            // What the camera is about to see counts as seen, so that eviction keeps
+            // the levels prefetched for it until it gets there.
+            if ahead.is_empty() {
+                self.needs.observe(&seen, self.loader.mesh_textures());
+            } else {
+                let both: Vec<MeshMetaData> = seen.iter().chain(&ahead).copied().collect();
+                self.needs.observe(&both, self.loader.mesh_textures());
+            }
             let heavy = seen
                 .into_iter()
                 .zip(&entries)
@@ -760,7 +791,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
                 .map(|(record, _)| record)
                 .collect();
             let records = prepare(heavy, self.tau);
-            loading_started = self.start_loading(records);
+            loading_started = self.start_loading(records, prepare(ahead, self.tau));
             self.latest_feedback = Some((feedback_value - 1, entries));
         }
         // Pack what the loader staged, then bind.
@@ -781,6 +812,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             ticket,
             resolved: false,
             unread: false,
+            prefetch_resolved: false,
         };
         self.begun += 1;
         self.in_frame = true;
@@ -794,13 +826,14 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             streamer: self.id,
             uploads_recorded: false,
             resolved: false,
+            prefetch_resolved: false,
         })
     }
 
     /// Hands `records` to the loader unless a loading task still runs (Algorithm 1's
     /// gate): on this thread in deterministic runs, else on a worker. Whether a cycle ran
     /// or started.
-    fn start_loading(&mut self, records: Vec<MeshMetaData>) -> bool {
+    fn start_loading(&mut self, records: Vec<MeshMetaData>, prefetch: Vec<MeshMetaData>) -> bool {
         let now = self.modelled_now;
         if self.loader.is_streaming() || self.modelled_reads.as_ref().is_some_and(|r| r.busy(now)) {
             return false;
@@ -812,13 +845,13 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
             ..self.decision
         };
         let started = if self.deterministic {
-            let report = self.loader.run_cycle(&records, decision);
+            let report = self.loader.run_cycle_with(&records, &prefetch, decision);
             if let (Some(reads), Some(report)) = (self.modelled_reads.as_mut(), report.as_ref()) {
                 reads.hold_cycle(now, self.queue.take_modelled(), report.modelled_read_time);
             }
             report.is_some()
         } else {
-            self.loader.try_spawn(records, decision)
+            self.loader.try_spawn_with(records, prefetch, decision)
         };
         if started {
             // What this cycle could not absorb stays owed to the next ones.
@@ -854,7 +887,7 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         }
         let report = self.cache.record_cycle(rec)?;
         frame.uploads_recorded = true;
-        self.policy.observe_load(report.bytes_uploaded);
+        self.policy.observe_batch(report.bind_shape, report.bytes_uploaded);
         for &texture in &report.invalidated_textures {
             let _ = self.states.invalidate(texture);
         }
@@ -891,6 +924,41 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.slots[slot].resolved = true;
         frame.resolved = true;
         Ok(())
+    }
+
+    /// Step 3b, with [`StreamConfig::prefetch`]: records the compaction of a second
+    /// feedback pass the host recorded for where the camera will be (a known path's pose a
+    /// lead time ahead, or the motion's extrapolation), after the view's resolve, in the
+    /// same frame's submission. Its records join the loading cycle that reads this frame's
+    /// feedback, each after every one of the view's: a prefetch never displaces what the
+    /// view needs within a cycle. At most once per frame.
+    pub fn record_prefetch_resolve(&mut self, frame: &mut Frame, rec: Recording<'_>) -> Result<()> {
+        self.check_frame(frame, "record_prefetch_resolve")?;
+        if !self.prefetch {
+            return Err(EngineError::InvalidRequest(
+                "record_prefetch_resolve needs a streamer made with StreamConfig::prefetch".into(),
+            ));
+        }
+        if !frame.resolved {
+            return Err(EngineError::InvalidRequest(
+                "record_prefetch_resolve before record_feedback_resolve: the view's feedback is resolved first".into(),
+            ));
+        }
+        if frame.prefetch_resolved {
+            return Err(EngineError::InvalidRequest(
+                "record_prefetch_resolve called twice in one frame".into(),
+            ));
+        }
+        let half = self.slots.len() as u32;
+        self.compactor.record_compact(rec, self.gpu_tau, half + frame.slot)?;
+        self.slots[frame.slot as usize].prefetch_resolved = true;
+        frame.prefetch_resolved = true;
+        Ok(())
+    }
+
+    /// Whether the streamer takes a prefetch pass ([`StreamConfig::prefetch`]).
+    pub fn prefetches(&self) -> bool {
+        self.prefetch
     }
 
     /// Step 5: ends `frame` with the controller step on the latency (ms) the host

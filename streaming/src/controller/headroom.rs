@@ -94,10 +94,7 @@ impl HeadroomPolicy {
             latencies: Ring::new(),
             loads: Ring::new(),
             loads_observed: false,
-            decision: Decision {
-                load_size_bytes: options.s_min_bytes,
-                mip_bias: 0.0,
-            },
+            decision: Decision::new(options.s_min_bytes, 0.0),
             telemetry: Telemetry {
                 load_size_mb: s_min / BYTES_PER_MB,
                 load_factor: s_min / options.s_max_bytes(),
@@ -218,10 +215,7 @@ impl LoadPolicy for HeadroomPolicy {
         // Sustained frames over α, not the first few: missing samples count as 0 ms.
         let recent_ms = self.latencies.newest(TB_SAMPLES).sum::<f64>() / TB_SAMPLES as f64;
         let bias = self.beta * smoothstep(self.alpha_ms, BIAS_FULL_AT * self.alpha_ms, recent_ms);
-        self.decision = Decision {
-            load_size_bytes: self.load_bytes.round() as u64,
-            mip_bias: bias.clamp(0.0, self.beta),
-        };
+        self.decision = Decision::new(self.load_bytes.round() as u64, bias.clamp(0.0, self.beta));
         self.telemetry = self
             .estimator
             .telemetry(&e, self.load_bytes / self.s_max_bytes, self.decision);

@@ -42,6 +42,7 @@ use std::str::FromStr;
 mod estimator;
 pub mod headroom;
 pub mod paper;
+pub mod predictive;
 
 use estimator::Estimator;
 // Every item keeps its path `controller::X`.
@@ -54,6 +55,9 @@ pub use headroom::{
     HEADROOM_FRAMES, HEADROOM_GAIN, MAX_PROBE_STEP, MAX_SHRINK, OVERSHOOT_TARGET, PROBE_GAIN, VISIBLE_COST,
 };
 pub use paper::{load_polynomial, next_load_factor, AdaptivePolicy};
+pub use predictive::{BindCostFit, OnlineFit, PredictivePolicy};
+
+use crate::bind_latency::{BatchShape, BindLatencyPreset};
 
 /// Bytes per MB in options and telemetry (MiB, so 64 MB = 1024 × 64 KiB).
 pub const BYTES_PER_MB: f64 = 1_048_576.0;
@@ -79,19 +83,51 @@ pub enum PolicyError {
         expected: &'static str,
     },
     /// No policy of that name.
-    #[error("unknown load policy `{0}` (expected adaptive, headroom, baseline or fixed)")]
+    #[error("unknown load policy `{0}` (expected adaptive, headroom, predictive, baseline or fixed)")]
     UnknownPolicy(String),
 }
 
 /// What a streaming cycle may do: load at most `load_size_bytes` (the batch
 /// stops once it exceeds this, Algorithm 1) and skip refinements with
-/// `sampled mip + mip_bias >= loaded mip`.
+/// `sampled mip + mip_bias >= loaded mip`; with a block budget, also stop before the
+/// sparse blocks the cycle binds pass it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Decision {
     /// Adaptive load size `s` in bytes.
     pub load_size_bytes: u64,
     /// Mipmap bias `b`, in mip levels, within `[0, β]`.
     pub mip_bias: f64,
+    /// The most sparse blocks the cycle may bind ([`PredictivePolicy`]); `None`: the
+    /// load size alone bounds the cycle (the paper's Algorithm 1).
+    pub block_budget: Option<BlockBudget>,
+}
+
+impl Decision {
+    /// A load size and a bias, with no block budget.
+    pub fn new(load_size_bytes: u64, mip_bias: f64) -> Self {
+        Decision {
+            load_size_bytes,
+            mip_bias,
+            block_budget: None,
+        }
+    }
+}
+
+/// The sparse blocks a cycle may bind: what its predicted bind cost fits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BlockBudget {
+    /// Blocks the cycle's mips may take.
+    pub blocks: u64,
+    /// Bytes of one sparse block: a mip takes `max(1, ⌈bytes / block_bytes⌉)` blocks.
+    pub block_bytes: u64,
+}
+
+impl BlockBudget {
+    /// The blocks a mip of `bytes` takes: whole blocks, at least one (a level smaller than
+    /// a block still binds one).
+    pub fn blocks_of(&self, bytes: u64) -> u64 {
+        bytes.div_ceil(self.block_bytes.max(1)).max(1)
+    }
 }
 
 /// Every quantity of Eq. 4–7 after the latest update, in ms and MB.
@@ -142,6 +178,12 @@ pub trait LoadPolicy: Send + fmt::Debug {
     /// what the load size actually carried, for policies that keep it near the demand.
     /// The paper's controller ignores it.
     fn observe_load(&mut self, _bytes_loaded: u64) {}
+    /// The shape of the bind submission the latest frame carried (blocks bound and
+    /// unbound, their runs) and the bytes it applied; the streamer calls it once per frame
+    /// in place of [`observe_load`](Self::observe_load), which it calls by default.
+    fn observe_batch(&mut self, _shape: BatchShape, bytes_loaded: u64) {
+        self.observe_load(bytes_loaded);
+    }
 }
 
 /// The selectable policies, by name: `adaptive`, `headroom`, `baseline`, `fixed`.
@@ -151,6 +193,8 @@ pub enum PolicyKind {
     Adaptive,
     /// Adaptive too, engaging only when the frame nears α ([`HeadroomPolicy`]).
     Headroom,
+    /// Loads what the predicted bind cost fits under α ([`PredictivePolicy`]).
+    Predictive,
     /// No adaptive algorithms: `s = s_max`, `b = 0` (the paper's baseline rows).
     Baseline,
     /// User-given `s` and `b`.
@@ -163,6 +207,7 @@ impl PolicyKind {
         match self {
             PolicyKind::Adaptive => "adaptive",
             PolicyKind::Headroom => "headroom",
+            PolicyKind::Predictive => "predictive",
             PolicyKind::Baseline => "baseline",
             PolicyKind::Fixed => "fixed",
         }
@@ -173,6 +218,7 @@ impl PolicyKind {
         Ok(match self {
             PolicyKind::Adaptive => Box::new(AdaptivePolicy::new(options)?),
             PolicyKind::Headroom => Box::new(HeadroomPolicy::new(options)?),
+            PolicyKind::Predictive => Box::new(PredictivePolicy::new(options)?),
             PolicyKind::Baseline => Box::new(ConstantPolicy::baseline(options)?),
             PolicyKind::Fixed => Box::new(ConstantPolicy::fixed(options)?),
         })
@@ -191,6 +237,7 @@ impl FromStr for PolicyKind {
         match s.trim().to_ascii_lowercase().as_str() {
             "adaptive" => Ok(PolicyKind::Adaptive),
             "headroom" => Ok(PolicyKind::Headroom),
+            "predictive" => Ok(PolicyKind::Predictive),
             "baseline" => Ok(PolicyKind::Baseline),
             "fixed" => Ok(PolicyKind::Fixed),
             _ => Err(PolicyError::UnknownPolicy(s.to_owned())),
@@ -214,6 +261,9 @@ pub struct PolicyOptions {
     pub fixed_load_size_mb: f64,
     /// Mipmap bias of the `fixed` policy.
     pub fixed_mip_bias: f64,
+    /// The bind-latency preset that describes the device, for the predictive
+    /// controller's cost fit; `None`: it learns the device's cost from the frames.
+    pub bind_cost: Option<BindLatencyPreset>,
 }
 
 impl Default for PolicyOptions {
@@ -225,6 +275,7 @@ impl Default for PolicyOptions {
             s_min_bytes: 65_536,
             fixed_load_size_mb: 1.0,
             fixed_mip_bias: 0.0,
+            bind_cost: None,
         }
     }
 }
@@ -291,10 +342,7 @@ impl ConstantPolicy {
     /// Only `s_max` of the options matters for the decision.
     pub fn baseline(options: &PolicyOptions) -> Result<Self, PolicyError> {
         options.validate()?;
-        let decision = Decision {
-            load_size_bytes: options.s_max_bytes().round() as u64,
-            mip_bias: 0.0,
-        };
+        let decision = Decision::new(options.s_max_bytes().round() as u64, 0.0);
         Ok(Self::new(PolicyKind::Baseline, options, decision))
     }
 
@@ -302,10 +350,10 @@ impl ConstantPolicy {
     /// fixed size must lie in `[s_min, s_max]`.
     pub fn fixed(options: &PolicyOptions) -> Result<Self, PolicyError> {
         options.validate_fixed()?;
-        let decision = Decision {
-            load_size_bytes: (options.fixed_load_size_mb * BYTES_PER_MB).round() as u64,
-            mip_bias: options.fixed_mip_bias,
-        };
+        let decision = Decision::new(
+            (options.fixed_load_size_mb * BYTES_PER_MB).round() as u64,
+            options.fixed_mip_bias,
+        );
         Ok(Self::new(PolicyKind::Fixed, options, decision))
     }
 

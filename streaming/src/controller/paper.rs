@@ -105,10 +105,7 @@ impl AdaptivePolicy {
     /// A fresh controller (`l = 0`, `t_w = 0`, no history).
     pub fn new(options: &PolicyOptions) -> Result<Self, PolicyError> {
         options.validate()?;
-        let decision = Decision {
-            load_size_bytes: options.s_min_bytes,
-            mip_bias: 0.0,
-        };
+        let decision = Decision::new(options.s_min_bytes, 0.0);
         Ok(AdaptivePolicy {
             estimator: Estimator::new(options.alpha_ms),
             beta: options.beta,
@@ -137,10 +134,7 @@ impl LoadPolicy for AdaptivePolicy {
             .min(self.s_max_bytes);
         // Eq. 7.
         let b = self.beta * smoothstep(0.96 * e.tbl, 1.2 * e.tbu, e.tb);
-        self.decision = Decision {
-            load_size_bytes: s.round() as u64,
-            mip_bias: b.clamp(0.0, self.beta),
-        };
+        self.decision = Decision::new(s.round() as u64, b.clamp(0.0, self.beta));
         self.telemetry = self.estimator.telemetry(&e, self.load_factor, self.decision);
         self.decision
     }

@@ -59,6 +59,12 @@
 //! chart), then `speed_vs_error.png` with every run of both as a point and `controllers.md`: the worst frame, frames over 2α after the first second,
 //! mean PSNR and MB/s against the targets the controller was built to.
 //!
+//! `--scenario frontier` flies every policy family on the pressure benchmark (its city,
+//! budget, clock and size, or `--city DIR`, `--width`, `--height`) with the error measured
+//! densely, and writes `frontier.md`, `frontier.json` and `frontier.png`
+//! ([`crate::frontier`]). Like `berlin`, it keeps the runs that finished with the same
+//! command, and `--runs` flies a part of them.
+//!
 //! `--scenario berlin` reproduces the paper's Table 3 on a city of its Berlin (atlas) size
 //! ([`crate::berlin_bench`], docs/BERLIN.md).
 //!
@@ -109,6 +115,10 @@ pub enum Scenario {
     /// the paper's frame: baseline, fixed s = 64 MB, adaptive α = 12 and 16 ms, headroom
     /// α = 12 ms under the `desktop` driver, and baseline and α = 12 ms under `h200-linux`.
     Berlin,
+    /// Speed against error on the pressure benchmark: the baseline, fixed load sizes, the
+    /// paper's, the headroom and the predictive controller at four α, the predictive one
+    /// with path and motion prefetch ([`crate::frontier`]).
+    Frontier,
 }
 
 /// `--culling` of the flythrough runs.
@@ -138,9 +148,9 @@ pub struct BenchArgs {
     #[arg(long, value_enum, default_value = "on")]
     culling: CullingArg,
     /// Dataset directory every run opens (default: the default city in
-    /// data/city, created on first use; with `--scenario pressure`, the
-    /// atlased `large` city under --data-dir).
-    #[arg(long)]
+    /// data/city, created on first use; with `--scenario pressure` and `frontier`, the
+    /// atlased `large` city under --data-dir). `--city` is the same option.
+    #[arg(long, visible_alias = "city")]
     dataset: Option<PathBuf>,
     /// `--scenario ground`: the patch set (`citystream patches`; default: DATA/patches, cut
     /// from DATA/imagery/bmng.jpg on first use).
@@ -163,9 +173,11 @@ pub struct BenchArgs {
     /// `--scenario pressure`, the frames 30 s of the path take).
     #[arg(long)]
     frames: Option<u64>,
-    /// `--scenario berlin`: only these runs (directory names, comma-separated: `baseline`,
-    /// `fixed-s64`, `adaptive-a12`, `adaptive-a16`, `headroom-a12`, `h200-baseline`,
-    /// `h200-adaptive-a12`); the tables show the others as not run.
+    /// `--scenario berlin` and `frontier`: only these runs (directory names, comma-separated;
+    /// berlin: `baseline`, `fixed-s64`, `adaptive-a12`, `adaptive-a16`, `headroom-a12`,
+    /// `h200-baseline`, `h200-adaptive-a12`; frontier: `baseline`, `fixed-s1` … `fixed-s32`,
+    /// `paper-a8` … `paper-a20`, `headroom-a8` …, `predictive-a8` …, `predictive-a8-path` …,
+    /// `predictive-a12-motion`); the tables show the others as not run.
     #[arg(long, value_delimiter = ',')]
     runs: Option<Vec<String>>,
     /// Image width of every run (default: the flythrough's own; 1920 with
@@ -214,7 +226,7 @@ impl RunSettings {
                 width: args.width,
                 height: args.height,
             },
-            Scenario::Pressure => Self::pressure(args),
+            Scenario::Pressure | Scenario::Frontier => Self::pressure(args),
             Scenario::Berlin => RunSettings {
                 clock: "modelled",
                 frames: args.frames,
@@ -258,7 +270,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             ensure_default_city(&dir, false)?;
             dir
         }
-        (None, Scenario::Pressure) => ensure_pressure_city(&args.data_dir)?,
+        (None, Scenario::Pressure | Scenario::Frontier) => ensure_pressure_city(&args.data_dir)?,
         (None, Scenario::Berlin) => berlin_bench::ensure_city(&args.data_dir)?,
         (None, Scenario::Strategies) => ensure_default_tree(&args.data_dir)?,
         (None, Scenario::Loader | Scenario::Remote) => {
@@ -268,8 +280,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         }
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    if args.runs.is_some() && args.scenario != Scenario::Berlin {
-        bail!("--runs selects runs of `--scenario berlin` only");
+    if args.runs.is_some() && !matches!(args.scenario, Scenario::Berlin | Scenario::Frontier) {
+        bail!("--runs selects runs of `--scenario berlin` and `frontier` only");
     }
     if args.strategy.is_some() && matches!(args.scenario, Scenario::Loader | Scenario::Remote) {
         bail!("--strategy applies to flythrough runs; `--scenario loader` and `remote` measure the loader alone");
@@ -303,6 +315,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             berlin_bench::select(runs, args.runs.as_deref())?
         }
         Scenario::Controllers => return run_controllers(args, &flythrough, &dataset, budget_mb),
+        Scenario::Frontier => return run_frontier(args, &flythrough, &dataset, budget_mb),
         Scenario::Strategies => {
             let tree = check_tree(&dataset);
             if let Err(why) = &tree {
@@ -384,7 +397,7 @@ fn fly(
     let mut inputs = Vec::with_capacity(total);
     // The Berlin-sized city's runs take about half an hour each here: a rerun keeps the
     // ones that finished with the same command.
-    let keep_finished = args.scenario == Scenario::Berlin;
+    let keep_finished = matches!(args.scenario, Scenario::Berlin | Scenario::Frontier);
     // An earlier bench's runs are moved aside while this one flies, and put back if it
     // fails: its report and its runs stay as they were, never half replaced.
     let previous = PreviousRuns::new(out)?;
@@ -542,6 +555,49 @@ impl PreviousRuns {
         }
         Ok(())
     }
+}
+
+/// `--scenario frontier`: the runs asked for (`--runs`, or all) on the pressure city, then
+/// the frontier's table, checks and chart over every run finished in `OUT`.
+fn run_frontier(args: &BenchArgs, flythrough: &Path, dataset: &Path, budget_mb: u64) -> Result<()> {
+    let all = crate::frontier::frontier_runs(budget_mb);
+    let selected: Vec<BenchRun> = match args.runs.as_deref() {
+        None => all.iter().map(|r| r.run.clone()).collect(),
+        Some(names) => {
+            let unknown: Vec<&String> = names.iter().filter(|n| !all.iter().any(|r| &r.run.dir == *n)).collect();
+            if !unknown.is_empty() {
+                let known: Vec<&str> = all.iter().map(|r| r.run.dir.as_str()).collect();
+                bail!(
+                    "--runs names runs the frontier does not have: {}; it has {}",
+                    unknown.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", "),
+                    known.join(", ")
+                );
+            }
+            all.iter()
+                .filter(|r| names.contains(&r.run.dir))
+                .map(|r| r.run.clone())
+                .collect()
+        }
+    };
+    let mut selected = selected;
+    if args.culling == CullingArg::Off {
+        for run in &mut selected {
+            run.args.extend(["--culling".to_string(), "off".to_string()]);
+        }
+    }
+    let settings = RunSettings::of(args);
+    fly(args, flythrough, &settings, dataset, &selected, &args.out)?;
+    let size = (
+        settings.width.unwrap_or(PRESSURE_SIZE.0),
+        settings.height.unwrap_or(PRESSURE_SIZE.1),
+    );
+    let text = crate::frontier::write_frontier(&args.out, &all, size, budget_mb)?;
+    eprint!("{text}");
+    eprintln!(
+        "wrote {}, frontier.json and frontier.png there",
+        args.out.join("frontier.md").display()
+    );
+    Ok(())
 }
 
 /// `--scenario controllers`: the default city's bench (`OUT/default`, the standard

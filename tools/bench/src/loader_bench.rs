@@ -104,10 +104,7 @@ pub(crate) fn loader_pass(dataset: &Arc<Dataset>) -> Result<LoaderRun> {
             mesh_id: texture,
         })
         .collect();
-    let decision = Decision {
-        load_size_bytes: u64::MAX,
-        mip_bias: 0.0,
-    };
+    let decision = Decision::new(u64::MAX, 0.0);
     let started = Instant::now();
     loop {
         let report = loader.run_cycle(&records, decision).context("the loader was busy")?;

@@ -478,7 +478,7 @@ fn ensure_font() -> Result<()> {
 }
 
 /// Draw into an RGB buffer of `size` and save it as PNG.
-fn render_png(
+pub(crate) fn render_png(
     path: &Path,
     size: (u32, u32),
     draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> Result<()>,
@@ -498,7 +498,7 @@ fn render_png(
         .with_context(|| format!("writing {}", path.display()))
 }
 
-fn plot_error<E: std::fmt::Display>(e: E) -> anyhow::Error {
+pub(crate) fn plot_error<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("plotting: {e}")
 }
 

@@ -9,6 +9,7 @@ use citystream_engine::texture_cache::Eviction;
 use citystream_streaming::bind_latency::BindLatencyPreset;
 use citystream_streaming::controller::PolicyKind;
 use citystream_streaming::disk_model::DiskModelChoice;
+use citystream_streaming::loader::PlanOrder;
 use citystream_streaming::source::FaultPlan;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -95,6 +96,61 @@ fn parse_render_ms(text: &str) -> Result<f64, String> {
     Ok(ms)
 }
 
+/// `--priority`: the order a cycle takes its mips in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Priority {
+    /// Error per byte with the predictive controller, weight otherwise.
+    Auto,
+    /// The paper's: by feedback weight.
+    Weight,
+    /// By the screen error a mip removes per byte it costs.
+    ErrorPerByte,
+}
+
+impl Priority {
+    /// The loader's order for `policy`.
+    pub(crate) fn order(self, policy: PolicyKind) -> PlanOrder {
+        match (self, policy) {
+            (Priority::Weight, _) => PlanOrder::Weight,
+            (Priority::ErrorPerByte, _) | (Priority::Auto, PolicyKind::Predictive) => PlanOrder::ErrorPerByte,
+            (Priority::Auto, _) => PlanOrder::Weight,
+        }
+    }
+}
+
+/// `--prefetch`: where the second feedback pass looks from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum Prefetch {
+    /// No prefetch pass.
+    None,
+    /// The path's pose a lead time ahead (replays and benchmarks know it).
+    Path,
+    /// The camera's motion over the last frames, carried a lead time ahead.
+    Motion,
+}
+
+impl Prefetch {
+    /// The name `--prefetch` takes.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Prefetch::None => "none",
+            Prefetch::Path => "path",
+            Prefetch::Motion => "motion",
+        }
+    }
+}
+
+/// `--prefetch-lead-s`: in (0, 10] seconds.
+fn parse_lead_s(text: &str) -> Result<f64, String> {
+    let s: f64 = text
+        .parse()
+        .map_err(|_| format!("`{text}` is not a number of seconds"))?;
+    if !(s.is_finite() && s > 0.0 && s <= 10.0) {
+        return Err(format!("{text} s is not a lead time in (0, 10] s"));
+    }
+    Ok(s)
+}
+
 /// `--controller`: which adaptive controller `--policy adaptive` runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum Controller {
@@ -102,6 +158,8 @@ pub(crate) enum Controller {
     Paper,
     /// Spends the room left under α: docs/CONTROLLER.md.
     Headroom,
+    /// Loads what the predicted bind cost fits under α: docs/CONTROLLER.md.
+    Predictive,
 }
 
 impl Controller {
@@ -110,9 +168,11 @@ impl Controller {
     pub(crate) fn policy(self, policy: PolicyKind) -> Option<PolicyKind> {
         match (policy, self) {
             (PolicyKind::Adaptive, Controller::Headroom) => Some(PolicyKind::Headroom),
+            (PolicyKind::Adaptive, Controller::Predictive) => Some(PolicyKind::Predictive),
             (_, Controller::Paper) => Some(policy),
             (PolicyKind::Headroom, Controller::Headroom) => Some(policy),
-            (PolicyKind::Baseline | PolicyKind::Fixed, Controller::Headroom) => None,
+            (PolicyKind::Predictive, Controller::Predictive) => Some(policy),
+            (_, Controller::Headroom | Controller::Predictive) => None,
         }
     }
 
@@ -121,6 +181,7 @@ impl Controller {
         match self {
             Controller::Paper => "paper",
             Controller::Headroom => "headroom",
+            Controller::Predictive => "predictive",
         }
     }
 }
@@ -278,11 +339,13 @@ pub(crate) struct Args {
     #[arg(long, value_enum, default_value_t = Culling::On)]
     pub(crate) culling: Culling,
     /// Streaming policy: adaptive (the controller `--controller` names), baseline (s = s_max,
-    /// b = 0) or fixed; `headroom` is `adaptive --controller headroom`.
+    /// b = 0) or fixed; `headroom` is `adaptive --controller headroom`, `predictive`
+    /// `adaptive --controller predictive`.
     #[arg(long, default_value = "adaptive")]
     pub(crate) policy: PolicyKind,
-    /// The adaptive policy's controller: `paper` (Eq. 4-7 exactly) or `headroom` (load
-    /// size and bias engage only as the frame nears α; docs/CONTROLLER.md).
+    /// The adaptive policy's controller: `paper` (Eq. 4-7 exactly), `headroom` (load
+    /// size and bias engage only as the frame nears α) or `predictive` (each cycle binds
+    /// what the predicted bind cost fits under α; docs/CONTROLLER.md).
     #[arg(long, value_enum, default_value_t = Controller::Paper)]
     pub(crate) controller: Controller,
     /// Target maximum frame latency α in ms (adaptive).
@@ -294,6 +357,24 @@ pub(crate) struct Args {
     /// Load size in MB (fixed policy).
     #[arg(long, default_value_t = 4.0)]
     pub(crate) load_size_mb: f64,
+    /// The order a cycle takes its mips in: `weight` (the paper's, by feedback weight),
+    /// `error-per-byte` (the screen error a mip removes per byte it costs) or `auto`
+    /// (error per byte for the predictive controller, weight for the others).
+    #[arg(long, value_enum, default_value_t = Priority::Auto)]
+    pub(crate) priority: Priority,
+    /// Prefetch: `none`; `path` (a second feedback pass from where the path puts the
+    /// camera `--prefetch-lead-s` ahead); `motion` (from the camera's motion of the last
+    /// frames carried that far ahead). Its requests follow the view's in every cycle.
+    #[arg(long, value_enum, default_value_t = Prefetch::None)]
+    pub(crate) prefetch: Prefetch,
+    /// How far ahead the prefetch pass looks, seconds of path time.
+    #[arg(long, default_value_t = DEFAULT_PREFETCH_LEAD_S, value_parser = parse_lead_s)]
+    pub(crate) prefetch_lead_s: f64,
+    /// With --clock fixed or modelled: what the prefetch pass costs in the modelled frame
+    /// (ms). Default: the feedback pass's share of a frame ([`FEEDBACK_PASS_SHARE`]) of
+    /// `--render-ms`.
+    #[arg(long, value_parser = parse_render_ms)]
+    pub(crate) prefetch_cost_ms: Option<f64>,
     /// Mip bias (fixed policy).
     #[arg(long, default_value_t = 0.0)]
     pub(crate) mip_bias: f64,
@@ -465,6 +546,15 @@ pub(crate) const UNLIMITED_BUDGET_BYTES: u64 = u64::MAX / 4;
 /// without `--render-ms`.
 pub(crate) const FIXED_STEP_MS: f64 = 1000.0 / 60.0;
 pub(crate) const FIXED_RENDER_MS: f64 = 8.0;
+/// `--prefetch-lead-s` by default.
+pub(crate) const DEFAULT_PREFETCH_LEAD_S: f64 = 0.5;
+/// The view's feedback work's share of a frame: what the prefetch pass, a second one,
+/// adds to `--render-ms` by default. Measured on lavapipe (`gpu_pass_ms` of `flythrough
+/// --dataset data/large-atlas --clock modelled --bind-latency desktop --memory-budget-mb
+/// 256 --duration-s 30 --width 640 --height 360 --psnr-interval 12 --policy predictive
+/// --alpha 12`, 2026-12-07): depth pre-pass and feedback 13.34 ms, compaction 1.01, half
+/// of the culling's 20.48 (it culls two views) of 81.51 ms of passes: 0.30.
+pub(crate) const FEEDBACK_PASS_SHARE: f64 = 0.30;
 /// Fixed clock: host-to-device copy bandwidth of the modelled GPU, the same
 /// as the simulator's (`streaming::sim`), so copies cost time too.
 pub(crate) const FIXED_COPY_BYTES_PER_S: f64 = 12e9;

@@ -23,7 +23,7 @@ use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::DEFAULT_WEIGHT_CUTOFF;
 use citystream_streaming::source::{DatasetSource, FaultPlan, FaultySource};
 
-use super::args::{Args, Clock, Culling, UNLIMITED_BUDGET_BYTES};
+use super::args::{Args, Clock, Culling, Prefetch, UNLIMITED_BUDGET_BYTES};
 use super::controller::build_policy;
 
 /// A streamer over the dataset and the city passes that draw with it.
@@ -111,6 +111,7 @@ pub(crate) fn stream_config(
             },
         },
         deterministic: clock.is_modelled(),
+        prefetch: false,
     }
 }
 
@@ -197,6 +198,11 @@ pub(crate) fn streamed_city_gpu(
         args.cache_layers,
         layer_size,
     );
+    if let Some(policy) = args.controller.policy(args.policy) {
+        config.loader.order = args.priority.order(policy);
+    }
+    // The prefetch pass goes with the feedback it extends (not the atlas tree's paging).
+    config.prefetch = args.prefetch != Prefetch::None && tree.is_none();
     if let Some(disk) = disk {
         // Reads take modelled time: the paper's load-time limit applies to it again.
         config.loader = LoaderOptions {

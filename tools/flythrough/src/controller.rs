@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
-use citystream_streaming::bind_latency::BindLatencyModel;
+use citystream_streaming::bind_latency::{BindLatencyModel, BindLatencyPreset};
 use citystream_streaming::controller::PolicyOptions;
 use citystream_streaming::rng::SplitMix64;
 
@@ -28,8 +28,19 @@ pub(crate) fn build_policy(args: &Args) -> Result<Box<dyn citystream_streaming::
             s_min_bytes: 64 * 1024,
             fixed_load_size_mb: args.load_size_mb,
             fixed_mip_bias: args.mip_bias,
+            bind_cost: bind_cost_preset(args),
         })
         .context("building the streaming policy")
+}
+
+/// The bind-latency preset that describes the device the predictive controller predicts
+/// for: the modelled one (`--bind-latency`), except where the real clock measures a
+/// device no model charges (`--clock real --bind-latency none`): that one it learns.
+pub(crate) fn bind_cost_preset(args: &Args) -> Option<BindLatencyPreset> {
+    match (args.clock, args.bind_latency) {
+        (Clock::Real, BindLatencyPreset::None) => None,
+        (_, preset) => Some(preset),
+    }
 }
 
 /// The latency (ms) of a frame the controller is given: measured with the

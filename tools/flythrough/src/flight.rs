@@ -13,15 +13,18 @@ use citystream_dataset::Dataset;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer};
 use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::gpu_types::{CACHE_IMAGE_SLOTS, TEXTURE_SAMPLEABLE};
+use citystream_engine::stream::prefetch::MotionPredictor;
 use citystream_engine::stream::Frame;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CycleReport, Eviction};
 use citystream_engine::timing::CpuFrameClock;
 use citystream_engine::Device;
+use citystream_streaming::bench::path::CameraPath;
 use citystream_streaming::bind_latency::BindLatencyModel;
 use citystream_streaming::rng::SplitMix64;
 
-use super::args::{Args, Clock, Strategy};
+use super::args::{Args, Clock, Prefetch, Strategy, FEEDBACK_PASS_SHARE};
+use super::camera::pose_camera;
 use super::city_gpu::{cache_layer_size, city_targets, streamed_city_gpu, CityGeometry, CityGpu, CityTargets};
 use super::controller::frame_latency;
 use super::dataset::scene_extent;
@@ -70,6 +73,11 @@ pub(crate) struct Flight {
     /// τ in the feedback's fixed point: per feedback fragment, not per visible one.
     pub(crate) tau: u32,
     last_feedback: Option<u64>,
+    /// `--prefetch`, its lead time and modelled cost, and the camera's recent motion.
+    prefetch: Prefetch,
+    prefetch_lead_s: f64,
+    prefetch_cost_ms: f64,
+    motion: MotionPredictor,
     budget_mb: Option<u64>,
     /// What the over-budget warning says the cache does about it.
     eviction: Eviction,
@@ -108,6 +116,9 @@ pub(crate) struct FrameSettings<'a> {
     /// the visible pass's culling state, so that it draws the same meshes in the same
     /// phases and its image differs from the frame's by texels alone.
     pub(crate) share_visible_culling: Option<&'a CityRenderer>,
+    /// The path the camera follows, where the host knows it (`--prefetch path` looks
+    /// from its pose a lead time ahead; without it the motion is extrapolated).
+    pub(crate) path: Option<&'a CameraPath>,
 }
 
 /// A frame recorded into its command buffer and not yet submitted.
@@ -132,6 +143,8 @@ pub(crate) struct RecordedFrame {
     pub(crate) cycle_started: bool,
     /// With a disk model, bytes read by the cycle in flight and not yet in the cache.
     pub(crate) reads_in_flight_bytes: Option<u64>,
+    /// The frame recorded the prefetch pass.
+    pub(crate) prefetched: bool,
     /// Where the frame consumed feedback not seen before: its mip deficit and the
     /// textures still a level or more coarser than needed, against the cache as
     /// `begin_frame` left it (this frame's evictions applied, its uploads not yet).
@@ -252,6 +265,10 @@ impl Flight {
             cpu_clock: CpuFrameClock::new(),
             tau,
             last_feedback: None,
+            prefetch: args.prefetch,
+            prefetch_lead_s: args.prefetch_lead_s,
+            prefetch_cost_ms: args.prefetch_cost_ms.unwrap_or(args.render_ms * FEEDBACK_PASS_SHARE),
+            motion: MotionPredictor::new(),
             budget_mb: args.memory_budget_mb().0,
             eviction: args.eviction,
             warned_over_budget: false,
@@ -348,6 +365,28 @@ impl Flight {
             compaction,
             Some((&mut *times, slot)),
         )?;
+        // The prefetch pass, timed whether or not it is recorded (0 ms without it).
+        times.begin(rec, slot, passes::PREFETCH_PASS);
+        let ahead = match self.prefetch {
+            Prefetch::None => None,
+            _ if !feedback_pass || !self.gpu.streamer.prefetches() => None,
+            Prefetch::Path => match settings.path {
+                Some(path) => Some(pose_camera(
+                    &path.sample_between(None, settings.time_s + self.prefetch_lead_s),
+                    self.extent,
+                )),
+                None => self.motion.predict(camera, self.prefetch_lead_s),
+            },
+            Prefetch::Motion => self.motion.predict(camera, self.prefetch_lead_s),
+        };
+        self.motion.observe(settings.time_s, camera);
+        if let Some(ahead) = &ahead {
+            self.gpu
+                .renderer
+                .record_prefetch_feedback(rec, feedback_target, ahead, view, target.height())?;
+            self.gpu.streamer.record_prefetch_resolve(&mut begun, rec)?;
+        }
+        times.end(rec, slot, passes::PREFETCH_PASS);
         if let Some(other) = settings.share_visible_culling {
             self.gpu.renderer.record_share_visible_culling(rec, other)?;
         }
@@ -405,6 +444,7 @@ impl Flight {
             applied,
             cycle_started,
             reads_in_flight_bytes,
+            prefetched: ahead.is_some(),
             ground_bytes,
             draw_calls,
             nodes_drawn,
@@ -445,15 +485,27 @@ impl Flight {
     /// with the real clock, modelled with the others ([`frame_latency`]).
     pub(crate) fn latency(&mut self, frame: &RecordedFrame) -> f64 {
         let cpu_clock = &mut self.cpu_clock;
-        frame_latency(
-            self.clock,
-            self.render_ms,
-            &frame.applied,
-            frame.ground_bytes,
-            &self.latency,
-            &mut self.latency_rng,
-            || cpu_clock.tick().as_secs_f64() * 1000.0,
-        )
+        // A modelled frame pays for its prefetch pass like any other pass.
+        let prefetch_ms = if frame.prefetched && self.clock != Clock::Real {
+            self.prefetch_cost_ms
+        } else {
+            0.0
+        };
+        prefetch_ms
+            + frame_latency(
+                self.clock,
+                self.render_ms,
+                &frame.applied,
+                frame.ground_bytes,
+                &self.latency,
+                &mut self.latency_rng,
+                || cpu_clock.tick().as_secs_f64() * 1000.0,
+            )
+    }
+
+    /// What the prefetch pass costs a modelled frame (ms).
+    pub(crate) fn prefetch_cost_ms(&self) -> f64 {
+        self.prefetch_cost_ms
     }
 
     /// Starts the latency clock afresh: time since the last frame (hidden, waiting) is not

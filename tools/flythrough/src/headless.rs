@@ -17,7 +17,7 @@ use citystream_gen::files::write_atomically;
 use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 
-use super::args::{writes_frame, Args, Clock, ControllerLatency, FIXED_STEP_MS};
+use super::args::{writes_frame, Args, Clock, ControllerLatency, Prefetch, FIXED_STEP_MS};
 use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
 use super::dataset::{open_city, scene_extent};
@@ -134,6 +134,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     let mut reference_incomplete = 0u32;
     let mut frames_run = 0u32;
     let mut loading_cycles = 0u64;
+    let mut prefetch_frames = 0u64;
     let fail_at_frame = std::env::var(FAIL_AT_FRAME_ENV)
         .ok()
         .and_then(|v| v.parse::<u32>().ok());
@@ -173,6 +174,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                     .as_ref()
                     .filter(|_| measure_error)
                     .map(|reference| &reference.renderer),
+                path: Some(&path),
             },
         )?;
         let deficit = recorded.feedback.and_then(|f| f.deficit);
@@ -229,6 +231,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         }
 
         loading_cycles += u64::from(recorded.cycle_started);
+        prefetch_frames += u64::from(recorded.prefetched);
         frame_ms = flight.latency(&recorded);
         let applied = &recorded.applied;
         let bytes = applied.bytes_uploaded;
@@ -351,6 +354,14 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         render_ms: (args.clock != Clock::Real).then_some(args.render_ms),
         disk_model: flight.disk.clone(),
         loading_cycles,
+        path_cuts_s: path.jumps().into_iter().filter(|&t| t <= path_s).collect(),
+        priority: flight.gpu.streamer.loader_order().name(),
+        prefetch: args.prefetch.name(),
+        prefetch_lead_s: (args.prefetch != Prefetch::None).then_some(args.prefetch_lead_s),
+        prefetch_frames,
+        prefetched_mips: flight.gpu.streamer.totals().prefetched_mips,
+        prefetch_cost_ms: (args.prefetch != Prefetch::None && args.clock != Clock::Real)
+            .then(|| flight.prefetch_cost_ms()),
         controller_latency: (args.clock == Clock::Modelled).then_some(args.controller_latency.name()),
         mip_deficit: (!deficits.is_empty()).then(|| Stats::from_samples(&deficits)),
         error: PrefixedErrorFigures {

@@ -67,6 +67,19 @@ pub(crate) struct Run<'a> {
     pub(crate) disk_model: Option<crate::disk::DiskSummary>,
     /// Loading cycles started (with a disk model a cycle spans the frames its reads take).
     pub(crate) loading_cycles: u64,
+    /// Path times (s) of the path's cuts (jumps to a new view) within the run: where the
+    /// time to reach an error level after a cut is measured from.
+    pub(crate) path_cuts_s: Vec<f64>,
+    /// The order cycles took their mips in (`weight` or `error-per-byte`).
+    pub(crate) priority: &'static str,
+    /// `--prefetch` (`none`, `path`, `motion`), its lead time (s), the frames that recorded
+    /// the prefetch pass, the mips it planned, and what the pass cost each modelled frame
+    /// (ms; absent with the real clock).
+    pub(crate) prefetch: &'static str,
+    pub(crate) prefetch_lead_s: Option<f64>,
+    pub(crate) prefetch_frames: u64,
+    pub(crate) prefetched_mips: u64,
+    pub(crate) prefetch_cost_ms: Option<f64>,
     pub(crate) mip_deficit: Option<Stats>,
     /// The facades' error against the fully resident reference: `psnr_db`,
     /// `psnr_ceiling_db`, `error_frames`, `mse`, `psnr_of_mean_mse_db` (every measured

@@ -97,8 +97,12 @@ pub(crate) fn draw_now(
     Ok(())
 }
 
-/// The passes of a flythrough frame, in recording order, timed separately.
-pub(crate) const TIMED_PASSES: usize = 4;
+/// The passes of a flythrough frame, timed separately: uploads, feedback, compaction,
+/// visible, and the prefetch pass (recorded between the compaction and the visible pass).
+pub(crate) const TIMED_PASSES: usize = 5;
+
+/// The index of the prefetch pass among the [`TIMED_PASSES`].
+pub(crate) const PREFETCH_PASS: usize = 4;
 
 /// GPU milliseconds per frame of each timed pass.
 #[derive(Debug, serde::Serialize)]
@@ -111,6 +115,9 @@ pub(crate) struct GpuPassMs {
     pub(crate) compaction: Stats,
     /// The visible pass and its image copy, without its culling.
     pub(crate) visible: Stats,
+    /// The prefetch pass (`--prefetch`): a second depth pre-pass and feedback pass, from
+    /// where the camera will be, and its compaction; 0 ms without one.
+    pub(crate) prefetch: Stats,
     /// GPU culling for the feedback and visible passes (tests, draw compaction, depth
     /// copies and pyramids); null with `--culling off`.
     pub(crate) cull: Option<Stats>,
@@ -186,13 +193,14 @@ impl PassTimes {
         if !self.timer.supported() {
             return Ok(None);
         }
-        let [uploads, feedback, compaction, visible] =
+        let [uploads, feedback, compaction, visible, prefetch] =
             std::mem::take(&mut self.samples).map(|s| Stats::from_samples(&s));
         Ok(Some(GpuPassMs {
             uploads,
             feedback,
             compaction,
             visible,
+            prefetch,
             cull: renderer.culling().then(|| Stats::from_samples(&self.cull_ms)),
         }))
     }

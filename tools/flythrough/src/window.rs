@@ -664,6 +664,8 @@ impl Viewer {
                 every_seen_mesh: false,
                 colormap_blend: self.colormap_blend,
                 share_visible_culling: None,
+                // Flown by hand the path is not known: the motion is extrapolated.
+                path: None,
             },
         )?;
         if let Some(feedback) = recorded.feedback {

@@ -1,0 +1,608 @@
+//! `--scenario frontier`: speed against error over every policy family on the pressure
+//! benchmark (docs/CONTROLLER.md, docs/MEASURED.md).
+//!
+//! The runs: the baseline; fixed load sizes of 1 to 32 MB without bias; the paper's and the
+//! headroom controller at α = 8, 12, 16 and 20 ms; the predictive controller at the same
+//! α without prefetch and with `--prefetch path`, and at 12 ms with `--prefetch motion`.
+//! Every run measures its image error every [`FRONTIER_PSNR_INTERVAL`] frames (about 145
+//! measured frames after the start-up second of a 30 s path). `frontier.md` tabulates,
+//! per run, the worst and 99th-percentile frame, the frames over α and 2α after the first
+//! second, MB per second of path time, the start-up and after-start-up PSNR of the mean MSE
+//! and the time to 40 dB after the start and after each cut of the path, then checks the
+//! issue's targets; `frontier.png` plots error against worst frame with the Pareto front;
+//! `frontier.json` holds the figures.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use plotters::prelude::*;
+
+use crate::report::{self, plot_error, render_png};
+use crate::report_runs::{read_frames_csv, FrameRow};
+use crate::runs::BenchRun;
+use crate::tables::{checks_table, count, summary_of, Check, ERROR_NOTE};
+
+/// Frames between error measurements of a frontier run.
+pub(crate) const FRONTIER_PSNR_INTERVAL: u32 = 12;
+/// The target latency the issue's checks and the constant policies' columns use.
+pub(crate) const FRONTIER_ALPHA_MS: f64 = 12.0;
+/// The error level whose time to reach is measured.
+pub(crate) const TARGET_PSNR_DB: f64 = 40.0;
+/// Path time (s) after which frames count against α (the start-up fill before it).
+const SETTLED_S: f64 = 1.0;
+
+/// The families of policies the chart draws as lines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Family {
+    Baseline,
+    Fixed,
+    Paper,
+    Headroom,
+    Predictive,
+    PredictivePath,
+    PredictiveMotion,
+}
+
+impl Family {
+    fn label(self) -> &'static str {
+        match self {
+            Family::Baseline => "baseline (s = 64 MB)",
+            Family::Fixed => "fixed s, b = 0",
+            Family::Paper => "paper (Eq. 4-7)",
+            Family::Headroom => "headroom",
+            Family::Predictive => "predictive",
+            Family::PredictivePath => "predictive + path prefetch",
+            Family::PredictiveMotion => "predictive + motion prefetch",
+        }
+    }
+
+    fn color(self) -> RGBColor {
+        match self {
+            Family::Baseline => BLACK,
+            Family::Fixed => RGBColor(127, 127, 127),
+            Family::Paper => RED,
+            Family::Headroom => RGBColor(255, 127, 14),
+            Family::Predictive => BLUE,
+            Family::PredictivePath => RGBColor(44, 160, 44),
+            Family::PredictiveMotion => RGBColor(148, 103, 189),
+        }
+    }
+
+    const ALL: [Family; 7] = [
+        Family::Baseline,
+        Family::Fixed,
+        Family::Paper,
+        Family::Headroom,
+        Family::Predictive,
+        Family::PredictivePath,
+        Family::PredictiveMotion,
+    ];
+}
+
+/// One run of the frontier: the flythrough run, its family and its α (the constant
+/// policies have none).
+#[derive(Debug, Clone)]
+pub(crate) struct FrontierRun {
+    pub(crate) run: BenchRun,
+    pub(crate) family: Family,
+    pub(crate) alpha_ms: Option<f64>,
+}
+
+/// The α of the controllers' runs.
+pub(crate) const FRONTIER_ALPHAS: [u32; 4] = [8, 12, 16, 20];
+/// The fixed policies' load sizes, MB.
+pub(crate) const FRONTIER_FIXED_MB: [u32; 6] = [1, 2, 4, 8, 16, 32];
+
+/// Every run of the frontier, in the order they fly, under `budget_mb`.
+pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
+    let shared: Vec<String> = [
+        "--psnr-interval".to_string(),
+        FRONTIER_PSNR_INTERVAL.to_string(),
+        "--frame-interval".into(),
+        "0".into(),
+        "--memory-budget-mb".into(),
+        budget_mb.to_string(),
+    ]
+    .into();
+    let run = |dir: String, name: String, args: Vec<String>, family: Family, alpha_ms: Option<f64>| FrontierRun {
+        run: BenchRun {
+            dir,
+            name,
+            args: args.into_iter().chain(shared.iter().cloned()).collect(),
+        },
+        family,
+        alpha_ms,
+    };
+    let strings = |args: &[&str]| args.iter().map(|a| a.to_string()).collect::<Vec<_>>();
+    let mut runs = vec![run(
+        "baseline".into(),
+        "baseline".into(),
+        strings(&["--policy", "baseline"]),
+        Family::Baseline,
+        None,
+    )];
+    for mb in FRONTIER_FIXED_MB {
+        let size = mb.to_string();
+        runs.push(run(
+            format!("fixed-s{mb}"),
+            format!("fixed s={mb} MB"),
+            strings(&["--policy", "fixed", "--load-size-mb", &size, "--mip-bias", "0"]),
+            Family::Fixed,
+            None,
+        ));
+    }
+    let controllers = [
+        ("paper", Family::Paper, &[][..]),
+        ("headroom", Family::Headroom, &[][..]),
+        ("predictive", Family::Predictive, &[][..]),
+        ("predictive", Family::PredictivePath, &["--prefetch", "path"][..]),
+    ];
+    for (controller, family, extra) in controllers {
+        for alpha in FRONTIER_ALPHAS {
+            let a = alpha.to_string();
+            let suffix = if family == Family::PredictivePath { "-path" } else { "" };
+            let mut args = strings(&["--policy", "adaptive", "--controller", controller, "--alpha", &a]);
+            args.extend(strings(extra));
+            runs.push(run(
+                format!("{controller}-a{alpha}{suffix}"),
+                format!(
+                    "{controller} α={alpha} ms{}",
+                    if suffix.is_empty() { "" } else { ", path prefetch" }
+                ),
+                args,
+                family,
+                Some(f64::from(alpha)),
+            ));
+        }
+    }
+    runs.push(run(
+        "predictive-a12-motion".into(),
+        "predictive α=12 ms, motion prefetch".into(),
+        strings(&[
+            "--policy",
+            "adaptive",
+            "--controller",
+            "predictive",
+            "--alpha",
+            "12",
+            "--prefetch",
+            "motion",
+        ]),
+        Family::PredictiveMotion,
+        Some(12.0),
+    ));
+    runs
+}
+
+/// What the frontier reports of one run.
+#[derive(Debug, Clone, serde::Serialize)]
+pub(crate) struct FrontierFigures {
+    pub(crate) dir: String,
+    pub(crate) name: String,
+    pub(crate) family: &'static str,
+    pub(crate) alpha_ms: Option<f64>,
+    pub(crate) frames: usize,
+    pub(crate) worst_frame_ms: f64,
+    pub(crate) p99_frame_ms: f64,
+    /// Frames over α (the run's, or [`FRONTIER_ALPHA_MS`]) and over 2α from the first
+    /// second of path time on.
+    pub(crate) frames_over_alpha: usize,
+    pub(crate) frames_over_2alpha: usize,
+    /// MB (2^20 bytes) streamed per second of path time.
+    pub(crate) mb_per_path_s: f64,
+    pub(crate) startup_psnr_db: Option<f64>,
+    pub(crate) streaming_psnr_db: Option<f64>,
+    pub(crate) streaming_measured_frames: Option<u64>,
+    /// Seconds of path time from the start to the first measured frame at 40 dB or
+    /// better (`None`: none reached it).
+    pub(crate) time_to_40db_start_s: Option<f64>,
+    /// The same from each cut of the path (`None` where none reached it before the next
+    /// cut or the end).
+    pub(crate) time_to_40db_after_cuts_s: Vec<Option<f64>>,
+}
+
+/// The `q`-quantile (nearest rank) of `values`; 0 when empty.
+fn quantile(values: &[f64], q: f64) -> f64 {
+    let mut sorted: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    sorted.sort_by(f64::total_cmp);
+    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
+    sorted[rank - 1]
+}
+
+/// Seconds from `from_s` to the first measured frame in `[from_s, until_s)` whose PSNR is
+/// at least `level_db`.
+pub(crate) fn time_to_level(frames: &[FrameRow], from_s: f64, until_s: f64, level_db: f64) -> Option<f64> {
+    frames
+        .iter()
+        .filter(|f| f.time_s >= from_s && f.time_s < until_s)
+        .find(|f| f.psnr_db.is_some_and(|p| p >= level_db))
+        .map(|f| f.time_s - from_s)
+}
+
+/// The figures of the run in `dir`.
+pub(crate) fn figures_of(dir: &Path, run: &FrontierRun) -> Result<FrontierFigures> {
+    let summary = summary_of(dir)?;
+    let frames = read_frames_csv(&dir.join("frames.csv"))?;
+    let alpha = run.alpha_ms.unwrap_or(FRONTIER_ALPHA_MS);
+    let dts: Vec<f64> = frames.iter().map(|f| f.dt_ms).collect();
+    let settled: Vec<f64> = frames
+        .iter()
+        .filter(|f| f.time_s >= SETTLED_S)
+        .map(|f| f.dt_ms)
+        .collect();
+    let path_s = count(&summary, "duration_s").unwrap_or(0.0);
+    let bytes: u64 = frames.iter().map(|f| f.bytes).sum();
+    let cuts: Vec<f64> = summary
+        .get("path_cuts_s")
+        .and_then(|v| v.as_array())
+        .map(|a| a.iter().filter_map(|v| v.as_f64()).collect())
+        .unwrap_or_default();
+    let end = frames.last().map_or(0.0, |f| f.time_s) + 1.0;
+    let after_cuts = cuts
+        .iter()
+        .enumerate()
+        .map(|(i, &cut)| {
+            let until = cuts.get(i + 1).copied().unwrap_or(end);
+            time_to_level(&frames, cut, until, TARGET_PSNR_DB)
+        })
+        .collect();
+    let first_cut = cuts.first().copied().unwrap_or(end);
+    Ok(FrontierFigures {
+        dir: run.run.dir.clone(),
+        name: run.run.name.clone(),
+        family: run.family.label(),
+        alpha_ms: run.alpha_ms,
+        frames: frames.len(),
+        worst_frame_ms: dts.iter().copied().fold(0.0, f64::max),
+        p99_frame_ms: quantile(&dts, 0.99),
+        frames_over_alpha: settled.iter().filter(|&&dt| dt > alpha).count(),
+        frames_over_2alpha: settled.iter().filter(|&&dt| dt > 2.0 * alpha).count(),
+        mb_per_path_s: if path_s > 0.0 {
+            bytes as f64 / f64::from(1 << 20) / path_s
+        } else {
+            0.0
+        },
+        startup_psnr_db: count(&summary, "startup_psnr_of_mean_mse_db"),
+        streaming_psnr_db: count(&summary, "streaming_psnr_of_mean_mse_db"),
+        streaming_measured_frames: summary
+            .get("streaming_error_frames")
+            .and_then(|f| f.get("measured"))
+            .and_then(|v| v.as_u64()),
+        time_to_40db_start_s: time_to_level(&frames, 0.0, first_cut, TARGET_PSNR_DB),
+        time_to_40db_after_cuts_s: after_cuts,
+    })
+}
+
+/// The runs on the Pareto front: none other has a worst frame as low or lower and a
+/// higher PSNR after start-up (nor the same PSNR with a lower worst frame).
+pub(crate) fn pareto_front(points: &[(f64, f64)]) -> Vec<usize> {
+    let mut front: Vec<usize> = (0..points.len())
+        .filter(|&i| {
+            let (wi, pi) = points[i];
+            !points.iter().any(|&(w, p)| (w <= wi && p > pi) || (w < wi && p >= pi))
+        })
+        .collect();
+    front.sort_by(|&a, &b| points[a].0.total_cmp(&points[b].0));
+    front
+}
+
+fn cell(v: Option<f64>, digits: usize) -> String {
+    v.map_or("—".to_string(), |v| format!("{v:.digits$}"))
+}
+
+/// `frontier.md`, `frontier.json` and `frontier.png` from the finished runs in `out`
+/// (runs not flown are listed as such); the markdown.
+pub(crate) fn write_frontier(out: &Path, runs: &[FrontierRun], size: (u32, u32), budget_mb: u64) -> Result<String> {
+    let mut figures = Vec::new();
+    let mut missing = Vec::new();
+    for run in runs {
+        let dir = out.join(&run.run.dir);
+        if dir.join("summary.json").is_file() {
+            figures.push((run.family, figures_of(&dir, run)?));
+        } else {
+            missing.push(run.run.name.clone());
+        }
+    }
+    let mut text = format!(
+        "# The frontier: speed against error on the pressure benchmark ({}×{}, {budget_mb} MB)\n\n\
+         Error measured every {FRONTIER_PSNR_INTERVAL} frames; frames over α count from the first second of \
+         path time on (α = {FRONTIER_ALPHA_MS} ms for the baseline and the fixed sizes); MB = 2^20 bytes per \
+         second of path time; time to {TARGET_PSNR_DB} dB: path seconds from the start, or from each cut, to \
+         the first measured frame at {TARGET_PSNR_DB} dB or better (— : not reached).\n\n\
+         | run | worst frame ms | p99 frame ms | frames > α / > 2α | MB per path s | start-up PSNR dB | \
+         after start-up PSNR dB (measured) | to {TARGET_PSNR_DB} dB after start s | after each cut s |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---|\n",
+        size.0, size.1
+    );
+    for (_, f) in &figures {
+        let cuts: Vec<String> = f.time_to_40db_after_cuts_s.iter().map(|t| cell(*t, 2)).collect();
+        text.push_str(&format!(
+            "| {} | {:.2} | {:.2} | {} / {} | {:.2} | {} | {} ({}) | {} | {} |\n",
+            f.name,
+            f.worst_frame_ms,
+            f.p99_frame_ms,
+            f.frames_over_alpha,
+            f.frames_over_2alpha,
+            f.mb_per_path_s,
+            cell(f.startup_psnr_db, 2),
+            cell(f.streaming_psnr_db, 2),
+            f.streaming_measured_frames.map_or("—".into(), |m| m.to_string()),
+            cell(f.time_to_40db_start_s, 2),
+            if cuts.is_empty() { "—".into() } else { cuts.join(", ") },
+        ));
+    }
+    if !missing.is_empty() {
+        text.push_str(&format!("\nNot flown: {}.\n", missing.join(", ")));
+    }
+    let points: Vec<(f64, f64)> = figures
+        .iter()
+        .map(|(_, f)| (f.worst_frame_ms, f.streaming_psnr_db.unwrap_or(f64::NAN)))
+        .collect();
+    let front: Vec<String> = pareto_front(&points)
+        .into_iter()
+        .filter(|&i| points[i].1.is_finite())
+        .map(|i| figures[i].1.name.clone())
+        .collect();
+    text.push_str(&format!(
+        "\nOn the Pareto front (worst frame, after-start-up PSNR): {}.\n\n",
+        front.join(", ")
+    ));
+    text.push_str(&checks(&figures));
+    text.push_str(&format!("\n{ERROR_NOTE}\n"));
+    citystream_gen::files::write_atomically(&out.join("frontier.md"), text.as_bytes())?;
+    let json = serde_json::to_string_pretty(&figures.iter().map(|(_, f)| f).collect::<Vec<_>>())?;
+    citystream_gen::files::write_atomically(&out.join("frontier.json"), json.as_bytes())?;
+    draw_frontier(&figures, &out.join("frontier.png")).context("drawing frontier.png")?;
+    Ok(text)
+}
+
+/// The issue's targets for this streaming (predictive α = 12 ms with path, and with
+/// motion, prefetch), as far as the runs flown allow.
+fn checks(figures: &[(Family, FrontierFigures)]) -> String {
+    let get = |dir: &str| figures.iter().map(|(_, f)| f).find(|f| f.dir == dir);
+    let baseline = get("baseline");
+    let path = get("predictive-a12-path");
+    let motion = get("predictive-a12-motion");
+    let paper = get("paper-a12");
+    let psnr = |f: Option<&FrontierFigures>| f.and_then(|f| f.streaming_psnr_db);
+    // Runs whose worst frame is no lower than ours that show at least our error: the
+    // comparison the issue asks ours to win.
+    let unbeaten = |ours: &FrontierFigures| -> Vec<String> {
+        figures
+            .iter()
+            .filter(|(family, _)| matches!(family, Family::Fixed | Family::Paper | Family::Headroom))
+            .map(|(_, f)| f)
+            .filter(|f| f.worst_frame_ms >= ours.worst_frame_ms)
+            .filter(|f| f.streaming_psnr_db.unwrap_or(f64::NEG_INFINITY) >= ours.streaming_psnr_db.unwrap_or(f64::NAN))
+            .map(|f| f.name.clone())
+            .collect()
+    };
+    let mut notes = String::new();
+    if let Some(ours) = path {
+        let left = unbeaten(ours);
+        notes.push_str(&format!(
+            "\nRuns of the fixed, paper and headroom families with a worst frame at or above the path-prefetch run's \
+             ({:.2} ms) and at least its error: {}.\n",
+            ours.worst_frame_ms,
+            if left.is_empty() {
+                "none".to_string()
+            } else {
+                left.join(", ")
+            }
+        ));
+    }
+    let checks: Vec<Check> = vec![
+        (
+            "predictive α=12 + path: worst frame (ms)".into(),
+            path.map(|f| f.worst_frame_ms),
+            "≤ 24",
+            |v| v <= 24.0,
+        ),
+        (
+            "predictive α=12 + path: frames over 2α after the first second".into(),
+            path.map(|f| f.frames_over_2alpha as f64),
+            "0",
+            |v| v == 0.0,
+        ),
+        (
+            "predictive α=12 + path: after-start-up PSNR − baseline's (dB)".into(),
+            psnr(path).zip(psnr(baseline)).map(|(a, b)| a - b),
+            "≥ 0",
+            |v| v >= 0.0,
+        ),
+        (
+            "predictive α=12 + motion: after-start-up PSNR − baseline's (dB)".into(),
+            psnr(motion).zip(psnr(baseline)).map(|(a, b)| a - b),
+            "≥ −1",
+            |v| v >= -1.0,
+        ),
+        (
+            "predictive α=12 + motion: worst frame (ms)".into(),
+            motion.map(|f| f.worst_frame_ms),
+            "≤ 24",
+            |v| v <= 24.0,
+        ),
+        (
+            "predictive α=12 + path: fixed, paper and headroom runs at or above its worst frame with at least its error".into(),
+            path.map(|ours| unbeaten(ours).len() as f64),
+            "0",
+            |v| v == 0.0,
+        ),
+        (
+            "predictive α=12 + path: MB per path s / baseline's".into(),
+            path.zip(baseline).map(|(a, b)| a.mb_per_path_s / b.mb_per_path_s),
+            "≤ 1.2",
+            |v| v <= 1.2,
+        ),
+        (
+            "time to 40 dB after the start: paper α=12 / predictive α=12 + path".into(),
+            paper
+                .and_then(|p| p.time_to_40db_start_s)
+                .zip(path.and_then(|f| f.time_to_40db_start_s))
+                .map(|(p, ours)| p / ours.max(1e-9)),
+            "≥ 2",
+            |v| v >= 2.0,
+        ),
+    ];
+    let mut text = checks_table("## The issue's targets", checks);
+    text.push_str(&notes);
+    text
+}
+
+/// `frontier.png`: after-start-up PSNR against worst frame (log axis), each family a line
+/// through its runs by worst frame, the Pareto front dashed.
+fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<()> {
+    let points: Vec<(Family, f64, f64, &str)> = figures
+        .iter()
+        .filter_map(|(family, f)| {
+            f.streaming_psnr_db
+                .filter(|p| p.is_finite())
+                .map(|p| (*family, f.worst_frame_ms.max(1e-3), p, f.name.as_str()))
+        })
+        .collect();
+    if points.is_empty() {
+        eprintln!("frontier: no run has an error after start-up; frontier.png not drawn");
+        return Ok(());
+    }
+    let (x_lo, x_hi) = points
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), p| (lo.min(p.1), hi.max(p.1)));
+    let (y_lo, y_hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+        (lo.min(p.2), hi.max(p.2))
+    });
+    let x_range = (x_lo / 1.3)..(x_hi * 1.3);
+    let pad = ((y_hi - y_lo) * 0.08).max(0.25);
+    let y_range = (y_lo - pad)..(y_hi + pad);
+    render_png(path, report::SPEED_ERROR_SIZE, |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(
+                "The frontier: error after start-up against worst frame",
+                ("sans-serif", 24),
+            )
+            .margin(16)
+            .x_label_area_size(50)
+            .y_label_area_size(70)
+            .build_cartesian_2d(x_range.log_scale(), y_range)
+            .map_err(plot_error)?;
+        chart
+            .configure_mesh()
+            .x_desc("worst frame (ms, log scale)")
+            .y_desc("PSNR of the mean MSE after start-up (dB)")
+            .label_style(("sans-serif", 14))
+            .axis_desc_style(("sans-serif", 16))
+            .draw()
+            .map_err(plot_error)?;
+        // The front first, under the families.
+        let xy: Vec<(f64, f64)> = points.iter().map(|p| (p.1, p.2)).collect();
+        let front: Vec<(f64, f64)> = pareto_front(&xy).into_iter().map(|i| xy[i]).collect();
+        let mut steps = Vec::new();
+        for (i, &(x, y)) in front.iter().enumerate() {
+            if i > 0 {
+                steps.push((x, front[i - 1].1));
+            }
+            steps.push((x, y));
+        }
+        chart
+            .draw_series(DashedLineSeries::new(steps, 6, 4, BLACK.mix(0.5).stroke_width(2)))
+            .map_err(plot_error)?
+            .label("Pareto front")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.5).stroke_width(2)));
+        for family in Family::ALL {
+            let mut line: Vec<(f64, f64)> = points.iter().filter(|p| p.0 == family).map(|p| (p.1, p.2)).collect();
+            if line.is_empty() {
+                continue;
+            }
+            line.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let color = family.color();
+            chart
+                .draw_series(LineSeries::new(line.clone(), color.stroke_width(2)))
+                .map_err(plot_error)?
+                .label(family.label())
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2)));
+            chart
+                .draw_series(line.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                .map_err(plot_error)?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(plot_error)?;
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(time_s: f64, dt_ms: f64, psnr_db: Option<f64>) -> FrameRow {
+        FrameRow {
+            time_s,
+            dt_ms,
+            tw_ms: dt_ms,
+            tm_ms: 0.0,
+            tb_ms: 0.0,
+            tbl_ms: 0.0,
+            tbu_ms: 0.0,
+            load_size_mb: 0.0,
+            mip_bias: 0.0,
+            mips: 0,
+            bytes: 0,
+            blocks_bound: 0,
+            mip_deficit: None,
+            psnr_db,
+            mse: None,
+            cycle_started: None,
+            reads_in_flight_bytes: None,
+        }
+    }
+
+    #[test]
+    fn time_to_a_level_counts_from_the_event_to_the_first_measured_frame_reaching_it() {
+        let frames = [
+            row(0.0, 8.0, Some(12.0)),
+            row(0.2, 8.0, None),
+            row(0.4, 8.0, Some(39.9)),
+            row(0.6, 8.0, Some(41.0)),
+            row(1.0, 8.0, Some(25.0)),
+            row(1.2, 8.0, Some(45.0)),
+        ];
+        assert_eq!(time_to_level(&frames, 0.0, 1.0, 40.0), Some(0.6));
+        // From a cut at 0.9 s: the frame at 1.0 s is under, 1.2 s reaches it.
+        let t = time_to_level(&frames, 0.9, 2.0, 40.0).expect("reached");
+        assert!((t - 0.3).abs() < 1e-12);
+        // Not before the next event: none.
+        assert_eq!(time_to_level(&frames, 0.9, 1.1, 40.0), None);
+    }
+
+    #[test]
+    fn the_pareto_front_keeps_the_runs_no_other_beats_on_both() {
+        // (worst frame, PSNR): the second is beaten by the first (lower worst, higher
+        // PSNR); the fourth ties the third's PSNR at a higher worst frame.
+        let points = [(20.0, 45.0), (25.0, 44.0), (500.0, 48.0), (600.0, 48.0), (10.0, 30.0)];
+        assert_eq!(pareto_front(&points), vec![4, 0, 2]);
+        assert_eq!(quantile(&[5.0, 1.0, 3.0, 2.0, 4.0], 0.99), 5.0);
+        assert_eq!(quantile(&[5.0, 1.0, 3.0, 2.0, 4.0], 0.5), 3.0);
+    }
+
+    #[test]
+    fn the_runs_cover_every_family_once_per_setting() {
+        let runs = frontier_runs(256);
+        assert_eq!(runs.len(), 1 + 6 + 4 * 4 + 1);
+        let mut dirs: Vec<&str> = runs.iter().map(|r| r.run.dir.as_str()).collect();
+        dirs.sort_unstable();
+        dirs.dedup();
+        assert_eq!(dirs.len(), runs.len(), "directory names are unique");
+        let path = runs.iter().find(|r| r.run.dir == "predictive-a12-path").expect("flown");
+        assert_eq!(path.family, Family::PredictivePath);
+        assert!(path.run.args.windows(2).any(|w| w == ["--prefetch", "path"]));
+        assert!(path.run.args.windows(2).any(|w| w == ["--psnr-interval", "12"]));
+    }
+}
