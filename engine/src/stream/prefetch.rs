@@ -122,6 +122,32 @@ impl MotionPredictor {
     }
 }
 
+/// The most the eye may come nearer to (or go further from) what it looks at, as a share
+/// of the distance, before a view ahead needs a pass of its own: a quarter nearer needs
+/// textures under half a level finer (log2(4/3) = 0.42), and a quarter further shows what
+/// the view's feedback already covers with its 25 % margin.
+pub const PREFETCH_MAX_DEPTH_SHARE: f32 = 0.25;
+
+/// Whether the camera `ahead` sees enough that the view `now` does not (its feedback
+/// taken with the field of view widened by `margin`, as `FeedbackView::margin`) to be worth
+/// a prefetch pass: its view turned, plus its eye moved sideways, further than the margin
+/// reaches beyond the visible view, or its eye moved along the view by more than
+/// [`PREFETCH_MAX_DEPTH_SHARE`] of the distance to the target. Where the view's own
+/// feedback covers the camera ahead, a pass would ask for nothing new, so the pass (and
+/// its cost) comes where it pays: around cuts, fast turns and fast moves.
+pub fn sees_beyond_margin(now: &Camera, ahead: &Camera, margin: f32) -> bool {
+    let reach = (now.target - now.eye).length().max(f32::MIN_POSITIVE);
+    let forward = |c: &Camera| (c.target - c.eye).normalize_or_zero();
+    let (now_forward, moved) = (forward(now), ahead.eye - now.eye);
+    let along = moved.dot(now_forward);
+    let sideways = (moved - now_forward * along).length();
+    let half = (now.fov_y * 0.5).clamp(0.0, 1.5);
+    let beyond = ((1.0 + margin.max(0.0)) * half.tan()).atan() - half;
+    let turned = now_forward.dot(forward(ahead)).clamp(-1.0, 1.0).acos();
+    let covered = turned + (sideways / reach).atan() <= beyond && along.abs() <= PREFETCH_MAX_DEPTH_SHARE * reach;
+    !covered
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -134,6 +160,33 @@ mod tests {
             near: 0.1,
             far: 1000.0,
         }
+    }
+
+    #[test]
+    fn only_a_view_beyond_the_margin_is_worth_a_pass() {
+        let now = camera(Vec3::ZERO, Vec3::new(0.0, 0.0, -100.0));
+        // A 60° view with a 25 % margin reaches 5.8° further each side.
+        let turned = |deg: f32| {
+            let a = deg.to_radians();
+            camera(Vec3::ZERO, Vec3::new(a.sin(), 0.0, -a.cos()) * 100.0)
+        };
+        let wide = Camera {
+            fov_y: 60f32.to_radians(),
+            ..now
+        };
+        let with_fov = |c: Camera| Camera { fov_y: wide.fov_y, ..c };
+        assert!(!sees_beyond_margin(&wide, &with_fov(turned(5.0)), 0.25));
+        assert!(sees_beyond_margin(&wide, &with_fov(turned(7.0)), 0.25));
+        // Sideways at 100 m from the target: 5 m (2.9°) is covered, 15 m (8.5°) is not; along
+        // the view 20 m is, 30 m is not; a cut is not.
+        let moved = |x: f32, z: f32| with_fov(camera(Vec3::new(x, 0.0, z), Vec3::new(x, 0.0, z - 100.0)));
+        assert!(!sees_beyond_margin(&wide, &moved(5.0, 0.0), 0.25));
+        assert!(sees_beyond_margin(&wide, &moved(15.0, 0.0), 0.25));
+        assert!(!sees_beyond_margin(&wide, &moved(0.0, -20.0), 0.25));
+        assert!(sees_beyond_margin(&wide, &moved(0.0, -30.0), 0.25));
+        assert!(sees_beyond_margin(&wide, &moved(0.0, 30.0), 0.25));
+        assert!(sees_beyond_margin(&wide, &moved(5000.0, 0.0), 0.25));
+        assert!(!sees_beyond_margin(&wide, &wide, 0.25));
     }
 
     #[test]

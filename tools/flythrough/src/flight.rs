@@ -13,7 +13,7 @@ use citystream_dataset::Dataset;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer};
 use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::gpu_types::{CACHE_IMAGE_SLOTS, TEXTURE_SAMPLEABLE};
-use citystream_engine::stream::prefetch::MotionPredictor;
+use citystream_engine::stream::prefetch::{sees_beyond_margin, MotionPredictor};
 use citystream_engine::stream::Frame;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CycleReport, Eviction};
@@ -380,6 +380,9 @@ impl Flight {
             Prefetch::Motion => self.motion.predict(camera, self.prefetch_lead_s),
         };
         self.motion.observe(settings.time_s, camera);
+        // Where the view's own feedback (over its margin) already covers the camera ahead,
+        // a pass would ask for nothing new: it is recorded, and charged, only beyond that.
+        let ahead = ahead.filter(|ahead| sees_beyond_margin(camera, ahead, view.margin));
         if let Some(ahead) = &ahead {
             self.gpu
                 .renderer

@@ -267,6 +267,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 camera: &camera,
                 cycle_started: recorded.cycle_started,
                 reads_in_flight_bytes: recorded.reads_in_flight_bytes,
+                prefetch_pass: recorded.prefetched,
             },
         )?;
         let mb_per_s = bytes as f64 / 1e6 / (path_ms / 1000.0).max(1e-6);

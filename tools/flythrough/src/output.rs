@@ -200,7 +200,7 @@ pub(crate) fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: 
 pub(crate) const CSV_HEADER: &str =
     "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
                           blocks_bound,resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,\
-                          eye_x,eye_y,eye_z,look_x,look_y,look_z,cycle_started,reads_in_flight_bytes";
+                          eye_x,eye_y,eye_z,look_x,look_y,look_z,cycle_started,reads_in_flight_bytes,prefetch_pass";
 
 /// One frame's line of frames.csv.
 pub(crate) struct CsvRow<'a> {
@@ -220,6 +220,8 @@ pub(crate) struct CsvRow<'a> {
     /// With `--disk-model`, bytes read by the cycle in flight and not yet in the cache
     /// after this frame's `begin_frame` (empty without one).
     pub(crate) reads_in_flight_bytes: Option<u64>,
+    /// The frame recorded the prefetch pass (and a modelled frame paid for it).
+    pub(crate) prefetch_pass: bool,
 }
 
 pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
@@ -228,7 +230,7 @@ pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
     // The pose exactly (shortest round-trip form): a replay is compared with it.
     writeln!(
         csv,
-        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
         row.frame,
         row.time_s,
         row.frame_ms,
@@ -258,6 +260,7 @@ pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
         look.z,
         u8::from(row.cycle_started),
         row.reads_in_flight_bytes.map(|b| b.to_string()).unwrap_or_default(),
+        u8::from(row.prefetch_pass),
     )?;
     Ok(())
 }

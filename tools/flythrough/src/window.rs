@@ -739,6 +739,7 @@ impl Viewer {
                 camera: &camera,
                 cycle_started: recorded.cycle_started,
                 reads_in_flight_bytes: recorded.reads_in_flight_bytes,
+                prefetch_pass: recorded.prefetched,
             },
         )?;
         let mb_per_s = self.throughput.push(self.time_s, applied.bytes_uploaded);
