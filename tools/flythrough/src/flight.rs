@@ -367,22 +367,29 @@ impl Flight {
         )?;
         // The prefetch pass, timed whether or not it is recorded (0 ms without it).
         times.begin(rec, slot, passes::PREFETCH_PASS);
-        let ahead = match self.prefetch {
-            Prefetch::None => None,
+        let lead = self.prefetch_lead_s;
+        let ahead = match (self.prefetch, settings.path) {
+            (Prefetch::None, _) => None,
             _ if !feedback_pass || !self.gpu.streamer.prefetches() => None,
-            Prefetch::Path => match settings.path {
-                Some(path) => Some(pose_camera(
-                    &path.sample_between(None, settings.time_s + self.prefetch_lead_s),
-                    self.extent,
-                )),
-                None => self.motion.predict(camera, self.prefetch_lead_s),
-            },
-            Prefetch::Motion => self.motion.predict(camera, self.prefetch_lead_s),
+            // A known path: the view after its next cut, from a lead time before it. Between
+            // cuts the view's own feedback, over its margin, follows the camera frame by
+            // frame; a pass looking half a second ahead there cost more than it gave
+            // (docs/CONTROLLER.md, "Prefetch").
+            (Prefetch::Path, Some(path)) => {
+                let now = settings.time_s;
+                path.jumps()
+                    .into_iter()
+                    .find(|&cut| cut > now && cut <= now + lead)
+                    .map(|cut| pose_camera(&path.sample_between(None, cut), self.extent))
+            }
+            // Motion (or a path flown by hand): carried forward, where it sees beyond what
+            // the view's own feedback covers.
+            _ => self
+                .motion
+                .predict(camera, lead)
+                .filter(|ahead| sees_beyond_margin(camera, ahead, view.margin)),
         };
         self.motion.observe(settings.time_s, camera);
-        // Where the view's own feedback (over its margin) already covers the camera ahead,
-        // a pass would ask for nothing new: it is recorded, and charged, only beyond that.
-        let ahead = ahead.filter(|ahead| sees_beyond_margin(camera, ahead, view.margin));
         if let Some(ahead) = &ahead {
             self.gpu
                 .renderer
