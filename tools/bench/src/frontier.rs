@@ -460,7 +460,7 @@ fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<(
         .filter_map(|(family, f)| {
             f.streaming_psnr_db
                 .filter(|p| p.is_finite())
-                .map(|p| (*family, f.worst_frame_ms.max(1e-3), p, f.name.as_str()))
+                .map(|p| (*family, f.worst_frame_ms.max(1e-3), p, f.dir.as_str()))
         })
         .collect();
     if points.is_empty() {
@@ -473,7 +473,8 @@ fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<(
     let (y_lo, y_hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
         (lo.min(p.2), hi.max(p.2))
     });
-    let x_range = (x_lo / 1.3)..(x_hi * 1.3);
+    // Whole decades, so that the log axis has its labels however close the runs lie.
+    let x_range = 10f64.powf((x_lo / 1.3).log10().floor())..10f64.powf((x_hi * 1.3).log10().ceil());
     let pad = ((y_hi - y_lo) * 0.08).max(0.25);
     let y_range = (y_lo - pad)..(y_hi + pad);
     render_png(path, report::SPEED_ERROR_SIZE, |root| {
@@ -489,6 +490,7 @@ fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<(
             .map_err(plot_error)?;
         chart
             .configure_mesh()
+            .x_label_formatter(&|x| format!("{x:.0}"))
             .x_desc("worst frame (ms, log scale)")
             .y_desc("PSNR of the mean MSE after start-up (dB)")
             .label_style(("sans-serif", 14))
@@ -526,6 +528,17 @@ fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<(
                 .draw_series(line.iter().map(|&p| Circle::new(p, 4, color.filled())))
                 .map_err(plot_error)?;
         }
+        // Each run named beside its point (its directory: short, and what --runs takes).
+        chart
+            .draw_series(points.iter().map(|&(family, x, y, dir)| {
+                EmptyElement::at((x, y))
+                    + Text::new(
+                        dir.to_string(),
+                        (6, -14),
+                        ("sans-serif", 12).into_font().color(&family.color()),
+                    )
+            }))
+            .map_err(plot_error)?;
         chart
             .configure_series_labels()
             .position(SeriesLabelPosition::LowerRight)
