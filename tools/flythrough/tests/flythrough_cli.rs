@@ -318,12 +318,14 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
             Some(
                 "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,\
                  resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,eye_x,eye_y,eye_z,look_x,look_y,look_z,\
-                 cycle_started,reads_in_flight_bytes"
+                 cycle_started,reads_in_flight_bytes,prefetch_pass"
             )
         );
         let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
         assert_eq!(rows.len(), 30);
-        assert!(rows.iter().all(|r| r.len() == 27));
+        assert!(rows.iter().all(|r| r.len() == 28));
+        // No prefetch asked: no frame records the pass.
+        assert!(rows.iter().all(|r| r[27] == "0"), "a prefetch pass without --prefetch");
         // Without a disk model every cycle lasts its frame: no reads are in flight.
         assert!(
             rows.iter().all(|r| r[26].is_empty()),
