@@ -120,7 +120,8 @@ impl BindCostFit {
             .map(|coefficients| BindCostFit { coefficients })
     }
 
-    /// The fit of a bind-latency preset: its expected cost over [`calibration_shapes`]
+    /// The fit of a bind-latency preset: its expected cost over calibration batches of 1 to
+    /// 1,024 blocks, contiguous, scattered and unbound, as a bind benchmark measures them
     /// (for `h200-linux` the preset is itself the least-squares fit of the H200's measured
     /// table; for `desktop` the paper's calibration).
     pub fn for_preset(preset: BindLatencyPreset) -> Self {

@@ -4,7 +4,7 @@
 //! The runs: the baseline; fixed load sizes of 1 to 32 MB without bias; the paper's and the
 //! headroom controller at α = 8, 12, 16 and 20 ms; the predictive controller at the same
 //! α without prefetch and with `--prefetch path`, and at 12 ms with `--prefetch motion`.
-//! Every run measures its image error every [`FRONTIER_PSNR_INTERVAL`] frames (about 145
+//! Every run measures its image error every 12 frames (`FRONTIER_PSNR_INTERVAL`; about 145
 //! measured frames after the start-up second of a 30 s path). `frontier.md` tabulates,
 //! per run, the worst and 99th-percentile frame, the frames over α and 2α after the first
 //! second, MB per second of path time, the start-up and after-start-up PSNR of the mean MSE
