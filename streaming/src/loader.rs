@@ -191,21 +191,34 @@ pub struct CyclePlan {
 }
 
 impl CyclePlan {
-    /// Takes `item` unless the block budget is spent: a cycle always takes its first mip,
-    /// and a later one only if its blocks fit what is left. Whether it was taken.
-    fn take(&mut self, item: PlannedMip, budget: Option<BlockBudget>, prefetch: bool) -> bool {
+    /// Takes `item` (wanted with feedback weight `weight`) unless `gate` declines it (the
+    /// cache would refuse it) or the block budget is spent: a cycle always takes its first
+    /// mip, and a later one only if its blocks fit what is left.
+    fn offer(
+        &mut self,
+        item: PlannedMip,
+        weight: u32,
+        gate: Option<&AdmissionGate>,
+        budget: Option<BlockBudget>,
+        prefetch: bool,
+    ) {
+        let declined =
+            gate.is_some_and(|gate| gate.is_refused(item.texture, item.level) || !gate.admit(weight, item.bytes));
+        if declined {
+            self.declined += 1;
+            return;
+        }
         if let Some(budget) = budget {
             let blocks = budget.blocks_of(item.bytes);
             if !self.items.is_empty() && self.blocks.saturating_add(blocks) > budget.blocks {
                 self.over_block_budget += 1;
-                return false;
+                return;
             }
             self.blocks += blocks;
         }
         self.bytes += item.bytes;
         self.prefetched += u64::from(prefetch);
         self.items.push(item);
-        true
     }
 }
 
@@ -349,14 +362,7 @@ fn plan_by_weight<S: MipSource + ?Sized>(
                             return plan;
                         }
                         seen.insert(item.texture);
-                        let declined = gate.is_some_and(|gate| {
-                            gate.is_refused(item.texture, item.level) || !gate.admit(record.weight, item.bytes)
-                        });
-                        if declined {
-                            plan.declined += 1;
-                            continue;
-                        }
-                        plan.take(item, decision.block_budget, prefetch);
+                        plan.offer(item, record.weight, gate, decision.block_budget, prefetch);
                     }
                     Candidate::Failed(f) => plan.fail(states, f, &mut seen),
                 }
@@ -444,13 +450,7 @@ fn plan_by_error_per_byte<S: MipSource + ?Sized>(
         if plan.bytes > decision.load_size_bytes {
             break;
         }
-        let declined = gate
-            .is_some_and(|gate| gate.is_refused(item.texture, item.level) || !gate.admit(t.record.weight, item.bytes));
-        if declined {
-            plan.declined += 1;
-            continue;
-        }
-        plan.take(item, decision.block_budget, t.prefetch);
+        plan.offer(item, t.record.weight, gate, decision.block_budget, t.prefetch);
     }
     plan
 }

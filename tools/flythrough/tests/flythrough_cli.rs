@@ -4,7 +4,7 @@
 use std::process::{Command, Output};
 
 mod flight_support;
-use flight_support::citystream_ok;
+use flight_support::{citystream_ok, default_city};
 
 #[test]
 fn flythrough_writes_frames_and_report() {
@@ -893,16 +893,6 @@ fn transfer_rates_are_per_second_of_path_time() {
         (mean / (mb / path_s) - 1.0).abs() < 0.01,
         "mb_per_s {mean} against {mb} MB over {path_s} s of path"
     );
-}
-
-/// The default city, created once for the tests that fly it (concurrent creators are safe:
-/// each builds privately and renames into place).
-fn default_city() -> std::path::PathBuf {
-    let city = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("default_city")
-        .join("city");
-    citystream_gen::default_city::ensure_default_city(&city, true).expect("default city created");
-    city
 }
 
 /// The paper's ring under a budget so small that making room for a mip evicts the ring's

@@ -4,15 +4,8 @@
 
 use std::process::{Command, Output};
 
-/// The default city, created once for the tests that fly it (concurrent creators are safe:
-/// each builds privately and renames into place).
-fn default_city() -> std::path::PathBuf {
-    let city = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
-        .join("default_city")
-        .join("city");
-    citystream_gen::default_city::ensure_default_city(&city, true).expect("default city created");
-    city
-}
+mod flight_support;
+use flight_support::default_city;
 
 /// The default city's standard path made 18 s long (the shortest), its first cut at
 /// about 4 s; the file and the cut times.

@@ -61,3 +61,11 @@ pub fn fresh_path(group: &str, name: &str) -> PathBuf {
 pub fn fresh_dir(group: &str, name: &str) -> PathBuf {
     tool_tests::fresh_dir(Path::new(env!("CARGO_TARGET_TMPDIR")), group, name)
 }
+
+/// The default city, created once for the tests that fly it (concurrent creators are safe:
+/// each builds privately and renames into place).
+pub fn default_city() -> PathBuf {
+    let city = Path::new(env!("CARGO_TARGET_TMPDIR")).join("default_city").join("city");
+    citystream_gen::default_city::ensure_default_city(&city, true).expect("default city created");
+    city
+}
