@@ -28,6 +28,7 @@ use crate::gpu_types::{
     FEEDBACK_MAX_PIXELS,
 };
 use crate::ground::GroundLayer;
+use crate::image::memory_barrier;
 use crate::pipeline::{BindingSpec, DepthMode, DescriptorPool, DescriptorResource, GraphicsDesc, Pipeline};
 use crate::scene::{upload_buffer, upload_geometry};
 use crate::shaders;
@@ -173,7 +174,14 @@ impl Default for FeedbackView {
     }
 }
 
-/// The three city pipelines (depth pre-pass, feedback, visible), the
+/// The texture a pixel of [`CityRenderer::record_texture_ids`]' image shows; `None` where
+/// no city mesh covers it.
+pub fn texture_of_id_pixel(rgba: [u8; 4]) -> Option<u32> {
+    let id = u32::from(rgba[0]) | (u32::from(rgba[1]) << 8) | (u32::from(rgba[2]) << 16);
+    id.checked_sub(1)
+}
+
+/// The city pipelines (depth pre-pass, feedback, visible, texture ids), the
 /// geometry and the mesh table.
 #[derive(Debug)]
 pub struct CityRenderer {
@@ -181,10 +189,12 @@ pub struct CityRenderer {
     depth_prepass: Pipeline,
     feedback: Pipeline,
     visible: Pipeline,
+    texture_ids: Pipeline,
     _pool: DescriptorPool,
     prepass_set: vk::DescriptorSet,
     feedback_set: vk::DescriptorSet,
     visible_set: vk::DescriptorSet,
+    texture_id_set: vk::DescriptorSet,
     /// Every mesh's vertices, tagged with its id.
     vertices: Buffer,
     /// Every mesh's triangles, in mesh order, indexing `vertices` directly.
@@ -381,8 +391,17 @@ impl CityRenderer {
             .map(|(binding, resource)| (*binding, resource.descriptor_type(), resource.count(), fragment))
             .collect();
         let visible = visible_pipeline(device, shaders::CITY_VERT, visible_bindings, "city visible pipeline")?;
+        let texture_ids = city_pipeline(
+            device,
+            shaders::CITY_VERT,
+            shaders::TEXTURE_ID_FRAG,
+            vec![(BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment)],
+            DepthMode::TestAndWrite,
+            true,
+            "city texture id pipeline",
+        )?;
         // One pool for all sets: sized by the visible layout, which has the most bindings.
-        let pool = DescriptorPool::new(device, &visible, 3, "city descriptors")?;
+        let pool = DescriptorPool::new(device, &visible, 4, "city descriptors")?;
         let prepass_set = pool.allocate(&depth_prepass, &[])?;
         let table = cache_descriptors
             .iter()
@@ -401,6 +420,10 @@ impl CityRenderer {
             ],
         )?;
         let visible_set = pool.allocate(&visible, &cache_descriptors)?;
+        let texture_id_set = pool.allocate(
+            &texture_ids,
+            &[(BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw()))],
+        )?;
         let (city_vertices, city_indices) = single_draw_geometry(vertices, indices, &meshes)?;
         let index_count = u32::try_from(city_indices.len())
             .map_err(|_| EngineError::InvalidRequest("a city of more than 2^32 indices".into()))?;
@@ -419,9 +442,11 @@ impl CityRenderer {
             prepass_set,
             feedback,
             visible,
+            texture_ids,
             _pool: pool,
             feedback_set,
             visible_set,
+            texture_id_set,
             vertices,
             indices,
             index_count,
@@ -721,6 +746,46 @@ impl CityRenderer {
         let drawn = ground.0.record_draw(rec, ground.1, view_proj);
         target.end_and_copy(&self.device, rec);
         drawn
+    }
+
+    /// The texture each pixel of the last visible pass shows, into `target` with its
+    /// read-back copy: texture id + 1 in the red, green and blue bytes, 0 where no mesh
+    /// covers the pixel (`shaders/texture_id.frag`). With culling on it draws the lists
+    /// that pass drew, so call it after [`record_visible`](Self::record_visible) for the
+    /// same camera and target size; without culling it draws every mesh. Attributes a
+    /// frame's image error to the textures behind it (the flythrough's error causes).
+    pub fn record_texture_ids(&self, rec: Recording<'_>, target: &RenderTarget, camera: &Camera) -> Result<()> {
+        let aspect = target.width() as f32 / target.height() as f32;
+        let base = CityDrawPush {
+            view_proj: camera.view_projection(aspect, 0.0).to_cols_array_2d(),
+            viewport_light: [target.width() as f32, target.height() as f32, 0.0, 0.0],
+            ..CityDrawPush::default()
+        };
+        let culling = self.active_culling();
+        if culling.is_some() {
+            // The lists were written by the culling of an earlier submission.
+            memory_barrier(
+                &self.device,
+                rec,
+                (vk::PipelineStageFlags2::COMPUTE_SHADER, vk::AccessFlags2::SHADER_WRITE),
+                (
+                    vk::PipelineStageFlags2::DRAW_INDIRECT | vk::PipelineStageFlags2::INDEX_INPUT,
+                    vk::AccessFlags2::INDIRECT_COMMAND_READ | vk::AccessFlags2::INDEX_READ,
+                ),
+            );
+        }
+        target.begin(&self.device, rec, [0.0, 0.0, 0.0, 0.0]);
+        match culling {
+            Some(culling) => {
+                for list in [CullList::Early, CullList::Late] {
+                    let drawn = Some((culling, CullView::Visible, list));
+                    self.draw(rec, &self.texture_ids, self.texture_id_set, base, drawn);
+                }
+            }
+            None => self.draw_all(rec, &self.texture_ids, self.texture_id_set, base),
+        }
+        target.end_and_copy(&self.device, rec);
+        Ok(())
     }
 
     /// [`record_visible`](Self::record_visible) with another visible pipeline over the

@@ -29,6 +29,7 @@ shader!(CITY_VERT, "city.vert", "city_vert.spv");
 shader!(CITY_FRAG, "city.frag", "city_frag.spv");
 shader!(CITY_TREE_VERT, "city_tree.vert", "city_tree_vert.spv");
 shader!(DEPTH_ONLY_FRAG, "depth_only.frag", "depth_only_frag.spv");
+shader!(TEXTURE_ID_FRAG, "texture_id.frag", "texture_id_frag.spv");
 shader!(GROUND_VERT, "ground.vert", "ground_vert.spv");
 shader!(GROUND_FRAG, "ground.frag", "ground_frag.spv");
 shader!(FEEDBACK_FRAG, "feedback.frag", "feedback_frag.spv");
@@ -65,6 +66,7 @@ pub const ALL: &[ShaderSource] = &[
     CITY_FRAG,
     CITY_TREE_VERT,
     DEPTH_ONLY_FRAG,
+    TEXTURE_ID_FRAG,
     GROUND_VERT,
     GROUND_FRAG,
     FEEDBACK_FRAG,

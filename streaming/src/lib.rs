@@ -49,5 +49,6 @@ pub mod loader;
 pub mod records;
 pub mod residency;
 pub mod rng;
+pub mod shortfall;
 pub mod source;
 pub mod states;

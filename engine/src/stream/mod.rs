@@ -52,6 +52,7 @@ use citystream_streaming::loader::{Loader, LoaderOptions, LoaderTotals, PlanOrde
 use citystream_streaming::records::{prepare, MeshMetaData};
 use citystream_streaming::residency::planner::BudgetPressure;
 use citystream_streaming::residency::{AdmissionGate, NeedTable};
+use citystream_streaming::shortfall::TextureShortfall;
 use citystream_streaming::source::{MipSink, MipSource, SinkError, SourceError, StagedMip};
 use citystream_streaming::states::{MipChain, TextureStates};
 
@@ -864,6 +865,21 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
     /// loading cycle (Eq. 4–7).
     pub fn decision(&self) -> Decision {
         self.decision
+    }
+
+    /// What the streamer knows of `texture` now, from which
+    /// [`TextureShortfall::cause`] says why it may show coarser than the view asks (the
+    /// error attribution of docs/CONTROLLER.md); `None` outside the dataset.
+    pub fn shortfall(&self, texture: u32) -> Option<TextureShortfall> {
+        let data = self.cache.texture_data(texture)?;
+        let shown = (data.state == crate::gpu_types::TEXTURE_SAMPLEABLE).then_some(data.lowest_mip);
+        Some(TextureShortfall {
+            shown,
+            finest_ever: self.cache.finest_ever_sampleable(texture),
+            requested: self.needs.need(texture).map(|need| need.level),
+            refused_for_room: shown.is_some_and(|level| level > 0 && self.gate.is_refused(texture, level - 1)),
+            mip_bias: self.decision.mip_bias,
+        })
     }
 
     /// Charges `bytes` the host uploaded of its own streamed data (a ground layer's tiles)

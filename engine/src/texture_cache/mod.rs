@@ -437,6 +437,12 @@ impl GpuTextureCache {
         self.table.entry(texture)
     }
 
+    /// The finest level `texture` was ever sampleable at, `None` if it never was: a
+    /// texture whose entry is coarser now lost levels to the budget (dropped or evicted).
+    pub fn finest_ever_sampleable(&self, texture: u32) -> Option<u32> {
+        self.table.finest_published(texture)
+    }
+
     /// Texture bytes versus bound bytes.
     pub fn utilisation(&self) -> Utilisation {
         self.cache.utilisation()

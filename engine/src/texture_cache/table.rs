@@ -29,6 +29,10 @@ pub(super) struct TextureSlot {
 pub(super) struct TextureTable {
     slots: Vec<TextureSlot>,
     entries: Vec<TextureData>,
+    /// Per texture, the finest level its entry ever let the shaders sample
+    /// (`u32::MAX`: never sampleable): a texture now coarser than this lost
+    /// levels to the budget.
+    finest_published: Vec<u32>,
     /// Textures whose entry changed since the last table copy.
     dirty: Vec<u32>,
     dirty_flags: Vec<bool>,
@@ -40,6 +44,7 @@ impl TextureTable {
         Self {
             slots: vec![TextureSlot::default(); textures],
             entries: vec![TextureData::default(); textures],
+            finest_published: vec![u32::MAX; textures],
             dirty: Vec::new(),
             dirty_flags: vec![false; textures],
         }
@@ -111,6 +116,19 @@ impl TextureTable {
         let slot = self.slots[texture as usize];
         let entry = &mut self.entries[texture as usize];
         *entry = table_entry(*entry, slot.placement.as_ref(), slot.resident);
+        if entry.state == TEXTURE_SAMPLEABLE {
+            let finest = &mut self.finest_published[texture as usize];
+            *finest = (*finest).min(entry.lowest_mip);
+        }
+    }
+
+    /// The finest level `texture`'s entry ever let the shaders sample; `None` if it never
+    /// was sampleable (or is outside the table).
+    pub(super) fn finest_published(&self, texture: u32) -> Option<u32> {
+        self.finest_published
+            .get(texture as usize)
+            .copied()
+            .filter(|&level| level != u32::MAX)
     }
 
     /// Takes the changed entries; `None` when nothing changed.

@@ -594,7 +594,7 @@ fn run_frontier(args: &BenchArgs, flythrough: &Path, dataset: &Path, budget_mb: 
     let text = crate::frontier::write_frontier(&args.out, &all, size, budget_mb)?;
     eprint!("{text}");
     eprintln!(
-        "wrote {}, frontier.json and frontier.png there",
+        "wrote {}, frontier.json, frontier.png and frontier-causes.png there",
         args.out.join("frontier.md").display()
     );
     Ok(())

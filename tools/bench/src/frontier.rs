@@ -3,20 +3,25 @@
 //!
 //! The runs: the baseline; fixed load sizes of 1 to 32 MB without bias; the paper's and the
 //! headroom controller at α = 8, 12, 16 and 20 ms; the predictive controller at the same
-//! α without prefetch and with `--prefetch path`, and at 12 ms with `--prefetch motion`.
+//! α without prefetch and with `--prefetch path`, and at 12 ms with `--prefetch motion` and
+//! with `--prefetch path` in the paper's order (`--priority weight`).
 //! Every run measures its image error every 12 frames (`FRONTIER_PSNR_INTERVAL`; about 145
 //! measured frames after the start-up second of a 30 s path). `frontier.md` tabulates,
 //! per run, the worst and 99th-percentile frame, the frames over α and 2α after the first
 //! second, MB per second of path time, the start-up and after-start-up PSNR of the mean MSE
 //! and the time to 40 dB after the start and after each cut of the path, then checks the
 //! issue's targets; `frontier.png` plots error against worst frame with the Pareto front;
-//! `frontier.json` holds the figures.
+//! `frontier.json` holds the figures; `frontier-causes.png` stacks each run's error after
+//! start-up by cause (lag, load size, bias, budget), which `frontier.md` tabulates too.
 
 use std::path::Path;
 
 use anyhow::{Context, Result};
 use plotters::prelude::*;
 
+use citystream_streaming::shortfall::ShortfallCause;
+
+use crate::image_error::{psnr_of_mse_db, ErrorCauses};
 use crate::report::{self, plot_error, render_png};
 use crate::report_runs::{read_frames_csv, FrameRow};
 use crate::runs::BenchRun;
@@ -41,6 +46,7 @@ pub(crate) enum Family {
     Predictive,
     PredictivePath,
     PredictiveMotion,
+    PredictivePathWeight,
 }
 
 impl Family {
@@ -53,6 +59,7 @@ impl Family {
             Family::Predictive => "predictive",
             Family::PredictivePath => "predictive + path prefetch",
             Family::PredictiveMotion => "predictive + motion prefetch",
+            Family::PredictivePathWeight => "predictive + path prefetch, weight order",
         }
     }
 
@@ -65,10 +72,11 @@ impl Family {
             Family::Predictive => BLUE,
             Family::PredictivePath => RGBColor(44, 160, 44),
             Family::PredictiveMotion => RGBColor(148, 103, 189),
+            Family::PredictivePathWeight => RGBColor(23, 190, 207),
         }
     }
 
-    const ALL: [Family; 7] = [
+    const ALL: [Family; 8] = [
         Family::Baseline,
         Family::Fixed,
         Family::Paper,
@@ -76,6 +84,7 @@ impl Family {
         Family::Predictive,
         Family::PredictivePath,
         Family::PredictiveMotion,
+        Family::PredictivePathWeight,
     ];
 }
 
@@ -171,6 +180,26 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
         Family::PredictiveMotion,
         Some(12.0),
     ));
+    // The paper's order (weight) in place of error per byte: which order buys the most
+    // image under the predictive controller's block budget is measured, not assumed.
+    runs.push(run(
+        "predictive-a12-path-weight".into(),
+        "predictive α=12 ms, path prefetch, weight order".into(),
+        strings(&[
+            "--policy",
+            "adaptive",
+            "--controller",
+            "predictive",
+            "--alpha",
+            "12",
+            "--prefetch",
+            "path",
+            "--priority",
+            "weight",
+        ]),
+        Family::PredictivePathWeight,
+        Some(12.0),
+    ));
     runs
 }
 
@@ -199,6 +228,9 @@ pub(crate) struct FrontierFigures {
     /// The same from each cut of the path (`None` where none reached it before the next
     /// cut or the end).
     pub(crate) time_to_40db_after_cuts_s: Vec<Option<f64>>,
+    /// The mean MSE after start-up split by cause, in [`ShortfallCause::ALL`] order
+    /// (`summary.json`'s `error_causes.streaming`); `None` for a run flown without it.
+    pub(crate) streaming_error_causes: Option<ErrorCauses>,
 }
 
 /// The `q`-quantile (nearest rank) of `values`; 0 when empty.
@@ -273,6 +305,10 @@ pub(crate) fn figures_of(dir: &Path, run: &FrontierRun) -> Result<FrontierFigure
             .and_then(|v| v.as_u64()),
         time_to_40db_start_s: time_to_level(&frames, 0.0, first_cut, TARGET_PSNR_DB),
         time_to_40db_after_cuts_s: after_cuts,
+        streaming_error_causes: summary
+            .get("error_causes")
+            .and_then(|c| c.get("streaming"))
+            .and_then(|c| serde_json::from_value(c.clone()).ok()),
     })
 }
 
@@ -351,12 +387,137 @@ pub(crate) fn write_frontier(out: &Path, runs: &[FrontierRun], size: (u32, u32),
         front.join(", ")
     ));
     text.push_str(&checks(&figures));
+    text.push_str(&causes_table(&figures));
     text.push_str(&format!("\n{ERROR_NOTE}\n"));
     citystream_gen::files::write_atomically(&out.join("frontier.md"), text.as_bytes())?;
     let json = serde_json::to_string_pretty(&figures.iter().map(|(_, f)| f).collect::<Vec<_>>())?;
     citystream_gen::files::write_atomically(&out.join("frontier.json"), json.as_bytes())?;
     draw_frontier(&figures, &out.join("frontier.png")).context("drawing frontier.png")?;
+    draw_causes(&figures, &out.join("frontier-causes.png")).context("drawing frontier-causes.png")?;
     Ok(text)
+}
+
+/// What each cause would be worth removed: `frontier.md`'s "Where the error comes from".
+fn causes_table(figures: &[(Family, FrontierFigures)]) -> String {
+    let with: Vec<(&FrontierFigures, ErrorCauses)> = figures
+        .iter()
+        .filter_map(|(_, f)| f.streaming_error_causes.map(|c| (f, c)))
+        .collect();
+    if with.is_empty() {
+        return String::new();
+    }
+    let mut text = String::from(
+        "\n## Where the error comes from\n\n\
+         The mean MSE after start-up split by why each pixel's texture showed coarser than the \
+         reference's (docs/CONTROLLER.md): not requested yet (lag), requested and waiting (load size), \
+         held back by the mip bias (bias), dropped, evicted or refused for room (budget); each share of \
+         the run's squared error, and the after-start-up PSNR the run would read with that part gone \
+         (`frontier-causes.png` stacks the parts).\n\n\
+         | run | mean MSE | lag | load size | bias | budget | PSNR without lag / load / bias / budget dB |\n\
+         |---|---:|---:|---:|---:|---:|---|\n",
+    );
+    for (f, causes) in with {
+        let total = causes.total();
+        let share = |c: ShortfallCause| {
+            if total > 0.0 {
+                format!("{:.0} %", 100.0 * causes.part(c) / total)
+            } else {
+                "—".into()
+            }
+        };
+        let without: Vec<String> = ShortfallCause::ALL
+            .iter()
+            .map(|&c| format!("{:.2}", psnr_of_mse_db(total - causes.part(c))))
+            .collect();
+        text.push_str(&format!(
+            "| {} | {:.3} | {} | {} | {} | {} | {} |\n",
+            f.name,
+            total,
+            share(ShortfallCause::Lag),
+            share(ShortfallCause::LoadSize),
+            share(ShortfallCause::Bias),
+            share(ShortfallCause::Budget),
+            without.join(" / "),
+        ));
+    }
+    text
+}
+
+/// The colour of a cause's part in `frontier-causes.png`.
+fn cause_color(cause: ShortfallCause) -> RGBColor {
+    match cause {
+        ShortfallCause::Lag => RGBColor(0x44, 0x77, 0xAA),
+        ShortfallCause::LoadSize => RGBColor(0xEE, 0x66, 0x77),
+        ShortfallCause::Bias => RGBColor(0xCC, 0xBB, 0x44),
+        ShortfallCause::Budget => RGBColor(0x22, 0x88, 0x33),
+    }
+}
+
+/// `frontier-causes.png`: per run, its mean MSE after start-up as a bar stacked by cause.
+fn draw_causes(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<()> {
+    let runs: Vec<(&str, ErrorCauses)> = figures
+        .iter()
+        .filter_map(|(_, f)| f.streaming_error_causes.map(|c| (f.dir.as_str(), c)))
+        .collect();
+    if runs.is_empty() {
+        eprintln!("frontier: no run split its error by cause; frontier-causes.png not drawn");
+        return Ok(());
+    }
+    let top = runs.iter().map(|(_, c)| c.total()).fold(0.0f64, f64::max).max(1e-6) * 1.1;
+    let count = runs.len();
+    let height = (120 + 34 * count as u32).max(300);
+    render_png(path, (1000, height), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(
+                "Where the error comes from: mean MSE after start-up, by cause",
+                ("sans-serif", 22),
+            )
+            .margin(16)
+            .x_label_area_size(46)
+            .y_label_area_size(190)
+            .build_cartesian_2d(0.0..top, (0..count).into_segmented())
+            .map_err(plot_error)?;
+        chart
+            .configure_mesh()
+            .disable_y_mesh()
+            .y_label_formatter(&|v| match v {
+                SegmentValue::CenterOf(i) => runs.get(*i).map_or(String::new(), |(dir, _)| dir.to_string()),
+                _ => String::new(),
+            })
+            .y_labels(count)
+            .x_desc("mean MSE after start-up (8-bit RGB)")
+            .label_style(("sans-serif", 13))
+            .axis_desc_style(("sans-serif", 15))
+            .draw()
+            .map_err(plot_error)?;
+        for (k, cause) in ShortfallCause::ALL.iter().enumerate() {
+            let color = cause_color(*cause);
+            chart
+                .draw_series(runs.iter().enumerate().map(|(i, (_, c))| {
+                    let parts = c.parts();
+                    let from: f64 = parts[..k].iter().sum();
+                    let to = from + parts[k];
+                    let mut bar = Rectangle::new(
+                        [(from, SegmentValue::Exact(i)), (to, SegmentValue::Exact(i + 1))],
+                        color.filled(),
+                    );
+                    bar.set_margin(5, 5, 0, 0);
+                    bar
+                }))
+                .map_err(plot_error)?
+                .label(cause.name())
+                .legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], color.filled()));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(plot_error)?;
+        Ok(())
+    })
 }
 
 /// The issue's targets for this streaming (predictive α = 12 ms with path, and with
@@ -606,9 +767,57 @@ mod tests {
     }
 
     #[test]
+    fn the_causes_table_gives_each_share_and_the_psnr_without_it() {
+        let causes = ErrorCauses {
+            lag_mse: 1.0,
+            load_mse: 3.0,
+            bias_mse: 0.0,
+            budget_mse: 0.0,
+        };
+        let figures = FrontierFigures {
+            dir: "predictive-a12".into(),
+            name: "predictive α=12 ms".into(),
+            family: Family::Predictive.label(),
+            alpha_ms: Some(12.0),
+            frames: 10,
+            worst_frame_ms: 20.0,
+            p99_frame_ms: 15.0,
+            frames_over_alpha: 0,
+            frames_over_2alpha: 0,
+            mb_per_path_s: 1.0,
+            startup_psnr_db: None,
+            streaming_psnr_db: Some(psnr_of_mse_db(4.0)),
+            streaming_measured_frames: Some(10),
+            time_to_40db_start_s: None,
+            time_to_40db_after_cuts_s: Vec::new(),
+            streaming_error_causes: Some(causes),
+        };
+        let without_causes = FrontierFigures {
+            streaming_error_causes: None,
+            ..figures.clone()
+        };
+        assert_eq!(causes_table(&[(Family::Predictive, without_causes)]), "");
+        let table = causes_table(&[(Family::Predictive, figures.clone())]);
+        let row = format!(
+            "| predictive α=12 ms | 4.000 | 25 % | 75 % | 0 % | 0 % | {:.2} / {:.2} / {:.2} / {:.2} |",
+            psnr_of_mse_db(3.0),
+            psnr_of_mse_db(1.0),
+            psnr_of_mse_db(4.0),
+            psnr_of_mse_db(4.0)
+        );
+        assert!(table.contains(&row), "{table}");
+        let dir = std::env::temp_dir().join(format!("citystream-frontier-causes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temporary directory");
+        let png = dir.join("frontier-causes.png");
+        draw_causes(&[(Family::Predictive, figures)], &png).expect("drawn");
+        assert!(std::fs::metadata(&png).expect("written").len() > 1000);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn the_runs_cover_every_family_once_per_setting() {
         let runs = frontier_runs(256);
-        assert_eq!(runs.len(), 1 + 6 + 4 * 4 + 1);
+        assert_eq!(runs.len(), 1 + 6 + 4 * 4 + 2);
         let mut dirs: Vec<&str> = runs.iter().map(|r| r.run.dir.as_str()).collect();
         dirs.sort_unstable();
         dirs.dedup();

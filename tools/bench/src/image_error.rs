@@ -14,6 +14,7 @@
 //! are compared; the start-up's is [`ErrorFigures::startup`].
 
 use citystream_streaming::bench::stats::Stats;
+use citystream_streaming::shortfall::ShortfallCause;
 use serde::ser::SerializeMap;
 use serde::{Deserialize, Serialize, Serializer};
 
@@ -166,6 +167,115 @@ impl PhaseError {
     }
 }
 
+/// A frame's MSE split by why each pixel is coarser than its reference's: the
+/// [`ShortfallCause`] of the texture the pixel shows (docs/CONTROLLER.md, "Where the error
+/// comes from"). The parts partition the frame's squared error, so they sum to its MSE.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct ErrorCauses {
+    /// Not requested yet (feedback lag).
+    pub lag_mse: f64,
+    /// Requested and waiting (the load size).
+    pub load_mse: f64,
+    /// Shown coarser by the mip bias.
+    pub bias_mse: f64,
+    /// Dropped, evicted or refused for room (the budget).
+    pub budget_mse: f64,
+}
+
+impl ErrorCauses {
+    /// The split of [`mse`]`(image, reference)` by the cause `cause_of` names for each pixel
+    /// (its column and row). A pixel whose colours agree adds nothing, whatever its cause.
+    pub fn of_images(
+        image: &image::RgbaImage,
+        reference: &image::RgbaImage,
+        mut cause_of: impl FnMut(u32, u32) -> ShortfallCause,
+    ) -> Self {
+        let mut sums = [0.0f64; 4];
+        let mut n = 0u64;
+        for ((x, y, p), q) in image.enumerate_pixels().zip(reference.pixels()) {
+            let mut squared = 0.0;
+            for c in 0..3 {
+                let d = f64::from(p.0[c]) - f64::from(q.0[c]);
+                squared += d * d;
+            }
+            n += 3;
+            if squared > 0.0 {
+                sums[cause_of(x, y).index()] += squared;
+            }
+        }
+        let n = n.max(1) as f64;
+        Self::from_parts(sums.map(|sum| sum / n))
+    }
+
+    /// The parts in [`ShortfallCause::ALL`] order.
+    pub fn parts(&self) -> [f64; 4] {
+        [self.lag_mse, self.load_mse, self.bias_mse, self.budget_mse]
+    }
+
+    fn from_parts(parts: [f64; 4]) -> Self {
+        ErrorCauses {
+            lag_mse: parts[0],
+            load_mse: parts[1],
+            bias_mse: parts[2],
+            budget_mse: parts[3],
+        }
+    }
+
+    /// The part of `cause`.
+    pub fn part(&self, cause: ShortfallCause) -> f64 {
+        self.parts()[cause.index()]
+    }
+
+    /// The frame's MSE: the sum of the parts.
+    pub fn total(&self) -> f64 {
+        self.parts().iter().sum()
+    }
+
+    /// The mean of each part over `frames`; `None` when there are none.
+    pub fn mean(frames: impl Iterator<Item = ErrorCauses>) -> Option<Self> {
+        let (mut sums, mut count) = ([0.0f64; 4], 0u64);
+        for frame in frames {
+            for (sum, part) in sums.iter_mut().zip(frame.parts()) {
+                *sum += part;
+            }
+            count += 1;
+        }
+        (count > 0).then(|| Self::from_parts(sums.map(|sum| sum / count as f64)))
+    }
+}
+
+/// The error causes of a run's measured frames, start-up and streaming apart (as
+/// [`ErrorFigures`] splits them): `summary.json`'s `error_causes`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CauseFigures {
+    /// Mean parts over the start-up fill's measured frames (path time below [`STARTUP_S`]).
+    pub startup: Option<ErrorCauses>,
+    /// Mean parts over the frames after it: they sum to the mean MSE behind
+    /// `streaming_psnr_of_mean_mse_db`.
+    pub streaming: Option<ErrorCauses>,
+}
+
+impl CauseFigures {
+    /// The figures of frames measured at the given path times; `None` without frames.
+    pub fn of(frames: &[(f64, ErrorCauses)]) -> Option<Self> {
+        if frames.is_empty() {
+            return None;
+        }
+        let phase = |startup: bool| {
+            ErrorCauses::mean(
+                frames
+                    .iter()
+                    .filter(|(t, _)| (*t < STARTUP_S) == startup)
+                    .map(|(_, c)| *c),
+            )
+        };
+        Some(CauseFigures {
+            startup: phase(true),
+            streaming: phase(false),
+        })
+    }
+}
+
 /// How many frames were measured, and how many of them equalled their reference.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ErrorFrames {
@@ -251,6 +361,69 @@ mod tests {
         b.put_pixel(0, 0, image::Rgba([58, 20, 30, 0]));
         assert!((mse(&a, &b) - 48.0).abs() < 1e-12);
         assert!((psnr_db(&a, &b) - 10.0 * (65025.0f64 / 48.0).log10()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn error_causes_partition_the_mse() {
+        // Pseudo-random images and causes: the four parts sum to the MSE.
+        let mut rng = citystream_streaming::rng::SplitMix64::new(7);
+        let mut byte = || (rng.next_u64() & 0xFF) as u8;
+        let (w, h) = (37, 23);
+        let a = image::RgbaImage::from_fn(w, h, |_, _| image::Rgba([byte(), byte(), byte(), 255]));
+        let b = image::RgbaImage::from_fn(w, h, |x, y| {
+            let p = a.get_pixel(x, y).0;
+            // A third of the pixels equal, the rest off by up to 255 per channel.
+            if (x + y) % 3 == 0 {
+                image::Rgba(p)
+            } else {
+                image::Rgba([byte(), byte(), byte(), 0])
+            }
+        });
+        let cause_of = |x: u32, y: u32| ShortfallCause::ALL[((x * 7 + y * 3) % 4) as usize];
+        let causes = ErrorCauses::of_images(&a, &b, cause_of);
+        let total = mse(&a, &b);
+        assert!(total > 0.0);
+        assert!(((causes.total() - total) / total).abs() < 1e-6, "{causes:?} vs {total}");
+        for cause in ShortfallCause::ALL {
+            assert!(causes.part(cause) > 0.0, "{cause:?}");
+        }
+        // One pixel off by 48 on one channel, charged to the bias: the whole MSE there.
+        let mut c = a.clone();
+        c.put_pixel(
+            3,
+            4,
+            image::Rgba([
+                a.get_pixel(3, 4).0[0].wrapping_add(48),
+                a.get_pixel(3, 4).0[1],
+                a.get_pixel(3, 4).0[2],
+                255,
+            ]),
+        );
+        let one = ErrorCauses::of_images(&c, &a, |x, y| {
+            if (x, y) == (3, 4) {
+                ShortfallCause::Bias
+            } else {
+                ShortfallCause::Lag
+            }
+        });
+        assert_eq!(one.lag_mse, 0.0);
+        assert!((one.bias_mse - mse(&c, &a)).abs() < 1e-12);
+        // Identical images: nothing to attribute.
+        assert_eq!(ErrorCauses::of_images(&a, &a, cause_of).total(), 0.0);
+    }
+
+    #[test]
+    fn cause_figures_average_each_phase_apart() {
+        assert_eq!(CauseFigures::of(&[]), None);
+        let frame = |lag, load| ErrorCauses {
+            lag_mse: lag,
+            load_mse: load,
+            ..ErrorCauses::default()
+        };
+        let figures = CauseFigures::of(&[(0.5, frame(4.0, 0.0)), (1.0, frame(1.0, 2.0)), (2.0, frame(3.0, 0.0))])
+            .expect("frames");
+        assert_eq!(figures.startup, Some(frame(4.0, 0.0)));
+        assert_eq!(figures.streaming, Some(frame(2.0, 1.0)));
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
-use citystream_bench::image_error::{ErrorSeries, FrameError, PrefixedErrorFigures};
+use citystream_bench::image_error::{CauseFigures, ErrorCauses, ErrorSeries, FrameError, PrefixedErrorFigures};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::cull::CullStats;
 use citystream_engine::device::{describe, TextureBacking};
@@ -22,7 +22,7 @@ use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
 use super::dataset::{open_city, scene_extent};
 use super::flight::{Flight, FrameSettings, GroundSizing};
-use super::measure::{feedback_reaching, load_reference, reference_feedback};
+use super::measure::{error_causes, feedback_reaching, load_reference, reference_feedback};
 use super::output::{status, write_csv_row, write_frame_png, CsvRow, MipCacheSummary, Run, CSV_HEADER};
 use super::passes::draw_now;
 
@@ -140,6 +140,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         .and_then(|v| v.parse::<u32>().ok());
     let mut waits = WaitCounts::default();
     let mut uploads_at: Vec<(f64, u64)> = Vec::new();
+    let mut cause_frames: Vec<(f64, ErrorCauses)> = Vec::new();
     let (mut nodes_drawn, mut draw_call_samples) = (Vec::new(), Vec::new());
     let mut meshes_seen = Vec::new();
     for frame in 0..frames {
@@ -194,7 +195,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         }
         waits.count(recorded.cpu_wait, false);
 
-        let (mut error, mut ground_error) = (None, None);
+        let (mut error, mut ground_error, mut causes) = (None, None, None);
         if write_frame || measure_error {
             let target = &flight.targets.target;
             // Reading this frame's image back is a wait outside the steady state.
@@ -216,7 +217,15 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 // (`ground_psnr_db` measures the ground's).
                 let ground = flight.ground.as_ref().map(|run| (&run.layer, recorded.slot));
                 draw_now(&mut commands, &reference.renderer, (target, &camera), true, ground)?;
-                error = Some(FrameError::of_images(&pixels, &target.read_pixels()?));
+                let reference_pixels = target.read_pixels()?;
+                error = Some(FrameError::of_images(&pixels, &reference_pixels));
+                causes = Some(error_causes(
+                    &mut commands,
+                    reference,
+                    &flight.gpu.streamer,
+                    (target, &camera),
+                    (&pixels, &reference_pixels),
+                )?);
             }
             if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {
                 ground_error = run.measure(
@@ -251,6 +260,9 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         if let Some(error) = error {
             errors.push(time_s, error);
         }
+        if let Some(causes) = causes {
+            cause_frames.push((time_s, causes));
+        }
         uploads_at.push((time_s, mips));
         write_csv_row(
             &mut csv,
@@ -268,6 +280,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 cycle_started: recorded.cycle_started,
                 reads_in_flight_bytes: recorded.reads_in_flight_bytes,
                 prefetch_pass: recorded.prefetched,
+                causes,
             },
         )?;
         let mb_per_s = bytes as f64 / 1e6 / (path_ms / 1000.0).max(1e-6);
@@ -369,6 +382,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             prefix: "",
             figures: errors.figures(),
         },
+        error_causes: CauseFigures::of(&cause_frames),
         ground_tiles_uploaded: flight.ground.as_ref().map(|g| g.layer.totals().tiles_uploaded),
         ground_mb_streamed: flight
             .ground

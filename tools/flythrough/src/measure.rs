@@ -1,15 +1,17 @@
-//! Measurements against the fully resident reference: the reference's own loading, and the
-//! draws a renderer binding one texture per draw would issue.
+//! Measurements against the fully resident reference: the reference's own loading, the
+//! error split by cause, and the draws a renderer binding one texture per draw would issue.
 
 use anyhow::Result;
 use citystream_dataset::Aabb;
 
-use citystream_engine::city::{Camera, CityMesh, FeedbackView};
+use citystream_bench::image_error::ErrorCauses;
+use citystream_engine::city::{texture_of_id_pixel, Camera, CityMesh, FeedbackView};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE};
 use citystream_engine::stream::TextureStreamer;
 use citystream_engine::target::RenderTarget;
 use citystream_streaming::atlas_tree::{frustum_planes, intersects_frustum};
+use citystream_streaming::shortfall::ShortfallCause;
 use citystream_streaming::source::MipSource;
 
 use super::args::FIXED_STEP_MS;
@@ -133,6 +135,35 @@ impl MeshesInView {
             }
         }
     }
+}
+
+/// A measured frame's MSE (`image` against `reference_image`, the reference's view just
+/// drawn into `target`) split by cause: the reference draws which texture each pixel shows,
+/// and each texture's state in `streamer` names the cause its pixels carry
+/// ([`ShortfallCause`]). Pixels no city mesh covers carry the lag (they differ only where
+/// the two views' culling did).
+pub(crate) fn error_causes<S: MipSource + 'static>(
+    commands: &mut CommandContext,
+    reference: &CityGpu,
+    streamer: &TextureStreamer<S>,
+    (target, camera): (&RenderTarget, &Camera),
+    (image, reference_image): (&image::RgbaImage, &image::RgbaImage),
+) -> Result<ErrorCauses> {
+    let rec = commands.begin()?;
+    reference.renderer.record_texture_ids(rec, target, camera)?;
+    commands.submit_and_wait(&[])?;
+    let ids = target.read_pixels()?;
+    let mut known: std::collections::HashMap<u32, ShortfallCause> = std::collections::HashMap::new();
+    Ok(ErrorCauses::of_images(image, reference_image, |x, y| {
+        let Some(texture) = texture_of_id_pixel(ids.get_pixel(x, y).0) else {
+            return ShortfallCause::Lag;
+        };
+        *known.entry(texture).or_insert_with(|| {
+            streamer
+                .shortfall(texture)
+                .map_or(ShortfallCause::Lag, |state| state.cause())
+        })
+    }))
 }
 
 /// The feedback entries (reaching `tau`) of the fully resident reference's own feedback

@@ -4,7 +4,7 @@ use std::io::Write;
 
 use anyhow::Result;
 
-use citystream_bench::image_error::{FrameError, PrefixedErrorFigures};
+use citystream_bench::image_error::{CauseFigures, ErrorCauses, FrameError, PrefixedErrorFigures};
 use citystream_engine::city::Camera;
 use citystream_gen::files::write_png;
 use citystream_streaming::bench::stats::Stats;
@@ -86,6 +86,10 @@ pub(crate) struct Run<'a> {
     /// frame counts, identical ones at the ceiling; `citystream_bench::image_error`).
     #[serde(flatten)]
     pub(crate) error: PrefixedErrorFigures,
+    /// The facades' mean MSE split by why each pixel was coarser than the reference's
+    /// (lag, load size, bias, budget), start-up and streaming apart; each phase's parts
+    /// sum to its mean MSE. `null` without measured frames.
+    pub(crate) error_causes: Option<CauseFigures>,
     /// With --ground: tiles of ground imagery composed and uploaded, their MB, and the
     /// ground's error against a reference with every arrived patch resident (both drawn
     /// alone behind the city), under the same keys prefixed `ground_`.
@@ -200,7 +204,8 @@ pub(crate) fn status(frame: u32, frames: u32, dt: f64, s_mb: f64, b: f64, mb_s: 
 pub(crate) const CSV_HEADER: &str =
     "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,\
                           blocks_bound,resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,\
-                          eye_x,eye_y,eye_z,look_x,look_y,look_z,cycle_started,reads_in_flight_bytes,prefetch_pass";
+                          eye_x,eye_y,eye_z,look_x,look_y,look_z,cycle_started,reads_in_flight_bytes,prefetch_pass,\
+                          mse_lag,mse_load,mse_bias,mse_budget";
 
 /// One frame's line of frames.csv.
 pub(crate) struct CsvRow<'a> {
@@ -222,6 +227,8 @@ pub(crate) struct CsvRow<'a> {
     pub(crate) reads_in_flight_bytes: Option<u64>,
     /// The frame recorded the prefetch pass (and a modelled frame paid for it).
     pub(crate) prefetch_pass: bool,
+    /// The facades' MSE split by cause, on measured frames.
+    pub(crate) causes: Option<ErrorCauses>,
 }
 
 pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
@@ -230,7 +237,7 @@ pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
     // The pose exactly (shortest round-trip form): a replay is compared with it.
     writeln!(
         csv,
-        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+        "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
         row.frame,
         row.time_s,
         row.frame_ms,
@@ -261,6 +268,10 @@ pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
         u8::from(row.cycle_started),
         row.reads_in_flight_bytes.map(|b| b.to_string()).unwrap_or_default(),
         u8::from(row.prefetch_pass),
+        exact(row.causes.map(|c| c.lag_mse)),
+        exact(row.causes.map(|c| c.load_mse)),
+        exact(row.causes.map(|c| c.bias_mse)),
+        exact(row.causes.map(|c| c.budget_mse)),
     )?;
     Ok(())
 }

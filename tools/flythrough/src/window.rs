@@ -740,6 +740,7 @@ impl Viewer {
                 cycle_started: recorded.cycle_started,
                 reads_in_flight_bytes: recorded.reads_in_flight_bytes,
                 prefetch_pass: recorded.prefetched,
+                causes: None,
             },
         )?;
         let mb_per_s = self.throughput.push(self.time_s, applied.bytes_uploaded);

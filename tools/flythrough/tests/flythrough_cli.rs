@@ -318,12 +318,32 @@ fn flythrough_streams_a_dataset_with_the_fixed_clock() {
             Some(
                 "frame,time_s,dt_ms,tw_ms,tm_ms,tb_ms,tbl_ms,tbu_ms,load_size_mb,mip_bias,mips,bytes,blocks_bound,\
                  resident_bytes,mip_deficit,psnr_db,mse,ground_psnr_db,ground_mse,eye_x,eye_y,eye_z,look_x,look_y,look_z,\
-                 cycle_started,reads_in_flight_bytes,prefetch_pass"
+                 cycle_started,reads_in_flight_bytes,prefetch_pass,mse_lag,mse_load,mse_bias,mse_budget"
             )
         );
         let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
         assert_eq!(rows.len(), 30);
-        assert!(rows.iter().all(|r| r.len() == 28));
+        assert!(rows.iter().all(|r| r.len() == 32));
+        // The error split by cause on each measured frame: four parts summing to its MSE.
+        for r in rows.iter().filter(|r| !r[16].is_empty()) {
+            let mse: f64 = r[16].parse().expect("mse");
+            let parts: f64 = r[28..32].iter().map(|p| p.parse::<f64>().expect("cause part")).sum();
+            assert!(
+                (parts - mse).abs() <= 1e-9 * mse.max(1e-12),
+                "{policy}: parts {parts} vs mse {mse}"
+            );
+        }
+        assert!(
+            rows.iter()
+                .filter(|r| r[16].is_empty())
+                .all(|r| r[28..32].iter().all(|p| p.is_empty())),
+            "cause parts only on measured frames"
+        );
+        let causes = &summary["error_causes"];
+        assert!(
+            causes["startup"]["lag_mse"].as_f64().is_some(),
+            "{policy}: error_causes missing: {causes}"
+        );
         // No prefetch asked: no frame records the pass.
         assert!(rows.iter().all(|r| r[27] == "0"), "a prefetch pass without --prefetch");
         // Without a disk model every cycle lasts its frame: no reads are in flight.
