@@ -23,6 +23,19 @@ pub const CUT_FACTOR: f32 = 8.0;
 /// The most a prediction turns, radians: a turn rate carried far ahead wraps around.
 pub const MAX_TURN: f32 = std::f32::consts::FRAC_PI_2;
 
+/// Share of the lead time between two motion passes. The levels a pass requests stay
+/// resident once loaded, and between passes spaced a quarter of the lead apart the
+/// predicted view moves a quarter of the way the lead carries it, so each pass overlaps the
+/// last by three quarters; a pass on every frame paid for the same requests again each
+/// frame (docs/CONTROLLER.md, "Prefetch").
+pub const MOTION_PASS_SPACING: f64 = 0.25;
+
+/// Whether a motion prefetch pass is due at `now_s` (path seconds) with lead time
+/// `lead_s`, the last one at `last_s`: at most one per [`MOTION_PASS_SPACING`] of the lead.
+pub fn motion_pass_due(last_s: Option<f64>, now_s: f64, lead_s: f64) -> bool {
+    last_s.is_none_or(|last| now_s - last >= MOTION_PASS_SPACING * lead_s)
+}
+
 /// One observed frame: when, where the eye was, where it looked.
 #[derive(Clone, Copy, Debug)]
 struct Sample {
@@ -187,6 +200,14 @@ mod tests {
         assert!(sees_beyond_margin(&wide, &moved(0.0, 30.0), 0.25));
         assert!(sees_beyond_margin(&wide, &moved(5000.0, 0.0), 0.25));
         assert!(!sees_beyond_margin(&wide, &wide, 0.25));
+    }
+
+    #[test]
+    fn motion_passes_are_spaced_a_quarter_of_the_lead_apart() {
+        assert!(motion_pass_due(None, 0.0, 0.5));
+        assert!(!motion_pass_due(Some(1.0), 1.1, 0.5));
+        assert!(motion_pass_due(Some(1.0), 1.125, 0.5));
+        assert!(motion_pass_due(Some(1.0), 3.0, 0.5));
     }
 
     #[test]

@@ -13,7 +13,7 @@ use citystream_dataset::Dataset;
 use citystream_engine::city::{Camera, CityMesh, CityRenderer};
 use citystream_engine::commands::{CommandContext, Recording, SemaphoreSignal, SemaphoreWait};
 use citystream_engine::gpu_types::{CACHE_IMAGE_SLOTS, TEXTURE_SAMPLEABLE};
-use citystream_engine::stream::prefetch::{sees_beyond_margin, MotionPredictor};
+use citystream_engine::stream::prefetch::{motion_pass_due, sees_beyond_margin, MotionPredictor};
 use citystream_engine::stream::Frame;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{CycleReport, Eviction};
@@ -78,6 +78,8 @@ pub(crate) struct Flight {
     prefetch_lead_s: f64,
     prefetch_cost_ms: f64,
     motion: MotionPredictor,
+    /// Path time of the last motion prefetch pass.
+    last_motion_pass_s: Option<f64>,
     budget_mb: Option<u64>,
     /// What the over-budget warning says the cache does about it.
     eviction: Eviction,
@@ -269,6 +271,7 @@ impl Flight {
             prefetch_lead_s: args.prefetch_lead_s,
             prefetch_cost_ms: args.prefetch_cost_ms.unwrap_or(args.render_ms * FEEDBACK_PASS_SHARE),
             motion: MotionPredictor::new(),
+            last_motion_pass_s: None,
             budget_mb: args.memory_budget_mb().0,
             eviction: args.eviction,
             warned_over_budget: false,
@@ -383,11 +386,18 @@ impl Flight {
                     .map(|cut| pose_camera(&path.sample_between(None, cut), self.extent))
             }
             // Motion (or a path flown by hand): carried forward, where it sees beyond what
-            // the view's own feedback covers.
-            _ => self
-                .motion
-                .predict(camera, lead)
-                .filter(|ahead| sees_beyond_margin(camera, ahead, view.margin)),
+            // the view's own feedback covers, at most once per quarter of the lead.
+            _ if !motion_pass_due(self.last_motion_pass_s, settings.time_s, lead) => None,
+            _ => {
+                let ahead = self
+                    .motion
+                    .predict(camera, lead)
+                    .filter(|ahead| sees_beyond_margin(camera, ahead, view.margin));
+                if ahead.is_some() {
+                    self.last_motion_pass_s = Some(settings.time_s);
+                }
+                ahead
+            }
         };
         self.motion.observe(settings.time_s, camera);
         if let Some(ahead) = &ahead {
