@@ -4,7 +4,7 @@
 //! The runs: the baseline; fixed load sizes of 1 to 32 MB without bias; the paper's and the
 //! headroom controller at α = 8, 12, 16 and 20 ms; the predictive controller at the same
 //! α without prefetch and with `--prefetch path`, and at 12 ms with `--prefetch motion` and
-//! with `--prefetch path` in the paper's order (`--priority weight`).
+//! with `--prefetch path` in the error-per-byte order (`--priority error-per-byte`).
 //! Every run measures its image error every 12 frames (`FRONTIER_PSNR_INTERVAL`; about 145
 //! measured frames after the start-up second of a 30 s path). `frontier.md` tabulates,
 //! per run, the worst and 99th-percentile frame, the frames over α and 2α after the first
@@ -46,7 +46,7 @@ pub(crate) enum Family {
     Predictive,
     PredictivePath,
     PredictiveMotion,
-    PredictivePathWeight,
+    PredictivePathEpb,
 }
 
 impl Family {
@@ -59,7 +59,7 @@ impl Family {
             Family::Predictive => "predictive",
             Family::PredictivePath => "predictive + path prefetch",
             Family::PredictiveMotion => "predictive + motion prefetch",
-            Family::PredictivePathWeight => "predictive + path prefetch, weight order",
+            Family::PredictivePathEpb => "predictive + path prefetch, error-per-byte order",
         }
     }
 
@@ -72,7 +72,7 @@ impl Family {
             Family::Predictive => BLUE,
             Family::PredictivePath => RGBColor(44, 160, 44),
             Family::PredictiveMotion => RGBColor(148, 103, 189),
-            Family::PredictivePathWeight => RGBColor(23, 190, 207),
+            Family::PredictivePathEpb => RGBColor(23, 190, 207),
         }
     }
 
@@ -84,7 +84,7 @@ impl Family {
         Family::Predictive,
         Family::PredictivePath,
         Family::PredictiveMotion,
-        Family::PredictivePathWeight,
+        Family::PredictivePathEpb,
     ];
 }
 
@@ -180,11 +180,11 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
         Family::PredictiveMotion,
         Some(12.0),
     ));
-    // The paper's order (weight) in place of error per byte: which order buys the most
-    // image under the predictive controller's block budget is measured, not assumed.
+    // Error per byte in place of the paper's order (weight, the default): which order
+    // buys the most image under the predictive controller's block budget is measured.
     runs.push(run(
-        "predictive-a12-path-weight".into(),
-        "predictive α=12 ms, path prefetch, weight order".into(),
+        "predictive-a12-path-epb".into(),
+        "predictive α=12 ms, path prefetch, error-per-byte order".into(),
         strings(&[
             "--policy",
             "adaptive",
@@ -195,9 +195,9 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
             "--prefetch",
             "path",
             "--priority",
-            "weight",
+            "error-per-byte",
         ]),
-        Family::PredictivePathWeight,
+        Family::PredictivePathEpb,
         Some(12.0),
     ));
     runs

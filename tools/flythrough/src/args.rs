@@ -99,21 +99,19 @@ fn parse_render_ms(text: &str) -> Result<f64, String> {
 /// `--priority`: the order a cycle takes its mips in.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub(crate) enum Priority {
-    /// Error per byte with the predictive controller, weight otherwise.
-    Auto,
-    /// The paper's: by feedback weight.
+    /// The paper's: by feedback weight (the default: error per byte read less after
+    /// start-up on the frontier, docs/CONTROLLER.md).
     Weight,
     /// By the screen error a mip removes per byte it costs.
     ErrorPerByte,
 }
 
 impl Priority {
-    /// The loader's order for `policy`.
-    pub(crate) fn order(self, policy: PolicyKind) -> PlanOrder {
-        match (self, policy) {
-            (Priority::Weight, _) => PlanOrder::Weight,
-            (Priority::ErrorPerByte, _) | (Priority::Auto, PolicyKind::Predictive) => PlanOrder::ErrorPerByte,
-            (Priority::Auto, _) => PlanOrder::Weight,
+    /// The loader's order.
+    pub(crate) fn order(self) -> PlanOrder {
+        match self {
+            Priority::Weight => PlanOrder::Weight,
+            Priority::ErrorPerByte => PlanOrder::ErrorPerByte,
         }
     }
 }
@@ -357,10 +355,9 @@ pub(crate) struct Args {
     /// Load size in MB (fixed policy).
     #[arg(long, default_value_t = 4.0)]
     pub(crate) load_size_mb: f64,
-    /// The order a cycle takes its mips in: `weight` (the paper's, by feedback weight),
-    /// `error-per-byte` (the screen error a mip removes per byte it costs) or `auto`
-    /// (error per byte for the predictive controller, weight for the others).
-    #[arg(long, value_enum, default_value_t = Priority::Auto)]
+    /// The order a cycle takes its mips in: `weight` (the paper's, by feedback weight)
+    /// or `error-per-byte` (the screen error a mip removes per byte it costs).
+    #[arg(long, value_enum, default_value_t = Priority::Weight)]
     pub(crate) priority: Priority,
     /// Prefetch: `none`; `path` (a second feedback pass from where the path puts the
     /// camera `--prefetch-lead-s` ahead); `motion` (from the camera's motion of the last

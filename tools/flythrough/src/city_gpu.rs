@@ -198,9 +198,7 @@ pub(crate) fn streamed_city_gpu(
         args.cache_layers,
         layer_size,
     );
-    if let Some(policy) = args.controller.policy(args.policy) {
-        config.loader.order = args.priority.order(policy);
-    }
+    config.loader.order = args.priority.order();
     // The prefetch pass goes with the feedback it extends (not the atlas tree's paging).
     config.prefetch = args.prefetch != Prefetch::None && tree.is_none();
     if let Some(disk) = disk {

@@ -70,8 +70,6 @@ pub(crate) struct Flight {
     /// `--disk-model`: the loader's reads take modelled time on it.
     pub(crate) disk: Option<DiskSummary>,
     cpu_clock: CpuFrameClock,
-    /// τ in the feedback's fixed point: per feedback fragment, not per visible one.
-    pub(crate) tau: u32,
     last_feedback: Option<u64>,
     /// `--prefetch`, its lead time and modelled cost, and the camera's recent motion.
     prefetch: Prefetch,
@@ -244,7 +242,6 @@ impl Flight {
             .map(|i| CommandContext::new(device, &format!("flythrough frame (slot {i})")))
             .collect::<std::result::Result<Vec<_>, _>>()?;
         let pass_times = PassTimes::new(device, frames_in_flight)?;
-        let tau = gpu.streamer.gpu_tau();
         Ok(Self {
             meshes_in_view: MeshesInView::new(&dataset.scene),
             dataset,
@@ -265,7 +262,6 @@ impl Flight {
             latency_rng: SplitMix64::new(args.seed),
             disk: disk.map(|(_, summary)| summary),
             cpu_clock: CpuFrameClock::new(),
-            tau,
             last_feedback: None,
             prefetch: args.prefetch,
             prefetch_lead_s: args.prefetch_lead_s,

@@ -109,7 +109,6 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             .map(|t| (t * 10.0).round() / 10.0)
             .collect::<Vec<_>>()
     );
-    let tau = flight.tau;
     eprintln!(
         "scene: {} ({} meshes, {} textures), {} frame(s) in flight",
         dir.display(),
@@ -205,14 +204,16 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 write_frame_png(args, frame, &pixels, &mut written)?;
             }
             if let (true, Some(reference)) = (measure_error, reference.as_mut()) {
-                // The reference loads what the loader serves (entries
-                // reaching τ); lighter ones are read back for eviction only.
+                // The reference sees what the view sees: every seen mesh's level (this
+                // frame compacted at τ = 0), lighter than τ or not, and every level the
+                // streamed frame shows of them.
                 let entries: Vec<FeedbackEntry> = if flight.has_feedback() {
-                    feedback_reaching(&flight.gpu.streamer, recorded.index, tau)?
+                    feedback_reaching(&flight.gpu.streamer, recorded.index, 0)?
                 } else {
                     reference_feedback(reference, &mut commands, &flight.targets, &camera, args.height)?
                 };
-                reference_incomplete += load_reference(reference, &mut commands, &entries, flight.meshes())?;
+                let shown = Some(&flight.gpu.streamer);
+                reference_incomplete += load_reference(reference, &mut commands, &entries, flight.meshes(), shown)?;
                 // On the streamed ground, so that this error is the facades' alone
                 // (`ground_psnr_db` measures the ground's).
                 let ground = flight.ground.as_ref().map(|run| (&run.layer, recorded.slot));

@@ -7,7 +7,7 @@ use citystream_dataset::Aabb;
 use citystream_bench::image_error::ErrorCauses;
 use citystream_engine::city::{texture_of_id_pixel, Camera, CityMesh, FeedbackView};
 use citystream_engine::commands::CommandContext;
-use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE};
+use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE, TEXTURE_SAMPLEABLE};
 use citystream_engine::stream::TextureStreamer;
 use citystream_engine::target::RenderTarget;
 use citystream_streaming::atlas_tree::{frustum_planes, intersects_frustum};
@@ -21,24 +21,48 @@ use super::passes::{self, Compaction};
 /// Loads, into the reference streamer, every level from the one each seen
 /// mesh needs up to its coarsest, with no budget or load size; returns how
 /// many textures the reference cache had to evict (0 for a faithful reference).
-pub(crate) fn load_reference(
+/// Where `shown` (the streamed run's streamer) shows a seen texture finer than its
+/// meshes ask for (a level loaded for an earlier view, or prefetched), the reference
+/// holds that level too: a streamed frame is never sharper than its reference, so the
+/// error counts only what streaming leaves coarser.
+pub(crate) fn load_reference<S: MipSource + 'static>(
     reference: &mut CityGpu,
     commands: &mut CommandContext,
     entries: &[FeedbackEntry],
     meshes: &[CityMesh],
+    shown: Option<&TextureStreamer<S>>,
 ) -> Result<u32> {
+    let shown_level = |texture: u32| {
+        shown
+            .and_then(|s| s.cache().texture_data(texture))
+            .filter(|d| d.state == TEXTURE_SAMPLEABLE)
+            .map(|d| d.lowest_mip)
+    };
+    let needed = reference_levels(entries, meshes, shown_level);
+    let evicted = reference.streamer.load_now(&needed, commands)?;
+    Ok(evicted.len() as u32)
+}
+
+/// Per texture of the seen meshes (`entries`), the finest level the reference loads: the
+/// finest any of its meshes asks for, or the finest `shown` says the streamed frame shows
+/// if that is finer. In texture order.
+fn reference_levels(
+    entries: &[FeedbackEntry],
+    meshes: &[CityMesh],
+    shown: impl Fn(u32) -> Option<u32>,
+) -> Vec<(u32, u32)> {
     let mut needed: Vec<(u32, u32)> = entries
         .iter()
         .filter_map(|e| {
-            meshes
-                .get(e.mesh_id as usize)
-                .map(|m| (m.texture, e.mip / FEEDBACK_MIP_ONE as u32))
+            meshes.get(e.mesh_id as usize).map(|m| {
+                let asked = e.mip / FEEDBACK_MIP_ONE as u32;
+                (m.texture, shown(m.texture).map_or(asked, |level| asked.min(level)))
+            })
         })
         .collect();
     needed.sort_unstable();
     needed.dedup_by_key(|(t, _)| *t);
-    let evicted = reference.streamer.load_now(&needed, commands)?;
-    Ok(evicted.len() as u32)
+    needed
 }
 
 /// Draws of the feedback strategy's frame as a renderer binding one texture per draw
@@ -166,8 +190,8 @@ pub(crate) fn error_causes<S: MipSource + 'static>(
     }))
 }
 
-/// The feedback entries (reaching `tau`) of the fully resident reference's own feedback
-/// pass for `camera`: what the reference must load where the run has no feedback of its
+/// The feedback entries of the fully resident reference's own feedback pass for `camera`,
+/// every seen mesh's: what the reference must load where the run has no feedback of its
 /// own (the atlas-tree strategy). Its loader is handed no records, so only `load_now` fills it.
 pub(crate) fn reference_feedback(
     reference: &mut CityGpu,
@@ -176,7 +200,6 @@ pub(crate) fn reference_feedback(
     camera: &Camera,
     visible_height: u32,
 ) -> Result<Vec<FeedbackEntry>> {
-    let tau = reference.streamer.gpu_tau();
     reference.streamer.set_host_records(Vec::new())?;
     let index = feedback_frame_now(
         reference,
@@ -186,7 +209,7 @@ pub(crate) fn reference_feedback(
         visible_height,
         Compaction::Tau(0),
     )?;
-    feedback_reaching(&reference.streamer, index, tau)
+    feedback_reaching(&reference.streamer, index, 0)
 }
 
 /// Runs one streamer frame of feedback for `camera` (uploads, feedback pass, compaction
@@ -247,6 +270,34 @@ pub(crate) fn feedback_reaching<S: MipSource + 'static>(
 mod tests {
     use super::*;
     use glam::Vec3;
+
+    #[test]
+    fn the_reference_holds_what_the_view_asks_and_what_the_stream_shows() {
+        let mesh = |texture| CityMesh {
+            first_index: 0,
+            index_count: 3,
+            vertex_offset: 0,
+            texture,
+            texture_width: 256,
+            texture_height: 256,
+        };
+        let meshes = [mesh(0), mesh(0), mesh(1), mesh(2)];
+        let entry = |mesh_id, level: u32| FeedbackEntry {
+            mip: level * FEEDBACK_MIP_ONE as u32 + FEEDBACK_MIP_ONE as u32 / 2,
+            weight: 1,
+            mesh_id,
+        };
+        // Texture 0: its meshes ask for 3 and 5; the stream shows 4: the finest asked, 3.
+        // Texture 1: asks for 6, the stream shows 2 (an earlier view's, or prefetched): 2.
+        // Texture 2: asks for 1, nothing shown: 1. A mesh outside the city is skipped.
+        let entries = [entry(1, 5), entry(0, 3), entry(2, 6), entry(3, 1), entry(9, 0)];
+        let shown = |texture: u32| match texture {
+            0 => Some(4),
+            1 => Some(2),
+            _ => None,
+        };
+        assert_eq!(reference_levels(&entries, &meshes, shown), vec![(0, 3), (1, 2), (2, 1)]);
+    }
 
     /// The run-first count equals testing every mesh, over views that see all, part and
     /// none of a grid of buildings (and a mesh without triangles, never counted).

@@ -77,7 +77,7 @@ fn path_prefetch_flights_are_reproducible_validated_and_charged() {
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     assert_eq!(summary["validation_errors"], 0, "{summary}");
     assert_eq!(summary["policy"], "predictive");
-    assert_eq!(summary["priority"], "error-per-byte");
+    assert_eq!(summary["priority"], "weight");
     assert_eq!(summary["prefetch"], "path");
     assert_eq!(summary["prefetch_lead_s"], 0.5);
     assert_eq!(summary["prefetch_cost_ms"], 3.0);
@@ -165,7 +165,7 @@ fn motion_prefetch_extrapolates_and_the_orders_are_options() {
     // view's margin.
     let frames = summary["prefetch_frames"].as_u64().expect("prefetch_frames");
     assert!((1..=298).contains(&frames), "{frames} frames prefetched");
-    // The paper's order by default for the paper's controller.
+    // The paper's order by default.
     let (output, summary, _) = fly("paper-order", &["--policy", "adaptive"]);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     assert_eq!(summary["priority"], "weight");
