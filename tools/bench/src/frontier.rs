@@ -47,6 +47,7 @@ pub(crate) enum Family {
     PredictivePath,
     PredictiveMotion,
     PredictivePathEpb,
+    PredictivePathLead,
 }
 
 impl Family {
@@ -60,6 +61,7 @@ impl Family {
             Family::PredictivePath => "predictive + path prefetch",
             Family::PredictiveMotion => "predictive + motion prefetch",
             Family::PredictivePathEpb => "predictive + path prefetch, error-per-byte order",
+            Family::PredictivePathLead => "predictive + path prefetch, lead 0.5 / 2 s",
         }
     }
 
@@ -73,10 +75,11 @@ impl Family {
             Family::PredictivePath => RGBColor(44, 160, 44),
             Family::PredictiveMotion => RGBColor(148, 103, 189),
             Family::PredictivePathEpb => RGBColor(23, 190, 207),
+            Family::PredictivePathLead => RGBColor(140, 86, 75),
         }
     }
 
-    const ALL: [Family; 8] = [
+    const ALL: [Family; 9] = [
         Family::Baseline,
         Family::Fixed,
         Family::Paper,
@@ -85,6 +88,7 @@ impl Family {
         Family::PredictivePath,
         Family::PredictiveMotion,
         Family::PredictivePathEpb,
+        Family::PredictivePathLead,
     ];
 }
 
@@ -200,8 +204,33 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
         Family::PredictivePathEpb,
         Some(12.0),
     ));
+    // The lead time of path prefetch, which its default is chosen from (the α = 12 ms run
+    // above flies the default).
+    for lead in FRONTIER_LEADS_S {
+        runs.push(run(
+            format!("predictive-a12-path-lead{lead}"),
+            format!("predictive α=12 ms, path prefetch, lead {lead} s"),
+            strings(&[
+                "--policy",
+                "adaptive",
+                "--controller",
+                "predictive",
+                "--alpha",
+                "12",
+                "--prefetch",
+                "path",
+                "--prefetch-lead-s",
+                &lead.to_string(),
+            ]),
+            Family::PredictivePathLead,
+            Some(12.0),
+        ));
+    }
     runs
 }
+
+/// Lead times (s) of path prefetch flown beside the default's run.
+pub(crate) const FRONTIER_LEADS_S: [f64; 2] = [0.5, 2.0];
 
 /// What the frontier reports of one run.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -817,7 +846,7 @@ mod tests {
     #[test]
     fn the_runs_cover_every_family_once_per_setting() {
         let runs = frontier_runs(256);
-        assert_eq!(runs.len(), 1 + 6 + 4 * 4 + 2);
+        assert_eq!(runs.len(), 1 + 6 + 4 * 4 + 2 + FRONTIER_LEADS_S.len());
         let mut dirs: Vec<&str> = runs.iter().map(|r| r.run.dir.as_str()).collect();
         dirs.sort_unstable();
         dirs.dedup();

@@ -543,8 +543,10 @@ pub(crate) const UNLIMITED_BUDGET_BYTES: u64 = u64::MAX / 4;
 /// without `--render-ms`.
 pub(crate) const FIXED_STEP_MS: f64 = 1000.0 / 60.0;
 pub(crate) const FIXED_RENDER_MS: f64 = 8.0;
-/// `--prefetch-lead-s` by default.
-pub(crate) const DEFAULT_PREFETCH_LEAD_S: f64 = 0.5;
+/// `--prefetch-lead-s` by default: chosen on the frontier (pressure city, 640×360, path
+/// prefetch at 0.5, 1 and 2 s read 53.35, 53.56 and 53.66 dB after start-up with 37, 36 and
+/// 54 frames over α; 1 s is within 0.1 dB of the best with the fewest; docs/CONTROLLER.md).
+pub(crate) const DEFAULT_PREFETCH_LEAD_S: f64 = 1.0;
 /// The view's feedback work's share of a frame: what the prefetch pass, a second one,
 /// adds to `--render-ms` by default. Measured on lavapipe (`gpu_pass_ms` of `flythrough
 /// --dataset data/large-atlas --clock modelled --bind-latency desktop --memory-budget-mb

@@ -370,16 +370,29 @@ impl Flight {
         let ahead = match (self.prefetch, settings.path) {
             (Prefetch::None, _) => None,
             _ if !feedback_pass || !self.gpu.streamer.prefetches() => None,
-            // A known path: the view after its next cut, from a lead time before it. Between
-            // cuts the view's own feedback, over its margin, follows the camera frame by
-            // frame; a pass looking half a second ahead there cost more than it gave
-            // (docs/CONTROLLER.md, "Prefetch").
+            // A known path: the view after its next cut, from a lead time before it; between
+            // cuts, the pose a lead ahead where it sees beyond the view's margin, at most
+            // once per quarter of the lead (docs/CONTROLLER.md, "Prefetch").
             (Prefetch::Path, Some(path)) => {
                 let now = settings.time_s;
-                path.jumps()
+                let after_cut = path
+                    .jumps()
                     .into_iter()
                     .find(|&cut| cut > now && cut <= now + lead)
-                    .map(|cut| pose_camera(&path.sample_between(None, cut), self.extent))
+                    .map(|cut| pose_camera(&path.sample_between(None, cut), self.extent));
+                after_cut.or_else(|| {
+                    // Between cuts: the pose a lead ahead where it sees beyond the view's
+                    // margin, spaced as motion's passes are.
+                    if !motion_pass_due(self.last_motion_pass_s, now, lead) {
+                        return None;
+                    }
+                    let ahead = pose_camera(&path.sample_between(Some(now), now + lead), self.extent);
+                    let beyond = sees_beyond_margin(camera, &ahead, view.margin);
+                    if beyond {
+                        self.last_motion_pass_s = Some(now);
+                    }
+                    beyond.then_some(ahead)
+                })
             }
             // Motion (or a path flown by hand): carried forward, where it sees beyond what
             // the view's own feedback covers, at most once per quarter of the lead.

@@ -81,23 +81,32 @@ fn path_prefetch_flights_are_reproducible_validated_and_charged() {
     assert_eq!(summary["prefetch"], "path");
     assert_eq!(summary["prefetch_lead_s"], 0.5);
     assert_eq!(summary["prefetch_cost_ms"], 3.0);
-    // The pass is recorded in the half second before each cut of the path, from the view
-    // after it, and in no other frame.
+    // The pass is recorded on every frame of the half second before each cut of the path,
+    // from the view after it; between cuts, where the pose half a second ahead sees beyond
+    // the view's margin, at most once per eighth of a second (a quarter of the lead).
     let (_, cuts) = short_path();
     let (passes, times) = (column(&first, "prefetch_pass"), column(&first, "time_s"));
     let recorded = passes.iter().filter(|&&p| p == 1.0).count();
     assert_eq!(summary["prefetch_frames"].as_u64(), Some(recorded as u64), "{summary}");
     assert!(recorded > 0, "no frame recorded the prefetch pass");
+    let mut between_cuts = Vec::new();
     for (&pass, &t) in passes.iter().zip(&times) {
         // frames.csv has time_s to 0.1 ms.
         let before_a_cut = cuts.iter().any(|&cut| cut > t + 1e-4 && cut <= t + 0.5 - 1e-4);
         let near_a_cut = cuts
             .iter()
             .any(|&cut| (cut - t).abs() < 1e-4 || (cut - t - 0.5).abs() < 1e-4);
-        if !near_a_cut {
-            assert_eq!(pass == 1.0, before_a_cut, "frame at {t} s, cuts at {cuts:?}");
+        if before_a_cut && !near_a_cut {
+            assert_eq!(pass, 1.0, "frame at {t} s before a cut, cuts at {cuts:?}");
+        } else if !near_a_cut && pass == 1.0 {
+            between_cuts.push(t);
         }
     }
+    assert!(!between_cuts.is_empty(), "the path's turns need no pass?");
+    assert!(
+        between_cuts.windows(2).all(|w| w[1] - w[0] >= 0.125 - 2e-4),
+        "passes between cuts closer than a quarter of the lead: {between_cuts:?}"
+    );
     assert!(summary["prefetched_mips"].as_u64().is_some_and(|m| m > 0), "{summary}");
     // Two runs of the same options: the same frames, byte for byte.
     let (output, _, second) = fly("path-b", &args);
