@@ -591,7 +591,7 @@ fn run_frontier(args: &BenchArgs, flythrough: &Path, dataset: &Path, budget_mb: 
         settings.width.unwrap_or(PRESSURE_SIZE.0),
         settings.height.unwrap_or(PRESSURE_SIZE.1),
     );
-    let text = crate::frontier::write_frontier(&args.out, &all, size, budget_mb)?;
+    let text = crate::frontier::write_frontier(&args.out, &all, dataset, size, budget_mb)?;
     eprint!("{text}");
     eprintln!(
         "wrote {}, frontier.json, frontier.png and frontier-causes.png there",

@@ -360,7 +360,13 @@ fn cell(v: Option<f64>, digits: usize) -> String {
 
 /// `frontier.md`, `frontier.json` and `frontier.png` from the finished runs in `out`
 /// (runs not flown are listed as such); the markdown.
-pub(crate) fn write_frontier(out: &Path, runs: &[FrontierRun], size: (u32, u32), budget_mb: u64) -> Result<String> {
+pub(crate) fn write_frontier(
+    out: &Path,
+    runs: &[FrontierRun],
+    city: &Path,
+    size: (u32, u32),
+    budget_mb: u64,
+) -> Result<String> {
     let mut figures = Vec::new();
     let mut missing = Vec::new();
     for run in runs {
@@ -372,7 +378,7 @@ pub(crate) fn write_frontier(out: &Path, runs: &[FrontierRun], size: (u32, u32),
         }
     }
     let mut text = format!(
-        "# The frontier: speed against error on the pressure benchmark ({}×{}, {budget_mb} MB)\n\n\
+        "# The frontier: speed against error ({}, {}×{}, {budget_mb} MB)\n\n\
          Error measured every {FRONTIER_PSNR_INTERVAL} frames; frames over α count from the first second of \
          path time on (α = {FRONTIER_ALPHA_MS} ms for the baseline and the fixed sizes); MB = 2^20 bytes per \
          second of path time; time to {TARGET_PSNR_DB} dB: path seconds from the start, or from each cut, to \
@@ -380,7 +386,9 @@ pub(crate) fn write_frontier(out: &Path, runs: &[FrontierRun], size: (u32, u32),
          | run | worst frame ms | p99 frame ms | frames > α / > 2α | MB per path s | start-up PSNR dB | \
          after start-up PSNR dB (measured) | to {TARGET_PSNR_DB} dB after start s | after each cut s |\n\
          |---|---:|---:|---:|---:|---:|---:|---:|---|\n",
-        size.0, size.1
+        city.display(),
+        size.0,
+        size.1
     );
     for (_, f) in &figures {
         let cuts: Vec<String> = f.time_to_40db_after_cuts_s.iter().map(|t| cell(*t, 2)).collect();
