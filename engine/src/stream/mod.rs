@@ -867,12 +867,21 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         self.decision
     }
 
+    /// The finest level the shaders sample of `texture` now; `None` while it is not
+    /// sampleable (or outside the dataset).
+    pub fn shown_level(&self, texture: u32) -> Option<u32> {
+        self.cache
+            .texture_data(texture)
+            .filter(|data| data.state == crate::gpu_types::TEXTURE_SAMPLEABLE)
+            .map(|data| data.lowest_mip)
+    }
+
     /// What the streamer knows of `texture` now, from which
     /// [`TextureShortfall::cause`] says why it may show coarser than the view asks (the
     /// error attribution of docs/CONTROLLER.md); `None` outside the dataset.
     pub fn shortfall(&self, texture: u32) -> Option<TextureShortfall> {
-        let data = self.cache.texture_data(texture)?;
-        let shown = (data.state == crate::gpu_types::TEXTURE_SAMPLEABLE).then_some(data.lowest_mip);
+        self.cache.texture_data(texture)?;
+        let shown = self.shown_level(texture);
         Some(TextureShortfall {
             shown,
             finest_ever: self.cache.finest_ever_sampleable(texture),

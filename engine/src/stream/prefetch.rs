@@ -30,8 +30,9 @@ pub const MAX_TURN: f32 = std::f32::consts::FRAC_PI_2;
 /// frame (docs/CONTROLLER.md, "Prefetch").
 pub const MOTION_PASS_SPACING: f64 = 0.25;
 
-/// Whether a motion prefetch pass is due at `now_s` (path seconds) with lead time
-/// `lead_s`, the last one at `last_s`: at most one per [`MOTION_PASS_SPACING`] of the lead.
+/// Whether a prefetch pass looking ahead by motion (or along a known path, between its
+/// cuts) is due at `now_s` (path seconds) with lead time `lead_s`, the last one at
+/// `last_s`: at most one per [`MOTION_PASS_SPACING`] of the lead.
 pub fn motion_pass_due(last_s: Option<f64>, now_s: f64, lead_s: f64) -> bool {
     last_s.is_none_or(|last| now_s - last >= MOTION_PASS_SPACING * lead_s)
 }

@@ -168,19 +168,16 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
             ));
         }
     }
+    // The predictive controller at α = 12 ms, `extra` after: the runs beside the families.
+    let predictive_a12 = |extra: &[&str]| {
+        let mut args = strings(&["--policy", "adaptive", "--controller", "predictive", "--alpha", "12"]);
+        args.extend(strings(extra));
+        args
+    };
     runs.push(run(
         "predictive-a12-motion".into(),
         "predictive α=12 ms, motion prefetch".into(),
-        strings(&[
-            "--policy",
-            "adaptive",
-            "--controller",
-            "predictive",
-            "--alpha",
-            "12",
-            "--prefetch",
-            "motion",
-        ]),
+        predictive_a12(&["--prefetch", "motion"]),
         Family::PredictiveMotion,
         Some(12.0),
     ));
@@ -189,18 +186,7 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
     runs.push(run(
         "predictive-a12-path-epb".into(),
         "predictive α=12 ms, path prefetch, error-per-byte order".into(),
-        strings(&[
-            "--policy",
-            "adaptive",
-            "--controller",
-            "predictive",
-            "--alpha",
-            "12",
-            "--prefetch",
-            "path",
-            "--priority",
-            "error-per-byte",
-        ]),
+        predictive_a12(&["--prefetch", "path", "--priority", "error-per-byte"]),
         Family::PredictivePathEpb,
         Some(12.0),
     ));
@@ -210,18 +196,7 @@ pub(crate) fn frontier_runs(budget_mb: u64) -> Vec<FrontierRun> {
         runs.push(run(
             format!("predictive-a12-path-lead{lead}"),
             format!("predictive α=12 ms, path prefetch, lead {lead} s"),
-            strings(&[
-                "--policy",
-                "adaptive",
-                "--controller",
-                "predictive",
-                "--alpha",
-                "12",
-                "--prefetch",
-                "path",
-                "--prefetch-lead-s",
-                &lead.to_string(),
-            ]),
+            predictive_a12(&["--prefetch", "path", "--prefetch-lead-s", &lead.to_string()]),
             Family::PredictivePathLead,
             Some(12.0),
         ));

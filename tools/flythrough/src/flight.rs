@@ -76,8 +76,9 @@ pub(crate) struct Flight {
     prefetch_lead_s: f64,
     prefetch_cost_ms: f64,
     motion: MotionPredictor,
-    /// Path time of the last motion prefetch pass.
-    last_motion_pass_s: Option<f64>,
+    /// Path time of the last prefetch pass that looked ahead between cuts (motion's, or
+    /// path's), which spaces the next one.
+    last_ahead_pass_s: Option<f64>,
     budget_mb: Option<u64>,
     /// What the over-budget warning says the cache does about it.
     eviction: Eviction,
@@ -267,7 +268,7 @@ impl Flight {
             prefetch_lead_s: args.prefetch_lead_s,
             prefetch_cost_ms: args.prefetch_cost_ms.unwrap_or(args.render_ms * FEEDBACK_PASS_SHARE),
             motion: MotionPredictor::new(),
-            last_motion_pass_s: None,
+            last_ahead_pass_s: None,
             budget_mb: args.memory_budget_mb().0,
             eviction: args.eviction,
             warned_over_budget: false,
@@ -383,27 +384,27 @@ impl Flight {
                 after_cut.or_else(|| {
                     // Between cuts: the pose a lead ahead where it sees beyond the view's
                     // margin, spaced as motion's passes are.
-                    if !motion_pass_due(self.last_motion_pass_s, now, lead) {
+                    if !motion_pass_due(self.last_ahead_pass_s, now, lead) {
                         return None;
                     }
                     let ahead = pose_camera(&path.sample_between(Some(now), now + lead), self.extent);
                     let beyond = sees_beyond_margin(camera, &ahead, view.margin);
                     if beyond {
-                        self.last_motion_pass_s = Some(now);
+                        self.last_ahead_pass_s = Some(now);
                     }
                     beyond.then_some(ahead)
                 })
             }
             // Motion (or a path flown by hand): carried forward, where it sees beyond what
             // the view's own feedback covers, at most once per quarter of the lead.
-            _ if !motion_pass_due(self.last_motion_pass_s, settings.time_s, lead) => None,
+            _ if !motion_pass_due(self.last_ahead_pass_s, settings.time_s, lead) => None,
             _ => {
                 let ahead = self
                     .motion
                     .predict(camera, lead)
                     .filter(|ahead| sees_beyond_margin(camera, ahead, view.margin));
                 if ahead.is_some() {
-                    self.last_motion_pass_s = Some(settings.time_s);
+                    self.last_ahead_pass_s = Some(settings.time_s);
                 }
                 ahead
             }

@@ -7,7 +7,7 @@ use citystream_dataset::Aabb;
 use citystream_bench::image_error::ErrorCauses;
 use citystream_engine::city::{texture_of_id_pixel, Camera, CityMesh, FeedbackView};
 use citystream_engine::commands::CommandContext;
-use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE, TEXTURE_SAMPLEABLE};
+use citystream_engine::gpu_types::{FeedbackEntry, FEEDBACK_MIP_ONE};
 use citystream_engine::stream::TextureStreamer;
 use citystream_engine::target::RenderTarget;
 use citystream_streaming::atlas_tree::{frustum_planes, intersects_frustum};
@@ -32,12 +32,7 @@ pub(crate) fn load_reference<S: MipSource + 'static>(
     meshes: &[CityMesh],
     shown: Option<&TextureStreamer<S>>,
 ) -> Result<u32> {
-    let shown_level = |texture: u32| {
-        shown
-            .and_then(|s| s.cache().texture_data(texture))
-            .filter(|d| d.state == TEXTURE_SAMPLEABLE)
-            .map(|d| d.lowest_mip)
-    };
+    let shown_level = |texture: u32| shown.and_then(|s| s.shown_level(texture));
     let needed = reference_levels(entries, meshes, shown_level);
     let evicted = reference.streamer.load_now(&needed, commands)?;
     Ok(evicted.len() as u32)

@@ -1,10 +1,8 @@
 //! The error split by cause in a flight: each cause shows up where the run's settings make
 //! it the reason texels are coarse, and the parts partition every measured frame's MSE.
 
-use std::process::Command;
-
 mod flight_support;
-use flight_support::default_city;
+use flight_support::{default_city, fly_flythrough, optional_column};
 
 /// 240 modelled frames of the default city at 160×120 with validation, error every 8
 /// frames, `extra` after; summary.json and frames.csv.
@@ -12,42 +10,27 @@ fn fly(name: &str, extra: &[&str]) -> (serde_json::Value, String) {
     let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
         .join("error_causes")
         .join(name);
-    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args(["--width", "160", "--height", "120", "--frames", "240"])
-        .args(["--clock", "modelled", "--bind-latency", "desktop"])
-        .args(["--frame-interval", "0", "--psnr-interval", "8", "--validation=true"])
-        .args(extra)
-        .arg("--dataset")
-        .arg(default_city())
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("flythrough runs");
+    let mut args = vec!["--width", "160", "--height", "120", "--frames", "240"];
+    args.extend(["--clock", "modelled", "--bind-latency", "desktop"]);
+    args.extend(["--frame-interval", "0", "--psnr-interval", "8", "--validation=true"]);
+    args.extend(extra);
+    let (output, summary, csv) = fly_flythrough(&args, &default_city(), &out);
     assert!(
         output.status.success(),
         "{name}: {}",
         String::from_utf8_lossy(&output.stderr)
     );
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).expect("summary.json"))
-            .expect("summary parses");
     assert_eq!(summary["validation_errors"], 0, "{name}: {summary}");
-    (
-        summary,
-        std::fs::read_to_string(out.join("frames.csv")).expect("frames.csv"),
-    )
+    (summary, csv)
 }
 
 /// Every measured frame's `(mse, [lag, load, bias, budget])`.
 fn measured(csv: &str) -> Vec<(f64, [f64; 4])> {
-    let mut lines = csv.lines();
-    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
-    let at = |name: &str| header.iter().position(|h| *h == name).expect("column");
-    let (mse, parts) = (at("mse"), ["mse_lag", "mse_load", "mse_bias", "mse_budget"].map(at));
-    lines
-        .map(|l| l.split(',').collect::<Vec<_>>())
-        .filter(|r| !r[mse].is_empty())
-        .map(|r| (r[mse].parse().expect("mse"), parts.map(|p| r[p].parse().expect("part"))))
+    let mse = optional_column(csv, "mse");
+    let parts = ["mse_lag", "mse_load", "mse_bias", "mse_budget"].map(|name| optional_column(csv, name));
+    mse.iter()
+        .enumerate()
+        .filter_map(|(i, m)| m.map(|m| (m, parts.each_ref().map(|p| p[i].expect("a part on a measured frame")))))
         .collect()
 }
 

@@ -2,10 +2,10 @@
 //! reproducible, validated, charged in the modelled frame, and refused where they do not
 //! apply.
 
-use std::process::{Command, Output};
+use std::process::Output;
 
 mod flight_support;
-use flight_support::default_city;
+use flight_support::{column, default_city, fly_flythrough};
 
 /// The default city's standard path made 18 s long (the shortest), its first cut at
 /// about 4 s; the file and the cut times.
@@ -24,39 +24,19 @@ fn fly(name: &str, extra: &[&str]) -> (Output, serde_json::Value, String) {
         .join("prefetch")
         .join(name);
     let (path, _) = short_path();
-    let output = Command::new(env!("CARGO_BIN_EXE_flythrough"))
-        .args(["--width", "160", "--height", "120", "--frames", "300"])
-        .arg("--path")
-        .arg(path)
-        .args([
-            "--clock",
-            "modelled",
-            "--bind-latency",
-            "desktop",
-            "--memory-budget-mb",
-            "32",
-        ])
-        .args(["--frame-interval", "0", "--psnr-interval", "30", "--validation=true"])
-        .args(extra)
-        .arg("--dataset")
-        .arg(default_city())
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("flythrough runs");
-    let summary = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap_or_default())
-        .unwrap_or(serde_json::Value::Null);
-    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap_or_default();
-    (output, summary, csv)
-}
-
-fn column(csv: &str, name: &str) -> Vec<f64> {
-    let mut lines = csv.lines();
-    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
-    let at = header.iter().position(|h| *h == name).expect("column");
-    lines
-        .map(|l| l.split(',').nth(at).expect("cell").parse().expect("number"))
-        .collect()
+    let path = path.to_str().expect("utf-8 path");
+    let mut args = vec!["--width", "160", "--height", "120", "--frames", "300", "--path", path];
+    args.extend([
+        "--clock",
+        "modelled",
+        "--bind-latency",
+        "desktop",
+        "--memory-budget-mb",
+        "32",
+    ]);
+    args.extend(["--frame-interval", "0", "--psnr-interval", "30", "--validation=true"]);
+    args.extend(extra);
+    fly_flythrough(&args, &default_city(), &out)
 }
 
 #[test]

@@ -69,3 +69,42 @@ pub fn default_city() -> PathBuf {
     citystream_gen::default_city::ensure_default_city(&city, true).expect("default city created");
     city
 }
+
+/// `flythrough ARGS… --dataset DATASET --out OUT`: its output, `summary.json` (null if not
+/// written) and `frames.csv` (empty if not written).
+pub fn fly_flythrough(args: &[&str], dataset: &Path, out: &Path) -> (std::process::Output, serde_json::Value, String) {
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .args(args)
+        .arg("--dataset")
+        .arg(dataset)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .expect("flythrough runs");
+    let summary = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap_or_default())
+        .unwrap_or(serde_json::Value::Null);
+    let csv = std::fs::read_to_string(out.join("frames.csv")).unwrap_or_default();
+    (output, summary, csv)
+}
+
+/// Column `name` of a `frames.csv`, each cell parsed; `None` where a cell is empty (a frame
+/// that did not measure it).
+pub fn optional_column(csv: &str, name: &str) -> Vec<Option<f64>> {
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let at = header.iter().position(|h| *h == name).expect("column");
+    lines
+        .map(|l| {
+            let cell = l.split(',').nth(at).expect("cell");
+            (!cell.is_empty()).then(|| cell.parse().expect("number"))
+        })
+        .collect()
+}
+
+/// Column `name` of a `frames.csv`, every cell a number.
+pub fn column(csv: &str, name: &str) -> Vec<f64> {
+    optional_column(csv, name)
+        .into_iter()
+        .map(|cell| cell.expect("a number in every frame"))
+        .collect()
+}
