@@ -174,9 +174,13 @@ impl Default for FeedbackView {
     }
 }
 
+/// Texture ids [`CityRenderer::record_texture_ids`] can draw: id + 1 in three bytes.
+const TEXTURE_ID_LIMIT: u32 = (1 << 24) - 1;
+
 /// The texture a pixel of [`CityRenderer::record_texture_ids`]' image shows; `None` where
 /// no city mesh covers it.
 pub fn texture_of_id_pixel(rgba: [u8; 4]) -> Option<u32> {
+    // Ids from TEXTURE_ID_LIMIT on are refused before they are drawn.
     let id = u32::from(rgba[0]) | (u32::from(rgba[1]) << 8) | (u32::from(rgba[2]) << 16);
     id.checked_sub(1)
 }
@@ -190,6 +194,8 @@ pub struct CityRenderer {
     feedback: Pipeline,
     visible: Pipeline,
     texture_ids: Pipeline,
+    /// The largest texture id any mesh uses.
+    max_texture: u32,
     _pool: DescriptorPool,
     prepass_set: vk::DescriptorSet,
     feedback_set: vk::DescriptorSet,
@@ -377,6 +383,7 @@ impl CityRenderer {
             "city depth pre-pass pipeline",
         )?;
         let mesh_info: Vec<CityMeshInfo> = meshes.iter().map(CityMesh::info).collect();
+        let max_texture = meshes.iter().map(|m| m.texture).max().unwrap_or(0);
         let mesh_info = upload_buffer(
             device,
             commands,
@@ -443,6 +450,7 @@ impl CityRenderer {
             feedback,
             visible,
             texture_ids,
+            max_texture,
             _pool: pool,
             feedback_set,
             visible_set,
@@ -755,6 +763,12 @@ impl CityRenderer {
     /// same camera and target size; without culling it draws every mesh. Attributes a
     /// frame's image error to the textures behind it (the flythrough's error causes).
     pub fn record_texture_ids(&self, rec: Recording<'_>, target: &RenderTarget, camera: &Camera) -> Result<()> {
+        if self.max_texture >= TEXTURE_ID_LIMIT {
+            return Err(EngineError::InvalidRequest(format!(
+                "texture ids are drawn in 24 bits; texture {} is beyond them",
+                self.max_texture
+            )));
+        }
         let aspect = target.width() as f32 / target.height() as f32;
         let base = CityDrawPush {
             view_proj: camera.view_projection(aspect, 0.0).to_cols_array_2d(),
@@ -837,6 +851,21 @@ impl CityRenderer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn texture_ids_survive_either_unorm_rounding_and_decode() {
+        // texture_id.frag writes byte k as (k + 0.25) / 255 in f32.
+        for k in 0..=255u32 {
+            let written = (k as f32 + 0.25) / 255.0;
+            let scaled = written * 255.0;
+            assert_eq!(scaled.round() as u32, k, "round to nearest, byte {k}");
+            assert_eq!(scaled.trunc() as u32, k, "round toward zero, byte {k}");
+        }
+        assert_eq!(texture_of_id_pixel([0, 0, 0, 0]), None);
+        assert_eq!(texture_of_id_pixel([1, 0, 0, 255]), Some(0));
+        assert_eq!(texture_of_id_pixel([0x35, 0x12, 0x02, 255]), Some(0x02_1235 - 1));
+        assert_eq!(texture_of_id_pixel([0xFF, 0xFF, 0xFF, 255]), Some(TEXTURE_ID_LIMIT - 1));
+    }
 
     #[test]
     fn feedback_pixel_ratio_accounts_for_margin_and_resolution() {
