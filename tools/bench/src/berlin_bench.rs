@@ -23,6 +23,7 @@ use anyhow::{Context, Result};
 use citystream_dataset::Dataset;
 use citystream_streaming::bench::path::standard_path;
 
+use crate::frontier::{figures_of, Family, FrontierFigures, FrontierRun};
 use crate::runs::BenchRun;
 use crate::tables::{checks_table, count, stat, summary_of, Check};
 use citystream_gen::default_city::{is_dataset, upgrade_if_old};
@@ -74,7 +75,7 @@ struct BerlinRun {
     paper: Option<PaperRow>,
 }
 
-const RUNS: [BerlinRun; 7] = [
+const RUNS: [BerlinRun; 9] = [
     BerlinRun {
         dir: "baseline",
         name: "baseline",
@@ -85,6 +86,12 @@ const RUNS: [BerlinRun; 7] = [
         dir: "fixed-s64",
         name: "fixed s=64 MB b=0",
         args: &["--policy", "fixed", "--load-size-mb", "64", "--mip-bias", "0"],
+        paper: None,
+    },
+    BerlinRun {
+        dir: "fixed-s4",
+        name: "fixed s=4 MB b=0",
+        args: &["--policy", "fixed", "--load-size-mb", "4", "--mip-bias", "0"],
         paper: None,
     },
     BerlinRun {
@@ -115,6 +122,23 @@ const RUNS: [BerlinRun; 7] = [
             "12",
             "--beta",
             "8",
+        ],
+        paper: None,
+    },
+    BerlinRun {
+        dir: "predictive-a12-path",
+        name: "predictive α=12 ms, path prefetch",
+        args: &[
+            "--policy",
+            "adaptive",
+            "--controller",
+            "predictive",
+            "--alpha",
+            "12",
+            "--beta",
+            "8",
+            "--prefetch",
+            "path",
         ],
         paper: None,
     },
@@ -219,6 +243,90 @@ pub(crate) fn write_path(dataset: &Path, out: &Path) -> Result<PathBuf> {
     Ok(file)
 }
 
+/// The runs the frontier's targets compare on this city, as the frontier names their
+/// families: the baseline, the fixed 4 MB load size, the paper's controller at α = 12 ms and
+/// the predictive controller with path prefetch at α = 12 ms.
+fn frontier_runs_here() -> Vec<FrontierRun> {
+    let family = |dir: &str| match dir {
+        "baseline" => Some((Family::Baseline, None)),
+        "fixed-s4" => Some((Family::Fixed, None)),
+        "adaptive-a12" => Some((Family::Paper, Some(12.0))),
+        "predictive-a12-path" => Some((Family::PredictivePath, Some(12.0))),
+        _ => None,
+    };
+    RUNS.iter()
+        .filter_map(|run| {
+            family(run.dir).map(|(family, alpha_ms)| FrontierRun {
+                run: BenchRun::new(run.dir, run.name, run.args, std::iter::empty()),
+                family,
+                alpha_ms,
+            })
+        })
+        .collect()
+}
+
+/// The frontier's targets on this city (`desktop`, α = 12 ms): the predictive controller with
+/// path prefetch keeps every frame after the first second under 2α, shows at least the
+/// baseline's image after start-up, streams at most 1.2× its MB per path second, and no run of
+/// the fixed 4 MB or paper's α = 12 ms policy has a worst frame as high with at least its
+/// PSNR. Runs not flown read "n/a".
+fn frontier_checks(out: &Path) -> Result<String> {
+    let mut figures = Vec::new();
+    for run in frontier_runs_here() {
+        let dir = out.join(&run.run.dir);
+        if dir.join("summary.json").is_file() && dir.join("frames.csv").is_file() {
+            figures.push(figures_of(&dir, &run)?);
+        }
+    }
+    let get = |dir: &str| figures.iter().find(|f| f.dir == dir);
+    let (baseline, ours) = (get("baseline"), get("predictive-a12-path"));
+    let others: Vec<&FrontierFigures> = ["fixed-s4", "adaptive-a12"].into_iter().filter_map(get).collect();
+    let unbeaten = |ours: &FrontierFigures| {
+        others
+            .iter()
+            .filter(|f| f.worst_frame_ms >= ours.worst_frame_ms)
+            .filter(|f| f.streaming_psnr_db.unwrap_or(f64::NEG_INFINITY) >= ours.streaming_psnr_db.unwrap_or(f64::NAN))
+            .count()
+    };
+    let psnr = |f: Option<&FrontierFigures>| f.and_then(|f| f.streaming_psnr_db);
+    let checks: Vec<Check> = vec![
+        (
+            "predictive α=12 + path: worst frame (ms)".into(),
+            ours.map(|f| f.worst_frame_ms),
+            "≤ 24",
+            |v| v <= 24.0,
+        ),
+        (
+            "predictive α=12 + path: frames over 2α after the first second".into(),
+            ours.map(|f| f.frames_over_2alpha as f64),
+            "0",
+            |v| v == 0.0,
+        ),
+        (
+            "predictive α=12 + path: after-start-up PSNR − baseline's (dB)".into(),
+            psnr(ours).zip(psnr(baseline)).map(|(a, b)| a - b),
+            "≥ 0",
+            |v| v >= 0.0,
+        ),
+        (
+            "predictive α=12 + path: MB per path s / baseline's".into(),
+            ours.zip(baseline).map(|(a, b)| a.mb_per_path_s / b.mb_per_path_s),
+            "≤ 1.2",
+            |v| v <= 1.2,
+        ),
+        (
+            format!(
+                "predictive α=12 + path: fixed s=4 MB and paper α=12 runs at or above its worst frame with at least its error ({} of 2 flown)",
+                others.len()
+            ),
+            ours.filter(|_| others.len() == 2).map(|f| unbeaten(f) as f64),
+            "0",
+            |v| v == 0.0,
+        ),
+    ];
+    Ok(checks_table("## The frontier's targets (`desktop`, α = 12 ms)", checks))
+}
+
 /// `berlin.md`: every run beside the paper's row of Table 3, then the checks of Table 3's targets.
 pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<String> {
     let mut text = format!(
@@ -277,7 +385,12 @@ pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<Stri
         ));
         summaries.push(s);
     }
-    let (baseline, adaptive, headroom) = (&summaries[0], &summaries[2], &summaries[4]);
+    let summary = |dir: &str| {
+        RUNS.iter()
+            .position(|run| run.dir == dir)
+            .map_or(&serde_json::Value::Null, |i| &summaries[i])
+    };
+    let (baseline, adaptive, headroom) = (summary("baseline"), summary("adaptive-a12"), summary("headroom-a12"));
     let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
         (Some(a), Some(b)) if b > 0.0 => Some(a / b),
         _ => None,
@@ -321,6 +434,8 @@ pub(crate) fn table(out: &Path, budget_mb: u64, size: (u32, u32)) -> Result<Stri
     }
     text.push('\n');
     text.push_str(&checks_table("## Table 3's targets (`desktop`)", checks));
+    text.push('\n');
+    text.push_str(&frontier_checks(out)?);
     text.push_str(
         "\n## What the cycles loaded\n\n\
          Why a run stalls or not: its demand per cycle against the load size `s` (the baseline's \
