@@ -45,7 +45,8 @@
 #                           (default: .gpu-check/bin, else target/release)
 #   GPU_CHECK_PACK          the packed folder (default .gpu-check)
 #   GPU_CHECK_DATA          datasets (default data)
-#   GPU_CHECK_WORK          scratch (default out/gpu-check-work; emptied at start)
+#   GPU_CHECK_WORK          scratch (default out/gpu-check-work; emptied at start; a folder
+#                           with files the check did not make is refused)
 #   GPU_CHECK_PYTHON        the summary's interpreter (default python3; none: without)
 #   GPU_CHECK_CARRIED_LAYERS  1: use the carried validation layer even where one is
 #                           installed (how to test the carried layer on lavapipe)
@@ -86,10 +87,18 @@ is_secs "$REAL_S" || usage_error "GPU_CHECK_REAL_S=$REAL_S is not a number of se
 [[ $STEPS =~ ^[1-5](,[1-5])*$ ]] || usage_error "GPU_CHECK_STEPS=$STEPS is not a comma-separated list of 1 to 5"
 case $CITY_PRESET in auto | 0 | 1) ;; *) usage_error "GPU_CHECK_CITY_PRESET=$CITY_PRESET is not auto, 0 or 1" ;; esac
 
+# The scratch folder is emptied on every run, so only one the check made itself (it holds
+# this marker) or an empty one is taken: a folder with other files, such as the pack or a
+# home directory, is refused untouched.
+WORK_MARKER=.citystream-gpu-check-work
+if [[ -d $WORK && ! -e $WORK/$WORK_MARKER && -n $(ls -A "$WORK" 2>/dev/null) ]]; then
+    usage_error "GPU_CHECK_WORK=$WORK holds files this check did not make (no $WORK_MARKER in it); it empties its scratch folder on every run, so name a new or empty folder"
+fi
 mkdir -p "$OUT_DIR" "$WORK" || usage_error "cannot create $OUT_DIR or $WORK"
 OUT_DIR=$(cd "$OUT_DIR" && pwd)
 WORK=$(cd "$WORK" && pwd)
 case $WORK in "$ROOT" | / | "$OUT_DIR") usage_error "GPU_CHECK_WORK=$WORK would empty a folder that is not scratch" ;; esac
+: >"$WORK/$WORK_MARKER" || usage_error "cannot write $WORK/$WORK_MARKER"
 rm -rf "${WORK:?}"/logs "${WORK:?}"/runs "${WORK:?}"/bin "${WORK:?}"/vk "$WORK/steps.tsv"
 mkdir -p "$WORK/logs" "$WORK/runs" "$WORK/vk"
 LOG=$OUT_DIR/gpu-check.log

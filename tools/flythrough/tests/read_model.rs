@@ -190,3 +190,50 @@ fn disk_models_that_cannot_apply_are_refused_by_name() {
         assert!(stderr(&run).contains(expected), "{args:?}: {}", stderr(&run));
     }
 }
+
+/// Bytes of `file` in the page cache (`fincore`, util-linux).
+fn resident_bytes(file: &Path) -> u64 {
+    let out = Command::new("fincore")
+        .args(["--bytes", "--noheadings", "--output", "RES"])
+        .arg(file)
+        .output()
+        .expect("fincore (util-linux) runs");
+    assert!(
+        out.status.success(),
+        "fincore: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout)
+        .trim()
+        .parse()
+        .expect("fincore's RES")
+}
+
+#[test]
+fn the_disk_probe_reads_around_the_page_cache_or_says_it_did_not() {
+    let dir = fresh_dir("read_model", "probe-cache");
+    let city = tiny_city(&dir);
+    let dataset = citystream_dataset::Dataset::open(&city).expect("the tiny city opens");
+    let pack = dataset.textures.pack_path().to_path_buf();
+    // Written pages are dirty until synced, and dirty pages cannot be dropped.
+    std::fs::File::open(&pack)
+        .and_then(|f| f.sync_all())
+        .expect("pack synced");
+    let figures = citystream_bench::disk_probe::measure(&dataset, &city).expect("the probe measures");
+    let resident = resident_bytes(&pack);
+    if figures.source.contains("direct reads (O_DIRECT") {
+        // Buffered reads of a pack this small leave it in the page cache (readahead), and
+        // the probe's figures would be the cache's.
+        assert_eq!(
+            resident, 0,
+            "{}: {resident} bytes cached after the probe",
+            figures.source
+        );
+    } else {
+        assert!(
+            figures.source.contains("page-cache hits") || figures.source.contains("warm page cache"),
+            "{}",
+            figures.source
+        );
+    }
+}
