@@ -77,7 +77,7 @@ pub use legacy::{upgrade, UpgradeSummary};
 pub use mip_cache::{CacheNamespace, MipCache, MipCacheStats};
 pub use pack::{MipLocation, TexturePack, PACK_HEADER_BYTES};
 pub use scene::{Aabb, Mesh, Scene};
-pub use shard::{part_pack_body, JoinedTables, ShardRecord, SHARDS_DIR, SHARD_RECORD_FILE};
+pub use shard::{part_pack_body, JoinedTables, ShardRecord, MAX_SHARDS, SHARDS_DIR, SHARD_RECORD_FILE};
 pub use store::DatasetStore;
 pub use verify::{verify, verify_dataset, VerifyReport};
 pub use writer::{DatasetWriter, WriteSummary};

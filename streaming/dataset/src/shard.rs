@@ -30,6 +30,9 @@ pub const SHARDS_DIR: &str = "shards";
 /// The file in a shard's write directory that names its job ([`ShardRecord`]).
 pub const SHARD_RECORD_FILE: &str = "shard.record";
 const RECORD_FIRST_LINE: &str = "citystream shard record 1";
+/// The most shards a job may have: far more machines than any array job runs, few enough
+/// that a merge lists them in bounded memory.
+pub const MAX_SHARDS: u32 = 65_536;
 /// A job description is a command line and a fingerprint, not data.
 const MAX_JOB_BYTES: usize = 4096;
 
@@ -64,6 +67,12 @@ impl ShardRecord {
             return Err(DatasetError::InvalidInput(format!(
                 "shard {} of {}: the index is not below the count",
                 self.index, self.count
+            )));
+        }
+        if self.count > MAX_SHARDS {
+            return Err(DatasetError::InvalidInput(format!(
+                "{} shards: at most {MAX_SHARDS}",
+                self.count
             )));
         }
         let mut text = format!(
@@ -139,6 +148,12 @@ impl ShardRecord {
             return Err(corrupt(
                 0,
                 format!("index {} is not below count {}", record.index, record.count),
+            ));
+        }
+        if record.count > MAX_SHARDS {
+            return Err(corrupt(
+                0,
+                format!("count {} is more than the most shards, {MAX_SHARDS}", record.count),
             ));
         }
         Ok(record)

@@ -16,6 +16,7 @@
 mod write;
 
 use std::collections::BTreeMap;
+use std::ops::Range;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
@@ -200,51 +201,62 @@ fn print_status(location: &str, found: &BTreeMap<u32, Found>) -> Result<()> {
         Some((job, n)) => format!("{location}: {n} shards of job: {job}\n"),
         None => format!("{location}: no shard is complete yet, so the job and its shard count are unknown\n"),
     };
-    let (mut done, mut running, mut missing) = (0, 0, 0);
-    let last = count.max(found.keys().next_back().map_or(0, |i| i + 1));
-    for index in 0..last {
-        let line = match found.get(&index) {
-            None => {
-                missing += 1;
-                "missing".to_owned()
+    let (mut done, mut running, mut missing, mut foreign) = (0u64, 0u64, 0u64, 0u64);
+    let last = u64::from(count).max(found.keys().next_back().map_or(0, |i| u64::from(*i) + 1));
+    // Shards with no folder are counted in runs, not named one by one: a job of many
+    // shards with few written lists in bounded memory.
+    let gap = |text: &mut String, from: u64, to: u64| {
+        match to - from {
+            0 => {}
+            1 => text.push_str(&format!("  shard {from}/{count}: missing\n")),
+            n => text.push_str(&format!(
+                "  shards {from} to {} of {count}: missing ({n} shards)\n",
+                to - 1
+            )),
+        }
+        to - from
+    };
+    let mut next = 0u64;
+    for (&index, shard) in found {
+        missing += gap(&mut text, next, u64::from(index));
+        next = u64::from(index) + 1;
+        let state = match (&shard.done, &reference) {
+            (Some((record, dataset)), Some((job, n))) if record.job == *job && record.count == *n => {
+                done += 1;
+                format!(
+                    "done: {} textures, {} meshes, {:.1} MB pack",
+                    record.textures,
+                    dataset.scene.meshes.len(),
+                    record.pack_bytes as f64 / 1e6
+                )
             }
-            Some(shard) => {
-                let state = match (&shard.done, &reference) {
-                    (Some((record, dataset)), Some((job, n))) if record.job == *job && record.count == *n => {
-                        done += 1;
-                        format!(
-                            "done: {} textures, {} meshes, {:.1} MB pack",
-                            record.textures,
-                            dataset.scene.meshes.len(),
-                            record.pack_bytes as f64 / 1e6
-                        )
-                    }
-                    (Some((record, _)), _) => {
-                        missing += 1;
-                        format!("of another job ({} shards of: {})", record.count, record.job)
-                    }
-                    (None, _) if shard.journal.is_some() => {
-                        running += 1;
-                        "running".to_owned()
-                    }
-                    (None, _) => {
-                        missing += 1;
-                        match &shard.broken {
-                            Some(why) => format!("incomplete or damaged: {why}"),
-                            None => "missing (nothing written)".to_owned(),
-                        }
-                    }
-                };
-                match &shard.journal {
-                    Some(journal) if shard.done.is_some() => format!("{state}; a rerun is running ({journal})"),
-                    Some(journal) if state == "running" => format!("running ({journal})"),
-                    _ => state,
+            (Some((record, _)), _) => {
+                foreign += 1;
+                format!("of another job ({} shards of: {})", record.count, record.job)
+            }
+            (None, _) if shard.journal.is_some() => {
+                running += 1;
+                "running".to_owned()
+            }
+            (None, _) => {
+                missing += 1;
+                match &shard.broken {
+                    Some(why) => format!("incomplete or damaged: {why}"),
+                    None => "missing (nothing written)".to_owned(),
                 }
             }
         };
+        let line = match &shard.journal {
+            Some(journal) if shard.done.is_some() => format!("{state}; a rerun is running ({journal})"),
+            Some(journal) if state == "running" => format!("running ({journal})"),
+            _ => state,
+        };
         text.push_str(&format!("  shard {index}/{count}: {line}\n"));
     }
-    text.push_str(&format!("{done} done, {running} running, {missing} missing\n"));
+    missing += gap(&mut text, next, last);
+    text.push_str(&format!(
+        "{done} done, {running} running, {missing} missing, {foreign} of another job\n"
+    ));
     citystream_gen::files::print_stdout(&text)
 }
 
@@ -271,13 +283,27 @@ fn check_shards(
     };
     let mut problems = Vec::new();
     let mut shards = Vec::new();
+    // Runs of shards with no folder, named as one problem each.
+    let mut absent: Option<Range<u32>> = None;
+    let name_absent = |problems: &mut Vec<String>, run: Option<Range<u32>>| match run {
+        Some(run) if run.len() == 1 => problems.push(format!(
+            "shard {} of {count} is missing: nothing in {location}/{SHARDS_DIR}/{}",
+            run.start, run.start
+        )),
+        Some(run) => problems.push(format!(
+            "shards {} to {} of {count} are missing ({} shards): nothing in {location}/{SHARDS_DIR}/ for them",
+            run.start,
+            run.end - 1,
+            run.len()
+        )),
+        None => {}
+    };
     for index in 0..count {
         let Some(shard) = found.remove(&index) else {
-            problems.push(format!(
-                "shard {index} of {count} is missing: nothing in {location}/{SHARDS_DIR}/{index}"
-            ));
+            absent = Some(absent.map_or(index..index + 1, |run| run.start..index + 1));
             continue;
         };
+        name_absent(&mut problems, absent.take());
         let Some((record, dataset)) = shard.done else {
             problems.push(match (shard.broken, shard.journal) {
                 (_, Some(journal)) => {
@@ -306,6 +332,7 @@ fn check_shards(
             )),
         }
     }
+    name_absent(&mut problems, absent.take());
     for (index, shard) in found {
         problems.push(format!(
             "{} is shard {index}, beyond the job's {count} shards (of another job?)",

@@ -10,7 +10,9 @@ fn root() -> PathBuf {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("gpu-check-script").join(name);
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .join("gpu-check-script")
+        .join(name);
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("scratch directory");
     dir

@@ -344,3 +344,61 @@ fn gen_in_four_concurrent_shards_into_s3_merges_there_to_the_one_process_city() 
     // `verify` above read every mip against these CRCs: the mips are the single build's.
     assert!(summary.contains("copied in the store"), "{summary}");
 }
+
+#[test]
+fn shard_counts_are_bounded_and_many_missing_shards_are_counted_in_runs() {
+    let dir = fresh_dir("shards", "bounded");
+    let out = dir.join("out");
+    let out_s = out.to_str().expect("utf-8");
+    let gen = |extra: &[&str]| {
+        let mut args = vec!["gen", "--preset", "tiny", "--seed", "1", "--quiet", "--out", out_s];
+        args.extend_from_slice(extra);
+        citystream(&args)
+    };
+    // The tiny city has 254 textures.
+    for (shard, expected) in [
+        ("0/1000000000", "at most 65536 shards"),
+        ("0/4294967296", "at most 65536 shards"),
+        ("0/0", "the shard count must be at least 1"),
+        ("0/300", "300 shards of 254 textures: at most one shard per texture"),
+    ] {
+        let refused = gen(&["--shard", shard]);
+        assert!(!refused.status.success(), "--shard {shard} ran");
+        assert!(stderr(&refused).contains(expected), "{shard}: {}", stderr(&refused));
+        assert!(!out.join("shards").exists(), "--shard {shard} wrote a shard");
+    }
+    // A dry run of a shard gives the shard's own part.
+    let dry = ok(gen(&["--shard", "1/16", "--dry-run"]), "dry run");
+    let text = String::from_utf8_lossy(&dry.stdout);
+    assert!(
+        text.contains("shard 1 of 16: textures 15 to 30 (16 textures)")
+            && text.contains("this shard's part of the pack"),
+        "{text}"
+    );
+    // One shard of 200 written, one of another job: the 198 others are counted in runs.
+    ok(gen(&["--shard", "0/200"]), "shard 0");
+    ok(
+        gen(&["--shard", "7/200", "--max-extent", "256"]),
+        "shard 7 of another job",
+    );
+    let status = ok(citystream(&["merge", "--status", out_s]), "status");
+    let text = String::from_utf8_lossy(&status.stdout);
+    assert!(text.contains("  shards 1 to 6 of 200: missing (6 shards)"), "{text}");
+    assert!(text.contains("  shard 7/200: of another job"), "{text}");
+    assert!(
+        text.contains("  shards 8 to 199 of 200: missing (192 shards)"),
+        "{text}"
+    );
+    assert!(
+        text.ends_with("1 done, 0 running, 198 missing, 1 of another job\n"),
+        "{text}"
+    );
+    assert!(text.lines().count() < 10, "{text}");
+    let refused = citystream(&["merge", out_s]);
+    assert!(!refused.status.success());
+    let why = stderr(&refused);
+    assert!(why.contains("shards 1 to 6 of 200 are missing (6 shards)"), "{why}");
+    assert!(why.contains("shards 8 to 199 of 200 are missing (192 shards)"), "{why}");
+    assert!(why.contains("shard 7") && why.contains("another job"), "{why}");
+    assert_eq!(manifest(&out), None, "a refused merge wrote a dataset");
+}

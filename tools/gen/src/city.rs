@@ -194,6 +194,9 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
     let pack_bytes: u64 = city.textures.iter().map(chain_bytes).sum();
     let scene_bytes = city.scene.encoded_len();
     let shard = args.shard.resolve()?;
+    if let Some(shard) = shard {
+        shard.check_divides(city.textures.len(), "textures")?;
+    }
     // A shard writes its own range (and at most the whole scene); one bound for S3 is
     // staged under the temporary directory first.
     let written_pack = match shard {
@@ -211,14 +214,33 @@ pub(crate) fn generate(args: &GenArgs, params: LayoutParams, format: TextureForm
     };
     let free = free_bytes(&written_at)?;
     if args.dry_run {
+        let part = match shard {
+            Some(shard) => {
+                let range = shard.range(city.textures.len());
+                format!(
+                    "; shard {} of {}: textures {} to {} ({} textures)",
+                    shard.index,
+                    shard.count,
+                    range.start,
+                    range.end.saturating_sub(1),
+                    range.len()
+                )
+            }
+            None => String::new(),
+        };
         print_stdout(&format!(
-            "{} meshes, {} triangles, {} textures; needs {} of disk in {} (pack {}, scene {}); {} free\n",
+            "{} meshes, {} triangles, {} textures{part}; needs {} of disk in {} ({}pack {}, scene {}); {} free\n",
             city.scene.meshes.len(),
             city.scene.triangle_count(),
             city.textures.len(),
             gb(needed),
             args.out.display(),
-            gb(pack_bytes),
+            if shard.is_some() {
+                "this shard's part of the "
+            } else {
+                ""
+            },
+            gb(written_pack),
             gb(scene_bytes),
             gb(free)
         ))?;

@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use citystream_dataset::remote::{is_remote, ObjectBucket, RemoteOptions};
+pub use citystream_dataset::MAX_SHARDS;
 use citystream_dataset::{verify_dataset, Dataset, Scene, MANIFEST_FILE, PACK_FILE, SHARDS_DIR};
 
 /// The journal an S3 shard keeps beside its files while it runs.
@@ -57,34 +58,62 @@ impl ShardArgs {
                     .with_context(|| format!("--shard {text}: expected I/N, e.g. 0/4"))?;
                 let parse = |what: &str, v: &str| {
                     v.trim()
-                        .parse::<u32>()
-                        .with_context(|| format!("--shard {text}: {what} {v:?} is not a whole number"))
+                        .parse::<u64>()
+                        .with_context(|| format!("--shard {text}: the {what} {v:?} is not a whole number"))
                 };
                 (parse("index", i)?, parse("count", n)?)
             }
             (None, Some(name), Some(count)) => {
-                let value = std::env::var(name).with_context(|| {
+                let value = std::env::var_os(name).with_context(|| {
                     format!("--shard-index-env {name}: the variable is not set (the scheduler sets it for array jobs)")
+                })?;
+                let value = value.to_str().with_context(|| {
+                    format!("--shard-index-env {name}: its value {value:?} is not text (expected a whole number)")
                 })?;
                 let index = value
                     .trim()
-                    .parse::<u32>()
+                    .parse::<u64>()
                     .with_context(|| format!("--shard-index-env {name}: its value {value:?} is not a whole number"))?;
-                (index, count)
+                (index, u64::from(count))
             }
             _ => return Ok(None),
         };
-        if count == 0 || index >= count {
+        if count == 0 {
+            bail!("shard index {index} of {count}: the shard count must be at least 1");
+        }
+        if count > u64::from(MAX_SHARDS) {
+            bail!("shard count {count}: at most {MAX_SHARDS} shards");
+        }
+        if index >= count {
             bail!(
-                "shard index {index} of {count}: the index must be 0 to {}",
-                count.saturating_sub(1)
+                "shard index {index} of {count}: the index must be 0 to {} (indices count from 0)",
+                count - 1
             );
         }
-        Ok(Some(Shard { index, count }))
+        // Both fit: count ≤ MAX_SHARDS and index < count.
+        Ok(Some(Shard {
+            index: index as u32,
+            count: count as u32,
+        }))
     }
 }
 
 impl Shard {
+    /// Refuses more shards than `total` items of `what` to divide (a shard without any
+    /// would be empty).
+    pub fn check_divides(&self, total: usize, what: &str) -> Result<()> {
+        if self.count as usize > total {
+            bail!(
+                "--shard {}/{}: {} shards of {total} {what}: at most one shard per {}",
+                self.index,
+                self.count,
+                self.count,
+                what.trim_end_matches('s')
+            );
+        }
+        Ok(())
+    }
+
     /// This shard's contiguous part of `total` items in order: `total·I/N .. total·(I+1)/N`.
     pub fn range(&self, total: usize) -> Range<usize> {
         let at = |i: u32| (total as u128 * u128::from(i) / u128::from(self.count)) as usize;
@@ -294,5 +323,59 @@ mod tests {
             error.contains("CITYSTREAM_TEST_SHARD_UNSET") && error.contains("not set"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn a_shard_argument_out_of_range_says_which_part_is_wrong() {
+        let resolve = |text: &str| {
+            ShardArgs {
+                shard: Some(text.into()),
+                ..ShardArgs::default()
+            }
+            .resolve()
+        };
+        for (bad, expected) in [
+            ("0/0", "the shard count must be at least 1"),
+            ("0/4294967296", "at most 65536 shards"),
+            ("0/1000000000", "at most 65536 shards"),
+            ("4/4", "the index must be 0 to 3"),
+            ("x/4", "the index \"x\" is not a whole number"),
+        ] {
+            let error = format!("{:#}", resolve(bad).expect_err(bad));
+            assert!(error.contains(expected), "{bad}: {error}");
+        }
+        assert_eq!(
+            resolve("65535/65536").expect("the most shards"),
+            Some(Shard {
+                index: 65_535,
+                count: MAX_SHARDS
+            })
+        );
+        let shard = Shard { index: 0, count: 300 };
+        let error = format!("{:#}", shard.check_divides(254, "textures").expect_err("300 of 254"));
+        assert!(
+            error.contains("300 shards of 254 textures: at most one shard per texture"),
+            "{error}"
+        );
+        shard.check_divides(300, "textures").expect("one each");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_shard_index_variable_that_is_not_text_is_named_as_such() {
+        use std::os::unix::ffi::OsStrExt;
+        std::env::set_var(
+            "CITYSTREAM_TEST_SHARD_BYTES",
+            std::ffi::OsStr::from_bytes(&[0x33, 0xff]),
+        );
+        let error = ShardArgs {
+            shard_index_env: Some("CITYSTREAM_TEST_SHARD_BYTES".into()),
+            shards: Some(5),
+            ..ShardArgs::default()
+        }
+        .resolve()
+        .expect_err("not UTF-8")
+        .to_string();
+        assert!(error.contains("is not text"), "{error}");
     }
 }

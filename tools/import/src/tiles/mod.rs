@@ -227,6 +227,9 @@ pub fn load(
         }
         listings.push(n);
     }
+    if let Some(shard) = part {
+        shard.check_divides(count, "contents")?;
+    }
     let part = part.map(|shard| shard.range(count));
     let in_part = |listing: usize| part.as_ref().is_none_or(|range| range.contains(&listing));
     let mut placed: Vec<Vec<PendingMesh>> = Vec::new();
