@@ -248,6 +248,66 @@ impl RunSettings {
     }
 }
 
+/// The file in a bench's `--out` naming the scenario whose results it holds.
+const SCENARIO_FILE: &str = "bench-scenario.txt";
+
+impl Scenario {
+    const ALL: [Scenario; 9] = [
+        Scenario::Standard,
+        Scenario::Pressure,
+        Scenario::Loader,
+        Scenario::Remote,
+        Scenario::Strategies,
+        Scenario::Ground,
+        Scenario::Controllers,
+        Scenario::Berlin,
+        Scenario::Frontier,
+    ];
+
+    /// The name `--scenario` takes.
+    fn name(self) -> &'static str {
+        match self {
+            Scenario::Standard => "standard",
+            Scenario::Pressure => "pressure",
+            Scenario::Loader => "loader",
+            Scenario::Remote => "remote",
+            Scenario::Strategies => "strategies",
+            Scenario::Ground => "ground",
+            Scenario::Controllers => "controllers",
+            Scenario::Berlin => "berlin",
+            Scenario::Frontier => "frontier",
+        }
+    }
+}
+
+/// Takes `out` for `scenario`'s results, refusing a folder holding another scenario's:
+/// several scenarios write `table.md` and the charts, and one must not replace another's.
+fn claim_out(out: &Path, scenario: Scenario) -> Result<()> {
+    let file = out.join(SCENARIO_FILE);
+    let refuse = |other: &str, evidence: &Path| {
+        anyhow!(
+            "{} holds the results of `bench --scenario {other}` ({}); give each scenario its own --out, \
+             so that neither's tables and charts replace the other's",
+            out.display(),
+            evidence.display()
+        )
+    };
+    match std::fs::read_to_string(&file) {
+        Ok(text) if text.trim() == scenario.name() => return Ok(()),
+        Ok(text) => return Err(refuse(text.trim(), &file)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(e).with_context(|| format!("reading {}", file.display())),
+    }
+    // A folder written before the marker: another scenario's own table names it.
+    for other in Scenario::ALL.into_iter().filter(|s| *s != scenario) {
+        let table = out.join(format!("{}.md", other.name()));
+        if table.is_file() {
+            return Err(refuse(other.name(), &table));
+        }
+    }
+    citystream_gen::files::write_atomically(&file, format!("{}\n", scenario.name()).as_bytes())
+}
+
 /// `citystream bench`.
 pub fn run(args: &BenchArgs) -> Result<()> {
     let flythrough = match &args.flythrough {
@@ -280,6 +340,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         }
     };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    claim_out(&args.out, args.scenario)?;
     if args.runs.is_some() && !matches!(args.scenario, Scenario::Berlin | Scenario::Frontier) {
         bail!("--runs selects runs of `--scenario berlin` and `frontier` only");
     }

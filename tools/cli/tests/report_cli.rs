@@ -1032,6 +1032,29 @@ fn berlin_bench_flies_table_3s_policies_on_a_68_6_s_path_beside_the_papers_rows(
         assert!(table.contains(row), "{row} in {table}");
     }
     assert!(out.join("table.md").is_file(), "the report of every run");
+    // Another scenario into the same folder would replace table.md and the charts.
+    let table_before = std::fs::read(out.join("table.md"))?;
+    let other = citystream(&[
+        "bench",
+        "--scenario",
+        "strategies",
+        "--dataset",
+        &c,
+        "--out",
+        &o,
+        "--flythrough",
+        &fake,
+    ]);
+    assert!(
+        !other.status.success(),
+        "a strategies bench ran into a Berlin bench's folder"
+    );
+    assert!(
+        String::from_utf8_lossy(&other.stderr).contains("holds the results of `bench --scenario berlin`"),
+        "{}",
+        String::from_utf8_lossy(&other.stderr)
+    );
+    assert_eq!(std::fs::read(out.join("table.md"))?, table_before, "table.md replaced");
     Ok(())
 }
 
