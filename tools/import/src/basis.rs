@@ -104,6 +104,9 @@ pub fn check_container(bytes: &[u8]) -> Result<(), BasisError> {
         let at = 80 + 24 * l as usize;
         let (offset, length, uncompressed) = (u64_at(bytes, at), u64_at(bytes, at + 8), u64_at(bytes, at + 16));
         in_file(offset, length, &format!("level {l}"))?;
+        if length == 0 {
+            return bad(format!("level {l} holds no bytes: a truncated KTX2 file"));
+        }
         let blocks = (width >> l).max(1).div_ceil(4) * (height >> l).max(1).div_ceil(4);
         let uastc = blocks * 16;
         match scheme {
@@ -116,6 +119,25 @@ pub fn check_container(bytes: &[u8]) -> Result<(), BasisError> {
                 return bad(format!(
                     "level {l} declares {uncompressed} bytes uncompressed, not its {uastc} of UASTC blocks"
                 ))
+            }
+            2 => {
+                // The transcoder reports a level that is not zstd, or inflates to another
+                // size, only as an unsupported target: checked here, by name.
+                let data = &bytes[offset as usize..(offset + length) as usize];
+                match zstd_inflated_len(data, uastc + 1) {
+                    Err(why) => return bad(format!("level {l}: not zstd data ({why})")),
+                    Ok(inflated) if inflated > uastc => {
+                        return bad(format!(
+                            "level {l}: zstd data inflates to more than the declared {uncompressed} bytes"
+                        ))
+                    }
+                    Ok(inflated) if inflated < uastc => {
+                        return bad(format!(
+                            "level {l}: zstd data inflates to {inflated} bytes, not the declared {uncompressed}"
+                        ))
+                    }
+                    Ok(_) => {}
+                }
             }
             _ => {}
         }
@@ -147,6 +169,14 @@ pub fn check_container(bytes: &[u8]) -> Result<(), BasisError> {
         }
     }
     Ok(())
+}
+
+/// How many bytes the zstd frame `data` inflates to, counting at most `limit` (nothing is
+/// kept: the output is counted, not stored).
+fn zstd_inflated_len(data: &[u8], limit: u64) -> Result<u64, String> {
+    use std::io::Read;
+    let decoder = ruzstd::StreamingDecoder::new(data).map_err(|e| e.to_string())?;
+    std::io::copy(&mut decoder.take(limit), &mut std::io::sink()).map_err(|e| e.to_string())
 }
 
 impl From<basisu::Error> for BasisError {
@@ -386,6 +416,72 @@ mod tests {
         short[sgd + 4..sgd + 8].copy_from_slice(&u32::MAX.to_le_bytes());
         let error = BasisTexture::open(&short).expect_err("refused").to_string();
         assert!(error.contains("BasisLZ global data"), "{error}");
+    }
+
+    /// A KTX2 file of one 4x4 UASTC level (16 bytes of blocks) stored as `level`, zstd.
+    fn one_zstd_level(level: &[u8]) -> Vec<u8> {
+        let mut file = KTX2_MAGIC.to_vec();
+        file.extend_from_slice(&[0; 68]);
+        let mut put = |at: usize, v: u32| file[at..at + 4].copy_from_slice(&v.to_le_bytes());
+        put(20, 4); // width
+        put(24, 4); // height
+        put(36, 1); // faces
+        put(40, 1); // levels
+        put(44, 2); // zstd
+        file.extend_from_slice(&104u64.to_le_bytes());
+        file.extend_from_slice(&(level.len() as u64).to_le_bytes());
+        file.extend_from_slice(&16u64.to_le_bytes());
+        file.extend_from_slice(level);
+        file
+    }
+
+    /// A zstd frame holding `bytes` in one raw block.
+    fn zstd_frame(bytes: &[u8]) -> Vec<u8> {
+        let mut frame = 0xFD2F_B528u32.to_le_bytes().to_vec();
+        // Single segment, a one-byte content size.
+        frame.extend_from_slice(&[0x20, bytes.len() as u8]);
+        let header = 1 | ((bytes.len() as u32) << 3); // last block, raw
+        frame.extend_from_slice(&header.to_le_bytes()[..3]);
+        frame.extend_from_slice(bytes);
+        frame
+    }
+
+    #[test]
+    fn a_zstd_level_of_another_size_or_not_zstd_is_named() {
+        check_container(&one_zstd_level(&zstd_frame(&[7; 16]))).expect("16 bytes, as declared");
+        let error = |level: &[u8]| {
+            check_container(&one_zstd_level(level))
+                .expect_err("refused")
+                .to_string()
+        };
+        let half = error(&zstd_frame(&[7; 8]));
+        assert!(
+            half.contains("level 0: zstd data inflates to 8 bytes, not the declared 16"),
+            "{half}"
+        );
+        let twice = error(&zstd_frame(&[7; 32]));
+        assert!(
+            twice.contains("level 0: zstd data inflates to more than the declared 16 bytes"),
+            "{twice}"
+        );
+        let garbage = error(&[0x55; 24]);
+        assert!(garbage.contains("level 0: not zstd data"), "{garbage}");
+    }
+
+    #[test]
+    fn a_level_of_no_bytes_is_a_truncated_file() {
+        let mut bytes = fixture("roof-etc1s.ktx2");
+        let (levels, sgd) = (u32_at(&bytes, 40) as usize, u64_at(&bytes, 64) as usize);
+        for l in 0..levels {
+            // Each level empty, and its image descriptor's slices empty with it.
+            bytes[80 + 24 * l + 8..80 + 24 * l + 16].copy_from_slice(&0u64.to_le_bytes());
+            bytes[sgd + 20 + 20 * l + 4..sgd + 20 + 20 * l + 20].copy_from_slice(&[0; 16]);
+        }
+        let error = BasisTexture::open(&bytes).expect_err("refused").to_string();
+        assert!(
+            error.contains("level 0 holds no bytes: a truncated KTX2 file"),
+            "{error}"
+        );
     }
 
     #[test]
