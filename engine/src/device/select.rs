@@ -116,14 +116,20 @@ pub fn check_physical_device(
     backing: TextureBacking,
 ) -> (Vec<String>, Option<u32>) {
     let candidate = examine_raw(instance, physical, &[]);
-    match backing {
+    let (mut missing, family) = match backing {
         TextureBacking::Sparse => {
             let mut missing = candidate.missing;
             missing.extend(candidate.missing_sparse);
             (missing, candidate.sparse_queue_family)
         }
         TextureBacking::Arrays => (candidate.missing, candidate.queue_family),
+    };
+    // A malformed forced tail would otherwise pass here and be refused only when the
+    // streamer builds its cache.
+    if let Err(error) = crate::sparse::forced_mip_tail() {
+        missing.push(error.to_string());
     }
+    (missing, family)
 }
 
 fn rank(device_type: vk::PhysicalDeviceType) -> u32 {

@@ -281,6 +281,23 @@ pub(super) fn build_images(
     held: &[usize],
     mips: u32,
 ) -> Result<BuiltImages> {
+    // Checked on every backing (texture arrays ignore a tail), so that a value is refused
+    // or accepted the same way whatever device runs it.
+    if let Some(forced) = crate::sparse::forced_mip_tail()? {
+        if forced.first_lod >= mips {
+            return Err(EngineError::InvalidRequest(format!(
+                "{}: level {} is beyond the cache's mip chain ({} levels of {}x{} layers: 0 to {}); \
+                 a tail can start at level 0 to {}",
+                crate::sparse::FORCE_MIP_TAIL_ENV,
+                forced.first_lod,
+                mips,
+                config.layer_size,
+                config.layer_size,
+                mips.saturating_sub(1),
+                mips.saturating_sub(1)
+            )));
+        }
+    }
     match device.texture_backing() {
         TextureBacking::Sparse => sparse_images(device, config, held, mips),
         TextureBacking::Arrays => array_images(device, config, held, mips),

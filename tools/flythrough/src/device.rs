@@ -44,15 +44,31 @@ pub(crate) fn flythrough_device(
         anyhow::Error::new(error).context(context)
     })?);
     eprintln!("device: {}", describe(&device));
-    if args.sparse == Sparse::Auto
+    let fell_back = args.sparse == Sparse::Auto
         && args.strategy != Strategy::TextureArrays
-        && device.texture_backing() == TextureBacking::Arrays
-    {
+        && device.texture_backing() == TextureBacking::Arrays;
+    if fell_back {
         eprintln!(
             "notice: {} lacks {}; textures stream into texture arrays (docs/STRATEGIES.md)",
             device.name(),
             device.sparse_fallback_reason().unwrap_or("sparse residency")
         );
+    }
+    if let Some(tail) = std::env::var_os(citystream_engine::sparse::FORCE_MIP_TAIL_ENV).filter(|tail| !tail.is_empty())
+    {
+        // Unless the forced tail is why sparse images were not taken, which the notice
+        // above says.
+        let tail_was_why = fell_back
+            && device
+                .sparse_fallback_reason()
+                .is_some_and(|why| why.contains(citystream_engine::sparse::FORCE_MIP_TAIL_ENV));
+        if device.texture_backing() == TextureBacking::Arrays && !tail_was_why {
+            eprintln!(
+                "notice: {}={}: texture arrays have no mip tail, so the forced one is unused (it applies to sparse images)",
+                citystream_engine::sparse::FORCE_MIP_TAIL_ENV,
+                tail.to_string_lossy()
+            );
+        }
     }
     if let Some(log) = std::env::var_os("CITYSTREAM_BIND_LOG").filter(|log| !log.is_empty()) {
         if device.texture_backing() == TextureBacking::Arrays {

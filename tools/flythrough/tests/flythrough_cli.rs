@@ -1595,6 +1595,41 @@ fn a_tail_from_level_0_streams_into_texture_arrays_under_auto_and_is_refused_und
     }
 }
 
+/// A forced tail beyond the cache's chain (2048² layers: levels 0 to 11) is refused naming
+/// the chain on either backing; texture arrays, which have no tail, say they ignore it.
+#[test]
+fn a_forced_tail_beyond_the_chain_is_refused_and_texture_arrays_say_they_ignore_one() {
+    let out = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("flythrough_tail_beyond");
+    let fly = |value: &str, sparse: &str| {
+        Command::new(env!("CARGO_BIN_EXE_flythrough"))
+            .args(["--frames", "2", "--psnr-interval", "0", "--sparse", sparse, "--dataset"])
+            .arg(default_city())
+            .arg("--out")
+            .arg(&out)
+            .env("CITYSTREAM_FORCE_MIP_TAIL", value)
+            .output()
+            .expect("flythrough runs")
+    };
+    for sparse in ["on", "off"] {
+        for value in ["12", "31,single"] {
+            let output = fly(value, sparse);
+            let stderr = String::from_utf8_lossy(&output.stderr);
+            assert!(!output.status.success(), "{value}, --sparse {sparse} ran: {stderr}");
+            assert!(
+                stderr.contains("beyond the cache's mip chain (12 levels of 2048x2048 layers: 0 to 11)"),
+                "{value}, --sparse {sparse}: {stderr}"
+            );
+        }
+    }
+    let output = fly("3", "off");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("notice: CITYSTREAM_FORCE_MIP_TAIL=3: texture arrays have no mip tail"),
+        "{stderr}"
+    );
+}
+
 /// Texture arrays with the ring under a budget below the view's need: each layer the
 /// ring reuses is one the budget lacked (array layers are the budget), so the frames are
 /// counted over budget and the run warns, as view eviction does.
