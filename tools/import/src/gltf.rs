@@ -837,3 +837,64 @@ fn fit_power_of_two(image: RgbaImage, max_log2: u32, input: &Path) -> RgbaImage 
         image::imageops::resize(&image, tw, th, FilterType::Triangle)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture(name: &str) -> Vec<u8> {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../test-data/encoded-tilesets/fuzz")
+            .join(name);
+        std::fs::read(&path).expect("fixture")
+    }
+
+    /// Every vertex of `content`, placed.
+    fn corners(content: &GltfContent) -> ([f64; 3], [f64; 3]) {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in content.meshes.iter().flat_map(|m| &m.positions) {
+            for c in 0..3 {
+                lo[c] = lo[c].min(p[c]);
+                hi[c] = hi[c].max(p[c]);
+            }
+        }
+        (lo, hi)
+    }
+
+    /// One byte of the binary chunk changed at a time (the JSON, and so the accessors'
+    /// bounds and the nodes' transforms, kept): every mutant read without an error has its
+    /// vertices within the original's box, widened by 1 % of its extent. Before positions
+    /// were checked against the accessors' bounds, mutants of both files read with
+    /// buildings hundreds of kilometres wide.
+    #[test]
+    fn damaged_compressed_geometry_never_reads_outside_the_accessors_bounds() {
+        for file in ["draco-etc1s.glb", "meshopt-etc1s.glb"] {
+            let good = fixture(file);
+            let read = |bytes: &[u8]| read_gltf(bytes, Path::new("."), Path::new(file), &IDENTITY, 1 << 20);
+            let (lo, hi) = corners(&read(&good).expect(file));
+            let slack: f64 = (0..3).map(|c| hi[c] - lo[c]).fold(0.0, f64::max) * 0.01;
+            let json_len = u32::from_le_bytes(good[12..16].try_into().expect("4 bytes")) as usize;
+            let bin = 20 + json_len + 8;
+            let (mut refused, mut read_ok) = (0, 0);
+            for at in bin..good.len() {
+                for mask in [0x01u8, 0x80, 0xFF] {
+                    let mut bytes = good.clone();
+                    bytes[at] ^= mask;
+                    let Ok(content) = read(&bytes) else {
+                        refused += 1;
+                        continue;
+                    };
+                    read_ok += 1;
+                    let (l, h) = corners(&content);
+                    let inside = (0..3).all(|c| l[c] >= lo[c] - slack && h[c] <= hi[c] + slack);
+                    assert!(
+                        inside,
+                        "{file}: byte {at} ^ {mask:#04x} reads with vertices from {l:?} to {h:?}, the file's are {lo:?} to {hi:?}"
+                    );
+                }
+            }
+            assert!(refused > 0 && read_ok > 0, "{file}: {refused} refused, {read_ok} read");
+        }
+    }
+}

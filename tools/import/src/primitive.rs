@@ -244,13 +244,75 @@ fn plain_attributes(primitive: &gltf::Primitive, buffers: &Buffers, uv_set: u32)
         (false, true, true) => MeshEncoding::MeshoptQuantized,
     };
     let reader = primitive.reader(|b| data.get(b.index()).map(|d| &d.0[..]));
+    let positions = quantized::read(&position, data, "POSITION")?;
+    if matches!(
+        encoding,
+        MeshEncoding::Draco | MeshEncoding::Meshopt | MeshEncoding::MeshoptQuantized
+    ) {
+        check_position_bounds(&position, &positions, encoding)?;
+    }
     Ok(Local {
-        positions: quantized::read(&position, data, "POSITION")?,
+        positions,
         normals: normal.map(|n| quantized::read(&n, data, "NORMAL")).transpose()?,
         uvs: uv.map(|uv| quantized::read(&uv, data, "TEXCOORD")).transpose()?,
         indices: reader.read_indices().map(|indices| indices.into_u32().collect()),
         encoding,
     })
+}
+
+/// Checks decoded positions of compressed geometry against the POSITION accessor's `min`
+/// and `max` (which glTF requires): a damaged Draco or meshopt stream can decode to
+/// positions of any size, and the bounds the encoder wrote are the one independent record
+/// of where they lie. The tolerance is one step of an 8-bit quantization of the largest
+/// extent (Draco quantizes every axis over that one range), plus float rounding. Bounds of
+/// a normalized integer accessor are read as normalized when they lie within ±1, as the
+/// raw integers otherwise (files write either).
+fn check_position_bounds(accessor: &gltf::Accessor, positions: &[[f32; 3]], encoding: MeshEncoding) -> Result<()> {
+    let bound = |value: Option<gltf::json::Value>| -> Option<[f64; 3]> {
+        let array = value?;
+        let array = array.as_array()?;
+        if array.len() != 3 {
+            return None;
+        }
+        let mut out = [0.0; 3];
+        for (o, v) in out.iter_mut().zip(array) {
+            *o = v.as_f64().filter(|v| v.is_finite())?;
+        }
+        Some(out)
+    };
+    let (Some(mut min), Some(mut max)) = (bound(accessor.min()), bound(accessor.max())) else {
+        return Ok(());
+    };
+    if accessor.normalized() && min.iter().chain(&max).any(|b| b.abs() > 1.0) {
+        use gltf::accessor::DataType;
+        let largest = match accessor.data_type() {
+            DataType::I8 => 127.0,
+            DataType::U8 => 255.0,
+            DataType::I16 => 32767.0,
+            DataType::U16 => 65535.0,
+            _ => 1.0,
+        };
+        for b in min.iter_mut().chain(max.iter_mut()) {
+            *b = (*b / largest).max(-1.0);
+        }
+    }
+    let extent = (0..3).map(|c| max[c] - min[c]).fold(0.0, f64::max);
+    let magnitude = min.iter().chain(&max).map(|b| b.abs()).fold(0.0, f64::max);
+    let tolerance = extent / 255.0 + magnitude * 1e-6;
+    if let Some((i, p)) = positions.iter().enumerate().find(|(_, p)| {
+        (0..3).any(|c| {
+            let v = f64::from(p[c]);
+            !(min[c] - tolerance..=max[c] + tolerance).contains(&v)
+        })
+    }) {
+        bail!(
+            "accessor {} (POSITION): vertex {i} decodes to {p:?}, outside the accessor's bounds {min:?} to {max:?}: \
+             the {} data is damaged",
+            accessor.index(),
+            encoding.name()
+        );
+    }
+    Ok(())
 }
 
 /// Checks an accessor before the `gltf` crate reads it, which panics on a
