@@ -39,6 +39,106 @@ pub enum BasisError {
     TooLarge { level: u32, bytes: u64, file: u64 },
     #[error("a damaged Basis Universal KTX2 file: {0}")]
     Container(String),
+    #[error(
+        "transcoding would hold {bytes} bytes, more than the {capacity} all transcodes of the import may hold at once"
+    )]
+    OverBudget { bytes: u64, capacity: u64 },
+}
+
+/// Bytes the Basis textures being transcoded at once may hold between them: one process
+/// bound, whatever the number of cores (the import transcodes a document's textures in
+/// parallel). Each transcode reserves its working bytes ([`BasisTexture::working_bytes`])
+/// before it allocates and waits while others hold the room; the capacity is the working
+/// bytes of the largest texture the import takes (a zstd UASTC texture of the largest side),
+/// so any one fits and large ones run one at a time.
+#[derive(Debug)]
+pub struct TranscodeBudget {
+    capacity: u64,
+    used: std::sync::Mutex<u64>,
+    freed: std::sync::Condvar,
+    peak: std::sync::atomic::AtomicU64,
+}
+
+/// The budget every transcode of this process shares.
+pub static PROCESS_TRANSCODE_BUDGET: TranscodeBudget = TranscodeBudget::new(working_bytes(
+    citystream_gen::library::MAX_IMAGE_SIDE,
+    citystream_gen::library::MAX_IMAGE_SIDE,
+    true,
+));
+
+/// Room held in a [`TranscodeBudget`] until dropped.
+#[derive(Debug)]
+#[must_use = "the room is given back when the reservation is dropped"]
+pub struct Reservation<'a> {
+    budget: &'a TranscodeBudget,
+    bytes: u64,
+}
+
+impl TranscodeBudget {
+    /// A budget of `capacity` bytes.
+    pub const fn new(capacity: u64) -> Self {
+        Self {
+            capacity,
+            used: std::sync::Mutex::new(0),
+            freed: std::sync::Condvar::new(),
+            peak: std::sync::atomic::AtomicU64::new(0),
+        }
+    }
+
+    /// Holds `bytes` of the budget, waiting until others leave room; more than the whole
+    /// budget is refused.
+    pub fn reserve(&self, bytes: u64) -> Result<Reservation<'_>, BasisError> {
+        if bytes > self.capacity {
+            return Err(BasisError::OverBudget {
+                bytes,
+                capacity: self.capacity,
+            });
+        }
+        // A poisoned lock only means another transcode panicked; the count is still right.
+        let mut used = self.used.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        while *used + bytes > self.capacity {
+            used = self.freed.wait(used).unwrap_or_else(std::sync::PoisonError::into_inner);
+        }
+        *used += bytes;
+        self.peak.fetch_max(*used, std::sync::atomic::Ordering::Relaxed);
+        Ok(Reservation { budget: self, bytes })
+    }
+
+    /// The most bytes held at once so far.
+    pub fn peak(&self) -> u64 {
+        self.peak.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// The budget's bytes.
+    pub fn capacity(&self) -> u64 {
+        self.capacity
+    }
+}
+
+impl Drop for Reservation<'_> {
+    fn drop(&mut self) {
+        let mut used = self
+            .budget
+            .used
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        *used -= self.bytes;
+        self.budget.freed.notify_all();
+    }
+}
+
+/// What transcoding a `width`×`height` texture may hold at once: its level 0 as RGBA8 four
+/// times over (the transcoded levels, the decode for its mean colour or, for a tinted or
+/// resized texture, the RGBA image, its resized copy and the chain encoded from it) and, for
+/// zstd, its largest level inflated.
+const fn working_bytes(width: u32, height: u32, zstd: bool) -> u64 {
+    let texels = width as u64 * height as u64;
+    let inflated = if zstd {
+        (width as u64).div_ceil(4) * (height as u64).div_ceil(4) * 16
+    } else {
+        0
+    };
+    texels * 16 + inflated
 }
 
 fn u32_at(bytes: &[u8], at: usize) -> u64 {
@@ -262,6 +362,17 @@ impl<'a> BasisTexture<'a> {
         })
     }
 
+    /// What transcoding this texture may hold at once (see [`TranscodeBudget`]).
+    pub fn working_bytes(&self) -> u64 {
+        working_bytes(self.width, self.height, self.codec == BasisCodec::UastcZstd)
+    }
+
+    /// Holds this texture's working bytes in the process's budget (waiting while other
+    /// transcodes hold it); keep the reservation until its images are encoded.
+    pub fn reserve(&self) -> Result<Reservation<'static>, BasisError> {
+        PROCESS_TRANSCODE_BUDGET.reserve(self.working_bytes())
+    }
+
     /// Level `level` transcoded to `target`, once its size is checked.
     fn transcode(&self, level: u32, target: TargetFormat) -> Result<Vec<u8>, BasisError> {
         let bytes = self.transcoder.output_size(level, target)? as u64;
@@ -482,6 +593,44 @@ mod tests {
             error.contains("level 0 holds no bytes: a truncated KTX2 file"),
             "{error}"
         );
+    }
+
+    #[test]
+    fn transcodes_share_one_budget_and_wait_for_room() {
+        let budget = TranscodeBudget::new(100);
+        let in_use = std::sync::atomic::AtomicU64::new(0);
+        let most = std::sync::atomic::AtomicU64::new(0);
+        std::thread::scope(|scope| {
+            for _ in 0..4 {
+                scope.spawn(|| {
+                    for _ in 0..50 {
+                        let held = budget.reserve(60).expect("60 of 100");
+                        let now = in_use.fetch_add(60, std::sync::atomic::Ordering::SeqCst) + 60;
+                        most.fetch_max(now, std::sync::atomic::Ordering::SeqCst);
+                        std::thread::yield_now();
+                        in_use.fetch_sub(60, std::sync::atomic::Ordering::SeqCst);
+                        drop(held);
+                    }
+                });
+            }
+        });
+        // Two of 60 never fit in 100: the four threads took turns.
+        assert_eq!(most.into_inner(), 60);
+        assert_eq!(budget.peak(), 60);
+        let small = budget.reserve(30).expect("30");
+        let other = budget.reserve(70).expect("70 beside 30");
+        drop((small, other));
+        let error = budget.reserve(101).map(drop).expect_err("more than the budget").to_string();
+        assert!(error.contains("101 bytes, more than the 100"), "{error}");
+        // The process's budget takes the largest texture the import reads.
+        let largest = citystream_gen::library::MAX_IMAGE_SIDE;
+        assert_eq!(
+            PROCESS_TRANSCODE_BUDGET.capacity(),
+            working_bytes(largest, largest, true)
+        );
+        let bytes = fixture("roof-uastc-zstd.ktx2");
+        let texture = BasisTexture::open(&bytes).expect("fixture");
+        assert_eq!(texture.working_bytes(), 64 * 64 * 16 + 16 * 16 * 16);
     }
 
     #[test]

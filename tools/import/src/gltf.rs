@@ -409,6 +409,9 @@ impl GltfContent {
         if let Some((index, bytes)) = source.as_ref().filter(|(_, bytes)| is_basis(bytes)) {
             let what = || format!("{}: image {index}", self.input.display());
             let basis = BasisTexture::open(bytes).with_context(what)?;
+            // Held until the texture is encoded: the transcodes running in parallel share
+            // one bound.
+            let _room = basis.reserve().with_context(what)?;
             let origin = TextureOrigin {
                 encoding: basis.codec.name(),
                 kept_blocks: false,

@@ -308,6 +308,9 @@ fn run_texture(bytes: &[u8]) -> Outcome {
         let Ok(texture) = citystream_import::basis::BasisTexture::open(bytes) else {
             return Outcome::Rejected;
         };
+        let Ok(_room) = texture.reserve() else {
+            return Outcome::Rejected;
+        };
         let blocks = [(TextureFormat::Bc7, 14), (TextureFormat::Bc1, 5)]
             .iter()
             .map(|&(format, max_log2)| texture.blocks(format, max_log2))
