@@ -264,6 +264,30 @@ pub(crate) struct PendingWrite {
     _lock: File,
 }
 
+/// Whether `text` is a URL (`scheme://…`) rather than a path.
+pub fn looks_like_url(text: &str) -> bool {
+    text.split_once("://").is_some_and(|(scheme, _)| {
+        !scheme.is_empty()
+            && scheme
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '+' | '-' | '.'))
+    })
+}
+
+/// Refuses a write directory given as a URL: a path of `s3://bucket/x` would be the local
+/// folder `./s3:/bucket/x`, and nothing would reach the bucket.
+fn refuse_url(dir: &Path) -> Result<(), DatasetError> {
+    let text = dir.to_string_lossy();
+    if looks_like_url(&text) {
+        return Err(DatasetError::InvalidInput(format!(
+            "{text} is a URL: a dataset is written to a local directory; to build one into S3, \
+             write it with --shard I/N (--shard 0/1 for one process) and join the shards there with \
+             `citystream merge {text}` (docs/SHARDS.md)"
+        )));
+    }
+    Ok(())
+}
+
 impl PendingWrite {
     /// Creates `dir` if needed, takes its write lock (waiting for another writer to finish
     /// when `wait`, else failing with [`DatasetError::Locked`]), removes what earlier writers
@@ -282,6 +306,7 @@ impl PendingWrite {
     }
 
     fn begin_adopting(dir: &Path, wait: bool, adopt: &mut dyn FnMut(&Path) -> bool) -> Result<Self, DatasetError> {
+        refuse_url(dir)?;
         std::fs::create_dir_all(dir).map_err(|e| DatasetError::io(dir, e))?;
         let lock = File::open(dir).map_err(|e| DatasetError::io(dir, e))?;
         if wait {

@@ -68,8 +68,8 @@ pub use crs::{Crs, CrsError, MAX_CRS_BYTES};
 pub use dataset::Dataset;
 pub use error::{DatasetError, Magic};
 pub use files::{
-    fresh_write_id, manifest_bytes, write_dir_name, DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE, DATASET_FILES,
-    MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
+    fresh_write_id, looks_like_url, manifest_bytes, write_dir_name, DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE,
+    DATASET_FILES, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
 };
 pub use format::{full_mip_count, TextureFormat, TextureInfo, FORMAT_VERSION, MAX_EXTENT_LOG2, MAX_PACK_OFFSET};
 pub use io_util::ensure_regular_file;

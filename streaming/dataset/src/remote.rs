@@ -251,6 +251,19 @@ fn s3_builder(
 }
 
 /// Whether `location` names a remote dataset (a URL this module opens).
+/// The key prefix of an `s3://bucket/PREFIX` URL as every reader and writer uses it: empty
+/// segments dropped (`s3://b//x/` is `x`, as the object store itself keys it); `.` and `..`
+/// segments refused, as no store resolves them.
+pub(crate) fn normalized_s3_prefix(prefix: &str) -> Result<String, String> {
+    let segments: Vec<&str> = prefix.split('/').filter(|s| !s.is_empty()).collect();
+    if let Some(dots) = segments.iter().find(|s| matches!(**s, "." | "..")) {
+        return Err(format!(
+            "the prefix {prefix:?} has a {dots:?} segment, which S3 keys do not resolve"
+        ));
+    }
+    Ok(segments.join("/"))
+}
+
 pub fn is_remote(location: &str) -> bool {
     ["http://", "https://", "s3://"]
         .iter()
@@ -447,6 +460,12 @@ impl RemoteStore {
         if authority.is_empty() {
             return Err(bad("no host or bucket".into()));
         }
+        let prefix = if scheme.eq_ignore_ascii_case("s3") {
+            normalized_s3_prefix(prefix).map_err(bad)?
+        } else {
+            prefix.to_owned()
+        };
+        let prefix = prefix.as_str();
         let client = ClientOptions::new()
             .with_timeout(options.timeout)
             .with_connect_timeout(options.connect_timeout)

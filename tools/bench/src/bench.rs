@@ -167,7 +167,7 @@ pub struct BenchArgs {
     budget_mb: Option<u64>,
     /// Output directory: one subdirectory per run, plus table.md and the
     /// charts of the comparison.
-    #[arg(long)]
+    #[arg(long, value_parser = citystream_gen::files::local_out)]
     out: PathBuf,
     /// Frame limit passed to every run (default: the flythrough's own; with
     /// `--scenario pressure`, the frames 30 s of the path take).

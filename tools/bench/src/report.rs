@@ -61,7 +61,7 @@ pub struct ReportArgs {
     #[arg(long = "name")]
     names: Vec<String>,
     /// Directory for table.md and the PNG charts (created if missing).
-    #[arg(long)]
+    #[arg(long, value_parser = citystream_gen::files::local_out)]
     out: PathBuf,
 }
 

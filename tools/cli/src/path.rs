@@ -16,7 +16,7 @@ pub struct PathArgs {
     #[arg(long)]
     pub dataset: PathBuf,
     /// Camera path file to write (JSON, format in docs/PATHS.md).
-    #[arg(long)]
+    #[arg(long, value_parser = citystream_gen::files::local_out)]
     pub out: PathBuf,
     /// Length of the path in seconds (at least 18: four 2 s pauses plus ten flight segments).
     #[arg(long, default_value_t = DEFAULT_STANDARD_DURATION_S)]

@@ -402,3 +402,76 @@ fn shard_counts_are_bounded_and_many_missing_shards_are_counted_in_runs() {
     assert!(why.contains("shard 7") && why.contains("another job"), "{why}");
     assert_eq!(manifest(&out), None, "a refused merge wrote a dataset");
 }
+
+#[test]
+fn an_s3_out_without_shard_is_refused_and_nothing_is_written_locally() {
+    let dir = fresh_dir("shards", "s3_out_refused");
+    let city = cli_support::tiny_city_at(dir.join("city"));
+    let city_s = city.to_str().expect("utf-8");
+    let url = "s3://cities/y";
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_citystream"))
+            .args(args)
+            .current_dir(&dir)
+            .output()
+            .expect("citystream runs")
+    };
+    for (args, expected) in [
+        (vec!["gen", "--preset", "tiny", "--out", url], "is a URL"),
+        (vec!["gen", "--preset", "tiny", "--dry-run", "--out", url], "is a URL"),
+        (vec!["atlas", city_s, "--out", url], "is a URL"),
+        (vec!["bench", "--out", url], "is a URL"),
+        (vec!["path", "--dataset", city_s, "--out", url], "is a URL"),
+    ] {
+        let refused = run(&args);
+        assert!(!refused.status.success(), "{args:?} ran");
+        assert!(stderr(&refused).contains(expected), "{args:?}: {}", stderr(&refused));
+    }
+    let glb = dir.join("wall.glb");
+    std::fs::write(&glb, tileset_support::wall_glb(1)).expect("glb written");
+    let refused = run(&["import", glb.to_str().expect("utf-8"), "--out", url]);
+    assert!(stderr(&refused).contains("is a URL"), "{}", stderr(&refused));
+    assert!(!dir.join("s3:").exists(), "a local ./s3:/ folder was written");
+}
+
+#[test]
+#[cfg_attr(
+    citystream_skip_s3,
+    ignore = "the S3 emulator is not installed and `make setup` has not run"
+)]
+fn an_s3_prefix_with_empty_segments_is_the_same_prefix_for_writers_and_readers() {
+    let dir = fresh_dir("shards", "s3_prefix");
+    let seed_dir = dir.join("seed");
+    std::fs::create_dir_all(&seed_dir).expect("seed dir");
+    std::fs::write(seed_dir.join("README"), "prefixes").expect("seed file");
+    let s3 = S3Emulator::start(&dir).expect("start the S3 emulator (`make setup` installs it)");
+    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
+    let env = s3.client_env();
+    let env = env_refs(&env);
+    let gen = [
+        "gen",
+        "--preset",
+        "tiny",
+        "--seed",
+        "1",
+        "--quiet",
+        "--shard",
+        "0/1",
+        "--out",
+        "s3://cities//x/",
+    ];
+    ok(run_env(&gen, &env), "gen into s3://cities//x/");
+    let status = ok(run_env(&["merge", "--status", "s3://cities/x"], &env), "status");
+    let text = String::from_utf8_lossy(&status.stdout);
+    assert!(text.contains("1 done, 0 running, 0 missing"), "{text}");
+    ok(run_env(&["merge", "s3://cities//x"], &env), "merge");
+    ok(run_env(&["verify", "s3://cities/x/"], &env), "verify");
+    let info = ok(run_env(&["info", "s3://cities///x"], &env), "info");
+    assert!(
+        String::from_utf8_lossy(&info.stdout).contains("254 textures"),
+        "{}",
+        String::from_utf8_lossy(&info.stdout)
+    );
+    let refused = run_env(&["merge", "--status", "s3://cities/x/../y"], &env);
+    assert!(stderr(&refused).contains("\"..\" segment"), "{}", stderr(&refused));
+}

@@ -296,7 +296,7 @@ pub(crate) struct Args {
     #[arg(long, conflicts_with_all = ["dataset", "pop_in"])]
     pub(crate) placeholder: bool,
     /// Output directory for frames/ and summary.json.
-    #[arg(long, default_value = "out/flythrough")]
+    #[arg(long, default_value = "out/flythrough", value_parser = citystream_gen::files::local_out)]
     pub(crate) out: PathBuf,
     /// Camera path: `standard` (the benchmark path derived from the dataset,
     /// see docs/PATHS.md) or a path file (`citystream path`, or recorded in

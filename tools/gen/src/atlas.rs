@@ -39,7 +39,7 @@ pub struct AtlasArgs {
     /// Input dataset directory.
     pub input: PathBuf,
     /// Output dataset directory.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::files::local_out)]
     pub out: PathBuf,
     /// Side of the square grid regions meshes are grouped by, metres.
     #[arg(long, default_value_t = 512.0)]

@@ -45,7 +45,7 @@ pub struct AtlasTreeArgs {
     pub dataset: PathBuf,
     /// Output directory: a dataset (the nodes' atlases, then the original textures; the
     /// leaves' meshes) plus `atlas-tree.bin`.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::files::local_out)]
     pub out: PathBuf,
     /// Side of every node's atlas in texels (a power of two, 64 to 8192).
     #[arg(long, default_value_t = 512)]

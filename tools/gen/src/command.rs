@@ -16,6 +16,7 @@ pub fn run(args: &GenArgs) -> Result<()> {
     let format = args.format.texture_format();
     let mut params = args.preset.params();
     params.max_extent_log2 = params.max_extent_log2.min(args.max_extent.trailing_zeros() as u8);
+    crate::shard::check_out(&args.out, args.shard.resolve()?)?;
     if args.preset == Preset::Berlin && args.shard.resolve()?.is_some() {
         bail!("--shard: --preset berlin is written straight into atlases and cannot be sharded yet; shard a per-mesh preset");
     }

@@ -8,6 +8,19 @@ use std::path::Path;
 use anyhow::{Context, Result};
 
 /// Prints to stdout; a reader that closed the pipe early (`| head`) is not an error.
+/// `--out` of a command that writes a local directory: a URL is refused (a path of
+/// `s3://bucket/x` would be the local folder `./s3:/bucket/x`, and nothing would reach the
+/// bucket).
+pub fn local_out(text: &str) -> std::result::Result<std::path::PathBuf, String> {
+    if citystream_dataset::looks_like_url(text) {
+        return Err(format!(
+            "{text} is a URL; this command writes a local directory (datasets go to S3 through \
+             --shard I/N and `citystream merge`, docs/SHARDS.md)"
+        ));
+    }
+    Ok(std::path::PathBuf::from(text))
+}
+
 pub fn print_stdout(text: &str) -> Result<()> {
     match std::io::stdout().lock().write_all(text.as_bytes()) {
         Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),

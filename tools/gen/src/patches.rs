@@ -40,7 +40,7 @@ pub struct PatchesArgs {
     #[arg(long)]
     pub dataset: PathBuf,
     /// Output directory: `patches.json` and the patches' PNGs (replaced atomically).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::files::local_out)]
     pub out: PathBuf,
     /// Number of patches, the base layer included.
     #[arg(long, default_value_t = 24, value_parser = clap::value_parser!(u32).range(1..=4096))]

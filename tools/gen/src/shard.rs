@@ -39,6 +39,23 @@ pub struct ShardArgs {
     pub shards: Option<u32>,
 }
 
+/// Refuses an `--out` URL for an ordinary write: only a shard is written into S3 (and
+/// joined there by `merge`); an ordinary write goes to a local directory.
+pub fn check_out(out: &Path, shard: Option<Shard>) -> Result<()> {
+    let text = out.to_string_lossy();
+    if shard.is_none() && citystream_dataset::looks_like_url(&text) {
+        bail!(
+            "--out {text} is a URL: a dataset is written to a local directory; to build one into S3, \
+             write it with --shard I/N (--shard 0/1 for one process) and join the shards there with \
+             `citystream merge {text}` (docs/SHARDS.md)"
+        );
+    }
+    if shard.is_some() && citystream_dataset::looks_like_url(&text) && !is_remote(&text) {
+        bail!("--out {text}: shards are written to a directory or an s3://bucket/prefix URL");
+    }
+    Ok(())
+}
+
 /// Shard `index` of `count`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Shard {

@@ -620,7 +620,11 @@ mod tests {
         let small = budget.reserve(30).expect("30");
         let other = budget.reserve(70).expect("70 beside 30");
         drop((small, other));
-        let error = budget.reserve(101).map(drop).expect_err("more than the budget").to_string();
+        let error = budget
+            .reserve(101)
+            .map(drop)
+            .expect_err("more than the budget")
+            .to_string();
         assert!(error.contains("101 bytes, more than the 100"), "{error}");
         // The process's budget takes the largest texture the import reads.
         let largest = citystream_gen::library::MAX_IMAGE_SIDE;

@@ -61,6 +61,7 @@ pub fn run(args: &ImportArgs) -> Result<()> {
     check_texture_extent("--max-extent", args.max_extent)?;
     let format = args.format.texture_format();
     let input = &args.input;
+    citystream_gen::shard::check_out(&args.out, args.shard.resolve()?)?;
     if crate::tiles::is_tileset(input) {
         let lod = args.lod.unwrap_or(crate::tiles::Lod::Finest);
         let options = crate::tiles::LoadOptions {

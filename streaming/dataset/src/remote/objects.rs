@@ -215,6 +215,13 @@ impl ObjectBucket {
         if bucket.is_empty() || rest.contains(['?', '#']) {
             return Err(bad("no bucket, or a query string".into()));
         }
+        // One form for writers and readers (`RemoteStore`): `s3://b//x` is `s3://b/x`.
+        let prefix = super::normalized_s3_prefix(prefix).map_err(bad)?;
+        let rest = if prefix.is_empty() {
+            bucket.to_owned()
+        } else {
+            format!("{bucket}/{prefix}")
+        };
         if std::env::var_os("AWS_ACCESS_KEY_ID").is_none() {
             return Err(bad(
                 "writing to S3 needs credentials: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY".into(),
@@ -256,7 +263,7 @@ impl ObjectBucket {
         Ok(Self {
             url: format!("s3://{rest}"),
             bucket: bucket.to_owned(),
-            prefix: prefix.to_owned(),
+            prefix,
             store: Arc::new(store),
             http,
             runtime,
