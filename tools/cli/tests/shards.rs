@@ -250,6 +250,21 @@ fn a_tileset_imported_in_three_shards_merges_to_the_one_process_import() {
     let merged = Dataset::open(&out).expect("merged");
     assert_eq!(merged.textures.len(), 8);
 
+    // The tileset changes between two shards (one .glb's texture, same size): the shards
+    // are of two jobs, refused by name with nothing written.
+    let changed = dir.join("changed");
+    let out_c = changed.to_str().expect("utf-8");
+    ok(citystream(&["import", t, "--out", out_c, "--shard", "0/2"]), "shard 0");
+    std::fs::write(dir.join("wall0.glb"), wall_glb(99)).expect("rewrite a content");
+    ok(citystream(&["import", t, "--out", out_c, "--shard", "1/2"]), "shard 1");
+    let refused = citystream(&["merge", out_c]);
+    assert!(
+        !refused.status.success(),
+        "shards of two versions of the tileset merged"
+    );
+    assert!(stderr(&refused).contains("another job"), "{}", stderr(&refused));
+    assert_eq!(manifest(&changed), None, "a refused merge wrote a dataset");
+
     // A glTF file is one content: nothing to divide.
     let glb = dir.join("wall0.glb");
     let refused = citystream(&["import", glb.to_str().expect("utf-8"), "--out", "x", "--shard", "0/2"]);

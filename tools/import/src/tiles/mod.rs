@@ -112,7 +112,8 @@ pub struct ImportedTileset {
     pub tiles: usize,
     /// Content not imported, by kind, and how many of each.
     pub skipped: BTreeMap<String, usize>,
-    /// A fingerprint of the contents walked (their paths in order): part of a shard's job.
+    /// A fingerprint of the contents walked (their paths in order, each file's bytes and
+    /// those of its external buffers and images): part of a shard's job.
     pub contents_fingerprint: u32,
     /// Meshes and textures by the encoding they were stored in.
     pub encodings: EncodingCounts,
@@ -239,6 +240,10 @@ pub fn load(
     // glTF content requiring extensions the import does not decode: by extensions, the
     // listings skipped and the first files.
     let mut undecoded: BTreeMap<String, (usize, Vec<String>)> = BTreeMap::new();
+    // What every content file holds (its bytes, and its external buffers' and images'),
+    // in the walk's order: part of a shard's job, so that shards of a
+    // tileset whose files changed between them are not joined.
+    let mut content_bytes = crc32fast::Hasher::new();
     for (n, path) in files.iter().enumerate() {
         let listings = &listings_of[path];
         let first = &walk.contents[listings[0]];
@@ -246,8 +251,13 @@ pub fn load(
             let content = &walk.contents[i];
             format!("{} (tile {})", content.path.display(), content.tile)
         };
-        let (mut read, centres) = match read_content(first, &walk.root_dir, MAX_IMPORTED_VERTICES - vertices)
-            .with_context(|| what(listings[0]))?
+        let (mut read, centres) = match read_content(
+            first,
+            &walk.root_dir,
+            MAX_IMPORTED_VERTICES - vertices,
+            &mut content_bytes,
+        )
+        .with_context(|| what(listings[0]))?
         {
             Content::Read(read, centres) => (read, centres),
             Content::Undecoded(extensions) => {
@@ -326,6 +336,7 @@ pub fn load(
         fingerprint.update(relative.to_string_lossy().as_bytes());
         fingerprint.update(&[0]);
     }
+    fingerprint.update(&content_bytes.finalize().to_le_bytes());
     let listing_of_mesh: Vec<usize> = placed
         .iter()
         .enumerate()
@@ -816,8 +827,15 @@ enum Content {
 
 /// One content file read: its glTF's primitives placed in Earth-centred coordinates (for
 /// `content`, the first listing of the file), and its RTC centres (for the others).
-fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> Result<Content> {
+fn read_content(
+    content: &ContentRef,
+    root_dir: &Path,
+    vertex_budget: usize,
+    fingerprint: &mut crc32fast::Hasher,
+) -> Result<Content> {
     let bytes = read_bounded(&content.path, MAX_CONTENT_BYTES, "content file")?;
+    fingerprint.update(&(bytes.len() as u64).to_le_bytes());
+    fingerprint.update(&bytes);
     let (glb, batch_rtc) = if content_kind(&content.path) == "b3dm" {
         let batched = content::parse_b3dm(&bytes)?;
         (batched.glb, batched.rtc_center)
@@ -833,7 +851,7 @@ fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> 
     let centres = [batch_rtc, gltf_rtc];
     let transform = content_root(content, centres);
     let base = content.path.parent().unwrap_or(Path::new("/"));
-    check_external_files(&json, base, root_dir)?;
+    check_external_files(&json, base, root_dir, fingerprint)?;
     Ok(Content::Read(
         Box::new(read_gltf(glb, base, &content.path, &transform, vertex_budget)?),
         centres,
@@ -842,8 +860,8 @@ fn read_content(content: &ContentRef, root_dir: &Path, vertex_budget: usize) -> 
 
 /// The files a glTF's buffers and images name (other than data URIs) lie inside the
 /// tileset's directory `root_dir` and are at most [`MAX_CONTENT_BYTES`], before the glTF
-/// reader opens them.
-fn check_external_files(json: &Value, base: &Path, root_dir: &Path) -> Result<()> {
+/// reader opens them; their bytes go into `fingerprint`.
+fn check_external_files(json: &Value, base: &Path, root_dir: &Path, fingerprint: &mut crc32fast::Hasher) -> Result<()> {
     for key in ["buffers", "images"] {
         let items = json.get(key).and_then(Value::as_array).into_iter().flatten();
         for (i, item) in items.enumerate() {
@@ -868,9 +886,22 @@ fn check_external_files(json: &Value, base: &Path, root_dir: &Path) -> Result<()
                     root_dir.display()
                 );
             }
-            let len = std::fs::metadata(&canonical).with_context(what)?.len();
+            let meta = std::fs::metadata(&canonical).with_context(what)?;
+            let len = meta.len();
             if len > MAX_CONTENT_BYTES {
                 bail!("{}: {len} bytes (at most {MAX_CONTENT_BYTES} are read)", what());
+            }
+            // Its bytes, streamed (a fetched tileset's files all have the download's time,
+            // so a modification time would differ between shards of the same files).
+            fingerprint.update(uri.as_bytes());
+            fingerprint.update(&len.to_le_bytes());
+            let mut file = std::fs::File::open(&canonical).with_context(what)?;
+            let mut chunk = vec![0u8; 1 << 16];
+            loop {
+                match std::io::Read::read(&mut file, &mut chunk).with_context(what)? {
+                    0 => break,
+                    n => fingerprint.update(&chunk[..n]),
+                }
             }
         }
     }
