@@ -86,6 +86,23 @@ pub enum DatasetError {
         /// The dataset directory.
         dir: PathBuf,
     },
+    /// Another process holds the lease of an object in S3 (a merge's or a shard's) and has
+    /// renewed it recently.
+    #[error(
+        "{url}: held by another writer ({holder}, last renewed {age_s:.0} s ago); two writers here would \
+         remove each other's files. Wait for it to finish; if it died, its lease lapses {stale_s:.0} s \
+         after its last renewal, and a rerun then takes over"
+    )]
+    Leased {
+        /// The lease object.
+        url: PathBuf,
+        /// Who holds it (host, process and a random tag).
+        holder: String,
+        /// Seconds since it was last renewed.
+        age_s: f64,
+        /// Seconds without renewal after which it may be taken over.
+        stale_s: f64,
+    },
     /// The file is shorter (or longer) than its header or an offset says.
     #[error("{}: truncated or mis-sized: {what} needs bytes {offset}..{end}, but the file is {file_len} bytes", path.display())]
     Truncated {

@@ -48,7 +48,9 @@ use crate::store::DatasetStore;
 mod guarded;
 mod objects;
 
-pub use objects::{ComposeReport, ObjectBucket, ObjectInfo, Segment, MIN_PART_BYTES};
+pub use objects::{
+    lease_holder, ComposeReport, Lease, ObjectBucket, ObjectInfo, Segment, LEASE_RENEW, LEASE_STALE, MIN_PART_BYTES,
+};
 
 // Defined where the guarded client enforces it; public here beside the other limits.
 pub use guarded::MAX_REDIRECTS;

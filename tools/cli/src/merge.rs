@@ -20,7 +20,7 @@ use std::ops::Range;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::remote::{is_remote, open_dataset, ObjectBucket, RemoteOptions};
+use citystream_dataset::remote::{is_remote, lease_holder, open_dataset, ObjectBucket, RemoteOptions};
 use citystream_dataset::{verify_dataset, Dataset, ShardRecord, MANIFEST_FILE, SHARDS_DIR, SHARD_RECORD_FILE};
 use citystream_gen::shard::{PACK_TAG_FILE, S3_JOURNAL};
 
@@ -64,13 +64,31 @@ pub fn run(args: &MergeArgs) -> Result<()> {
     } else {
         Place::Local(args.out.clone())
     };
-    let found = find_shards(&place, &location, args.quiet)?;
     if args.status {
+        let found = find_shards(&place, &location, args.quiet)?;
         return print_status(&location, &found);
     }
-    let shards = check_shards(&place, &location, found, args.quiet)?;
-    write::merge(&place, &location, &shards, args.quiet)
+    // Into S3, one merge at a time: a second would remove the first's files, which its
+    // manifest may name (locally the dataset writer's lock does this).
+    let lease = match &place {
+        Place::S3(bucket) => Some(bucket.acquire_lease(MERGE_LEASE, &lease_holder(), "citystream merge")?),
+        Place::Local(_) => None,
+    };
+    let merged = (|| {
+        let found = find_shards(&place, &location, args.quiet)?;
+        let shards = check_shards(&place, &location, found, args.quiet)?;
+        write::merge(&place, &location, &shards, lease.as_ref(), args.quiet)
+    })();
+    if let (Place::S3(bucket), Some(lease)) = (&place, lease) {
+        let released = bucket.release_lease(lease);
+        merged?;
+        return released.with_context(|| format!("releasing {location}/{MERGE_LEASE}"));
+    }
+    merged
 }
+
+/// The lease a merge into S3 holds at the output's prefix.
+pub const MERGE_LEASE: &str = "merge.lease";
 
 /// Every `shards/I/` of `place`, by index.
 fn find_shards(place: &Place, location: &str, quiet: bool) -> Result<BTreeMap<u32, Found>> {

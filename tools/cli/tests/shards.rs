@@ -490,3 +490,114 @@ fn an_s3_prefix_with_empty_segments_is_the_same_prefix_for_writers_and_readers()
     let refused = run_env(&["merge", "--status", "s3://cities/x/../y"], &env);
     assert!(stderr(&refused).contains("\"..\" segment"), "{}", stderr(&refused));
 }
+
+/// The emulator with the bucket `cities`, and its client environment.
+fn emulator_with_bucket(dir: &Path) -> (S3Emulator, Vec<(&'static str, String)>) {
+    let seed_dir = dir.join("seed");
+    std::fs::create_dir_all(&seed_dir).expect("seed dir");
+    std::fs::write(seed_dir.join("README"), "leases").expect("seed file");
+    let s3 = S3Emulator::start(dir).expect("start the S3 emulator (`make setup` installs it)");
+    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
+    let env = s3.client_env();
+    (s3, env)
+}
+
+#[test]
+#[cfg_attr(
+    citystream_skip_s3,
+    ignore = "the S3 emulator is not installed and `make setup` has not run"
+)]
+fn two_writers_of_one_s3_shard_at_once_one_is_refused_and_the_shard_stays_whole() {
+    let dir = fresh_dir("shards", "s3_same_shard");
+    let (_s3, env) = emulator_with_bucket(&dir);
+    let env = env_refs(&env);
+    let url = "s3://cities/twice";
+    let mut refused_any = false;
+    for round in 0..3 {
+        // Two machines: two staging directories.
+        let children: Vec<Child> = (0..2)
+            .map(|machine| {
+                let tmp = dir.join(format!("tmp-{round}-{machine}"));
+                std::fs::create_dir_all(&tmp).expect("tmp");
+                let mut env = env.clone();
+                env.push(("TMPDIR", tmp.to_str().expect("utf-8")));
+                spawn(
+                    &[
+                        "gen", "--preset", "tiny", "--seed", "1", "--quiet", "--shard", "0/2", "--out", url,
+                    ],
+                    &env,
+                )
+            })
+            .collect();
+        let outputs: Vec<Output> = children
+            .into_iter()
+            .map(|c| c.wait_with_output().expect("gen"))
+            .collect();
+        let refused: Vec<&Output> = outputs.iter().filter(|o| !o.status.success()).collect();
+        assert!(refused.len() <= 1, "round {round}: both writers failed");
+        for output in &refused {
+            assert!(stderr(output).contains("held by another writer"), "{}", stderr(output));
+        }
+        refused_any |= !refused.is_empty();
+        // The shard names only files that are there, every mip checked.
+        ok(run_env(&["verify", &format!("{url}/shards/0")], &env), "verify the shard");
+    }
+    assert!(refused_any, "the two writers never met: the test did not race them");
+    ok(
+        run_env(
+            &[
+                "gen", "--preset", "tiny", "--seed", "1", "--quiet", "--shard", "1/2", "--out", url,
+            ],
+            &env,
+        ),
+        "shard 1",
+    );
+    ok(run_env(&["merge", url], &env), "merge");
+    ok(run_env(&["verify", url], &env), "verify");
+}
+
+#[test]
+#[cfg_attr(
+    citystream_skip_s3,
+    ignore = "the S3 emulator is not installed and `make setup` has not run"
+)]
+fn concurrent_merges_into_one_s3_prefix_never_break_the_merged_dataset() {
+    let dir = fresh_dir("shards", "s3_merges");
+    let (_s3, env) = emulator_with_bucket(&dir);
+    let env = env_refs(&env);
+    let url = "s3://cities/merged";
+    for i in 0..2 {
+        let shard = format!("{i}/2");
+        ok(
+            run_env(
+                &[
+                    "gen", "--preset", "tiny", "--seed", "1", "--quiet", "--shard", &shard, "--out", url,
+                ],
+                &env,
+            ),
+            "shard",
+        );
+    }
+    ok(run_env(&["merge", url], &env), "first merge");
+    let mut refused_any = false;
+    for round in 0..4 {
+        let children: Vec<Child> = (0..3).map(|_| spawn(&["merge", "--quiet", url], &env)).collect();
+        let outputs: Vec<Output> = children
+            .into_iter()
+            .map(|c| c.wait_with_output().expect("merge"))
+            .collect();
+        for output in outputs.iter().filter(|o| !o.status.success()) {
+            refused_any = true;
+            assert!(
+                stderr(output).contains("held by another writer"),
+                "round {round}: {}",
+                stderr(output)
+            );
+        }
+        // Whichever merges ran, the dataset the manifest names is whole.
+        ok(run_env(&["verify", url], &env), "verify after concurrent merges");
+    }
+    assert!(refused_any, "no merge ever met another: the test did not race them");
+    // The lease is gone once every merge has finished: another merge runs.
+    ok(run_env(&["merge", "--quiet", url], &env), "a later merge");
+}

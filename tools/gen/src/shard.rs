@@ -14,7 +14,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::remote::{is_remote, ObjectBucket, RemoteOptions};
+use citystream_dataset::remote::{is_remote, lease_holder, Lease, ObjectBucket, RemoteOptions};
 pub use citystream_dataset::MAX_SHARDS;
 use citystream_dataset::{verify_dataset, Dataset, Scene, MANIFEST_FILE, PACK_FILE, SHARDS_DIR};
 
@@ -162,7 +162,8 @@ pub struct ShardWrite {
     shard: Shard,
     /// The dataset directory the shard's writer writes.
     dir: PathBuf,
-    bucket: Option<(ObjectBucket, String)>,
+    /// Into S3: the bucket, the shard's key and the lease its journal is.
+    bucket: Option<(ObjectBucket, String, Lease)>,
     quiet: bool,
 }
 
@@ -170,7 +171,8 @@ impl ShardWrite {
     /// Starts shard `shard` of the output `out`: for a directory, the shard is written in
     /// `out/shards/I/`; for an S3 URL, in a staging directory under the system's temporary
     /// directory (named by `out` and `I`, so a rerun resumes it), and `shards/I/shard.journal`
-    /// is put saying that it runs.
+    /// is taken as a lease saying that it runs: a second writer of the same shard is refused
+    /// while this one renews it, and may take over once it has lapsed (a killed writer).
     pub fn begin(out: &Path, shard: Shard, command: &str, quiet: bool) -> Result<Self> {
         let location = out.to_string_lossy();
         let key = format!("{SHARDS_DIR}/{}", shard.index);
@@ -185,23 +187,19 @@ impl ShardWrite {
         let bucket = ObjectBucket::new(&location, &RemoteOptions::from_env()?)?;
         let name = format!("{:08x}-{}", crc32fast::hash(bucket.url().as_bytes()), shard.index);
         let dir = std::env::temp_dir().join("citystream-shards").join(name);
-        let started = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs());
-        let host = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
-        let journal = format!(
-            "shard {} of {}\ncommand {command}\nhost {}\npid {}\nstarted {started}\nstaging {}\n",
+        let note = format!(
+            "shard {} of {}; command {command}; staging {}",
             shard.index,
             shard.count,
-            host.trim(),
-            std::process::id(),
             dir.display()
         );
-        bucket.put(&format!("{key}/{S3_JOURNAL}"), journal.into_bytes())?;
+        let lease = bucket
+            .acquire_lease(&format!("{key}/{S3_JOURNAL}"), &lease_holder(), &note)
+            .with_context(|| format!("starting shard {} of {}", shard.index, shard.count))?;
         Ok(Self {
             shard,
             dir,
-            bucket: Some((bucket, key)),
+            bucket: Some((bucket, key, lease)),
             quiet,
         })
     }
@@ -215,7 +213,7 @@ impl ShardWrite {
     /// every mip of the staged shard, uploads it (its files, its pack's tag, then its
     /// manifest), removes its older writes and the journal, and the staging directory.
     pub fn publish(self) -> Result<()> {
-        let Some((bucket, key)) = self.bucket else {
+        let Some((bucket, key, lease)) = self.bucket else {
             return Ok(());
         };
         let say = |line: String| {
@@ -240,6 +238,7 @@ impl ShardWrite {
             .collect::<std::io::Result<_>>()?;
         names.sort();
         for name in &names {
+            lease.check()?;
             let path = files.data_dir().join(name);
             let mut last_tenth = 0;
             bucket.upload_file(&format!("{write_key}/{name}"), &path, &mut |done, total| {
@@ -261,18 +260,21 @@ impl ShardWrite {
             &format!("{write_key}/{PACK_TAG_FILE}"),
             format!("{} {e_tag}\n", pack.size).into_bytes(),
         )?;
+        // Still this shard's only writer: the switch, then the removal of earlier writes.
+        lease.check()?;
         bucket.upload_file(
             &format!("{key}/{MANIFEST_FILE}"),
             &self.dir.join(MANIFEST_FILE),
             &mut |_, _| {},
         )?;
+        lease.check()?;
         for (old, _) in bucket.list(&format!("{key}/"))? {
             let inside = old.strip_prefix(&format!("{key}/")).unwrap_or(&old);
             if inside.starts_with("write-") && !inside.starts_with(&format!("{write_name}/")) {
                 bucket.delete(&old)?;
             }
         }
-        bucket.delete(&format!("{key}/{S3_JOURNAL}"))?;
+        bucket.release_lease(lease)?;
         say(format!(
             "uploaded to {} ({} MB of pack)",
             bucket.url_of(&key).display(),

@@ -28,7 +28,9 @@ use object_store::aws::AmazonS3;
 use object_store::multipart::{MultipartStore, PartId};
 use object_store::path::Path as ObjectPath;
 use object_store::signer::{HeaderName, HeaderValue, Method, SignedUrlOptions, Signer};
-use object_store::{BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
+use object_store::{
+    BackoffConfig, ClientOptions, ObjectStore, ObjectStoreExt, PutMode, PutPayload, RetryConfig, UpdateVersion,
+};
 
 use super::{guarded, s3_builder, RemoteOptions};
 use crate::error::DatasetError;
@@ -177,6 +179,93 @@ fn plan_parts(segments: &[Segment], min_part: u64, max_part: u64) -> Vec<Part> {
         parts.push(Part::Upload(pending));
     }
     parts
+}
+
+/// Seconds without renewal after which a lease may be taken over: long enough for a busy
+/// machine's renewal (every [`LEASE_RENEW`]) to arrive, short enough that a rerun after a
+/// killed writer waits little.
+pub const LEASE_STALE: Duration = Duration::from_secs(60);
+/// How often a held lease is renewed.
+pub const LEASE_RENEW: Duration = Duration::from_secs(10);
+const LEASE_FIRST_LINE: &str = "citystream lease 1";
+
+/// A lease on one object of a bucket: a lock that lapses when its holder stops renewing it
+/// ([`ObjectBucket::acquire_lease`]). A task on the bucket's runtime renews it every
+/// [`LEASE_RENEW`] (each renewal conditional on the version it last wrote) until it is
+/// released or dropped; [`Lease::check`] says whether it is still held.
+#[derive(Debug)]
+pub struct Lease {
+    key: String,
+    url: PathBuf,
+    holder: String,
+    e_tag: Arc<std::sync::Mutex<Option<String>>>,
+    lost: Arc<std::sync::atomic::AtomicBool>,
+    renewer: tokio::task::JoinHandle<()>,
+}
+
+impl Lease {
+    /// Who holds it.
+    pub fn holder(&self) -> &str {
+        &self.holder
+    }
+
+    /// An error when another writer has taken the lease over (this holder's renewals
+    /// stopped for longer than [`LEASE_STALE`]): what this holder writes next would
+    /// interleave with it.
+    pub fn check(&self) -> Result<(), DatasetError> {
+        if self.lost.load(Ordering::SeqCst) {
+            return Err(DatasetError::io(
+                &self.url,
+                std::io::Error::other(
+                    "this writer's lease was taken over by another writer (its renewals stopped for too long); \
+                     stopping before it would remove or replace that writer's files",
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Lease {
+    fn drop(&mut self) {
+        self.renewer.abort();
+    }
+}
+
+/// The body of a lease: its holder and when it was written.
+fn lease_body(holder: &str, note: &str) -> Vec<u8> {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis());
+    format!(
+        "{LEASE_FIRST_LINE}\nholder {holder}\nrenewed_unix_ms {now}\nnote {}\n",
+        note.replace(['\n', '\r'], " ")
+    )
+    .into_bytes()
+}
+
+/// The holder of a lease body and how long ago it was written (`None`: not a lease).
+fn parse_lease(bytes: &[u8]) -> Option<(String, Duration)> {
+    let text = std::str::from_utf8(bytes).ok()?;
+    let mut lines = text.lines();
+    if lines.next()? != LEASE_FIRST_LINE {
+        return None;
+    }
+    let holder = lines.next()?.strip_prefix("holder ")?.to_owned();
+    let renewed: u128 = lines.next()?.strip_prefix("renewed_unix_ms ")?.parse().ok()?;
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()?
+        .as_millis();
+    Some((holder, Duration::from_millis(now.saturating_sub(renewed) as u64)))
+}
+
+/// Who this process is, for leases: host, process id and a random tag.
+pub fn lease_holder() -> String {
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_owned())
+        .unwrap_or_else(|_| "a host".into());
+    format!("{host} pid {} tag {:016x}", std::process::id(), crate::fresh_write_id())
 }
 
 /// A prefix of an S3 bucket written object by object (see the module docs).
@@ -360,6 +449,119 @@ impl ObjectBucket {
             Err(object_store::Error::NotFound { .. }) => Ok(None),
             Err(e) => Err(self.error(key, e)),
         }
+    }
+
+    /// Takes the lease `key` for `holder` (`note` says what for): created where there is
+    /// none (`If-None-Match: *`), taken over where its holder has not renewed it for
+    /// [`LEASE_STALE`] (`If-Match` on the lapsed version, so two takers cannot both have it),
+    /// otherwise refused with [`DatasetError::Leased`]. Renewed in the background until
+    /// released ([`ObjectBucket::release_lease`]) or dropped.
+    pub fn acquire_lease(&self, key: &str, holder: &str, note: &str) -> Result<Lease, DatasetError> {
+        let path = self.path(key)?;
+        let put = |mode: PutMode| {
+            self.runtime.block_on(
+                self.store
+                    .put_opts(&path, PutPayload::from(lease_body(holder, note)), mode.into()),
+            )
+        };
+        // A lease released between the failed create and the read is created again.
+        for _ in 0..3 {
+            let created = match put(PutMode::Create) {
+                Ok(done) => Some(done.e_tag),
+                Err(object_store::Error::AlreadyExists { .. }) => None,
+                Err(e) => return Err(self.error(key, e)),
+            };
+            if let Some(e_tag) = created {
+                return Ok(self.lease(key, holder, note, e_tag));
+            }
+            let read = self.runtime.block_on(async {
+                let got = self.store.get(&path).await?;
+                let e_tag = got.meta.e_tag.clone();
+                Ok::<_, object_store::Error>((e_tag, got.bytes().await?))
+            });
+            let (e_tag, bytes) = match read {
+                Ok(read) => read,
+                Err(object_store::Error::NotFound { .. }) => continue,
+                Err(e) => return Err(self.error(key, e)),
+            };
+            let (other, age) = parse_lease(&bytes).unwrap_or_else(|| ("an unreadable lease".into(), Duration::MAX));
+            if age < LEASE_STALE {
+                return Err(DatasetError::Leased {
+                    url: self.url_of(key),
+                    holder: other,
+                    age_s: age.as_secs_f64(),
+                    stale_s: LEASE_STALE.as_secs_f64(),
+                });
+            }
+            match put(PutMode::Update(UpdateVersion { e_tag, version: None })) {
+                Ok(done) => return Ok(self.lease(key, holder, note, done.e_tag)),
+                Err(object_store::Error::Precondition { .. } | object_store::Error::AlreadyExists { .. }) => continue,
+                Err(e) => return Err(self.error(key, e)),
+            }
+        }
+        Err(DatasetError::Leased {
+            url: self.url_of(key),
+            holder: "other writers taking it at the same moment".into(),
+            age_s: 0.0,
+            stale_s: LEASE_STALE.as_secs_f64(),
+        })
+    }
+
+    /// A held lease whose renewals run on this bucket's runtime.
+    fn lease(&self, key: &str, holder: &str, note: &str, e_tag: Option<String>) -> Lease {
+        let e_tag = Arc::new(std::sync::Mutex::new(e_tag));
+        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let renewer = {
+            let (store, e_tag, lost) = (self.store.clone(), e_tag.clone(), lost.clone());
+            let (path, holder, note) = (self.path(key), holder.to_owned(), note.to_owned());
+            self.runtime.spawn(async move {
+                let Ok(path) = path else { return };
+                loop {
+                    tokio::time::sleep(LEASE_RENEW).await;
+                    let current = e_tag.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
+                    let mode = PutMode::Update(UpdateVersion {
+                        e_tag: current,
+                        version: None,
+                    });
+                    match store
+                        .put_opts(&path, PutPayload::from(lease_body(&holder, &note)), mode.into())
+                        .await
+                    {
+                        Ok(done) => *e_tag.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = done.e_tag,
+                        Err(object_store::Error::Precondition { .. } | object_store::Error::NotFound { .. }) => {
+                            lost.store(true, Ordering::SeqCst);
+                            return;
+                        }
+                        // A failed request is tried again at the next renewal; the lease
+                        // lapses only after LEASE_STALE without one.
+                        Err(_) => {}
+                    }
+                }
+            })
+        };
+        Lease {
+            key: key.to_owned(),
+            url: self.url_of(key),
+            holder: holder.to_owned(),
+            e_tag,
+            lost,
+            renewer,
+        }
+    }
+
+    /// Stops renewing `lease` and removes it where it is still this holder's version.
+    pub fn release_lease(&self, lease: Lease) -> Result<(), DatasetError> {
+        lease.renewer.abort();
+        let ours = lease
+            .e_tag
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone();
+        let stored = self.head(&lease.key)?;
+        if lease.lost.load(Ordering::SeqCst) || stored.is_none() || stored.and_then(|s| s.e_tag) != ours {
+            return Ok(());
+        }
+        self.delete(&lease.key)
     }
 
     /// Puts `bytes` as `key` (replacing any object there in one step).

@@ -6,7 +6,7 @@
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use citystream_dataset::remote::{open_dataset, RemoteOptions, Segment};
+use citystream_dataset::remote::{open_dataset, Lease, RemoteOptions, Segment};
 use citystream_dataset::{
     fresh_write_id, manifest_bytes, write_dir_name, Dataset, DatasetWriter, JoinedTables, ShardRecord, MANIFEST_FILE,
     PACK_FILE,
@@ -15,7 +15,14 @@ use citystream_dataset::{
 use super::{process_io, write_key, Place};
 
 /// Writes the merged dataset of `shards` (checked, in order) at `place`.
-pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Dataset)], quiet: bool) -> Result<()> {
+/// Into S3, `lease` is the merge's (checked before the switch and the removals).
+pub(super) fn merge(
+    place: &Place,
+    location: &str,
+    shards: &[(ShardRecord, Dataset)],
+    lease: Option<&Lease>,
+    quiet: bool,
+) -> Result<()> {
     let start = Instant::now();
     let say = |line: String| {
         if !quiet {
@@ -102,17 +109,27 @@ pub(super) fn merge(place: &Place, location: &str, shards: &[(ShardRecord, Datas
                 );
             }
             // The switch: readers see the old dataset or this one.
+            if let Some(lease) = lease {
+                lease.check()?;
+            }
             bucket.put(MANIFEST_FILE, manifest_bytes(write_id))?;
             let merged = open_dataset(location, &RemoteOptions::from_env()?)
                 .with_context(|| format!("reopening the merged dataset {location}"))?;
             if merged.files().write_id() != write_id {
                 bail!("{location}: another write replaced the merged dataset while it was written");
             }
-            // Earlier writes (and what a killed merge left) go; the shards stay.
-            let old = bucket
-                .list("")?
-                .into_iter()
-                .filter(|(k, _)| k.starts_with("write-") && !k.starts_with(&format!("{write}/")));
+            // Earlier writes (and what a killed merge left) go; the shards stay, and so
+            // does whatever write the live manifest names (read again: never a write a
+            // reader can be sent to).
+            if let Some(lease) = lease {
+                lease.check()?;
+            }
+            let live = open_dataset(location, &RemoteOptions::from_env()?)
+                .map(|d| write_dir_name(d.files().write_id()))
+                .with_context(|| format!("reading {location}'s manifest before removing earlier writes"))?;
+            let old = bucket.list("")?.into_iter().filter(|(k, _)| {
+                k.starts_with("write-") && !k.starts_with(&format!("{write}/")) && !k.starts_with(&format!("{live}/"))
+            });
             for (key, _) in old {
                 bucket.delete(&key)?;
             }
