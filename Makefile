@@ -7,7 +7,7 @@ OUT ?= out/run
 CITY ?=
 export XDG_RUNTIME_DIR ?= /tmp/citystream-xdg-runtime
 
-.PHONY: all setup build run window test check fmt clippy doc embed loops bench fuzz-long gpu-check gpu-check-pack
+.PHONY: all setup build run window test check fmt clippy doc embed loops docpaths bench fuzz-long gpu-check gpu-check-pack
 
 all: build
 
@@ -61,7 +61,11 @@ embed:
 loops:
 	python3 tools/scripts/module-loops.py .
 
-check: fmt clippy doc embed loops
+# Every API path the embedding guides name resolves in the sources.
+docpaths:
+	python3 tools/scripts/doc-paths.py .
+
+check: fmt clippy doc embed loops docpaths
 
 bench: setup
 	$(CARGO) bench --workspace

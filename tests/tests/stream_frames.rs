@@ -4,6 +4,7 @@
 //! them. Runs with synchronization validation; any message fails.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use anyhow::{ensure, Context, Result};
 use citystream_engine::city::{Camera, CityMesh, CityRenderer, FeedbackView};
@@ -16,6 +17,7 @@ use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::{Eviction, ResidentCache};
 use citystream_engine::vk;
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
+use citystream_streaming::loader::LoaderOptions;
 use citystream_streaming::records::MeshMetaData;
 use citystream_streaming::source::{bc1_mip_len, MemorySource};
 use citystream_tests::{
@@ -542,6 +544,31 @@ fn textures_seen_below_the_weight_cutoff_are_in_view_but_not_loaded() -> Result<
         streamer.totals().loaded_mips == 0,
         "{} mips loaded although no mesh reaches τ ({entries} entries read back)",
         streamer.totals().loaded_mips
+    );
+    assert_clean_after_dropping(&device, streamer)
+}
+
+/// Deterministic means it: a cycle's reads are not cut by the loader's wall-clock limit
+/// (a limit of zero would defer every read on any machine), so what loads depends on the
+/// inputs alone.
+#[test]
+fn a_deterministic_stream_ignores_the_wall_clock_load_time() -> Result<()> {
+    let device = sync_validated_device()?;
+    let config = StreamConfig {
+        memory_budget_bytes: 64 << 20,
+        loader: LoaderOptions {
+            load_time: Duration::ZERO,
+            ..LoaderOptions::default()
+        },
+        ..StreamConfig::default()
+    };
+    let streamer = stream_row_fixed_view(&device, config, 8, None)?;
+    let totals = streamer.totals();
+    ensure!(
+        totals.loaded_mips > 0 && totals.deferred_by_time == 0,
+        "{} mips loaded, {} deferred for time in a deterministic run",
+        totals.loaded_mips,
+        totals.deferred_by_time
     );
     assert_clean_after_dropping(&device, streamer)
 }

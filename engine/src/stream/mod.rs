@@ -196,7 +196,10 @@ pub struct StreamConfig {
     pub loader: LoaderOptions,
     /// Reproducible runs: each frame's feedback is consumed exactly
     /// `frames_in_flight` frames later and the loading cycle runs on the
-    /// calling thread, so results do not depend on GPU or disk timing. Default: `false`.
+    /// calling thread, so results do not depend on GPU or disk timing: two runs of the
+    /// same inputs load the same mips in the same frames. Without a disk model the
+    /// loader's wall-clock limit ([`LoaderOptions::load_time`]) does not apply (a cycle
+    /// loads what its load size allows, however long the reads take). Default: `false`.
     /// With a disk model ([`LoaderOptions::disk`], deterministic runs only) a cycle's
     /// mips reach the cache when the host's modelled clock
     /// ([`TextureStreamer::set_modelled_time`]) passes their reads' completion, and the
@@ -448,12 +451,22 @@ impl<S: MipSource + 'static> TextureStreamer<S> {
         )?;
         let queue = Arc::new(UploadQueue::default());
         let states = Arc::new(TextureStates::new(texture_count as usize));
+        // Deterministic without a disk model: no wall-clock limit on a cycle's reads, which
+        // would make what a cycle loads depend on the machine (the load size bounds it).
+        let loader_options = if config.deterministic && config.loader.disk.is_none() {
+            LoaderOptions {
+                load_time: Duration::MAX,
+                ..config.loader
+            }
+        } else {
+            config.loader
+        };
         let loader = Loader::with_states(
             source,
             QueueSink(Arc::clone(&queue)),
             mesh_textures,
             Arc::clone(&states),
-            config.loader,
+            loader_options,
         )
         .map_err(|e| EngineError::InvalidRequest(format!("building the loader: {e}")))?;
         let gate = Arc::new(AdmissionGate::new());

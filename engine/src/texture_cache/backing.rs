@@ -412,6 +412,9 @@ fn array_images(device: &Arc<Device>, config: &GpuCacheConfig, held: &[usize], m
         Ok(LayerProbe {
             block_bytes: ARRAY_ACCOUNTING_BLOCK_BYTES,
             virtual_bytes: layer_bytes[index],
+            // Texture arrays bind no tails.
+            single_tail_blocks: 0,
+            single_tail_per_layer: false,
         })
     })?;
     let layouts = image_layouts(&layer_counts);
@@ -593,9 +596,13 @@ fn probe_layer(device: &Arc<Device>, layer_size: u32, format: vk::Format, texel:
         },
     )
     .map_err(|e| EngineError::InvalidRequest(e.to_string()))?;
+    let tail = probe.mip_tail();
+    let single = tail.single && tail.first_lod < probe.desc().mips;
     Ok(LayerProbe {
         block_bytes: probe.block_size(),
         virtual_bytes: desc.virtual_bytes(),
+        single_tail_blocks: if single { u64::from(probe.tail_blocks()) } else { 0 },
+        single_tail_per_layer: single && tail.synthetic,
     })
 }
 

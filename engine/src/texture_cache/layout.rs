@@ -17,6 +17,12 @@ pub(super) struct LayerProbe {
     pub(super) block_bytes: u64,
     /// Virtual bytes of one layer: its full mip chain in whole blocks.
     pub(super) virtual_bytes: u64,
+    /// Blocks of a single mip tail (`SINGLE_MIPTAIL`) in an image of one layer: bound
+    /// from the budget when the image is made and kept. 0 without one.
+    pub(super) single_tail_blocks: u64,
+    /// Whether a single tail grows with the layers (a synthetic one, forced on a device
+    /// without tails: its blocks are the layers' own), or is one per image (a GPU's).
+    pub(super) single_tail_per_layer: bool,
 }
 
 /// Indices into [`CACHE_FORMATS`] of the formats `config` holds, in that order.
@@ -78,14 +84,24 @@ pub(super) fn plan_layer_counts(
                 .collect();
             // The images share one block size (checked once they exist).
             let block_bytes = probes.first().map_or(1, |probe| probe.block_bytes.max(1));
-            let derived = derive_image_layers(
-                config.layer_size,
-                &demands,
-                config.memory_budget_bytes / block_bytes,
-                max_layers,
-                CACHE_IMAGE_SLOTS,
-                virtual_budget_bytes,
-            );
+            let budget_blocks = config.memory_budget_bytes / block_bytes;
+            let derive = |images_per_format: &[u64]| {
+                derive_image_layers(
+                    config.layer_size,
+                    &demands,
+                    layer_budget_blocks(budget_blocks, &probes, images_per_format),
+                    max_layers,
+                    CACHE_IMAGE_SLOTS,
+                    virtual_budget_bytes,
+                )
+            };
+            // Single tails are bound from the budget once per image: the layers get
+            // what they leave, counted again where a format takes more than one image.
+            let mut derived = derive(&vec![1; held.len()]);
+            let images: Vec<u64> = derived.iter().map(|counts| counts.len() as u64).collect();
+            if images.iter().any(|&n| n > 1) {
+                derived = derive(&images);
+            }
             for (&index, counts) in held.iter().zip(derived) {
                 layer_counts[index] = counts;
             }
@@ -102,6 +118,25 @@ pub(super) fn plan_layer_counts(
         )));
     }
     Ok(layer_counts)
+}
+
+/// The blocks of `budget_blocks` the layers may use once the single mip tails are bound:
+/// one per image for a GPU's tails (`images_per_format` images of each probed format),
+/// and, for synthetic tails that grow with the layers, a share per layer. At least 1.
+fn layer_budget_blocks(budget_blocks: u64, probes: &[LayerProbe], images_per_format: &[u64]) -> u64 {
+    let per_image: u64 = probes
+        .iter()
+        .zip(images_per_format)
+        .filter(|(probe, _)| !probe.single_tail_per_layer)
+        .map(|(probe, &images)| probe.single_tail_blocks * images)
+        .sum();
+    let per_layer = probes
+        .iter()
+        .filter(|probe| probe.single_tail_per_layer)
+        .map(|probe| probe.single_tail_blocks)
+        .max()
+        .unwrap_or(0);
+    (budget_blocks.saturating_sub(per_image) / (1 + per_layer)).max(1)
 }
 
 /// The images of `layer_counts` (per format in [`CACHE_FORMATS`] order) in
@@ -191,7 +226,34 @@ mod tests {
             block_bytes: BLOCK,
             // A 1024² BC1 layer with its mip chain in whole 64 KiB blocks.
             virtual_bytes: 10 * BLOCK,
+            single_tail_blocks: 0,
+            single_tail_per_layer: false,
         })
+    }
+
+    #[test]
+    fn derived_layers_leave_the_budget_single_tails_take() -> Result<()> {
+        let tail = |blocks: u64, per_layer: bool| {
+            move |_: usize| -> Result<LayerProbe> {
+                Ok(LayerProbe {
+                    single_tail_blocks: blocks,
+                    single_tail_per_layer: per_layer,
+                    ..probe(0)?
+                })
+            }
+        };
+        // 100 textures want 7 layers; a budget of 5 blocks keeps 5 live, one of them a
+        // GPU's single tail: 4.
+        let counts = plan_layer_counts(&bc1_derived(256, 100, None, 5), &[0], 2048, u64::MAX, tail(1, false))?;
+        assert_eq!(counts[0], vec![4]);
+        // At most 3 layers an image: 7 layers would take three images and three tails,
+        // leaving 5 layers of 8 blocks (in two images).
+        let counts = plan_layer_counts(&bc1_derived(256, 100, Some(3), 8), &[0], 2048, u64::MAX, tail(1, false))?;
+        assert_eq!(counts[0], vec![3, 2]);
+        // A synthetic tail of 2 blocks a layer: each layer costs 3 blocks of 12.
+        let counts = plan_layer_counts(&bc1_derived(256, 100, None, 12), &[0], 2048, u64::MAX, tail(2, true))?;
+        assert_eq!(counts[0], vec![4]);
+        Ok(())
     }
 
     fn never_probed(index: usize) -> Result<LayerProbe> {

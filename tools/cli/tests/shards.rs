@@ -540,7 +540,10 @@ fn two_writers_of_one_s3_shard_at_once_one_is_refused_and_the_shard_stays_whole(
         }
         refused_any |= !refused.is_empty();
         // The shard names only files that are there, every mip checked.
-        ok(run_env(&["verify", &format!("{url}/shards/0")], &env), "verify the shard");
+        ok(
+            run_env(&["verify", &format!("{url}/shards/0")], &env),
+            "verify the shard",
+        );
     }
     assert!(refused_any, "the two writers never met: the test did not race them");
     ok(

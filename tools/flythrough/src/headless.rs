@@ -436,6 +436,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         declined_loads: residency.declined_loads,
         load_failures: flight.gpu.streamer.totals().failed,
         read_retries: flight.gpu.streamer.totals().read_retries,
+        deferred_by_time: flight.gpu.streamer.totals().deferred_by_time,
         textures_failed: flight.gpu.streamer.failed_textures(),
         reference_textures_failed: reference.as_ref().map(|r| r.streamer.failed_textures()),
         cache_layer_size: flight.layer_size,

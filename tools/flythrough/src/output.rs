@@ -139,6 +139,10 @@ pub(crate) struct Run<'a> {
     pub(crate) load_failures: u64,
     /// Failed reads that a retry then completed.
     pub(crate) read_retries: u64,
+    /// Reads a cycle did not start because its load time had run out (the wall clock's, or
+    /// the disk model's): 0 for the fixed and modelled clocks without a disk model, which
+    /// are deterministic.
+    pub(crate) deferred_by_time: u64,
     pub(crate) textures_failed: usize,
     /// Textures the error reference could not load (the same failure lifecycle: its frames
     /// show them at the levels it has); `None` without a reference.
