@@ -6,7 +6,7 @@
 //! which uses it, links that runtime for every crate above it.
 //!
 //! The tests that need a tool the setup script installs (Xvfb, nginx, the S3
-//! emulator) compile as ignored, so the harness reports them as skipped, where
+//! emulator, Slurm) compile as ignored, so the harness reports them as skipped, where
 //! the tool is missing and the setup script has not run. Once it ran, a
 //! missing tool fails them.
 
@@ -22,7 +22,7 @@ fn main() {
     }
     let stamp_dir =
         std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").map_or_else(|| "/var/lib/citystream".into(), PathBuf::from);
-    let setup_ran = watch(&[stamp_dir.join("setup-v5")], 2);
+    let setup_ran = watch(&[stamp_dir.join("setup-v6")], 2);
     let on_path = |name: &str| -> Vec<PathBuf> {
         std::env::var_os("PATH")
             .map(|path| std::env::split_paths(&path).map(|dir| dir.join(name)).collect())
@@ -41,6 +41,8 @@ fn main() {
         ),
         // Where `citystream_testing::s3_emulator::binary` looks; setup creates its folders.
         ("citystream_skip_s3", vec![s3_dir.join("bin").join("moto_server")], 3),
+        // What `tools/scripts/slurm-local.sh` starts.
+        ("citystream_skip_slurm", vec!["/usr/sbin/slurmctld".into()], 1),
     ];
     for (cfg, candidates, levels) in tools {
         println!("cargo:rustc-check-cfg=cfg({cfg})");

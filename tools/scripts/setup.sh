@@ -11,12 +11,14 @@ fail() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
 # `flythrough --window` and its tests, which run under a virtual X server.
 # nginx-light: the remote-dataset tests serve a city over HTTP from loopback.
 # python3-venv: the S3-compatible server of those tests (moto, from PyPI) gets its own venv.
+# slurm-wlm, munge: the sharded-build tests submit array jobs to a one-node Slurm cluster
+# (tools/scripts/slurm-local.sh starts and stops it; no service is started here).
 PACKAGES=(glslang-tools spirv-tools vulkan-validationlayers libvulkan1 libvulkan-dev vulkan-tools g++
   xvfb libx11-6 libx11-xcb1 libxcursor1 libxrandr2 libxi6 libxkbcommon-x11-0 nginx-light
-  python3 python3-venv)
+  python3 python3-venv slurm-wlm munge)
 MIN_MESA_MAJOR=24
 STAMP_DIR="${CITYSTREAM_SETUP_STAMP_DIR:-/var/lib/citystream}"
-STAMP="$STAMP_DIR/setup-v5"
+STAMP="$STAMP_DIR/setup-v6"
 # moto's S3 server mode, pinned, in a virtual environment of its own (no system Python
 # packages touched). The tests find it here (CITYSTREAM_S3_EMULATOR_DIR overrides).
 S3_EMULATOR_DIR="${CITYSTREAM_S3_EMULATOR_DIR:-/opt/citystream/s3-emulator}"
@@ -84,8 +86,9 @@ say "installing mesa-vulkan-drivers from bookworm-backports (lavapipe with spars
 $SUDO apt-get install -y -q -t bookworm-backports mesa-vulkan-drivers \
   || fail "could not install mesa-vulkan-drivers from bookworm-backports"
 say "installing ${PACKAGES[*]}"
-# nginx's package starts a system-wide server on port 80; the tests start their own on
-# loopback, so keep package scripts from starting services (only if no policy is set).
+# nginx's package starts a system-wide server on port 80, and Slurm's and munge's their
+# daemons; the tests start their own, so keep package scripts from starting services
+# (only if no policy is set).
 POLICY=/usr/sbin/policy-rc.d
 if [[ ! -e $POLICY ]]; then
   printf '#!/bin/sh\nexit 101\n' | $SUDO tee "$POLICY" >/dev/null && $SUDO chmod +x "$POLICY"

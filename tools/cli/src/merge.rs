@@ -287,16 +287,26 @@ fn check_shards(
     quiet: bool,
 ) -> Result<Vec<(ShardRecord, Dataset)>> {
     let Some((job, count)) = reference_job(&found) else {
+        let states: Vec<String> = found
+            .iter()
+            .take(16)
+            .map(|(index, shard)| match (&shard.journal, &shard.broken) {
+                (Some(journal), _) => format!("\n  shard {index} is not complete: still running or killed ({journal})"),
+                (None, Some(why)) => format!("\n  shard {index} is damaged or incomplete: {why}"),
+                (None, None) => format!("\n  shard {index} holds no dataset"),
+            })
+            .collect();
         bail!(
-            "{location}: no complete shard to merge{}",
+            "{location}: no complete shard to merge{}{}",
             if found.is_empty() {
                 String::new()
             } else {
                 format!(
-                    " ({} shard folders, none complete: see `citystream merge --status {location}`)",
+                    " ({} shard folders, none complete: see `citystream merge --status {location}`):",
                     found.len()
                 )
-            }
+            },
+            states.concat()
         );
     };
     let mut problems = Vec::new();

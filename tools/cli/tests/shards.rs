@@ -6,7 +6,7 @@
 mod cli_support;
 mod tileset_support;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
@@ -15,8 +15,7 @@ use citystream_dataset::Dataset;
 use citystream_testing::s3_emulator::S3Emulator;
 use citystream_testing::tool_tests::env_refs;
 use cli_support::{citystream, fresh_dir, stderr};
-use serde_json::json;
-use tileset_support::{enu_to_ecef, flat, translation, wall_glb, write_json, BERLIN};
+use tileset_support::{row_of_walls, wall_glb};
 
 fn spawn(args: &[&str], env: &[(&str, &str)]) -> Child {
     Command::new(env!("CARGO_BIN_EXE_citystream"))
@@ -194,35 +193,6 @@ fn gen_in_shards_merges_to_the_one_process_city_and_faulty_shards_are_refused() 
 }
 
 /// A tileset of `n` walls in a row, each its own content and texture, under one root.
-fn row_of_walls(dir: &Path, n: usize) -> PathBuf {
-    let (lat, lon, h) = BERLIN;
-    let mut children = Vec::new();
-    for i in 0..n {
-        let file = format!("wall{i}.glb");
-        std::fs::write(dir.join(&file), wall_glb(i as u8 + 1)).expect("write content");
-        children.push(json!({
-            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
-            "geometricError": 0.0,
-            "transform": flat(&translation([i as f64 * 30.0, 5.0 * i as f64, 0.0])),
-            "content": {"uri": file}
-        }));
-    }
-    let tileset = json!({
-        "asset": {"version": "1.0"},
-        "geometricError": 100.0,
-        "root": {
-            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
-            "geometricError": 10.0,
-            "refine": "ADD",
-            "transform": flat(&enu_to_ecef(lat, lon, h)),
-            "children": children
-        }
-    });
-    let path = dir.join("tileset.json");
-    write_json(&path, &tileset);
-    path
-}
-
 #[test]
 fn a_tileset_imported_in_three_shards_merges_to_the_one_process_import() {
     let dir = fresh_dir("shards", "import");

@@ -37,7 +37,7 @@ pub fn stderr(out: &Output) -> String {
 /// what it installs (Xvfb, nginx) fail rather than skip once it has.
 pub fn setup_ran() -> bool {
     let dir = std::env::var_os("CITYSTREAM_SETUP_STAMP_DIR").unwrap_or_else(|| "/var/lib/citystream".into());
-    Path::new(&dir).join("setup-v5").exists()
+    Path::new(&dir).join("setup-v6").exists()
 }
 
 /// Starts nginx serving `root`.

@@ -260,12 +260,36 @@ fn parse_lease(bytes: &[u8]) -> Option<(String, Duration)> {
     Some((holder, Duration::from_millis(now.saturating_sub(renewed) as u64)))
 }
 
-/// Who this process is, for leases: host, process id and a random tag.
+/// Who this process is, for leases: the scheduler's task where there is one, then host,
+/// process id and a random tag.
 pub fn lease_holder() -> String {
     let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
         .map(|h| h.trim().to_owned())
         .unwrap_or_else(|_| "a host".into());
-    format!("{host} pid {} tag {:016x}", std::process::id(), crate::fresh_write_id())
+    let task = scheduler_task().map(|task| format!("{task} on ")).unwrap_or_default();
+    format!(
+        "{task}{host} pid {} tag {:016x}",
+        std::process::id(),
+        crate::fresh_write_id()
+    )
+}
+
+/// The name of the task this process runs as, for a scheduler that reruns a task under
+/// the same name only once its earlier run is dead (Slurm's requeue: it kills the task,
+/// then starts it again): `slurm job 12_3` for task 3 of array job 12.
+fn scheduler_task() -> Option<String> {
+    let var = |name: &str| std::env::var(name).ok().filter(|v| !v.is_empty());
+    let job = match (var("SLURM_ARRAY_JOB_ID"), var("SLURM_ARRAY_TASK_ID")) {
+        (Some(job), Some(task)) => format!("{job}_{task}"),
+        _ => var("SLURM_JOB_ID")?,
+    };
+    Some(format!("slurm job {job}"))
+}
+
+/// Whether the lease holder `other` is an earlier run of the task this process runs as
+/// (see [`scheduler_task`]), whose lease it may take over at once.
+fn earlier_run_of_this_task(other: &str) -> bool {
+    scheduler_task().is_some_and(|task| other.starts_with(&format!("{task} on ")))
 }
 
 /// A prefix of an S3 bucket written object by object (see the module docs).
@@ -453,8 +477,9 @@ impl ObjectBucket {
 
     /// Takes the lease `key` for `holder` (`note` says what for): created where there is
     /// none (`If-None-Match: *`), taken over where its holder has not renewed it for
-    /// [`LEASE_STALE`] (`If-Match` on the lapsed version, so two takers cannot both have it),
-    /// otherwise refused with [`DatasetError::Leased`]. Renewed in the background until
+    /// [`LEASE_STALE`] or is an earlier run of this scheduler task (a Slurm requeue: see
+    /// [`lease_holder`]), with `If-Match` on the version read, so two takers cannot both
+    /// have it; otherwise refused with [`DatasetError::Leased`]. Renewed in the background until
     /// released ([`ObjectBucket::release_lease`]) or dropped.
     pub fn acquire_lease(&self, key: &str, holder: &str, note: &str) -> Result<Lease, DatasetError> {
         let path = self.path(key)?;
@@ -485,7 +510,8 @@ impl ObjectBucket {
                 Err(e) => return Err(self.error(key, e)),
             };
             let (other, age) = parse_lease(&bytes).unwrap_or_else(|| ("an unreadable lease".into(), Duration::MAX));
-            if age < LEASE_STALE {
+            // A requeued task takes its own killed run's lease without waiting for it to lapse.
+            if age < LEASE_STALE && !earlier_run_of_this_task(&other) {
                 return Err(DatasetError::Leased {
                     url: self.url_of(key),
                     holder: other,

@@ -278,3 +278,34 @@ pub fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
     let contents = vec![(coarse, false), (a, false), (a2, true), (rtc, true), (shared, true)];
     (path, contents)
 }
+
+/// A tileset of `n` textured walls in a row at Berlin, one `.glb` content each
+/// (`wallI.glb`), written into `dir`; its `tileset.json`.
+pub fn row_of_walls(dir: &Path, n: usize) -> PathBuf {
+    let (lat, lon, h) = BERLIN;
+    let mut children = Vec::new();
+    for i in 0..n {
+        let file = format!("wall{i}.glb");
+        std::fs::write(dir.join(&file), wall_glb(i as u8 + 1)).expect("write content");
+        children.push(json!({
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
+            "geometricError": 0.0,
+            "transform": flat(&translation([i as f64 * 30.0, 5.0 * i as f64, 0.0])),
+            "content": {"uri": file}
+        }));
+    }
+    let tileset = json!({
+        "asset": {"version": "1.0"},
+        "geometricError": 100.0,
+        "root": {
+            "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
+            "geometricError": 10.0,
+            "refine": "ADD",
+            "transform": flat(&enu_to_ecef(lat, lon, h)),
+            "children": children
+        }
+    });
+    let path = dir.join("tileset.json");
+    write_json(&path, &tileset);
+    path
+}
