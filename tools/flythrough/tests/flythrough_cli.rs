@@ -1511,7 +1511,10 @@ fn texture_arrays_stream_the_default_city_as_well_as_the_sparse_cache() {
 #[test]
 fn a_device_without_sparse_residency_streams_into_texture_arrays_by_itself() {
     let masked = [("CITYSTREAM_MASK_FEATURES", "sparseResidencyImage2D")];
-    let (stderr, summary) = default_city_run("flythrough_masked_sparse", "20", &[], &masked);
+    // Without a forced tail (the tail runs of `make test` set one, which texture arrays
+    // would say they ignore in a notice of their own).
+    let unforced = [masked[0], ("CITYSTREAM_FORCE_MIP_TAIL", "")];
+    let (stderr, summary) = default_city_run("flythrough_masked_sparse", "20", &[], &unforced);
     assert_eq!(summary["texture_backing"], "texture-arrays", "{stderr}");
     assert_eq!(stderr.matches("notice:").count(), 1, "one notice says why: {stderr}");
     assert!(stderr.contains("texture arrays"), "{stderr}");
