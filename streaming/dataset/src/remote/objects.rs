@@ -198,7 +198,6 @@ pub struct Lease {
     key: String,
     url: PathBuf,
     holder: String,
-    e_tag: Arc<std::sync::Mutex<Option<String>>>,
     lost: Arc<std::sync::atomic::AtomicBool>,
     renewer: tokio::task::JoinHandle<()>,
 }
@@ -569,25 +568,25 @@ impl ObjectBucket {
             key: key.to_owned(),
             url: self.url_of(key),
             holder: holder.to_owned(),
-            e_tag,
             lost,
             renewer,
         }
     }
 
-    /// Stops renewing `lease` and removes it where it is still this holder's version.
+    /// Stops renewing `lease` and removes it where it is still this holder's (its body
+    /// names this holder: a renewal cut off by the stop may have changed its version).
     pub fn release_lease(&self, lease: Lease) -> Result<(), DatasetError> {
         lease.renewer.abort();
-        let ours = lease
-            .e_tag
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .clone();
-        let stored = self.head(&lease.key)?;
-        if lease.lost.load(Ordering::SeqCst) || stored.is_none() || stored.and_then(|s| s.e_tag) != ours {
+        if lease.lost.load(Ordering::SeqCst) {
             return Ok(());
         }
-        self.delete(&lease.key)
+        let Some(body) = self.get(&lease.key)? else {
+            return Ok(());
+        };
+        match parse_lease(&body) {
+            Some((holder, _)) if holder == lease.holder => self.delete(&lease.key),
+            _ => Ok(()),
+        }
     }
 
     /// Puts `bytes` as `key` (replacing any object there in one step).
