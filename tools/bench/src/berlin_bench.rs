@@ -23,7 +23,7 @@ use anyhow::{Context, Result};
 use citystream_dataset::Dataset;
 use citystream_streaming::bench::path::standard_path;
 
-use crate::frontier::{figures_of, Family, FrontierFigures, FrontierRun};
+use crate::frontier::{figures_of, path_prefetch_checks, Family, FrontierFigures, FrontierRun};
 use crate::runs::BenchRun;
 use crate::tables::{checks_table, count, stat, summary_of, Check};
 use citystream_gen::default_city::{is_dataset, upgrade_if_old};
@@ -288,33 +288,8 @@ fn frontier_checks(out: &Path) -> Result<String> {
             .filter(|f| f.streaming_psnr_db.unwrap_or(f64::NEG_INFINITY) >= ours.streaming_psnr_db.unwrap_or(f64::NAN))
             .count()
     };
-    let psnr = |f: Option<&FrontierFigures>| f.and_then(|f| f.streaming_psnr_db);
-    let checks: Vec<Check> = vec![
-        (
-            "predictive α=12 + path: worst frame (ms)".into(),
-            ours.map(|f| f.worst_frame_ms),
-            "≤ 24",
-            |v| v <= 24.0,
-        ),
-        (
-            "predictive α=12 + path: frames over 2α after the first second".into(),
-            ours.map(|f| f.frames_over_2alpha as f64),
-            "0",
-            |v| v == 0.0,
-        ),
-        (
-            "predictive α=12 + path: after-start-up PSNR − baseline's (dB)".into(),
-            psnr(ours).zip(psnr(baseline)).map(|(a, b)| a - b),
-            "≥ 0",
-            |v| v >= 0.0,
-        ),
-        (
-            "predictive α=12 + path: MB per path s / baseline's".into(),
-            ours.zip(baseline).map(|(a, b)| a.mb_per_path_s / b.mb_per_path_s),
-            "≤ 1.2",
-            |v| v <= 1.2,
-        ),
-        (
+    let mut checks: Vec<Check> = path_prefetch_checks(ours, baseline).into();
+    checks.push((
             format!(
                 "predictive α=12 + path: fixed s=4 MB and paper α=12 runs at or above its worst frame with at least its error ({} of 2 flown)",
                 others.len()
@@ -322,8 +297,7 @@ fn frontier_checks(out: &Path) -> Result<String> {
             ours.filter(|_| others.len() == 2).map(|f| unbeaten(f) as f64),
             "0",
             |v| v == 0.0,
-        ),
-    ];
+    ));
     Ok(checks_table("## The frontier's targets (`desktop`, α = 12 ms)", checks))
 }
 
