@@ -12,9 +12,8 @@ use std::time::{Duration, Instant};
 
 use citystream_dataset::remote::{open_dataset, RemoteOptions};
 use citystream_dataset::Dataset;
-use citystream_testing::s3_emulator::S3Emulator;
 use citystream_testing::tool_tests::env_refs;
-use cli_support::{citystream, fresh_dir, stderr};
+use cli_support::{assert_same_content, citystream, emulator_with_bucket, fresh_dir, stderr};
 use tileset_support::{row_of_walls, wall_glb};
 
 fn spawn(args: &[&str], env: &[(&str, &str)]) -> Child {
@@ -253,7 +252,6 @@ fn a_tileset_imported_in_three_shards_merges_to_the_one_process_import() {
 fn gen_in_four_concurrent_shards_into_s3_merges_there_to_the_one_process_city() {
     let preset = std::env::var("CITYSTREAM_SHARD_TEST_PRESET").unwrap_or_else(|_| "small".into());
     let dir = fresh_dir("shards", "gen_s3");
-    let seed_dir = dir.join("seed");
     let single = dir.join("single");
     ok(
         citystream(&[
@@ -268,12 +266,7 @@ fn gen_in_four_concurrent_shards_into_s3_merges_there_to_the_one_process_city() 
         ]),
         "one-process gen",
     );
-    // The emulator with a bucket (made by uploading a small file tree).
-    std::fs::create_dir_all(&seed_dir).expect("seed dir");
-    std::fs::write(seed_dir.join("README"), "sharded builds").expect("seed file");
-    let s3 = S3Emulator::start(&dir).expect("start the S3 emulator (`make setup` installs it)");
-    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
-    let env = s3.client_env();
+    let (_s3, env) = emulator_with_bucket(&dir);
     let env = env_refs(&env);
     let url = format!("s3://cities/{preset}");
     let children: Vec<Child> = (0..4)
@@ -314,18 +307,7 @@ fn gen_in_four_concurrent_shards_into_s3_merges_there_to_the_one_process_city() 
     }
     let remote = open_dataset(&url, &RemoteOptions::default()).expect("open merged");
     let local = Dataset::open(&single).expect("single");
-    assert_eq!(remote.textures.textures(), local.textures.textures(), "texture tables");
-    assert_eq!(remote.colormap, local.colormap, "colormaps");
-    assert_eq!(remote.scene, local.scene, "scenes");
-    for t in 0..local.textures.len() {
-        for level in 0..local.textures.textures()[t as usize].mip_count() {
-            assert_eq!(
-                remote.textures.mip_checksum(t, level).expect("remote crc"),
-                local.textures.mip_checksum(t, level).expect("local crc"),
-                "texture {t} level {level}"
-            );
-        }
-    }
+    assert_same_content(&remote, &local);
     // `verify` above read every mip against these CRCs: the mips are the single build's.
     assert!(summary.contains("copied in the store"), "{summary}");
 }
@@ -426,12 +408,7 @@ fn an_s3_out_without_shard_is_refused_and_nothing_is_written_locally() {
 )]
 fn an_s3_prefix_with_empty_segments_is_the_same_prefix_for_writers_and_readers() {
     let dir = fresh_dir("shards", "s3_prefix");
-    let seed_dir = dir.join("seed");
-    std::fs::create_dir_all(&seed_dir).expect("seed dir");
-    std::fs::write(seed_dir.join("README"), "prefixes").expect("seed file");
-    let s3 = S3Emulator::start(&dir).expect("start the S3 emulator (`make setup` installs it)");
-    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
-    let env = s3.client_env();
+    let (_s3, env) = emulator_with_bucket(&dir);
     let env = env_refs(&env);
     let gen = [
         "gen",
@@ -464,16 +441,6 @@ fn an_s3_prefix_with_empty_segments_is_the_same_prefix_for_writers_and_readers()
 }
 
 /// The emulator with the bucket `cities`, and its client environment.
-fn emulator_with_bucket(dir: &Path) -> (S3Emulator, Vec<(&'static str, String)>) {
-    let seed_dir = dir.join("seed");
-    std::fs::create_dir_all(&seed_dir).expect("seed dir");
-    std::fs::write(seed_dir.join("README"), "leases").expect("seed file");
-    let s3 = S3Emulator::start(dir).expect("start the S3 emulator (`make setup` installs it)");
-    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
-    let env = s3.client_env();
-    (s3, env)
-}
-
 #[test]
 #[cfg_attr(
     citystream_skip_s3,

@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use citystream_dataset::remote::{open_dataset, RemoteOptions};
 use citystream_dataset::Dataset;
-use citystream_testing::s3_emulator::S3Emulator;
-use cli_support::{citystream, fresh_dir, stderr};
+use citystream_testing::tool_tests::env_refs;
+use cli_support::{assert_same_content, citystream, emulator_with_bucket, fresh_dir, stderr};
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -128,23 +128,6 @@ impl Drop for Cluster {
     }
 }
 
-/// Tables, colours, scene and every mip's CRC of `remote` are those of `local` (with
-/// `verify`, which reads every mip against its CRC, the mips are the same).
-fn assert_same_content(remote: &Dataset, local: &Dataset) {
-    assert_eq!(remote.textures.textures(), local.textures.textures(), "texture tables");
-    assert_eq!(remote.colormap, local.colormap, "colormaps");
-    assert_eq!(remote.scene, local.scene, "scenes");
-    for t in 0..local.textures.len() {
-        for level in 0..local.textures.textures()[t as usize].mip_count() {
-            assert_eq!(
-                remote.textures.mip_checksum(t, level).expect("remote crc"),
-                local.textures.mip_checksum(t, level).expect("local crc"),
-                "texture {t} level {level}"
-            );
-        }
-    }
-}
-
 #[test]
 #[cfg_attr(
     any(citystream_skip_slurm, citystream_skip_s3),
@@ -154,14 +137,9 @@ fn a_slurm_array_builds_shards_into_s3_and_a_dependent_job_merges_them() {
     let started = Instant::now();
     let dir = fresh_dir("slurm", "array");
     let cluster = Cluster::start(&dir);
-    let seed_dir = dir.join("seed");
-    std::fs::create_dir_all(&seed_dir).expect("seed dir");
-    std::fs::write(seed_dir.join("README"), "slurm").expect("seed file");
-    let s3 = S3Emulator::start(&dir).expect("start the S3 emulator (`make setup` installs it)");
-    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
-    let client_env = s3.client_env();
+    let (_s3, client_env) = emulator_with_bucket(&dir);
     let bin = env!("CARGO_BIN_EXE_citystream");
-    let mut env: Vec<(&str, &str)> = client_env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let mut env = env_refs(&client_env);
     env.push(("CITYSTREAM", bin));
     let logs = dir.join("logs");
     std::fs::create_dir_all(&logs).expect("logs");
@@ -435,13 +413,8 @@ impl Cluster {
 )]
 fn a_flipped_byte_of_a_shard_stored_in_s3_is_refused_by_name() {
     let dir = fresh_dir("slurm", "flipped");
-    let seed_dir = dir.join("seed");
-    std::fs::create_dir_all(&seed_dir).expect("seed dir");
-    std::fs::write(seed_dir.join("README"), "flipped").expect("seed file");
-    let s3 = S3Emulator::start(&dir).expect("start the S3 emulator (`make setup` installs it)");
-    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
-    let client_env = s3.client_env();
-    let env: Vec<(&str, &str)> = client_env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let (_s3, client_env) = emulator_with_bucket(&dir);
+    let env = env_refs(&client_env);
     let bin = env!("CARGO_BIN_EXE_citystream");
     let run = |args: &[&str]| {
         Command::new(bin)

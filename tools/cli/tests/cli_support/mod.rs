@@ -80,3 +80,33 @@ pub fn copy_tree(from: &Path, to: &Path) {
         }
     }
 }
+
+/// The S3 emulator started under `dir`, with the bucket `cities` (made by uploading a small
+/// file tree), and its client environment.
+pub fn emulator_with_bucket(dir: &Path) -> (citystream_testing::s3_emulator::S3Emulator, Vec<(&'static str, String)>) {
+    let seed_dir = dir.join("seed");
+    std::fs::create_dir_all(&seed_dir).expect("seed dir");
+    std::fs::write(seed_dir.join("README"), "a bucket for the tests").expect("seed file");
+    let s3 = citystream_testing::s3_emulator::S3Emulator::start(dir)
+        .expect("start the S3 emulator (`make setup` installs it)");
+    s3.upload_dir("cities", "readme", &seed_dir).expect("make the bucket");
+    let env = s3.client_env();
+    (s3, env)
+}
+
+/// Tables, colours, scene and every mip's CRC of `remote` are those of `local` (with
+/// `verify`, which reads every mip against its CRC, the mips are the same).
+pub fn assert_same_content(remote: &citystream_dataset::Dataset, local: &citystream_dataset::Dataset) {
+    assert_eq!(remote.textures.textures(), local.textures.textures(), "texture tables");
+    assert_eq!(remote.colormap, local.colormap, "colormaps");
+    assert_eq!(remote.scene, local.scene, "scenes");
+    for t in 0..local.textures.len() {
+        for level in 0..local.textures.textures()[t as usize].mip_count() {
+            assert_eq!(
+                remote.textures.mip_checksum(t, level).expect("remote crc"),
+                local.textures.mip_checksum(t, level).expect("local crc"),
+                "texture {t} level {level}"
+            );
+        }
+    }
+}
