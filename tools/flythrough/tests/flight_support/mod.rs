@@ -70,10 +70,12 @@ pub fn default_city() -> PathBuf {
     city
 }
 
-/// `flythrough ARGS… --dataset DATASET --out OUT`: its output, `summary.json` (null if not
-/// written) and `frames.csv` (empty if not written).
+/// `flythrough ARGS… --dataset DATASET --out OUT` under synchronization validation (its
+/// frames overlap, and the prefetch pass records beside the feedback): its output,
+/// `summary.json` (null if not written) and `frames.csv` (empty if not written).
 pub fn fly_flythrough(args: &[&str], dataset: &Path, out: &Path) -> (std::process::Output, serde_json::Value, String) {
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_flythrough"))
+        .env("CITYSTREAM_VALIDATION", "sync")
         .args(args)
         .arg("--dataset")
         .arg(dataset)
