@@ -36,8 +36,10 @@ layout(push_constant) uniform Push { CullPush push; };
 // Relative slack of the plane and depth tests: the vertex stage computes the same
 // products in another order, so a vertex on a boundary may land a rounding step outside.
 const float SLACK = 1.0 / 4096.0;
-// Absolute slack of the depth test: depth near 1 has ulps of 6e-8, and distant
-// buildings differ by 1e-5 in depth, so a relative slack would keep them all.
+// Absolute slack of the depth test (depth is reversed: near / distance). Near the eye
+// depth falls as steeply as a standard projection's rises, so this is the slack culling
+// always had in metres there; it also covers the ground pass's relative depth bias (at
+// most 2e-6 of a depth of at most 1).
 const float DEPTH_SLACK = 1.0 / 262144.0;
 // Slack of the pixel footprint: rasterisers snap vertices to 1/256 pixel or finer.
 const float PIXEL_SLACK = 1.0 / 16.0;
@@ -104,7 +106,8 @@ vec4 corner(MeshBounds b, uint k) {
 }
 
 // Whether the box can contribute a fragment: false only when every corner lies outside
-// one of the clip volume's six planes (Vulkan: -w <= x, y <= w, 0 <= z <= w).
+// one of the clip volume's planes (Vulkan: -w <= x, y <= w, 0 <= z <= w; with reversed
+// depth and no far plane z = w is the near plane and z >= 0 holds in front of the eye).
 bool in_frustum(MeshBounds b) {
     if (b.low.w != 0.0) {
         return true;
@@ -117,21 +120,22 @@ bool in_frustum(MeshBounds b) {
         right = right && c.x > c.w + slack;
         bottom = bottom && c.y < -c.w - slack;
         top = top && c.y > c.w + slack;
-        near = near && c.z < -slack;
-        far = far && c.z > c.w + slack;
+        near = near && c.z > c.w + slack;
+        far = far && c.z < -slack;
     }
     return !(left || right || bottom || top || near || far);
 }
 
 // Whether the box may be in front of the depth the pyramid holds: false only when its
-// nearest point lies behind the farthest depth of every pixel its projection may cover.
+// nearest point lies behind the farthest depth of every pixel its projection may cover
+// (reversed depth: nearest is greatest).
 bool unoccluded(MeshBounds b) {
     if (b.low.w != 0.0) {
         return true;
     }
     vec2 low = vec2(1e30);
     vec2 high = vec2(-1e30);
-    float nearest = 1.0;
+    float nearest = 0.0;
     for (uint k = 0u; k < 8u; ++k) {
         vec4 c = corner(b, k);
         // A corner at or behind the eye: the projection is unbounded, no test.
@@ -141,7 +145,7 @@ bool unoccluded(MeshBounds b) {
         vec3 ndc = c.xyz / c.w;
         low = min(low, ndc.xy);
         high = max(high, ndc.xy);
-        nearest = min(nearest, ndc.z);
+        nearest = max(nearest, ndc.z);
     }
     vec2 size = vec2(push.pyramid.xy);
     // Pixels whose centres the projection may cover (a sixteenth of a pixel wider each
@@ -161,13 +165,13 @@ bool unoccluded(MeshBounds b) {
     }
     uint offset = level_offset(level);
     uvec2 texels = level_size(level);
-    float farthest = 0.0;
+    float farthest = 1.0;
     for (uint y = first.y >> level; y <= (last.y >> level); ++y) {
         for (uint x = first.x >> level; x <= (last.x >> level); ++x) {
-            farthest = max(farthest, pyramid_texel(offset, texels, uvec2(x, y)));
+            farthest = min(farthest, pyramid_texel(offset, texels, uvec2(x, y)));
         }
     }
-    return nearest - DEPTH_SLACK <= farthest;
+    return nearest + DEPTH_SLACK >= farthest;
 }
 
 // Every list requires CULL_IN_FRUSTUM, so a chunk outside the frustum lists nothing and
@@ -304,9 +308,10 @@ void main() {
             uint from = level_offset(level - 1u);
             uvec2 base = texel * 2u;
             // The texels below, clamped to their level: the odd edge reads its own texel twice.
-            float farthest = max(max(pyramid_texel(from, below, base),
+            // Reversed depth: the farthest is the least.
+            float farthest = min(min(pyramid_texel(from, below, base),
                                      pyramid_texel(from, below, base + uvec2(1u, 0u))),
-                                 max(pyramid_texel(from, below, base + uvec2(0u, 1u)),
+                                 min(pyramid_texel(from, below, base + uvec2(0u, 1u)),
                                      pyramid_texel(from, below, base + uvec2(1u, 1u))));
             pyramid[from + below.x * below.y + i] = farthest;
         }

@@ -14,9 +14,10 @@ void main() {
     vec2 ground = mix(push.area.xy, push.area.zw, CORNERS[gl_VertexIndex]);
     out_ground = ground;
     vec4 clip = push.view_proj * vec4(ground.x, push.params.x, ground.y, 1.0);
-    // Imagery drapes over the city's own ground surfaces at the same height: a constant
-    // bias in NDC depth (scaled by w before the divide) makes it win there at every
-    // distance, where a height offset would z-fight far away.
-    clip.z -= push.params.z * clip.w;
+    // Imagery drapes over the city's own ground surfaces at the same height: a bias of a
+    // fixed fraction of the (reversed) depth makes it win there at every distance, where a
+    // height offset would z-fight far away, and hides a wall's foot only `height × bias`
+    // high.
+    clip.z *= 1.0 + push.params.z;
     gl_Position = clip;
 }

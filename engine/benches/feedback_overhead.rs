@@ -140,7 +140,6 @@ fn main() -> Result<()> {
             target: Vec3::new(0.0, 10.0, 0.0),
             fov_y: 60f32.to_radians(),
             near: 1.0,
-            far: 2000.0,
         };
         let a = frame(&camera, false)?;
         let b = frame(&camera, true)?;

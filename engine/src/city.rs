@@ -106,7 +106,10 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
     Ok((vertices, meshes))
 }
 
-/// A camera: eye, target and vertical field of view; Vulkan clip space.
+/// A camera: eye, target and vertical field of view; Vulkan clip space with reversed depth
+/// and no far plane (depth 1 at the near plane, falling towards 0 at infinity): a float
+/// depth buffer then resolves about `distance × 2⁻²³` at every distance, whatever the near
+/// plane, where a standard projection resolves `distance² / near × 2⁻²⁴`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
     /// Eye position in scene units.
@@ -115,10 +118,33 @@ pub struct Camera {
     pub target: Vec3,
     /// Vertical field of view in radians.
     pub fov_y: f32,
-    /// Near plane distance.
+    /// Near plane distance ([`near_plane`] chooses one from the scene and the eye).
     pub near: f32,
-    /// Far plane distance.
-    pub far: f32,
+}
+
+/// The nearest a near plane comes to the eye, metres.
+pub const NEAR_PLANE_MIN: f32 = 0.05;
+/// The farthest a near plane lies from an eye inside the scene's bounds, metres: there a
+/// wall may stand anywhere, so the plane stays close.
+pub const NEAR_PLANE_MAX_INSIDE: f32 = 2.0;
+
+/// The near plane for an eye at `eye` over a scene within `low..high`: half the distance to
+/// the scene's bounds from outside them (nothing drawn can be nearer), a quarter of the
+/// eye's height above the scene's lowest point from inside (at most
+/// [`NEAR_PLANE_MAX_INSIDE`]), never under [`NEAR_PLANE_MIN`]. With reversed depth the
+/// plane costs no precision; it only has to lie in front of everything drawn, and the
+/// farther it lies, the tighter the Hi-Z culling's depth slack is in metres.
+pub fn near_plane(eye: Vec3, low: Vec3, high: Vec3) -> f32 {
+    if !(eye.is_finite() && low.is_finite() && high.is_finite()) {
+        return NEAR_PLANE_MIN;
+    }
+    let distance = (low - eye).max(eye - high).max(Vec3::ZERO).length();
+    let near = if distance > 0.0 {
+        0.5 * distance
+    } else {
+        (0.25 * (eye.y - low.y)).min(NEAR_PLANE_MAX_INSIDE)
+    };
+    near.max(NEAR_PLANE_MIN)
 }
 
 impl Camera {
@@ -132,7 +158,7 @@ impl Camera {
         };
         let view = Mat4::look_at_rh(self.eye, self.target, up);
         let tan = (self.fov_y * 0.5).tan() * (1.0 + margin.max(0.0));
-        let mut projection = Mat4::perspective_rh(2.0 * tan.atan(), aspect, self.near, self.far);
+        let mut projection = Mat4::perspective_infinite_reverse_rh(2.0 * tan.atan(), aspect, self.near);
         // Vulkan's clip space has y pointing down.
         projection.y_axis.y = -projection.y_axis.y;
         projection * view
@@ -851,6 +877,46 @@ impl CityRenderer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_near_plane_follows_the_eye_and_the_scene() {
+        let (low, high) = (Vec3::new(0.0, 0.0, 0.0), Vec3::new(1000.0, 100.0, 1000.0));
+        // From outside the bounds: half the distance to them.
+        assert_eq!(near_plane(Vec3::new(500.0, 300.0, 500.0), low, high), 100.0);
+        assert_eq!(near_plane(Vec3::new(-30.0, 50.0, -40.0), low, high), 25.0);
+        // From inside: a quarter of the height above the lowest point, at most 2 m.
+        assert_eq!(near_plane(Vec3::new(500.0, 1.7, 500.0), low, high), 0.425);
+        assert_eq!(
+            near_plane(Vec3::new(500.0, 90.0, 500.0), low, high),
+            NEAR_PLANE_MAX_INSIDE
+        );
+        // Never under the least, even on the ground or with bounds that are not finite.
+        assert_eq!(near_plane(Vec3::new(500.0, 0.0, 500.0), low, high), NEAR_PLANE_MIN);
+        assert_eq!(
+            near_plane(Vec3::new(500.0, 0.0, 500.0), Vec3::NAN, high),
+            NEAR_PLANE_MIN
+        );
+    }
+
+    #[test]
+    fn the_projection_is_reversed_with_no_far_plane() {
+        let camera = Camera {
+            eye: Vec3::ZERO,
+            target: Vec3::new(0.0, 0.0, -1.0),
+            fov_y: 60f32.to_radians(),
+            near: 0.5,
+        };
+        let depth = |distance: f32| {
+            let clip = camera.view_projection(1.0, 0.0) * glam::Vec4::new(0.0, 0.0, -distance, 1.0);
+            clip.z / clip.w
+        };
+        assert!((depth(0.5) - 1.0).abs() < 1e-6, "1 at the near plane");
+        assert!((depth(1000.0) - 0.0005).abs() < 1e-9, "near / distance beyond it");
+        assert!(depth(1.0e9) > 0.0, "still in front at a million kilometres");
+        // Half a metre apart at 10 km: more than 8 float steps apart in depth.
+        let (a, b) = (depth(10_000.0), depth(10_000.5));
+        assert!(a > b && (a - b) / (a * f32::EPSILON) > 8.0, "{a} against {b}");
+    }
 
     #[test]
     fn texture_ids_survive_either_unorm_rounding_and_decode() {

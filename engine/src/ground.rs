@@ -57,8 +57,9 @@ pub struct GroundConfig {
     pub frames_in_flight: u32,
     /// Height (y) of the ground plane in the dataset's frame, metres.
     pub ground_height: f32,
-    /// Depth bias toward the viewer in NDC, so the imagery covers the city's own ground
-    /// surfaces at the same height.
+    /// Depth bias toward the viewer as a fraction of the depth (reversed depth: the
+    /// imagery's depth times `1 + depth_bias`, as if `distance × depth_bias` nearer), so the
+    /// imagery covers the city's own ground surfaces at the same height at every distance.
     pub depth_bias: f32,
     /// Colour where no patch covers the ground (RGB, 0 to 1).
     pub fallback: [f32; 3],

@@ -84,9 +84,10 @@ pub struct GraphicsDesc {
 /// How a graphics pipeline uses the depth buffer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum DepthMode {
-    /// Test with LESS and write: ordinary opaque rendering.
+    /// Test with GREATER and write: ordinary opaque rendering under reversed depth (nearer
+    /// is greater; strict, so that of two surfaces at one depth the first drawn stays).
     TestAndWrite,
-    /// Test with LESS_OR_EQUAL against a depth pre-pass, no writes: only the
+    /// Test with GREATER_OR_EQUAL against a depth pre-pass, no writes: only the
     /// nearest surface's fragments run.
     EqualAfterPrepass,
 }
@@ -208,8 +209,8 @@ impl Pipeline {
         let multisample =
             vk::PipelineMultisampleStateCreateInfo::default().rasterization_samples(vk::SampleCountFlags::TYPE_1);
         let (compare, write) = match desc.depth {
-            DepthMode::TestAndWrite => (vk::CompareOp::LESS, true),
-            DepthMode::EqualAfterPrepass => (vk::CompareOp::LESS_OR_EQUAL, false),
+            DepthMode::TestAndWrite => (vk::CompareOp::GREATER, true),
+            DepthMode::EqualAfterPrepass => (vk::CompareOp::GREATER_OR_EQUAL, false),
         };
         let depth = vk::PipelineDepthStencilStateCreateInfo::default()
             .depth_test_enable(true)

@@ -2,7 +2,7 @@
 //! flythrough uses it when no dataset is given, and it gives frame-loop
 //! tests a real scene independent of the dataset format.
 
-use glam::{Mat4, Vec3};
+use glam::Vec3;
 
 use crate::gpu_types::Vertex;
 use crate::scene::{SceneGeometry, TextureArrayData};
@@ -200,13 +200,4 @@ pub fn textures(seed: u64) -> crate::Result<TextureArrayData> {
         bases.push(texels);
     }
     TextureArrayData::from_base_levels(size, bases)
-}
-
-/// A perspective view-projection for Vulkan (depth 0..1, y down in NDC).
-pub fn view_projection(eye: Vec3, target: Vec3, aspect: f32, near: f32, far: f32) -> Mat4 {
-    let view = Mat4::look_at_rh(eye, target, Vec3::Y);
-    let mut projection = Mat4::perspective_rh(60f32.to_radians(), aspect, near, far);
-    // Vulkan's clip space has y pointing down.
-    projection.y_axis.y = -projection.y_axis.y;
-    projection * view
 }

@@ -122,7 +122,7 @@ impl RenderTarget {
     }
 
     /// Records the transitions and `vkCmdBeginRendering` that clear colour to
-    /// `clear` and depth to 1.
+    /// `clear` and depth to 0 (infinitely far: depth is reversed, [`crate::city::Camera`]).
     pub fn begin(&self, device: &Device, rec: Recording<'_>, clear: [f32; 4]) {
         self.color.transition(
             device,
@@ -167,7 +167,7 @@ impl RenderTarget {
             .load_op(load)
             .store_op(vk::AttachmentStoreOp::STORE)
             .clear_value(vk::ClearValue {
-                depth_stencil: vk::ClearDepthStencilValue { depth: 1.0, stencil: 0 },
+                depth_stencil: vk::ClearDepthStencilValue { depth: 0.0, stencil: 0 },
             });
         let area = vk::Rect2D {
             offset: vk::Offset2D { x: 0, y: 0 },

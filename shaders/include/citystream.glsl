@@ -106,7 +106,7 @@ struct GroundPush {
     mat4 view_proj;
     vec4 area;              // xy: lower corner (x, z), zw: upper corner, metres in the dataset's frame
     vec4 params;            // x: ground height y, y: ground size of a tile at scale 0 (metres),
-                            // z: depth bias toward the viewer (NDC), w: texels per tile side
+                            // z: depth bias toward the viewer (a fraction of the depth), w: texels per tile side
     ivec4 levels;           // x: finest scale drawn, y: levels drawn, z: tiles per cache side,
                             // w: level slots of the tile array (a scale's slot is scale mod w)
     vec4 fallback;          // colour where no patch covers the ground

@@ -112,7 +112,6 @@ pub fn camera_on_centre(bounds: &Aabb, offset: impl FnOnce(Vec3) -> Vec3) -> Cam
         target: centre,
         fov_y: 60f32.to_radians(),
         near: 0.5,
-        far: size.length() * 4.0,
     }
 }
 
@@ -124,7 +123,6 @@ pub fn camera_down_negative_z(fov_y: f32) -> Camera {
         target: Vec3::new(0.0, 0.0, -1.0),
         fov_y,
         near: 0.1,
-        far: 100.0,
     }
 }
 

@@ -51,7 +51,6 @@ fn camera() -> Camera {
         target: Vec3::new(3.0, 0.0, 4.01),
         fov_y: 60f32.to_radians(),
         near: 1.0,
-        far: 1000.0,
     }
 }
 
@@ -62,7 +61,8 @@ fn ground_under(inverse: Mat4, px: f64, py: f64) -> Option<[f64; 2]> {
         let p = inverse * Vec4::new(ndc(px, SIZE), ndc(py, SIZE), z, 1.0);
         p.truncate() / p.w
     };
-    let (near, far) = (unproject(0.0), unproject(1.0));
+    // Reversed depth with no far plane: 1 is the near plane, 0.5 twice as far along the ray.
+    let (near, far) = (unproject(1.0), unproject(0.5));
     let direction = far - near;
     if direction.y.abs() < 1e-9 {
         return None;

@@ -111,7 +111,6 @@ fn views() -> Vec<Camera> {
         target,
         fov_y: 60f32.to_radians(),
         near: 0.5,
-        far: size * 4.0,
     };
     let mut views = Vec::new();
     for i in 0..44u32 {

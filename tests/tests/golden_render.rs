@@ -91,14 +91,15 @@ fn textures() -> Vec<Vec<u8>> {
 
 fn scene() -> Vec<Quad> {
     vec![
-        // Near quad, drawn first: depth testing must keep it in front.
+        // Near quad, drawn first: depth testing must keep it in front (reversed depth, as
+        // the engine draws: nearer is greater).
         Quad {
             x0: -0.5,
             x1: 0.5,
             y0: -0.5,
             y1: 0.5,
-            z_left: 0.3,
-            z_right: 0.3,
+            z_left: 0.7,
+            z_right: 0.7,
             layer: 1,
         },
         // Far quad covering most of the screen; the bottom rows show the clear colour.
@@ -107,8 +108,8 @@ fn scene() -> Vec<Quad> {
             x1: 1.0,
             y0: -1.0,
             y1: 0.75,
-            z_left: 0.8,
-            z_right: 0.8,
+            z_left: 0.2,
+            z_right: 0.2,
             layer: 0,
         },
         // Slanted quad crossing both in depth.
@@ -117,8 +118,8 @@ fn scene() -> Vec<Quad> {
             x1: 1.0,
             y0: -0.75,
             y1: 1.0,
-            z_left: 0.1,
-            z_right: 0.9,
+            z_left: 0.9,
+            z_right: 0.1,
             layer: 2,
         },
     ]
@@ -147,7 +148,7 @@ fn reference(quads: &[Quad], layers: &[Vec<u8>]) -> (image::RgbaImage, Vec<bool>
                 if inside {
                     let z = quad.depth_at(x);
                     depths.push((z, quad));
-                    if best.is_none_or(|(bz, _)| z < bz) {
+                    if best.is_none_or(|(bz, _)| z > bz) {
                         best = Some((z, quad));
                     }
                 }
@@ -216,8 +217,8 @@ fn reference_changes_when_depth_order_changes() {
     let quads = scene();
     let (a, _) = reference(&quads, &layers);
     let mut swapped = quads.clone();
-    swapped[0].z_left = 0.95;
-    swapped[0].z_right = 0.95;
+    swapped[0].z_left = 0.05;
+    swapped[0].z_right = 0.05;
     let (b, _) = reference(&swapped, &layers);
     assert_ne!(a, b);
 }

@@ -145,7 +145,6 @@ fn run(
             target: Vec3::new(x + 5.0, 5.0, 0.0),
             fov_y: 60f32.to_radians(),
             near: 0.1,
-            far: 100.0,
         };
         let mut begun = streamer.begin_frame()?;
         let over_budget = begun.over_budget();
@@ -433,7 +432,6 @@ fn stream_fixed_view(
         target: Vec3::new(15.0, 5.0, 0.0),
         fov_y: 60f32.to_radians(),
         near: 0.1,
-        far: 100.0,
     };
     for _ in 0..frames {
         if let Some(records) = &host_records {

@@ -209,7 +209,6 @@ fn street(textures: u32) -> Scene {
         target: Vec3::new(0.0, 6.0, z - 40.0),
         fov_y: 60f32.to_radians(),
         near: 0.1,
-        far: 1000.0,
     };
     Scene {
         vertices,
@@ -260,7 +259,6 @@ fn dataset_scene(dataset: &Dataset) -> Result<Scene> {
         target: centre,
         fov_y: 60f32.to_radians(),
         near: extent * 1e-3,
-        far: extent * 4.0,
     };
     Ok(Scene {
         vertices,
@@ -581,7 +579,8 @@ fn graphics_pipeline(device: &ash::Device, layout: vk::PipelineLayout, fragment:
     let depth = vk::PipelineDepthStencilStateCreateInfo::default()
         .depth_test_enable(true)
         .depth_write_enable(true)
-        .depth_compare_op(vk::CompareOp::LESS);
+        // The engine's camera and targets use reversed depth (cleared to 0, nearer is greater).
+        .depth_compare_op(vk::CompareOp::GREATER);
     let blend_attachments =
         [vk::PipelineColorBlendAttachmentState::default().color_write_mask(vk::ColorComponentFlags::RGBA)];
     let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_attachments);

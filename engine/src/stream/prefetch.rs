@@ -172,7 +172,6 @@ mod tests {
             target,
             fov_y: 1.0,
             near: 0.1,
-            far: 1000.0,
         }
     }
 

@@ -490,6 +490,34 @@ mod tests {
     }
 
     #[test]
+    fn atlas_tree_frustum_planes_of_a_reversed_infinite_projection_keep_everything_far() {
+        // The engine's projection: reversed depth, no far plane (clip z = near, w = −z_view).
+        let near = 1.0f32;
+        let projection = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, -1.0],
+            [0.0, 0.0, near, 0.0],
+        ];
+        let planes = frustum_planes(projection);
+        let point = |p: [f32; 3]| aabb(p, p);
+        assert!(intersects_frustum(&point([0.0, 0.0, -10.0]), &planes));
+        assert!(
+            intersects_frustum(&point([0.0, 0.0, -1.0e7]), &planes),
+            "nothing is too far"
+        );
+        assert!(
+            !intersects_frustum(&point([0.0, 0.0, -0.5]), &planes),
+            "nearer than the near plane"
+        );
+        assert!(!intersects_frustum(&point([0.0, 0.0, 10.0]), &planes), "behind the eye");
+        assert!(
+            !intersects_frustum(&point([11.0, 0.0, -10.0]), &planes),
+            "right of the view"
+        );
+    }
+
+    #[test]
     fn atlas_tree_paging_order_follows_usage_then_distance_then_level() {
         let tree = row_tree();
         let mut planes = EVERYWHERE;

@@ -61,7 +61,10 @@ pub fn distance_to(bounds: &Aabb, p: [f32; 3]) -> f32 {
 }
 
 /// The six planes of a view-projection matrix (column-major, Vulkan clip space: depth 0 to
-/// 1), inside where `a·x + b·y + c·z + d >= 0` (Gribb and Hartmann's extraction).
+/// 1), inside where `a·x + b·y + c·z + d >= 0` (Gribb and Hartmann's extraction). Under the
+/// engine's reversed depth with no far plane, `w − z` is the near plane and `z` is
+/// `(0, 0, 0, near)`, inside everywhere: nothing is too far. The planes are not normalised,
+/// so that degenerate one divides by nothing.
 pub fn frustum_planes(view_projection: [[f32; 4]; 4]) -> [[f32; 4]; 6] {
     let row = |r: usize| view_projection.map(|column| column[r]);
     let (x, y, z, w) = (row(0), row(1), row(2), row(3));

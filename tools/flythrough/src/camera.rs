@@ -4,7 +4,7 @@
 use anyhow::{Context, Result};
 use glam::Vec3;
 
-use citystream_engine::city::Camera;
+use citystream_engine::city::{near_plane, Camera, NEAR_PLANE_MIN};
 use citystream_streaming::bench::path::{standard_path, CameraPath, CameraPose, DEFAULT_STANDARD_DURATION_S};
 
 use super::args::FIXED_STEP_MS;
@@ -24,24 +24,39 @@ pub(crate) fn focal_px(height_px: u32, camera: &Camera) -> f64 {
 }
 
 /// The lowest the eye of `path` comes above the ground plane at `ground_y` within
-/// `duration_s` (sampled at the fixed clock's step), never below the near plane of
-/// [`pose_camera`] for a scene `extent` wide: nothing nearer is drawn.
-pub(crate) fn lowest_eye_height(path: &CameraPath, duration_s: f64, ground_y: f32, extent: f32) -> f64 {
+/// `duration_s` (sampled at the fixed clock's step), never below the least near plane:
+/// nothing nearer is drawn.
+pub(crate) fn lowest_eye_height(path: &CameraPath, duration_s: f64, ground_y: f32) -> f64 {
     let steps = (duration_s * 1000.0 / FIXED_STEP_MS).ceil().max(0.0) as u64;
     let lowest = (0..=steps)
         .map(|i| path.sample_between(None, i as f64 * FIXED_STEP_MS / 1000.0).position[1] - ground_y)
         .fold(f32::INFINITY, f32::min);
-    let near = pose_camera(&path.sample_between(None, 0.0), extent).near;
-    f64::from(lowest.max(near))
+    f64::from(lowest.max(NEAR_PLANE_MIN))
 }
 
-/// A camera at `pose`, with a depth range scaled to the scene.
-pub(crate) fn pose_camera(pose: &CameraPose, extent: f32) -> Camera {
+/// The scene's bounds, which a camera's near plane is chosen from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct SceneBox {
+    pub(crate) low: Vec3,
+    pub(crate) high: Vec3,
+}
+
+impl SceneBox {
+    pub(crate) fn of(scene: &citystream_dataset::Scene) -> Self {
+        Self {
+            low: Vec3::from(scene.bounds.min),
+            high: Vec3::from(scene.bounds.max),
+        }
+    }
+}
+
+/// A camera at `pose` over `scene`, its near plane chosen from both ([`near_plane`]).
+pub(crate) fn pose_camera(pose: &CameraPose, scene: SceneBox) -> Camera {
+    let eye = Vec3::from(pose.position);
     Camera {
-        eye: Vec3::from(pose.position),
+        eye,
         target: Vec3::from(pose.look_at),
         fov_y: 60f32.to_radians(),
-        near: (extent * 1e-4).max(0.01),
-        far: extent * 4.0,
+        near: near_plane(eye, scene.low, scene.high),
     }
 }

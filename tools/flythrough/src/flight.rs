@@ -25,6 +25,7 @@ use citystream_streaming::rng::SplitMix64;
 
 use super::args::{Args, Clock, Prefetch, Strategy, FEEDBACK_PASS_SHARE};
 use super::camera::pose_camera;
+use super::camera::SceneBox;
 use super::city_gpu::{cache_layer_size, city_targets, streamed_city_gpu, CityGeometry, CityGpu, CityTargets};
 use super::controller::frame_latency;
 use super::dataset::scene_extent;
@@ -46,8 +47,10 @@ pub(crate) struct Flight {
     pub(crate) dataset: Arc<Dataset>,
     meshes_in_view: MeshesInView,
     pub(crate) city: CityGeometry,
-    /// The scene's largest side, which scales the camera's depth range.
+    /// The scene's largest side, which scales the window's flying speed.
     pub(crate) extent: f32,
+    /// The scene's bounds, which the camera's near plane is chosen from.
+    pub(crate) scene_box: SceneBox,
     pub(crate) layer_size: u32,
     pub(crate) targets: CityTargets,
     // The ground and the tree draw with the city's streamer and passes: dropped first.
@@ -173,7 +176,7 @@ impl Flight {
         dir: &Path,
         (dataset, city): (Arc<Dataset>, CityGeometry),
         (width, height): (u32, u32),
-        sizing: impl FnOnce(f32) -> GroundSizing,
+        sizing: impl FnOnce(SceneBox) -> GroundSizing,
     ) -> Result<Self> {
         let tree = match args.strategy {
             Strategy::AtlasTree => Some(citystream_gen::atlas_tree::open_tree(&dataset, dir)?),
@@ -183,11 +186,12 @@ impl Flight {
         let layer_size = cache_layer_size(&dataset, device);
         let targets = city_targets(device, width, height)?;
         let extent = scene_extent(scene);
+        let scene_box = SceneBox::of(scene);
         let frames_in_flight = args.frames_in_flight;
         let ground = match &args.ground {
             Some(ground_dir) => {
                 let set = ground::GroundSet::open(ground_dir, &dataset)?;
-                let sizing = sizing(extent);
+                let sizing = sizing(scene_box);
                 let (config, reference) = ground::ground_config(
                     &set,
                     scene,
@@ -248,6 +252,7 @@ impl Flight {
             dataset,
             city,
             extent,
+            scene_box,
             layer_size,
             targets,
             gpu,
@@ -380,14 +385,14 @@ impl Flight {
                     .jumps()
                     .into_iter()
                     .find(|&cut| cut > now && cut <= now + lead)
-                    .map(|cut| pose_camera(&path.sample_between(None, cut), self.extent));
+                    .map(|cut| pose_camera(&path.sample_between(None, cut), self.scene_box));
                 after_cut.or_else(|| {
                     // Between cuts: the pose a lead ahead where it sees beyond the view's
                     // margin, spaced as motion's passes are.
                     if !motion_pass_due(self.last_ahead_pass_s, now, lead) {
                         return None;
                     }
-                    let ahead = pose_camera(&path.sample_between(Some(now), now + lead), self.extent);
+                    let ahead = pose_camera(&path.sample_between(Some(now), now + lead), self.scene_box);
                     let beyond = sees_beyond_margin(camera, &ahead, view.margin);
                     if beyond {
                         self.last_ahead_pass_s = Some(now);

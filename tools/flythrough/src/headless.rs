@@ -18,9 +18,10 @@ use citystream_streaming::bench::stats::{Stats, SummaryBuilder};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 
 use super::args::{writes_frame, Args, Clock, ControllerLatency, Prefetch, FIXED_STEP_MS};
+use super::camera::SceneBox;
 use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
-use super::dataset::{open_city, scene_extent};
+use super::dataset::open_city;
 use super::flight::{Flight, FrameSettings, GroundSizing};
 use super::measure::{error_causes, feedback_reaching, load_reference, reference_feedback};
 use super::output::{status, write_csv_row, write_frame_png, CsvRow, MipCacheSummary, Run, CSV_HEADER};
@@ -36,7 +37,7 @@ pub(crate) const FAIL_AT_FRAME_ENV: &str = "CITYSTREAM_FAIL_AT_FRAME";
 pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
     let opened = open_city(args, dir)?;
     let scene = &opened.0.scene;
-    let extent = scene_extent(scene);
+    let scene_box = SceneBox::of(scene);
     let path_name = args.path.as_deref().unwrap_or("standard");
     let path = camera_path(path_name, scene)?;
     path.restart();
@@ -50,9 +51,9 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         dir,
         opened,
         (args.width, args.height),
-        |extent| GroundSizing {
-            focal_px: focal_px(args.height, &pose_camera(&path.sample_between(None, 0.0), extent)),
-            lowest_eye_m: Some(lowest_eye_height(&path, duration_s, ground_y, extent)),
+        |scene_box| GroundSizing {
+            focal_px: focal_px(args.height, &pose_camera(&path.sample_between(None, 0.0), scene_box)),
+            lowest_eye_m: Some(lowest_eye_height(&path, duration_s, ground_y)),
         },
     )?;
     let dataset = Arc::clone(&flight.dataset);
@@ -157,7 +158,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
             break;
         }
         frames_run += 1;
-        let camera = pose_camera(&path.sample(time_s), extent);
+        let camera = pose_camera(&path.sample(time_s), scene_box);
         let measure_error = reference.is_some() && frame % args.psnr_interval.max(1) == 0;
         let write_frame = writes_frame(args, frame);
 

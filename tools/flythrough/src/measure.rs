@@ -327,7 +327,6 @@ mod tests {
                 target,
                 fov_y: 1.0,
                 near: 0.5,
-                far: 2000.0,
             };
             let planes = frustum_planes(camera.view_projection(16.0 / 9.0, 0.0).to_cols_array_2d());
             let every = scene

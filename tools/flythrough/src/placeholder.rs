@@ -31,9 +31,8 @@ fn orbit_camera(centre: Vec3, extent: f32, tall: f32, t: f64) -> Camera {
         eye: centre + Vec3::new(angle.cos() * radius, height, angle.sin() * radius),
         target: centre,
         fov_y: 60f32.to_radians(),
-        // Scaled to the scene, so a one-metre model and a city both fit the depth range.
+        // Scaled to the scene: the orbit stays outside it, a one-metre model and a city alike.
         near: extent * 1e-3,
-        far: (extent + tall) * 4.0,
     }
 }
 

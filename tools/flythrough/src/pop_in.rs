@@ -4,7 +4,6 @@
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
-use glam::Vec3;
 
 use citystream_bench::image_error::mse;
 use citystream_engine::commands::CommandContext;
@@ -15,7 +14,7 @@ use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 use citystream_streaming::source::MipSource;
 
 use super::args::{frame_interval, frames_dir_path, Args};
-use super::camera::{camera_path, pose_camera};
+use super::camera::{camera_path, pose_camera, SceneBox};
 use super::city_gpu::{cache_layer_size, city_gpu, city_targets, reference_config, CityGpu, CityTargets};
 use super::dataset::open_city;
 use super::measure::feedback_frame_now;
@@ -58,11 +57,9 @@ pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -
     )?;
     // The view of the path's first pause: the static view a user replaying
     // the benchmark sees longest.
-    let size = Vec3::from(scene.bounds.max) - Vec3::from(scene.bounds.min);
-    let extent = size.x.max(size.y).max(size.z).max(1.0);
     let path = camera_path(args.path.as_deref().unwrap_or("standard"), scene)?;
     let at = path.pauses().first().map_or(0.0, |p| p.start_s);
-    let camera = pose_camera(&path.sample_between(None, at), extent);
+    let camera = pose_camera(&path.sample_between(None, at), SceneBox::of(scene));
     // What the static view needs: one streamer frame of feedback.
     let index = feedback_frame_now(
         &mut gpu,

@@ -336,12 +336,14 @@ impl Viewer {
         let mut commands = CommandContext::new(&device, "window setup")?;
         // The ground's levels: down to what the path's lowest eye needs, or every level
         // the imagery has when the camera flies freely.
-        let flight = Flight::new(args, &device, &mut commands, dir, opened, size, |extent| GroundSizing {
-            focal_px: focal_px(size.1, &pose_camera(&start, extent)),
-            lowest_eye_m: path.as_ref().map(|path| {
-                let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
-                lowest_eye_height(path, duration_s, ground_y, extent)
-            }),
+        let flight = Flight::new(args, &device, &mut commands, dir, opened, size, |scene_box| {
+            GroundSizing {
+                focal_px: focal_px(size.1, &pose_camera(&start, scene_box)),
+                lowest_eye_m: path.as_ref().map(|path| {
+                    let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
+                    lowest_eye_height(path, duration_s, ground_y)
+                }),
+            }
         })?;
         let extent = flight.extent;
         std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
@@ -652,7 +654,7 @@ impl Viewer {
         if let Some(recorder) = self.recorder.as_mut() {
             recorder.push(self.time_s, &pose, pose.jumped);
         }
-        let camera = pose_camera(&pose, self.flight.extent);
+        let camera = pose_camera(&pose, self.flight.scene_box);
         let mut recorded = self.flight.record(
             self.frame,
             &camera,
