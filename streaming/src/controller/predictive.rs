@@ -420,13 +420,18 @@ impl PredictivePolicy {
         let room_ms = ((self.alpha_ms - base_ms) * ROOM_SHARE).max(0.0);
         let blocks = self.blocks_for_room(room_ms);
         let bias = self.beta * smoothstep(self.alpha_ms, BIAS_FULL_AT * self.alpha_ms, base_ms);
+        // Room for one block or none (the render alone fills α): the paper's floor, s =
+        // s_min in bytes, with no block budget. A budget of one block would take one mip a
+        // cycle, where s_min's bytes take the coarse levels of several textures that share
+        // a block; the floor costs the frame no more than the one block it replaces.
+        let block_budget = (blocks > 1).then_some(BlockBudget {
+            blocks,
+            block_bytes: self.block_bytes,
+        });
         self.decision = Decision {
             load_size_bytes: blocks.saturating_mul(self.block_bytes),
             mip_bias: bias.clamp(0.0, self.beta),
-            block_budget: Some(BlockBudget {
-                blocks,
-                block_bytes: self.block_bytes,
-            }),
+            block_budget,
         };
     }
 }
@@ -653,7 +658,9 @@ mod tests {
             policy.update(18.0);
         }
         let d = policy.decision();
-        assert_eq!(d.block_budget.map(|b| b.blocks), Some(1));
+        // The paper's floor: s_min in bytes, no block budget.
+        assert_eq!(d.block_budget, None);
+        assert_eq!(d.load_size_bytes, options.s_min_bytes);
         assert!(d.mip_bias == 8.0, "bias {}", d.mip_bias);
         // Bad input leaves the decision alone.
         assert_eq!(policy.update(f64::NAN), d);
