@@ -554,8 +554,9 @@ fn checks(figures: &[(Family, FrontierFigures)]) -> String {
             .map(|f| f.name.clone())
             .collect()
     };
-    // The stronger reading, over every α flown: each run of the other families is matched
-    // by some predictive + path run with no higher worst frame and no more error.
+    // A stronger reading than the issue's, over every α flown (reported, not a target):
+    // each run of the other families matched by some predictive + path run with no higher
+    // worst frame and no more error.
     let path_family: Vec<&FrontierFigures> = figures
         .iter()
         .filter(|(family, _)| *family == Family::PredictivePath)
@@ -571,8 +572,8 @@ fn checks(figures: &[(Family, FrontierFigures)]) -> String {
     let mut notes = String::new();
     if !path_family.is_empty() {
         notes.push_str(&format!(
-            "\nRuns of the fixed, paper and headroom families that no predictive + path run (α = {} ms) matches with \
-             a worst frame no higher and no more error: {}.\n",
+            "\nBeyond the targets: runs of the fixed, paper and headroom families that no predictive + path run \
+             (α = {} ms) matches with a worst frame no higher and no more error: {}.\n",
             path_family
                 .iter()
                 .filter_map(|f| f.alpha_ms)
@@ -620,12 +621,6 @@ fn checks(figures: &[(Family, FrontierFigures)]) -> String {
             "predictive α=12 + path: fixed, paper and headroom runs at or above its worst frame with no more error"
                 .into(),
             path.map(|ours| unbeaten(ours).len() as f64),
-            "0",
-            |v| v == 0.0,
-        ),
-        (
-            "fixed, paper and headroom runs no predictive + path run matches on both worst frame and error".into(),
-            (!path_family.is_empty()).then_some(undominated.len() as f64),
             "0",
             |v| v == 0.0,
         ),
