@@ -103,7 +103,7 @@ pub fn tiny_rgba8_city(base: &Path) -> Result<PathBuf> {
 }
 
 /// A camera looking at the centre of `bounds` from `offset(size)` away from it (`size` the
-/// bounds' extent), with a 60° field of view and a far plane well beyond the city.
+/// bounds' extent), with a 60° field of view (and, as every camera, no far plane).
 pub fn camera_on_centre(bounds: &Aabb, offset: impl FnOnce(Vec3) -> Vec3) -> Camera {
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
     let centre = Vec3::from(bounds.center());
@@ -115,8 +115,8 @@ pub fn camera_on_centre(bounds: &Aabb, offset: impl FnOnce(Vec3) -> Vec3) -> Cam
     }
 }
 
-/// A camera at the origin looking down −z with the vertical field of view `fov_y`, near
-/// 0.1 and far 100: the view of the tests that place quads in front of it.
+/// A camera at the origin looking down −z with the vertical field of view `fov_y` and near
+/// plane 0.1: the view of the tests that place quads in front of it.
 pub fn camera_down_negative_z(fov_y: f32) -> Camera {
     Camera {
         eye: Vec3::ZERO,
