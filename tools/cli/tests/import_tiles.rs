@@ -66,7 +66,13 @@ fn check_positions(dataset: &Dataset, imported: &[&Written]) -> (f64, f64) {
         .as_str()
         .to_owned();
     assert!(crs.starts_with("ENGCRS["), "{crs}");
-    assert!(crs.contains(&format!("latitude {:.6}", lat.to_degrees())), "{crs}");
+    let written = crs
+        .split("latitude ")
+        .nth(1)
+        .and_then(|rest| rest.split(',').next())
+        .and_then(|number| number.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no latitude in {crs}"));
+    assert!((written - lat.to_degrees()).abs() < 1e-6, "{crs}");
     (lat, lon)
 }
 
@@ -92,6 +98,78 @@ fn a_tileset_at_berlin_imports_at_the_finest_level_within_a_centimetre() {
         let mut level = Vec::new();
         dataset.textures.read_mip(mesh.texture, 0, &mut level).expect("mip 0");
         assert_eq!(level, png.into_raw(), "{}: texture bytes", written.file);
+    }
+}
+
+#[test]
+fn tilesets_near_the_poles_across_the_antimeridian_below_the_sea_and_on_everest_import_within_a_centimetre() {
+    for (name, at) in [
+        // 1.1 km from the North Pole, and 11 km from the South Pole on the ice sheet.
+        ("north-pole", (89.99, 45.0, 50.0)),
+        ("south-pole", (-89.9, -100.0, 2_800.0)),
+        // On the antimeridian: the contents lie on both sides of ±180°.
+        ("antimeridian", (-16.5, 179.999_5, 10.0)),
+        // The Dead Sea's shore and Everest's summit (ellipsoidal heights near them).
+        ("dead-sea", (31.5, 35.5, -430.0)),
+        ("everest", (27.988, 86.925, 8_848.0)),
+    ] {
+        let src = fresh_dir(&format!("{name}-src"));
+        let (tileset, contents) = write_tileset_at(&src, at);
+        let (dataset, _) = import_ok(&tileset, name, &["--format", "rgba8"]);
+        let finest: Vec<&Written> = contents.iter().filter(|(_, f)| *f).map(|(w, _)| w).collect();
+        let (lat, lon) = check_positions(&dataset, &finest);
+        // The frame's centre: among the contents, within a kilometre of where they were put.
+        let (centre, placed) = (ecef(lat.to_degrees(), lon.to_degrees(), at.2), ecef(at.0, at.1, at.2));
+        let apart = (0..3).map(|a| (centre[a] - placed[a]).powi(2)).sum::<f64>().sqrt();
+        assert!(
+            apart < 1_000.0,
+            "{name}: the frame's centre is {apart} m from the tileset's place"
+        );
+        if name == "antimeridian" {
+            let east = |w: &Written| w.corners_ecef.iter().any(|p| p[1] > 0.0);
+            let west = |w: &Written| w.corners_ecef.iter().any(|p| p[1] < 0.0);
+            assert!(
+                finest.iter().any(|w| east(w)) && finest.iter().any(|w| west(w)),
+                "the contents do not cross the antimeridian"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_tileset_placed_far_from_the_earths_surface_is_refused_with_its_distance() {
+    for (name, transform, expect) in [
+        // A root transform 1,000 km up: not near the surface.
+        (
+            "orbit",
+            enu_to_ecef(BERLIN.0, BERLIN.1, 1_000_000.0),
+            "from the Earth's centre, not near its surface",
+        ),
+        // No placement at all: contents at the Earth's centre.
+        (
+            "centre",
+            translation([0.0; 3]),
+            "from the Earth's centre, not near its surface",
+        ),
+    ] {
+        let dir = fresh_dir(&format!("far-{name}"));
+        std::fs::write(dir.join("wall.glb"), wall_glb(1)).expect("write content");
+        let tileset = json!({
+            "asset": {"version": "1.1"},
+            "geometricError": 10.0,
+            "root": {
+                "boundingVolume": {"sphere": [0.0, 0.0, 0.0, 1.0e7]},
+                "geometricError": 0.0,
+                "transform": flat(&transform),
+                "content": {"uri": "wall.glb"}
+            }
+        });
+        std::fs::write(dir.join("tileset.json"), serde_json::to_vec(&tileset).expect("json")).expect("write");
+        let out = import(&dir.join("tileset.json"), &fresh_dir(&format!("far-{name}-out")), &[]);
+        assert!(!out.status.success(), "{name}: imported");
+        let message = stderr(&out);
+        assert!(message.contains(expect), "{name}: {message}");
+        assert!(!message.contains("panicked"), "{name}: {message}");
     }
 }
 

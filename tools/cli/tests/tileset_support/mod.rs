@@ -148,10 +148,15 @@ pub fn write_content(
 /// Berlin (Brandenburg Gate), 34 m above the ellipsoid.
 pub const BERLIN: (f64, f64, f64) = (52.516_275, 13.377_704, 34.0);
 
-/// The test tileset; returns its path and, in walk order, every content with the level
-/// flag `finest` (whether `--lod finest` imports it).
+/// The test tileset at Berlin; returns its path and, in walk order, every content with the
+/// level flag `finest` (whether `--lod finest` imports it).
 pub fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
-    let (lat, lon, h) = BERLIN;
+    write_tileset_at(dir, BERLIN)
+}
+
+/// The test tileset at `(latitude°, longitude°, height m)`: its contents span about 700 m
+/// east to west and 400 m south to north of that point.
+pub fn write_tileset_at(dir: &Path, (lat, lon, h): (f64, f64, f64)) -> (PathBuf, Vec<(Written, bool)>) {
     let frame = enu_to_ecef(lat, lon, h);
     let shared_png = write::gradient_png(64, 32, 1);
     let identity = translation([0.0; 3]);
@@ -248,7 +253,7 @@ pub fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
         "asset": {"version": "1.0"},
         "geometricError": 500.0,
         "root": {
-            "boundingVolume": {"region": [0.23, 0.91, 0.24, 0.92, 0.0, 100.0]},
+            "boundingVolume": {"region": region_around(lat, lon, h)},
             "geometricError": 100.0,
             "refine": "REPLACE",
             "content": {"uri": "coarse.b3dm"},
@@ -277,6 +282,35 @@ pub fn write_tileset(dir: &Path) -> (PathBuf, Vec<(Written, bool)>) {
     std::fs::write(&path, serde_json::to_vec_pretty(&tileset).expect("json")).expect("write tileset");
     let contents = vec![(coarse, false), (a, false), (a2, true), (rtc, true), (shared, true)];
     (path, contents)
+}
+
+/// A region (radians west, south, east, north; metres low, high) about 1 km around
+/// `(lat°, lon°)` and from 100 m below `h` to 200 m above it: west beyond east where it
+/// crosses the antimeridian, as 3D Tiles allows.
+fn region_around(lat: f64, lon: f64, h: f64) -> [f64; 6] {
+    use std::f64::consts::{FRAC_PI_2, PI};
+    let wrap = |x: f64| {
+        if x > PI {
+            x - 2.0 * PI
+        } else if x < -PI {
+            x + 2.0 * PI
+        } else {
+            x
+        }
+    };
+    let (lat, lon, d) = (
+        lat.to_radians(),
+        lon.to_radians(),
+        2e-4 / lat.to_radians().cos().max(1e-3),
+    );
+    [
+        wrap(lon - d.min(PI)),
+        (lat - 2e-4).max(-FRAC_PI_2),
+        wrap(lon + d.min(PI)),
+        (lat + 2e-4).min(FRAC_PI_2),
+        h - 100.0,
+        h + 200.0,
+    ]
 }
 
 /// A tileset of `n` textured walls in a row at Berlin, one `.glb` content each
