@@ -8,10 +8,11 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use citystream_dataset::{Aabb, Dataset, TextureFormat};
-use citystream_engine::city::{city_geometry, Camera, CityRenderer};
+use citystream_engine::city::{city_geometry, Camera, CityMesh, CityRenderer};
 use citystream_engine::commands::CommandContext;
 use citystream_engine::device::{SparseMode, TextureBacking};
 use citystream_engine::feedback::FeedbackCompactor;
+use citystream_engine::gpu_types::Vertex;
 use citystream_engine::instance::InstanceOptions;
 use citystream_engine::pipeline::Filtering;
 use citystream_engine::texture_cache::{CacheLayers, Eviction, GpuCacheConfig, GpuTextureCache};
@@ -34,6 +35,39 @@ pub fn test_cache_config(formats: &[TextureFormat], texture_count: u32) -> GpuCa
         texture_count,
         filtering: Filtering::Nearest,
         staging_bytes: 16 << 20,
+    }
+}
+
+/// Quads, each its own mesh, in the layout `CityRenderer::new` takes: the scenes of the
+/// tests that build their geometry by hand.
+#[derive(Debug, Default)]
+pub struct QuadMeshes {
+    pub vertices: Vec<Vertex>,
+    pub indices: Vec<u32>,
+    pub meshes: Vec<CityMesh>,
+}
+
+impl QuadMeshes {
+    /// Adds a quad with corners counter-clockwise from its lower left (texture v from 1 at
+    /// the first edge to 0 at the last), one mesh of `texture` with `extent` texels.
+    pub fn push(&mut self, corners: [Vec3; 4], normal: Vec3, texture: u32, extent: (u32, u32)) {
+        let first_vertex = self.vertices.len() as u32;
+        for (corner, uv) in corners.iter().zip([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]) {
+            self.vertices.push(Vertex {
+                position: corner.to_array(),
+                normal: normal.to_array(),
+                uv,
+            });
+        }
+        self.meshes.push(CityMesh {
+            first_index: self.indices.len() as u32,
+            index_count: 6,
+            vertex_offset: first_vertex,
+            texture,
+            texture_width: extent.0,
+            texture_height: extent.1,
+        });
+        self.indices.extend([0, 1, 2, 0, 2, 3]);
     }
 }
 

@@ -16,7 +16,7 @@ use citystream_engine::gpu_types::{MeshFeedback, Vertex, FEEDBACK_UNSEEN};
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_streaming::rng::hash_unit;
-use citystream_tests::{assert_no_validation_errors, sync_validated_device, test_cache_config};
+use citystream_tests::{assert_no_validation_errors, sync_validated_device, test_cache_config, QuadMeshes};
 use glam::Vec3;
 
 const BLOCKS: u32 = 10;
@@ -38,25 +38,9 @@ type City = (Vec<Vertex>, Vec<u32>, Vec<CityMesh>, Vec<(u32, u32)>);
 /// ground quad; texture extents vary so levels differ between meshes.
 fn city() -> City {
     let extents: Vec<(u32, u32)> = (0..TEXTURES).map(|t| (64 << (t % 4), 64 << ((t / 4) % 3))).collect();
-    let (mut vertices, mut indices, mut meshes) = (Vec::new(), Vec::new(), Vec::new());
+    let mut quads = QuadMeshes::default();
     let mut quad = |corners: [Vec3; 4], normal: Vec3, texture: u32| {
-        let first_vertex = vertices.len() as u32;
-        for (corner, uv) in corners.iter().zip([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]) {
-            vertices.push(Vertex {
-                position: corner.to_array(),
-                normal: normal.to_array(),
-                uv,
-            });
-        }
-        meshes.push(CityMesh {
-            first_index: indices.len() as u32,
-            index_count: 6,
-            vertex_offset: first_vertex,
-            texture,
-            texture_width: extents[texture as usize].0,
-            texture_height: extents[texture as usize].1,
-        });
-        indices.extend([0, 1, 2, 0, 2, 3]);
+        quads.push(corners, normal, texture, extents[texture as usize]);
     };
     let size = BLOCKS as f32 * (BLOCK + STREET);
     quad(
@@ -99,7 +83,7 @@ fn city() -> City {
             );
         }
     }
-    (vertices, indices, meshes, extents)
+    (quads.vertices, quads.indices, quads.meshes, extents)
 }
 
 /// 104 views: down street canyons at eye height, oblique from rooftop height, and from

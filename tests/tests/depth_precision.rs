@@ -13,7 +13,7 @@ use citystream_engine::feedback::FeedbackCompactor;
 use citystream_engine::gpu_types::Vertex;
 use citystream_engine::target::RenderTarget;
 use citystream_engine::texture_cache::GpuTextureCache;
-use citystream_tests::{assert_no_validation_errors, sync_validated_device, test_cache_config};
+use citystream_tests::{assert_no_validation_errors, sync_validated_device, test_cache_config, QuadMeshes};
 use glam::Vec3;
 
 const WIDTH: u32 = 256;
@@ -31,26 +31,8 @@ const GROUND: [u8; 4] = [0, 255, 0, 255];
 /// (texture 1, 0.5 m behind it and 100 m smaller each way, so that from these views it
 /// could show only through the near one) and the ground (texture 2).
 fn scene() -> (Vec<Vertex>, Vec<u32>, Vec<CityMesh>) {
-    let (mut vertices, mut indices, mut meshes) = (Vec::new(), Vec::new(), Vec::new());
-    let mut quad = |corners: [Vec3; 4], normal: Vec3, texture: u32| {
-        let first_vertex = vertices.len() as u32;
-        for (corner, uv) in corners.iter().zip([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]) {
-            vertices.push(Vertex {
-                position: corner.to_array(),
-                normal: normal.to_array(),
-                uv,
-            });
-        }
-        meshes.push(CityMesh {
-            first_index: indices.len() as u32,
-            index_count: 6,
-            vertex_offset: first_vertex,
-            texture,
-            texture_width: 256,
-            texture_height: 256,
-        });
-        indices.extend([0, 1, 2, 0, 2, 3]);
-    };
+    let mut quads = QuadMeshes::default();
+    let mut quad = |corners: [Vec3; 4], normal: Vec3, texture: u32| quads.push(corners, normal, texture, (256, 256));
     let slab = |half: f32, low: f32, high: f32, z: f32| {
         [
             Vec3::new(-half, low, z),
@@ -72,7 +54,7 @@ fn scene() -> (Vec<Vertex>, Vec<u32>, Vec<CityMesh>) {
         Vec3::Y,
         2,
     );
-    (vertices, indices, meshes)
+    (quads.vertices, quads.indices, quads.meshes)
 }
 
 /// From `distance` in front of the slab's centre line, turned `yaw_deg` about the vertical,
