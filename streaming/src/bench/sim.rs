@@ -622,7 +622,6 @@ pub fn run_traced(config: &SimConfig, mut observe: impl FnMut(&FrameSample)) -> 
                 in_flight = None;
             }
         }
-        clock_s += frame_ms / 1000.0;
         policy.observe_load(done_bytes);
         policy.update(frame_ms);
         let t = policy.telemetry();
@@ -636,6 +635,8 @@ pub fn run_traced(config: &SimConfig, mut observe: impl FnMut(&FrameSample)) -> 
             done_mips,
             done_bytes,
         );
+        // The path's clock, in whole ticks: a sum of steps would drift.
+        clock_s = summary.elapsed_s();
         observe(&FrameSample {
             frame: i,
             time_s: clock_s,

@@ -69,6 +69,59 @@ pub struct Summary {
 /// measurement at every 0.10423 s interval").
 pub const RATE_WINDOW_S: f64 = 0.10423;
 
+/// Ticks of path time per second. Path time is counted in whole ticks so that it never
+/// drifts: a sum of millions of `f64` frame steps gains microseconds a simulated day and
+/// moves frames across rate windows. The tick divides both the fixed clock's step (1/60 s
+/// is 5,000,000 ticks) and [`RATE_WINDOW_S`] (31,269,000 ticks), so both are exact; any
+/// other step is rounded to 3.3 ns, and a `u64` of ticks lasts 1,900 years.
+pub const PATH_TICKS_PER_S: u64 = 300_000_000;
+
+/// [`RATE_WINDOW_S`] in ticks.
+const RATE_WINDOW_TICKS: u64 = 31_269_000;
+
+/// Path time as a whole number of [`PATH_TICKS_PER_S`] ticks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
+pub struct PathClock {
+    ticks: u64,
+}
+
+impl PathClock {
+    /// A clock at the start of the path.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The ticks of a step of `ms` milliseconds: rounded to the nearest tick; a step that is
+    /// not finite or not positive does not advance the path.
+    pub fn ticks_of_ms(ms: f64) -> u64 {
+        if !(ms.is_finite() && ms > 0.0) {
+            return 0;
+        }
+        // Saturates at u64::MAX for absurd steps instead of wrapping.
+        (ms * (PATH_TICKS_PER_S as f64 / 1000.0)).round() as u64
+    }
+
+    /// Advance by a step of `ms` milliseconds.
+    pub fn advance_ms(&mut self, ms: f64) {
+        self.ticks = self.ticks.saturating_add(Self::ticks_of_ms(ms));
+    }
+
+    /// Ticks since the start.
+    pub fn ticks(self) -> u64 {
+        self.ticks
+    }
+
+    /// Seconds since the start: one rounding from the exact tick count, never a sum.
+    pub fn seconds(self) -> f64 {
+        self.ticks as f64 / PATH_TICKS_PER_S as f64
+    }
+
+    /// The rate window this instant falls in (an instant on a boundary opens the next).
+    pub fn rate_window(self) -> usize {
+        usize::try_from(self.ticks / RATE_WINDOW_TICKS).unwrap_or(usize::MAX)
+    }
+}
+
 /// Collects per-frame samples and turns them into a [`Summary`].
 ///
 /// Transfer rates are counted per [`RATE_WINDOW_S`] window of path time (how far
@@ -85,7 +138,7 @@ pub struct SummaryBuilder {
     mip_bias: Vec<f64>,
     window_mips: Vec<u64>,
     window_bytes: Vec<u64>,
-    path_s: f64,
+    path: PathClock,
     bytes_streamed: u64,
 }
 
@@ -114,11 +167,9 @@ impl SummaryBuilder {
         self.tw_ms.push(tw_ms);
         self.load_size_mb.push(load_size_mb);
         self.mip_bias.push(mip_bias);
-        if path_ms.is_finite() && path_ms > 0.0 {
-            self.path_s += path_ms / 1000.0;
-        }
+        self.path.advance_ms(path_ms);
         // Completions land at the end of the frame.
-        let window = (self.path_s / RATE_WINDOW_S) as usize;
+        let window = self.path.rate_window();
         if self.window_mips.len() <= window {
             self.window_mips.resize(window + 1, 0);
             self.window_bytes.resize(window + 1, 0);
@@ -130,13 +181,18 @@ impl SummaryBuilder {
 
     /// Seconds of path covered by the frames pushed so far.
     pub fn elapsed_s(&self) -> f64 {
-        self.path_s
+        self.path.seconds()
+    }
+
+    /// The path time covered so far, exactly.
+    pub fn path_clock(&self) -> PathClock {
+        self.path
     }
 
     /// The summary. The last, partial window is left out of the rates
     /// unless it is the only one.
     pub fn finish(&self) -> Summary {
-        let full = (self.path_s / RATE_WINDOW_S) as usize;
+        let full = self.path.rate_window();
         let n = full.clamp(1, self.window_mips.len().max(1));
         let rate = |v: &[u64], scale: f64| -> Vec<f64> {
             (0..n)
@@ -246,5 +302,57 @@ mod tests {
             "{} MB/s against {per_path_second}",
             s.mb_per_s.mean
         );
+    }
+
+    #[test]
+    fn a_day_at_60_hz_keeps_exact_time_and_windows() {
+        // 24 hours of the fixed clock's 1/60 s steps, 5,184,000 frames. Frame k (from 1)
+        // ends at exactly k/60 s and so, by integer arithmetic, in rate window
+        // floor(k/60 / 0.10423) = k * 100000 / 625380. A sum of f64 steps drifts by 1.4 us
+        // over the day and puts 111 frames in the wrong window.
+        const FRAMES: u64 = 24 * 3600 * 60;
+        let mut b = SummaryBuilder::new();
+        let mut expected_windows = vec![0u64; (FRAMES * 100_000 / 625_380) as usize + 1];
+        for k in 1..=FRAMES {
+            // Bytes that differ frame to frame, so a frame in the wrong window shows.
+            let bytes = k % 7 + 1;
+            b.push_frame(8.0, 1000.0 / 60.0, 1.0, 1.0, 0.0, 1, bytes);
+            expected_windows[(k * 100_000 / 625_380) as usize] += bytes;
+            if k % 3600 == 0 || k == FRAMES {
+                assert_eq!(b.path_clock().ticks(), k * 5_000_000, "ticks after frame {k}");
+                // Both are the correctly rounded k/60.
+                assert_eq!(b.elapsed_s(), k as f64 / 60.0, "time after frame {k}");
+            }
+        }
+        assert_eq!(b.elapsed_s(), 86_400.0);
+        assert_eq!(b.window_bytes, expected_windows);
+        let s = b.finish();
+        assert_eq!(s.frames, FRAMES);
+        // The windows of the rates: every full one, the partial last one left out.
+        let full = (FRAMES * 100_000 / 625_380) as usize;
+        let expected_max = expected_windows[..full].iter().max().copied().unwrap_or(0);
+        let mb = expected_max as f64 / crate::controller::BYTES_PER_MB / RATE_WINDOW_S;
+        assert_eq!(s.mb_per_s.max, mb);
+    }
+
+    #[test]
+    fn path_clock_rounds_steps_to_ticks_and_ignores_bad_ones() {
+        let mut clock = PathClock::new();
+        clock.advance_ms(f64::NAN);
+        clock.advance_ms(-5.0);
+        clock.advance_ms(0.0);
+        assert_eq!(clock.ticks(), 0);
+        clock.advance_ms(1000.0 / 60.0);
+        assert_eq!(clock.ticks(), 5_000_000);
+        // 0.1 ms is 30,000 ticks; a third of a tick is rounded away.
+        clock.advance_ms(0.1 + 1e-6 / 3.0);
+        assert_eq!(clock.ticks(), 5_030_000);
+        clock.advance_ms(f64::INFINITY);
+        assert_eq!(clock.ticks(), 5_030_000);
+        // A boundary instant opens the next window.
+        let mut at_boundary = PathClock::new();
+        at_boundary.advance_ms(104.23);
+        assert_eq!(at_boundary.rate_window(), 1);
+        assert_eq!(PathClock::ticks_of_ms(1e300), u64::MAX);
     }
 }

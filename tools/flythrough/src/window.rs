@@ -24,6 +24,7 @@ use citystream_engine::commands::CommandContext;
 use citystream_engine::present::{self, Presenter, Surface};
 use citystream_engine::Device;
 use citystream_streaming::bench::path::{CameraPath, CameraPose};
+use citystream_streaming::bench::stats::PathClock;
 
 use super::args::{frame_interval, writes_frame, Args, Clock, ControllerLatency, FIXED_STEP_MS};
 use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
@@ -68,6 +69,7 @@ struct Viewer {
     recorder: Option<Recorder>,
     // Clocks and stats.
     time_s: f64,
+    path_clock: PathClock,
     frame: u32,
     frame_ms: f64,
     last_frame_at: Option<Instant>,
@@ -389,6 +391,7 @@ impl Viewer {
             colormap_blend: true,
             recorder,
             time_s: 0.0,
+            path_clock: PathClock::new(),
             frame: 0,
             frame_ms: FIXED_STEP_MS,
             last_frame_at: None,
@@ -622,7 +625,9 @@ impl Viewer {
             return Ok(());
         }
         self.last_frame_at = Some(now);
-        self.time_s += dt_s;
+        // Whole ticks, so a long fixed-clock flight does not drift.
+        self.path_clock.advance_ms(dt_s * 1000.0);
+        self.time_s = self.path_clock.seconds();
         let screenshot = std::mem::take(&mut self.screenshot_pending) || writes_frame(args, self.frame);
         self.render(args, screenshot, dt_s, now)
     }
