@@ -1,9 +1,11 @@
 //! Invariants of the controller, the states, the records and the planner
 //! under arbitrary input.
 
+use citystream_streaming::bind_latency::{BatchShape, BindLatencyPreset};
 use citystream_streaming::controller::Decision;
 use citystream_streaming::controller::{
-    AdaptivePolicy, HeadroomPolicy, LoadPolicy, PolicyKind, PolicyOptions, BYTES_PER_MB, MAX_FRAME_LATENCY_MS,
+    AdaptivePolicy, HeadroomPolicy, LoadPolicy, PolicyKind, PolicyOptions, PredictivePolicy, BYTES_PER_MB,
+    MAX_FRAME_LATENCY_MS,
 };
 use citystream_streaming::loader::plan_cycle;
 use citystream_streaming::records::{prepare, MeshMetaData};
@@ -156,6 +158,61 @@ fn spiky_frame_ms(i: u64) -> f64 {
         1000.0
     } else {
         4.0 + (i.wrapping_mul(2_654_435_761) % 1000) as f64 / 250.0
+    }
+}
+
+/// The batch reported in frame `i` of the long runs: 0 to 1,023 blocks bound.
+fn long_run_batch(i: u64) -> BatchShape {
+    let blocks = i.wrapping_mul(2_654_435_761) % 1_024;
+    BatchShape {
+        bound: blocks,
+        unbound: blocks / 3,
+        bind_runs: blocks.div_ceil(16),
+        unbind_runs: blocks.div_ceil(48),
+    }
+}
+
+/// A predictive controller fed frames `frames` of the long run; its last decision.
+fn predictive_over(bind_cost: Option<BindLatencyPreset>, frames: std::ops::Range<u64>) -> (PredictivePolicy, Decision) {
+    let options = PolicyOptions {
+        bind_cost,
+        ..PolicyOptions::default()
+    };
+    let mut p = PredictivePolicy::new(&options).expect("defaults are valid");
+    let mut last = p.decision();
+    for i in frames {
+        let shape = long_run_batch(i);
+        p.observe_batch(shape, shape.bound * 65_536);
+        last = p.update(spiky_frame_ms(i % 1_000_000));
+        assert!(
+            last.mip_bias.is_finite() && (0.0..=8.0).contains(&last.mip_bias),
+            "{bind_cost:?}, frame {i}: bias {}",
+            last.mip_bias
+        );
+        assert!(last.load_size_bytes <= 64 << 20, "{bind_cost:?}, frame {i}: {last:?}");
+    }
+    (p, last)
+}
+
+#[test]
+fn ten_million_frames_of_the_predictive_controller_stay_finite_and_do_not_drift() {
+    // 10⁷ frames of the spiky trace (a 1000 ms frame every 10⁵), each with a batch of 0 to
+    // 1,023 blocks: with a device's fitted bind cost and with the cost learned online. No
+    // NaN, nothing out of range, and the last decision is the one a controller fed only
+    // the last 10⁶ frames reaches: nothing accumulated over the run moved it.
+    const FRAMES: u64 = 10_000_000;
+    for bind_cost in [Some(BindLatencyPreset::Desktop), None] {
+        let (long, decided) = predictive_over(bind_cost, 0..FRAMES);
+        let t = long.telemetry();
+        assert_eq!(t.frames, FRAMES, "{bind_cost:?}");
+        assert!(t.tw_ms.is_finite() && t.twa_ms.is_finite(), "{bind_cost:?}: {t:?}");
+        let (_, fresh) = predictive_over(bind_cost, FRAMES - 1_000_000..FRAMES);
+        eprintln!("{bind_cost:?}: after 10^7 frames {decided:?}, after the last 10^6 {fresh:?}");
+        let ratio = decided.load_size_bytes as f64 / fresh.load_size_bytes.max(1) as f64;
+        assert!(
+            (0.9..=1.1).contains(&ratio) && (decided.mip_bias - fresh.mip_bias).abs() < 0.1,
+            "{bind_cost:?}: {decided:?} after 10^7 frames, {fresh:?} after the last 10^6"
+        );
     }
 }
 
