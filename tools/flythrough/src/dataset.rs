@@ -12,7 +12,9 @@ use citystream_engine::city::city_geometry;
 use citystream_gen::default_city::{ensure_default_city, DEFAULT_CITY_DIR};
 
 use super::args::Args;
+use super::camera::camera_path;
 use super::city_gpu::CityGeometry;
+use super::depth_slabs::DepthSlabs;
 
 /// The dataset directory: `--dataset`, or the default city (created on first run).
 pub(crate) fn dataset_dir(args: &Args) -> Result<PathBuf> {
@@ -27,12 +29,23 @@ pub(crate) fn dataset_dir(args: &Args) -> Result<PathBuf> {
 }
 
 /// The dataset (with the remote settings of `args` where it is a URL) with its vertices and
-/// meshes in the engine's layout.
-pub(crate) fn open_city(args: &Args, dir: &std::path::Path) -> Result<(Arc<Dataset>, CityGeometry)> {
+/// meshes in the engine's layout, and the `--depth-slabs` probe placed in it.
+pub(crate) fn open_city(
+    args: &Args,
+    dir: &std::path::Path,
+) -> Result<(Arc<Dataset>, CityGeometry, Option<DepthSlabs>)> {
     let options = args.remote.options_with_cache(&args.mip_cache)?;
-    let dataset = Arc::new(citystream_gen::location::open_dataset_with(dir, &options)?);
+    let mut dataset = citystream_gen::location::open_dataset_with(dir, &options)?;
+    let slabs = match args.depth_slabs {
+        Some(distance_m) => {
+            // Placed from the path's first pose over the city alone.
+            let path = camera_path(args.path.as_deref().unwrap_or("standard"), &dataset.scene)?;
+            Some(DepthSlabs::add(&mut dataset, path, distance_m)?)
+        }
+        None => None,
+    };
     let city = city_geometry(&dataset)?;
-    Ok((dataset, city))
+    Ok((Arc::new(dataset), city, slabs))
 }
 
 /// The scene's largest side (at least 1): the scale of the camera's depth range.

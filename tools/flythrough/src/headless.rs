@@ -22,6 +22,7 @@ use super::camera::SceneBox;
 use super::camera::{camera_path, focal_px, lowest_eye_height, pose_camera};
 use super::city_gpu::{city_gpu, reference_config};
 use super::dataset::open_city;
+use super::depth_slabs::SlabCounts;
 use super::flight::{Flight, FrameSettings, GroundSizing};
 use super::measure::{error_causes, feedback_reaching, load_reference, reference_feedback};
 use super::output::{status, write_csv_row, write_frame_png, CsvRow, MipCacheSummary, Run, CSV_HEADER};
@@ -35,11 +36,22 @@ pub(crate) const FAIL_AT_FRAME_ENV: &str = "CITYSTREAM_FAIL_AT_FRAME";
 /// through [`Flight`], PNG frames and the error against the fully resident reference at
 /// their intervals, a `frames.csv` row per frame and `summary.json` at the end.
 pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
-    let opened = open_city(args, dir)?;
+    if args.depth_slabs.is_some() && args.psnr_interval == 0 {
+        anyhow::bail!(
+            "--depth-slabs checks the slabs on the frames whose error is measured; --psnr-interval 0 measures none"
+        );
+    }
+    let (dataset, city, slabs) = open_city(args, dir)?;
+    let opened = (dataset, city);
+    let mut slab_counts = SlabCounts::default();
     let scene = &opened.0.scene;
     let scene_box = SceneBox::of(scene);
     let path_name = args.path.as_deref().unwrap_or("standard");
-    let path = camera_path(path_name, scene)?;
+    // With --depth-slabs the path was derived before the slabs joined the scene.
+    let path = match &slabs {
+        Some(slabs) => slabs.path.clone(),
+        None => camera_path(path_name, scene)?,
+    };
     path.restart();
     let duration_s = args.duration_s.unwrap_or(path.duration_s()).max(0.0);
     let ground_y = scene.bounds.min[1];
@@ -221,13 +233,17 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 draw_now(&mut commands, &reference.renderer, (target, &camera), true, ground)?;
                 let reference_pixels = target.read_pixels()?;
                 error = Some(FrameError::of_images(&pixels, &reference_pixels));
-                causes = Some(error_causes(
+                let (frame_causes, ids) = error_causes(
                     &mut commands,
                     reference,
                     &flight.gpu.streamer,
                     (target, &camera),
                     (&pixels, &reference_pixels),
-                )?);
+                )?;
+                causes = Some(frame_causes);
+                if let Some(slabs) = &slabs {
+                    slabs.check(&ids, &camera, &mut slab_counts);
+                }
             }
             if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {
                 ground_error = run.measure(
@@ -443,6 +459,7 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
         cache_layer_size: flight.layer_size,
         gpu_pass_ms,
         validation_errors,
+        depth_slabs: slabs.is_some().then_some(slab_counts),
         frames_written: written,
         mip_cache: dataset.textures.mip_cache().map(|cache| MipCacheSummary {
             dir: cache.dir().display().to_string(),
@@ -489,6 +506,27 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
     drop(flight);
     if validation_errors > 0 {
         bail!("{validation_errors} Vulkan validation error(s) during the run");
+    }
+    if let Some(counts) = run.depth_slabs {
+        eprintln!(
+            "depth slabs at {} m: {} frame(s) checked, {} pixel(s) of the nearer slab, {} of the farther, {} of other meshes",
+            counts.distance_m, counts.frames_checked, counts.near_pixels, counts.far_pixels, counts.other_pixels
+        );
+        if counts.far_pixels > 0 {
+            bail!(
+                "depth did not resolve the slabs {} m apart at {} m: {} pixel(s) inside the nearer slab showed the farther",
+                super::depth_slabs::SLAB_GAP_M,
+                counts.distance_m,
+                counts.far_pixels
+            );
+        }
+        if counts.near_pixels == 0 {
+            bail!(
+                "the depth slabs at {} m were never seen ({} frame(s) checked): nothing was shown about depth there",
+                counts.distance_m,
+                counts.frames_checked
+            );
+        }
     }
     if run.textures_failed > 0 {
         let first = failures

@@ -21,6 +21,7 @@ mod city_gpu;
 mod controller;
 mod controls;
 mod dataset;
+mod depth_slabs;
 mod device;
 mod disk;
 mod flight;

@@ -158,6 +158,8 @@ pub(crate) struct Run<'a> {
     /// queue has none).
     pub(crate) gpu_pass_ms: Option<GpuPassMs>,
     pub(crate) validation_errors: usize,
+    /// `--depth-slabs`: what the probe's pixels showed.
+    pub(crate) depth_slabs: Option<super::depth_slabs::SlabCounts>,
     pub(crate) frames_written: Vec<String>,
     /// The on-disk mip cache of a remote dataset read through one (`--mip-cache`).
     pub(crate) mip_cache: Option<MipCacheSummary>,

@@ -32,7 +32,7 @@ pub(crate) struct PopIn {
 }
 
 pub(crate) fn pop_in(args: &Args, device: &Arc<Device>, dir: &std::path::Path) -> Result<()> {
-    let (dataset, city) = open_city(args, dir)?;
+    let (dataset, city, _) = open_city(args, dir)?;
     let meshes = &city.1;
     let scene = &dataset.scene;
     let layer_size = cache_layer_size(&dataset, device);

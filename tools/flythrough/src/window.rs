@@ -291,7 +291,8 @@ impl Viewer {
         event_loop: &ActiveEventLoop,
         screenshots: bool,
     ) -> Result<Self> {
-        let opened = open_city(args, dir)?;
+        let (dataset, city, _) = open_city(args, dir)?;
+        let opened = (dataset, city);
         let attributes = Window::default_attributes()
             .with_title(format!("citystream · {}", dir.display()))
             .with_inner_size(PhysicalSize::new(args.width, args.height));
