@@ -18,7 +18,7 @@ layout(location = 1) out vec3 out_normal;
 layout(location = 2) flat out uint out_mesh_id;
 
 void main() {
-    gl_Position = push.view_proj * vec4(in_position, 1.0);
+    gl_Position = city_clip_position(push, in_position);
     out_uv = in_uv;
     out_normal = in_normal;
     out_mesh_id = in_mesh_id;

@@ -21,7 +21,7 @@ layout(location = 1) out vec3 out_normal;
 layout(location = 2) flat out uint out_mesh_id;
 
 void main() {
-    gl_Position = push.view_proj * vec4(in_position, 1.0);
+    gl_Position = city_clip_position(push, in_position);
     vec4 transform = uv_transforms[in_mesh_id];
     // The draw is indexed with no vertex offset: gl_VertexIndex is the vertex's place in
     // the vertex buffer, where the atlas coordinates are laid out alike.

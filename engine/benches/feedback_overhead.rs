@@ -136,8 +136,8 @@ fn main() -> Result<()> {
     for index in 0..FRAMES + 5 {
         let angle = index as f32 * 0.05;
         let camera = Camera {
-            eye: Vec3::new(angle.cos() * 250.0, 120.0, angle.sin() * 250.0),
-            target: Vec3::new(0.0, 10.0, 0.0),
+            eye: Vec3::new(angle.cos() * 250.0, 120.0, angle.sin() * 250.0).as_dvec3(),
+            target: glam::DVec3::new(0.0, 10.0, 0.0),
             fov_y: 60f32.to_radians(),
             near: 1.0,
         };

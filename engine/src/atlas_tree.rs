@@ -420,7 +420,7 @@ impl AtlasTreeStreamer {
     pub fn view(&self, camera: &Camera, width: u32, height: u32) -> TreeView {
         let aspect = width as f32 / height as f32;
         TreeView {
-            eye: camera.eye.to_array(),
+            eye: camera.eye.as_vec3().to_array(),
             planes: frustum_planes(camera.view_projection(aspect, 0.0).to_cols_array_2d()),
             screen_height: height as f32,
             fov_y: camera.fov_y,

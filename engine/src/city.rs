@@ -15,7 +15,7 @@
 use std::sync::Arc;
 
 use ash::vk;
-use glam::{Mat4, Vec3};
+use glam::{DMat4, DVec3, Mat4, Vec3};
 
 use crate::buffer::Buffer;
 use crate::commands::{CommandContext, Recording};
@@ -110,12 +110,17 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
 /// and no far plane (depth 1 at the near plane, falling towards 0 at infinity): a float
 /// depth buffer then resolves about `distance × 2⁻²³` at every distance, whatever the near
 /// plane, where a standard projection resolves `distance² / near × 2⁻²⁴`.
+///
+/// The eye and target are `f64`: the city passes get the view's rotation and projection
+/// alone and the eye split in two `f32`s ([`Camera::eye_split`]), and subtract the eye from
+/// each position before rotating it, so precision follows the camera, not the scene's
+/// origin (docs/ARCHITECTURE.md, "Numerical choices").
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
     /// Eye position in scene units.
-    pub eye: Vec3,
+    pub eye: DVec3,
     /// Point looked at.
-    pub target: Vec3,
+    pub target: DVec3,
     /// Vertical field of view in radians.
     pub fov_y: f32,
     /// Near plane distance ([`near_plane`] chooses one from the scene and the eye).
@@ -134,34 +139,78 @@ pub const NEAR_PLANE_MAX_INSIDE: f32 = 2.0;
 /// [`NEAR_PLANE_MAX_INSIDE`]), never under [`NEAR_PLANE_MIN`]. With reversed depth the
 /// plane costs no precision; it only has to lie in front of everything drawn, and the
 /// farther it lies, the tighter the Hi-Z culling's depth slack is in metres.
-pub fn near_plane(eye: Vec3, low: Vec3, high: Vec3) -> f32 {
+pub fn near_plane(eye: DVec3, low: Vec3, high: Vec3) -> f32 {
     if !(eye.is_finite() && low.is_finite() && high.is_finite()) {
         return NEAR_PLANE_MIN;
     }
-    let distance = (low - eye).max(eye - high).max(Vec3::ZERO).length();
+    let (low, high) = (low.as_dvec3(), high.as_dvec3());
+    let distance = (low - eye).max(eye - high).max(DVec3::ZERO).length();
     let near = if distance > 0.0 {
         0.5 * distance
     } else {
-        (0.25 * (eye.y - low.y)).min(NEAR_PLANE_MAX_INSIDE)
+        (0.25 * (eye.y - low.y)).min(f64::from(NEAR_PLANE_MAX_INSIDE))
     };
-    near.max(NEAR_PLANE_MIN)
+    (near as f32).max(NEAR_PLANE_MIN)
 }
 
 impl Camera {
-    /// View-projection for `aspect`, with the field of view widened so that
-    /// tan(fov/2) grows by `1 + margin` (0 for the visible view).
+    /// View-projection for `aspect`, with the field of view widened so that tan(fov/2)
+    /// grows by `1 + margin` (0 for the visible view), eye translation included: composed
+    /// in `f64` and rounded once. For tests on the host and for the passes that take world
+    /// positions (culling's boxes, the ground's quad); the city passes take
+    /// [`relative_view_projection`](Self::relative_view_projection).
     pub fn view_projection(&self, aspect: f32, margin: f32) -> Mat4 {
-        let up = if (self.target - self.eye).normalize_or_zero().y.abs() > 0.999 {
-            Vec3::Z
+        self.view_projection_f64(aspect, margin).as_mat4()
+    }
+
+    /// [`view_projection`](Self::view_projection) in `f64`, unrounded: where a host (or a
+    /// test) projects a point exactly.
+    pub fn view_projection_f64(&self, aspect: f32, margin: f32) -> DMat4 {
+        self.projection(aspect, margin) * DMat4::look_at_rh(self.eye, self.target, self.up())
+    }
+
+    /// As [`view_projection`](Self::view_projection) for positions relative to the eye:
+    /// rotation and projection, no translation.
+    pub fn relative_view_projection(&self, aspect: f32, margin: f32) -> Mat4 {
+        let look = DMat4::look_at_rh(DVec3::ZERO, self.target - self.eye, self.up());
+        (self.projection(aspect, margin) * look).as_mat4()
+    }
+
+    /// The eye as two `f32` triples whose sum is it to `f32`'s precision squared: the
+    /// rounded eye and what the rounding left.
+    pub fn eye_split(&self) -> ([f32; 3], [f32; 3]) {
+        let high = self.eye.as_vec3();
+        let low = (self.eye - high.as_dvec3()).as_vec3();
+        (high.to_array(), low.to_array())
+    }
+
+    fn up(&self) -> DVec3 {
+        if (self.target - self.eye).normalize_or_zero().y.abs() > 0.999 {
+            DVec3::Z
         } else {
-            Vec3::Y
-        };
-        let view = Mat4::look_at_rh(self.eye, self.target, up);
-        let tan = (self.fov_y * 0.5).tan() * (1.0 + margin.max(0.0));
-        let mut projection = Mat4::perspective_infinite_reverse_rh(2.0 * tan.atan(), aspect, self.near);
+            DVec3::Y
+        }
+    }
+
+    fn projection(&self, aspect: f32, margin: f32) -> DMat4 {
+        let tan = f64::from((self.fov_y * 0.5).tan()) * (1.0 + f64::from(margin.max(0.0)));
+        let mut projection =
+            DMat4::perspective_infinite_reverse_rh(2.0 * tan.atan(), f64::from(aspect), f64::from(self.near));
         // Vulkan's clip space has y pointing down.
         projection.y_axis.y = -projection.y_axis.y;
-        projection * view
+        projection
+    }
+}
+
+/// The push constants of a city pass seeing through `camera` at `aspect` (widened by
+/// `margin`): the relative view-projection and the split eye, the rest zero.
+fn city_push(camera: &Camera, aspect: f32, margin: f32) -> CityDrawPush {
+    let (high, low) = camera.eye_split();
+    CityDrawPush {
+        view_proj: camera.relative_view_projection(aspect, margin).to_cols_array_2d(),
+        eye_high: [high[0], high[1], high[2], 0.0],
+        eye_low: [low[0], low[1], low[2], 0.0],
+        ..CityDrawPush::default()
     }
 }
 
@@ -676,7 +725,6 @@ impl CityRenderer {
         let pixel_ratio = view.pixel_ratio(visible_height, feedback_target.height());
         let view_proj = camera.view_projection(aspect, view.margin);
         let base = CityDrawPush {
-            view_proj: view_proj.to_cols_array_2d(),
             feedback: [pixel_ratio.log2(), view.foreground_distance.max(1e-6), widen, widen],
             viewport_light: [
                 feedback_target.width() as f32,
@@ -684,6 +732,7 @@ impl CityRenderer {
                 0.0,
                 0.0,
             ],
+            ..city_push(camera, aspect, view.margin)
         };
         let clear = [1.0, 0.0, 1.0, 1.0];
         match self.active_culling().filter(|_| cull) {
@@ -771,9 +820,8 @@ impl CityRenderer {
         let aspect = target.width() as f32 / target.height() as f32;
         let view_proj = camera.view_projection(aspect, 0.0);
         let base = CityDrawPush {
-            view_proj: view_proj.to_cols_array_2d(),
             viewport_light: [target.width() as f32, target.height() as f32, 0.0, 1.0],
-            ..CityDrawPush::default()
+            ..city_push(camera, aspect, 0.0)
         };
         target.begin(&self.device, rec, [0.0, 0.0, 0.0, 1.0]);
         self.draw_all(rec, &self.depth_prepass, self.prepass_set, base);
@@ -797,9 +845,8 @@ impl CityRenderer {
         }
         let aspect = target.width() as f32 / target.height() as f32;
         let base = CityDrawPush {
-            view_proj: camera.view_projection(aspect, 0.0).to_cols_array_2d(),
             viewport_light: [target.width() as f32, target.height() as f32, 0.0, 0.0],
-            ..CityDrawPush::default()
+            ..city_push(camera, aspect, 0.0)
         };
         let culling = self.active_culling();
         if culling.is_some() {
@@ -846,9 +893,8 @@ impl CityRenderer {
         let direct = if colormap_blend { 0.0 } else { 1.0 };
         let view_proj = camera.view_projection(aspect, 0.0);
         let base = CityDrawPush {
-            view_proj: view_proj.to_cols_array_2d(),
             viewport_light: [target.width() as f32, target.height() as f32, lighting, direct],
-            ..CityDrawPush::default()
+            ..city_push(camera, aspect, 0.0)
         };
         let clear = [0.55, 0.7, 0.9, 1.0];
         let culling = self.active_culling();
@@ -882,18 +928,18 @@ mod tests {
     fn the_near_plane_follows_the_eye_and_the_scene() {
         let (low, high) = (Vec3::new(0.0, 0.0, 0.0), Vec3::new(1000.0, 100.0, 1000.0));
         // From outside the bounds: half the distance to them.
-        assert_eq!(near_plane(Vec3::new(500.0, 300.0, 500.0), low, high), 100.0);
-        assert_eq!(near_plane(Vec3::new(-30.0, 50.0, -40.0), low, high), 25.0);
+        assert_eq!(near_plane(DVec3::new(500.0, 300.0, 500.0), low, high), 100.0);
+        assert_eq!(near_plane(DVec3::new(-30.0, 50.0, -40.0), low, high), 25.0);
         // From inside: a quarter of the height above the lowest point, at most 2 m.
-        assert_eq!(near_plane(Vec3::new(500.0, 1.7, 500.0), low, high), 0.425);
+        assert_eq!(near_plane(DVec3::new(500.0, 1.7, 500.0), low, high), 0.425);
         assert_eq!(
-            near_plane(Vec3::new(500.0, 90.0, 500.0), low, high),
+            near_plane(DVec3::new(500.0, 90.0, 500.0), low, high),
             NEAR_PLANE_MAX_INSIDE
         );
         // Never under the least, even on the ground or with bounds that are not finite.
-        assert_eq!(near_plane(Vec3::new(500.0, 0.0, 500.0), low, high), NEAR_PLANE_MIN);
+        assert_eq!(near_plane(DVec3::new(500.0, 0.0, 500.0), low, high), NEAR_PLANE_MIN);
         assert_eq!(
-            near_plane(Vec3::new(500.0, 0.0, 500.0), Vec3::NAN, high),
+            near_plane(DVec3::new(500.0, 0.0, 500.0), Vec3::NAN, high),
             NEAR_PLANE_MIN
         );
     }
@@ -901,8 +947,8 @@ mod tests {
     #[test]
     fn the_projection_is_reversed_with_no_far_plane() {
         let camera = Camera {
-            eye: Vec3::ZERO,
-            target: Vec3::new(0.0, 0.0, -1.0),
+            eye: DVec3::ZERO,
+            target: DVec3::new(0.0, 0.0, -1.0),
             fov_y: 60f32.to_radians(),
             near: 0.5,
         };
@@ -988,5 +1034,68 @@ mod tests {
         assert_eq!(mesh(512, 512).max_mip(), 9);
         assert_eq!(mesh(4, 32).max_mip(), 5);
         assert_eq!(mesh(1, 1).max_mip(), 0);
+    }
+
+    /// Pixel coordinates of `clip` in a `size`-pixel-high square view.
+    fn pixel(clip: glam::DVec4, size: f64) -> [f64; 2] {
+        [
+            (clip.x / clip.w * 0.5 + 0.5) * size,
+            (clip.y / clip.w * 0.5 + 0.5) * size,
+        ]
+    }
+
+    #[test]
+    fn relative_positions_keep_a_tenth_of_a_pixel_a_thousand_kilometres_out() {
+        // A camera 1,000 km from the origin sliding sideways by a millimetre a frame, a
+        // vertex 50 m ahead, a 1,000-pixel view. The city passes' arithmetic (f32: the eye
+        // split, subtracted before the translation-free matrix) puts the vertex within a
+        // hundredth of a pixel of the f64 projection; the whole matrix in f32 (the eye's
+        // translation carried through it) misses by pixels and jumps between frames.
+        let size = 1000.0;
+        let origin = DVec3::new(1.0e6, 30.0, -1.0e6);
+        let vertex = (origin + DVec3::new(3.0, -2.0, -50.0)).as_vec3();
+        let (mut relative_worst, mut full_worst) = (0.0f64, 0.0f64);
+        for frame in 0..100 {
+            let eye = origin + DVec3::new(1e-3 * f64::from(frame), 0.0, 0.0);
+            let camera = Camera {
+                eye,
+                target: eye + DVec3::new(0.0, 0.0, -1.0),
+                fov_y: 60f32.to_radians(),
+                near: 0.5,
+            };
+            let exact = camera.view_projection_f64(1.0, 0.0);
+            let want = pixel(exact * vertex.as_dvec3().extend(1.0), size);
+            let (high, low) = camera.eye_split();
+            let relative = (vertex - Vec3::from(high)) - Vec3::from(low);
+            let got = pixel(
+                (camera.relative_view_projection(1.0, 0.0) * relative.extend(1.0)).as_dvec4(),
+                size,
+            );
+            let full = pixel((camera.view_projection(1.0, 0.0) * vertex.extend(1.0)).as_dvec4(), size);
+            for axis in 0..2 {
+                relative_worst = relative_worst.max((got[axis] - want[axis]).abs());
+                full_worst = full_worst.max((full[axis] - want[axis]).abs());
+            }
+        }
+        assert!(relative_worst < 0.01, "{relative_worst} px");
+        assert!(
+            full_worst > 0.5,
+            "the f32 matrix should lose pixels here: {full_worst} px"
+        );
+    }
+
+    #[test]
+    fn the_eye_splits_into_two_floats_that_sum_to_it() {
+        let eye = DVec3::new(1_234_567.891_234, -0.000_123_456_7, 6_378_137.123_456_789);
+        let camera = Camera {
+            eye,
+            target: eye + DVec3::X,
+            fov_y: 1.0,
+            near: 1.0,
+        };
+        let (high, low) = camera.eye_split();
+        let sum = Vec3::from(high).as_dvec3() + Vec3::from(low).as_dvec3();
+        assert!((sum - eye).abs().max_element() < 1e-7, "{sum} against {eye}");
+        assert_eq!(Vec3::from(high), eye.as_vec3());
     }
 }

@@ -257,7 +257,8 @@ pub const SAMPLE_ANISOTROPY: f32 = 8.0;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct CityDrawPush {
-    /// Column-major view-projection matrix.
+    /// Column-major view-projection matrix of positions relative to the eye: rotation and
+    /// projection, no translation ([`crate::city::Camera::relative_view_projection`]).
     pub view_proj: [[f32; 4]; 4],
     /// x: log2 of visible pixels per feedback pixel (subtracted from the
     /// feedback LOD), y: foreground distance, zw: feedback-to-visible NDC scale.
@@ -265,6 +266,10 @@ pub struct CityDrawPush {
     /// xy: target size in pixels, z: lighting weight, w: 1 = no colormap
     /// blending (direct sampling).
     pub viewport_light: [f32; 4],
+    /// xyz: the eye rounded to f32 ([`crate::city::Camera::eye_split`]); w unused.
+    pub eye_high: [f32; 4],
+    /// xyz: what the rounding left of the eye; w unused.
+    pub eye_low: [f32; 4],
 }
 
 /// `GroundPush`: push constants of the ground pass (its one quad over the imagery).
@@ -776,6 +781,8 @@ mod tests {
                 ("view_proj", offset_of!(CityDrawPush, view_proj)),
                 ("feedback", offset_of!(CityDrawPush, feedback)),
                 ("viewport_light", offset_of!(CityDrawPush, viewport_light)),
+                ("eye_high", offset_of!(CityDrawPush, eye_high)),
+                ("eye_low", offset_of!(CityDrawPush, eye_low)),
             ],
             size_of::<CityDrawPush>(),
         );

@@ -141,7 +141,19 @@ struct CityDrawPush {
                             // zw: scale from feedback NDC to visible NDC (margin fragments lie outside [-1, 1])
     vec4 viewport_light;    // xy: target size in pixels, z: lighting weight (0 = unlit),
                             // w: 1 = sample directly without colormap blending (visible pass)
+    vec4 eye_high;          // xyz: the eye rounded to f32 (view_proj has no translation)
+    vec4 eye_low;           // xyz: what that rounding left of the eye
 };
+
+// Clip position of a city vertex. The eye is subtracted before the rotation, in two
+// steps: its f32 high part cancels exactly against a nearby position, and the low part
+// then restores the f64 eye, so positions relative to the camera keep their precision
+// however far from the origin both lie (no translation carried in f32 through the
+// matrix). `precise` keeps the compiler from fusing or reordering the steps.
+vec4 city_clip_position(CityDrawPush push, vec3 position) {
+    precise vec3 relative = (position - push.eye_high.xyz) - push.eye_low.xyz;
+    return push.view_proj * vec4(relative, 1.0);
+}
 
 // What the city passes know of mesh i, at index i of BINDING_CITY_MESHES.
 // Every city vertex carries its mesh id (vertex input location 3), passed

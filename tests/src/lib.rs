@@ -142,8 +142,8 @@ pub fn camera_on_centre(bounds: &Aabb, offset: impl FnOnce(Vec3) -> Vec3) -> Cam
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
     let centre = Vec3::from(bounds.center());
     Camera {
-        eye: centre + offset(size),
-        target: centre,
+        eye: (centre + offset(size)).as_dvec3(),
+        target: centre.as_dvec3(),
         fov_y: 60f32.to_radians(),
         near: 0.5,
     }
@@ -153,8 +153,8 @@ pub fn camera_on_centre(bounds: &Aabb, offset: impl FnOnce(Vec3) -> Vec3) -> Cam
 /// plane 0.1: the view of the tests that place quads in front of it.
 pub fn camera_down_negative_z(fov_y: f32) -> Camera {
     Camera {
-        eye: Vec3::ZERO,
-        target: Vec3::new(0.0, 0.0, -1.0),
+        eye: glam::DVec3::ZERO,
+        target: glam::DVec3::new(0.0, 0.0, -1.0),
         fov_y,
         near: 0.1,
     }

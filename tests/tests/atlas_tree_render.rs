@@ -132,7 +132,7 @@ fn atlas_tree_render_with_every_leaf_atlas_matches_the_originals() -> Result<()>
             .nodes
             .iter()
             .filter(|n| n.is_leaf())
-            .map(|n| distance_to(&n.bounds, camera.eye.to_array()))
+            .map(|n| distance_to(&n.bounds, camera.eye.as_vec3().to_array()))
             .fold(f32::INFINITY, f32::min);
         ensure!(
             nearest >= d_min,

@@ -15,7 +15,7 @@ use citystream_engine::Device;
 use citystream_streaming::clipmap::Patch;
 use citystream_streaming::ground::{GroundImagery, PatchImage};
 use citystream_tests::{assert_no_validation_errors, validated_device};
-use glam::{Mat4, Vec3, Vec4};
+use glam::{Mat4, Vec4};
 
 const SIZE: u32 = 256;
 /// The rendered ground against the CPU composition of its patches. Measured on lavapipe:
@@ -47,8 +47,8 @@ fn patch(id: u64, min: [f64; 2], max: [f64; 2], metres_per_texel: f64) -> (Patch
 
 fn camera() -> Camera {
     Camera {
-        eye: Vec3::new(3.0, 120.0, 4.0),
-        target: Vec3::new(3.0, 0.0, 4.01),
+        eye: glam::DVec3::new(3.0, 120.0, 4.0),
+        target: glam::DVec3::new(3.0, 0.0, 4.01),
         fov_y: 60f32.to_radians(),
         near: 1.0,
     }
@@ -109,7 +109,7 @@ fn render(
     camera: &Camera,
     upload: bool,
 ) -> Result<image::RgbaImage> {
-    let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
+    let eye = [camera.eye.x, camera.eye.z];
     for _ in 0..64 {
         let frame = ground.update(
             0,

@@ -91,8 +91,8 @@ fn city() -> City {
 fn views() -> Vec<Camera> {
     let size = BLOCKS as f32 * (BLOCK + STREET);
     let camera = |eye: Vec3, target: Vec3| Camera {
-        eye,
-        target,
+        eye: eye.as_dvec3(),
+        target: target.as_dvec3(),
         fov_y: 60f32.to_radians(),
         near: 0.5,
     };

@@ -66,10 +66,10 @@ fn view(distance: f32, yaw_deg: f32) -> Camera {
     // The near plane the flythrough chooses over this scene's bounds.
     let h = EXTENT * 0.5;
     Camera {
-        eye,
-        target,
+        eye: eye.as_dvec3(),
+        target: target.as_dvec3(),
         fov_y: 60f32.to_radians(),
-        near: near_plane(eye, Vec3::new(-h, 0.0, -h), Vec3::new(h, 3_000.0, h)),
+        near: near_plane(eye.as_dvec3(), Vec3::new(-h, 0.0, -h), Vec3::new(h, 3_000.0, h)),
     }
 }
 

@@ -141,8 +141,8 @@ fn run(
         let t = pause_at.map_or(frame, |p| frame.min(p)) as f32 / frames as f32;
         let x = (QUADS as f32 * SPACING - 10.0) * (1.0 - (2.0 * t - 1.0).abs());
         let camera = Camera {
-            eye: Vec3::new(x + 5.0, 5.0, 9.0),
-            target: Vec3::new(x + 5.0, 5.0, 0.0),
+            eye: Vec3::new(x + 5.0, 5.0, 9.0).as_dvec3(),
+            target: Vec3::new(x + 5.0, 5.0, 0.0).as_dvec3(),
             fov_y: 60f32.to_radians(),
             near: 0.1,
         };
@@ -428,8 +428,8 @@ fn stream_fixed_view(
         .map(|i| CommandContext::new(device, &format!("fixed view frame {i}")))
         .collect::<std::result::Result<Vec<_>, _>>()?;
     let camera = Camera {
-        eye: Vec3::new(15.0, 5.0, 14.0),
-        target: Vec3::new(15.0, 5.0, 0.0),
+        eye: glam::DVec3::new(15.0, 5.0, 14.0),
+        target: glam::DVec3::new(15.0, 5.0, 0.0),
         fov_y: 60f32.to_radians(),
         near: 0.1,
     };

@@ -38,7 +38,7 @@ use citystream_engine::{Device, HostAllocator, HostDevice};
 use citystream_streaming::controller::{PolicyKind, PolicyOptions};
 // Everything a MipSource's signatures name, from one module.
 use citystream_streaming::source::{DatasetSource, MipChain, MipSource, SourceError, TextureFormat};
-use glam::{Mat4, Vec3};
+use glam::{DVec3, Mat4, Vec3};
 
 const WIDTH: u32 = 320;
 const HEIGHT: u32 = 200;
@@ -205,8 +205,8 @@ fn street(textures: u32) -> Scene {
         })
         .collect();
     let camera = |z: f32| Camera {
-        eye: Vec3::new(0.0, 4.0, z),
-        target: Vec3::new(0.0, 6.0, z - 40.0),
+        eye: DVec3::new(0.0, 4.0, f64::from(z)),
+        target: DVec3::new(0.0, 6.0, f64::from(z) - 40.0),
         fov_y: 60f32.to_radians(),
         near: 0.1,
     };
@@ -255,8 +255,8 @@ fn dataset_scene(dataset: &Dataset) -> Result<Scene> {
     let extent = (max - min).max_element().max(1.0);
     let centre = (min + max) * 0.5;
     let camera = |t: f32| Camera {
-        eye: centre + Vec3::new(extent * (0.6 - 0.2 * t), extent * 0.35, extent * 0.6),
-        target: centre,
+        eye: (centre + Vec3::new(extent * (0.6 - 0.2 * t), extent * 0.35, extent * 0.6)).as_dvec3(),
+        target: centre.as_dvec3(),
         fov_y: 60f32.to_radians(),
         near: extent * 1e-3,
     };
@@ -840,8 +840,8 @@ fn render<S: MipSource + 'static>(
         let t = if options.reference { 1.0 } else { t };
         let (from, to) = scene.path;
         let camera = Camera {
-            eye: from.eye.lerp(to.eye, t),
-            target: from.target.lerp(to.target, t),
+            eye: from.eye.lerp(to.eye, f64::from(t)),
+            target: from.target.lerp(to.target, f64::from(t)),
             ..from
         };
         let mut begun = streamer.begin_frame()?;

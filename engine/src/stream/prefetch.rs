@@ -8,7 +8,7 @@
 
 use std::collections::VecDeque;
 
-use glam::Vec3;
+use glam::DVec3;
 
 use crate::city::Camera;
 
@@ -41,11 +41,11 @@ pub fn motion_pass_due(last_s: Option<f64>, now_s: f64, lead_s: f64) -> bool {
 #[derive(Clone, Copy, Debug)]
 struct Sample {
     time_s: f64,
-    eye: Vec3,
+    eye: DVec3,
     /// Unit view direction.
-    forward: Vec3,
+    forward: DVec3,
     /// Distance to the target.
-    reach: f32,
+    reach: f64,
 }
 
 /// Extrapolates a camera's motion: velocity and turn rate over the latest
@@ -88,9 +88,9 @@ impl MotionPredictor {
                     .iter()
                     .zip(self.samples.iter().skip(1))
                     .map(|(a, b)| a.eye.distance(b.eye))
-                    .sum::<f32>()
-                    / steps as f32;
-                if step > CUT_FACTOR * mean && step > f32::EPSILON * reach.max(1.0) {
+                    .sum::<f64>()
+                    / steps as f64;
+                if step > f64::from(CUT_FACTOR) * mean && step > f64::EPSILON * reach.max(1.0) {
                     self.samples.clear();
                 }
             }
@@ -115,15 +115,15 @@ impl MotionPredictor {
         if span <= 0.0 || !lead_s.is_finite() || lead_s < 0.0 {
             return None;
         }
-        let ahead = (lead_s / span) as f32;
+        let ahead = lead_s / span;
         let eye = last.eye + (last.eye - first.eye) * ahead;
         // The turn from the first frame's direction to the latest one's, carried on at the
         // same rate about the same axis.
         let axis = first.forward.cross(last.forward);
         let angle = first.forward.dot(last.forward).clamp(-1.0, 1.0).acos();
         let forward = if axis.length_squared() > 1e-12 && angle.is_finite() {
-            let turn = (angle * ahead).min(MAX_TURN);
-            glam::Quat::from_axis_angle(axis.normalize(), turn) * last.forward
+            let turn = (angle * ahead).min(f64::from(MAX_TURN));
+            glam::DQuat::from_axis_angle(axis.normalize(), turn) * last.forward
         } else {
             last.forward
         };
@@ -150,15 +150,16 @@ pub const PREFETCH_MAX_DEPTH_SHARE: f32 = 0.25;
 /// feedback covers the camera ahead, a pass would ask for nothing new, so the pass (and
 /// its cost) comes where it pays: around cuts, fast turns and fast moves.
 pub fn sees_beyond_margin(now: &Camera, ahead: &Camera, margin: f32) -> bool {
-    let reach = (now.target - now.eye).length().max(f32::MIN_POSITIVE);
+    let reach = (now.target - now.eye).length().max(f64::MIN_POSITIVE);
     let forward = |c: &Camera| (c.target - c.eye).normalize_or_zero();
     let (now_forward, moved) = (forward(now), ahead.eye - now.eye);
     let along = moved.dot(now_forward);
     let sideways = (moved - now_forward * along).length();
-    let half = (now.fov_y * 0.5).clamp(0.0, 1.5);
-    let beyond = ((1.0 + margin.max(0.0)) * half.tan()).atan() - half;
+    let half = f64::from(now.fov_y * 0.5).clamp(0.0, 1.5);
+    let beyond = ((1.0 + f64::from(margin.max(0.0))) * half.tan()).atan() - half;
     let turned = now_forward.dot(forward(ahead)).clamp(-1.0, 1.0).acos();
-    let covered = turned + (sideways / reach).atan() <= beyond && along.abs() <= PREFETCH_MAX_DEPTH_SHARE * reach;
+    let covered =
+        turned + (sideways / reach).atan() <= beyond && along.abs() <= f64::from(PREFETCH_MAX_DEPTH_SHARE) * reach;
     !covered
 }
 
@@ -166,7 +167,7 @@ pub fn sees_beyond_margin(now: &Camera, ahead: &Camera, margin: f32) -> bool {
 mod tests {
     use super::*;
 
-    fn camera(eye: Vec3, target: Vec3) -> Camera {
+    fn camera(eye: DVec3, target: DVec3) -> Camera {
         Camera {
             eye,
             target,
@@ -177,11 +178,11 @@ mod tests {
 
     #[test]
     fn only_a_view_beyond_the_margin_is_worth_a_pass() {
-        let now = camera(Vec3::ZERO, Vec3::new(0.0, 0.0, -100.0));
+        let now = camera(DVec3::ZERO, DVec3::new(0.0, 0.0, -100.0));
         // A 60° view with a 25 % margin reaches 5.8° further each side.
-        let turned = |deg: f32| {
+        let turned = |deg: f64| {
             let a = deg.to_radians();
-            camera(Vec3::ZERO, Vec3::new(a.sin(), 0.0, -a.cos()) * 100.0)
+            camera(DVec3::ZERO, DVec3::new(a.sin(), 0.0, -a.cos()) * 100.0)
         };
         let wide = Camera {
             fov_y: 60f32.to_radians(),
@@ -192,7 +193,7 @@ mod tests {
         assert!(sees_beyond_margin(&wide, &with_fov(turned(7.0)), 0.25));
         // Sideways at 100 m from the target: 5 m (2.9°) is covered, 15 m (8.5°) is not; along
         // the view 20 m is, 30 m is not; a cut is not.
-        let moved = |x: f32, z: f32| with_fov(camera(Vec3::new(x, 0.0, z), Vec3::new(x, 0.0, z - 100.0)));
+        let moved = |x: f64, z: f64| with_fov(camera(DVec3::new(x, 0.0, z), DVec3::new(x, 0.0, z - 100.0)));
         assert!(!sees_beyond_margin(&wide, &moved(5.0, 0.0), 0.25));
         assert!(sees_beyond_margin(&wide, &moved(15.0, 0.0), 0.25));
         assert!(!sees_beyond_margin(&wide, &moved(0.0, -20.0), 0.25));
@@ -213,21 +214,21 @@ mod tests {
     #[test]
     fn a_straight_flight_is_carried_on() {
         let mut motion = MotionPredictor::new();
-        assert!(motion.predict(&camera(Vec3::ZERO, Vec3::X), 0.5).is_none());
+        assert!(motion.predict(&camera(DVec3::ZERO, DVec3::X), 0.5).is_none());
         // 10 m/s along x, looking along x, 60 frames a second.
         for frame in 0..10 {
             let t = frame as f64 / 60.0;
-            let eye = Vec3::new(10.0 * t as f32, 5.0, 0.0);
-            motion.observe(t, &camera(eye, eye + Vec3::X * 20.0));
+            let eye = DVec3::new(10.0 * t, 5.0, 0.0);
+            motion.observe(t, &camera(eye, eye + DVec3::X * 20.0));
         }
-        let now = camera(Vec3::new(1.5, 5.0, 0.0), Vec3::new(21.5, 5.0, 0.0));
+        let now = camera(DVec3::new(1.5, 5.0, 0.0), DVec3::new(21.5, 5.0, 0.0));
         let ahead = motion.predict(&now, 0.5).expect("two frames seen");
         assert!(
-            ahead.eye.distance(Vec3::new(10.0 * 9.0 / 60.0 + 5.0, 5.0, 0.0)) < 1e-3,
+            ahead.eye.distance(DVec3::new(10.0 * 9.0 / 60.0 + 5.0, 5.0, 0.0)) < 1e-3,
             "{:?}",
             ahead.eye
         );
-        assert!((ahead.target - ahead.eye).normalize().distance(Vec3::X) < 1e-5);
+        assert!((ahead.target - ahead.eye).normalize().distance(DVec3::X) < 1e-5);
         assert_eq!(ahead.fov_y, now.fov_y);
     }
 
@@ -237,30 +238,30 @@ mod tests {
         // Standing still, turning about y at 1 rad/s.
         for frame in 0..6 {
             let t = frame as f64 / 60.0;
-            let a = t as f32;
-            motion.observe(t, &camera(Vec3::ZERO, Vec3::new(a.cos(), 0.0, -a.sin()) * 10.0));
+            let a = t;
+            motion.observe(t, &camera(DVec3::ZERO, DVec3::new(a.cos(), 0.0, -a.sin()) * 10.0));
         }
-        let now = camera(Vec3::ZERO, Vec3::X);
+        let now = camera(DVec3::ZERO, DVec3::X);
         let ahead = motion.predict(&now, 0.25).expect("seen");
-        let expected = 5.0f32 / 60.0 + 0.25;
+        let expected = 5.0f64 / 60.0 + 0.25;
         let forward = (ahead.target - ahead.eye).normalize();
         assert!(
-            forward.distance(Vec3::new(expected.cos(), 0.0, -expected.sin())) < 1e-4,
+            forward.distance(DVec3::new(expected.cos(), 0.0, -expected.sin())) < 1e-4,
             "{forward:?}"
         );
         assert!(ahead.eye.length() < 1e-6);
         // Moving slowly, then a teleport: the jump is not taken for a velocity.
         let mut motion = MotionPredictor::new();
         for frame in 0..5 {
-            let eye = Vec3::new(frame as f32 * 0.1, 0.0, 0.0);
-            motion.observe(frame as f64 / 60.0, &camera(eye, eye + Vec3::Z));
+            let eye = DVec3::new(f64::from(frame) * 0.1, 0.0, 0.0);
+            motion.observe(frame as f64 / 60.0, &camera(eye, eye + DVec3::Z));
         }
-        let far = Vec3::new(5000.0, 0.0, 0.0);
-        motion.observe(5.0 / 60.0, &camera(far, far + Vec3::Z));
-        assert!(motion.predict(&camera(far, far + Vec3::Z), 1.0).is_none());
-        motion.observe(6.0 / 60.0, &camera(far, far + Vec3::Z));
+        let far = DVec3::new(5000.0, 0.0, 0.0);
+        motion.observe(5.0 / 60.0, &camera(far, far + DVec3::Z));
+        assert!(motion.predict(&camera(far, far + DVec3::Z), 1.0).is_none());
+        motion.observe(6.0 / 60.0, &camera(far, far + DVec3::Z));
         let still = motion
-            .predict(&camera(far, far + Vec3::Z), 1.0)
+            .predict(&camera(far, far + DVec3::Z), 1.0)
             .expect("two frames since the cut");
         assert!(still.eye.distance(far) < 1e-3);
     }

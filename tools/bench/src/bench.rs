@@ -174,8 +174,8 @@ pub struct BenchArgs {
     #[arg(long)]
     frames: Option<u64>,
     /// `--scenario berlin` and `frontier`: only these runs (directory names, comma-separated;
-    /// berlin: `baseline`, `fixed-s64`, `adaptive-a12`, `adaptive-a16`, `headroom-a12`,
-    /// `h200-baseline`, `h200-adaptive-a12`; frontier: `baseline`, `fixed-s1` … `fixed-s32`,
+    /// berlin: `baseline`, `fixed-s64`, `fixed-s4`, `adaptive-a12`, `adaptive-a16`,
+    /// `headroom-a12`, `predictive-a12-path`, `h200-baseline`, `h200-adaptive-a12`; frontier: `baseline`, `fixed-s1` … `fixed-s32`,
     /// `paper-a8` … `paper-a20`, `headroom-a8` …, `predictive-a8` …, `predictive-a8-path` …,
     /// `predictive-a12-motion`); the tables show the others as not run.
     #[arg(long, value_delimiter = ',')]

@@ -466,10 +466,11 @@ pub(crate) struct Args {
     #[arg(long, default_value_t = 30)]
     pub(crate) psnr_interval: u32,
     /// A depth-precision probe in the city (headless runs): two parallel slabs 0.5 m apart
-    /// facing the first pose's eye from this many metres, 20° above its view axis, the
-    /// nearer with the dataset's first texture and the farther with its second. On every
-    /// measured frame (`--psnr-interval`) the pixels inside the nearer's outline must show it;
-    /// one showing the farther fails the run. `depth_slabs` in summary.json counts them.
+    /// facing the first pose's eye from this many metres, in its heading 20° above the
+    /// horizon, the nearer with the dataset's first texture and the farther with its second.
+    /// On every measured frame (`--psnr-interval`) the view from that frame's eye towards
+    /// them must show the nearer inside its outline; one pixel of the farther fails the run.
+    /// `depth_slabs` in summary.json counts them.
     #[arg(long, value_parser = super::depth_slabs::parse_depth_slabs_m, conflicts_with_all = ["placeholder", "pop_in", "window"])]
     pub(crate) depth_slabs: Option<f64>,
     /// Aerial imagery under the city (docs/GROUND.md): a patch set written by

@@ -52,10 +52,10 @@ impl SceneBox {
 
 /// A camera at `pose` over `scene`, its near plane chosen from both ([`near_plane`]).
 pub(crate) fn pose_camera(pose: &CameraPose, scene: SceneBox) -> Camera {
-    let eye = Vec3::from(pose.position);
+    let eye = Vec3::from(pose.position).as_dvec3();
     Camera {
         eye,
-        target: Vec3::from(pose.look_at),
+        target: Vec3::from(pose.look_at).as_dvec3(),
         fov_y: 60f32.to_radians(),
         near: near_plane(eye, scene.low, scene.high),
     }

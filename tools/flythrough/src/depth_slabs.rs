@@ -1,11 +1,12 @@
 //! `--depth-slabs METRES`: a depth-precision probe placed in the city being flown. Two
-//! parallel square slabs 0.5 m apart face the first pose's eye from METRES away, 20° above
-//! its view axis (over the city, where nothing else stands), the nearer drawn with the
-//! dataset's first texture and the farther with its second. On every measured frame the
-//! error reference's texture-id pass (the culled view, when culling is on) says which
-//! texture each pixel shows: a pixel of the farther slab inside the nearer's outline means
-//! depth did not resolve the half metre there, and the run fails (docs/ARCHITECTURE.md,
-//! "Numerical choices").
+//! parallel square slabs 0.5 m apart face the first pose's eye from METRES away, in the
+//! heading it looks along and 20° above the horizon (over the city, where nothing else
+//! stands), the nearer drawn with the dataset's first texture and the farther with its
+//! second. On every measured frame the error reference draws the view from that frame's eye
+//! towards the slabs (the culled view, when culling is on) and its texture-id pass says
+//! which texture each pixel shows: a pixel of the farther slab inside the nearer's outline
+//! means depth did not resolve the half metre there, and the run fails
+//! (docs/ARCHITECTURE.md, "Numerical choices").
 
 use anyhow::{bail, ensure, Result};
 use glam::{Vec3, Vec4Swizzles};
@@ -17,7 +18,8 @@ use citystream_streaming::bench::path::CameraPath;
 
 /// How far behind the nearer slab the farther one lies, metres.
 pub(crate) const SLAB_GAP_M: f32 = 0.5;
-/// The slabs' centre lies this far above the eye's view axis.
+/// The slabs' centre lies this far above the horizon seen from the first eye: above any
+/// city's roofs at the distances the probe is for, so nothing stands in front.
 const ELEVATION_DEG: f32 = 20.0;
 /// A slab's side as a fraction of its distance: about 190 pixels of a 2160-pixel-high
 /// view with a 60° field of view, 30 of a 360-pixel one.
@@ -70,11 +72,11 @@ impl DepthSlabs {
         if view == Vec3::ZERO {
             bail!("--depth-slabs: the path's first pose looks nowhere");
         }
-        let side_axis = if view.y.abs() > 0.999 { Vec3::Z } else { Vec3::Y };
-        let right = view.cross(side_axis).normalize();
-        let up = right.cross(view);
+        // The heading the eye looks along (north, −z, when it looks straight down or up).
+        let heading = Vec3::new(view.x, 0.0, view.z).try_normalize().unwrap_or(Vec3::NEG_Z);
         let elevation = ELEVATION_DEG.to_radians();
-        let towards = view * elevation.cos() + up * elevation.sin();
+        let towards = heading * elevation.cos() + Vec3::Y * elevation.sin();
+        let right = towards.cross(Vec3::Y).normalize();
         let distance = distance_m as f32;
         let half = 0.5 * SIDE_PER_DISTANCE * distance;
         let (across, along) = (right * half, right.cross(towards).normalize() * half);
@@ -103,6 +105,16 @@ impl DepthSlabs {
             near_texture,
             far_texture,
         })
+    }
+
+    /// The view from `frame`'s eye towards the nearer slab's centre, with `frame`'s field of
+    /// view and near plane: what the probe is checked through.
+    pub(crate) fn probe_camera(&self, frame: &Camera) -> Camera {
+        let centre = self.near_corners.iter().copied().sum::<Vec3>() * 0.25;
+        Camera {
+            target: centre.as_dvec3(),
+            ..*frame
+        }
     }
 
     /// Counts what the pixels inside the nearer slab's outline show in `ids` (a texture-id
@@ -148,25 +160,24 @@ fn push_quad(scene: &mut Scene, corners: [Vec3; 4], normal: Vec3, texture: u32) 
 }
 
 /// Whether `point` lies inside the convex polygon `outline` by at least `margin` from
-/// every edge (either winding).
+/// every edge, on the side the polygon's winding (either) puts its inside.
 fn inside_by(outline: &[[f32; 2]; 4], point: [f32; 2], margin: f32) -> bool {
-    let mut sign = 0.0f32;
-    for i in 0..4 {
+    let area: f32 = (0..4)
+        .map(|i| {
+            let (a, b) = (outline[i], outline[(i + 1) % 4]);
+            a[0] * b[1] - b[0] * a[1]
+        })
+        .sum();
+    if area == 0.0 || !area.is_finite() {
+        return false;
+    }
+    (0..4).all(|i| {
         let (a, b) = (outline[i], outline[(i + 1) % 4]);
         let edge = [b[0] - a[0], b[1] - a[1]];
         let length = edge[0].hypot(edge[1]);
-        if length <= 0.0 {
-            return false;
-        }
-        let distance = (edge[0] * (point[1] - a[1]) - edge[1] * (point[0] - a[0])) / length;
-        if sign == 0.0 {
-            sign = distance.signum();
-        }
-        if distance * sign < margin {
-            return false;
-        }
-    }
-    true
+        let distance = area.signum() * (edge[0] * (point[1] - a[1]) - edge[1] * (point[0] - a[0])) / length;
+        length > 0.0 && distance >= margin
+    })
 }
 
 /// `--depth-slabs`: finite metres from 10 m to 1,000 km.
@@ -189,8 +200,8 @@ mod tests {
 
     fn camera() -> Camera {
         Camera {
-            eye: Vec3::ZERO,
-            target: Vec3::new(0.0, 0.0, -1.0),
+            eye: glam::DVec3::ZERO,
+            target: glam::DVec3::new(0.0, 0.0, -1.0),
             fov_y: 60f32.to_radians(),
             near: 1.0,
         }
@@ -246,7 +257,7 @@ mod tests {
         let slabs = slabs_ahead();
         let ids = image::RgbaImage::from_pixel(64, 64, id_pixel(Some(1)));
         let mut away = camera();
-        away.target = Vec3::new(0.0, 0.0, 1.0);
+        away.target = glam::DVec3::new(0.0, 0.0, 1.0);
         let mut counts = SlabCounts::default();
         slabs.check(&ids, &away, &mut counts);
         assert_eq!(

@@ -289,7 +289,7 @@ impl GroundRun {
                 .with_context(|| format!("inserting patch {}", next.patch.id))?;
             self.arrived += 1;
         }
-        let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
+        let eye = [camera.eye.x, camera.eye.z];
         Ok(self.layer.update_streamed(streamer, frame, eye)?)
     }
 
@@ -320,7 +320,7 @@ impl GroundRun {
             reference.insert(next.patch, self.images.get(next)?)?;
             self.reference_arrived += 1;
         }
-        let eye = [f64::from(camera.eye.x), f64::from(camera.eye.z)];
+        let eye = [camera.eye.x, camera.eye.z];
         // Every tile of every window: a bounded number of batches of the staging's size.
         let batches = reference.config().layers() / u64::from(reference.config().staging_tiles) + 2;
         for _ in 0..batches {

@@ -233,16 +233,22 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 draw_now(&mut commands, &reference.renderer, (target, &camera), true, ground)?;
                 let reference_pixels = target.read_pixels()?;
                 error = Some(FrameError::of_images(&pixels, &reference_pixels));
-                let (frame_causes, ids) = error_causes(
+                causes = Some(error_causes(
                     &mut commands,
                     reference,
                     &flight.gpu.streamer,
                     (target, &camera),
                     (&pixels, &reference_pixels),
-                )?;
-                causes = Some(frame_causes);
+                )?);
                 if let Some(slabs) = &slabs {
-                    slabs.check(&ids, &camera, &mut slab_counts);
+                    // The reference draws the probe's view (its culling too), then which
+                    // texture each pixel shows; the frame's own images are read already.
+                    let probe = slabs.probe_camera(&camera);
+                    draw_now(&mut commands, &reference.renderer, (target, &probe), true, None)?;
+                    let rec = commands.begin()?;
+                    reference.renderer.record_texture_ids(rec, target, &probe)?;
+                    commands.submit_and_wait(&[])?;
+                    slabs.check(&target.read_pixels()?, &probe, &mut slab_counts);
                 }
             }
             if let (true, Some(run)) = (measure_error, flight.ground.as_mut()) {
@@ -520,10 +526,14 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 counts.far_pixels
             );
         }
-        if counts.near_pixels == 0 {
+        let inside = counts.near_pixels + counts.far_pixels + counts.other_pixels;
+        if counts.near_pixels == 0 || counts.near_pixels * 2 < inside {
             bail!(
-                "the depth slabs at {} m were never seen ({} frame(s) checked): nothing was shown about depth there",
+                "the depth slabs at {} m were hidden ({} of {} pixel(s) inside them over {} frame(s) showed the nearer): \
+                 nothing was shown about depth there",
                 counts.distance_m,
+                counts.near_pixels,
+                inside,
                 counts.frames_checked
             );
         }

@@ -159,7 +159,7 @@ impl MeshesInView {
 /// A measured frame's MSE (`image` against `reference_image`, the reference's view just
 /// drawn into `target`) split by cause: the reference draws which texture each pixel shows,
 /// and each texture's state in `streamer` names the cause its pixels carry
-/// ([`ShortfallCause`]), and the texture-id image it drew. Pixels no city mesh covers carry the lag (they differ only where
+/// ([`ShortfallCause`]). Pixels no city mesh covers carry the lag (they differ only where
 /// the two views' culling did).
 pub(crate) fn error_causes<S: MipSource + 'static>(
     commands: &mut CommandContext,
@@ -167,13 +167,13 @@ pub(crate) fn error_causes<S: MipSource + 'static>(
     streamer: &TextureStreamer<S>,
     (target, camera): (&RenderTarget, &Camera),
     (image, reference_image): (&image::RgbaImage, &image::RgbaImage),
-) -> Result<(ErrorCauses, image::RgbaImage)> {
+) -> Result<ErrorCauses> {
     let rec = commands.begin()?;
     reference.renderer.record_texture_ids(rec, target, camera)?;
     commands.submit_and_wait(&[])?;
     let ids = target.read_pixels()?;
     let mut known: std::collections::HashMap<u32, ShortfallCause> = std::collections::HashMap::new();
-    let causes = ErrorCauses::of_images(image, reference_image, |x, y| {
+    Ok(ErrorCauses::of_images(image, reference_image, |x, y| {
         let Some(texture) = texture_of_id_pixel(ids.get_pixel(x, y).0) else {
             return ShortfallCause::Lag;
         };
@@ -182,8 +182,7 @@ pub(crate) fn error_causes<S: MipSource + 'static>(
                 .shortfall(texture)
                 .map_or(ShortfallCause::Lag, |state| state.cause())
         })
-    });
-    Ok((causes, ids))
+    }))
 }
 
 /// The feedback entries of the fully resident reference's own feedback pass for `camera`,
@@ -324,8 +323,8 @@ mod tests {
         let mut counts = Vec::new();
         for (eye, target) in views {
             let camera = Camera {
-                eye,
-                target,
+                eye: eye.as_dvec3(),
+                target: target.as_dvec3(),
                 fov_y: 1.0,
                 near: 0.5,
             };

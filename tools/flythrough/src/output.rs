@@ -239,7 +239,8 @@ pub(crate) struct CsvRow<'a> {
 
 pub(crate) fn write_csv_row(csv: &mut impl Write, row: &CsvRow) -> Result<()> {
     let t = row.telemetry;
-    let (eye, look) = (row.camera.eye, row.camera.target);
+    // Camera paths hold f32 poses: the f32 of the f64 eye is the pose itself.
+    let (eye, look) = (row.camera.eye.as_vec3(), row.camera.target.as_vec3());
     // The pose exactly (shortest round-trip form): a replay is compared with it.
     writeln!(
         csv,

@@ -28,8 +28,8 @@ fn orbit_camera(centre: Vec3, extent: f32, tall: f32, t: f64) -> Camera {
     let radius = extent * 0.55 + tall * 1.5;
     let height = extent * (0.18 + 0.12 * (angle * 2.0).sin().abs()) + tall;
     Camera {
-        eye: centre + Vec3::new(angle.cos() * radius, height, angle.sin() * radius),
-        target: centre,
+        eye: (centre + Vec3::new(angle.cos() * radius, height, angle.sin() * radius)).as_dvec3(),
+        target: centre.as_dvec3(),
         fov_y: 60f32.to_radians(),
         // Scaled to the scene: the orbit stays outside it, a one-metre model and a city alike.
         near: extent * 1e-3,
