@@ -57,6 +57,7 @@ mod pack;
 mod scene;
 mod shard;
 mod store;
+pub mod tiles;
 pub mod tiling;
 mod verify;
 mod writer;
