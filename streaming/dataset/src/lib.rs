@@ -57,6 +57,7 @@ mod pack;
 mod scene;
 mod shard;
 mod store;
+pub mod tile_geometry;
 pub mod tiles;
 pub mod tiling;
 mod verify;
