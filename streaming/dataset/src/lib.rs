@@ -58,6 +58,7 @@ mod scene;
 mod shard;
 mod store;
 pub mod tile_geometry;
+pub mod tiled;
 pub mod tiles;
 pub mod tiling;
 mod verify;
