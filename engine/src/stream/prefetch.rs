@@ -90,7 +90,7 @@ impl MotionPredictor {
                     .map(|(a, b)| a.eye.distance(b.eye))
                     .sum::<f64>()
                     / steps as f64;
-                if step > f64::from(CUT_FACTOR) * mean && step > f64::EPSILON * reach.max(1.0) {
+                if step > f64::from(CUT_FACTOR) * mean && step > f64::from(f32::EPSILON) * reach.max(1.0) {
                     self.samples.clear();
                 }
             }

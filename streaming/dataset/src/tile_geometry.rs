@@ -83,13 +83,15 @@ impl TileGeometry {
         Ok(tile)
     }
 
-    /// The blob's bytes (encoding 0).
-    pub fn encode(&self) -> Vec<u8> {
+    /// The blob's bytes (encoding 0); refused past 2^32 meshes, vertices or indices.
+    pub fn encode(&self) -> Result<Vec<u8>, DatasetError> {
         let v = self.positions.len();
         let mut out =
             Vec::with_capacity(HEADER_BYTES + MESH_BYTES * self.meshes.len() + 32 * v + 4 * self.indices.len());
         for n in [self.meshes.len(), v, self.indices.len(), 0] {
-            out.extend_from_slice(&(n as u32).to_le_bytes());
+            let n = u32::try_from(n)
+                .map_err(|_| DatasetError::InvalidInput(format!("a tile of {n} meshes, vertices or indices")))?;
+            out.extend_from_slice(&n.to_le_bytes());
         }
         for m in &self.meshes {
             for x in [m.first_vertex, m.vertex_count, m.first_index, m.index_count, m.texture] {
@@ -108,7 +110,7 @@ impl TileGeometry {
         for x in &self.indices {
             out.extend_from_slice(&x.to_le_bytes());
         }
-        out
+        Ok(out)
     }
 
     /// Decodes tile `tile`'s blob `bytes` read from `path` (`geometry.pack`, the blob at
@@ -181,21 +183,28 @@ impl TileGeometry {
         let textures =
             u64::from(record.first_texture)..u64::from(record.first_texture) + u64::from(record.texture_count);
         let mut meshes = Vec::with_capacity(m);
+        let (mut next_vertex, mut next_index) = (0u64, 0u64);
         for k in 0..m {
             let at = HEADER_BYTES + MESH_BYTES * k;
             let [first_vertex, vertex_count, first_index, index_count, texture] =
                 [0, 4, 8, 12, 16].map(|o| u32_at(bytes, at + o));
+            // Meshes lie end to end in the arrays, as written: each vertex and index is
+            // checked once, whatever a hostile blob claims.
             let vertices = u64::from(first_vertex)..u64::from(first_vertex) + u64::from(vertex_count);
-            if vertices.end > v as u64 {
-                return Err(bad(at, format!("mesh {k}: vertices {vertices:?} beyond its {v}")));
-            }
-            let range = u64::from(first_index)..u64::from(first_index) + u64::from(index_count);
-            if range.end > i as u64 || index_count % 3 != 0 {
+            if vertices.start != next_vertex || vertices.end > v as u64 {
                 return Err(bad(
-                    at + 8,
-                    format!("mesh {k}: indices {range:?} are not whole triangles within its {i}"),
+                    at,
+                    format!("mesh {k}: vertices {vertices:?}, expected to start at {next_vertex} within its {v}"),
                 ));
             }
+            let range = u64::from(first_index)..u64::from(first_index) + u64::from(index_count);
+            if range.start != next_index || range.end > i as u64 || index_count % 3 != 0 {
+                return Err(bad(
+                    at + 8,
+                    format!("mesh {k}: indices {range:?} are not whole triangles from {next_index} within its {i}"),
+                ));
+            }
+            (next_vertex, next_index) = (vertices.end, range.end);
             if !textures.contains(&u64::from(texture)) {
                 return Err(bad(
                     at + 16,
@@ -223,6 +232,12 @@ impl TileGeometry {
                 texture,
                 bounds,
             });
+        }
+        if (next_vertex, next_index) != (v as u64, i as u64) {
+            return Err(bad(
+                0,
+                format!("its meshes cover {next_vertex} of {v} vertices and {next_index} of {i} indices"),
+            ));
         }
         Ok(TileGeometry {
             meshes,
@@ -298,7 +313,7 @@ mod tests {
         assert_eq!(tile.positions[0], [1.5, 0.5, 1.5]);
         assert_eq!(tile.meshes[1].first_vertex, 4);
         assert_eq!(tile.meshes[1].bounds.min, [-2.5, -0.5, -2.5]);
-        let bytes = tile.encode();
+        let bytes = tile.encode().expect("encodes");
         assert_eq!(bytes.len(), 16 + 2 * 20 + 7 * 32 + 9 * 4);
         let back = TileGeometry::decode(path(), 7, &record(&tile, bytes.len()), &bytes).expect("decodes");
         assert_eq!(back, tile);
@@ -307,7 +322,7 @@ mod tests {
     #[test]
     fn a_damaged_tile_is_refused_naming_the_tile_and_byte() {
         let tile = TileGeometry::from_scene(&scene(), &[0, 1], [1.0e6 + 3.5, 0.5, -1.0e6 + 3.5]).expect("exist");
-        let bytes = tile.encode();
+        let bytes = tile.encode().expect("encodes");
         let good = record(&tile, bytes.len());
         let refused = |bytes: &[u8], record: &TileRecord| {
             TileGeometry::decode(path(), 7, record, bytes)
@@ -329,6 +344,16 @@ mod tests {
                 with(16 + 12, 4),
                 good.clone(),
                 "mesh 0: indices 0..4 are not whole triangles",
+            ),
+            (
+                with(16 + 20, 0),
+                good.clone(),
+                "mesh 1: vertices 0..4, expected to start at 3",
+            ),
+            (
+                with(16 + 20 + 8, 0),
+                good.clone(),
+                "mesh 1: indices 0..6 are not whole triangles from 3",
             ),
             (
                 with(indices_at + 4 * 5, 4),

@@ -49,8 +49,8 @@ impl TiledScene {
             }
             let textures = leaf.meshes.iter().map(|&m| scene.meshes[m as usize].texture);
             let (first_texture, texture_end) =
-                textures.fold((u32::MAX, 0u32), |(lo, hi), t| (lo.min(t), hi.max(t + 1)));
-            let blob = geometry.encode();
+                textures.fold((u32::MAX, 0u32), |(lo, hi), t| (lo.min(t), hi.max(t.saturating_add(1))));
+            let blob = geometry.encode()?;
             let too_big = || DatasetError::InvalidInput("a tile exceeds 2^32 meshes, vertices or indices".into());
             tiles.push(TileRecord {
                 origin: leaf.origin,
@@ -102,16 +102,20 @@ pub fn read_tile_geometry(path: &Path, tree: &TileTree, pack: &[u8]) -> Result<V
         .iter()
         .enumerate()
         .map(|(index, record)| {
-            let start = record.geometry_offset as usize;
-            let blob = pack.get(start..start + record.geometry_len as usize).ok_or_else(|| {
-                DatasetError::truncated(
-                    path,
-                    format!("tile {index}'s geometry"),
-                    record.geometry_offset,
-                    record.geometry_offset + record.geometry_len,
-                    pack.len() as u64,
-                )
-            })?;
+            let end = record.geometry_offset.saturating_add(record.geometry_len);
+            let blob = usize::try_from(record.geometry_offset)
+                .ok()
+                .zip(usize::try_from(end).ok())
+                .and_then(|(start, end)| pack.get(start..end))
+                .ok_or_else(|| {
+                    DatasetError::truncated(
+                        path,
+                        format!("tile {index}'s geometry"),
+                        record.geometry_offset,
+                        end,
+                        pack.len() as u64,
+                    )
+                })?;
             TileGeometry::decode(path, index, record, blob)
         })
         .collect()

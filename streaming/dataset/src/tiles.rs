@@ -428,6 +428,14 @@ impl TileTree {
                 ));
             }
         }
+        // Every tile hangs from a root: an orphan would never be drawn.
+        if let Some(orphan) = (0..tile_count).find(|&t| parent[t as usize].is_none() && !self.roots.contains(&t)) {
+            return Err(corrupt(
+                path,
+                self.record_offset(orphan as usize),
+                format!("tile {orphan} is neither a root nor any tile's child"),
+            ));
+        }
         // Global mesh ids: every tile's range, laid end to end, covers 0.. with no gap.
         meshes.sort_unstable();
         let mut next = 0u32;
@@ -615,6 +623,14 @@ mod tests {
             ("meshes start at 3", Box::new(|t| t.tiles[2].first_mesh = 3)),
             ("roots 0..4", Box::new(|t| t.roots = 0..4)),
             ("root tile 1 is also a child of tile 0", Box::new(|t| t.roots = 0..2)),
+            (
+                "tile 0 is neither a root nor any tile's child",
+                Box::new(|t| t.roots = 0..0),
+            ),
+            (
+                "tile 2 is neither a root nor any tile's child",
+                Box::new(|t| t.tiles[0].child_count = 1),
+            ),
         ];
         for (expected, change) in cases {
             let text = refused(change);

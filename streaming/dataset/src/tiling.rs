@@ -97,12 +97,14 @@ fn split_into(scene: &Scene, cell: [i64; 2], side: f64, meshes: Vec<u32>, tiles:
     }
     let mut quadrants: BTreeMap<[i64; 2], Vec<u32>> = BTreeMap::new();
     for mesh in meshes {
-        let quadrant = placed(scene, mesh).map_or([cell[0] * 2, cell[1] * 2], |(centre, _, _)| {
+        // Saturating: a cell already saturated far outside any city stays where it is.
+        let (low_x, low_z) = (cell[0].saturating_mul(2), cell[1].saturating_mul(2));
+        let quadrant = placed(scene, mesh).map_or([low_x, low_z], |(centre, _, _)| {
             // Clamped into this cell's four: a centre on its far edge rounds outwards.
             let [x, z] = cell_of(centre, half);
             [
-                x.clamp(cell[0] * 2, cell[0] * 2 + 1),
-                z.clamp(cell[1] * 2, cell[1] * 2 + 1),
+                x.clamp(low_x, low_x.saturating_add(1)),
+                z.clamp(low_z, low_z.saturating_add(1)),
             ]
         });
         quadrants.entry(quadrant).or_default().push(mesh);

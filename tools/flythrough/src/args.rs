@@ -470,7 +470,8 @@ pub(crate) struct Args {
     /// horizon, the nearer with the dataset's first texture and the farther with its second.
     /// On every measured frame (`--psnr-interval`) the view from that frame's eye towards
     /// them must show the nearer inside its outline; one pixel of the farther fails the run.
-    /// `depth_slabs` in summary.json counts them.
+    /// `depth_slabs` in summary.json counts them. The slabs are part of the city flown:
+    /// they draw, stream their textures and count in the image error like any mesh.
     #[arg(long, value_parser = super::depth_slabs::parse_depth_slabs_m, conflicts_with_all = ["placeholder", "pop_in", "window"])]
     pub(crate) depth_slabs: Option<f64>,
     /// Aerial imagery under the city (docs/GROUND.md): a patch set written by

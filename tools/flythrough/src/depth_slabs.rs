@@ -37,6 +37,8 @@ pub(crate) struct DepthSlabs {
     pub(crate) path: CameraPath,
     /// The nearer slab's corners, in order around it.
     near_corners: [Vec3; 4],
+    /// The farther slab's centre: which side of the nearer one it lies on.
+    far_centre: Vec3,
     near_texture: u32,
     far_texture: u32,
 }
@@ -101,6 +103,7 @@ impl DepthSlabs {
         Ok(Self {
             distance_m,
             path,
+            far_centre: near_centre + towards * SLAB_GAP_M,
             near_corners,
             near_texture,
             far_texture,
@@ -121,17 +124,31 @@ impl DepthSlabs {
     /// image, [`texture_of_id_pixel`]) drawn for `camera`, into `counts`.
     pub(crate) fn check(&self, ids: &image::RgbaImage, camera: &Camera, counts: &mut SlabCounts) {
         counts.distance_m = self.distance_m;
+        // An eye at or past the nearer slab's plane sees the farther one first (or edge on):
+        // the probe says nothing about depth from there.
+        let centre = self.near_corners.iter().copied().sum::<Vec3>().as_dvec3() * 0.25;
+        let normal = (self.near_corners[1] - self.near_corners[0])
+            .cross(self.near_corners[3] - self.near_corners[0])
+            .as_dvec3();
+        let far_side = (self.far_centre.as_dvec3() - centre).dot(normal).signum();
+        if (camera.eye - centre).dot(normal) * far_side >= 0.0 {
+            return;
+        }
         let (width, height) = (ids.width() as f32, ids.height() as f32);
-        let view_proj = camera.view_projection(width / height, 0.0);
+        // In f64: the outline is judged to a fraction of a pixel, however far out.
+        let view_proj = camera.view_projection_f64(width / height, 0.0);
         let mut outline = [[0.0f32; 2]; 4];
         for (corner, pixel) in self.near_corners.iter().zip(&mut outline) {
-            let clip = view_proj * corner.extend(1.0);
+            let clip = view_proj * corner.as_dvec3().extend(1.0);
             if clip.w <= 0.0 {
                 // Behind the eye: this frame cannot see the probe.
                 return;
             }
             let ndc = clip.xy() / clip.w;
-            *pixel = [(ndc.x * 0.5 + 0.5) * width, (ndc.y * 0.5 + 0.5) * height];
+            *pixel = [
+                ((ndc.x * 0.5 + 0.5) * f64::from(width)) as f32,
+                ((ndc.y * 0.5 + 0.5) * f64::from(height)) as f32,
+            ];
         }
         counts.frames_checked += 1;
         for y in 0..ids.height() {
@@ -222,6 +239,7 @@ mod tests {
                 Vec3::new(half, half, -100.0),
                 Vec3::new(-half, half, -100.0),
             ],
+            far_centre: Vec3::new(0.0, 0.0, -100.5),
             near_texture: 0,
             far_texture: 1,
         }
@@ -267,6 +285,22 @@ mod tests {
                 ..SlabCounts::default()
             }
         );
+    }
+
+    #[test]
+    fn an_eye_past_the_nearer_slab_checks_nothing() {
+        // From behind the slabs the farther is in front: not a depth failure.
+        let slabs = slabs_ahead();
+        let ids = image::RgbaImage::from_pixel(64, 64, id_pixel(Some(1)));
+        let behind = Camera {
+            eye: glam::DVec3::new(0.0, 0.0, -150.0),
+            target: glam::DVec3::new(0.0, 0.0, -100.0),
+            ..camera()
+        };
+        let mut counts = SlabCounts::default();
+        slabs.check(&ids, &behind, &mut counts);
+        assert_eq!(counts.frames_checked, 0);
+        assert_eq!(counts.far_pixels, 0);
     }
 
     #[test]

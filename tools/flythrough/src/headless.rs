@@ -526,6 +526,13 @@ pub(crate) fn stream_city(args: &Args, device: &Arc<Device>, dir: &std::path::Pa
                 counts.far_pixels
             );
         }
+        if counts.frames_checked == 0 {
+            bail!(
+                "the depth slabs at {} m were in no measured frame's view (behind its eye or past their plane): \
+                 nothing was shown about depth there",
+                counts.distance_m
+            );
+        }
         let inside = counts.near_pixels + counts.far_pixels + counts.other_pixels;
         if counts.near_pixels == 0 || counts.near_pixels * 2 < inside {
             bail!(
