@@ -184,6 +184,10 @@ pub struct CyclePlan {
     pub declined: u64,
     /// Sparse blocks the mips take, by the decision's block budget (0 without one).
     pub blocks: u64,
+    /// Of them, the whole blocks of mips of a block or more.
+    pub own_blocks: u64,
+    /// Bytes of the mips smaller than a block, which share blocks.
+    pub shared_bytes: u64,
     /// Loads left for a later cycle because their blocks did not fit the block budget.
     pub over_block_budget: u64,
     /// Mips planned from the prefetch records (after every one of the view's).
@@ -209,12 +213,21 @@ impl CyclePlan {
             return;
         }
         if let Some(budget) = budget {
-            let blocks = budget.blocks_of(item.bytes);
-            if !self.items.is_empty() && self.blocks.saturating_add(blocks) > budget.blocks {
+            let (own, shared) = if budget.owns_blocks(item.bytes) {
+                (
+                    self.own_blocks
+                        .saturating_add(item.bytes.div_ceil(budget.block_bytes.max(1))),
+                    self.shared_bytes,
+                )
+            } else {
+                (self.own_blocks, self.shared_bytes.saturating_add(item.bytes))
+            };
+            let blocks = budget.blocks_of_cycle(own, shared);
+            if !self.items.is_empty() && blocks > budget.blocks {
                 self.over_block_budget += 1;
                 return;
             }
-            self.blocks += blocks;
+            (self.own_blocks, self.shared_bytes, self.blocks) = (own, shared, blocks);
         }
         self.bytes += item.bytes;
         self.prefetched += u64::from(prefetch);
@@ -429,9 +442,9 @@ fn plan_by_error_per_byte<S: MipSource + ?Sized>(
         match c {
             Candidate::Nothing | Candidate::BadRecord => {}
             Candidate::Load(item) => {
-                let cost = decision
-                    .block_budget
-                    .map_or(item.bytes, |b| b.blocks_of(item.bytes).saturating_mul(b.block_bytes));
+                let cost = decision.block_budget.map_or(item.bytes, |b| {
+                    (b.blocks_of(item.bytes) * b.block_bytes as f64).ceil() as u64
+                });
                 let first_load = item.from.state == TextureState::Initial;
                 ranked.push((item, t, error_per_byte(t.weight_sum, first_load, cost)));
             }

@@ -112,11 +112,11 @@ fn error_per_byte_takes_the_cheapest_error_first() {
 }
 
 #[test]
-fn under_a_block_budget_a_level_costs_its_whole_blocks() {
+fn under_a_block_budget_a_level_costs_its_whole_blocks_and_smaller_ones_share_blocks() {
     let loader = hand_made();
-    // Blocks of 512 bytes: textures 1 and 3 take one block each, texture 2 four, texture
-    // 0 sixty-four. Per byte of whole blocks texture 3 (400 / 512) now ranks before the
-    // 8-byte first load of texture 1 (200 / 512).
+    // Blocks of 512 bytes: texture 3's level takes one block, texture 2's four, texture
+    // 0's sixty-four; texture 1's 8-byte first load is smaller than a block and shares one
+    // (its bytes' share of a block ranks it as without a budget). 6 blocks: 1 + 4 + 1.
     let budget = BlockBudget {
         blocks: 10,
         block_bytes: 512,
@@ -126,8 +126,16 @@ fn under_a_block_budget_a_level_costs_its_whole_blocks() {
         ..Decision::new(u64::MAX, 0.0)
     };
     let p = plan(&loader, PlanOrder::ErrorPerByte, &view(), &[], decision);
-    assert_eq!(textures(&p), vec![3, 1, 2]);
+    assert_eq!(textures(&p), vec![1, 3, 2]);
     assert_eq!((p.blocks, p.over_block_budget), (6, 1));
+    // Small levels share blocks: a budget of one block takes the 8-byte level and, being
+    // the cycle's first, nothing else fits beside texture 3's whole block.
+    let one = Decision {
+        block_budget: Some(BlockBudget { blocks: 1, ..budget }),
+        ..Decision::new(u64::MAX, 0.0)
+    };
+    let p = plan(&loader, PlanOrder::ErrorPerByte, &view(), &[], one);
+    assert_eq!((textures(&p), p.blocks, p.shared_bytes), (vec![1], 1, 8));
     // In the paper's order the first mip is always taken, whatever it costs (a cycle
     // makes progress); the rest only where their blocks fit what is left.
     let p = plan(&loader, PlanOrder::Weight, &view(), &[], decision);
