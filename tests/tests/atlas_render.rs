@@ -60,10 +60,9 @@ fn render_from_level(device: &Arc<Device>, dir: &Path, camera: &Camera, level: u
     Ok(target.read_pixels()?)
 }
 
-#[test]
-fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
-    let base = Path::new(env!("CARGO_TARGET_TMPDIR")).join("atlas_render");
-    let original = tiny_rgba8_city(&base)?;
+/// The tiny RGBA8 city under `base` and its version in 512² shelf-packed atlases.
+fn tiny_city_and_atlas(base: &Path) -> Result<(std::path::PathBuf, std::path::PathBuf)> {
+    let original = tiny_rgba8_city(base)?;
     let atlased = base.join("atlas");
     atlas::run(&AtlasArgs {
         input: original.clone(),
@@ -75,6 +74,13 @@ fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
         buffer_mb: 2,
         quiet: true,
     })?;
+    Ok((original, atlased))
+}
+
+#[test]
+fn atlas_city_renders_like_the_original_at_full_resolution() -> Result<()> {
+    let base = Path::new(env!("CARGO_TARGET_TMPDIR")).join("atlas_render");
+    let (original, atlased) = tiny_city_and_atlas(&base)?;
     let before = Dataset::open(&original)?;
     let after = Dataset::open(&atlased)?;
     ensure!(
@@ -140,17 +146,7 @@ fn mse(a: &image::RgbaImage, b: &image::RgbaImage) -> (f64, usize) {
 #[test]
 fn the_atlas_adds_nothing_while_textures_have_levels_and_less_than_the_level_after() -> Result<()> {
     let base = Path::new(env!("CARGO_TARGET_TMPDIR")).join("atlas_levels");
-    let original = tiny_rgba8_city(&base)?;
-    let atlased = base.join("atlas");
-    atlas::run(&AtlasArgs {
-        input: original.clone(),
-        out: atlased.clone(),
-        region: 512.0,
-        atlas_extent: 512,
-        packing: atlas::Packing::Shelves,
-        buffer_mb: 2,
-        quiet: true,
-    })?;
+    let (original, atlased) = tiny_city_and_atlas(&base)?;
     let before = Dataset::open(&original)?;
     let after = Dataset::open(&atlased)?;
     ensure!(

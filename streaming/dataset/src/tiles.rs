@@ -38,8 +38,8 @@ use std::ops::Range;
 use std::path::Path;
 
 use super::crs::{Crs, MAX_CRS_BYTES};
-use super::error::{DatasetError, Magic};
-use super::io_util::{f32_at, f64_at, u32_at, u64_at};
+use super::error::DatasetError;
+use super::io_util::{check_versioned_prefix, f32_at, f64_at, u32_at, u64_at};
 
 const MAGIC: &[u8; 8] = b"CSTILES\0";
 /// The format version that introduces tiles.
@@ -196,36 +196,8 @@ impl TileTree {
     /// every record ([`validate`](Self::validate) with `limits`). Every error names the
     /// file, the byte and, for a record, the tile.
     pub fn decode(path: &Path, bytes: &[u8], limits: TileLimits) -> Result<Self, DatasetError> {
-        if bytes.len() < HEADER_BYTES {
-            return Err(DatasetError::truncated(
-                path,
-                "the tile table's header",
-                0,
-                HEADER_BYTES as u64,
-                bytes.len() as u64,
-            ));
-        }
-        let mut found = [0u8; 8];
-        found.copy_from_slice(&bytes[..8]);
-        if &found != MAGIC {
-            return Err(DatasetError::BadMagic {
-                path: path.to_path_buf(),
-                found: Magic(found),
-                expected: Magic(*MAGIC),
-            });
-        }
-        let version = u32_at(bytes, 8);
-        if version != TILES_VERSION {
-            return Err(DatasetError::UnsupportedVersion {
-                path: path.to_path_buf(),
-                found: version,
-                supported: TILES_VERSION,
-            });
-        }
-        let flags = u32_at(bytes, 12);
-        if flags != 0 {
-            return Err(corrupt(path, 12, format!("header flags are {flags:#x}, expected 0")));
-        }
+        // Length, magic, version and the zero flags word, as every file of the dataset.
+        check_versioned_prefix(path, bytes, MAGIC, HEADER_BYTES, TILES_VERSION)?;
         let write_id = u64_at(bytes, 16);
         let count = u64_at(bytes, 24);
         let (first_root, root_count) = (u32_at(bytes, 32), u32_at(bytes, 36));
