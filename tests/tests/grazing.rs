@@ -45,6 +45,23 @@ fn plane(angle_deg: f64) -> (DVec3, DVec3, DVec3) {
     (centre - u_edge * 0.5 - v_edge * 0.5, u_edge, v_edge)
 }
 
+/// The plane at `angle_deg` as four vertices, its texture repeated `repeats` times each way.
+fn plane_vertices(angle_deg: f64, repeats: f32) -> [Vertex; 4] {
+    let (corner, u_edge, v_edge) = plane(angle_deg);
+    let normal = u_edge.cross(v_edge).normalize().as_vec3().to_array();
+    let vertex = |p: DVec3, uv: [f32; 2]| Vertex {
+        position: p.as_vec3().to_array(),
+        normal,
+        uv,
+    };
+    [
+        vertex(corner, [0.0, 0.0]),
+        vertex(corner + u_edge, [repeats, 0.0]),
+        vertex(corner + u_edge + v_edge, [repeats, repeats]),
+        vertex(corner + v_edge, [0.0, repeats]),
+    ]
+}
+
 /// The texel-space footprint `(p_max, p_min)` of the plane at `angle_deg` in pixel
 /// `(px, py)` of a `size`-pixel view whose half-height subtends `tan`: exact derivatives of
 /// the ray–plane mapping at the pixel centre, in texels of the 16,384-texel extent. None
@@ -175,19 +192,7 @@ fn the_feedbacks_level_is_within_half_a_level_of_the_analytic_one_from_0_to_89_5
     let mut report = Vec::new();
     let mut failures = Vec::new();
     for angle in ANGLES_DEG {
-        let (corner, u_edge, v_edge) = plane(angle);
-        let normal = u_edge.cross(v_edge).normalize().as_vec3().to_array();
-        let vertex = |p: DVec3, uv: [f32; 2]| Vertex {
-            position: p.as_vec3().to_array(),
-            normal,
-            uv,
-        };
-        let vertices = [
-            vertex(corner, [0.0, 0.0]),
-            vertex(corner + u_edge, [1.0, 0.0]),
-            vertex(corner + u_edge + v_edge, [1.0, 1.0]),
-            vertex(corner + v_edge, [0.0, 1.0]),
-        ];
+        let vertices = plane_vertices(angle, 1.0);
         let mesh = CityMesh {
             first_index: 0,
             index_count: 6,
@@ -321,19 +326,7 @@ fn the_visible_pass_samples_between_the_resident_level_and_one_past_the_needed_o
     let mut pixels_checked = 0u64;
     let mut levels_seen = [false; LEVEL_MAX as usize + 1];
     for angle in ANGLES_DEG {
-        let (corner, u_edge, v_edge) = plane(angle);
-        let normal = u_edge.cross(v_edge).normalize().as_vec3().to_array();
-        let vertex = |p: DVec3, uv: [f32; 2]| Vertex {
-            position: p.as_vec3().to_array(),
-            normal,
-            uv,
-        };
-        let vertices = [
-            vertex(corner, [0.0, 0.0]),
-            vertex(corner + u_edge, [LEVEL_REPEATS, 0.0]),
-            vertex(corner + u_edge + v_edge, [LEVEL_REPEATS, LEVEL_REPEATS]),
-            vertex(corner + v_edge, [0.0, LEVEL_REPEATS]),
-        ];
+        let vertices = plane_vertices(angle, LEVEL_REPEATS);
         for (texture, &finest) in RESIDENT.iter().enumerate() {
             let mesh = CityMesh {
                 first_index: 0,
