@@ -9,6 +9,8 @@ layout(location = 2) in vec2 in_uv;
 layout(location = 3) in uint in_mesh_id;
 
 layout(push_constant) uniform Push { CityDrawPush push; };
+layout(std430, set = 0, binding = BINDING_CITY_MESHES) readonly buffer CityMeshes { CityMeshInfo city_meshes[]; };
+layout(std430, set = 0, binding = BINDING_CITY_ORIGINS) readonly buffer CityOrigins { CityOrigin city_origins[]; };
 
 // Identical depth in the pre-pass and the passes that test against it.
 invariant gl_Position;
@@ -18,7 +20,7 @@ layout(location = 1) out vec3 out_normal;
 layout(location = 2) flat out uint out_mesh_id;
 
 void main() {
-    gl_Position = city_clip_position(push, in_position);
+    gl_Position = city_clip_position(push, in_position, city_origins[city_meshes[in_mesh_id].origin]);
     out_uv = in_uv;
     out_normal = in_normal;
     out_mesh_id = in_mesh_id;

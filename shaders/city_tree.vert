@@ -11,6 +11,8 @@ layout(location = 2) in vec2 in_uv;
 layout(location = 3) in uint in_mesh_id;
 
 layout(push_constant) uniform Push { CityDrawPush push; };
+layout(std430, set = 0, binding = BINDING_CITY_MESHES) readonly buffer CityMeshes { CityMeshInfo city_meshes[]; };
+layout(std430, set = 0, binding = BINDING_CITY_ORIGINS) readonly buffer CityOrigins { CityOrigin city_origins[]; };
 layout(std430, set = 0, binding = BINDING_TREE_ATLAS_UVS) readonly buffer AtlasUvs { vec2 atlas_uvs[]; };
 layout(std430, set = 0, binding = BINDING_TREE_UV_TRANSFORMS) readonly buffer UvTransforms { vec4 uv_transforms[]; };
 
@@ -21,7 +23,7 @@ layout(location = 1) out vec3 out_normal;
 layout(location = 2) flat out uint out_mesh_id;
 
 void main() {
-    gl_Position = city_clip_position(push, in_position);
+    gl_Position = city_clip_position(push, in_position, city_origins[city_meshes[in_mesh_id].origin]);
     vec4 transform = uv_transforms[in_mesh_id];
     // The draw is indexed with no vertex offset: gl_VertexIndex is the vertex's place in
     // the vertex buffer, where the atlas coordinates are laid out alike.

@@ -61,6 +61,7 @@ fn main() -> Result<()> {
             texture: i as u32,
             texture_width: 512,
             texture_height: 512,
+            origin: glam::DVec3::ZERO,
         })
         .collect();
     let count = meshes.len() as u32;

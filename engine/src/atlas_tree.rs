@@ -22,12 +22,13 @@ use citystream_streaming::source::MipSource;
 use gpu_allocator::MemoryLocation;
 
 use crate::buffer::{Buffer, BufferDesc};
-use crate::city::{single_draw_layout, visible_pipeline, Camera, CityMesh, CityRenderer};
+use crate::city::{single_draw_layout, visible_pipeline, Camera, CityRenderer};
 use crate::commands::{CommandContext, Recording};
 use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::gpu_types::{
-    CityMeshInfo, BINDING_CITY_MESHES, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS, TEXTURE_SAMPLEABLE,
+    CityMeshInfo, BINDING_CITY_MESHES, BINDING_CITY_ORIGINS, BINDING_TREE_ATLAS_UVS, BINDING_TREE_UV_TRANSFORMS,
+    TEXTURE_SAMPLEABLE,
 };
 use crate::ground::GroundLayer;
 use crate::pipeline::{BindingSpec, DescriptorPool, DescriptorResource, Pipeline};
@@ -104,6 +105,8 @@ impl AtlasTreeRenderer {
             texture_width: extent,
             texture_height: extent,
             max_mip: extent.max(1).ilog2(),
+            // Each mesh keeps its own origin (`write_selection`).
+            ..CityMeshInfo::default()
         };
         let mut atlases = Vec::with_capacity(tree.nodes.len());
         for (n, node) in tree.nodes.iter().enumerate() {
@@ -184,7 +187,14 @@ impl AtlasTreeRenderer {
             .iter()
             .map(|(binding, resource)| (*binding, resource.descriptor_type(), resource.count(), fragment))
             .collect();
-        bindings.push((BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment));
+        // The vertex stage reads each mesh's local origin; the fragment stage its texture.
+        bindings.push((
+            BINDING_CITY_MESHES,
+            vk::DescriptorType::STORAGE_BUFFER,
+            1,
+            vertex | fragment,
+        ));
+        bindings.push((BINDING_CITY_ORIGINS, vk::DescriptorType::STORAGE_BUFFER, 1, vertex));
         bindings.push((BINDING_TREE_ATLAS_UVS, vk::DescriptorType::STORAGE_BUFFER, 1, vertex));
         bindings.push((
             BINDING_TREE_UV_TRANSFORMS,
@@ -220,6 +230,11 @@ impl AtlasTreeRenderer {
             let mut resources = cache.descriptors().to_vec();
             resources.extend([
                 (BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())),
+                // The city's own: it draws the tree's meshes, so it outlives these sets' use.
+                (
+                    BINDING_CITY_ORIGINS,
+                    DescriptorResource::StorageBuffer(city.origins_buffer()),
+                ),
                 (
                     BINDING_TREE_ATLAS_UVS,
                     DescriptorResource::StorageBuffer(atlas_uvs.raw()),
@@ -236,7 +251,7 @@ impl AtlasTreeRenderer {
                 uv_transforms,
             });
         }
-        let originals = meshes.iter().map(CityMesh::info).collect();
+        let originals = city.mesh_infos();
         Ok(Self {
             pipeline,
             _pool: pool,
@@ -258,8 +273,14 @@ impl AtlasTreeRenderer {
     pub fn write_selection(&mut self, slot: u32, selection: &Selection) -> Result<TreeDraws> {
         let mut draws = TreeDraws::default();
         let (root_info, root_transform) = self.atlases[0];
+        // A mesh drawn with an atlas keeps its own origin: its vertices are relative to it.
+        let with_origin = |info: CityMeshInfo, original: &CityMeshInfo| CityMeshInfo {
+            origin: original.origin,
+            ..info
+        };
         self.infos.clear();
-        self.infos.resize(self.originals.len(), root_info);
+        self.infos
+            .extend(self.originals.iter().map(|original| with_origin(root_info, original)));
         self.transforms.clear();
         self.transforms.resize(self.originals.len(), root_transform);
         for &(n, with) in &selection.draws {
@@ -274,7 +295,7 @@ impl AtlasTreeRenderer {
                         EngineError::InvalidRequest(format!("atlas tree: node {n} drawn with the atlas of node {a}"))
                     })?;
                     for &m in meshes {
-                        self.infos[m as usize] = info;
+                        self.infos[m as usize] = with_origin(info, &self.originals[m as usize]);
                         self.transforms[m as usize] = transform;
                     }
                     draws.atlas_draws += 1;

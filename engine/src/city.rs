@@ -24,8 +24,8 @@ use crate::device::Device;
 use crate::error::{EngineError, Result};
 use crate::feedback::FeedbackCompactor;
 use crate::gpu_types::{
-    CityDrawPush, CityMeshInfo, CityVertex, Vertex, BINDING_CITY_MESHES, BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA,
-    FEEDBACK_MAX_PIXELS,
+    CityDrawPush, CityMeshInfo, CityOrigin, CityVertex, Vertex, BINDING_CITY_MESHES, BINDING_CITY_ORIGINS,
+    BINDING_FEEDBACK_MESHES, BINDING_TEXTURE_DATA, FEEDBACK_MAX_PIXELS,
 };
 use crate::ground::GroundLayer;
 use crate::image::memory_barrier;
@@ -36,7 +36,7 @@ use crate::target::{RenderTarget, COLOR_FORMAT, DEPTH_FORMAT};
 use crate::texture_cache::GpuTextureCache;
 
 /// One mesh as the city passes draw it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CityMesh {
     /// First index.
     pub first_index: u32,
@@ -50,6 +50,10 @@ pub struct CityMesh {
     pub texture_width: u32,
     /// Texture height at full resolution.
     pub texture_height: u32,
+    /// The mesh's local origin in the scene's frame: its vertices' positions are `f32`
+    /// relative to it, so a mesh far from the scene's origin keeps its precision (zero: the
+    /// positions are relative to the scene's origin).
+    pub origin: DVec3,
 }
 
 impl CityMesh {
@@ -59,14 +63,68 @@ impl CityMesh {
     }
 
     /// What the city passes' shaders know of it.
-    pub fn info(&self) -> CityMeshInfo {
+    pub fn info(&self, origin: u32) -> CityMeshInfo {
         CityMeshInfo {
             texture_id: self.texture,
             texture_width: self.texture_width,
             texture_height: self.texture_height,
             max_mip: self.max_mip(),
+            origin,
         }
     }
+
+    /// A vertex position of this mesh (relative to its origin) in the scene's frame.
+    pub fn scene_position(&self, position: [f32; 3]) -> DVec3 {
+        self.origin + Vec3::from(position).as_dvec3()
+    }
+}
+
+/// `point` rounded to `f32` towards −∞ and towards +∞ on each axis (the same where `f32`
+/// holds it exactly).
+fn round_outwards(point: DVec3) -> ([f32; 3], [f32; 3]) {
+    let round = |c: f64| {
+        let nearest = c as f32;
+        let exact = f64::from(nearest);
+        match exact.partial_cmp(&c) {
+            Some(std::cmp::Ordering::Greater) => (nearest.next_down(), nearest),
+            Some(std::cmp::Ordering::Less) => (nearest, nearest.next_up()),
+            _ => (nearest, nearest),
+        }
+    };
+    let [x, y, z] = point.to_array().map(round);
+    ([x.0, y.0, z.0], [x.1, y.1, z.1])
+}
+
+/// The distinct local origins of `meshes` as the city passes take them (in order of first
+/// use), and each mesh's index among them: a city whose meshes share a few origins (one
+/// per tile, or the scene's alone) holds each once.
+pub(crate) fn origin_table(meshes: &[CityMesh]) -> (Vec<CityOrigin>, Vec<u32>) {
+    let mut index_of = std::collections::HashMap::new();
+    let mut origins = Vec::new();
+    let indices = meshes
+        .iter()
+        .map(|mesh| {
+            *index_of
+                .entry(mesh.origin.to_array().map(f64::to_bits))
+                .or_insert_with(|| {
+                    let (high, low) = split_f64(mesh.origin);
+                    origins.push(CityOrigin {
+                        high: [high[0], high[1], high[2], 0.0],
+                        low: [low[0], low[1], low[2], 0.0],
+                    });
+                    (origins.len() - 1) as u32
+                })
+        })
+        .collect();
+    (origins, indices)
+}
+
+/// `value` as the shaders take an `f64` point: rounded to `f32`, and what that rounding
+/// left, also in `f32` (their sum is the point to about 2⁻⁴⁸ of its magnitude).
+pub fn split_f64(value: DVec3) -> ([f32; 3], [f32; 3]) {
+    let high = value.as_vec3();
+    let low = (value - high.as_dvec3()).as_vec3();
+    (high.to_array(), low.to_array())
 }
 
 /// A dataset's vertices in the engine's layout and its meshes with their
@@ -100,6 +158,7 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
                 texture: mesh.texture,
                 texture_width: info.width(),
                 texture_height: info.height(),
+                origin: DVec3::ZERO,
             })
         })
         .collect::<Result<Vec<_>>>()?;
@@ -179,9 +238,7 @@ impl Camera {
     /// The eye as two `f32` triples whose sum is it to `f32`'s precision squared: the
     /// rounded eye and what the rounding left.
     pub fn eye_split(&self) -> ([f32; 3], [f32; 3]) {
-        let high = self.eye.as_vec3();
-        let low = (self.eye - high.as_dvec3()).as_vec3();
-        (high.to_array(), low.to_array())
+        split_f64(self.eye)
     }
 
     fn up(&self) -> DVec3 {
@@ -283,6 +340,10 @@ pub struct CityRenderer {
     index_count: u32,
     /// Read by the shaders through the descriptor sets.
     _mesh_info: Buffer,
+    /// The distinct local origins of the meshes (`CityOrigin`s).
+    origins: Buffer,
+    /// Each mesh's index in `origins`.
+    mesh_origins: Vec<u32>,
     meshes: Vec<CityMesh>,
     /// GPU culling, once enabled ([`CityRenderer::enable_culling`]).
     culling: Option<CityCulling>,
@@ -432,6 +493,9 @@ impl CityRenderer {
             }
         }
         let fragment = vk::ShaderStageFlags::FRAGMENT;
+        // The vertex stage reads each mesh's local origin; the fragment stages its texture.
+        let vertex = vk::ShaderStageFlags::VERTEX;
+        let mesh_stages = vertex | fragment;
         let feedback = city_pipeline(
             device,
             shaders::CITY_VERT,
@@ -439,7 +503,8 @@ impl CityRenderer {
             vec![
                 (BINDING_TEXTURE_DATA, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
                 (BINDING_FEEDBACK_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
-                (BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment),
+                (BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, mesh_stages),
+                (BINDING_CITY_ORIGINS, vk::DescriptorType::STORAGE_BUFFER, 1, vertex),
             ],
             DepthMode::EqualAfterPrepass,
             true,
@@ -452,12 +517,23 @@ impl CityRenderer {
             device,
             shaders::CITY_VERT,
             shaders::DEPTH_ONLY_FRAG,
-            Vec::new(),
+            vec![
+                (BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, vertex),
+                (BINDING_CITY_ORIGINS, vk::DescriptorType::STORAGE_BUFFER, 1, vertex),
+            ],
             DepthMode::TestAndWrite,
             false,
             "city depth pre-pass pipeline",
         )?;
-        let mesh_info: Vec<CityMeshInfo> = meshes.iter().map(CityMesh::info).collect();
+        let (origins, mesh_origins) = origin_table(&meshes);
+        let mesh_info: Vec<CityMeshInfo> = meshes.iter().zip(&mesh_origins).map(|(m, &o)| m.info(o)).collect();
+        let origins = upload_buffer(
+            device,
+            commands,
+            bytemuck::cast_slice(&origins),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "city local origins",
+        )?;
         let max_texture = meshes.iter().map(|m| m.texture).max().unwrap_or(0);
         let mesh_info = upload_buffer(
             device,
@@ -467,24 +543,38 @@ impl CityRenderer {
             "city mesh info",
         )?;
         let mut cache_descriptors = cache.descriptors().to_vec();
-        cache_descriptors.push((BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())));
+        let mesh_descriptors = [
+            (BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())),
+            (BINDING_CITY_ORIGINS, DescriptorResource::StorageBuffer(origins.raw())),
+        ];
+        cache_descriptors.extend(mesh_descriptors);
         let visible_bindings: Vec<BindingSpec> = cache_descriptors
             .iter()
-            .map(|(binding, resource)| (*binding, resource.descriptor_type(), resource.count(), fragment))
+            .map(|(binding, resource)| {
+                let stages = match *binding {
+                    BINDING_CITY_MESHES => mesh_stages,
+                    BINDING_CITY_ORIGINS => vertex,
+                    _ => fragment,
+                };
+                (*binding, resource.descriptor_type(), resource.count(), stages)
+            })
             .collect();
         let visible = visible_pipeline(device, shaders::CITY_VERT, visible_bindings, "city visible pipeline")?;
         let texture_ids = city_pipeline(
             device,
             shaders::CITY_VERT,
             shaders::TEXTURE_ID_FRAG,
-            vec![(BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, fragment)],
+            vec![
+                (BINDING_CITY_MESHES, vk::DescriptorType::STORAGE_BUFFER, 1, mesh_stages),
+                (BINDING_CITY_ORIGINS, vk::DescriptorType::STORAGE_BUFFER, 1, vertex),
+            ],
             DepthMode::TestAndWrite,
             true,
             "city texture id pipeline",
         )?;
         // One pool for all sets: sized by the visible layout, which has the most bindings.
         let pool = DescriptorPool::new(device, &visible, 4, "city descriptors")?;
-        let prepass_set = pool.allocate(&depth_prepass, &[])?;
+        let prepass_set = pool.allocate(&depth_prepass, &mesh_descriptors)?;
         let table = cache_descriptors
             .iter()
             .find(|(b, _)| *b == BINDING_TEXTURE_DATA)
@@ -498,14 +588,12 @@ impl CityRenderer {
                     BINDING_FEEDBACK_MESHES,
                     DescriptorResource::StorageBuffer(compactor.mesh_feedback_buffer()),
                 ),
-                (BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw())),
+                mesh_descriptors[0],
+                mesh_descriptors[1],
             ],
         )?;
         let visible_set = pool.allocate(&visible, &cache_descriptors)?;
-        let texture_id_set = pool.allocate(
-            &texture_ids,
-            &[(BINDING_CITY_MESHES, DescriptorResource::StorageBuffer(mesh_info.raw()))],
-        )?;
+        let texture_id_set = pool.allocate(&texture_ids, &mesh_descriptors)?;
         let (city_vertices, city_indices) = single_draw_geometry(vertices, indices, &meshes)?;
         let index_count = u32::try_from(city_indices.len())
             .map_err(|_| EngineError::InvalidRequest("a city of more than 2^32 indices".into()))?;
@@ -534,6 +622,8 @@ impl CityRenderer {
             indices,
             index_count,
             _mesh_info: mesh_info,
+            origins,
+            mesh_origins,
             meshes,
             culling: None,
             culling_on: false,
@@ -550,14 +640,24 @@ impl CityRenderer {
         indices: &[u32],
         slots: u32,
     ) -> Result<()> {
-        let positions = self.meshes.iter().enumerate().flat_map(|(id, mesh)| {
-            let first = mesh.first_index as usize;
-            let range = indices.get(first..first + mesh.index_count as usize).unwrap_or(&[]);
-            range.iter().filter_map(move |&i| {
-                let v = vertices.get(i as usize + mesh.vertex_offset as usize)?;
-                Some((id as u32, v.position))
+        let positions = self
+            .meshes
+            .iter()
+            .enumerate()
+            .flat_map(|(id, mesh)| {
+                let first = mesh.first_index as usize;
+                let range = indices.get(first..first + mesh.index_count as usize).unwrap_or(&[]);
+                range.iter().filter_map(move |&i| {
+                    let v = vertices.get(i as usize + mesh.vertex_offset as usize)?;
+                    Some((id as u32, mesh.scene_position(v.position)))
+                })
             })
-        });
+            // Boxes in the scene's frame, each corner rounded outwards to f32 so that a mesh
+            // far from the scene's origin is never culled for a rounding.
+            .flat_map(|(id, p)| {
+                let (low, high) = round_outwards(p);
+                [(id, low), (id, high)]
+            });
         let bounds = mesh_bounds(positions, self.meshes.len());
         // Each mesh's indices follow the previous mesh's in the single draw's index buffer.
         let mut next = 0u32;
@@ -640,6 +740,21 @@ impl CityRenderer {
     /// The meshes drawn.
     pub fn meshes(&self) -> &[CityMesh] {
         &self.meshes
+    }
+
+    /// What the city passes know of each mesh, as the renderer uploaded it (its texture and
+    /// the index of its local origin in [`origins_buffer`](Self::origins_buffer)).
+    pub(crate) fn mesh_infos(&self) -> Vec<CityMeshInfo> {
+        self.meshes
+            .iter()
+            .zip(&self.mesh_origins)
+            .map(|(m, &o)| m.info(o))
+            .collect()
+    }
+
+    /// The `CityOrigin` array the city passes' vertex stage reads.
+    pub(crate) fn origins_buffer(&self) -> vk::Buffer {
+        self.origins.raw()
     }
 
     /// Draws every mesh in one draw with `pipeline` (whose vertex input is [`CityVertex`]).
@@ -1006,6 +1121,7 @@ mod tests {
             texture: 0,
             texture_width: 4,
             texture_height: 4,
+            origin: DVec3::ZERO,
         };
         // Mesh 1 shares vertices 2..=4 with mesh 0; mesh 2 is empty.
         let indices = [0, 1, 2, 2, 3, 4, 0, 1, 2];
@@ -1030,6 +1146,7 @@ mod tests {
             texture: 0,
             texture_width: w,
             texture_height: h,
+            origin: DVec3::ZERO,
         };
         assert_eq!(mesh(512, 512).max_mip(), 9);
         assert_eq!(mesh(4, 32).max_mip(), 5);

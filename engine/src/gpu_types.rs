@@ -229,8 +229,11 @@ pub struct TextureProbePoint {
 
 /// Binding of the per-mesh feedback array in the feedback pass.
 pub const BINDING_FEEDBACK_MESHES: u32 = 16;
-/// Binding of the per-mesh `CityMeshInfo` array in the feedback and visible passes.
+/// Binding of the per-mesh `CityMeshInfo` array in the city passes (their vertex stage reads
+/// each mesh's local origin, the fragment stages its texture).
 pub const BINDING_CITY_MESHES: u32 = 17;
+/// Binding of the `CityOrigin` array the city passes' vertex stage reads.
+pub const BINDING_CITY_ORIGINS: u32 = 33;
 /// Binding of the per-vertex root-atlas coordinates in a texture-atlas tree's visible pass.
 pub const BINDING_TREE_ATLAS_UVS: u32 = 18;
 /// Binding of the per-mesh texture matrices (`[scale, offset x, offset y, 0]`, scale 0 for
@@ -316,6 +319,20 @@ pub struct CityMeshInfo {
     pub texture_height: u32,
     /// M_max: coarsest level at full resolution.
     pub max_mip: u32,
+    /// Index in the [`CityOrigin`] array of the local origin the mesh's vertex positions are
+    /// relative to.
+    pub origin: u32,
+}
+
+/// `CityOrigin`: a local origin in the scene's frame as the city passes' vertex stage takes
+/// it, split in two `f32`s as the eye is ([`crate::city::split_f64`]).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct CityOrigin {
+    /// xyz: the origin rounded to `f32`; w unused.
+    pub high: [f32; 4],
+    /// xyz: what that rounding left; w unused.
+    pub low: [f32; 4],
 }
 
 /// One vertex of a mesh (vertex input, not a GLSL struct).
@@ -633,6 +650,7 @@ mod tests {
             ("BINDING_TEXTURE_PROBE_RESULTS", BINDING_TEXTURE_PROBE_RESULTS),
             ("BINDING_FEEDBACK_MESHES", BINDING_FEEDBACK_MESHES),
             ("BINDING_CITY_MESHES", BINDING_CITY_MESHES),
+            ("BINDING_CITY_ORIGINS", BINDING_CITY_ORIGINS),
             ("BINDING_TREE_ATLAS_UVS", BINDING_TREE_ATLAS_UVS),
             ("BINDING_TREE_UV_TRANSFORMS", BINDING_TREE_UV_TRANSFORMS),
             ("BINDING_GROUND_TILES", BINDING_GROUND_TILES),
@@ -793,8 +811,17 @@ mod tests {
                 ("texture_width", offset_of!(CityMeshInfo, texture_width)),
                 ("texture_height", offset_of!(CityMeshInfo, texture_height)),
                 ("max_mip", offset_of!(CityMeshInfo, max_mip)),
+                ("origin", offset_of!(CityMeshInfo, origin)),
             ],
             size_of::<CityMeshInfo>(),
+        );
+        check(
+            "CityOrigin",
+            &[
+                ("high", offset_of!(CityOrigin, high)),
+                ("low", offset_of!(CityOrigin, low)),
+            ],
+            size_of::<CityOrigin>(),
         );
         // 128 bytes is the push-constant size every Vulkan device guarantees.
         assert!(size_of::<CityDrawPush>() <= 128);

@@ -32,7 +32,8 @@
 
 // ---- Feedback pass (paper §3.2): set 0 also holds BINDING_TEXTURE_DATA --------
 #define BINDING_FEEDBACK_MESHES 16    // MeshFeedback[], written with atomics
-#define BINDING_CITY_MESHES 17        // CityMeshInfo[], one per mesh (feedback and visible passes)
+#define BINDING_CITY_MESHES 17        // CityMeshInfo[], one per mesh (every city pass)
+#define BINDING_CITY_ORIGINS 33       // CityOrigin[], the local origins CityMeshInfo::origin indexes
 
 // ---- Visible pass of a texture-atlas tree (docs/ATLAS_TREE.md) -------------
 #define BINDING_TREE_ATLAS_UVS 18     // vec2[], per drawn vertex: its coordinates in the root atlas
@@ -145,13 +146,23 @@ struct CityDrawPush {
     vec4 eye_low;           // xyz: what that rounding left of the eye
 };
 
-// Clip position of a city vertex. The eye is subtracted before the rotation, in two
-// steps: its f32 high part cancels exactly against a nearby position, and the low part
-// then restores the f64 eye, so positions relative to the camera keep their precision
-// however far from the origin both lie (no translation carried in f32 through the
-// matrix). `precise` keeps the compiler from fusing or reordering the steps.
-vec4 city_clip_position(CityDrawPush push, vec3 position) {
-    precise vec3 relative = (position - push.eye_high.xyz) - push.eye_low.xyz;
+// A local origin in the scene's frame, split in two f32s as the eye is: high = the origin
+// rounded to f32, low = what that rounding left (xyz; w unused).
+struct CityOrigin {
+    vec4 high;
+    vec4 low;
+};
+
+// Clip position of a city vertex, its position relative to its mesh's local origin. The
+// eye is subtracted before the rotation: the origin's and the eye's high parts cancel
+// first (both large and near each other, so exactly), then the small position and the low
+// parts are added, so positions relative to the camera keep their precision however far
+// from the scene's origin the mesh and the camera lie (no translation carried in f32
+// through the matrix). `precise` keeps the compiler from fusing or reordering the steps.
+// With the origin at zero this is (position - eye_high) - eye_low.
+vec4 city_clip_position(CityDrawPush push, vec3 position, CityOrigin origin) {
+    precise vec3 relative =
+        (position + (origin.high.xyz - push.eye_high.xyz)) + (origin.low.xyz - push.eye_low.xyz);
     return push.view_proj * vec4(relative, 1.0);
 }
 
@@ -163,6 +174,8 @@ struct CityMeshInfo {
     uint texture_width;     // full original resolution, level 0
     uint texture_height;
     uint max_mip;           // M_max: the texture's coarsest level at full resolution
+    uint origin;            // index in BINDING_CITY_ORIGINS of the local origin its positions
+                            // are relative to
 };
 
 // ---- Descriptor set 0: texture probe (samples through TextureData) -------

@@ -66,6 +66,7 @@ impl QuadMeshes {
             texture,
             texture_width: extent.0,
             texture_height: extent.1,
+            origin: glam::DVec3::ZERO,
         });
         self.indices.extend([0, 1, 2, 0, 2, 3]);
     }

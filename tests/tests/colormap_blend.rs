@@ -128,6 +128,7 @@ fn visible_pass_blends_by_displayed_level() -> Result<()> {
             texture: quad.texture,
             texture_width: TEXTURE,
             texture_height: TEXTURE,
+            origin: glam::DVec3::ZERO,
         });
         vertices.extend_from_slice(&[
             v(quad.x0, y1, 0.0, 0.0),

@@ -228,6 +228,7 @@ fn feedback_matches_cpu_reference() -> Result<()> {
             texture: plane.texture,
             texture_width: extents[plane.texture as usize].0,
             texture_height: extents[plane.texture as usize].1,
+            origin: glam::DVec3::ZERO,
         });
         vertices.extend_from_slice(&v);
         indices.extend_from_slice(&i);

@@ -200,6 +200,7 @@ fn the_feedbacks_level_is_within_half_a_level_of_the_analytic_one_from_0_to_89_5
             texture: 0,
             texture_width: TEXELS,
             texture_height: TEXELS,
+            origin: glam::DVec3::ZERO,
         };
         let renderer = CityRenderer::new(
             &device,
@@ -335,6 +336,7 @@ fn the_visible_pass_samples_between_the_resident_level_and_one_past_the_needed_o
                 texture: texture as u32,
                 texture_width: LEVEL_TEXTURE,
                 texture_height: LEVEL_TEXTURE,
+                origin: glam::DVec3::ZERO,
             };
             let renderer = CityRenderer::new(
                 &device,

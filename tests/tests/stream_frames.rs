@@ -53,6 +53,7 @@ fn quad_row() -> (Vec<Vertex>, Vec<u32>, Vec<CityMesh>) {
             texture: q,
             texture_width: TEXTURE,
             texture_height: TEXTURE,
+            origin: glam::DVec3::ZERO,
         });
         indices.extend([0, 1, 2, 0, 2, 3]);
     }

@@ -275,6 +275,7 @@ mod tests {
             texture,
             texture_width: 256,
             texture_height: 256,
+            origin: glam::DVec3::ZERO,
         };
         let meshes = [mesh(0), mesh(0), mesh(1), mesh(2)];
         let entry = |mesh_id, level: u32| FeedbackEntry {
