@@ -180,13 +180,23 @@ fn relative_path(size: Vec3) -> Vec<(DVec3, DVec3)> {
         .collect()
 }
 
-/// The tiny city's views along [`relative_path`] with its meshes' local origins at
-/// `origin` (their vertices as the dataset holds them, relative to it), or, with
-/// `flattened`, its vertices moved to `origin` in `f32` and the origins zero: positions
-/// relative to one scene origin, as the engine drew every city before local origins.
-fn fly_small_city(dir: &std::path::Path, origin: DVec3, flattened: bool) -> Result<Vec<image::RgbaImage>> {
+/// How the small city is drawn.
+#[derive(Clone, Copy)]
+enum Placement {
+    /// Its meshes' local origins at the point (their vertices as the dataset holds them).
+    Local(DVec3),
+    /// Its vertices moved to the point in `f32` and the origins zero: positions relative to
+    /// one scene origin, as the engine drew every city before local origins.
+    Flattened(DVec3),
+}
+
+/// The tiny city's views along [`relative_path`] placed as `placement` says, each frame's
+/// feedback pass before its visible pass, with GPU culling when `culled`.
+/// Also returns how many meshes the culling left undrawn over the frames (0 unculled).
+fn fly_small_city(dir: &std::path::Path, placement: Placement, culled: bool) -> Result<(Vec<image::RgbaImage>, u64)> {
     use citystream_dataset::Dataset;
     use citystream_engine::city::city_geometry;
+    use citystream_engine::city::FeedbackView;
     use citystream_tests::whole_city_cache_config;
     let dataset = Dataset::open(dir)?;
     let device = validated_device()?;
@@ -205,17 +215,22 @@ fn fly_small_city(dir: &std::path::Path, origin: DVec3, flattened: bool) -> Resu
     }
     cache.finish_cycle(&mut commands)?;
     let (mut vertices, mut meshes) = city_geometry(&dataset)?;
-    if flattened {
-        for vertex in &mut vertices {
-            vertex.position = (origin + Vec3::from(vertex.position).as_dvec3()).as_vec3().to_array();
+    let origin = match placement {
+        Placement::Local(origin) => {
+            for mesh in &mut meshes {
+                mesh.origin = origin;
+            }
+            origin
         }
-    } else {
-        for mesh in &mut meshes {
-            mesh.origin = origin;
+        Placement::Flattened(origin) => {
+            for vertex in &mut vertices {
+                vertex.position = (origin + Vec3::from(vertex.position).as_dvec3()).as_vec3().to_array();
+            }
+            origin
         }
-    }
+    };
     let compactor = FeedbackCompactor::new(&device, &mut commands, meshes.len() as u32, 1)?;
-    let renderer = CityRenderer::new(
+    let mut renderer = CityRenderer::new(
         &device,
         &mut commands,
         &vertices,
@@ -227,8 +242,17 @@ fn fly_small_city(dir: &std::path::Path, origin: DVec3, flattened: bool) -> Resu
     let bounds = &dataset.scene.bounds;
     let size = Vec3::from(bounds.max) - Vec3::from(bounds.min);
     let centre = Vec3::from(bounds.center()).as_dvec3();
+    if culled {
+        renderer.enable_culling(&mut commands, &vertices, &dataset.scene.indices, 1)?;
+    }
     let target = RenderTarget::new(&device, SIZE, SIZE)?;
+    let feedback_target = RenderTarget::new(&device, SIZE / 4, SIZE / 4)?;
+    let view = FeedbackView {
+        margin: 0.25,
+        foreground_distance: 50.0,
+    };
     let mut images = Vec::new();
+    let mut meshes_culled = 0;
     for (eye, aside) in relative_path(size) {
         let camera = Camera {
             eye: origin + centre + eye,
@@ -237,14 +261,23 @@ fn fly_small_city(dir: &std::path::Path, origin: DVec3, flattened: bool) -> Resu
             near: 0.5,
         };
         let cmd = commands.begin()?;
+        // The feedback pass builds the depth pyramid the culling tests boxes against.
+        renderer.record_feedback(cmd, &feedback_target, &camera, &view, SIZE)?;
         // Unlit, and without the colormap blend: the sampled texels as they are.
         renderer.record_visible(cmd, &target, &camera, 0.0, false)?;
         commands.submit_and_wait(&[])?;
         images.push(target.read_pixels()?);
+        if let Some(stats) = renderer.cull_stats(0)? {
+            meshes_culled += u64::from(stats.meshes_culled);
+        }
+        // Reset the feedback array for the next frame: a compaction that keeps nothing.
+        let cmd = commands.begin()?;
+        compactor.record_compact(cmd, u32::MAX, 0)?;
+        commands.submit_and_wait(&[])?;
     }
     drop(renderer);
     assert_no_validation_errors(&device)?;
-    Ok(images)
+    Ok((images, meshes_culled))
 }
 
 /// Pixels of `a` and `b` whose channels differ by more than one 8-bit step, and the
@@ -275,10 +308,14 @@ fn a_small_city_a_thousand_kilometres_out_looks_as_it_does_at_the_origin() -> Re
     const MOST_DIFFERING: usize = (SIZE * SIZE / 10_000) as usize;
     let base = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("far_from_origin_city");
     let dir = citystream_tests::tiny_rgba8_city(&base)?;
-    let home = fly_small_city(&dir, DVec3::ZERO, false)?;
-    let nudged = fly_small_city(&dir, DVec3::new(1e-6, 1e-6, -1e-6), false)?;
-    let far = fly_small_city(&dir, FAR_ORIGIN, false)?;
-    let flattened = fly_small_city(&dir, FAR_ORIGIN, true)?;
+    let (home, _) = fly_small_city(&dir, Placement::Local(DVec3::ZERO), false)?;
+    let (nudged, _) = fly_small_city(&dir, Placement::Local(DVec3::new(1e-6, 1e-6, -1e-6)), false)?;
+    let (far, _) = fly_small_city(&dir, Placement::Local(FAR_ORIGIN), false)?;
+    let (far_culled, meshes_culled) = fly_small_city(&dir, Placement::Local(FAR_ORIGIN), true)?;
+    let (flattened, _) = fly_small_city(&dir, Placement::Flattened(FAR_ORIGIN), false)?;
+    eprintln!("1,000 km out the culling left {meshes_culled} meshes undrawn over the frames");
+    // Culled and unculled images compared below mean something only if culling culls.
+    ensure!(meshes_culled > 0, "the culling drew every mesh of every frame");
     let mut failures = Vec::new();
     let mut flattened_differing = 0;
     for (frame, (((home, nudged), far), flattened)) in home.iter().zip(&nudged).zip(&far).zip(&flattened).enumerate() {
@@ -286,6 +323,13 @@ fn a_small_city_a_thousand_kilometres_out_looks_as_it_does_at_the_origin() -> Re
         ensure!(
             sky < (SIZE * SIZE / 2) as usize,
             "frame {frame}: the view must show the city, not sky ({sky} sky pixels)"
+        );
+        // Culling 1,000 km out hides nothing the view shows: its boxes are the vertices in
+        // the scene's frame rounded outwards, so an f32 box is never smaller than the mesh.
+        ensure!(
+            far_culled[frame] == *far,
+            "frame {frame}: 1,000 km out the culled image differs from the unculled one in {} pixels",
+            differing_pixels(&far_culled[frame], far).0
         );
         let (differing, worst) = differing_pixels(home, far);
         let (jitter, _) = differing_pixels(home, nudged);
