@@ -52,3 +52,4 @@ pub mod rng;
 pub mod shortfall;
 pub mod source;
 pub mod states;
+pub mod tile_refinement;
