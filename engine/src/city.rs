@@ -165,6 +165,80 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
     Ok((vertices, meshes))
 }
 
+/// A tiled scene's geometry (dataset format 4's tiles, docs/FORMAT4.md) in the engine's
+/// layout: `tiles`' vertices and indices one after another (`tiles[i]` the geometry of
+/// `tree.tiles[i]`), the meshes in the order of their global ids, each relative to its
+/// tile's origin, given as an offset from `frame_origin` (the frame the camera is given in).
+/// The vertices' positions stay as the tiles hold them, so a tile keeps an `f32` position's
+/// precision around its own origin however far from `frame_origin` it lies.
+pub fn tiled_city_geometry(
+    tree: &citystream_dataset::tiles::TileTree,
+    tiles: &[citystream_dataset::tile_geometry::TileGeometry],
+    textures: &citystream_dataset::TexturePack,
+    frame_origin: DVec3,
+) -> Result<(Vec<Vertex>, Vec<u32>, Vec<CityMesh>)> {
+    let invalid = |what: String| EngineError::InvalidRequest(format!("tiled city: {what}"));
+    if tiles.len() != tree.tiles.len() {
+        return Err(invalid(format!(
+            "{} tiles' geometry for {} tiles",
+            tiles.len(),
+            tree.tiles.len()
+        )));
+    }
+    let mesh_count = usize::try_from(tree.mesh_count()).map_err(|_| invalid("too many meshes".into()))?;
+    let mut meshes: Vec<Option<CityMesh>> = vec![None; mesh_count];
+    let (mut vertices, mut indices) = (Vec::new(), Vec::new());
+    for (t, (record, tile)) in tree.tiles.iter().zip(tiles).enumerate() {
+        let origin = DVec3::from(record.origin) - frame_origin;
+        let vertex_base = vertices.len() as u64;
+        let index_base = indices.len() as u64;
+        if tile.meshes.len() as u64 != u64::from(record.mesh_count) {
+            return Err(invalid(format!(
+                "tile {t} holds {} meshes, its record {}",
+                tile.meshes.len(),
+                record.mesh_count
+            )));
+        }
+        for (i, mesh) in tile.meshes.iter().enumerate() {
+            let id = record.first_mesh as usize + i;
+            let info = textures
+                .info(mesh.texture)
+                .map_err(|e| invalid(format!("tile {t}'s mesh {id}: {e}")))?;
+            let too_big = || invalid("more than 2^32 vertices or indices".into());
+            let slot = meshes
+                .get_mut(id)
+                .ok_or_else(|| invalid(format!("tile {t}'s mesh {id} is past the {mesh_count} meshes")))?;
+            *slot = Some(CityMesh {
+                first_index: u32::try_from(index_base + u64::from(mesh.first_index)).map_err(|_| too_big())?,
+                index_count: mesh.index_count,
+                vertex_offset: u32::try_from(vertex_base + u64::from(mesh.first_vertex)).map_err(|_| too_big())?,
+                texture: mesh.texture,
+                texture_width: info.width(),
+                texture_height: info.height(),
+                origin,
+            });
+        }
+        vertices.extend(
+            tile.positions
+                .iter()
+                .zip(&tile.normals)
+                .zip(&tile.uvs)
+                .map(|((p, n), uv)| Vertex {
+                    position: *p,
+                    normal: *n,
+                    uv: *uv,
+                }),
+        );
+        indices.extend_from_slice(&tile.indices);
+    }
+    let meshes = meshes
+        .into_iter()
+        .enumerate()
+        .map(|(id, mesh)| mesh.ok_or_else(|| invalid(format!("no tile holds mesh {id}"))))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((vertices, indices, meshes))
+}
+
 /// A camera: eye, target and vertical field of view; Vulkan clip space with reversed depth
 /// and no far plane (depth 1 at the near plane, falling towards 0 at infinity): a float
 /// depth buffer then resolves about `distance × 2⁻²³` at every distance, whatever the near
