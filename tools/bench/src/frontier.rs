@@ -704,8 +704,10 @@ fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<(
     let (y_lo, y_hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
         (lo.min(p.2), hi.max(p.2))
     });
-    // Whole decades, so that the log axis has its labels however close the runs lie.
-    let x_range = 10f64.powf((x_lo / 1.3).log10().floor())..10f64.powf((x_hi * 1.3).log10().ceil());
+    // The runs' own span (not whole decades, which left most runs within one decade's
+    // first fifth), labelled at round values chosen for that span.
+    let x_range = (x_lo / 1.08)..(x_hi * 1.08);
+    let x_keys = log_axis_keys(x_range.start, x_range.end);
     let pad = ((y_hi - y_lo) * 0.08).max(0.25);
     let y_range = (y_lo - pad)..(y_hi + pad);
     let size = (FRONTIER_CHART_WIDTH + FRONTIER_LEGEND_WIDTH, report::SPEED_ERROR_SIZE.1);
@@ -723,11 +725,17 @@ fn draw_frontier(figures: &[(Family, FrontierFigures)], path: &Path) -> Result<(
             .margin(16)
             .x_label_area_size(50)
             .y_label_area_size(70)
-            .build_cartesian_2d(x_range.log_scale(), y_range)
+            .build_cartesian_2d(x_range.log_scale().with_key_points(x_keys), y_range)
             .map_err(plot_error)?;
         chart
             .configure_mesh()
-            .x_label_formatter(&|x| format!("{x:.0}"))
+            .x_label_formatter(&|x| {
+                if *x >= 10.0 {
+                    format!("{x:.0}")
+                } else {
+                    format!("{x:.1}")
+                }
+            })
             .x_desc("worst frame (ms, log scale)")
             .y_desc("PSNR of the mean MSE after start-up (dB)")
             .label_style(("sans-serif", 14))
@@ -809,8 +817,39 @@ fn point_label(family: Family, f: &FrontierFigures) -> String {
     }
 }
 
+/// Round values for a log axis over `lo..hi`: 1, 2, 3 and 5 times each power of ten where
+/// the span covers more than a decade, finer steps (1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 7, 8)
+/// where it covers less, so that a narrow span still has several labels.
+fn log_axis_keys(lo: f64, hi: f64) -> Vec<f64> {
+    if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+        return Vec::new();
+    }
+    let mantissas: &[f64] = if hi / lo > 10.0 {
+        &[1.0, 2.0, 3.0, 5.0]
+    } else {
+        &[1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    };
+    let first = lo.log10().floor() as i32;
+    let last = hi.log10().ceil() as i32;
+    (first..=last)
+        .flat_map(|e| mantissas.iter().map(move |m| m * 10f64.powi(e)))
+        .filter(|k| (lo..=hi).contains(k))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn log_axis_keys_are_round_values_inside_the_span() {
+        // A span within a decade gets the fine steps; a wider one 1, 2, 3, 5 per decade.
+        assert_eq!(log_axis_keys(18.5, 32.2), vec![20.0, 25.0, 30.0]);
+        assert_eq!(
+            log_axis_keys(18.0, 580.0),
+            vec![20.0, 30.0, 50.0, 100.0, 200.0, 300.0, 500.0]
+        );
+        assert!(log_axis_keys(0.0, 10.0).is_empty() && log_axis_keys(5.0, 5.0).is_empty());
+    }
     use super::*;
 
     fn row(time_s: f64, dt_ms: f64, psnr_db: Option<f64>) -> FrameRow {
