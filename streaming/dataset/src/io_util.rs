@@ -139,9 +139,15 @@ pub(crate) fn check_versioned_prefix(
 
 /// Starts a header of this version: magic, version, zero flags, write id.
 pub(crate) fn header_prefix(magic: &[u8; 8], write_id: u64) -> Vec<u8> {
+    header_prefix_of_version(magic, FORMAT_VERSION, write_id)
+}
+
+/// [`header_prefix`] of a file of format `version` (the files of format 4, written ahead
+/// of the version's switch).
+pub(crate) fn header_prefix_of_version(magic: &[u8; 8], version: u32, write_id: u64) -> Vec<u8> {
     let mut out = Vec::with_capacity(TABLE_HEADER_BYTES);
     out.extend_from_slice(magic);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.extend_from_slice(&version.to_le_bytes());
     out.extend_from_slice(&0u32.to_le_bytes());
     out.extend_from_slice(&write_id.to_le_bytes());
     out
@@ -158,7 +164,18 @@ pub(crate) fn header_and_body_crc(header: &[u8], body: &[u8]) -> u32 {
 
 /// Encodes a table file: common header then `body`, whose records number `count`.
 pub(crate) fn encode_table(magic: &[u8; 8], write_id: u64, count: u64, body: &[u8]) -> Vec<u8> {
-    let mut out = header_prefix(magic, write_id);
+    encode_table_of_version(magic, FORMAT_VERSION, write_id, count, body)
+}
+
+/// [`encode_table`] of a file of format `version`.
+pub(crate) fn encode_table_of_version(
+    magic: &[u8; 8],
+    version: u32,
+    write_id: u64,
+    count: u64,
+    body: &[u8],
+) -> Vec<u8> {
+    let mut out = header_prefix_of_version(magic, version, write_id);
     out.extend_from_slice(&count.to_le_bytes());
     let crc = header_and_body_crc(&out, body);
     out.extend_from_slice(&crc.to_le_bytes());

@@ -8,10 +8,12 @@
 
 use std::path::Path;
 
+use super::colormap::u32_records;
 use super::error::DatasetError;
+use super::io_util::{decode_table, encode_table_of_version};
 use super::scene::{Aabb, Scene};
 use super::tile_geometry::TileGeometry;
-use super::tiles::{Refine, TileLimits, TileRecord, TileTree};
+use super::tiles::{Refine, TileLimits, TileRecord, TileTree, TILES_VERSION};
 use super::tiling::leaf_tiles;
 
 /// A scene as tiles: the table, the pack of their geometry, and where each mesh went.
@@ -95,29 +97,101 @@ impl TiledScene {
     }
 }
 
+/// The magic of `geometry.crc`.
+const GEOMETRY_CRC_MAGIC: &[u8; 8] = b"CSGEOCRC";
+
+/// `geometry.crc`'s bytes: the table header (format 4, `write_id`) and the CRC-32 of each
+/// tile's blob in `geometry.pack`, in the tile table's order.
+pub fn encode_geometry_checksums(write_id: u64, checksums: &[u32]) -> Vec<u8> {
+    let body: Vec<u8> = checksums.iter().flat_map(|c| c.to_le_bytes()).collect();
+    encode_table_of_version(
+        GEOMETRY_CRC_MAGIC,
+        TILES_VERSION,
+        write_id,
+        checksums.len() as u64,
+        &body,
+    )
+}
+
+/// `geometry.crc` read back (the bytes of `path`): each tile's CRC-32 and the file's write
+/// id, its header, size and own checksum checked.
+pub fn decode_geometry_checksums(path: &Path, bytes: &[u8]) -> Result<(Vec<u32>, u64), DatasetError> {
+    let table = decode_table(path, bytes, GEOMETRY_CRC_MAGIC, 4, TILES_VERSION)?;
+    Ok((u32_records(table.body), table.write_id))
+}
+
+impl TiledScene {
+    /// The CRC-32 of each tile's blob, in the tile table's order: `geometry.crc`'s records.
+    pub fn checksums(&self) -> Result<Vec<u32>, DatasetError> {
+        let path = Path::new("geometry.pack");
+        self.tree
+            .tiles
+            .iter()
+            .enumerate()
+            .map(|(index, record)| Ok(crc32fast::hash(tile_blob(path, index, record, &self.pack)?)))
+            .collect()
+    }
+}
+
+/// [`read_tile_geometry`] with every tile's blob checked against its CRC-32 from
+/// `geometry.crc` (`checksums`, one per tile) before it is decoded; a mismatch names the
+/// tile and its bytes in `path`.
+pub fn read_checked_tile_geometry(
+    path: &Path,
+    tree: &TileTree,
+    pack: &[u8],
+    checksums: &[u32],
+) -> Result<Vec<TileGeometry>, DatasetError> {
+    if checksums.len() != tree.tiles.len() {
+        return Err(DatasetError::Corrupt {
+            path: path.to_path_buf(),
+            offset: 0,
+            what: format!("{} tile checksums for {} tiles", checksums.len(), tree.tiles.len()),
+        });
+    }
+    for (index, (record, &stored)) in tree.tiles.iter().zip(checksums).enumerate() {
+        let blob = tile_blob(path, index, record, pack)?;
+        let computed = crc32fast::hash(blob);
+        if computed != stored {
+            return Err(DatasetError::Checksum {
+                path: path.to_path_buf(),
+                what: format!("tile {index}'s geometry"),
+                offset: record.geometry_offset,
+                end: record.geometry_offset + record.geometry_len,
+                stored,
+                computed,
+            });
+        }
+    }
+    read_tile_geometry(path, tree, pack)
+}
+
+/// Tile `index`'s blob in `pack` (the bytes of `path`), or an error naming it where the
+/// pack ends before it does.
+fn tile_blob<'a>(path: &Path, index: usize, record: &TileRecord, pack: &'a [u8]) -> Result<&'a [u8], DatasetError> {
+    let end = record.geometry_offset.saturating_add(record.geometry_len);
+    usize::try_from(record.geometry_offset)
+        .ok()
+        .zip(usize::try_from(end).ok())
+        .and_then(|(start, end)| pack.get(start..end))
+        .ok_or_else(|| {
+            DatasetError::truncated(
+                path,
+                format!("tile {index}'s geometry"),
+                record.geometry_offset,
+                end,
+                pack.len() as u64,
+            )
+        })
+}
+
 /// Every tile's geometry read back from `pack` (the bytes of `path`), checked against its
 /// record.
 pub fn read_tile_geometry(path: &Path, tree: &TileTree, pack: &[u8]) -> Result<Vec<TileGeometry>, DatasetError> {
     tree.tiles
         .iter()
         .enumerate()
-        .map(|(index, record)| {
-            let end = record.geometry_offset.saturating_add(record.geometry_len);
-            let blob = usize::try_from(record.geometry_offset)
-                .ok()
-                .zip(usize::try_from(end).ok())
-                .and_then(|(start, end)| pack.get(start..end))
-                .ok_or_else(|| {
-                    DatasetError::truncated(
-                        path,
-                        format!("tile {index}'s geometry"),
-                        record.geometry_offset,
-                        end,
-                        pack.len() as u64,
-                    )
-                })?;
-            TileGeometry::decode(path, index, record, blob)
-        })
+        .map(|(index, record)| TileGeometry::decode(path, index, record, tile_blob(path, index, record, pack)?))
         .collect()
 }
 
@@ -195,5 +269,48 @@ mod tests {
         // With fewer textures than a tile names, the table is refused.
         assert!(tiled.tree.validate(Path::new("tiles.bin"), tiled.limits(7)).is_err());
         assert_eq!(tiled.tree.crs, None);
+    }
+
+    #[test]
+    fn geometry_checksums_catch_a_flipped_byte_naming_the_tile() {
+        let mut scene = Scene::new([0.0; 3]);
+        push_quad(&mut scene, [10.0, 0.0, 10.0], [40.0, 8.0, 25.0], 0);
+        push_quad(&mut scene, [900.0, 0.0, 10.0], [920.0, 8.0, 25.0], 1);
+        let tiled = TiledScene::of(&scene, 5).expect("tiles");
+        assert_eq!(tiled.tree.tiles.len(), 2);
+        let checksums = tiled.checksums().expect("checksums");
+        let path = Path::new("geometry.crc");
+        let bytes = encode_geometry_checksums(5, &checksums);
+        assert_eq!(
+            decode_geometry_checksums(path, &bytes).expect("decodes"),
+            (checksums.clone(), 5)
+        );
+        // The file's own checksum, its size and its version are checked.
+        let mut flipped = bytes.clone();
+        *flipped.last_mut().expect("bytes") ^= 1;
+        assert!(matches!(
+            decode_geometry_checksums(path, &flipped),
+            Err(DatasetError::Checksum { .. })
+        ));
+        assert!(decode_geometry_checksums(path, &bytes[..bytes.len() - 4]).is_err());
+        let mut version_3 = bytes.clone();
+        version_3[8..12].copy_from_slice(&3u32.to_le_bytes());
+        assert!(decode_geometry_checksums(path, &version_3).is_err());
+        // A byte flipped in the second tile's blob is caught before decoding, naming it.
+        let pack_path = Path::new("geometry.pack");
+        let read = read_checked_tile_geometry(pack_path, &tiled.tree, &tiled.pack, &checksums).expect("reads");
+        assert_eq!(read.len(), 2);
+        let mut pack = tiled.pack.clone();
+        let second = &tiled.tree.tiles[1];
+        pack[(second.geometry_offset + second.geometry_len / 2) as usize] ^= 0x10;
+        match read_checked_tile_geometry(pack_path, &tiled.tree, &pack, &checksums) {
+            Err(DatasetError::Checksum { what, offset, .. }) => {
+                assert_eq!(what, "tile 1's geometry");
+                assert_eq!(offset, second.geometry_offset);
+            }
+            other => panic!("expected a checksum error, got {other:?}"),
+        }
+        // One checksum short is refused.
+        assert!(read_checked_tile_geometry(pack_path, &tiled.tree, &tiled.pack, &checksums[..1]).is_err());
     }
 }
