@@ -101,19 +101,28 @@ fn round_outwards(point: DVec3) -> ([f32; 3], [f32; 3]) {
 pub(crate) fn origin_table(meshes: &[CityMesh]) -> (Vec<CityOrigin>, Vec<u32>) {
     let mut index_of = std::collections::HashMap::new();
     let mut origins = Vec::new();
+    // Meshes come a tile (or a whole scene) at a time: most share the previous mesh's
+    // origin, which a comparison finds without hashing millions of meshes at start-up.
+    let mut last: Option<([u64; 3], u32)> = None;
     let indices = meshes
         .iter()
         .map(|mesh| {
-            *index_of
-                .entry(mesh.origin.to_array().map(f64::to_bits))
-                .or_insert_with(|| {
-                    let (high, low) = split_f64(mesh.origin);
-                    origins.push(CityOrigin {
-                        high: [high[0], high[1], high[2], 0.0],
-                        low: [low[0], low[1], low[2], 0.0],
-                    });
-                    (origins.len() - 1) as u32
-                })
+            let key = mesh.origin.to_array().map(f64::to_bits);
+            if let Some((last_key, index)) = last {
+                if last_key == key {
+                    return index;
+                }
+            }
+            let index = *index_of.entry(key).or_insert_with(|| {
+                let (high, low) = split_f64(mesh.origin);
+                origins.push(CityOrigin {
+                    high: [high[0], high[1], high[2], 0.0],
+                    low: [low[0], low[1], low[2], 0.0],
+                });
+                (origins.len() - 1) as u32
+            });
+            last = Some((key, index));
+            index
         })
         .collect();
     (origins, indices)
@@ -127,21 +136,48 @@ pub fn split_f64(value: DVec3) -> ([f32; 3], [f32; 3]) {
     (high.to_array(), low.to_array())
 }
 
+/// The engine's vertices of a dataset's flat position, normal and UV arrays (a scene's or a
+/// tile's, one entry per vertex).
+fn vertices_of<'a>(
+    positions: &'a [[f32; 3]],
+    normals: &'a [[f32; 3]],
+    uvs: &'a [[f32; 2]],
+) -> impl Iterator<Item = Vertex> + 'a {
+    positions.iter().zip(normals).zip(uvs).map(|((p, n), uv)| Vertex {
+        position: *p,
+        normal: *n,
+        uv: *uv,
+    })
+}
+
+impl CityMesh {
+    /// A dataset's `mesh` (a scene's or a tile's) as drawn from `first_index` of the city's
+    /// indices, each plus `vertex_offset`, its texture's full-resolution extent from `info`,
+    /// its positions relative to `origin`.
+    fn of_dataset_mesh(
+        mesh: &citystream_dataset::Mesh,
+        first_index: u32,
+        vertex_offset: u32,
+        info: &citystream_dataset::TextureInfo,
+        origin: DVec3,
+    ) -> Self {
+        CityMesh {
+            first_index,
+            index_count: mesh.index_count,
+            vertex_offset,
+            texture: mesh.texture,
+            texture_width: info.width(),
+            texture_height: info.height(),
+            origin,
+        }
+    }
+}
+
 /// A dataset's vertices in the engine's layout and its meshes with their
 /// textures' full-resolution extents, as the city passes draw them.
 pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Vertex>, Vec<CityMesh>)> {
     let scene = &dataset.scene;
-    let vertices = scene
-        .positions
-        .iter()
-        .zip(&scene.normals)
-        .zip(&scene.uvs)
-        .map(|((p, n), uv)| Vertex {
-            position: *p,
-            normal: *n,
-            uv: *uv,
-        })
-        .collect();
+    let vertices = vertices_of(&scene.positions, &scene.normals, &scene.uvs).collect();
     let meshes = scene
         .meshes
         .iter()
@@ -151,15 +187,13 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
                 .textures
                 .info(mesh.texture)
                 .map_err(|e| EngineError::InvalidRequest(format!("mesh {m} of {}: {e}", dataset.dir().display())))?;
-            Ok(CityMesh {
-                first_index: mesh.first_index,
-                index_count: mesh.index_count,
-                vertex_offset: mesh.first_vertex,
-                texture: mesh.texture,
-                texture_width: info.width(),
-                texture_height: info.height(),
-                origin: DVec3::ZERO,
-            })
+            Ok(CityMesh::of_dataset_mesh(
+                mesh,
+                mesh.first_index,
+                mesh.first_vertex,
+                info,
+                DVec3::ZERO,
+            ))
         })
         .collect::<Result<Vec<_>>>()?;
     Ok((vertices, meshes))
@@ -208,27 +242,15 @@ pub fn tiled_city_geometry(
             let slot = meshes
                 .get_mut(id)
                 .ok_or_else(|| invalid(format!("tile {t}'s mesh {id} is past the {mesh_count} meshes")))?;
-            *slot = Some(CityMesh {
-                first_index: u32::try_from(index_base + u64::from(mesh.first_index)).map_err(|_| too_big())?,
-                index_count: mesh.index_count,
-                vertex_offset: u32::try_from(vertex_base + u64::from(mesh.first_vertex)).map_err(|_| too_big())?,
-                texture: mesh.texture,
-                texture_width: info.width(),
-                texture_height: info.height(),
+            *slot = Some(CityMesh::of_dataset_mesh(
+                mesh,
+                u32::try_from(index_base + u64::from(mesh.first_index)).map_err(|_| too_big())?,
+                u32::try_from(vertex_base + u64::from(mesh.first_vertex)).map_err(|_| too_big())?,
+                info,
                 origin,
-            });
+            ));
         }
-        vertices.extend(
-            tile.positions
-                .iter()
-                .zip(&tile.normals)
-                .zip(&tile.uvs)
-                .map(|((p, n), uv)| Vertex {
-                    position: *p,
-                    normal: *n,
-                    uv: *uv,
-                }),
-        );
+        vertices.extend(vertices_of(&tile.positions, &tile.normals, &tile.uvs));
         indices.extend_from_slice(&tile.indices);
     }
     let meshes = meshes

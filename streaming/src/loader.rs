@@ -215,8 +215,7 @@ impl CyclePlan {
         if let Some(budget) = budget {
             let (own, shared) = if budget.owns_blocks(item.bytes) {
                 (
-                    self.own_blocks
-                        .saturating_add(item.bytes.div_ceil(budget.block_bytes.max(1))),
+                    self.own_blocks.saturating_add(budget.whole_blocks(item.bytes)),
                     self.shared_bytes,
                 )
             } else {

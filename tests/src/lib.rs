@@ -196,6 +196,33 @@ pub fn whole_city_cache_config(texture_count: u32, layers: u32) -> GpuCacheConfi
     }
 }
 
+/// A cache for `dataset`'s whole city ([`whole_city_cache_config`], 32 layers) with every
+/// texture resident at `level`, or at its coarsest level the cache holds (both sides whole
+/// texels) where it has fewer: a view that needs finer shows exactly that level.
+pub fn city_cache_resident_at(
+    device: &Arc<Device>,
+    commands: &mut CommandContext,
+    dataset: &Dataset,
+    level: u32,
+) -> Result<GpuTextureCache> {
+    let mut cache = GpuTextureCache::new(
+        device,
+        commands,
+        &whole_city_cache_config(dataset.textures.len(), 32),
+        dataset.colormap.colours(),
+    )?;
+    let mut bytes = Vec::new();
+    for texture in 0..dataset.textures.len() {
+        let info = *dataset.textures.info(texture)?;
+        let coarsest = (info.mip_count() - 1).min(info.width().min(info.height()).ilog2());
+        let mip = level.min(coarsest);
+        dataset.textures.read_mip(texture, mip, &mut bytes)?;
+        cache.stage(texture, info.format(), info.width(), info.height(), mip, &bytes)?;
+    }
+    cache.finish_cycle(commands)?;
+    Ok(cache)
+}
+
 /// Fails when the validation layer reported any error on `device`.
 pub fn assert_no_validation_errors(device: &Device) -> Result<()> {
     let errors = device.validation_log().errors();
@@ -224,6 +251,35 @@ pub struct Comparison {
     pub mismatched: usize,
     /// Largest channel difference among compared pixels.
     pub max_difference: u8,
+}
+
+/// The largest difference between two pixels' channels.
+pub fn channel_difference(a: &image::Rgba<u8>, b: &image::Rgba<u8>) -> u8 {
+    a.0.iter()
+        .zip(b.0.iter())
+        .map(|(p, q)| p.abs_diff(*q))
+        .max()
+        .unwrap_or(0)
+}
+
+/// How two images of one size differ, every pixel compared: those whose channels differ by
+/// more than `tolerance`, and the largest difference (no files written, no error: for tests
+/// that bound the count rather than require none).
+pub fn count_differences(actual: &image::RgbaImage, expected: &image::RgbaImage, tolerance: u8) -> Comparison {
+    actual.pixels().zip(expected.pixels()).fold(
+        Comparison {
+            compared: 0,
+            mismatched: 0,
+            max_difference: 0,
+        },
+        |mut result, (a, e)| {
+            let worst = channel_difference(a, e);
+            result.compared += 1;
+            result.mismatched += usize::from(worst > tolerance);
+            result.max_difference = result.max_difference.max(worst);
+            result
+        },
+    )
 }
 
 /// Compares `actual` with `expected` channel by channel, skipping pixels
@@ -256,13 +312,7 @@ pub fn compare_images(
             difference.put_pixel(x, y, image::Rgba([0, 0, 64, 255]));
             continue;
         }
-        let e = expected.get_pixel(x, y);
-        let worst =
-            a.0.iter()
-                .zip(e.0.iter())
-                .map(|(p, q)| p.abs_diff(*q))
-                .max()
-                .unwrap_or(0);
+        let worst = channel_difference(a, expected.get_pixel(x, y));
         result.compared += 1;
         result.max_difference = result.max_difference.max(worst);
         if worst > tolerance {

@@ -12,12 +12,11 @@ use citystream_dataset::Dataset;
 use citystream_engine::city::Camera;
 use citystream_engine::commands::CommandContext;
 use citystream_engine::target::RenderTarget;
-use citystream_engine::texture_cache::GpuTextureCache;
 use citystream_engine::Device;
 use citystream_gen::atlas::{self, AtlasArgs};
 use citystream_tests::{
-    assert_no_validation_errors, camera_on_centre, tiny_rgba8_city, validated_device, visible_city_renderer,
-    whole_city_cache_config,
+    assert_no_validation_errors, camera_on_centre, city_cache_resident_at, tiny_rgba8_city, validated_device,
+    visible_city_renderer,
 };
 use glam::Vec3;
 
@@ -33,24 +32,8 @@ fn render_level0(device: &Arc<Device>, dir: &Path, camera: &Camera) -> Result<im
 fn render_from_level(device: &Arc<Device>, dir: &Path, camera: &Camera, level: u32) -> Result<image::RgbaImage> {
     let dataset = Dataset::open(dir).with_context(|| format!("opening {}", dir.display()))?;
     let mut commands = CommandContext::new(device, "atlas render")?;
-    let mut cache = GpuTextureCache::new(
-        device,
-        &mut commands,
-        &whole_city_cache_config(dataset.textures.len(), 32),
-        dataset.colormap.colours(),
-    )?;
-    let mut bytes = Vec::new();
-    for texture in 0..dataset.textures.len() {
-        let info = *dataset.textures.info(texture)?;
-        // The cache holds levels while both sides are whole texels (RGBA8 blocks).
-        let coarsest = (info.mip_count() - 1).min(info.width().min(info.height()).ilog2());
-        {
-            let mip = level.min(coarsest);
-            dataset.textures.read_mip(texture, mip, &mut bytes)?;
-            cache.stage(texture, info.format(), info.width(), info.height(), mip, &bytes)?;
-        }
-    }
-    cache.finish_cycle(&mut commands)?;
+    // The cache holds levels while both sides are whole texels (RGBA8 blocks).
+    let cache = city_cache_resident_at(device, &mut commands, &dataset, level)?;
     let (renderer, _compactor) = visible_city_renderer(device, &mut commands, &dataset, &cache)?;
     let target = RenderTarget::new(device, WIDTH, HEIGHT)?;
     let cmd = commands.begin()?;

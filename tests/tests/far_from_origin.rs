@@ -201,23 +201,10 @@ fn fly_small_city(dir: &std::path::Path, placement: Placement, culled: bool) -> 
     use citystream_dataset::Dataset;
     use citystream_engine::city::FeedbackView;
     use citystream_engine::city::{city_geometry, tiled_city_geometry};
-    use citystream_tests::whole_city_cache_config;
     let dataset = Dataset::open(dir)?;
     let device = validated_device()?;
     let mut commands = CommandContext::new(&device, "small city far from the origin")?;
-    let mut cache = GpuTextureCache::new(
-        &device,
-        &mut commands,
-        &whole_city_cache_config(dataset.textures.len(), 32),
-        dataset.colormap.colours(),
-    )?;
-    let mut bytes = Vec::new();
-    for texture in 0..dataset.textures.len() {
-        let info = *dataset.textures.info(texture)?;
-        dataset.textures.read_mip(texture, 0, &mut bytes)?;
-        cache.stage(texture, info.format(), info.width(), info.height(), 0, &bytes)?;
-    }
-    cache.finish_cycle(&mut commands)?;
+    let cache = citystream_tests::city_cache_resident_at(&device, &mut commands, &dataset, 0)?;
     let (mut vertices, mut meshes) = city_geometry(&dataset)?;
     let mut indices = dataset.scene.indices.clone();
     let origin = match placement {
@@ -297,15 +284,8 @@ fn fly_small_city(dir: &std::path::Path, placement: Placement, culled: bool) -> 
 /// Pixels of `a` and `b` whose channels differ by more than one 8-bit step, and the
 /// largest difference.
 fn differing_pixels(a: &image::RgbaImage, b: &image::RgbaImage) -> (usize, u8) {
-    a.pixels().zip(b.pixels()).fold((0, 0), |(count, worst), (p, q)| {
-        let most =
-            p.0.iter()
-                .zip(q.0.iter())
-                .map(|(x, y)| x.abs_diff(*y))
-                .max()
-                .unwrap_or(0);
-        (count + usize::from(most > 1), worst.max(most))
-    })
+    let comparison = citystream_tests::count_differences(a, b, 1);
+    (comparison.mismatched, comparison.max_difference)
 }
 
 #[test]

@@ -137,14 +137,19 @@ impl BlockBudget {
     /// of the Berlin-sized city, whose mips average 12 KB against 64 KB blocks, to 50 mips
     /// and 0.65 MB when its budget allowed 3.2 MB.
     pub fn blocks_of_cycle(&self, own: u64, shared_bytes: u64) -> u64 {
-        own.saturating_add(shared_bytes.div_ceil(self.block_bytes.max(1)))
+        own.saturating_add(self.whole_blocks(shared_bytes))
+    }
+
+    /// The whole blocks `bytes` fill: a mip's own where it [owns blocks](Self::owns_blocks).
+    pub fn whole_blocks(&self, bytes: u64) -> u64 {
+        bytes.div_ceil(self.block_bytes.max(1))
     }
 
     /// The blocks a mip of `bytes` costs alone, for ranking mips by error per byte: its
     /// whole blocks, or its bytes' share of one.
     pub fn blocks_of(&self, bytes: u64) -> f64 {
         if self.owns_blocks(bytes) {
-            bytes.div_ceil(self.block_bytes.max(1)) as f64
+            self.whole_blocks(bytes) as f64
         } else {
             bytes as f64 / self.block_bytes.max(1) as f64
         }
