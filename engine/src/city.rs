@@ -199,7 +199,7 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
     Ok((vertices, meshes))
 }
 
-/// A tiled scene's geometry (dataset format 4's tiles, docs/FORMAT4.md) in the engine's
+/// A tiled scene's geometry (dataset format 4's tiles, docs/DATASET.md) in the engine's
 /// layout: `tiles`' vertices and indices one after another (`tiles[i]` the geometry of
 /// `tree.tiles[i]`), the meshes in the order of their global ids, each relative to its
 /// tile's origin, given as an offset from `frame_origin` (the frame the camera is given in).
@@ -234,7 +234,7 @@ pub fn tiled_city_geometry(
             )));
         }
         for (i, mesh) in tile.meshes.iter().enumerate() {
-            let id = record.first_mesh as usize + i;
+            let id = tree.mesh_ids[record.first_mesh as usize + i] as usize;
             let info = textures
                 .info(mesh.texture)
                 .map_err(|e| invalid(format!("tile {t}'s mesh {id}: {e}")))?;

@@ -55,8 +55,10 @@ fn quadtree(root_refine: Refine) -> TileTree {
     TileTree {
         write_id: 1,
         crs: None,
+        origin: [1.0e6, 0.0, -1.0e6],
         roots: 0..1,
         tiles,
+        mesh_ids: Vec::new(),
     }
 }
 

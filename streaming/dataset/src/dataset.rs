@@ -8,6 +8,7 @@ use super::colormap::Colormap;
 use super::error::DatasetError;
 use super::files::{DatasetFiles, COLORMAP_FILE, SCENE_FILE};
 use super::format::TextureInfo;
+use super::format::FORMAT_VERSION;
 use super::io_util;
 use super::pack::TexturePack;
 use super::scene::{self, Scene};
@@ -31,8 +32,8 @@ pub struct Dataset {
 }
 
 impl Dataset {
-    /// Opens the dataset in `dir`: reads its manifest, then reads and validates `scene.bin`,
-    /// `textures.meta`, `textures.crc`, `colormap.bin` and the header of `textures.pack` of
+    /// Opens the dataset in `dir`: reads its manifest, then reads and validates `tiles.bin`,
+    /// `geometry.pack` (every tile against `geometry.crc`), `textures.meta`, `textures.crc`, `colormap.bin` and the header of `textures.pack` of
     /// the write it names, and checks they agree (one write id, every mesh's texture exists,
     /// one colour per texture). Reads no mip data.
     ///
@@ -96,16 +97,28 @@ impl Dataset {
                 what: format!("{} colours for {} textures", colormap.len(), textures.len()),
             });
         }
+        let count = textures.len();
+        if files.version() == FORMAT_VERSION {
+            let (scene, scene_file_len) = crate::tiled::read_scene_files(files, read_file, count)?;
+            return Ok(Self {
+                files: files.clone(),
+                store: store.cloned(),
+                scene,
+                textures,
+                colormap,
+                scene_file_len,
+            });
+        }
+        // Versions 2 and 3, opened by the upgrade: one `scene.bin`.
         let scene_path = files.path(SCENE_FILE);
         let scene_bytes = read_file(&scene_path)?;
-        let layout = if files.version() == io_util::PREVIOUS_VERSION {
-            scene::SceneLayout::PREVIOUS
+        let layout = if files.version() == io_util::VERSION_2 {
+            scene::SceneLayout::V2
         } else {
-            scene::SceneLayout::CURRENT
+            scene::SceneLayout::V3
         };
         let (scene, write_id) = Scene::decode_with(&scene_path, &scene_bytes, layout)?;
         files.check_write_id(&scene_path, write_id)?;
-        let count = textures.len();
         if let Some((m, mesh)) = scene.meshes.iter().enumerate().find(|(_, m)| m.texture >= count) {
             return Err(DatasetError::Corrupt {
                 path: scene_path,
@@ -141,7 +154,8 @@ impl Dataset {
         }
     }
 
-    /// Bytes of the scene file as it was read.
+    /// Bytes of the scene's files as they were read (`tiles.bin` and `geometry.pack`;
+    /// `scene.bin` for the older versions the upgrade opens).
     pub fn scene_file_len(&self) -> u64 {
         self.scene_file_len
     }

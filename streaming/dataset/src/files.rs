@@ -18,14 +18,20 @@ use std::path::{Path, PathBuf};
 use super::error::DatasetError;
 use super::format::FORMAT_VERSION;
 use super::io_util::{
-    check_prefix, expect_end, header_prefix, read_all, u32_at, write_new_durably, LEGACY_VERSION, PREVIOUS_VERSION,
+    check_prefix, expect_end, header_prefix, read_all, u32_at, upgradable_manifest, write_new_durably, LEGACY_VERSION,
 };
 use super::store::DatasetStore;
 
 /// The manifest file at the top of a dataset directory.
 pub const MANIFEST_FILE: &str = "dataset.manifest";
-/// Scene file name inside a dataset directory.
+/// Scene file of format versions 1 to 3 (read by the upgrade only).
 pub const SCENE_FILE: &str = "scene.bin";
+/// The tile tree (format 4 on).
+pub const TILES_FILE: &str = "tiles.bin";
+/// Each tile's geometry (format 4 on).
+pub const GEOMETRY_PACK_FILE: &str = "geometry.pack";
+/// The CRC-32 of each tile's geometry (format 4 on).
+pub const GEOMETRY_CRC_FILE: &str = "geometry.crc";
 /// Texture metadata file name.
 pub const META_FILE: &str = "textures.meta";
 /// Texture pack file name.
@@ -34,9 +40,11 @@ pub const PACK_FILE: &str = "textures.pack";
 pub const COLORMAP_FILE: &str = "colormap.bin";
 /// Per-mip checksum file name.
 pub const CHECKSUM_FILE: &str = "textures.crc";
-/// Every file of the format: the five data files of a write, then the manifest.
-pub const DATASET_FILES: [&str; 6] = [
-    SCENE_FILE,
+/// Every file of the format: the seven data files of a write, then the manifest.
+pub const DATASET_FILES: [&str; 8] = [
+    TILES_FILE,
+    GEOMETRY_PACK_FILE,
+    GEOMETRY_CRC_FILE,
     META_FILE,
     PACK_FILE,
     COLORMAP_FILE,
@@ -322,10 +330,9 @@ impl PendingWrite {
         let previous = match read_all(&manifest_path) {
             // A dataset of the previous version is replaced like one of this version.
             Ok(bytes) => Some(match decode_manifest(&manifest_path, &bytes, FORMAT_VERSION) {
-                Err(DatasetError::NeedsUpgrade {
-                    found: PREVIOUS_VERSION,
-                    ..
-                }) => decode_manifest(&manifest_path, &bytes, PREVIOUS_VERSION)?,
+                Err(DatasetError::NeedsUpgrade { found, .. }) if upgradable_manifest(found) => {
+                    decode_manifest(&manifest_path, &bytes, found)?
+                }
                 current => current?,
             }),
             Err(DatasetError::Missing { .. }) => None,

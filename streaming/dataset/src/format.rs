@@ -5,7 +5,7 @@
 //! finer levels. That keeps the per-texture record at ten bytes on disk.
 
 /// The format version this build reads and writes.
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 
 /// Largest supported texture side, as a power of two (2^14 = 16384, the Vulkan guaranteed
 /// minimum for `maxImageDimension2D` on desktop GPUs). Anything larger is treated as corrupt.

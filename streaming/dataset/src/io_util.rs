@@ -14,8 +14,16 @@ pub(crate) const TABLE_HEADER_BYTES: usize = 40;
 /// `citystream upgrade` converts.
 pub(crate) const LEGACY_VERSION: u32 = 1;
 
-/// The format version before this one (no CRS), which `citystream upgrade` converts.
-pub(crate) const PREVIOUS_VERSION: u32 = 2;
+/// Format version 2 (no CRS), which `citystream upgrade` converts.
+pub(crate) const VERSION_2: u32 = 2;
+
+/// Format version 3 (one `scene.bin`, one origin), which `citystream upgrade` converts.
+pub(crate) const VERSION_3: u32 = 3;
+
+/// Whether a manifest of format `version` names a dataset `citystream upgrade` converts.
+pub(crate) fn upgradable_manifest(version: u32) -> bool {
+    matches!(version, VERSION_2 | VERSION_3)
+}
 
 /// Reads a whole file, mapping "not found" to [`DatasetError::Missing`].
 pub(crate) fn read_all(path: &Path) -> Result<Vec<u8>, DatasetError> {
@@ -112,7 +120,7 @@ pub(crate) fn check_versioned_prefix(
     }
     let version = u32_at(bytes, 8);
     if version != expected_version {
-        let upgradable = matches!(version, LEGACY_VERSION | PREVIOUS_VERSION);
+        let upgradable = version == LEGACY_VERSION || upgradable_manifest(version);
         return Err(if upgradable && expected_version == FORMAT_VERSION {
             DatasetError::NeedsUpgrade {
                 path: path.to_path_buf(),

@@ -1,5 +1,5 @@
-//! Format version 1 (read only here) and `citystream upgrade`, which rewrites a version-1
-//! or version-2 dataset as the current version.
+//! Format version 1 (read only here) and `citystream upgrade`, which rewrites a version-1,
+//! 2 or 3 dataset as the current version.
 //!
 //! Version 1 kept its five files at the top of the dataset directory, with no manifest and no
 //! write id; its table headers were 32 bytes (count at 16, CRC-32 of the body at 24), the
@@ -16,7 +16,9 @@ use super::dataset::Dataset;
 use super::error::DatasetError;
 use super::files::{DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE, META_FILE, PACK_FILE, SCENE_FILE};
 use super::format::{TextureInfo, FORMAT_VERSION, TEXTURE_RECORD_BYTES};
-use super::io_util::{check_versioned_prefix, read_all, table_body, u32_at, u64_at, LEGACY_VERSION, PREVIOUS_VERSION};
+use super::io_util::{
+    check_versioned_prefix, read_all, table_body, u32_at, u64_at, upgradable_manifest, LEGACY_VERSION,
+};
 use super::pack::{open_pack, META_MAGIC, PACK_HEADER_BYTES, PACK_MAGIC};
 use super::scene::{Scene, SceneLayout};
 use super::writer::{DatasetWriter, WriteSummary};
@@ -58,7 +60,7 @@ fn finish_interrupted_upgrade(dir: &Path) -> Result<usize, DatasetError> {
 }
 
 /// Rewrites the dataset in `dir` as the current version, atomically (through
-/// [`DatasetWriter`]), giving it `crs` (`None`: no CRS). A version-1 dataset has every mip
+/// [`DatasetWriter`]), giving it `crs` (`None`: the CRS it has, if any). A version-1 dataset has every mip
 /// chain checked against its version-1 CRC before it is copied, a version-2 one every mip
 /// against its CRC; older files are removed only once the new dataset is in place.
 ///
@@ -79,10 +81,9 @@ pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetE
     }
     let files = match DatasetFiles::resolve(dir) {
         Ok(files) => Some(files),
-        Err(DatasetError::NeedsUpgrade {
-            found: PREVIOUS_VERSION,
-            ..
-        }) => Some(DatasetFiles::resolve_version(dir, PREVIOUS_VERSION)?),
+        Err(DatasetError::NeedsUpgrade { found, .. }) if upgradable_manifest(found) => {
+            Some(DatasetFiles::resolve_version(dir, found)?)
+        }
         Err(DatasetError::NeedsUpgrade { .. }) => None,
         Err(e) => return Err(e),
     };
@@ -101,7 +102,12 @@ pub fn upgrade(dir: &Path, crs: Option<&Crs>) -> Result<UpgradeSummary, DatasetE
         copy_texture(&mut writer, info, &chain, dataset.colormap.colours()[id])?;
     }
     let mut scene = dataset.scene;
-    scene.crs = crs.cloned();
+    match (&scene.crs, crs) {
+        (Some(have), Some(wanted)) if !have.same_as(wanted) => return Err(other_crs(dir, have, wanted)),
+        (_, Some(wanted)) => scene.crs = Some(wanted.clone()),
+        // A version-3 dataset keeps its CRS; a version-2 one had none.
+        (_, None) => {}
+    }
     let written = writer.finish(&scene)?;
     Ok(UpgradeSummary {
         from_version: files.version(),
@@ -136,15 +142,20 @@ fn current_needs_nothing(dir: &Path, crs: Option<&Crs>) -> Result<bool, DatasetE
             match Dataset::open_files(&files)?.scene.crs {
                 None => Ok(false),
                 Some(have) if have.same_as(wanted) => Ok(true),
-                Some(have) => Err(DatasetError::InvalidInput(format!(
-                    "{}: the dataset is already in CRS {have}; giving it {wanted} would need its coordinates transformed, which citystream does not do",
-                    dir.display()
-                ))),
+                Some(have) => Err(other_crs(dir, &have, wanted)),
             }
         }
         Err(DatasetError::NeedsUpgrade { .. }) => Ok(false),
         Err(e) => Err(e),
     }
+}
+
+/// The refusal to give the dataset in `dir`, in CRS `have`, another CRS `wanted`.
+fn other_crs(dir: &Path, have: &Crs, wanted: &Crs) -> DatasetError {
+    DatasetError::InvalidInput(format!(
+        "{}: the dataset is already in CRS {have}; giving it {wanted} would need its coordinates transformed, which citystream does not do",
+        dir.display()
+    ))
 }
 
 /// The version-1 half of [`upgrade`].

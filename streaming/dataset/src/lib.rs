@@ -73,7 +73,7 @@ pub use dataset::Dataset;
 pub use error::{DatasetError, Magic};
 pub use files::{
     fresh_write_id, looks_like_url, manifest_bytes, write_dir_name, DatasetFiles, CHECKSUM_FILE, COLORMAP_FILE,
-    DATASET_FILES, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE,
+    DATASET_FILES, GEOMETRY_CRC_FILE, GEOMETRY_PACK_FILE, MANIFEST_FILE, META_FILE, PACK_FILE, SCENE_FILE, TILES_FILE,
 };
 pub use format::{full_mip_count, TextureFormat, TextureInfo, FORMAT_VERSION, MAX_EXTENT_LOG2, MAX_PACK_OFFSET};
 pub use io_util::ensure_regular_file;

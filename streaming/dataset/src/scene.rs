@@ -1,6 +1,8 @@
-//! `scene.bin`: meshes and their geometry.
+//! The scene a dataset holds (meshes and their geometry, in one frame), and `scene.bin`,
+//! the file formats 1 to 3 held it in (read by `citystream upgrade`; version 4 stores the
+//! scene in tiles, `tiled.rs`).
 //!
-//! Layout (little-endian), version 3:
+//! `scene.bin`'s layout (little-endian), version 3:
 //!
 //! | offset | size | field |
 //! |---|---|---|
@@ -31,7 +33,6 @@ use super::crs::{Crs, MAX_CRS_BYTES};
 use super::error::DatasetError;
 use super::io_util::{
     check_versioned_prefix, expect_end, f32_at, f64_at, header_and_body_crc, header_prefix, read_all, u32_at, u64_at,
-    write_new_durably,
 };
 
 const MAGIC: &[u8; 8] = b"CSSCENE\0";
@@ -53,8 +54,10 @@ pub(crate) struct SceneLayout {
 }
 
 impl SceneLayout {
-    pub(crate) const CURRENT: SceneLayout = SceneLayout {
-        version: super::format::FORMAT_VERSION,
+    /// Version 3's, the last with a `scene.bin` (written by tests' fixtures and read by
+    /// the upgrade).
+    pub(crate) const V3: SceneLayout = SceneLayout {
+        version: super::io_util::VERSION_3,
         header_len: 104,
         counts_at: 24,
         origin_at: 48,
@@ -64,10 +67,10 @@ impl SceneLayout {
         crs_record: true,
     };
     /// Version 2: as version 3 without the CRS record.
-    pub(crate) const PREVIOUS: SceneLayout = SceneLayout {
-        version: super::io_util::PREVIOUS_VERSION,
+    pub(crate) const V2: SceneLayout = SceneLayout {
+        version: super::io_util::VERSION_2,
         crs_record: false,
-        ..Self::CURRENT
+        ..Self::V3
     };
     pub(crate) const LEGACY: SceneLayout = SceneLayout {
         version: super::io_util::LEGACY_VERSION,
@@ -310,7 +313,7 @@ impl Scene {
     /// Bytes of the scene file [`encode`](Self::encode) writes (what a writer must find free
     /// on disk), without encoding it.
     pub fn encoded_len(&self) -> u64 {
-        let layout = SceneLayout::CURRENT;
+        let layout = SceneLayout::V3;
         (layout.header_len + self.body_len(layout)) as u64
     }
 
@@ -325,7 +328,7 @@ impl Scene {
     /// Encodes the scene file of write `write_id`. Validates first, so a written scene always
     /// reads back.
     pub fn encode(&self, path_for_errors: &Path, write_id: u64) -> Result<Vec<u8>, DatasetError> {
-        let layout = SceneLayout::CURRENT;
+        let layout = SceneLayout::V3;
         self.validate_with(path_for_errors, layout)?;
         let mut body = Vec::with_capacity(self.body_len(layout));
         let crs_text = self.crs.as_ref().map_or("", Crs::as_str).as_bytes();
@@ -391,17 +394,9 @@ impl Scene {
         }
     }
 
-    /// Writes the scene file of write `write_id` to `path`, which must not exist yet, and
-    /// flushes it to disk.
-    pub(crate) fn write_new(&self, path: &Path, write_id: u64) -> Result<u64, DatasetError> {
-        let bytes = self.encode(path, write_id)?;
-        write_new_durably(path, &bytes)?;
-        Ok(bytes.len() as u64)
-    }
-
     /// Reads and validates a scene file (its whole content is under its checksum).
     pub fn read(path: &Path) -> Result<Scene, DatasetError> {
-        Ok(Self::read_with_write_id(path, SceneLayout::CURRENT)?.0)
+        Ok(Self::read_with_write_id(path, SceneLayout::V3)?.0)
     }
 
     /// Reads a scene file of `layout`'s version; returns the scene and its write id (0 for
@@ -413,7 +408,7 @@ impl Scene {
 
     /// Decodes and validates scene bytes; `path` is only used in error messages.
     pub fn decode(path: &Path, bytes: &[u8]) -> Result<Scene, DatasetError> {
-        Ok(Self::decode_with(path, bytes, SceneLayout::CURRENT)?.0)
+        Ok(Self::decode_with(path, bytes, SceneLayout::V3)?.0)
     }
 
     pub(crate) fn decode_with(path: &Path, bytes: &[u8], layout: SceneLayout) -> Result<(Scene, u64), DatasetError> {
@@ -555,7 +550,7 @@ impl Scene {
     /// inside their mesh, whole triangles, finite attributes, bounds that hold their
     /// vertices. Errors carry the byte offset the value has (or would have) in the file.
     pub fn validate(&self, path: &Path) -> Result<(), DatasetError> {
-        self.validate_with(path, SceneLayout::CURRENT)
+        self.validate_with(path, SceneLayout::V3)
     }
 
     fn validate_with(&self, path: &Path, layout: SceneLayout) -> Result<(), DatasetError> {

@@ -19,11 +19,12 @@ use std::path::Path;
 use super::colormap::{CRC_MAGIC, MAGIC as COLORMAP_MAGIC};
 use super::dataset::Dataset;
 use super::error::DatasetError;
-use super::files::{CHECKSUM_FILE, COLORMAP_FILE, META_FILE, SCENE_FILE};
+use super::files::{CHECKSUM_FILE, COLORMAP_FILE, META_FILE};
 use super::format::TextureInfo;
 use super::io_util::{encode_table, header_prefix};
 use super::pack::{META_MAGIC, PACK_HEADER_BYTES, PACK_HEADER_CRC_AT, PACK_MAGIC};
 use super::scene::Scene;
+use super::tiled::encode_scene_files;
 
 /// The folder of a sharded build's output holding shard `I` in `shards/I/`.
 pub const SHARDS_DIR: &str = "shards";
@@ -261,23 +262,27 @@ impl JoinedTables {
         pack_header(write_id, self.textures.len() as u64, self.pack_len)
     }
 
-    /// The four files other than the pack, of write `write_id`, by name: `scene.bin`,
-    /// `textures.meta`, `colormap.bin`, `textures.crc`. `root` names the scene in errors.
+    /// The six files other than the pack, of write `write_id`, by name: `tiles.bin`,
+    /// `geometry.crc`, `geometry.pack`, `textures.meta`, `colormap.bin`, `textures.crc`.
+    /// `root` names the scene's files in errors.
     pub fn encode(&self, root: &Path, write_id: u64) -> Result<Vec<(&'static str, Vec<u8>)>, DatasetError> {
         let scene = self.scene();
+        let texture_count = u32::try_from(self.textures.len())
+            .map_err(|_| DatasetError::InvalidInput(format!("{} textures, more than 2^32", self.textures.len())))?;
         let meta: Vec<u8> = self.textures.iter().flat_map(|t| t.encode()).collect();
         let colours: Vec<u8> = self.colours.iter().flatten().copied().collect();
         let checksums: Vec<u8> = self.checksums.iter().flat_map(|c| c.to_le_bytes()).collect();
         let count = self.textures.len() as u64;
-        Ok(vec![
-            (SCENE_FILE, scene.encode(&root.join(SCENE_FILE), write_id)?),
+        let mut files: Vec<_> = encode_scene_files(&scene, root, write_id, texture_count)?.into();
+        files.extend([
             (META_FILE, encode_table(META_MAGIC, write_id, count, &meta)),
             (COLORMAP_FILE, encode_table(COLORMAP_MAGIC, write_id, count, &colours)),
             (
                 CHECKSUM_FILE,
                 encode_table(CRC_MAGIC, write_id, self.checksums.len() as u64, &checksums),
             ),
-        ])
+        ]);
+        Ok(files)
     }
 }
 

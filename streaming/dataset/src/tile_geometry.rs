@@ -1,5 +1,5 @@
-//! One tile's geometry in `geometry.pack` (dataset format 4, docs/FORMAT4.md): what a
-//! reader fetches with one ranged read. Not yet written by any tool.
+//! One tile's geometry in `geometry.pack` (dataset format 4, docs/DATASET.md): what a
+//! reader fetches with one ranged read.
 //!
 //! Layout of a raw blob (encoding 0; little-endian):
 //!

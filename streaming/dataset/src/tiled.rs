@@ -1,6 +1,6 @@
-//! A scene cut into tiles (dataset format 4, docs/FORMAT4.md): the tile table and
-//! `geometry.pack` that `upgrade` and the writers will write, and the tiles read back. Not
-//! yet written by any tool.
+//! A scene cut into tiles (dataset format 4, docs/DATASET.md): the tile table and
+//! `geometry.pack` that every writer writes, and the tiles read back, as tiles or as the
+//! scene they hold.
 //!
 //! The tree is flat for now: every leaf of [`leaf_tiles`] is a root, with no inner tiles
 //! above them. The quadtree of inner tiles and their proxies (issue 62's levels of detail)
@@ -10,22 +10,20 @@ use std::path::Path;
 
 use super::colormap::u32_records;
 use super::error::DatasetError;
+use super::files::{DatasetFiles, GEOMETRY_CRC_FILE, GEOMETRY_PACK_FILE, TILES_FILE};
 use super::io_util::{decode_table, encode_table_of_version};
 use super::scene::{Aabb, Scene};
 use super::tile_geometry::TileGeometry;
 use super::tiles::{Refine, TileLimits, TileRecord, TileTree, TILES_VERSION};
 use super::tiling::leaf_tiles;
 
-/// A scene as tiles: the table, the pack of their geometry, and where each mesh went.
+/// A scene as tiles: the table and the pack of their geometry.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TiledScene {
-    /// The tile table.
+    /// The tile table; its mesh ids are the scene's.
     pub tree: TileTree,
     /// `geometry.pack`'s bytes: each tile's blob at its record's offset.
     pub pack: Vec<u8>,
-    /// For each global mesh id of the tiles, the scene's mesh it came from: meshes are
-    /// renumbered so that each tile's are contiguous.
-    pub source_mesh: Vec<u32>,
 }
 
 impl TiledScene {
@@ -34,7 +32,7 @@ impl TiledScene {
         let leaves = leaf_tiles(scene);
         let mut tiles = Vec::with_capacity(leaves.len());
         let mut pack = Vec::new();
-        let mut source_mesh = Vec::with_capacity(scene.meshes.len());
+        let mut mesh_ids = Vec::with_capacity(scene.meshes.len());
         for leaf in &leaves {
             let geometry = TileGeometry::from_scene(scene, &leaf.meshes, leaf.origin)?;
             let mut bounds = Aabb::EMPTY;
@@ -66,13 +64,13 @@ impl TiledScene {
                 geometry_len: blob.len() as u64,
                 vertex_count: u32::try_from(geometry.positions.len()).map_err(|_| too_big())?,
                 index_count: u32::try_from(geometry.indices.len()).map_err(|_| too_big())?,
-                first_mesh: u32::try_from(source_mesh.len()).map_err(|_| too_big())?,
+                first_mesh: u32::try_from(mesh_ids.len()).map_err(|_| too_big())?,
                 mesh_count: u32::try_from(leaf.meshes.len()).map_err(|_| too_big())?,
                 first_texture: if first_texture == u32::MAX { 0 } else { first_texture },
                 texture_count: texture_end.saturating_sub(first_texture.min(texture_end)),
             });
             pack.extend_from_slice(&blob);
-            source_mesh.extend_from_slice(&leaf.meshes);
+            mesh_ids.extend_from_slice(&leaf.meshes);
         }
         let roots =
             0..u32::try_from(tiles.len()).map_err(|_| DatasetError::InvalidInput("more than 2^32 tiles".into()))?;
@@ -80,11 +78,12 @@ impl TiledScene {
             tree: TileTree {
                 write_id,
                 crs: scene.crs.clone(),
+                origin: scene.origin,
                 roots,
                 tiles,
+                mesh_ids,
             },
             pack,
-            source_mesh,
         })
     }
 
@@ -95,6 +94,73 @@ impl TiledScene {
             texture_count,
         }
     }
+}
+
+/// The three files of `scene` in format 4, of write `write_id` whose texture table holds
+/// `texture_count` textures, by name: `tiles.bin`, `geometry.crc`, `geometry.pack`. The
+/// scene is checked first (every mesh's texture, finite attributes, indices inside their
+/// mesh, bounds that hold their vertices); `dir` names the files in errors.
+pub(crate) fn encode_scene_files(
+    scene: &Scene,
+    dir: &Path,
+    write_id: u64,
+    texture_count: u32,
+) -> Result<[(&'static str, Vec<u8>); 3], DatasetError> {
+    if let Err(e) = scene.validate(Path::new("the scene")) {
+        // The scene is the writer's input, not a file: what is wrong with it, without offsets.
+        return Err(match e {
+            DatasetError::Corrupt { what, .. } => DatasetError::InvalidInput(format!("the scene to write: {what}")),
+            other => other,
+        });
+    }
+    if let Some((m, mesh)) = scene
+        .meshes
+        .iter()
+        .enumerate()
+        .find(|(_, m)| m.texture >= texture_count)
+    {
+        return Err(DatasetError::InvalidInput(format!(
+            "mesh {m} uses texture {} but only {texture_count} textures were written",
+            mesh.texture
+        )));
+    }
+    let tiled = TiledScene::of(scene, write_id)?;
+    let checksums = tiled.checksums()?;
+    let tiles = tiled.tree.encode(&dir.join(TILES_FILE), tiled.limits(texture_count))?;
+    Ok([
+        (TILES_FILE, tiles),
+        (GEOMETRY_CRC_FILE, encode_geometry_checksums(write_id, &checksums)),
+        (GEOMETRY_PACK_FILE, tiled.pack),
+    ])
+}
+
+/// The scene of format-4 `files` whose texture table holds `texture_count` textures, each
+/// file read with `read_file`: `geometry.crc`, `geometry.pack` and `tiles.bin` checked
+/// (write ids, the tree, every tile's geometry against its CRC-32 and its record), then the
+/// tiles' geometry as one scene ([`scene_of_tiles`]). Returns it and the bytes read.
+pub(crate) fn read_scene_files(
+    files: &DatasetFiles,
+    read_file: impl Fn(&Path) -> Result<Vec<u8>, DatasetError>,
+    texture_count: u32,
+) -> Result<(Scene, u64), DatasetError> {
+    let crc_path = files.path(GEOMETRY_CRC_FILE);
+    let (checksums, write_id) = decode_geometry_checksums(&crc_path, &read_file(&crc_path)?)?;
+    files.check_write_id(&crc_path, write_id)?;
+    let pack_path = files.path(GEOMETRY_PACK_FILE);
+    let pack = read_file(&pack_path)?;
+    let tiles_path = files.path(TILES_FILE);
+    let tiles_bytes = read_file(&tiles_path)?;
+    let limits = TileLimits {
+        geometry_len: pack.len() as u64,
+        texture_count,
+    };
+    let tree = TileTree::decode(&tiles_path, &tiles_bytes, limits)?;
+    files.check_write_id(&tiles_path, tree.write_id)?;
+    let geometry = read_checked_tile_geometry(&pack_path, &tree, &pack, &checksums)?;
+    let bytes = (pack.len() + tiles_bytes.len()) as u64;
+    // The pack's bytes go before the scene is built: at most two copies of the geometry.
+    drop(pack);
+    Ok((scene_of_tiles(&tree, &geometry)?, bytes))
 }
 
 /// The magic of `geometry.crc`.
@@ -185,13 +251,91 @@ fn tile_blob<'a>(path: &Path, index: usize, record: &TileRecord, pack: &'a [u8])
         })
 }
 
+/// The scene `tiles` (the geometry of `tree`'s tiles, in its order) hold, in the frame of
+/// the tree's origin: meshes in the order of their ids, each position re-expressed in `f64`
+/// (its position plus its tile's offset from the scene's origin) and then rounded to
+/// `f32`: the very `f32` it was written from (tiling.rs says why). Errors where a tile's geometry disagrees with its record's mesh count.
+pub fn scene_of_tiles(tree: &TileTree, tiles: &[TileGeometry]) -> Result<Scene, DatasetError> {
+    let invalid = |what: String| DatasetError::InvalidInput(format!("tiled scene: {what}"));
+    if tiles.len() != tree.tiles.len() {
+        return Err(invalid(format!(
+            "{} tiles' geometry for {} tiles",
+            tiles.len(),
+            tree.tiles.len()
+        )));
+    }
+    // Where each mesh id lies: (tile, the mesh's place in it).
+    let mut location = vec![None::<(u32, u32)>; tree.mesh_ids.len()];
+    for (t, (record, tile)) in tree.tiles.iter().zip(tiles).enumerate() {
+        if tile.meshes.len() as u64 != u64::from(record.mesh_count) {
+            return Err(invalid(format!(
+                "tile {t} holds {} meshes, its record {}",
+                tile.meshes.len(),
+                record.mesh_count
+            )));
+        }
+        for k in 0..record.mesh_count {
+            let id = tree.mesh_ids[(record.first_mesh + k) as usize];
+            location[id as usize] = Some((t as u32, k));
+        }
+    }
+    let mut scene = Scene::new(tree.origin);
+    scene.crs = tree.crs.clone();
+    let mut positions = Vec::new();
+    for (id, at) in location.into_iter().enumerate() {
+        let (t, k) = at.ok_or_else(|| invalid(format!("no tile holds mesh {id}")))?;
+        let (record, tile) = (&tree.tiles[t as usize], &tiles[t as usize]);
+        let mesh = &tile.meshes[k as usize];
+        let offset: [f64; 3] = [0, 1, 2].map(|a| record.origin[a] - tree.origin[a]);
+        let (fv, vc) = (mesh.first_vertex as usize, mesh.vertex_count as usize);
+        let (fi, ic) = (mesh.first_index as usize, mesh.index_count as usize);
+        positions.clear();
+        positions.extend(
+            tile.positions[fv..fv + vc]
+                .iter()
+                .map(|p| [0, 1, 2].map(|a| (offset[a] + f64::from(p[a])) as f32)),
+        );
+        scene.push_mesh(
+            mesh.texture,
+            &positions,
+            &tile.normals[fv..fv + vc],
+            &tile.uvs[fv..fv + vc],
+            &tile.indices[fi..fi + ic],
+        )?;
+    }
+    Ok(scene)
+}
+
 /// Every tile's geometry read back from `pack` (the bytes of `path`), checked against its
-/// record.
+/// record, its vertices inside the record's bounds (which refinement and culling trust).
 pub fn read_tile_geometry(path: &Path, tree: &TileTree, pack: &[u8]) -> Result<Vec<TileGeometry>, DatasetError> {
     tree.tiles
         .iter()
         .enumerate()
-        .map(|(index, record)| TileGeometry::decode(path, index, record, tile_blob(path, index, record, pack)?))
+        .map(|(index, record)| {
+            let tile = TileGeometry::decode(path, index, record, tile_blob(path, index, record, pack)?)?;
+            let bounds = Aabb {
+                min: record.bounds_min,
+                max: record.bounds_max,
+            };
+            // Bounds are the union of the positions as stored, so any slack is damage.
+            if let Some((v, p)) = tile
+                .positions
+                .iter()
+                .enumerate()
+                .find(|(_, p)| !bounds.contains(**p, 0.0))
+            {
+                return Err(DatasetError::Corrupt {
+                    path: path.to_path_buf(),
+                    offset: record.geometry_offset,
+                    what: format!(
+                        "tile {index}'s vertex {v} at {p:?} lies outside the tile's bounds {:?}..{:?}",
+                        record.bounds_min, record.bounds_max
+                    ),
+                });
+            }
+            Ok(tile)
+        })
         .collect()
 }
 
@@ -218,7 +362,7 @@ mod tests {
     fn a_scene_of_a_country_keeps_every_vertex_through_its_tiles() {
         // Meshes 500 km apart in one frame (the scene's origin at 0, positions f32 at
         // 500 km: 3 cm steps), and a scene 1,000 km out: through tiles every absolute
-        // position comes back within a micrometre, each mesh in one tile, ids renumbered.
+        // position comes back within a micrometre, each mesh in one tile under its own id.
         for origin in [[0.0, 0.0, 0.0], [1.0e6, 0.0, -1.0e6]] {
             let mut scene = Scene::new(origin);
             push_quad(&mut scene, [5.0e5, 0.0, 10.0], [5.0e5 + 20.0, 15.0, 30.0], 2);
@@ -227,7 +371,7 @@ mod tests {
             push_quad(&mut scene, [-300.0, 0.0, 900.0], [-280.0, 3.0, 920.0], 2);
             let tiled = TiledScene::of(&scene, 9).expect("tiles");
             assert_eq!(tiled.tree.tiles.len(), 3);
-            let mut sorted = tiled.source_mesh.clone();
+            let mut sorted = tiled.tree.mesh_ids.clone();
             sorted.sort_unstable();
             assert_eq!(sorted, vec![0, 1, 2, 3]);
             let path = Path::new("tiles.bin");
@@ -236,7 +380,7 @@ mod tests {
             let geometry = read_tile_geometry(Path::new("geometry.pack"), &tree, &tiled.pack).expect("reads");
             for (record, tile) in tree.tiles.iter().zip(&geometry) {
                 for (k, mesh) in tile.meshes.iter().enumerate() {
-                    let source = tiled.source_mesh[(record.first_mesh as usize) + k] as usize;
+                    let source = tree.mesh_ids[(record.first_mesh as usize) + k] as usize;
                     let original = &scene.meshes[source];
                     assert_eq!(mesh.texture, original.texture);
                     for v in 0..mesh.vertex_count as usize {
@@ -255,6 +399,72 @@ mod tests {
                 assert!(tile.positions.iter().flatten().all(|p| p.abs() < 256.0));
             }
         }
+    }
+
+    #[test]
+    fn a_scene_read_back_from_its_tiles_is_the_scene() {
+        // Meshes in no spatial order (the tiles list them apart), one empty, the scene 1,000 km
+        // out: the same meshes under the same ids, with the same attributes and indices.
+        let mut scene = Scene::new([1.0e6, 12.0, -1.0e6]);
+        scene.crs = Some(crate::Crs::epsg(25833));
+        push_quad(&mut scene, [900.0, 0.0, 10.0], [920.0, 8.0, 25.0], 1);
+        push_quad(&mut scene, [10.0, 0.0, 10.0], [40.0, 8.0, 25.0], 0);
+        scene.push_mesh(2, &[], &[], &[], &[]).expect("an empty mesh");
+        push_quad(&mut scene, [905.5, 1.0, 30.25], [915.0, 6.0, 40.0], 2);
+        push_quad(&mut scene, [-3000.0, -2.0, 5000.0], [-2990.0, 3.0, 5010.0], 0);
+        let tiled = TiledScene::of(&scene, 3).expect("tiles");
+        assert_ne!(
+            tiled.tree.mesh_ids,
+            (0..5).collect::<Vec<u32>>(),
+            "the tiles list the meshes in another order"
+        );
+        let tiles = read_tile_geometry(Path::new("geometry.pack"), &tiled.tree, &tiled.pack).expect("reads");
+        let back = scene_of_tiles(&tiled.tree, &tiles).expect("a scene");
+        // Tile origins lie whole metres from the scene's: every position comes back as the
+        // very `f32` written, so the scene is equal, bounds and all.
+        assert_eq!(back, scene);
+        // A tile whose geometry lost a mesh is refused.
+        let mut short = tiles.clone();
+        short[0].meshes.pop();
+        assert!(scene_of_tiles(&tiled.tree, &short).is_err());
+    }
+
+    #[test]
+    fn positions_come_back_as_the_very_f32_written_anywhere_in_a_city() {
+        // Random meshes over 40 km, many near the scene's origin (where a tile's origin can
+        // lie farther from the scene's than a vertex does) and some large ones: exact.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            (z ^ (z >> 31)) as f64 / u64::MAX as f64
+        };
+        let mut scene = Scene::new([391_250.0, 34.0, -5_819_500.0]);
+        for m in 0..400 {
+            let reach = if m % 2 == 0 { 300.0 } else { 20_000.0 };
+            let centre = [0, 1, 2].map(|_| (next() * 2.0 - 1.0) * reach);
+            let size = if m % 7 == 0 { 200.0 } else { 12.0 };
+            let positions: Vec<[f32; 3]> = (0..6)
+                .map(|_| [0, 1, 2].map(|a| (centre[a] + (next() - 0.5) * size) as f32))
+                .collect();
+            scene
+                .push_mesh(
+                    m % 5,
+                    &positions,
+                    &[[0.0, 1.0, 0.0]; 6],
+                    &[[0.5; 2]; 6],
+                    &[0, 1, 2, 3, 4, 5],
+                )
+                .expect("a mesh");
+        }
+        let tiled = TiledScene::of(&scene, 1).expect("tiles");
+        let tiles = read_tile_geometry(Path::new("geometry.pack"), &tiled.tree, &tiled.pack).expect("reads");
+        let back = scene_of_tiles(&tiled.tree, &tiles).expect("a scene");
+        assert_eq!(back, scene);
+        // And so a scene read back is written again byte for byte (a merge of shards).
+        assert_eq!(TiledScene::of(&back, 1).expect("tiles"), tiled);
     }
 
     #[test]

@@ -1,5 +1,4 @@
-//! `tiles.bin` of dataset format 4 (docs/FORMAT4.md): the tile tree, read whole at open.
-//! Not yet written by any tool; the codec and its checks come first.
+//! `tiles.bin` of dataset format 4 (docs/DATASET.md): the tile tree, read whole at open.
 //!
 //! Layout (little-endian), version 4:
 //!
@@ -14,8 +13,15 @@
 //! | 36 | 4 | root count |
 //! | 40 | 4 | CRS text length C in bytes (0: a local frame), at most [`MAX_CRS_BYTES`] |
 //! | 44 | 4 | CRC-32 of bytes 0..44 and of everything after byte 48 |
-//! | 48 | C | CRS text, UTF-8, then zero bytes to a multiple of 8 |
+//! | 48 | 24 | the scene's origin, 3 × f64: the frame camera paths and scene bounds are given in |
+//! | 72 | 8 | mesh count M |
+//! | 80 | C | CRS text, UTF-8, then zero bytes to a multiple of 8 |
 //! | … | 128·T | tile records ([`TILE_RECORD_BYTES`]) |
+//! | … | 4·M | mesh ids, u32: each tile's meshes, a tile after another; a permutation of `0..M` |
+//!
+//! Mesh ids are the scene's own (a texture's meshes, an atlas tree's nodes and every per-mesh
+//! table keep meaning what they meant before the scene was cut into tiles), so a tile lists
+//! its meshes' ids rather than owning a range of them.
 //!
 //! A tile record:
 //!
@@ -30,7 +36,7 @@
 //! | 56 | 8 | first child, child count (2 × u32); children are contiguous and follow their parent |
 //! | 64 | 16 | geometry offset and length in `geometry.pack` (2 × u64) |
 //! | 80 | 8 | vertex count, index count (2 × u32) |
-//! | 88 | 8 | first mesh, mesh count (2 × u32): global mesh ids, contiguous per tile |
+//! | 88 | 8 | first mesh, mesh count (2 × u32): its meshes' ids are the mesh id table's entries `first..first + count` |
 //! | 96 | 8 | first texture, texture count (2 × u32) |
 //! | 104 | 24 | reserved (0) |
 
@@ -46,7 +52,7 @@ const MAGIC: &[u8; 8] = b"CSTILES\0";
 pub const TILES_VERSION: u32 = 4;
 /// Bytes of one tile record.
 pub const TILE_RECORD_BYTES: usize = 128;
-const HEADER_BYTES: usize = 48;
+const HEADER_BYTES: usize = 80;
 
 /// How a tile's children refine it (3D Tiles' `refine`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -82,7 +88,8 @@ pub struct TileRecord {
     pub vertex_count: u32,
     /// Indices of its geometry.
     pub index_count: u32,
-    /// Its first mesh's global id; its meshes are `first_mesh..first_mesh + mesh_count`.
+    /// Where its meshes' ids start in [`TileTree::mesh_ids`]; its meshes are
+    /// `mesh_ids[first_mesh..first_mesh + mesh_count]`.
     pub first_mesh: u32,
     /// Its meshes' count.
     pub mesh_count: u32,
@@ -108,10 +115,16 @@ pub struct TileTree {
     pub write_id: u64,
     /// The frame tile origins are given in (`None`: a local frame).
     pub crs: Option<Crs>,
+    /// The scene's origin (absolute): scene coordinates, in which camera paths and the
+    /// scene's bounds are given, are relative to it.
+    pub origin: [f64; 3],
     /// The root tiles: `roots.start..roots.end`.
     pub roots: Range<u32>,
     /// Every tile, parents before their children.
     pub tiles: Vec<TileRecord>,
+    /// The scene's mesh ids of every tile's meshes, a tile's after another's: a permutation
+    /// of `0..` the mesh count.
+    pub mesh_ids: Vec<u32>,
 }
 
 fn corrupt(path: &Path, offset: usize, what: String) -> DatasetError {
@@ -152,6 +165,10 @@ impl TileTree {
         out.extend_from_slice(&(self.roots.end - self.roots.start).to_le_bytes());
         out.extend_from_slice(&(crs_text.len() as u32).to_le_bytes());
         out.extend_from_slice(&0u32.to_le_bytes());
+        for v in self.origin {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&(self.mesh_ids.len() as u64).to_le_bytes());
         out.extend_from_slice(crs_text);
         out.resize(HEADER_BYTES + self.crs_len(), 0);
         for tile in &self.tiles {
@@ -187,6 +204,9 @@ impl TileTree {
             }
             out.resize(start + TILE_RECORD_BYTES, 0);
         }
+        for id in &self.mesh_ids {
+            out.extend_from_slice(&id.to_le_bytes());
+        }
         let crc = crc_of(&out);
         out[44..48].copy_from_slice(&crc.to_le_bytes());
         Ok(out)
@@ -209,11 +229,17 @@ impl TileTree {
                 format!("CRS text of {crs_len} bytes, at most {MAX_CRS_BYTES} are allowed"),
             ));
         }
+        let origin = [0, 1, 2].map(|i| f64_at(bytes, 48 + i * 8));
+        let mesh_count = u64_at(bytes, 72);
         let records_at = HEADER_BYTES + crs_len.next_multiple_of(8);
-        let end = count
+        let ids_at = count
             .checked_mul(TILE_RECORD_BYTES as u64)
             .and_then(|b| b.checked_add(records_at as u64))
             .ok_or_else(|| corrupt(path, 24, format!("tile count {count} is absurd")))?;
+        let end = mesh_count
+            .checked_mul(4)
+            .and_then(|b| b.checked_add(ids_at))
+            .ok_or_else(|| corrupt(path, 72, format!("mesh count {mesh_count} is absurd")))?;
         if end != bytes.len() as u64 {
             return Err(DatasetError::truncated(
                 path,
@@ -233,6 +259,9 @@ impl TileTree {
                 stored,
                 computed,
             });
+        }
+        if let Some(at) = (HEADER_BYTES + crs_len..records_at).find(|&at| bytes[at] != 0) {
+            return Err(corrupt(path, at, "the CRS record's padding is not zero".into()));
         }
         let crs = match crs_len {
             0 => None,
@@ -294,11 +323,17 @@ impl TileTree {
                 texture_count: u32_at(r, 100),
             });
         }
+        let ids_at = ids_at as usize;
+        let mesh_ids = (0..mesh_count as usize)
+            .map(|i| u32_at(bytes, ids_at + 4 * i))
+            .collect();
         let tree = TileTree {
             write_id,
             crs,
+            origin,
             roots,
             tiles,
+            mesh_ids,
         };
         tree.validate(path, limits)?;
         Ok(tree)
@@ -308,8 +343,16 @@ impl TileTree {
     /// every child range inside the table, children after their parent and each tile the
     /// child of one parent at most (so the tree has no cycle and nothing hangs off two
     /// branches), roots nobody's child; geometry inside `geometry.pack`; texture ranges
-    /// inside the table; mesh ranges that partition `0..` the total mesh count.
+    /// inside the table; mesh ranges that partition the mesh id table, and ids that are a
+    /// permutation of `0..` the mesh count.
     pub fn validate(&self, path: &Path, limits: TileLimits) -> Result<(), DatasetError> {
+        if !self.origin.iter().all(|v| v.is_finite()) {
+            return Err(corrupt(
+                path,
+                48,
+                format!("the scene's origin {:?} is not finite", self.origin),
+            ));
+        }
         let count = self.tiles.len();
         let tile_count =
             u32::try_from(count).map_err(|_| corrupt(path, 24, format!("{count} tiles, more than a u32 numbers")))?;
@@ -423,12 +466,34 @@ impl TileTree {
             }
             next = first + mesh_count;
         }
+        let ids_at = self.record_offset(count);
+        if next as usize != self.mesh_ids.len() {
+            return Err(corrupt(
+                path,
+                72,
+                format!("{} mesh ids, but the tiles' meshes end at {next}", self.mesh_ids.len()),
+            ));
+        }
+        let mut seen = vec![false; self.mesh_ids.len()];
+        for (entry, &id) in self.mesh_ids.iter().enumerate() {
+            match seen.get_mut(id as usize) {
+                Some(slot) if !*slot => *slot = true,
+                Some(_) => return Err(corrupt(path, ids_at + 4 * entry, format!("mesh {id} is listed twice"))),
+                None => {
+                    return Err(corrupt(
+                        path,
+                        ids_at + 4 * entry,
+                        format!("mesh id {id} is past the {} meshes", self.mesh_ids.len()),
+                    ))
+                }
+            }
+        }
         Ok(())
     }
 
     /// Meshes over all tiles.
     pub fn mesh_count(&self) -> u64 {
-        self.tiles.iter().map(|t| u64::from(t.mesh_count)).sum()
+        self.mesh_ids.len() as u64
     }
 }
 
@@ -436,7 +501,7 @@ impl TileTree {
 fn crc_of(bytes: &[u8]) -> u32 {
     let mut hasher = crc32fast::Hasher::new();
     hasher.update(&bytes[..44]);
-    hasher.update(&bytes[HEADER_BYTES.min(bytes.len())..]);
+    hasher.update(&bytes[48.min(bytes.len())..]);
     hasher.finalize()
 }
 
@@ -474,12 +539,14 @@ mod tests {
         TileTree {
             write_id: 0x1234_5678_9abc_def0,
             crs: Some(Crs::epsg(25833)),
+            origin: [1.0e6, 0.0, -2.5e6],
             roots: 0..1,
             tiles: vec![
                 tile(1, 2, 0..1, 0..100),
                 tile(0, 0, 1..4, 100..400),
                 tile(0, 0, 4..6, 400..600),
             ],
+            mesh_ids: vec![5, 0, 2, 1, 4, 3],
         }
     }
 
@@ -495,7 +562,7 @@ mod tests {
     fn a_tree_round_trips_through_its_bytes() {
         let tree = tree();
         let bytes = tree.encode(path(), LIMITS).expect("valid");
-        assert_eq!(bytes.len(), HEADER_BYTES + 16 + 3 * TILE_RECORD_BYTES);
+        assert_eq!(bytes.len(), HEADER_BYTES + 16 + 3 * TILE_RECORD_BYTES + 6 * 4);
         let back = TileTree::decode(path(), &bytes, LIMITS).expect("decodes");
         assert_eq!(back, tree);
         assert_eq!(back.mesh_count(), 6);
@@ -559,6 +626,11 @@ mod tests {
         }
         bad[32..36].copy_from_slice(&tree.roots.start.to_le_bytes());
         bad[36..40].copy_from_slice(&(tree.roots.end.wrapping_sub(tree.roots.start)).to_le_bytes());
+        bad[48..56].copy_from_slice(&tree.origin[0].to_le_bytes());
+        let ids_at = HEADER_BYTES + 16 + tree.tiles.len() * TILE_RECORD_BYTES;
+        for (i, id) in tree.mesh_ids.iter().enumerate() {
+            bad[ids_at + 4 * i..ids_at + 4 * i + 4].copy_from_slice(&id.to_le_bytes());
+        }
         let crc = crc_of(&bad);
         bad[44..48].copy_from_slice(&crc.to_le_bytes());
         message(TileTree::decode(path(), &bad, LIMITS))
@@ -593,6 +665,13 @@ mod tests {
             ("tile 1: textures 7 + 2", Box::new(|t| t.tiles[1].first_texture = 7)),
             ("meshes start at 5", Box::new(|t| t.tiles[2].first_mesh = 5)),
             ("meshes start at 3", Box::new(|t| t.tiles[2].first_mesh = 3)),
+            (
+                "6 mesh ids, but the tiles' meshes end at 5",
+                Box::new(|t| t.tiles[2].mesh_count = 1),
+            ),
+            ("mesh 4 is listed twice", Box::new(|t| t.mesh_ids[0] = 4)),
+            ("mesh id 6 is past the 6 meshes", Box::new(|t| t.mesh_ids[5] = 6)),
+            ("the scene's origin", Box::new(|t| t.origin[0] = f64::INFINITY)),
             ("roots 0..4", Box::new(|t| t.roots = 0..4)),
             ("root tile 1 is also a child of tile 0", Box::new(|t| t.roots = 0..2)),
             (

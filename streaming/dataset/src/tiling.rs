@@ -1,15 +1,21 @@
-//! Leaf tiles of dataset format 4 (docs/FORMAT4.md, agreed point 1), computed from a
-//! scene: the first step of `upgrade` to version 4 and of the writers. Not yet written by
-//! any tool.
+//! Leaf tiles of dataset format 4 (docs/DATASET.md; the reasons in docs/FORMAT4.md, agreed
+//! point 1), computed from a scene: the first step of every writer and of `upgrade`.
 //!
 //! Meshes are grouped by the centre of their bounds on a horizontal grid of
 //! [`TILE_SIDE_M`] (x and z; y is up), in absolute coordinates (the scene's origin plus the
 //! mesh's position), so tiles of shards built apart line up. A cell holding more than
 //! [`MAX_LEAF_TRIANGLES`] splits into its four quadrants, and so on, until each is under
-//! that or [`MIN_LEAF_SIDE_M`] across. Each tile's origin is the centre of its meshes'
-//! bounds rounded to a millimetre, in `f64`; positions re-expressed relative to it are
-//! `f32` finer than 0.02 mm anywhere in a 256 m tile, however far from the scene's origin
-//! the tile lies.
+//! that or [`MIN_LEAF_SIDE_M`] across.
+//!
+//! Each tile's origin is the scene's origin plus an offset: on each axis
+//! the centre of its meshes' bounds rounded to whole metres, or 0 where that centre lies
+//! within the tile's own extent (plus a metre) of the scene's origin. Positions relative to
+//! it are then `f32` finer than 0.03 mm anywhere in a 256 m tile, however far from the
+//! scene's origin the tile lies, and re-expressing is exact: an `f32` position `p` in the
+//! scene's frame moves by a whole number of metres to `q`, no larger than `p` (so no
+//! coarser an `f32`), and back to the very same `p` (for positions under 2²⁴ m from the
+//! scene's origin, where `f32` steps are at most a metre). A scene written, read and written
+//! again (a merge of shards) is written identically.
 
 use std::collections::BTreeMap;
 
@@ -31,7 +37,8 @@ pub struct LeafTile {
     /// Its lower corner on the grid, in whole sides: x and z of the corner are
     /// `cell × side_m`, in absolute coordinates.
     pub cell: [i64; 2],
-    /// Absolute position of its origin: the centre of its meshes' bounds, to a millimetre.
+    /// Absolute position of its origin: the scene's origin plus a whole number of metres on
+    /// each axis (the module's docs say which).
     pub origin: [f64; 3],
     /// Its meshes, as ids of the scene it was computed from, ascending.
     pub meshes: Vec<u32>,
@@ -114,8 +121,11 @@ fn split_into(scene: &Scene, cell: [i64; 2], side: f64, meshes: Vec<u32>, tiles:
     }
 }
 
-/// The centre of `meshes`' absolute bounds rounded to a millimetre; the scene's origin for
-/// meshes with no bounds.
+/// The origin of a tile of `meshes`: the scene's origin plus, on each axis, the centre of
+/// their bounds rounded to whole metres, or 0 where that offset is under the bounds'
+/// extent plus a metre (there a vertex may lie nearer the scene's origin than the tile's
+/// centre, and moving it would coarsen its `f32`; the module's docs say why this makes
+/// re-expressing exact); the scene's origin for meshes with no bounds.
 fn origin_of(scene: &Scene, meshes: &[u32]) -> [f64; 3] {
     let mut low = [f64::INFINITY; 3];
     let mut high = [f64::NEG_INFINITY; 3];
@@ -130,7 +140,14 @@ fn origin_of(scene: &Scene, meshes: &[u32]) -> [f64; 3] {
     if !low[0].is_finite() {
         return scene.origin;
     }
-    std::array::from_fn(|a| (0.5 * (low[a] + high[a]) * 1000.0).round() / 1000.0)
+    std::array::from_fn(|a| {
+        let offset = (0.5 * (low[a] + high[a]) - scene.origin[a]).round();
+        if offset.abs() >= high[a] - low[a] + 1.0 {
+            scene.origin[a] + offset
+        } else {
+            scene.origin[a]
+        }
+    })
 }
 
 /// `mesh`'s positions relative to `origin` (absolute), computed in `f64` and rounded once.
@@ -188,8 +205,13 @@ mod tests {
             vec![([-1, -1], vec![3]), ([0, 0], vec![0, 1]), ([1, 0], vec![2])],
             "{tiles:?}"
         );
-        // The origin is the centre of the tile's meshes' bounds, to a millimetre.
-        assert_eq!(tiles[1].origin, [130.0, 4.5, 65.0]);
+        // The origin is the centre of the tile's meshes' bounds to whole metres, or the
+        // scene's origin on an axis where the bounds reach within their extent of it.
+        assert_eq!(tiles[1].origin, [0.0, 0.0, 0.0]);
+        assert_eq!(tiles[2].origin, [305.0, 0.0, 15.0]);
+        let mut far = Scene::new([0.0; 3]);
+        push_mesh(&mut far, [5_000.5, 0.0, 2_000.25], [5_010.0, 9.0, 2_100.0], 4);
+        assert_eq!(leaf_tiles(&far)[0].origin, [5_005.0, 0.0, 2_050.0]);
         assert!(tiles.iter().all(|t| t.side_m == TILE_SIDE_M));
     }
 

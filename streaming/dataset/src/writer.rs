@@ -14,6 +14,7 @@ use super::io_util::{encode_table, write_new_durably};
 use super::pack::{META_MAGIC, PACK_HEADER_BYTES};
 use super::scene::Scene;
 use super::shard::{pack_header, part_pack_body};
+use super::tiled::encode_scene_files;
 
 /// Totals of a written dataset.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -28,7 +29,7 @@ pub struct WriteSummary {
     pub triangles: u64,
     /// Bytes of `textures.pack`.
     pub pack_bytes: u64,
-    /// Bytes of `scene.bin`.
+    /// Bytes of the scene's files: `tiles.bin`, `geometry.pack` and `geometry.crc`.
     pub scene_bytes: u64,
     /// Bytes of `textures.meta` + `colormap.bin` + `textures.crc`.
     pub metadata_bytes: u64,
@@ -443,7 +444,7 @@ impl DatasetWriter {
     /// so it appears with them, atomically, at [`DatasetWriter::finish`]: a shard's record.
     /// `name` is a plain file name other than the format's.
     pub fn add_file(&mut self, name: &str, bytes: &[u8]) -> Result<(), DatasetError> {
-        let reserved = DATASET_FILES.contains(&name) || name == JOURNAL_FILE;
+        let reserved = DATASET_FILES.contains(&name) || name == SCENE_FILE || name == JOURNAL_FILE;
         if name.is_empty() || name.contains(['/', '\\']) || name.starts_with('.') || reserved {
             return Err(DatasetError::InvalidInput(format!(
                 "{name:?} cannot be added to a dataset's write (a plain file name other than the format's)"
@@ -455,19 +456,17 @@ impl DatasetWriter {
         write_new_durably(&path, bytes)
     }
 
-    /// Validates `scene` (every mesh texture must exist), writes it and the tables, completes
-    /// the pack header, flushes everything, reopens the new dataset with every check
+    /// Validates `scene` (every mesh texture must exist), writes it in tiles (`tiles.bin`,
+    /// `geometry.pack`, `geometry.crc`) and the tables, completes the pack header, flushes everything, reopens the new dataset with every check
     /// [`Dataset::open`] makes, and only then makes it the directory's dataset.
     pub fn finish(self, scene: &Scene) -> Result<WriteSummary, DatasetError> {
         let count = self.textures.len() as u32;
-        if let Some((m, mesh)) = scene.meshes.iter().enumerate().find(|(_, m)| m.texture >= count) {
-            return Err(DatasetError::InvalidInput(format!(
-                "mesh {m} uses texture {} but only {count} textures were written",
-                mesh.texture
-            )));
-        }
         let write_id = self.pending.write_id();
-        let scene_bytes = scene.write_new(&self.pending.path(SCENE_FILE), write_id)?;
+        let mut scene_bytes = 0;
+        for (name, bytes) in encode_scene_files(scene, &self.pending.path(""), write_id, count)? {
+            write_new_durably(&self.pending.path(name), &bytes)?;
+            scene_bytes += bytes.len() as u64;
+        }
 
         let mut file = self
             .pack

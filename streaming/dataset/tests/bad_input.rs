@@ -7,11 +7,18 @@ use std::path::Path;
 
 use citystream_dataset::{
     verify, Dataset, DatasetError, DatasetWriter, Scene, TextureFormat, TexturePack, CHECKSUM_FILE, COLORMAP_FILE,
-    DATASET_FILES, FORMAT_VERSION, MANIFEST_FILE, MAX_CRS_BYTES, META_FILE, PACK_FILE, SCENE_FILE,
+    DATASET_FILES, FORMAT_VERSION, GEOMETRY_CRC_FILE, GEOMETRY_PACK_FILE, MANIFEST_FILE, MAX_CRS_BYTES, META_FILE,
+    PACK_FILE, TILES_FILE,
 };
 use support::{
-    copy_dir, data_file, fix_pack_header_crc, fix_scene_crc, fix_table_crc, patch, test_dir, write_fixture, TEXTURES,
+    copy_dir, data_file, fix_geometry_crc, fix_pack_header_crc, fix_table_crc, fix_tiles_crc, patch, test_dir,
+    write_fixture, TEXTURES,
 };
+
+/// The data files of a write, every one the format's (the manifest is beside them).
+fn data_files() -> impl Iterator<Item = &'static str> {
+    DATASET_FILES.into_iter().filter(|&f| f != MANIFEST_FILE)
+}
 
 /// Byte offset of texture `i`'s record in `textures.meta`.
 fn record(i: usize) -> usize {
@@ -42,7 +49,7 @@ fn assert_names(err: &DatasetError, file: &str, needles: &[&str]) {
 
 #[test]
 fn missing_files_are_named() {
-    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, CHECKSUM_FILE] {
+    for file in data_files() {
         let fixture = write_fixture(&format!("missing-{file}"));
         std::fs::remove_file(data_file(&fixture.dir, file)).expect("remove");
         let err = open_err(&fixture.dir);
@@ -61,7 +68,8 @@ fn missing_files_are_named() {
 
 #[test]
 fn wrong_magic_is_reported_for_each_file() {
-    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE] {
+    // `geometry.pack` has no header: its tiles' blobs are checked against `geometry.crc`.
+    for file in [TILES_FILE, GEOMETRY_CRC_FILE, META_FILE, PACK_FILE, COLORMAP_FILE] {
         let dir = damaged(&format!("magic-{file}"), file, |b| b[0..8].copy_from_slice(b"NOTADATA"));
         let err = open_err(&dir);
         assert!(matches!(err, DatasetError::BadMagic { .. }), "{file}: {err}");
@@ -143,11 +151,21 @@ fn corrupt_table_bytes_fail_the_checksum() {
     assert!(matches!(err, DatasetError::Checksum { .. }), "{err}");
     assert_names(&err, META_FILE, &["checksum"]);
 
-    let dir = damaged("scene-checksum", SCENE_FILE, |b| {
+    // A byte of a tile's geometry: its CRC-32 in `geometry.crc` names the tile.
+    let dir = damaged("geometry-checksum", GEOMETRY_PACK_FILE, |b| {
         let n = b.len();
         b[n - 1] ^= 1;
     });
-    assert!(matches!(open_err(&dir), DatasetError::Checksum { .. }));
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Checksum { .. }), "{err}");
+    assert_names(&err, GEOMETRY_PACK_FILE, &["tile 0's geometry"]);
+    let dir = damaged("tiles-checksum", TILES_FILE, |b| {
+        let n = b.len();
+        b[n - 1] ^= 1;
+    });
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Checksum { .. }), "{err}");
+    assert_names(&err, TILES_FILE, &["tile table"]);
 }
 
 #[test]
@@ -279,21 +297,23 @@ fn count_mismatches_between_files_are_reported() {
     assert_names(&open_err(&dir), CHECKSUM_FILE, &["mip checksums"]);
 }
 
-/// Writes `word` at byte `at` of a copy of the fixture's `scene.bin` (checksum recomputed, so
-/// the check behind it is reached) and expects a `Corrupt` error naming `needle`.
-fn assert_scene_word_refused(name: &str, at: usize, word: [u8; 4], needle: &str) {
-    let dir = damaged(name, SCENE_FILE, |b| {
-        b[at..at + 4].copy_from_slice(&word);
-        fix_scene_crc(b);
-    });
+/// Writes `word` at byte `at` of a copy of the fixture's `geometry.pack` (its tile's CRC-32
+/// recomputed, so the check behind it is reached) and expects a `Corrupt` error naming
+/// `needle`.
+fn assert_geometry_word_refused(name: &str, at: usize, word: [u8; 4], needle: &str) {
+    let dir = damaged(name, GEOMETRY_PACK_FILE, |b| b[at..at + 4].copy_from_slice(&word));
+    fix_geometry_crc(&dir);
     let err = open_err(&dir);
-    assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
-    assert_names(&err, SCENE_FILE, &[needle]);
+    assert!(
+        matches!(err, DatasetError::Corrupt { offset, .. } if offset == at as u64),
+        "{name}: {err}"
+    );
+    assert_names(&err, GEOMETRY_PACK_FILE, &["tile 0's geometry", needle]);
 }
 
-/// Byte offsets of the scene sections for the fixture.
-struct SceneLayout {
-    crs: usize,
+/// Byte offsets of the sections of the fixture's one tile in `geometry.pack` (its meshes lie
+/// within a few tens of metres: one leaf tile, which lists them in their order).
+struct GeometryLayout {
     meshes: usize,
     positions: usize,
     normals: usize,
@@ -301,16 +321,13 @@ struct SceneLayout {
     indices: usize,
 }
 
-fn scene_layout(scene: &Scene) -> SceneLayout {
-    let crs = 104;
-    let crs_len = scene.crs.as_ref().map_or(0, |c| c.as_str().len());
-    let meshes = crs + 4 + crs_len.next_multiple_of(4);
-    let positions = meshes + 44 * scene.meshes.len();
+fn geometry_layout(scene: &Scene) -> GeometryLayout {
+    let meshes = 16;
+    let positions = meshes + 20 * scene.meshes.len();
     let normals = positions + 12 * scene.positions.len();
     let uvs = normals + 12 * scene.positions.len();
     let indices = uvs + 8 * scene.positions.len();
-    SceneLayout {
-        crs,
+    GeometryLayout {
         meshes,
         positions,
         normals,
@@ -319,81 +336,115 @@ fn scene_layout(scene: &Scene) -> SceneLayout {
     }
 }
 
+/// `tiles.bin`'s header bytes and where the fixture's one tile record starts.
+const TILES_HEADER_BYTES: usize = 80;
+
+fn tile_record_at(scene: &Scene) -> usize {
+    TILES_HEADER_BYTES + scene.crs.as_ref().map_or(0, |c| c.as_str().len().next_multiple_of(8))
+}
+
+/// Writes `word` at byte `at` of a copy of the fixture's `tiles.bin` (checksum recomputed)
+/// and expects a `Corrupt` error at `at` naming `needle`.
+fn assert_tiles_word_refused(name: &str, at: usize, word: &[u8], needle: &str) {
+    let dir = damaged(name, TILES_FILE, |b| {
+        b[at..at + word.len()].copy_from_slice(word);
+        fix_tiles_crc(b);
+    });
+    let err = open_err(&dir);
+    assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
+    assert_names(&err, TILES_FILE, &[needle]);
+}
+
 #[test]
 fn index_out_of_range_names_mesh_index_and_offset() {
     let scene = write_fixture("index-layout").scene;
-    let layout = scene_layout(&scene);
     // Mesh 0 is a quad (4 vertices); make its second index 4.
-    let at = layout.indices + 4;
-    let dir = damaged("index-range", SCENE_FILE, |b| {
-        b[at..at + 4].copy_from_slice(&4u32.to_le_bytes());
-        fix_scene_crc(b);
-    });
-    let err = open_err(&dir);
-    assert!(
-        matches!(err, DatasetError::Corrupt { offset, .. } if offset == at as u64),
-        "{err}"
+    let at = geometry_layout(&scene).indices + 4;
+    assert_geometry_word_refused(
+        "index-range",
+        at,
+        4u32.to_le_bytes(),
+        "mesh 0: index 4 beyond its 4 vertices",
     );
-    assert_names(&err, SCENE_FILE, &["mesh 0", "index 1", "out of range"]);
 }
 
 #[test]
 fn non_finite_attributes_are_rejected() {
     let scene = write_fixture("nan-layout").scene;
-    let layout = scene_layout(&scene);
+    let layout = geometry_layout(&scene);
     let cases = [
         (
             "nan-position",
             layout.positions + 12 * 5 + 4,
             f32::NAN,
-            "vertex 5 has non-finite position",
+            "a position NaN",
         ),
-        (
-            "inf-normal",
-            layout.normals + 12 * 2,
-            f32::INFINITY,
-            "vertex 2 has non-finite normal",
-        ),
+        ("inf-normal", layout.normals + 12 * 2, f32::INFINITY, "a normal inf"),
         (
             "inf-uv",
             layout.uvs + 8 * 3 + 4,
             f32::NEG_INFINITY,
-            "vertex 3 has non-finite uv",
+            "a texture coordinate -inf",
         ),
-        ("nan-bounds", layout.meshes + 44 + 20, f32::NAN, "mesh 1: bounds"),
     ];
     for (name, at, value, needle) in cases {
-        assert_scene_word_refused(name, at, value.to_le_bytes(), needle);
+        assert_geometry_word_refused(name, at, value.to_le_bytes(), needle);
     }
+    // A tile's bounds, in `tiles.bin`.
+    let record = tile_record_at(&scene);
+    assert_tiles_word_refused("nan-bounds", record + 28, &f32::NAN.to_le_bytes(), "tile 0: bounds");
 }
 
 #[test]
 fn mesh_ranges_and_texture_ids_are_checked() {
     let scene = write_fixture("mesh-layout").scene;
-    let layout = scene_layout(&scene);
-    let cases: [(&str, usize, u32, &str); 4] = [
-        ("vertex-range", 4, 1_000, "mesh 1: vertices"),
-        ("index-range-mesh", 12, 999, "mesh 1: indices"),
-        ("partial-triangle", 12, 5, "not a multiple of 3"),
-        ("missing-texture", 16, 500, "uses texture 500"),
+    let layout = geometry_layout(&scene);
+    let cases: [(&str, usize, usize, u32, &str); 4] = [
+        ("vertex-range", 4, 0, 1_000, "mesh 1: vertices"),
+        ("index-range-mesh", 12, 8, 999, "mesh 1: indices"),
+        ("partial-triangle", 12, 8, 5, "not whole triangles"),
+        ("missing-texture", 16, 16, 500, "mesh 1: texture 500 outside"),
     ];
-    for (name, field, value, needle) in cases {
-        let at = layout.meshes + 44 + field;
-        assert_scene_word_refused(name, at, value.to_le_bytes(), needle);
+    for (name, field, named_at, value, needle) in cases {
+        let at = layout.meshes + 20 + field;
+        let dir = damaged(name, GEOMETRY_PACK_FILE, |b| {
+            b[at..at + 4].copy_from_slice(&value.to_le_bytes())
+        });
+        fix_geometry_crc(&dir);
+        let err = open_err(&dir);
+        assert!(
+            matches!(err, DatasetError::Corrupt { offset, .. } if offset == (layout.meshes + 20 + named_at) as u64),
+            "{name}: {err}"
+        );
+        assert_names(&err, GEOMETRY_PACK_FILE, &[needle]);
     }
 }
 
 #[test]
-fn scene_counts_that_disagree_with_the_file_size_are_truncation() {
-    let dir = damaged("scene-count", SCENE_FILE, |b| {
-        b[32..40].copy_from_slice(&1_000_000u64.to_le_bytes())
+fn geometry_counts_that_disagree_with_the_file_sizes_are_truncation() {
+    // A tile's blob shorter than its counts say (its CRC-32 recomputed, its record's length
+    // moved with it): truncation, naming the tile.
+    let fixture = write_fixture("geometry-count-src");
+    let dir = copy_dir(&fixture.dir, "geometry-count");
+    patch(&data_file(&dir, GEOMETRY_PACK_FILE), |b| {
+        b.truncate(b.len() - 4);
+    });
+    fix_geometry_crc(&dir);
+    let record = tile_record_at(&fixture.scene);
+    patch(&data_file(&dir, TILES_FILE), |b| {
+        let len = u64::from_le_bytes(b[record + 72..record + 80].try_into().expect("8 bytes"));
+        b[record + 72..record + 80].copy_from_slice(&(len - 4).to_le_bytes());
+        fix_tiles_crc(b);
     });
     let err = open_err(&dir);
     assert!(matches!(err, DatasetError::Truncated { .. }), "{err}");
-    let dir = damaged("scene-absurd-count", SCENE_FILE, |b| {
-        b[40..48].copy_from_slice(&u64::MAX.to_le_bytes())
+    assert_names(&err, GEOMETRY_PACK_FILE, &["tile 0's geometry"]);
+    // A mesh count no file could hold.
+    let dir = damaged("tiles-absurd-count", TILES_FILE, |b| {
+        b[72..80].copy_from_slice(&u64::MAX.to_le_bytes());
+        fix_tiles_crc(b);
     });
-    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 40, .. }));
+    assert!(matches!(open_err(&dir), DatasetError::Corrupt { offset: 72, .. }));
 }
 
 #[test]
@@ -433,7 +484,7 @@ fn empty_dataset_round_trips() -> Result<(), DatasetError> {
 fn files_that_are_not_regular_files_are_refused_without_blocking() {
     // A FIFO would block a plain read until a writer appears; a directory
     // cannot be read at all.
-    for (file, kind) in [(META_FILE, "fifo"), (PACK_FILE, "fifo"), (SCENE_FILE, "dir")] {
+    for (file, kind) in [(META_FILE, "fifo"), (PACK_FILE, "fifo"), (TILES_FILE, "dir")] {
         let fixture = write_fixture(&format!("not-a-file-{kind}-src"));
         let dir = copy_dir(&fixture.dir, &format!("not-a-file-{kind}-{file}"));
         let path = data_file(&dir, file);
@@ -453,39 +504,44 @@ fn files_that_are_not_regular_files_are_refused_without_blocking() {
 }
 
 #[test]
-fn any_flipped_scene_header_bit_is_refused() {
-    // The header (counts, write id, origin, bounds) is under the scene's checksum: a flipped
-    // bound once made the flythrough render only sky.
-    let fixture = write_fixture("scene-header-src");
-    let path = data_file(&fixture.dir, SCENE_FILE);
-    let original = std::fs::read(&path).expect("read scene");
-    let dir = copy_dir(&fixture.dir, "scene-header");
-    let target = data_file(&dir, SCENE_FILE);
-    // The CRS record after the header too.
-    for byte in 16..scene_layout(&fixture.scene).meshes {
+fn any_flipped_tile_table_header_bit_is_refused() {
+    // The header (counts, write id, the scene's origin) and the CRS record are under the
+    // tile table's checksum: a flipped bound once made the flythrough render only sky.
+    let fixture = write_fixture("tiles-header-src");
+    let path = data_file(&fixture.dir, TILES_FILE);
+    let original = std::fs::read(&path).expect("read tiles.bin");
+    let dir = copy_dir(&fixture.dir, "tiles-header");
+    let target = data_file(&dir, TILES_FILE);
+    for byte in 16..tile_record_at(&fixture.scene) {
         for bit in [0u8, 3, 7] {
             let mut bytes = original.clone();
             bytes[byte] ^= 1 << bit;
             std::fs::write(&target, &bytes).expect("write");
             let err = open_err(&dir);
-            assert_names(&err, SCENE_FILE, &[]);
+            assert_names(&err, TILES_FILE, &[]);
         }
     }
 }
 
 #[test]
-fn bounds_that_do_not_match_the_vertices_are_refused() {
-    // With the checksum recomputed, loose or non-finite bounds still fail their own check.
+fn tile_bounds_that_do_not_hold_the_vertices_are_refused() {
+    // With the checksum recomputed, bounds that leave a vertex out or are not a box still
+    // fail their own checks.
     let scene = write_fixture("bounds-layout").scene;
-    let layout = scene_layout(&scene);
-    let cases: [(&str, usize, f32, &str); 4] = [
-        ("scene-max-1e7", 84, 1e7, "scene bounds"),
-        ("scene-min-inf", 72, f32::NEG_INFINITY, "scene bounds"),
-        ("mesh-loose", layout.meshes + 44 + 32, 1e7, "do not match its vertices"),
-        ("mesh-inf", layout.meshes + 44 + 20, f32::NEG_INFINITY, "mesh 1: bounds"),
+    let record = tile_record_at(&scene);
+    let cases: [(&str, usize, f32, &str); 3] = [
+        ("tile-max-shrunk", record + 36, -1e7, "tile 0: bounds"),
+        ("tile-min-inf", record + 24, f32::NEG_INFINITY, "tile 0: bounds"),
+        ("tile-min-raised", record + 28, 1.0, "outside the tile's bounds"),
     ];
     for (name, at, value, needle) in cases {
-        assert_scene_word_refused(name, at, value.to_le_bytes(), needle);
+        let dir = damaged(name, TILES_FILE, |b| {
+            b[at..at + 4].copy_from_slice(&value.to_le_bytes());
+            fix_tiles_crc(b);
+        });
+        let err = open_err(&dir);
+        assert!(matches!(err, DatasetError::Corrupt { .. }), "{name}: {err}");
+        assert!(err.to_string().contains(needle), "{name}: {err}");
     }
 }
 
@@ -495,7 +551,8 @@ fn files_of_another_write_are_refused() {
     // into the other is named as coming from another write.
     let a = write_fixture("mixed-a");
     let b = write_fixture("mixed-b");
-    for file in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, CHECKSUM_FILE] {
+    // `geometry.pack` carries no write id: its tiles' CRC-32s in `geometry.crc` do.
+    for file in data_files().filter(|&f| f != GEOMETRY_PACK_FILE) {
         let dir = copy_dir(&a.dir, &format!("mixed-{file}"));
         std::fs::copy(data_file(&b.dir, file), data_file(&dir, file)).expect("copy");
         let err = open_err(&dir);
@@ -526,17 +583,17 @@ fn the_crs_round_trips_and_a_damaged_crs_record_is_refused() {
     let crs = opened.scene.crs.as_ref().expect("the fixture has a CRS");
     assert_eq!(crs.as_str(), support::FIXTURE_CRS);
     assert_eq!(crs.epsg_code(), Some(25833));
-    let layout = scene_layout(&fixture.scene);
-    let text_at = layout.crs + 4;
+    let text_at = TILES_HEADER_BYTES;
     let text_len = support::FIXTURE_CRS.len();
-    assert_ne!(text_len % 4, 0, "the fixture exercises the padding");
+    assert_ne!(text_len % 8, 0, "the fixture exercises the padding");
+    let records_at = tile_record_at(&fixture.scene);
     type Edit = Box<dyn Fn(&mut Vec<u8>)>;
     let cases: [(&str, Edit, &str, u64); 5] = [
         (
             "crs-too-long",
-            Box::new(|b| b[104..108].copy_from_slice(&(MAX_CRS_BYTES as u32 + 1).to_le_bytes())),
-            "exceeds",
-            104,
+            Box::new(|b| b[40..44].copy_from_slice(&(MAX_CRS_BYTES as u32 + 1).to_le_bytes())),
+            "at most",
+            40,
         ),
         (
             "crs-not-utf8",
@@ -561,31 +618,32 @@ fn the_crs_round_trips_and_a_damaged_crs_record_is_refused() {
             Box::new(move |b| {
                 // Rewrites the record as `EPSG:0`, keeping its length with padding.
                 let text = b"EPSG:0";
-                b[104..108].copy_from_slice(&(text.len() as u32).to_le_bytes());
+                b[40..44].copy_from_slice(&(text.len() as u32).to_le_bytes());
                 b[text_at..text_at + text.len()].copy_from_slice(text);
-                let padded = text.len().next_multiple_of(4);
-                b.drain(text_at + padded..layout.meshes);
+                let padded = text.len().next_multiple_of(8);
+                b[text_at + text.len()..text_at + padded].fill(0);
+                b.drain(text_at + padded..records_at);
             }),
             "EPSG code",
             text_at as u64,
         ),
     ];
     for (name, edit, needle, offset) in cases {
-        let dir = damaged(name, SCENE_FILE, |b| {
+        let dir = damaged(name, TILES_FILE, |b| {
             edit(b);
-            fix_scene_crc(b);
+            fix_tiles_crc(b);
         });
         let err = open_err(&dir);
         assert!(
             matches!(err, DatasetError::Corrupt { offset: at, .. } if at == offset),
             "{name}: {err}"
         );
-        assert_names(&err, SCENE_FILE, &[needle]);
+        assert_names(&err, TILES_FILE, &[needle]);
     }
-    // A length that moves the meshes is a size mismatch.
-    let dir = damaged("crs-length", SCENE_FILE, |b| {
-        b[104..108].copy_from_slice(&(text_len as u32 + 4).to_le_bytes());
-        fix_scene_crc(b);
+    // A length that moves the records is a size mismatch.
+    let dir = damaged("crs-length", TILES_FILE, |b| {
+        b[40..44].copy_from_slice(&(text_len as u32 + 8).to_le_bytes());
+        fix_tiles_crc(b);
     });
     assert!(matches!(open_err(&dir), DatasetError::Truncated { .. }));
 }
@@ -596,7 +654,7 @@ fn a_file_added_to_a_write_cannot_take_a_format_file_or_leave_the_directory() ->
     let refused = DATASET_FILES
         .iter()
         .copied()
-        .chain(["resume.journal", "", ".hidden", "a/b", "a\\b"]);
+        .chain(["scene.bin", "resume.journal", "", ".hidden", "a/b", "a\\b"]);
     for name in refused {
         assert!(
             matches!(writer.add_file(name, b"x"), Err(DatasetError::InvalidInput(_))),

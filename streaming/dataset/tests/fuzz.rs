@@ -3,7 +3,9 @@
 
 mod support;
 
-use citystream_dataset::{verify, Dataset, DATASET_FILES as FILES, MANIFEST_FILE, PACK_FILE, SCENE_FILE};
+use citystream_dataset::{
+    verify, Dataset, DATASET_FILES as FILES, GEOMETRY_PACK_FILE, MANIFEST_FILE, PACK_FILE, TILES_FILE,
+};
 use proptest::prelude::*;
 use support::{copy_dir, data_file, patch, write_fixture};
 
@@ -33,14 +35,19 @@ proptest! {
                 b.truncate(keep);
             }
             // Also reach the checks behind the table checksums.
-            if recompute_crc && b.len() >= 104 && name == SCENE_FILE {
-                support::fix_scene_crc(b);
+            if recompute_crc && b.len() >= 80 && name == TILES_FILE {
+                support::fix_tiles_crc(b);
+            } else if name == GEOMETRY_PACK_FILE {
+                // Its tiles' CRC-32s are in `geometry.crc`: fixed below.
             } else if recompute_crc && b.len() >= 44 && name == PACK_FILE {
                 support::fix_pack_header_crc(b);
             } else if recompute_crc && b.len() >= 40 && name != MANIFEST_FILE {
                 support::fix_table_crc(b);
             }
         });
+        if recompute_crc && name == GEOMETRY_PACK_FILE {
+            support::fix_geometry_crc(&dir);
+        }
         if let Ok(dataset) = Dataset::open(&dir) {
             let mut buf = Vec::new();
             for (id, info) in dataset.textures.textures().iter().enumerate() {

@@ -12,7 +12,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{ensure, Context, Result};
-use citystream_dataset::{Dataset, DatasetWriter, Scene, TextureFormat, SCENE_FILE};
+use citystream_dataset::{Dataset, DatasetWriter, Scene, TextureFormat};
 
 const BERLIN_TEXTURES: u32 = 5_712_309;
 
@@ -51,11 +51,11 @@ fn main() -> Result<()> {
     let (open, dataset) = median_open(&dir, 5)?;
     let textures = dataset.textures.len();
     println!(
-        "== open {preset}: {:.1} ms median of 5 ({} textures, {} meshes; includes reading and validating the {:.1} MB scene)",
+        "== open {preset}: {:.1} ms median of 5 ({} textures, {} meshes; includes reading and validating the {:.1} MB of tiles and their geometry)",
         open.as_secs_f64() * 1e3,
         textures,
         dataset.scene.meshes.len(),
-        std::fs::metadata(dataset.files().path(SCENE_FILE))?.len() as f64 / 1e6
+        dataset.scene_file_len() as f64 / 1e6
     );
     println!(
         "   host metadata: {:.1} bytes per texture ({} per texture + {} per mip checksum, {:.2} mips per texture); on disk {} bytes per texture + {} per mip",

@@ -4,7 +4,7 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use citystream_dataset::{DatasetFiles, Scene, SCENE_FILE};
+use citystream_dataset::Dataset;
 use citystream_streaming::bench::path::{standard_path, DEFAULT_STANDARD_DURATION_S};
 
 use citystream_gen::files::print_stdout;
@@ -12,7 +12,7 @@ use citystream_gen::files::print_stdout;
 /// Options of `citystream path`.
 #[derive(Debug, clap::Args)]
 pub struct PathArgs {
-    /// Dataset directory (only its scene is read).
+    /// Dataset directory (its scene is read; no texture data).
     #[arg(long)]
     pub dataset: PathBuf,
     /// Camera path file to write (JSON, format in docs/PATHS.md).
@@ -25,11 +25,9 @@ pub struct PathArgs {
 
 /// Runs `citystream path`.
 pub fn run(args: &PathArgs) -> Result<()> {
-    let files =
-        DatasetFiles::resolve(&args.dataset).with_context(|| format!("opening dataset {}", args.dataset.display()))?;
-    let scene_path = files.path(SCENE_FILE);
-    let scene =
-        Scene::read(&scene_path).with_context(|| format!("reading the scene of dataset {}", args.dataset.display()))?;
+    let scene = Dataset::open(&args.dataset)
+        .with_context(|| format!("opening dataset {}", args.dataset.display()))?
+        .scene;
     let path = standard_path(&scene, args.duration)
         .with_context(|| format!("building the standard path for {}", args.dataset.display()))?;
     path.save(&args.out)?;

@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Instant;
 
-use citystream_dataset::{verify, Dataset, DatasetFiles, MANIFEST_FILE, SCENE_FILE};
+use citystream_dataset::{
+    verify, Dataset, DatasetFiles, GEOMETRY_CRC_FILE, GEOMETRY_PACK_FILE, MANIFEST_FILE, SCENE_FILE, TILES_FILE,
+};
 use citystream_testing::fuzz::quad_buffer;
 
 mod cli_support;
@@ -399,7 +401,7 @@ fn version_1_datasets_name_the_upgrade_and_the_upgrade_keeps_their_content() {
     assert_info_and_verify_name_the_upgrade(&dir, 1);
     let out = citystream(&["upgrade", utf8(&dir)]);
     assert!(out.status.success(), "{}", stderr(&out));
-    assert!(String::from_utf8_lossy(&out.stdout).contains("from format version 1 to 3"));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("from format version 1 to 4"));
     verify(&dir).expect("upgraded dataset verifies");
     // The version-1 files are gone, the user's file stays.
     assert_eq!(names_beside_the_writes(&dir), [MANIFEST_FILE, "notes.txt"]);
@@ -475,7 +477,7 @@ fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_th
 
     // Without --crs: the same content in a local frame.
     let plain = v2_fixture("v2-plain");
-    assert!(upgrade_stdout(&["upgrade", utf8(&plain)]).contains("from format version 2 to 3:"));
+    assert!(upgrade_stdout(&["upgrade", utf8(&plain)]).contains("from format version 2 to 4:"));
     verify(&plain).expect("upgraded dataset verifies");
     assert_eq!(write_dirs(&plain).len(), 1, "the version-2 write is removed");
     let (content, frame) = fingerprint_and_frame(&plain);
@@ -484,7 +486,7 @@ fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_th
 
     // With --crs: the same content, georeferenced.
     let said = upgrade_stdout(&["upgrade", utf8(&dir), "--crs", "epsg:25833"]);
-    assert!(said.contains("from format version 2 to 3 in CRS EPSG:25833"), "{said}");
+    assert!(said.contains("from format version 2 to 4 in CRS EPSG:25833"), "{said}");
     let (content, frame) = fingerprint_and_frame(&dir);
     assert!(content == fresh, "the upgrade changed the content");
     assert_eq!(frame.1.as_deref(), Some("EPSG:25833"));
@@ -503,10 +505,39 @@ fn version_2_datasets_name_the_upgrade_which_keeps_their_content_and_can_give_th
 
     // A current dataset without a CRS gets one, and keeps its content.
     let said = upgrade_stdout(&["upgrade", utf8(&plain), "--crs", wkt]);
-    assert!(said.contains("from format version 3 to 3"), "{said}");
+    assert!(said.contains("from format version 4 to 4"), "{said}");
     let (content, frame) = fingerprint_and_frame(&plain);
     assert!(content == fresh);
     assert_eq!(frame.1.as_deref(), Some(wkt));
+}
+
+/// A version-3 dataset written by the version-3 `gen --preset tiny --seed 3 --max-extent 16`
+/// (one `scene.bin`; the generator unchanged since).
+fn v3_fixture(name: &str) -> PathBuf {
+    fixture("v3-tiny", name)
+}
+
+#[test]
+fn version_3_datasets_name_the_upgrade_which_cuts_their_scene_into_tiles_and_keeps_the_rest() {
+    let dir = v3_fixture("v3");
+    assert_info_and_verify_name_the_upgrade(&dir, 3);
+    let regenerated = fresh_dir("v3-regenerated");
+    gen_like_the_fixtures(&regenerated);
+    let said = upgrade_stdout(&["upgrade", utf8(&dir)]);
+    assert!(said.contains("from format version 3 to 4:"), "{said}");
+    verify(&dir).expect("upgraded dataset verifies");
+    assert_eq!(write_dirs(&dir).len(), 1, "the version-3 write is removed");
+    // The same scene (frame and CRS included), textures and colours as this build's `gen`.
+    assert!(
+        fingerprint(&dir) == fingerprint(&regenerated),
+        "the upgrade changed the content"
+    );
+    let files = DatasetFiles::resolve(&dir).expect("a version-4 manifest");
+    for name in [TILES_FILE, GEOMETRY_PACK_FILE, GEOMETRY_CRC_FILE] {
+        assert!(files.path(name).is_file(), "{name} is written");
+    }
+    assert!(!files.path(SCENE_FILE).exists(), "version 4 has no scene.bin");
+    assert!(upgrade_stdout(&["upgrade", utf8(&dir)]).contains("nothing to do"));
 }
 
 #[test]
@@ -516,7 +547,7 @@ fn info_reports_the_crs_and_the_origin_in_its_axes() {
     let out = citystream(&["info", utf8(&dir), "--json"]);
     assert!(out.status.success(), "{}", stderr(&out));
     let info: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
-    assert_eq!(info["format_version"], 3);
+    assert_eq!(info["format_version"], 4);
     assert_eq!(info["crs"], "EPSG:25833");
     // Easting, northing, height of the scene origin (x east, y up, z south).
     assert_eq!(info["origin_crs"], serde_json::json!([391_250.0, 5_819_500.0, 34.0]));

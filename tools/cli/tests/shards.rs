@@ -39,25 +39,32 @@ fn run_env(args: &[&str], env: &[(&str, &str)]) -> Output {
 /// CRCs over it) left out: what must be identical between two writes of the same content.
 fn content_of(dataset: &Dataset) -> Vec<(String, Vec<u8>)> {
     let skip = |name: &str| match name {
-        "textures.meta" | "colormap.bin" | "textures.crc" => 40,
+        "textures.meta" | "colormap.bin" | "textures.crc" | "geometry.crc" => 40,
         "textures.pack" => 64,
-        _ => 104,
+        // Its CRC at 44..48 covers the write id.
+        "tiles.bin" => 48,
+        _ => unreachable!("{name} is not a dataset file with a header"),
     };
-    [
-        "scene.bin",
-        "textures.meta",
-        "colormap.bin",
-        "textures.crc",
-        "textures.pack",
-    ]
-    .iter()
-    .map(|name| {
-        let bytes = std::fs::read(dataset.files().path(name)).expect("read file");
-        let mut kept = bytes[24..32.min(bytes.len())].to_vec();
-        kept.extend_from_slice(&bytes[skip(name)..]);
-        (name.to_string(), kept)
-    })
-    .collect()
+    let geometry = std::fs::read(dataset.files().path("geometry.pack")).expect("read geometry.pack");
+    std::iter::once(("geometry.pack".to_string(), geometry))
+        .chain(
+            [
+                "tiles.bin",
+                "geometry.crc",
+                "textures.meta",
+                "colormap.bin",
+                "textures.crc",
+                "textures.pack",
+            ]
+            .iter()
+            .map(|name| {
+                let bytes = std::fs::read(dataset.files().path(name)).expect("read file");
+                let mut kept = bytes[24..32.min(bytes.len())].to_vec();
+                kept.extend_from_slice(&bytes[skip(name)..]);
+                (name.to_string(), kept)
+            }),
+        )
+        .collect()
 }
 
 fn assert_same_dataset(merged: &Path, single: &Path) {

@@ -1273,14 +1273,14 @@ fn damage_small_dataset(name: &str, file: &str, offsets: &[u64]) -> std::path::P
 
 #[test]
 fn a_dataset_whose_scene_header_was_altered_is_refused() {
-    // Byte 87 is in the scene bounds' maximum z (header bytes 72..96): once, a flipped bit
-    // there rendered only sky with exit 0.
-    let dataset = damage_small_dataset("flythrough_scene_header", "scene.bin", &[87]);
+    // Byte 60 is in the scene origin's y (`tiles.bin`'s header bytes 48..72): once, a flipped
+    // bit in a scene header rendered only sky with exit 0.
+    let dataset = damage_small_dataset("flythrough_scene_header", "tiles.bin", &[60]);
     let out = dataset.with_file_name("out");
     let (output, _) = small_run(&dataset, &out, &["--frames", "2"]);
     assert!(!output.status.success(), "an altered scene header was accepted");
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(stderr.contains("scene.bin") && stderr.contains("checksum"), "{stderr}");
+    assert!(stderr.contains("tiles.bin") && stderr.contains("checksum"), "{stderr}");
 }
 
 /// The offsets of every level of texture 3 of the small dataset.

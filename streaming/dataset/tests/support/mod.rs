@@ -5,7 +5,9 @@
 
 use std::path::{Path, PathBuf};
 
-use citystream_dataset::{Crs, DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary};
+use citystream_dataset::{
+    Crs, DatasetFiles, DatasetWriter, Scene, TextureFormat, WriteSummary, GEOMETRY_CRC_FILE, GEOMETRY_PACK_FILE,
+};
 
 /// One texture of the fixture: what was written.
 #[derive(Debug, Clone)]
@@ -192,11 +194,21 @@ pub fn fix_table_crc(bytes: &mut [u8]) {
     bytes[32..36].copy_from_slice(&crc.to_le_bytes());
 }
 
-/// Same for `scene.bin` (header bytes 0..96 and everything after the header: the CRS record
-/// and the body).
-pub fn fix_scene_crc(bytes: &mut [u8]) {
-    let crc = crc_of(&bytes[..96], &bytes[104..]);
-    bytes[96..100].copy_from_slice(&crc.to_le_bytes());
+/// Same for `tiles.bin` (bytes 0..44 and everything after byte 48).
+pub fn fix_tiles_crc(bytes: &mut [u8]) {
+    let crc = crc_of(&bytes[..44], &bytes[48..]);
+    bytes[44..48].copy_from_slice(&crc.to_le_bytes());
+}
+
+/// Recomputes, in `geometry.crc` of the dataset in `dir`, the CRC-32 of its first tile's
+/// blob (the whole `geometry.pack`: the fixture has one tile) and the table's checksum, so a
+/// test reaches the checks behind them.
+pub fn fix_geometry_crc(dir: &Path) {
+    let pack = std::fs::read(data_file(dir, GEOMETRY_PACK_FILE)).expect("read geometry.pack");
+    patch(&data_file(dir, GEOMETRY_CRC_FILE), |b| {
+        b[40..44].copy_from_slice(&crc32fast::hash(&pack).to_le_bytes());
+        fix_table_crc(b);
+    });
 }
 
 /// Same for the header of `textures.pack` (bytes 0..40).

@@ -18,8 +18,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use citystream_dataset::{
-    verify, Dataset, DatasetFiles, DatasetWriter, Scene, TextureFormat, CHECKSUM_FILE, COLORMAP_FILE, MANIFEST_FILE,
-    META_FILE, PACK_FILE, SCENE_FILE,
+    verify, Dataset, DatasetFiles, DatasetWriter, Scene, TextureFormat, DATASET_FILES, MANIFEST_FILE, PACK_FILE,
+    TILES_FILE,
 };
 use citystream_gen::image_files::{dds_file, ktx2_file};
 use citystream_streaming::bench::path::{standard_path, CameraPath};
@@ -564,7 +564,7 @@ fn dataset_seeds(work: &Path) -> Result<Vec<Seed>> {
     }
     let files = DatasetFiles::resolve(&dir)?;
     let mut seeds = Vec::new();
-    for name in [SCENE_FILE, META_FILE, PACK_FILE, COLORMAP_FILE, CHECKSUM_FILE] {
+    for name in DATASET_FILES.into_iter().filter(|&n| n != MANIFEST_FILE) {
         seeds.push(Seed {
             name: name.into(),
             bytes: std::fs::read(files.path(name))?,
@@ -577,7 +577,7 @@ fn dataset_seeds(work: &Path) -> Result<Vec<Seed>> {
     // Files of the other write are donors only through splices of same-named seeds: add them
     // as seeds of their own name so a whole file of another write is also tried.
     let other_files = DatasetFiles::resolve(&other)?;
-    for name in [SCENE_FILE, PACK_FILE] {
+    for name in [TILES_FILE, PACK_FILE] {
         seeds.push(Seed {
             name: name.into(),
             bytes: std::fs::read(other_files.path(name))?,

@@ -1,7 +1,7 @@
 //! The mutations every harness applies to its seeds: bit flips, extreme fields, splices,
 //! truncations; number tokens for text; dataset checksums recomputed.
 
-use citystream_dataset::{MANIFEST_FILE, PACK_FILE, SCENE_FILE};
+use citystream_dataset::{MANIFEST_FILE, PACK_FILE, TILES_FILE};
 use citystream_streaming::rng::SplitMix64;
 
 use super::uri::{put_uri, UriShape};
@@ -162,7 +162,7 @@ pub(crate) fn fix_dataset_checksum(name: &str, b: &mut [u8]) {
         hasher.finalize()
     };
     let (covered_to, crc_at, body_from) = match name {
-        SCENE_FILE => (96, 96, 104),
+        TILES_FILE => (44, 44, 48),
         PACK_FILE => (40, 40, usize::MAX),
         MANIFEST_FILE => (24, 24, usize::MAX),
         _ => (32, 32, 40),
