@@ -187,12 +187,14 @@ pub fn city_geometry(dataset: &citystream_dataset::Dataset) -> Result<(Vec<Verte
                 .textures
                 .info(mesh.texture)
                 .map_err(|e| EngineError::InvalidRequest(format!("mesh {m} of {}: {e}", dataset.dir().display())))?;
+            // The scene's origin is the frame the camera is given in; a mesh at a local
+            // origin (a dataset far larger than a city) is drawn relative to it.
             Ok(CityMesh::of_dataset_mesh(
                 mesh,
                 mesh.first_index,
                 mesh.first_vertex,
                 info,
-                DVec3::ZERO,
+                DVec3::from(scene.offset_of(mesh)),
             ))
         })
         .collect::<Result<Vec<_>>>()?;

@@ -228,6 +228,8 @@ fn dataset_scene(dataset: &Dataset) -> Result<Scene> {
     let mut meshes = Vec::new();
     for (id, mesh) in scene.meshes.iter().enumerate() {
         let info = dataset.textures.info(mesh.texture)?;
+        // This host draws in the scene's frame: a mesh at a local origin moves there.
+        let offset = scene.offset_of(mesh);
         let first = mesh.first_index as usize;
         let indices = scene
             .indices
@@ -239,7 +241,7 @@ fn dataset_scene(dataset: &Dataset) -> Result<Scene> {
                 bail!("mesh {id} refers to vertex {v}, outside the dataset");
             };
             vertices.push(HostVertex {
-                position: *p,
+                position: std::array::from_fn(|a| (offset[a] + f64::from(p[a])) as f32),
                 uv: *uv,
                 mesh: id as u32,
             });

@@ -152,8 +152,12 @@ pub struct Mesh {
     pub index_count: u32,
     /// Texture id (index into the texture table and the colormap).
     pub texture: u32,
-    /// Bounds of the mesh's vertices.
+    /// Bounds of the mesh's vertices, relative to the scene's origin.
     pub bounds: Aabb,
+    /// The origin its positions are relative to: 0, the scene's; `k > 0`,
+    /// [`Scene::local_origins`]`[k − 1]` (a mesh far from the scene's origin, whose positions
+    /// would round in the scene's `f32` frame; [`Scene::origin_of`]).
+    pub origin: u32,
 }
 
 /// All geometry of a dataset. Vertex attributes are separate flat arrays (one entry per
@@ -179,6 +183,9 @@ pub struct Scene {
     pub uvs: Vec<[f32; 2]>,
     /// Triangle-list indices, relative to each mesh's `first_vertex`.
     pub indices: Vec<u32>,
+    /// Absolute origins other than the scene's that meshes' positions are relative to
+    /// ([`Mesh::origin`]); empty for a scene in one frame.
+    pub local_origins: Vec<[f64; 3]>,
 }
 
 impl Scene {
@@ -193,7 +200,38 @@ impl Scene {
             normals: Vec::new(),
             uvs: Vec::new(),
             indices: Vec::new(),
+            local_origins: Vec::new(),
         }
+    }
+
+    /// The absolute origin `mesh`'s positions are relative to (the scene's, unless it has a
+    /// local one; the scene's too for an index past [`Scene::local_origins`], which
+    /// validation refuses).
+    pub fn origin_of(&self, mesh: &Mesh) -> [f64; 3] {
+        match mesh.origin {
+            0 => self.origin,
+            k => self.local_origins.get(k as usize - 1).copied().unwrap_or(self.origin),
+        }
+    }
+
+    /// Where `mesh`'s origin lies relative to the scene's (zero for a mesh in the scene's
+    /// frame): its positions plus this, in `f64`, are in the scene's frame.
+    pub fn offset_of(&self, mesh: &Mesh) -> [f64; 3] {
+        let origin = self.origin_of(mesh);
+        std::array::from_fn(|a| origin[a] - self.origin[a])
+    }
+
+    /// Adds a local origin (absolute) for [`Scene::push_mesh_at`]; returns its index for
+    /// [`Mesh::origin`].
+    pub fn add_local_origin(&mut self, origin: [f64; 3]) -> Result<u32, DatasetError> {
+        if !origin.iter().all(|v| v.is_finite()) {
+            return Err(DatasetError::InvalidInput(format!(
+                "local origin {origin:?} is not finite"
+            )));
+        }
+        self.local_origins.push(origin);
+        u32::try_from(self.local_origins.len())
+            .map_err(|_| DatasetError::InvalidInput("more than 2^32 local origins".into()))
     }
 
     /// Number of triangles of all meshes.
@@ -201,8 +239,9 @@ impl Scene {
         self.meshes.iter().map(|m| u64::from(m.index_count) / 3).sum()
     }
 
-    /// Appends a mesh from its vertices and mesh-local indices, computing its bounds and
-    /// growing the scene bounds. Returns the mesh index.
+    /// Appends a mesh from its vertices (positions relative to the scene's origin) and
+    /// mesh-local indices, computing its bounds and growing the scene bounds. Returns the
+    /// mesh index.
     pub fn push_mesh(
         &mut self,
         texture: u32,
@@ -211,6 +250,28 @@ impl Scene {
         uvs: &[[f32; 2]],
         indices: &[u32],
     ) -> Result<u32, DatasetError> {
+        self.push_mesh_at(0, texture, positions, normals, uvs, indices)
+    }
+
+    /// [`Scene::push_mesh`] of a mesh whose positions are relative to origin `origin` (0: the
+    /// scene's; else what [`Scene::add_local_origin`] returned). Its bounds are computed in
+    /// `f64` in the scene's frame and rounded outwards to `f32`.
+    pub fn push_mesh_at(
+        &mut self,
+        origin: u32,
+        texture: u32,
+        positions: &[[f32; 3]],
+        normals: &[[f32; 3]],
+        uvs: &[[f32; 2]],
+        indices: &[u32],
+    ) -> Result<u32, DatasetError> {
+        if origin as usize > self.local_origins.len() {
+            return Err(DatasetError::InvalidInput(format!(
+                "mesh {} at local origin {origin}, but the scene has {}",
+                self.meshes.len(),
+                self.local_origins.len()
+            )));
+        }
         if normals.len() != positions.len() || uvs.len() != positions.len() {
             return Err(DatasetError::InvalidInput(format!(
                 "mesh {} has {} positions, {} normals, {} uvs",
@@ -228,10 +289,8 @@ impl Scene {
         let index_count = u32::try_from(indices.len()).map_err(|_| too_big())?;
         first_vertex.checked_add(vertex_count).ok_or_else(too_big)?;
         first_index.checked_add(index_count).ok_or_else(too_big)?;
-        let mut bounds = Aabb::EMPTY;
-        for p in positions {
-            bounds.extend(*p);
-        }
+        let offset = self.offset_of(&Mesh { origin, ..EMPTY_MESH });
+        let bounds = scene_bounds(positions, offset);
         if !positions.is_empty() {
             self.bounds.union(&bounds);
         }
@@ -246,6 +305,7 @@ impl Scene {
             index_count,
             texture,
             bounds,
+            origin,
         });
         Ok(mesh_index)
     }
@@ -256,6 +316,8 @@ impl Scene {
     pub fn part(&self, keep: impl Fn(&Mesh) -> bool, texture_base: u32) -> Result<Scene, DatasetError> {
         let mut part = Scene::new(self.origin);
         part.crs = self.crs.clone();
+        // Every local origin, so kept meshes keep their indices.
+        part.local_origins = self.local_origins.clone();
         for (m, mesh) in self.meshes.iter().enumerate().filter(|(_, mesh)| keep(mesh)) {
             let texture = mesh.texture.checked_sub(texture_base).ok_or_else(|| {
                 DatasetError::InvalidInput(format!(
@@ -264,7 +326,7 @@ impl Scene {
                 ))
             })?;
             let (positions, normals, uvs, indices) = self.mesh_arrays(m)?;
-            part.push_mesh(texture, positions, normals, uvs, indices)?;
+            part.push_mesh_at(mesh.origin, texture, positions, normals, uvs, indices)?;
         }
         Ok(part)
     }
@@ -282,13 +344,18 @@ impl Scene {
                 other.crs.as_ref().map_or("(local frame)", |c| c.as_str())
             )));
         }
+        // `other`'s local origins after this scene's: its mesh at origin k > 0 is at
+        // `base + k` here.
+        let base = self.local_origins.len() as u32;
+        self.local_origins.extend_from_slice(&other.local_origins);
         for (m, mesh) in other.meshes.iter().enumerate() {
             let texture = mesh
                 .texture
                 .checked_add(texture_offset)
                 .ok_or_else(|| DatasetError::InvalidInput("more than 2^32 textures".into()))?;
             let (positions, normals, uvs, indices) = other.mesh_arrays(m)?;
-            self.push_mesh(texture, positions, normals, uvs, indices)?;
+            let origin = if mesh.origin == 0 { 0 } else { base + mesh.origin };
+            self.push_mesh_at(origin, texture, positions, normals, uvs, indices)?;
         }
         Ok(())
     }
@@ -329,6 +396,13 @@ impl Scene {
     /// reads back.
     pub fn encode(&self, path_for_errors: &Path, write_id: u64) -> Result<Vec<u8>, DatasetError> {
         let layout = SceneLayout::V3;
+        if !self.local_origins.is_empty() {
+            return Err(DatasetError::InvalidInput(format!(
+                "{}: version 3's scene.bin has one origin; this scene has {} local ones",
+                path_for_errors.display(),
+                self.local_origins.len()
+            )));
+        }
         self.validate_with(path_for_errors, layout)?;
         let mut body = Vec::with_capacity(self.body_len(layout));
         let crs_text = self.crs.as_ref().map_or("", Crs::as_str).as_bytes();
@@ -525,6 +599,7 @@ impl Scene {
                     min: [f32_at(r, 20), f32_at(r, 24), f32_at(r, 28)],
                     max: [f32_at(r, 32), f32_at(r, 36), f32_at(r, 40)],
                 },
+                origin: 0,
             })
             .collect();
         let vec3s = |b: &[u8]| {
@@ -541,6 +616,7 @@ impl Scene {
             normals: vec3s(normal_bytes),
             uvs: uv_bytes.chunks_exact(8).map(|c| [f32_at(c, 0), f32_at(c, 4)]).collect(),
             indices: index_bytes.chunks_exact(4).map(|c| u32_at(c, 0)).collect(),
+            local_origins: Vec::new(),
         };
         scene.validate_with(path, layout)?;
         Ok((scene, write_id))
@@ -603,9 +679,27 @@ impl Scene {
                 ));
             }
         }
+        if let Some((k, o)) = self
+            .local_origins
+            .iter()
+            .enumerate()
+            .find(|(_, o)| !o.iter().all(|v| v.is_finite()))
+        {
+            return Err(DatasetError::InvalidInput(format!(
+                "local origin {} {o:?} is not finite",
+                k + 1
+            )));
+        }
         let mut all = Aabb::EMPTY;
         for (m, mesh) in self.meshes.iter().enumerate() {
             let record = mesh_base + m as u64 * MESH_RECORD_BYTES as u64;
+            if mesh.origin as usize > self.local_origins.len() {
+                return Err(DatasetError::InvalidInput(format!(
+                    "mesh {m} at local origin {}, but the scene has {}",
+                    mesh.origin,
+                    self.local_origins.len()
+                )));
+            }
             let vertex_end = u64::from(mesh.first_vertex) + u64::from(mesh.vertex_count);
             if vertex_end > vertex_count {
                 return Err(corrupt(
@@ -660,7 +754,11 @@ impl Scene {
             }
             let fv = mesh.first_vertex as usize;
             let mut tight = Aabb::EMPTY;
-            for (k, p) in self.positions[fv..fv + mesh.vertex_count as usize].iter().enumerate() {
+            let offset = self.offset_of(mesh);
+            for (k, local) in self.positions[fv..fv + mesh.vertex_count as usize].iter().enumerate() {
+                // In the scene's frame, where the bounds are (the position itself at the
+                // scene's origin).
+                let p = &std::array::from_fn::<f32, 3, _>(|a| (offset[a] + f64::from(local[a])) as f32);
                 let tolerance = bounds_tolerance(p);
                 if !mesh.bounds.contains(*p, tolerance) {
                     return Err(corrupt(
@@ -704,6 +802,55 @@ impl Scene {
             ));
         }
         Ok(())
+    }
+}
+
+/// A mesh with nothing in it, at the scene's origin.
+const EMPTY_MESH: Mesh = Mesh {
+    first_vertex: 0,
+    vertex_count: 0,
+    first_index: 0,
+    index_count: 0,
+    texture: 0,
+    bounds: Aabb::EMPTY,
+    origin: 0,
+};
+
+/// The box of `positions` moved by `offset` into the scene's frame: at a zero offset the
+/// positions' own box, else computed in `f64` and rounded outwards to `f32`.
+fn scene_bounds(positions: &[[f32; 3]], offset: [f64; 3]) -> Aabb {
+    let mut bounds = Aabb::EMPTY;
+    if offset == [0.0; 3] || positions.is_empty() {
+        positions.iter().for_each(|p| bounds.extend(*p));
+        return bounds;
+    }
+    let (mut low, mut high) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in positions {
+        for a in 0..3 {
+            let v = offset[a] + f64::from(p[a]);
+            low[a] = low[a].min(v);
+            high[a] = high[a].max(v);
+        }
+    }
+    let down = |v: f64| {
+        let f = v as f32;
+        if f64::from(f) > v {
+            f.next_down()
+        } else {
+            f
+        }
+    };
+    let up = |v: f64| {
+        let f = v as f32;
+        if f64::from(f) < v {
+            f.next_up()
+        } else {
+            f
+        }
+    };
+    Aabb {
+        min: low.map(down),
+        max: high.map(up),
     }
 }
 

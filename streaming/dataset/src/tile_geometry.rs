@@ -74,6 +74,7 @@ impl TileGeometry {
                 index_count: mesh.index_count,
                 texture: mesh.texture,
                 bounds,
+                origin: 0,
             });
             tile.positions.extend(positions);
             tile.normals.extend_from_slice(&scene.normals[fv..fv + vc]);
@@ -231,6 +232,7 @@ impl TileGeometry {
                 index_count,
                 texture,
                 bounds,
+                origin: 0,
             });
         }
         if (next_vertex, next_index) != (v as u64, i as u64) {

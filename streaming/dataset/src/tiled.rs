@@ -251,10 +251,14 @@ fn tile_blob<'a>(path: &Path, index: usize, record: &TileRecord, pack: &'a [u8])
         })
 }
 
-/// The scene `tiles` (the geometry of `tree`'s tiles, in its order) hold, in the frame of
-/// the tree's origin: meshes in the order of their ids, each position re-expressed in `f64`
-/// (its position plus its tile's offset from the scene's origin) and then rounded to
-/// `f32`: the very `f32` it was written from (tiling.rs says why). Errors where a tile's geometry disagrees with its record's mesh count.
+/// The scene `tiles` (the geometry of `tree`'s tiles, in its order) hold, meshes in the
+/// order of their ids. A mesh goes into the scene's frame (its positions plus its tile's
+/// offset from the scene's origin, in `f64`, rounded to `f32`) where that loses nothing (every
+/// position comes back exactly: always for a scene written from one frame, tiling.rs says
+/// why); otherwise it keeps its positions relative to its tile's origin, which becomes a
+/// local origin of the scene ([`Scene::local_origins`]), so a scene far larger than a city
+/// keeps what the tiles stored. Errors where a tile's geometry disagrees with its record's
+/// mesh count.
 pub fn scene_of_tiles(tree: &TileTree, tiles: &[TileGeometry]) -> Result<Scene, DatasetError> {
     let invalid = |what: String| DatasetError::InvalidInput(format!("tiled scene: {what}"));
     if tiles.len() != tree.tiles.len() {
@@ -281,6 +285,8 @@ pub fn scene_of_tiles(tree: &TileTree, tiles: &[TileGeometry]) -> Result<Scene, 
     }
     let mut scene = Scene::new(tree.origin);
     scene.crs = tree.crs.clone();
+    // Each tile's index among the scene's local origins, once one of its meshes needs it.
+    let mut local_origin = vec![None::<u32>; tree.tiles.len()];
     let mut positions = Vec::new();
     for (id, at) in location.into_iter().enumerate() {
         let (t, k) = at.ok_or_else(|| invalid(format!("no tile holds mesh {id}")))?;
@@ -289,15 +295,30 @@ pub fn scene_of_tiles(tree: &TileTree, tiles: &[TileGeometry]) -> Result<Scene, 
         let offset: [f64; 3] = [0, 1, 2].map(|a| record.origin[a] - tree.origin[a]);
         let (fv, vc) = (mesh.first_vertex as usize, mesh.vertex_count as usize);
         let (fi, ic) = (mesh.first_index as usize, mesh.index_count as usize);
+        let stored = &tile.positions[fv..fv + vc];
         positions.clear();
         positions.extend(
-            tile.positions[fv..fv + vc]
+            stored
                 .iter()
                 .map(|p| [0, 1, 2].map(|a| (offset[a] + f64::from(p[a])) as f32)),
         );
-        scene.push_mesh(
+        let exact = positions
+            .iter()
+            .zip(stored)
+            .all(|(p, q)| (0..3).all(|a| (f64::from(p[a]) - offset[a]) as f32 == q[a]));
+        let (origin, positions) = if exact {
+            (0, &positions[..])
+        } else {
+            let origin = match local_origin[t as usize] {
+                Some(index) => index,
+                None => *local_origin[t as usize].insert(scene.add_local_origin(record.origin)?),
+            };
+            (origin, stored)
+        };
+        scene.push_mesh_at(
+            origin,
             mesh.texture,
-            &positions,
+            positions,
             &tile.normals[fv..fv + vc],
             &tile.uvs[fv..fv + vc],
             &tile.indices[fi..fi + ic],
@@ -465,6 +486,54 @@ mod tests {
         assert_eq!(back, scene);
         // And so a scene read back is written again byte for byte (a merge of shards).
         assert_eq!(TiledScene::of(&back, 1).expect("tiles"), tiled);
+    }
+
+    #[test]
+    fn a_mesh_at_a_local_origin_keeps_its_micrometres_through_the_tiles() {
+        // A mesh 500 km from the scene's origin, at its own origin with positions a
+        // micrometre apart (the scene's f32 frame steps by 3 cm there), beside one at home:
+        // read back, the far mesh is at its tile's origin with every position as written
+        // relative to it, the near one in the scene's frame as written.
+        let mut scene = Scene::new([391_250.0, 34.0, -5_819_500.0]);
+        push_quad(&mut scene, [10.0, 0.0, 10.0], [40.0, 8.0, 25.0], 0);
+        let far = [391_250.0 + 5.0e5, 40.0, -5_819_500.0];
+        let local = scene.add_local_origin(far).expect("an origin");
+        let fine: Vec<[f32; 3]> = [[0.0, 0.0, 0.0], [1e-6, 0.0, 0.0], [1e-6, 3e-6, 0.0], [0.0, 3e-6, 2e-6]].into();
+        scene
+            .push_mesh_at(
+                local,
+                1,
+                &fine,
+                &[[0.0, 1.0, 0.0]; 4],
+                &[[0.0; 2]; 4],
+                &[0, 1, 2, 0, 2, 3],
+            )
+            .expect("a mesh at its own origin");
+        // Its bounds are in the scene's frame, rounded outwards.
+        let bounds = scene.meshes[1].bounds;
+        assert!(f64::from(bounds.min[0]) <= 5.0e5 && f64::from(bounds.max[0]) >= 5.0e5 + 1e-6);
+        scene.validate(Path::new("scene")).expect("valid");
+        let tiled = TiledScene::of(&scene, 1).expect("tiles");
+        let tiles = read_tile_geometry(Path::new("geometry.pack"), &tiled.tree, &tiled.pack).expect("reads");
+        let back = scene_of_tiles(&tiled.tree, &tiles).expect("a scene");
+        assert_eq!(back.meshes[0].origin, 0);
+        assert_eq!(&back.positions[..4], &scene.positions[..4]);
+        let mesh = back.meshes[1];
+        let origin = back.origin_of(&mesh);
+        for (v, (p, want)) in back.positions[4..].iter().zip(&fine).enumerate() {
+            for a in 0..3 {
+                let (got, want) = (origin[a] + f64::from(p[a]), far[a] + f64::from(want[a]));
+                assert!((got - want).abs() < 1e-9, "vertex {v}: {got} against {want}");
+            }
+        }
+        back.validate(Path::new("scene")).expect("valid");
+        // Written again, the same tiles.
+        assert_eq!(TiledScene::of(&back, 1).expect("tiles"), tiled);
+        // Version 3's one frame cannot hold it: refused, not rounded.
+        assert!(matches!(
+            back.encode(Path::new("scene.bin"), 1),
+            Err(DatasetError::InvalidInput(_))
+        ));
     }
 
     #[test]

@@ -150,14 +150,16 @@ fn origin_of(scene: &Scene, meshes: &[u32]) -> [f64; 3] {
     })
 }
 
-/// `mesh`'s positions relative to `origin` (absolute), computed in `f64` and rounded once.
+/// `mesh`'s positions relative to `origin` (absolute), computed in `f64` from the origin they
+/// are relative to (the scene's or the mesh's local one) and rounded once.
 pub fn positions_relative_to(scene: &Scene, mesh: u32, origin: [f64; 3]) -> Vec<[f32; 3]> {
     let Some(m) = scene.meshes.get(mesh as usize) else {
         return Vec::new();
     };
     // The tile's origin from the scene's first: two nearby large numbers cancel exactly,
     // and the small positions are then moved by a small offset.
-    let offset: [f64; 3] = std::array::from_fn(|a| origin[a] - scene.origin[a]);
+    let from = scene.origin_of(m);
+    let offset: [f64; 3] = std::array::from_fn(|a| origin[a] - from[a]);
     let first = m.first_vertex as usize;
     scene
         .positions
@@ -278,6 +280,7 @@ mod tests {
             index_count: 0,
             texture: 0,
             bounds: crate::Aabb::EMPTY,
+            origin: 0,
         });
         let tiles = leaf_tiles(&scene);
         let cells: Vec<([i64; 2], Vec<u32>)> = tiles.iter().map(|t| (t.cell, t.meshes.clone())).collect();

@@ -201,6 +201,14 @@ pub fn build(args: &AtlasTreeArgs) -> Result<TreeSummary> {
     if scene.meshes.is_empty() {
         bail!("{} has no meshes: nothing to build a tree of", args.dataset.display());
     }
+    // The tree merges triangles of many meshes into one frame: the scene's.
+    if !scene.local_origins.is_empty() {
+        bail!(
+            "{} has meshes at {} local origins (a scene too large for one f32 frame); atlas trees are built of scenes in one frame",
+            args.dataset.display(),
+            scene.local_origins.len()
+        );
+    }
     let diagonal = {
         let b = &scene.bounds;
         (0..3)
