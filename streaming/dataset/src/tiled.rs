@@ -489,6 +489,25 @@ mod tests {
     }
 
     #[test]
+    fn a_vertex_outside_its_slightly_loose_bounds_still_comes_back_exactly() {
+        // Validation lets bounds be loose by 1e-4 (1 + |coordinate|): a vertex at x =
+        // 8191.99951171875 under bounds from 8192.6 would, with the origin taken from the
+        // bounds (16,384), round to -8192 in its tile and come back as 8192.
+        let mut scene = Scene::new([391_250.0, 34.0, -5_819_500.0]);
+        let x = 8_191.999_5_f32;
+        let positions = [[x, 0.0, 0.0], [24_575.0, 0.0, 0.0], [24_575.0, 5.0, 0.0]];
+        scene
+            .push_mesh(0, &positions, &[[0.0, 1.0, 0.0]; 3], &[[0.0; 2]; 3], &[0, 1, 2])
+            .expect("a mesh");
+        scene.meshes[0].bounds.min[0] = 8192.6;
+        scene.validate(Path::new("scene")).expect("loose within the tolerance");
+        let tiled = TiledScene::of(&scene, 1).expect("tiles");
+        let tiles = read_tile_geometry(Path::new("geometry.pack"), &tiled.tree, &tiled.pack).expect("reads");
+        let back = scene_of_tiles(&tiled.tree, &tiles).expect("a scene");
+        assert_eq!(back.positions, scene.positions);
+    }
+
+    #[test]
     fn a_mesh_at_a_local_origin_keeps_its_micrometres_through_the_tiles() {
         // A mesh 500 km from the scene's origin, at its own origin with positions a
         // micrometre apart (the scene's f32 frame steps by 3 cm there), beside one at home:

@@ -53,6 +53,8 @@ pub const TILES_VERSION: u32 = 4;
 /// Bytes of one tile record.
 pub const TILE_RECORD_BYTES: usize = 128;
 const HEADER_BYTES: usize = 80;
+/// How far a tile's origin may lie from the scene's on any axis, metres: 2^24.
+pub const MAX_TILE_OFFSET_M: f64 = 16_777_216.0;
 
 /// How a tile's children refine it (3D Tiles' `refine`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -371,6 +373,17 @@ impl TileTree {
             if !tile.origin.iter().all(|v| v.is_finite()) {
                 return Err(bad(0, format!("origin {:?} is not finite", tile.origin)));
             }
+            // Within 2^24 m of the scene's origin, positions re-expressed there stay finite
+            // `f32`s, and whole-metre offsets stay exact (tiling.rs).
+            if (0..3).any(|a| (tile.origin[a] - self.origin[a]).abs() >= MAX_TILE_OFFSET_M) {
+                return Err(bad(
+                    0,
+                    format!(
+                        "origin {:?} lies 2^24 m or more from the scene's origin {:?} on an axis",
+                        tile.origin, self.origin
+                    ),
+                ));
+            }
             let bounded = (0..3).all(|a| {
                 tile.bounds_min[a].is_finite()
                     && tile.bounds_max[a].is_finite()
@@ -432,6 +445,26 @@ impl TileTree {
             }
             if tile.mesh_count > 0 {
                 meshes.push((tile.first_mesh, tile.mesh_count, index));
+            }
+        }
+        // Each tile's geometry is its own: tiles sharing bytes would make a small file
+        // decode into any number of copies of a large blob.
+        let mut ranges: Vec<(u64, u64, usize)> = self
+            .tiles
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t.geometry_len > 0)
+            .map(|(index, t)| (t.geometry_offset, t.geometry_offset + t.geometry_len, index))
+            .collect();
+        ranges.sort_unstable();
+        for pair in ranges.windows(2) {
+            let ((_, end, a), (start, _, b)) = (pair[0], pair[1]);
+            if start < end {
+                return Err(corrupt(
+                    path,
+                    self.record_offset(b) + 64,
+                    format!("tile {b}: geometry from byte {start} overlaps tile {a}'s, which ends at {end}"),
+                ));
             }
         }
         for root in self.roots.clone() {
@@ -668,6 +701,14 @@ mod tests {
             (
                 "6 mesh ids, but the tiles' meshes end at 5",
                 Box::new(|t| t.tiles[2].mesh_count = 1),
+            ),
+            (
+                "tile 2: geometry from byte 300 overlaps tile 1's",
+                Box::new(|t| t.tiles[2].geometry_offset = 300),
+            ),
+            (
+                "lies 2^24 m or more from the scene's origin",
+                Box::new(|t| t.tiles[1].origin[2] = -2.5e6 - 2.0e7),
             ),
             ("mesh 4 is listed twice", Box::new(|t| t.mesh_ids[0] = 4)),
             ("mesh id 6 is past the 6 meshes", Box::new(|t| t.mesh_ids[5] = 6)),

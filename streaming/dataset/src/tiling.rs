@@ -8,8 +8,8 @@
 //! that or [`MIN_LEAF_SIDE_M`] across.
 //!
 //! Each tile's origin is the scene's origin plus an offset: on each axis
-//! the centre of its meshes' bounds rounded to whole metres, or 0 where that centre lies
-//! within the tile's own extent (plus a metre) of the scene's origin. Positions relative to
+//! the centre of its vertices' box rounded to whole metres, or 0 where that centre lies
+//! within the box's extent (plus a metre) of the scene's origin. Positions relative to
 //! it are then `f32` finer than 0.03 mm anywhere in a 256 m tile, however far from the
 //! scene's origin the tile lies, and re-expressing is exact: an `f32` position `p` in the
 //! scene's frame moves by a whole number of metres to `q`, no larger than `p` (so no
@@ -122,26 +122,39 @@ fn split_into(scene: &Scene, cell: [i64; 2], side: f64, meshes: Vec<u32>, tiles:
 }
 
 /// The origin of a tile of `meshes`: the scene's origin plus, on each axis, the centre of
-/// their bounds rounded to whole metres, or 0 where that offset is under the bounds'
+/// their vertices' box rounded to whole metres, or 0 where that offset is under the box's
 /// extent plus a metre (there a vertex may lie nearer the scene's origin than the tile's
 /// centre, and moving it would coarsen its `f32`; the module's docs say why this makes
-/// re-expressing exact); the scene's origin for meshes with no bounds.
+/// re-expressing exact); the scene's origin for meshes with no vertices.
 fn origin_of(scene: &Scene, meshes: &[u32]) -> [f64; 3] {
+    // From the positions themselves, not the meshes' bounds, which validation allows to be
+    // a little loose: exactness needs every vertex no nearer the scene's origin than its
+    // offset from the tile's.
     let mut low = [f64::INFINITY; 3];
     let mut high = [f64::NEG_INFINITY; 3];
     for &mesh in meshes {
-        if let Some((_, l, h)) = placed(scene, mesh) {
+        let Some(m) = scene.meshes.get(mesh as usize) else {
+            continue;
+        };
+        let offset = scene.offset_of(m);
+        let first = m.first_vertex as usize;
+        for p in scene
+            .positions
+            .get(first..first + m.vertex_count as usize)
+            .unwrap_or(&[])
+        {
             for a in 0..3 {
-                low[a] = low[a].min(l[a]);
-                high[a] = high[a].max(h[a]);
+                let v = offset[a] + f64::from(p[a]);
+                low[a] = low[a].min(v);
+                high[a] = high[a].max(v);
             }
         }
     }
-    if !low[0].is_finite() {
+    if !(0..3).all(|a| low[a].is_finite() && high[a].is_finite()) {
         return scene.origin;
     }
     std::array::from_fn(|a| {
-        let offset = (0.5 * (low[a] + high[a]) - scene.origin[a]).round();
+        let offset = (0.5 * (low[a] + high[a])).round();
         if offset.abs() >= high[a] - low[a] + 1.0 {
             scene.origin[a] + offset
         } else {
