@@ -214,12 +214,8 @@ pub fn tiled_city_geometry(
     frame_origin: DVec3,
 ) -> Result<(Vec<Vertex>, Vec<u32>, Vec<CityMesh>)> {
     let invalid = |what: String| EngineError::InvalidRequest(format!("tiled city: {what}"));
-    if tiles.len() != tree.tiles.len() {
-        return Err(invalid(format!(
-            "{} tiles' geometry for {} tiles",
-            tiles.len(),
-            tree.tiles.len()
-        )));
+    if let Some(what) = citystream_dataset::tiled::geometry_mismatch(tree, tiles) {
+        return Err(invalid(what));
     }
     let mesh_count = usize::try_from(tree.mesh_count()).map_err(|_| invalid("too many meshes".into()))?;
     let mut meshes: Vec<Option<CityMesh>> = vec![None; mesh_count];
@@ -228,13 +224,6 @@ pub fn tiled_city_geometry(
         let origin = DVec3::from(record.origin) - frame_origin;
         let vertex_base = vertices.len() as u64;
         let index_base = indices.len() as u64;
-        if tile.meshes.len() as u64 != u64::from(record.mesh_count) {
-            return Err(invalid(format!(
-                "tile {t} holds {} meshes, its record {}",
-                tile.meshes.len(),
-                record.mesh_count
-            )));
-        }
         for (i, mesh) in tile.meshes.iter().enumerate() {
             let id = tree.mesh_ids[record.first_mesh as usize + i] as usize;
             let info = textures

@@ -251,6 +251,32 @@ fn tile_blob<'a>(path: &Path, index: usize, record: &TileRecord, pack: &'a [u8])
         })
 }
 
+/// What is wrong in giving `tiles` as the geometry of `tree`'s tiles, in its order: another
+/// count of tiles, or a tile holding another count of meshes than its record; `None` where
+/// they agree (what [`scene_of_tiles`] and the engine's drawing of tiles rely on).
+pub fn geometry_mismatch(tree: &TileTree, tiles: &[TileGeometry]) -> Option<String> {
+    if tiles.len() != tree.tiles.len() {
+        return Some(format!(
+            "{} tiles' geometry for {} tiles",
+            tiles.len(),
+            tree.tiles.len()
+        ));
+    }
+    tree.tiles
+        .iter()
+        .zip(tiles)
+        .enumerate()
+        .find_map(|(t, (record, tile))| {
+            (tile.meshes.len() as u64 != u64::from(record.mesh_count)).then(|| {
+                format!(
+                    "tile {t} holds {} meshes, its record {}",
+                    tile.meshes.len(),
+                    record.mesh_count
+                )
+            })
+        })
+}
+
 /// The scene `tiles` (the geometry of `tree`'s tiles, in its order) hold, meshes in the
 /// order of their ids. A mesh goes into the scene's frame (its positions plus its tile's
 /// offset from the scene's origin, in `f64`, rounded to `f32`) where that loses nothing (every
@@ -261,23 +287,12 @@ fn tile_blob<'a>(path: &Path, index: usize, record: &TileRecord, pack: &'a [u8])
 /// mesh count.
 pub fn scene_of_tiles(tree: &TileTree, tiles: &[TileGeometry]) -> Result<Scene, DatasetError> {
     let invalid = |what: String| DatasetError::InvalidInput(format!("tiled scene: {what}"));
-    if tiles.len() != tree.tiles.len() {
-        return Err(invalid(format!(
-            "{} tiles' geometry for {} tiles",
-            tiles.len(),
-            tree.tiles.len()
-        )));
+    if let Some(what) = geometry_mismatch(tree, tiles) {
+        return Err(invalid(what));
     }
     // Where each mesh id lies: (tile, the mesh's place in it).
     let mut location = vec![None::<(u32, u32)>; tree.mesh_ids.len()];
-    for (t, (record, tile)) in tree.tiles.iter().zip(tiles).enumerate() {
-        if tile.meshes.len() as u64 != u64::from(record.mesh_count) {
-            return Err(invalid(format!(
-                "tile {t} holds {} meshes, its record {}",
-                tile.meshes.len(),
-                record.mesh_count
-            )));
-        }
+    for (t, record) in tree.tiles.iter().enumerate() {
         for k in 0..record.mesh_count {
             let id = tree.mesh_ids[(record.first_mesh + k) as usize];
             location[id as usize] = Some((t as u32, k));
